@@ -1,0 +1,32 @@
+# Two commands on a fresh machine:  `make demo`  and  `make test`.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+OUT ?= out
+
+.PHONY: setup demo test test-slow bench clean
+
+$(BIN)/lobula: pyproject.toml
+	$(PY) -m venv $(VENV)
+	# The CPU build of torch first: an unpinned torch would pull GBs of CUDA wheels.
+	$(BIN)/pip install -q "torch==2.13.0" || $(BIN)/pip install -q "torch>=2.1,<3"
+	$(BIN)/pip install -q -e ".[test]"
+	touch $(BIN)/lobula
+
+setup: $(BIN)/lobula
+
+demo: setup
+	$(BIN)/lobula scene $(OUT)/track --profile ../shared/data/flivver_d435i/velocity.csv --start 0 --duration 30 --scale 0.5
+	$(BIN)/lobula velocity $(OUT)/track --front-end dis --out $(OUT)/run.nc --plot $(OUT)/run.png
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+test-slow: setup
+	$(BIN)/python -m pytest -q -m slow
+
+bench: setup
+	$(BIN)/lobula bench
+
+clean:
+	rm -rf $(OUT) .pytest_cache

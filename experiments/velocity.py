@@ -1,0 +1,259 @@
+"""Velocity estimation on footage: stream frames through a front end, pool, read out, score.
+
+``estimate_velocity(footage, config)`` returns the DESIGN.md velocity Dataset: dims
+``time`` and ``field``; ``v_hat``, ``observable``, ``accel``, ``r``, ``r2``, ``r_dot``,
+``v_field`` and ``v_true`` when truth exists; the whole configuration, the front end,
+the filter kind, the acceleration source and the version in ``attrs``.
+"""
+from __future__ import annotations
+
+import json
+import re
+import time as _time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+from tqdm.auto import tqdm
+
+from lobula.config import VelocityConfig
+from lobula.epipole import EpipoleEstimator, derotate, mean_angular_velocity
+from lobula.flow import FlowSample, StaggeredFlow
+from lobula.haltere import forward_acceleration, resample_to
+from lobula.readout import readout
+from lobula.receptive_field import ReceptiveFields, gap_correction, pool_fields, tile_fields
+from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
+                             read_flo)
+
+from .store import provenance
+
+
+@dataclass
+class FieldRates:
+    """What the front end and fields give the readout, time-major.
+
+    t (n,) s; r, r2 (n, F); epipole (n, 2) normalised; timings: seconds per stage.
+    """
+
+    t: np.ndarray
+    r: np.ndarray
+    r2: np.ndarray
+    epipole: np.ndarray
+    timings: dict
+    fields: ReceptiveFields
+
+
+def flo_samples(footage: Footage, flo_files: list[Path], units: FloUnits):
+    """FlowSamples from .flo files named ``*_<i0>_to_<i1>.flo`` (raw frame numbers or indices)."""
+    by_name = {int(f.stem): i for i, f in enumerate(footage.files) if f.stem.isdigit()}
+    for path in flo_files:
+        m = re.search(r"(\d+)_to_(\d+)\.flo$", path.name)
+        if not m:
+            raise FootageError(f"{path}: .flo files must be named *_<first>_to_<second>.flo")
+        a, b = int(m.group(1)), int(m.group(2))
+        t0, t1 = _frame_time(footage, a, by_name), _frame_time(footage, b, by_name)
+        flow = flo_to_normalised(read_flo(path), footage.camera, units)
+        yield FlowSample(a, t0, t1, flow)
+
+
+def _frame_time(footage: Footage, frame: int, by_name: dict) -> float:
+    if frame in by_name:
+        return float(footage.times[by_name[frame]])
+    if footage.kind == "d435i-sample":
+        vel = footage.truth
+        # raw_frame = sample + 3; time_s is the sample's time.
+        k = frame - 3
+        if 0 <= k < len(vel["time_s"]):
+            return float(vel["time_s"][k])
+    raise FootageError(f"no time known for frame {frame} in {footage.path}")
+
+
+def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] | None = None,
+                flo_units: FloUnits | None = None, progress: bool = True) -> FieldRates:
+    """Run the front end over the footage (streamed) and pool every flow into the fields."""
+    cam = footage.camera
+    fields = tile_fields(cam, config.fields)
+    x, y = fields.x, fields.y
+    # ~5,000 pixels are plenty for a 2-parameter fit, whatever the image size.
+    est = EpipoleEstimator(x, y, stride=max(1, int(np.sqrt(cam.width * cam.height / 5000))))
+    gyro = footage.imu.gyro if (footage.imu is not None and footage.imu.gyro is not None) else None
+    timings = dict(read=0.0, flow=0.0, fields=0.0)
+
+    if config.front_end == "flo":
+        if not flo_files:
+            raise FootageError("--front-end flo needs --flo FILE_OR_DIR with *_<first>_to_<second>.flo files")
+        samples = flo_samples(footage, flo_files, flo_units or FloUnits())
+        total = len(flo_files)
+    elif config.front_end in ("dis", "farneback"):
+        config.flow.method = config.front_end
+        frames = _timed(footage.frames(), timings, "read")
+        samples = StaggeredFlow(cam, config.flow).run(frames)
+        total = max(len(footage) - config.flow.gap, 0)
+    else:
+        raise ValueError(f"front end {config.front_end!r} is not available in this pipeline "
+                         f"(choose dis, farneback or flo)")
+
+    ts, rs, r2s, es = [], [], [], []
+    bar = tqdm(total=total, desc=f"{config.front_end} flow → fields", unit="frame", disable=not progress,
+               leave=False, mininterval=2)
+    it = iter(samples)
+    while True:
+        read_before, t0 = timings["read"], _time.perf_counter()
+        try:
+            s = next(it)
+        except StopIteration:
+            break
+        t1 = _time.perf_counter()
+        timings["flow"] += (t1 - t0) - (timings["read"] - read_before)
+        flow = s.flow
+        if config.derotate and gyro is not None:
+            flow = derotate(flow, mean_angular_velocity(footage.imu.time_s, gyro, s.t0, s.t1), x, y)
+        e = est.update(flow) if config.epipole == "estimate" else np.zeros(2)
+        r, r2 = pool_fields(flow, fields, e, pooling=config.fields.pooling)
+        if config.fields.gap_correction:
+            r, r2 = gap_correction(r * s.dt, r2 * s.dt ** 2, 1.0)
+            r, r2 = r / s.dt, r2 / s.dt ** 2
+        timings["fields"] += _time.perf_counter() - t1
+        ts.append(s.t_mid if config.timestamps == "mid" else s.t0)
+        rs.append(r)
+        r2s.append(r2)
+        es.append(e)
+        bar.update(1)
+    bar.close()
+    if not ts:
+        raise FootageError(f"{footage.path}: too few frames for a flow pair "
+                           f"({len(footage)} frames, gap {config.flow.gap})")
+    return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.array(es), timings, fields)
+
+
+def _timed(frames, timings, key):
+    """Pass items through, adding the time spent producing each to timings[key]."""
+    it = iter(frames)
+    while True:
+        t0 = _time.perf_counter()
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        timings[key] += _time.perf_counter() - t0
+        yield item
+
+
+def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig) -> tuple[np.ndarray, str]:
+    """Forward acceleration (m/s²) at ``times`` and a label saying where it came from."""
+    causal = config.readout.filter == "causal"
+    if config.accel_from_truth or footage.imu is None:
+        if not config.accel_from_truth and footage.kind != "d435i-sample":
+            raise FootageError(f"{footage.path / 'imu.csv'}: missing; velocity needs forward acceleration. "
+                               f"Add imu.csv, or pass --accel-from-truth to use truth.csv")
+        if footage.truth is None:
+            raise FootageError(f"{footage.path}: no IMU and no truth to derive acceleration from")
+        tt, at = acceleration_from_truth(footage.truth)
+        return np.interp(times, tt, at), "ground truth (smoothed derivative of velocity; no IMU)"
+    imu = footage.imu
+    if times[0] < imu.time_s[0] - 0.5 or times[-1] > imu.time_s[-1] + 0.5:
+        raise FootageError(f"{footage.path / 'imu.csv'}: covers {imu.time_s[0]:.2f}..{imu.time_s[-1]:.2f} s "
+                           f"but frames need {times[0]:.2f}..{times[-1]:.2f} s; the time stamps do not match")
+    a = forward_acceleration(imu.time_s, imu.accel, imu.gyro if config.derotate else None, causal=causal)
+    dt = float(np.median(np.diff(footage.times)))
+    return resample_to(times, imu.time_s, a, dt), "accelerometer (gravity and bias removed)"
+
+
+def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, progress: bool = True,
+                      flo_files: list[Path] | None = None, flo_units: FloUnits | None = None) -> xr.Dataset:
+    """Estimate forward velocity over a footage; returns the velocity Dataset (see module doc)."""
+    config = config or VelocityConfig()
+    t_start = _time.perf_counter()
+    rates = field_rates(footage, config, flo_files, flo_units, progress)
+    a, accel_source = forward_accel_at(footage, rates.t, config)
+    fields = rates.fields
+    t0 = _time.perf_counter()
+    if len(rates.t) >= 3:
+        res = readout(rates.t, rates.r, rates.r2, a, config.readout)
+    else:
+        res = None
+    rates.timings["readout"] = _time.perf_counter() - t0
+    n, F = rates.r.shape
+    nan_nf = np.full((n, F), np.nan)
+    data = dict(
+        v_hat=("time", res.v_hat if res else np.full(n, np.nan), {"units": "m/s", "long_name": "estimated forward velocity"}),
+        observable=("time", res.observable if res else np.zeros(n, bool), {"long_name": "velocity observable"}),
+        v_std=("time", res.v_std if res else np.full(n, np.nan), {"units": "m/s", "long_name": "posterior std of v_hat"}),
+        accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": accel_source}),
+        r=(("time", "field"), rates.r, {"units": "1/s", "long_name": "pooled expansion rate v/d"}),
+        r2=(("time", "field"), rates.r2, {"units": "1/s2", "long_name": "pooled mean of r squared"}),
+        r_dot=(("time", "field"), res.r_dot if res else nan_nf, {"units": "1/s2"}),
+        v_field=(("time", "field"), res.v_field if res else nan_nf, {"units": "m/s"}),
+        epipole_x=("time", rates.epipole[:, 0], {"units": "1", "long_name": "epipole, normalised x"}),
+        epipole_y=("time", rates.epipole[:, 1], {"units": "1", "long_name": "epipole, normalised y"}),
+    )
+    if footage.truth is not None:
+        data["v_true"] = ("time", np.interp(rates.t, footage.truth["time_s"], footage.truth["v_forward_m_s"]),
+                          {"units": "m/s", "long_name": "ground-truth forward velocity"})
+    coords = dict(time=("time", rates.t, {"units": "s"}),
+                  azimuth_deg=("field", fields.centres_deg[:, 0]),
+                  elevation_deg=("field", fields.centres_deg[:, 1]),
+                  size_deg=("field", np.full(F, fields.size_deg)))
+    ds = xr.Dataset(data, coords=coords)
+    ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=config.readout.filter,
+                               readout=config.readout.method, acceleration_source=accel_source,
+                               footage=str(footage.path), footage_kind=footage.kind,
+                               notes="; ".join(footage.notes) or "none",
+                               timings_s=json.dumps({k: round(v, 4) for k, v in rates.timings.items()}),
+                               wall_s=round(_time.perf_counter() - t_start, 3)))
+    return ds
+
+
+def score(ds: xr.Dataset, skip_s: float = 2.0) -> dict:
+    """RMSE and median absolute error of v̂ against truth after ``skip_s``, and the observable fraction.
+
+    Errors are over observable frames; the fraction says how many those are.
+    """
+    if "v_true" not in ds:
+        return {}
+    keep = (ds.time >= ds.time[0] + skip_s).values
+    obs = ds.observable.values[keep]
+    err = (ds.v_hat - ds.v_true).values[keep][obs]
+    out = dict(observable_fraction=float(obs.mean()) if obs.size else 0.0, n_frames=int(keep.sum()))
+    if err.size:
+        out.update(rmse_m_s=float(np.sqrt(np.mean(err ** 2))), median_abs_error_m_s=float(np.median(np.abs(err))))
+    else:
+        out.update(rmse_m_s=float("nan"), median_abs_error_m_s=float("nan"))
+    return out
+
+
+def plot_velocity(ds: xr.Dataset, path, title: str | None = None):
+    """A PNG of v̂ (with its ±1 std band and unobservable spans) against truth, and the acceleration."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .store import save_figure
+
+    t = ds.time.values
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True, gridspec_kw=dict(height_ratios=[3, 1]))
+    if "v_true" in ds:
+        ax.plot(t, ds.v_true, "k--", lw=1.2, label="truth")
+    v, s = ds.v_hat.values, ds.v_std.values
+    ax.plot(t, v, color="m", lw=1.6, label=f"v̂ ({ds.attrs.get('front_end')}, {ds.attrs.get('readout')}, "
+                                             f"{ds.attrs.get('filter')})")
+    if np.isfinite(s).any():
+        ax.fill_between(t, v - s, v + s, color="m", alpha=0.2, lw=0)
+    unobs = ~ds.observable.values
+    if unobs.any():
+        ax.fill_between(t, 0, 1, where=unobs, transform=ax.get_xaxis_transform(), color="0.85", lw=0,
+                        label="unobservable")
+    sc = score(ds)
+    if sc:
+        ax.set_title(title or f"RMSE {sc['rmse_m_s']:.3f} m/s after 2 s, observable {100 * sc['observable_fraction']:.0f}%")
+    ax.set_ylabel("forward velocity (m/s)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax2.plot(t, ds.accel, color="tab:blue", lw=1)
+    ax2.axhline(0, color="0.5", lw=0.5)
+    ax2.set_ylabel("a (m/s²)")
+    ax2.set_xlabel("time (s)")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+    plt.close(fig)
+    return path

@@ -1,0 +1,65 @@
+"""The velocity pipeline's configuration: one dataclass per stage, gathered in one object.
+
+Every output carries ``VelocityConfig.to_json()`` and the package version, so a file
+says exactly how it was made; :meth:`VelocityConfig.from_json` rebuilds the run.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+
+from .flow import FlowConfig
+from .readout import ReadoutConfig
+from .receptive_field import FieldConfig
+
+
+@dataclass
+class VelocityConfig:
+    """Velocity estimation from footage.
+
+    front_end: "dis" | "farneback" | "flo" | "emd". epipole: "estimate" (from the
+    derotated flow) or "principal" (assume the principal point, as the paper does).
+    derotate: subtract gyro-predicted rotational flow when a gyroscope is present.
+    timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
+    "start" (the paper: to its first frame). accel_from_truth: take forward
+    acceleration from truth.csv instead of the IMU (labelled in the output).
+    """
+
+    front_end: str = "dis"
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    fields: FieldConfig = field(default_factory=FieldConfig)
+    readout: ReadoutConfig = field(default_factory=ReadoutConfig)
+    epipole: str = "estimate"
+    derotate: bool = True
+    timestamps: str = "mid"
+    accel_from_truth: bool = False
+
+    def __post_init__(self):
+        if self.epipole not in ("estimate", "principal"):
+            raise ValueError(f"epipole must be 'estimate' or 'principal', got {self.epipole!r}")
+        if self.timestamps not in ("mid", "start"):
+            raise ValueError(f"timestamps must be 'mid' or 'start', got {self.timestamps!r}")
+
+    @classmethod
+    def paper(cls, front_end: str = "dis", filter: str = "zero-phase") -> "VelocityConfig":
+        """The FLIVVER paper's text: 6-frame pairs stamped at their first frame, epipole at the
+        principal point, per-pixel v/d averaged in 5° fields, the paper's median readout."""
+        return cls(front_end=front_end, flow=FlowConfig(gap=6),
+                   fields=FieldConfig(size_deg=5.0, pooling="pixel-mean", gap_correction=False),
+                   readout=ReadoutConfig.paper(filter), epipole="principal", timestamps="start")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "VelocityConfig":
+        kinds = {f.name: f.type for f in fields(cls)}
+        sub = dict(flow=FlowConfig, fields=FieldConfig, readout=ReadoutConfig)
+        return cls(**{k: (sub[k](**v) if k in sub else v) for k, v in d.items() if k in kinds})
+
+    @classmethod
+    def from_json(cls, text: str) -> "VelocityConfig":
+        return cls.from_dict(json.loads(text))

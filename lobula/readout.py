@@ -1,0 +1,295 @@
+"""The readout: absolute forward velocity from pooled r̄_f, r²̄_f, their derivative and acceleration.
+
+Geometry (DESIGN.md): ṙ = a/d + r², so for each receptive field
+``v_f = a·r̄_f / (ṙ̄_f − r²̄_f)`` and ``d_f = a / (ṙ̄_f − r²̄_f)``.
+
+Two readouts share this arithmetic:
+
+* ``"median"`` — the paper's text, step by step: first-order Butterworth
+  (wn = 0.04·Nyquist) on r̄_f, a 5-frame staggered difference for ṙ̄_f, v_f per field,
+  the median across fields, a final Butterworth. Its error concentrates where a
+  changes sign or stays near zero, because v_f is then a ratio of two small numbers.
+* ``"kalman"`` — the project's default. r̄, r²̄ and a pass through the *same*
+  low-pass so the three terms stay in phase; fields whose implied depth d_f is not a
+  physical, positive distance are rejected; the median of the rest is a measurement of
+  v whose uncertainty comes from the spread across fields; and a two-state Kalman
+  filter (v, accelerometer offset) integrates the acceleration between informative
+  frames (the remedy the paper's discussion proposes). When nothing moves in the image,
+  ``v = r·d`` with ``d`` bounded says the camera is still. The zero-phase variant is a
+  Rauch–Tung–Striebel smoother; the causal one is the forward filter, with the
+  measurement's filter and difference latency bridged by integrating acceleration.
+  v̂ is NaN (``observable`` False) wherever the posterior standard deviation exceeds
+  ``max_std_m_s``: the readout says when it does not know.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy import signal
+
+
+@dataclass
+class ReadoutConfig:
+    """Readout parameters (SI units).
+
+    method: "kalman" (project default) or "median" (the paper).
+    filter: "zero-phase" (offline, the paper's) or "causal" (online).
+    paper_wn / paper_order: the paper's Butterworth (fraction of Nyquist, order).
+    stagger: frames between the two samples of the difference for ṙ̄.
+    cutoff_hz / order: the kalman readout's common low-pass of r̄, r²̄ and a.
+    accel_min_m_s2: |a| below this carries no depth information (noise floor of a filtered accelerometer).
+    depth_min_m / depth_max_m: physical range of depths a field may imply.
+    min_valid_fraction: fraction of fields that must agree on a physical depth.
+    rest_depth_max_m: farthest depth assumed in view when judging "no flow means no motion".
+    accel_noise: white acceleration noise driving v (m/s²/√Hz); bias_walk: offset random walk (m/s²/√s).
+    bias_prior_m_s2: prior std of the accelerometer offset; v_prior_m_s: prior std of v.
+    meas_floor_m_s: smallest standard deviation granted to one frame's measurement.
+    max_std_m_s: posterior std above which v̂ is reported as unobservable (NaN).
+    """
+
+    method: str = "kalman"
+    filter: str = "zero-phase"
+    paper_wn: float = 0.04
+    paper_order: int = 1
+    stagger: int = 4
+    cutoff_hz: float = 1.0
+    order: int = 2
+    accel_min_m_s2: float = 0.03
+    depth_min_m: float = 0.1
+    depth_max_m: float = 20.0
+    min_valid_fraction: float = 0.25
+    rest_depth_max_m: float = 5.0
+    accel_noise: float = 0.05
+    bias_walk: float = 0.002
+    bias_prior_m_s2: float = 0.1
+    v_prior_m_s: float = 1.0
+    meas_floor_m_s: float = 0.02
+    max_std_m_s: float = 0.1
+
+    def __post_init__(self):
+        if self.method not in ("kalman", "median"):
+            raise ValueError(f"unknown readout method {self.method!r}; use 'kalman' or 'median'")
+        if self.filter not in ("zero-phase", "causal"):
+            raise ValueError(f"unknown filter kind {self.filter!r}; use 'zero-phase' or 'causal'")
+
+    @classmethod
+    def paper(cls, filter: str = "zero-phase") -> "ReadoutConfig":
+        """The paper's readout as its text states it."""
+        return cls(method="median", filter=filter, stagger=5)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class ReadoutResult:
+    """Per-frame outputs, time-major: v_hat (n,) m/s (NaN where unobservable), observable (n,),
+    v_std (n,), v_field (n, F), r_dot (n, F) 1/s², measurement (n,) and its std (n,), accel used (n,)."""
+
+    v_hat: np.ndarray
+    observable: np.ndarray
+    v_std: np.ndarray
+    v_field: np.ndarray
+    r_dot: np.ndarray
+    measurement: np.ndarray
+    measurement_std: np.ndarray
+    accel: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def _fill_nan(x: np.ndarray) -> np.ndarray:
+    """Linearly interpolate NaNs along axis 0 (edges held), so filters can run through gaps."""
+    x = np.array(x, dtype=float)
+    flat = x.reshape(len(x), -1)
+    idx = np.arange(len(x))
+    for j in np.flatnonzero(~np.isfinite(flat).all(0)):  # loop over affected columns only
+        ok = np.isfinite(flat[:, j])
+        flat[:, j] = np.interp(idx, idx[ok], flat[ok, j]) if ok.any() else 0.0
+    return flat.reshape(x.shape)
+
+
+def butterworth(x: np.ndarray, wn: float, order: int, zero_phase: bool) -> np.ndarray:
+    """Butterworth low-pass along axis 0 (wn: fraction of Nyquist); NaNs bridged, then restored."""
+    sos = signal.butter(order, min(wn, 0.99), output="sos")
+    nan = ~np.isfinite(x)
+    xf = _fill_nan(x)
+    if zero_phase:
+        y = signal.sosfiltfilt(sos, xf, axis=0, padlen=min(len(xf) - 1, 3 * (2 * len(sos) + 1)))
+    else:
+        zi = signal.sosfilt_zi(sos)
+        zi = zi.reshape(zi.shape + (1,) * (xf.ndim - 1)) * xf[:1]
+        y = signal.sosfilt(sos, xf, axis=0, zi=zi)[0]
+    y[nan] = np.nan
+    return y
+
+
+def staggered_difference(x: np.ndarray, stagger: int, dt: float, centred: bool) -> np.ndarray:
+    """Derivative by a difference ``stagger`` frames wide, along axis 0.
+
+    centred: (x[k + s/2] − x[k − s/2]) / (s·dt), which belongs to frame k (s even);
+    otherwise the paper's (x[k] − x[k − s]) / (s·dt), which belongs to k − s/2.
+    Frames without a partner are NaN.
+    """
+    out = np.full(x.shape, np.nan)
+    if stagger >= len(x):
+        return out
+    d = (x[stagger:] - x[:-stagger]) / (stagger * dt)
+    if centred:
+        h = stagger // 2
+        out[h:h + len(d)] = d
+    else:
+        out[stagger:] = d
+    return out
+
+
+def field_velocity(r, r2, r_dot, a):
+    """Per-field velocity v_f = a·r̄/(ṙ̄ − r²̄) and implied depth d_f = a/(ṙ̄ − r²̄), (n, F) each."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = r_dot - r2
+        depth = a[:, None] / denom
+        return r * depth, depth
+
+
+def paper_readout(t, r, r2, a, cfg: ReadoutConfig) -> ReadoutResult:
+    """The paper's readout (see module docstring)."""
+    zp = cfg.filter == "zero-phase"
+    dt = float(np.median(np.diff(t)))
+    rf = butterworth(r, cfg.paper_wn, cfg.paper_order, zp)
+    r_dot = staggered_difference(rf, cfg.stagger, dt, centred=False)
+    v_f, _ = field_velocity(r, r2, r_dot, a)
+    v_f = np.where(np.isfinite(v_f), v_f, np.nan)
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(v_f, axis=1)
+    v = butterworth(med, cfg.paper_wn, cfg.paper_order, zp) if np.isfinite(med).any() else med
+    # The paper has no notion of observability; we add only the honest minimum:
+    # without acceleration the ratio carries no speed information.
+    a_s = butterworth(a, cfg.paper_wn, cfg.paper_order, zp)
+    obs = np.isfinite(v) & (np.abs(a_s) >= cfg.accel_min_m_s2)
+    return ReadoutResult(np.where(obs, v, np.nan), obs, np.full(len(t), np.nan), v_f, r_dot, med,
+                         np.full(len(t), np.nan), a)
+
+
+def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
+    """One velocity measurement per frame from the fields, with its standard deviation.
+
+    Fields are kept when their implied depth lies in [depth_min, depth_max] (d > 0 is
+    geometry, not a tuning); a frame is informative when |a| ≥ accel_min and at least
+    min_valid_fraction of fields are kept. The std is the median's standard error
+    (1.253·1.4826·MAD/√n), floored. Returns z, std (n,) with NaN where uninformative,
+    and v_f (n, F) (NaN for rejected fields).
+    """
+    v_f, depth = field_velocity(r, r2, r_dot, a)
+    ok = np.isfinite(v_f) & (depth >= cfg.depth_min_m) & (depth <= cfg.depth_max_m)
+    ok &= (np.abs(a) >= cfg.accel_min_m_s2)[:, None]
+    v_f = np.where(ok, v_f, np.nan)
+    n_ok = ok.sum(1)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        z = np.nanmedian(v_f, axis=1)
+        mad = np.nanmedian(np.abs(v_f - z[:, None]), axis=1)
+    std = np.maximum(1.253 * 1.4826 * mad / np.sqrt(np.maximum(n_ok, 1)), cfg.meas_floor_m_s)
+    enough = n_ok >= max(3, cfg.min_valid_fraction * r.shape[1])
+    return np.where(enough, z, np.nan), np.where(enough, std, np.nan), v_f
+
+
+def rest_measurement(r, cfg: ReadoutConfig):
+    """v = r·d with 0 < d ≤ rest_depth_max: small flow everywhere bounds |v| (returns z = 0, std)."""
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        r_abs = np.nanmedian(np.abs(r), axis=1)
+    std = np.maximum(cfg.rest_depth_max_m * r_abs, cfg.meas_floor_m_s)
+    # It is a bound, not a noisy sample: repeating a loose bound frame after frame must
+    # not add up to confidence, so it only counts where it alone would be decisive.
+    use = np.isfinite(r_abs) & (std <= 0.5 * cfg.max_std_m_s)
+    return np.where(use, 0.0, np.nan), np.where(use, std, np.nan)
+
+
+def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool):
+    """Two-state (v, accelerometer offset b) Kalman filter/RTS smoother driven by a.
+
+    t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
+    absent. Returns posterior mean and std of v, (n,) each.
+    """
+    n = len(t)
+    x = np.array([0.0, 0.0])
+    P = np.diag([cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2])
+    xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 2)), np.zeros((n, 2, 2)), np.zeros((n, 2)),
+                                    np.zeros((n, 2, 2)), np.zeros((n, 2, 2)))
+    H = np.array([1.0, 0.0])
+    for k in range(n):  # a loop over time steps; the state is 2-dimensional
+        if k > 0:
+            dt = t[k] - t[k - 1]
+            F = np.array([[1.0, -dt], [0.0, 1.0]])
+            x = F @ x + np.array([0.5 * (a[k] + a[k - 1]) * dt, 0.0])
+            P = F @ P @ F.T + np.diag([cfg.accel_noise ** 2 * dt, cfg.bias_walk ** 2 * dt])
+            Fs[k] = F
+        xs_pred[k], Ps_pred[k] = x, P
+        for z, s in measurements:
+            if np.isfinite(z[k]) and np.isfinite(s[k]):
+                S = P[0, 0] + s[k] ** 2
+                K = P[:, 0] / S
+                x = x + K * (z[k] - x[0])
+                P = P - np.outer(K, H @ P)
+        xs[k], Ps[k] = x, P
+    if smooth:
+        for k in range(n - 2, -1, -1):
+            C = Ps[k] @ Fs[k + 1].T @ np.linalg.inv(Ps_pred[k + 1])
+            xs[k] = xs[k] + C @ (xs[k + 1] - xs_pred[k + 1])
+            Ps[k] = Ps[k] + C @ (Ps[k + 1] - Ps_pred[k + 1]) @ C.T
+    return xs[:, 0], np.sqrt(np.maximum(Ps[:, 0, 0], 0.0))
+
+
+def kalman_readout(t, r, r2, a, cfg: ReadoutConfig) -> ReadoutResult:
+    """The project's readout (see module docstring)."""
+    zp = cfg.filter == "zero-phase"
+    dt = float(np.median(np.diff(t)))
+    wn = cfg.cutoff_hz / (0.5 / dt)
+    rf = butterworth(r, wn, cfg.order, zp)
+    r2f = butterworth(r2, wn, cfg.order, zp)
+    af = butterworth(a, wn, cfg.order, zp)
+    stagger = max(2, cfg.stagger + cfg.stagger % 2)
+    if zp:
+        r_dot = staggered_difference(rf, stagger, dt, centred=True)
+        z, s, v_f = vision_measurement(rf, r2f, r_dot, af, cfg)
+        delay = 0.0
+    else:
+        # The backward difference belongs s/2 frames back; align r̄, r²̄ and a with it.
+        h = stagger // 2
+        r_dot = staggered_difference(rf, stagger, dt, centred=False)
+        lag = lambda x: np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:-h]])
+        z, s, v_f = vision_measurement(lag(rf), lag(r2f), r_dot, lag(af), cfg)
+        # Filter group delay at DC plus the difference's half-width: bridge it with ∫a.
+        w, gd = signal.group_delay(signal.butter(cfg.order, wn), w=[1e-3])
+        delay = float(gd[0]) * dt + h * dt
+        cum = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))])
+        z = z + (cum - np.interp(t - delay, t, cum))
+    zr, sr = rest_measurement(rf, cfg)
+    # Low-passed measurements are correlated over about 1/(2·cutoff) s; treating each
+    # frame as independent would make the posterior overconfident by √(that many frames).
+    s = s * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
+    v, v_std = kalman_velocity(t, a, [(z, s), (zr, sr)], cfg, smooth=zp)
+    obs = v_std <= cfg.max_std_m_s
+    return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
+                         info=dict(measurement_delay_s=delay))
+
+
+def readout(t, r, r2, a, config: ReadoutConfig | None = None) -> ReadoutResult:
+    """Velocity from per-frame field rates.
+
+    t (n,) s, uniformly spaced; r, r2 (n, F) in 1/s and 1/s²; a (n,) forward
+    acceleration at the same times (m/s², gravity removed).
+    """
+    cfg = config or ReadoutConfig()
+    t, r, r2, a = (np.asarray(x, dtype=float) for x in (t, r, r2, a))
+    if len(t) < 3:
+        raise ValueError(f"need at least 3 flow frames for a readout, got {len(t)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError("acceleration has NaN or inf at flow times")
+    fn = kalman_readout if cfg.method == "kalman" else paper_readout
+    return fn(t, r, r2, a, cfg)

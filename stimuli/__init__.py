@@ -1,0 +1,8 @@
+"""stimuli: everything that makes or reads input — synthetic scenes with exact truth, footage readers."""
+from .footage import (IMU, FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
+                      open_footage, read_flo, read_frame, write_footage)
+from .imu import IMUConfig, synthesize_imu
+from .scene import SceneConfig, TrackScene, band_limited_texture
+from .trajectory import Trajectory, read_velocity_profile, trajectory_from_function, trajectory_from_profile
+from .gratings import GratingConfig, drifting_grating_frames, drifting_grating_lattice
+from .track import TrackRunConfig, build_track, builtin_profile, make_track_run

@@ -1,0 +1,46 @@
+"""Shared fixtures: the real D435i sample (skipped when ../shared is absent) and synthetic replays.
+
+Replays are rendered once per test session into a temporary folder; each is a full
+footage folder, read back through the same reader users use.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from stimuli.scene import SceneConfig
+from stimuli.track import REAL_PROFILE, TrackRunConfig, make_track_run
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flivver_d435i"
+
+
+@pytest.fixture(scope="session")
+def d435i() -> Path:
+    if not (SHARED / "velocity.csv").exists():
+        pytest.skip(f"real D435i footage not found at {SHARED} (../shared/data is beside the repo in CI)")
+    return SHARED
+
+
+@pytest.fixture(scope="session")
+def real_profile() -> str:
+    if not REAL_PROFILE.exists():
+        pytest.skip(f"real velocity profile not found at {REAL_PROFILE}")
+    return str(REAL_PROFILE)
+
+
+@pytest.fixture(scope="session")
+def make_replay(tmp_path_factory, real_profile):
+    """Render (once per session) a replay of the real trajectory: make_replay(start, duration, **scene)."""
+    cache = {}
+
+    def make(start=0.0, duration=30.0, **scene_kwargs):
+        key = (start, duration, tuple(sorted(scene_kwargs.items())))
+        if key not in cache:
+            folder = tmp_path_factory.mktemp("replay") / "track"
+            cfg = TrackRunConfig(profile=real_profile, start_s=start, duration_s=duration, scale=0.5,
+                                 scene=SceneConfig(**scene_kwargs))
+            cache[key] = make_track_run(folder, cfg, progress=False)
+        return cache[key]
+
+    return make

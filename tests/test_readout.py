@@ -1,0 +1,92 @@
+"""The readout against analytic field rates from a known trajectory and known depths."""
+import numpy as np
+import pytest
+
+from lobula.readout import ReadoutConfig, butterworth, readout, staggered_difference
+
+
+def analytic_rates(v_fn, a_fn, t, depths0, dt=1e-3):
+    """Exact r = v/d and r² for fields at initial depths depths0 (m), integrating ḋ = −v."""
+    tt = np.arange(0, t[-1] + dt, dt)
+    s = np.cumsum(v_fn(tt)) * dt
+    d = depths0[None, :] - np.interp(t, tt, s)[:, None]
+    r = v_fn(t)[:, None] / d
+    return r, r ** 2, a_fn(t)
+
+
+def test_staggered_difference_is_exact_for_a_line_and_stamped_right():
+    t = np.arange(50) / 30.0
+    x = (3.0 * t)[:, None]
+    c = staggered_difference(x, 4, 1 / 30, centred=True)
+    b = staggered_difference(x, 4, 1 / 30, centred=False)
+    np.testing.assert_allclose(c[2:-2], 3.0)
+    np.testing.assert_allclose(b[4:], 3.0)
+    assert np.isnan(c[:2]).all() and np.isnan(b[:4]).all()
+    q = (t ** 2)[:, None]  # derivative 2t: exact at the centre of the interval
+    np.testing.assert_allclose(staggered_difference(q, 4, 1 / 30, True)[2:-2, 0], 2 * t[2:-2], atol=1e-12)
+
+
+def test_butterworth_zero_phase_has_no_lag_and_causal_does():
+    t = np.arange(600) / 30.0
+    x = np.sin(2 * np.pi * 0.2 * t)
+    zp = butterworth(x, 0.1, 2, True)
+    ca = butterworth(x, 0.1, 2, False)
+    lag = lambda y: np.argmax(np.correlate(y[100:500], x[100:500], "full")) - 399
+    assert lag(zp) == 0 and lag(ca) > 0  # causal output trails the input
+    xn = x.copy()
+    xn[200:205] = np.nan  # gaps are bridged, then restored
+    assert np.isnan(butterworth(xn, 0.1, 2, True)[200:205]).all()
+
+
+@pytest.mark.parametrize("method, filt", [("kalman", "zero-phase"), ("kalman", "causal"), ("median", "zero-phase")])
+def test_readout_recovers_velocity_from_exact_rates(method, filt):
+    # (The paper's readout run causally is not in this list: its raw r̄, r²̄ and lagged
+    # ṙ̄ are out of phase, which is why the kalman readout filters all three alike.)
+    v = lambda t: 0.3 + 0.2 * np.sin(2 * np.pi * t / 5)
+    a = lambda t: 0.2 * 2 * np.pi / 5 * np.cos(2 * np.pi * t / 5)
+    t = np.arange(0, 15, 1 / 30)
+    depths = np.linspace(7.0, 12.0, 24)  # the camera advances ~4.5 m in 15 s; all stay ahead
+    r, r2, acc = analytic_rates(v, a, t, depths)
+    cfg = ReadoutConfig(method=method, filter=filt)
+    res = readout(t, r, r2, acc, cfg)
+    m = (t > 2) & res.observable
+    err = (res.v_hat - v(t))[m]
+    # Exact inputs: what remains is the filters' own distortion.
+    bound = 0.03 if method == "kalman" else 0.08
+    assert np.sqrt(np.mean(err ** 2)) < bound
+    assert m.sum() > 0.5 * (t > 2).sum()
+
+
+def test_readout_says_it_does_not_know_without_acceleration():
+    t = np.arange(0, 10, 1 / 30)
+    v = lambda t: np.full_like(t, 0.4)
+    r, r2, _ = analytic_rates(v, lambda t: 0 * t, t, np.linspace(6, 9, 12))
+    rng = np.random.default_rng(0)
+    for a in (np.zeros_like(t), rng.normal(0, 0.005, t.shape)):
+        for method in ("kalman", "median"):
+            res = readout(t, r + rng.normal(0, 1e-3, r.shape), r2, a, ReadoutConfig(method=method))
+            assert not res.observable.any()
+            assert np.isnan(res.v_hat).all()
+            assert not np.isinf(res.v_field).any()
+
+
+def test_camera_at_rest_is_observable_as_rest():
+    t = np.arange(0, 6, 1 / 30)
+    rng = np.random.default_rng(1)
+    r = rng.normal(0, 2e-3, (len(t), 30))  # flow noise only
+    res = readout(t, r, r ** 2, rng.normal(0, 0.01, t.shape), ReadoutConfig())
+    assert res.observable[30:-30].all()
+    assert np.abs(res.v_hat[30:-30]).max() < 0.03
+
+
+def test_kalman_uncertainty_is_roughly_calibrated():
+    v = lambda t: 0.25 * np.sin(2 * np.pi * t / 6) + 0.1
+    a = lambda t: 0.25 * 2 * np.pi / 6 * np.cos(2 * np.pi * t / 6)
+    t = np.arange(0, 24, 1 / 30)
+    r, r2, acc = analytic_rates(v, a, t, np.linspace(3, 8, 40))
+    rng = np.random.default_rng(2)
+    noise = rng.normal(0, 0.02, r.shape)
+    res = readout(t, r + noise, r2 + 2 * r * noise, acc + rng.normal(0, 0.02, t.shape), ReadoutConfig())
+    m = res.observable & (t > 2)
+    z = np.abs(res.v_hat - v(t))[m] / res.v_std[m]
+    assert np.mean(z < 2) > 0.8
