@@ -5,6 +5,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 
 def _scene(args) -> int:
     from stimuli.scene import SceneConfig
@@ -38,6 +40,17 @@ def _velocity_config(args):
     if args.epipole:
         cfg.epipole = args.epipole
     cfg.accel_from_truth = args.accel_from_truth
+    if args.front_end == "emd":
+        from dataclasses import replace
+        e = cfg.emd
+        if args.dphi or args.drho:
+            e.lattice = replace(e.lattice, dphi_deg=args.dphi or e.lattice.dphi_deg,
+                                drho_deg=args.drho if args.drho else e.lattice.drho_deg)
+        if args.tau:
+            e.emd = replace(e.emd, tau_s=args.tau)
+        if args.emd_calibration:
+            from experiments.calibrate import read_calibration
+            e.calibration = read_calibration(args.emd_calibration)
     return cfg
 
 
@@ -62,7 +75,6 @@ def _velocity(args) -> int:
           f"[{ds.attrs['front_end']}, {ds.attrs['readout']} readout, {ds.attrs['filter']}; "
           f"acceleration: {ds.attrs['acceleration_source']}]")
     e = ds.epipole_x.values[-1], ds.epipole_y.values[-1]
-    import numpy as np
     print(f"epipole: ({np.degrees(np.arctan(e[0])):+.2f}°, {np.degrees(np.arctan(e[1])):+.2f}°) from the principal point")
     print(f"observable fraction: {float(ds.observable.mean()):.3f}")
     if sc:
@@ -75,6 +87,20 @@ def _velocity(args) -> int:
     if args.plot:
         plot_velocity(ds, args.plot)
         print(f"wrote {args.plot}")
+    return 0
+
+
+def _calibrate(args) -> int:
+    from experiments.calibrate import calibrate_emd, write_calibration
+    from lobula.config import VelocityConfig
+    from stimuli.footage import open_footage
+
+    fo = open_footage(args.footage)
+    gains, n = calibrate_emd(fo, VelocityConfig(front_end="emd"), per_field=not args.single_gain)
+    write_calibration(gains, args.out, str(fo.path))
+    g = np.atleast_1d(gains)
+    print(f"wrote {args.out}: {g.size} gain(s) from {n} frames with depth; median {np.median(g):.3f}, "
+          f"range {g.min():.3f}..{g.max():.3f}")
     return 0
 
 
@@ -113,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("velocity", help="estimate forward velocity from footage")
     v.add_argument("footage", help="footage folder, or the D435i sample folder")
-    v.add_argument("--front-end", default="dis", choices=["dis", "farneback", "flo"])
+    v.add_argument("--front-end", default="dis", choices=["dis", "farneback", "flo", "emd"])
     v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
     v.add_argument("--plot", help="PNG of v̂ against truth")
     v.add_argument("--paper", action="store_true", help="the paper's configuration, as its text states it")
@@ -129,9 +155,19 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--flo-gap", type=float, default=0.2, help="time between the .flo frame pair (s)")
     v.add_argument("--flo-size", type=int, nargs=2, default=[640, 448], metavar=("W", "H"),
                    help="image size the .flo refers to")
+    v.add_argument("--dphi", type=float, help="EMD front end: interommatidial angle (deg, default 0.75)")
+    v.add_argument("--drho", type=float, help="EMD front end: acceptance angle (deg, default = Δφ)")
+    v.add_argument("--tau", type=float, help="EMD front end: delay time constant (s, default 0.010)")
+    v.add_argument("--emd-calibration", help="EMD front end: gains JSON from `lobula calibrate-emd` on another scene")
     v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
     v.add_argument("--quiet", action="store_true")
     v.set_defaults(func=_velocity)
+
+    c = sub.add_parser("calibrate-emd", help="fit the EMD front end's per-field gains on a synthetic run")
+    c.add_argument("footage", help="a synthetic footage folder with depth/ and truth.csv (not a test scene)")
+    c.add_argument("--out", required=True, help="gains JSON for `lobula velocity --emd-calibration`")
+    c.add_argument("--single-gain", action="store_true", help="one gain for all fields")
+    c.set_defaults(func=_calibrate)
 
     b = sub.add_parser("bench", help="frames/s per stage and end to end, peak memory")
     b.add_argument("--frames", type=int, default=120)

@@ -18,6 +18,7 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from lobula.config import VelocityConfig
+from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import EpipoleEstimator, derotate, mean_angular_velocity
 from lobula.flow import FlowSample, StaggeredFlow
 from lobula.haltere import forward_acceleration, resample_to
@@ -80,6 +81,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     gyro = footage.imu.gyro if (footage.imu is not None and footage.imu.gyro is not None) else None
     timings = dict(read=0.0, flow=0.0, fields=0.0)
 
+    if config.front_end == "emd":
+        return _emd_field_rates(footage, config, fields, timings, progress)
     if config.front_end == "flo":
         if not flo_files:
             raise FootageError("--front-end flo needs --flo FILE_OR_DIR with *_<first>_to_<second>.flo files")
@@ -91,8 +94,7 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
         samples = StaggeredFlow(cam, config.flow).run(frames)
         total = max(len(footage) - config.flow.gap, 0)
     else:
-        raise ValueError(f"front end {config.front_end!r} is not available in this pipeline "
-                         f"(choose dis, farneback or flo)")
+        raise ValueError(f"unknown front end {config.front_end!r}; choose dis, farneback, flo or emd")
 
     ts, rs, r2s, es = [], [], [], []
     bar = tqdm(total=total, desc=f"{config.front_end} flow → fields", unit="frame", disable=not progress,
@@ -125,6 +127,28 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
         raise FootageError(f"{footage.path}: too few frames for a flow pair "
                            f"({len(footage)} frames, gap {config.flow.gap})")
     return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.array(es), timings, fields)
+
+
+def _emd_field_rates(footage: Footage, config: VelocityConfig, fields: ReceptiveFields, timings: dict,
+                     progress: bool) -> FieldRates:
+    """The EMD front end: lattice sampling, photoreceptors, EMDs, gradient-ratio fields."""
+    front = EMDFrontEnd(footage.camera, fields, config.emd)
+    frames = _timed(footage.frames(), timings, "read")
+    ts, rs, r2s = [], [], []
+    with tqdm(total=len(footage), desc="emd → fields", unit="frame", disable=not progress, leave=False,
+              mininterval=2) as bar:
+        for t, r, r2 in front.run(frames):
+            ts.append(t)
+            rs.append(r)
+            r2s.append(r2)
+            bar.update(1)
+    timings.pop("flow", None)
+    timings.pop("fields", None)
+    timings.update(front.timings)
+    timings["n_ommatidia"] = front.lattice.n
+    if len(ts) < 2:
+        raise FootageError(f"{footage.path}: too few frames for the EMD front end ({len(ts)})")
+    return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.zeros((len(ts), 2)), timings, fields)
 
 
 def _timed(frames, timings, key):

@@ -8,6 +8,8 @@ from .flow import FlowConfig, FlowSample, StaggeredFlow, pixel_to_angular
 from .haltere import forward_acceleration, resample_to
 from .readout import ReadoutConfig, ReadoutResult, readout
 from .receptive_field import FieldConfig, ReceptiveFields, gap_correction, pool_fields, tile_fields
+from .depth import DepthConfig, DepthResult, depth_metrics, depth_parallax, depth_ratio, depth_tv
+from .emd_decoding import EMDFrontEnd, EMDFrontEndConfig, fit_calibration, pair_pooling_weights
 from .emd import (EMDArray, EMDConfig, emd_coefficients, emd_init, emd_run, emd_sine_response,
                   emd_sine_response_discrete, emd_step)
 from .lattice import Lattice, LatticeConfig, acceptance_attenuation, dphi_for_count

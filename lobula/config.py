@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 
+from .emd_decoding import EMDFrontEndConfig
 from .flow import FlowConfig
 from .readout import ReadoutConfig
 from .receptive_field import FieldConfig
@@ -23,6 +24,8 @@ class VelocityConfig:
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
+    emd: the EMD front end (lattice, photoreceptors, EMD, decoding) when front_end is "emd";
+    its epipole is the principal point (the EMD path does not estimate one yet).
     """
 
     front_end: str = "dis"
@@ -33,6 +36,7 @@ class VelocityConfig:
     derotate: bool = True
     timestamps: str = "mid"
     accel_from_truth: bool = False
+    emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)
 
     def __post_init__(self):
         if self.epipole not in ("estimate", "principal"):
@@ -57,8 +61,9 @@ class VelocityConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "VelocityConfig":
         kinds = {f.name: f.type for f in fields(cls)}
-        sub = dict(flow=FlowConfig, fields=FieldConfig, readout=ReadoutConfig)
-        return cls(**{k: (sub[k](**v) if k in sub else v) for k, v in d.items() if k in kinds})
+        sub = dict(flow=FlowConfig, fields=FieldConfig, readout=ReadoutConfig, emd=EMDFrontEndConfig.from_dict)
+        return cls(**{k: (sub[k](**v) if k in sub and k != "emd" else sub[k](v) if k == "emd" else v)
+                      for k, v in d.items() if k in kinds})
 
     @classmethod
     def from_json(cls, text: str) -> "VelocityConfig":

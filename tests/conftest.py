@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 import pytest
 
 from stimuli.scene import SceneConfig
@@ -44,3 +46,18 @@ def make_replay(tmp_path_factory, real_profile):
         return cache[key]
 
     return make
+
+
+@pytest.fixture(scope="session")
+def replay_rates(make_replay):
+    """Field rates of the 0–30 s replay with the default DIS front end, and what a readout needs."""
+    from experiments.velocity import field_rates, forward_accel_at
+    from lobula.config import VelocityConfig
+    from stimuli.footage import open_footage
+
+    fo = open_footage(make_replay(0.0, 30.0))
+    cfg = VelocityConfig()
+    rates = field_rates(fo, cfg, progress=False)
+    a, _ = forward_accel_at(fo, rates.t, cfg)
+    v_true = np.interp(rates.t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
+    return rates, a, v_true

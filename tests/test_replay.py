@@ -3,10 +3,12 @@
 These are the issue's headline checks; each replay is rendered once per session
 (320×240, the default scene) and read back through the footage reader.
 """
+import json
+
 import numpy as np
 import pytest
 
-from experiments.velocity import estimate_velocity, field_rates, forward_accel_at, score
+from experiments.velocity import estimate_velocity, score
 from lobula.config import VelocityConfig
 from lobula.readout import ReadoutConfig, readout
 from stimuli.footage import open_footage
@@ -16,17 +18,6 @@ def rmse_after(t, v_hat, v_true, observable, skip=2.0):
     m = (t >= t[0] + skip)
     ok = m & observable
     return float(np.sqrt(np.mean((v_hat - v_true)[ok] ** 2))), float(ok.sum() / m.sum())
-
-
-@pytest.fixture(scope="module")
-def replay_rates(make_replay):
-    """Field rates of the 0–30 s replay with the default DIS front end, and what a readout needs."""
-    fo = open_footage(make_replay(0.0, 30.0))
-    cfg = VelocityConfig()
-    rates = field_rates(fo, cfg, progress=False)
-    a, _ = forward_accel_at(fo, rates.t, cfg)
-    v_true = np.interp(rates.t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
-    return rates, a, v_true
 
 
 def test_replay_default_dis_beats_the_bound(replay_rates):
@@ -75,7 +66,7 @@ def test_off_axis_translation(make_replay, replay_rates, yaw, pitch):
     ds = estimate_velocity(fo, VelocityConfig(), progress=False)
     ex, ey = ds.epipole_x.values[-1], ds.epipole_y.values[-1]
     # True epipole: the track direction seen from the camera.
-    import json
+
     true_e = json.loads((fo.path / "scene.json").read_text())["epipole"]
     err_deg = np.degrees(np.abs(np.arctan([ex, ey]) - np.arctan(true_e)))
     rates, a, v_true = replay_rates

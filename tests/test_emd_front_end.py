@@ -1,0 +1,83 @@
+"""The EMD front end feeding the velocity readout: decoding against exact r, replay, real frames."""
+import numpy as np
+import pytest
+
+from experiments.calibrate import calibrate_emd, exact_field_rates
+from experiments.velocity import estimate_velocity, field_rates, score
+from lobula.camera import PinholeCamera
+from lobula.config import VelocityConfig
+from lobula.readout import ReadoutConfig, readout
+from lobula.emd_decoding import EMDFrontEnd, EMDFrontEndConfig, fit_calibration
+from lobula.receptive_field import tile_fields
+from stimuli.footage import open_footage
+from stimuli.scene import SceneConfig
+from stimuli.track import TrackRunConfig, make_track_run
+
+
+@pytest.fixture(scope="module")
+def constant_run(tmp_path_factory):
+    cfg = TrackRunConfig(constant_velocity_m_s=0.4, duration_s=3.0, scale=0.5, scene=SceneConfig(seed=5))
+    return open_footage(make_track_run(tmp_path_factory.mktemp("emd") / "c", cfg, progress=False))
+
+
+def test_gradient_ratio_decoding_tracks_exact_expansion_rate(constant_run):
+    """Peripheral fields (where image motion is resolved) decode r = v/d to within tens of percent."""
+    cfg = VelocityConfig(front_end="emd")
+    idx, r_exact = exact_field_rates(constant_run, cfg)
+    fields = tile_fields(constant_run.camera, cfg.fields)
+    r_emd = np.array([r for _, r, _ in EMDFrontEnd(constant_run.camera, fields, cfg.emd).run(constant_run.frames())])
+    ecc = np.hypot(*fields.centres_deg.T)
+    late = idx >= 30  # photoreceptor high-pass settled
+    e, x = r_emd[idx[late]][:, ecc > 12], r_exact[late][:, ecc > 12]
+    ratio = np.median(e / x)
+    corr = np.corrcoef(e.ravel(), x.ravel())[0, 1]
+    print(f"\nEMD/exact r (fields > 12° out): median ratio {ratio:.3f}, correlation {corr:.3f}")
+    assert 0.6 < ratio < 1.4
+    assert corr > 0.5
+    assert np.all(np.sign(np.median(e, 0)) > 0)  # expansion everywhere
+
+
+def test_calibration_is_per_field_and_checked(constant_run):
+    gains, n = calibrate_emd(constant_run, VelocityConfig(front_end="emd"))
+    F = tile_fields(constant_run.camera).n_fields
+    assert gains.shape == (F,) and n > 3 and np.all(np.isfinite(gains))
+    assert fit_calibration(np.array([[1.0], [2.0]]), np.array([[2.0], [4.0]]), per_field=False) == 2.0
+    with pytest.raises(ValueError, match="gains"):
+        EMDFrontEnd(constant_run.camera, tile_fields(constant_run.camera),
+                    EMDFrontEndConfig(calibration=[1.0, 2.0]))
+
+
+def test_emd_replay_beside_dis(make_replay, replay_rates):
+    """EMD and DIS on the same 30 s replay; the EMD's RMSE is reported beside DIS's.
+
+    Measured: EMD 0.053 m/s, DIS 0.023 m/s (2.3×; the issue's target is 2×).
+    """
+    fo = open_footage(make_replay(0.0, 30.0))
+    emd = score(estimate_velocity(fo, VelocityConfig(front_end="emd"), progress=False))
+    rates, a, v_true = replay_rates
+    res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig())
+    m = (rates.t >= rates.t[0] + 2.0)
+    dis = dict(rmse_m_s=float(np.sqrt(np.mean((res.v_hat - v_true)[m & res.observable] ** 2))),
+               observable_fraction=float(res.observable[m].mean()))
+    print(f"\nreplay: EMD RMSE {emd['rmse_m_s']:.4f} (observable {emd['observable_fraction']:.3f}), "
+          f"DIS {dis['rmse_m_s']:.4f} ({dis['observable_fraction']:.3f}): {emd['rmse_m_s'] / dis['rmse_m_s']:.2f}x")
+    assert emd["rmse_m_s"] < 0.08 and emd["observable_fraction"] > 0.9
+    assert emd["rmse_m_s"] < 3.5 * dis["rmse_m_s"]
+
+
+def test_emd_and_dis_field_rates_agree_on_real_frames(d435i):
+    """Real D435i frames: EMD r̄_f against DIS r̄_f (both about the principal point).
+
+    Measured: correlation 0.35 over all (time, field) entries after the first 0.5 s
+    (the photoreceptor high-pass settling), 0.77 between the fields' time means.
+    """
+    fo = open_footage(d435i)
+    d = field_rates(fo, VelocityConfig(epipole="principal"), progress=False)
+    e = field_rates(fo, VelocityConfig(front_end="emd"), progress=False)
+    re = np.array([np.interp(d.t, e.t, e.r[:, f]) for f in range(e.r.shape[1])]).T
+    late = d.t > e.t[0] + 0.5
+    ok = np.isfinite(re) & np.isfinite(d.r) & late[:, None]
+    corr = np.corrcoef(re[ok], d.r[ok])[0, 1]
+    corr_mean = np.corrcoef(np.nanmean(re[late], 0), np.nanmean(d.r[late], 0))[0, 1]
+    print(f"\nreal frames: EMD vs DIS r̄_f correlation {corr:.3f} (all), {corr_mean:.3f} (field means)")
+    assert corr > 0.2 and corr_mean > 0.5
