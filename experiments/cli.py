@@ -50,7 +50,7 @@ def _velocity_config(args):
             e.emd = replace(e.emd, tau_s=args.tau)
         if args.emd_calibration:
             from experiments.calibrate import read_calibration
-            e.calibration = read_calibration(args.emd_calibration)
+            e.calibration, e.latency_s = read_calibration(args.emd_calibration)
     return cfg
 
 
@@ -96,11 +96,11 @@ def _calibrate(args) -> int:
     from stimuli.footage import open_footage
 
     fo = open_footage(args.footage)
-    gains, n = calibrate_emd(fo, VelocityConfig(front_end="emd"), per_field=not args.single_gain)
-    write_calibration(gains, args.out, str(fo.path))
+    gains, latency, n = calibrate_emd(fo, VelocityConfig(front_end="emd"), per_field=not args.single_gain)
+    write_calibration(gains, latency, args.out, str(fo.path))
     g = np.atleast_1d(gains)
     print(f"wrote {args.out}: {g.size} gain(s) from {n} frames with depth; median {np.median(g):.3f}, "
-          f"range {g.min():.3f}..{g.max():.3f}")
+          f"range {g.min():.3f}..{g.max():.3f}; latency {1000 * latency:.0f} ms")
     return 0
 
 
@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="frames/s per stage and end to end, peak memory")
     b.add_argument("--frames", type=int, default=120)
     b.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.5], help="image scales of the D435i camera")
-    b.add_argument("--presets", nargs="+", default=["medium", "fast"], help="DIS presets to time")
+    b.add_argument("--presets", nargs="+", default=["fast", "medium"], help="DIS presets to time")
     b.set_defaults(func=_bench)
     return p
 

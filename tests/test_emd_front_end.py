@@ -38,7 +38,8 @@ def test_gradient_ratio_decoding_tracks_exact_expansion_rate(constant_run):
 
 
 def test_calibration_is_per_field_and_checked(constant_run):
-    gains, n = calibrate_emd(constant_run, VelocityConfig(front_end="emd"))
+    gains, latency, n = calibrate_emd(constant_run, VelocityConfig(front_end="emd"))
+    assert 0.0 <= latency <= 0.3
     F = tile_fields(constant_run.camera).n_fields
     assert gains.shape == (F,) and n > 3 and np.all(np.isfinite(gains))
     assert fit_calibration(np.array([[1.0], [2.0]]), np.array([[2.0], [4.0]]), per_field=False) == 2.0
@@ -47,22 +48,38 @@ def test_calibration_is_per_field_and_checked(constant_run):
                     EMDFrontEndConfig(calibration=[1.0, 2.0]))
 
 
-def test_emd_replay_beside_dis(make_replay, replay_rates):
+@pytest.fixture(scope="module")
+def calibration(tmp_path_factory):
+    """Gains and latency fitted on a different scene: built-in profile, texture seed 11, 8 s."""
+    cfg = TrackRunConfig(profile=None, start_s=3.0, duration_s=8.0, scale=0.5, scene=SceneConfig(seed=11))
+    fo = open_footage(make_track_run(tmp_path_factory.mktemp("calib") / "c", cfg, progress=False))
+    gains, latency, _ = calibrate_emd(fo, VelocityConfig(front_end="emd"))
+    return gains, latency
+
+
+def test_emd_replay_beside_dis(make_replay, replay_rates, calibration):
     """EMD and DIS on the same 30 s replay; the EMD's RMSE is reported beside DIS's.
 
-    Measured: EMD 0.053 m/s, DIS 0.023 m/s (2.3×; the issue's target is 2×).
+    Measured: DIS 0.023 m/s; EMD 0.052 (2.3×) uncalibrated, 0.044 (1.9×) with gains and
+    latency fitted on another scene (the issue's target is 2×).
     """
     fo = open_footage(make_replay(0.0, 30.0))
     emd = score(estimate_velocity(fo, VelocityConfig(front_end="emd"), progress=False))
+    cal = VelocityConfig(front_end="emd")
+    cal.emd.calibration, cal.emd.latency_s = list(calibration[0]), calibration[1]
+    emd_cal = score(estimate_velocity(fo, cal, progress=False))
     rates, a, v_true = replay_rates
     res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig())
     m = (rates.t >= rates.t[0] + 2.0)
     dis = dict(rmse_m_s=float(np.sqrt(np.mean((res.v_hat - v_true)[m & res.observable] ** 2))),
                observable_fraction=float(res.observable[m].mean()))
     print(f"\nreplay: EMD RMSE {emd['rmse_m_s']:.4f} (observable {emd['observable_fraction']:.3f}), "
-          f"DIS {dis['rmse_m_s']:.4f} ({dis['observable_fraction']:.3f}): {emd['rmse_m_s'] / dis['rmse_m_s']:.2f}x")
+          f"DIS {dis['rmse_m_s']:.4f} ({dis['observable_fraction']:.3f}): {emd['rmse_m_s'] / dis['rmse_m_s']:.2f}x; "
+          f"calibrated elsewhere {emd_cal['rmse_m_s']:.4f}: {emd_cal['rmse_m_s'] / dis['rmse_m_s']:.2f}x "
+          f"(latency {1000 * calibration[1]:.0f} ms)")
     assert emd["rmse_m_s"] < 0.08 and emd["observable_fraction"] > 0.9
     assert emd["rmse_m_s"] < 3.5 * dis["rmse_m_s"]
+    assert emd_cal["rmse_m_s"] < 2.5 * dis["rmse_m_s"] and emd_cal["observable_fraction"] > 0.9
 
 
 def test_emd_and_dis_field_rates_agree_on_real_frames(d435i):
