@@ -61,3 +61,13 @@ def replay_rates(make_replay):
     a, _ = forward_accel_at(fo, rates.t, cfg)
     v_true = np.interp(rates.t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     return rates, a, v_true
+
+
+@pytest.fixture(scope="session")
+def emd_replay(make_replay):
+    """The 0–30 s replay through the EMD front end (uncalibrated) and the default readout."""
+    from experiments.velocity import estimate_velocity
+    from lobula.config import VelocityConfig
+    from stimuli.footage import open_footage
+
+    return estimate_velocity(open_footage(make_replay(0.0, 30.0)), VelocityConfig(front_end="emd"), progress=False)

@@ -1,0 +1,185 @@
+"""A readout neuron that encodes forward velocity: LC terms + haltere acceleration, divided by shunting.
+
+The arithmetic readout (:mod:`lobula.readout`) divides, takes a median and runs a
+Kalman smoother; neurons do none of these. This module is the same computation in
+circuit form, batched over trials in torch:
+
+1. **LC pathways** per receptive field f: a sustained pathway r̄_f (two low-pass
+   stages) and a transient pathway ṙ̄_f, the difference of the two stages over τ_s,
+   which is exactly the derivative of the sustained signal. r²̄_f and a pass the same
+   stages, so all terms stay in phase.
+2. **Division by shunting inhibition** (Torre & Poggio 1978; Koch 1998): each field
+   drives a dendritic branch with excitation a·r̄_f·sgn(D_f) (haltere-gated LC input)
+   and a shunting conductance |D_f|, D_f = ṙ̄_f − r²̄_f, so the branch settles at
+   v_f = a·r̄_f·sgn(D_f)/(g_L + |D_f|) ≈ a·r̄_f/D_f. The leak g_L makes the division
+   safe where D ≈ 0: the branch then falls silent instead of diverging. The soma
+   pools branches weighted by their conductance (|D_f| = |a|/d_f: how much a field
+   knows), with presynaptic inhibition of branches that disagree with the output —
+   the neural counterpart of the arithmetic readout's median. Shunting rather than a log domain,
+   because the signs of a, r and D change and a shunting synapse handles a signed
+   numerator (push–pull inputs) with a single positive conductance in the denominator,
+   whereas logarithms need every term rectified into separate channels.
+3. **Delay compensation**: the pathways' low-passes make the pooled estimate refer to
+   δ = τ_fast + τ_sustained ago; a feedforward haltere term δ·LP(a) is added to it.
+4. **Integration with the haltere** (a complementary filter): the readout's state
+   follows dv̂/dt = a + κ·(v_vis − v̂), κ = κ_max·g_s/(g_s + g_half), so it integrates
+   acceleration between informative moments and is pulled toward vision in
+   proportion to the shunting conductance. Its confidence c (a low-pass of κ)
+   says when v̂ is observable.
+5. **Output**: a push–pull pair of rate neurons r± = gain·[±v̂]₊ (Hz), or Poisson
+   spikes from them (:func:`lobula.neurons.poisson_spikes`), decoded back by
+   (r₊ − r₋)/gain, so rate and spiking readouts are compared on the same input.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from .neurons import make_generator, poisson_spikes
+
+
+@dataclass
+class ReadoutNeuronConfig:
+    """Readout-neuron parameters (SI units).
+
+    tau_fast_s / tau_sustained_s: the two low-pass stages of every LC pathway (s).
+    g_leak: leak conductance in the units of g_s (1/s²): sets where division turns off.
+    kappa_max: fastest visual correction rate (1/s); g_half: shunt conductance of half-maximal trust.
+    disagreement_m_s: scale of the presynaptic inhibition of branches that disagree with the output.
+    tau_confidence_s: memory of the confidence; confidence_min: below it v̂ is unobservable.
+    gain_hz_per_m_s: output rate per m/s; spiking: Poisson output instead of rates; window_s: rate-decoding window.
+    """
+
+    tau_fast_s: float = 0.10
+    tau_sustained_s: float = 0.30
+    g_leak: float = 0.002
+    kappa_max: float = 2.0
+    g_half: float = 0.05
+    tau_confidence_s: float = 2.0
+    confidence_min: float = 0.1
+    disagreement_m_s: float = 0.1
+    gain_hz_per_m_s: float = 200.0
+    spiking: bool = False
+    window_s: float = 0.2
+    seed: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _lowpass(x: torch.Tensor, tau: float, dt: float) -> torch.Tensor:
+    """Exact first-order low-pass along dim 1 (time) of (trials, time, ...), starting at x[:, 0]."""
+    a = float(np.exp(-dt / tau))
+    y = torch.empty_like(x)
+    prev = x[:, 0]
+    for k in range(x.shape[1]):  # recursion in time only; trials and fields are batched
+        prev = a * prev + (1 - a) * x[:, k]
+        y[:, k] = prev
+    return y
+
+
+def lc_pathways(r: torch.Tensor, r2: torch.Tensor, dt: float, cfg: ReadoutNeuronConfig):
+    """Sustained r̄, r²̄ and transient ṙ̄ pathways; inputs and outputs (trials, time, fields).
+
+    Every signal passes the same two low-passes (τ_fast, then τ_sustained), so the terms
+    of ṙ = a/d + r² stay in phase. The transient pathway is the difference between the
+    two stages divided by τ_sustained, which is *exactly* the time derivative of the
+    sustained signal (for y = LP_τ(x), dy/dt = (x − y)/τ).
+    """
+    r1, r2_1 = _lowpass(r, cfg.tau_fast_s, dt), _lowpass(r2, cfg.tau_fast_s, dt)
+    r_s = _lowpass(r1, cfg.tau_sustained_s, dt)
+    r2_s = _lowpass(r2_1, cfg.tau_sustained_s, dt)
+    r_dot = (r1 - r_s) / cfg.tau_sustained_s
+    return r_s, r2_s, r_dot
+
+
+def shunting_division(a: torch.Tensor, r: torch.Tensor, r2: torch.Tensor, r_dot: torch.Tensor,
+                      cfg: ReadoutNeuronConfig):
+    """Per-field shunted velocities v_f and conductances |D_f|, (trials, time, fields) each.
+
+    a: (trials, time) m/s²; r, r2, r_dot: (trials, time, fields). Non-finite fields are silent.
+    v_f = a·r̄_f·sgn(D_f)/(g_L + |D_f|): the steady state of a dendritic branch with
+    excitation a·r̄_f·sgn(D_f) and shunting conductance |D_f|.
+    """
+    d = r_dot - r2
+    ok = torch.isfinite(d) & torch.isfinite(r)
+    d = torch.where(ok, d, 0.0)
+    r = torch.where(ok, r, 0.0)
+    g_s = d.abs()
+    return a[..., None] * r * torch.sign(d) / (cfg.g_leak + g_s), g_s
+
+
+def pool_branches(v_f: torch.Tensor, g_s: torch.Tensor, v_now: torch.Tensor, cfg: ReadoutNeuronConfig):
+    """Soma: branches weighted by their shunt conductance, with presynaptic inhibition of
+    branches that disagree with the neuron's own output (a Cauchy weight of scale
+    ``disagreement_m_s``; the neural form of the median's robustness).
+
+    v_f, g_s: (trials, fields); v_now: (trials,). Returns v_vis, total conductance (trials,).
+    """
+    w = g_s / (1.0 + ((v_f - v_now[:, None]) / cfg.disagreement_m_s) ** 2)
+    # Mean rather than total conductance: synaptic scaling keeps the soma's operating
+    # point independent of how many fields converge on it.
+    g = w.mean(-1)
+    return (w * v_f).mean(-1) / (cfg.g_leak + g), g
+
+
+def readout_neuron(t, r, r2, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:
+    """Run the readout neuron on field rates.
+
+    t (time,) s; r, r2 (time, fields) or (trials, time, fields) in 1/s, 1/s²; a (time,)
+    or (trials, time) m/s². Returns numpy arrays (trials dim dropped if absent):
+    v_hat (m/s, NaN where not confident), observable, confidence, v_vis, g_shunt,
+    rate_plus / rate_minus (Hz), and spikes_plus / spikes_minus when spiking.
+    """
+    cfg = config or ReadoutNeuronConfig()
+    squeeze = np.ndim(r) == 2
+    as_t = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float64))
+    r, r2, a = as_t(r), as_t(r2), as_t(a)
+    if squeeze:
+        r, r2, a = r[None], r2[None], a[None]
+    dt = float(np.median(np.diff(t)))
+    r_s, r2_s, r_dot = lc_pathways(torch.nan_to_num(r), torch.nan_to_num(r2), dt, cfg)
+    a_s = _lowpass(_lowpass(a, cfg.tau_fast_s, dt), cfg.tau_sustained_s, dt)
+    v_f, g_f = shunting_division(a_s, r_s, r2_s, r_dot, cfg)
+    # The visual estimate refers to about τ_fast + τ_sustained ago (the pathways' delay);
+    # a feedforward haltere term brings it to the present: v(t) ≈ v(t − δ) + δ·a.
+    lead = (cfg.tau_fast_s + cfg.tau_sustained_s) * _lowpass(a, cfg.tau_fast_s, dt)
+    trials, n = a.shape
+    v_vis = torch.empty(trials, n, dtype=a.dtype)
+    g_s = torch.empty_like(v_vis)
+    v = torch.zeros(trials, dtype=a.dtype)
+    conf = torch.zeros(trials, dtype=a.dtype)
+    v_hat = torch.empty(trials, n, dtype=a.dtype)
+    c_out = torch.empty_like(v_hat)
+    decay_c = float(np.exp(-dt / cfg.tau_confidence_s))
+    for k in range(n):  # the neuron's state evolves in time; trials and fields are batched
+        v_vis[:, k], g_s[:, k] = pool_branches(v_f[:, k] + lead[:, k, None], g_f[:, k], v, cfg)
+        kappa = cfg.kappa_max * g_s[:, k] / (g_s[:, k] + cfg.g_half)
+        k_dt = kappa * dt
+        # Exact update for constant inputs over the step: relax toward v_vis at rate κ while integrating a.
+        e = torch.exp(-k_dt)
+        drift = torch.where(k_dt > 1e-9, (1 - e) / kappa.clamp_min(1e-12), torch.full_like(e, dt))
+        v = v * e + v_vis[:, k] * (1 - e) + a[:, k] * drift
+        conf = decay_c * conf + (1 - decay_c) * kappa / cfg.kappa_max
+        v_hat[:, k] = v
+        c_out[:, k] = conf
+    gain = cfg.gain_hz_per_m_s
+    rate_p, rate_m = gain * v_hat.clamp_min(0), gain * (-v_hat).clamp_min(0)
+    out = dict(v_vis=v_vis, g_shunt=g_s, confidence=c_out, rate_plus=rate_p, rate_minus=rate_m)
+    v_dec = v_hat
+    if cfg.spiking:
+        gen = make_generator(cfg.seed)
+        sp = poisson_spikes(rate_p.float(), dt, gen).double()
+        sm = poisson_spikes(rate_m.float(), dt, gen).double()
+        w = max(1, int(round(cfg.window_s / dt)))
+        kern = torch.ones(1, 1, w, dtype=sp.dtype) / (w * dt)
+        # Centred boxcar rate estimate of each spike train, then push–pull decoding.
+        smooth = lambda s: torch.nn.functional.conv1d(s[:, None], kern, padding=w // 2)[:, 0, :n]
+        v_dec = (smooth(sp) - smooth(sm)) / gain
+        out.update(spikes_plus=sp, spikes_minus=sm)
+    obs = c_out >= cfg.confidence_min
+    out.update(v_hat=torch.where(obs, v_dec, torch.nan), observable=obs)
+    res = {k: x.numpy() for k, x in out.items()}
+    return {k: x[0] for k, x in res.items()} if squeeze else res

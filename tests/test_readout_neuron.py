@@ -1,0 +1,63 @@
+"""The readout neuron (shunting division + haltere integration) against exact inputs and the arithmetic readout."""
+import numpy as np
+
+from lobula.readout import ReadoutConfig, readout
+from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron
+from tests.test_readout import analytic_rates
+
+
+def test_neuron_recovers_velocity_from_exact_rates():
+    v = lambda t: 0.2 + 0.15 * np.sin(2 * np.pi * t / 5)
+    a = lambda t: 0.15 * 2 * np.pi / 5 * np.cos(2 * np.pi * t / 5)
+    t = np.arange(0, 12, 1 / 30)
+    r, r2, acc = analytic_rates(v, a, t, np.linspace(3.0, 6.0, 24))  # the camera advances ~2.4 m
+    res = readout_neuron(t, r, r2, acc)
+    m = (t > 4) & res["observable"]
+    assert m.sum() > 0.8 * (t > 4).sum()
+    assert np.sqrt(np.mean((res["v_hat"] - v(t))[m] ** 2)) < 0.04
+    # Push–pull rates carry the sign: forward motion drives the "plus" neuron only.
+    late = m & (t > 6)
+    assert np.mean(res["rate_minus"][late] == 0) > 0.95 and np.mean(res["rate_plus"][late] > 0) > 0.95
+
+
+def test_neuron_is_not_confident_without_acceleration():
+    t = np.arange(0, 10, 1 / 30)
+    r, r2, _ = analytic_rates(lambda t: np.full_like(t, 0.4), lambda t: 0 * t, t, np.linspace(6, 9, 12))
+    res = readout_neuron(t, r, r2, np.zeros_like(t))
+    assert not res["observable"].any() and np.isnan(res["v_hat"]).all()
+
+
+def test_trials_are_batched_and_spiking_is_seeded():
+    t = np.arange(0, 6, 1 / 30)
+    v = lambda t: 0.2 + 0.1 * np.sin(t)
+    r, r2, acc = analytic_rates(v, lambda t: 0.1 * np.cos(t), t, np.linspace(5, 8, 10))
+    rb = np.stack([r, 0.5 * r])  # two trials
+    out = readout_neuron(t, rb, rb ** 2, np.stack([acc, acc]))
+    assert out["v_hat"].shape == (2, len(t))
+    single = readout_neuron(t, r, r ** 2, acc)
+    np.testing.assert_allclose(out["v_hat"][0], single["v_hat"], equal_nan=True)
+    cfg = ReadoutNeuronConfig(spiking=True, seed=3)
+    s1, s2 = readout_neuron(t, r, r2, acc, cfg), readout_neuron(t, r, r2, acc, cfg)
+    np.testing.assert_array_equal(s1["spikes_plus"], s2["spikes_plus"])
+    assert s1["spikes_plus"].sum() > 0
+
+
+def test_neuron_on_the_emd_replay_is_close_to_the_arithmetic_readout(emd_replay):
+    """Same EMD input (30 s replay). The neuron is causal, so its fair comparison is the
+    causal arithmetic readout; the zero-phase one is reported too.
+
+    Measured: rate neuron 0.05 m/s, spiking ~0.07; arithmetic causal 0.075, zero-phase 0.053.
+    (The neuron's parameters were chosen on another scene: built-in profile, texture seed 11.)
+    """
+    ds = emd_replay
+    t, vt = ds.time.values, ds.v_true.values
+    m = t > 2
+    rm = lambda v: float(np.sqrt(np.nanmean((v - vt)[m] ** 2)))
+    rate = readout_neuron(t, ds.r.values, ds.r2.values, ds.accel.values)
+    spk = readout_neuron(t, ds.r.values, ds.r2.values, ds.accel.values, ReadoutNeuronConfig(spiking=True))
+    causal = readout(t, ds.r.values, ds.r2.values, ds.accel.values, ReadoutConfig(filter="causal"))
+    print(f"\nEMD replay: neuron {rm(rate['v_hat']):.4f} (spiking {rm(spk['v_hat']):.4f}); arithmetic causal "
+          f"{rm(causal.v_hat):.4f}, zero-phase {rm(ds.v_hat.values):.4f}")
+    assert rate["observable"][m].mean() > 0.9
+    assert rm(rate["v_hat"]) <= 1.5 * rm(causal.v_hat)
+    assert rm(spk["v_hat"]) <= 1.5 * rm(causal.v_hat)
