@@ -169,6 +169,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--single-gain", action="store_true", help="one gain for all fields")
     c.set_defaults(func=_calibrate)
 
+    from experiments.depth import add_parser as add_depth
+    add_depth(sub)
+
     b = sub.add_parser("bench", help="frames/s per stage and end to end, peak memory")
     b.add_argument("--frames", type=int, default=120)
     b.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.5], help="image scales of the D435i camera")

@@ -79,6 +79,11 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     # ~5,000 pixels are plenty for a 2-parameter fit, whatever the image size.
     est = EpipoleEstimator(x, y, stride=max(1, int(np.sqrt(cam.width * cam.height / 5000))))
     gyro = footage.imu.gyro if (footage.imu is not None and footage.imu.gyro is not None) else None
+    if gyro is not None:
+        # Gyro bias, as in lobula.haltere: on a track the heading returns, so the mean
+        # rate (whole record offline, running mean online) is the bias.
+        n = np.arange(1, len(gyro) + 1)[:, None]
+        gyro = gyro - (np.cumsum(gyro, 0) / n if config.readout.filter == "causal" else gyro.mean(0))
     timings = dict(read=0.0, flow=0.0, fields=0.0)
 
     if config.front_end == "emd":
