@@ -70,6 +70,33 @@ def bench_emd(folder: Path, n_ommatidia: int = 5000) -> dict:
                 emd_front_end=n / front, end_to_end=n / wall)
 
 
+def bench_tv_depth(n_frames: int = 10, gamma: float = 1e-6) -> dict:
+    """ms per TV depth map at 320×240 (cold start, one torch thread) on exact flow plus DIS-like noise."""
+    import torch
+
+    from lobula.camera import PinholeCamera
+    from lobula.depth import depth_tv
+    from stimuli.scene import SceneConfig, TrackScene
+    from stimuli.trajectory import trajectory_from_function
+
+    cam = PinholeCamera().scaled(0.5)
+    scene = TrackScene(cam, trajectory_from_function(lambda t: np.full_like(t, 0.4), 3.0), SceneConfig())
+    rng = np.random.default_rng(0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    ms = []
+    try:
+        for k in range(n_frames):
+            t0 = 0.5 + 0.2 * k
+            flow = (scene.flow(t0, t0 + 0.2) / 0.2 + rng.normal(0, 0.002, (2, cam.height, cam.width))).astype(np.float32)
+            tic = time.perf_counter()
+            depth_tv(torch.from_numpy(flow), cam, 0.4, scene.epipole(t0), gamma=gamma)
+            ms.append(1000 * (time.perf_counter() - tic))
+    finally:
+        torch.set_num_threads(threads)
+    return dict(median_ms=float(np.median(ms)), max_ms=float(np.max(ms)))
+
+
 def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) -> list[dict]:
     """Print a table of frames/s per stage for each image size and DIS preset; return the rows."""
     import cv2
@@ -106,6 +133,10 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) 
                       f"fields {e['fields']:.0f} frames/s; front end {e['emd_front_end']:.0f} frames/s; "
                       f"with PNG decoding {e['end_to_end']:.0f} frames/s (after building the eye once)")
                 rows.append(e)
+    tv = bench_tv_depth()
+    print(f"TV depth (lobula depth --method tv) at 320x240, cold start, 1 torch thread: "
+          f"median {tv['median_ms']:.0f} ms/map, max {tv['max_ms']:.0f} ms")
+    rows.append(tv)
     print(f"peak resident memory {_peak_mb():.0f} MiB. Memory is flat in footage length: frames are "
           f"streamed and only gap+1 frames are held; a run of N frames keeps O(N·fields) numbers.")
     return rows
