@@ -170,7 +170,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=_calibrate)
 
     from experiments.depth import add_parser as add_depth
+    from experiments.ephys import add_parser as add_ephys
     add_depth(sub)
+    add_ephys(sub)
 
     b = sub.add_parser("bench", help="frames/s per stage and end to end, peak memory")
     b.add_argument("--frames", type=int, default=120)

@@ -1,0 +1,183 @@
+"""Virtual electrophysiology against known answers (experiments.ephys).
+
+- tf-tuning: EMDs and LC units peak at f = 1/(2πτ) (within one step of the sweep) for two τ.
+- rf-map: each probed LC field's designed centre within one ommatidial spacing, its size within 20 %.
+- looming: expansion units respond more to an approaching disc than to the same disc receding.
+- recordings reopen with xarray carrying configuration and version; the same seed gives
+  identical arrays; the command line writes both files.
+Small eye (Δφ = 2°, ~550 ommatidia), 1 ms steps; the file takes ~30 s on two shared cores.
+"""
+import argparse
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from experiments.ephys import (EphysConfig, Rig, add_parser, looming, parse_monitor, psth, raster, rf_map,
+                               steady_state_mean, tf_tuning)
+from experiments.store import write_netcdf
+
+
+def _with_fields(cfg: EphysConfig, **fields) -> EphysConfig:
+    pop = cfg.circuit.population
+    return replace(cfg, circuit=replace(cfg.circuit, population=replace(pop, fields=replace(pop.fields, **fields))))
+
+
+def _with_neurons(cfg: EphysConfig, **kw) -> EphysConfig:
+    pop = cfg.circuit.population
+    return replace(cfg, circuit=replace(cfg.circuit, population=replace(pop, neurons=replace(pop.neurons, **kw))))
+
+
+@pytest.mark.parametrize("tau", [0.035, 0.07])
+def test_tf_tuning_peaks_at_one_over_two_pi_tau(tau):
+    tf = np.geomspace(0.5, 32.0, 16)                       # steps of 32 %
+    cfg = EphysConfig(trials=1)
+    ds = tf_tuning(cfg, temporal_frequencies_hz=tf, tau_s=tau, duration_s=1.5, settle_s=0.5,
+                   record=None)
+    f0 = 1 / (2 * math.pi * tau)
+    assert ds.attrs["optimum_hz"] == pytest.approx(f0)
+    k0 = np.argmin(np.abs(np.log(tf / f0)))
+
+    def within_one_step(peaks):
+        k = np.searchsorted(tf, np.asarray(peaks) - 1e-9)
+        return np.abs(k - k0) <= 1
+
+    # EMDs: every probe pair (one per field, along the rings' motion).
+    assert ds.sizes["pair"] >= 5
+    assert np.all(within_one_step(ds.emd_response_peak_temporal_frequency_hz.values[0]))
+    # ... and the whole curve is the exact discrete prediction (× photoreceptor transfer).
+    curve = ds.emd_response_tuning.isel(contrast=0).mean("pair").values
+    np.testing.assert_allclose(curve / curve.max(), ds.emd_prediction.values, atol=0.03)
+    # LC expansion units (rate neurons): their trial-averaged steady-state rates.
+    exp = ds.neuron_type.values == "expansion"
+    peaks = ds.lc_rate_peak_temporal_frequency_hz.values[0][exp]
+    assert np.all(within_one_step(peaks)), peaks
+
+
+def test_rf_map_recovers_designed_centres_and_sizes():
+    centres = ((12.0, 0.0), (-10.0, 6.0))
+    cfg = _with_fields(EphysConfig(trials=1), size_deg=10.0, centres_deg=centres, shape="gaussian")
+    ds = rf_map(cfg, extent_deg=13.0)
+    dphi = ds.attrs["dphi_deg"]
+    for f, (az, el) in enumerate(centres):
+        err = math.hypot(float(ds.rf_centre_azimuth_deg[f]) - az, float(ds.rf_centre_elevation_deg[f]) - el)
+        assert err < dphi, (f, err)
+        assert float(ds.rf_size_deg[f]) == pytest.approx(10.0, rel=0.2)
+    # The local preferred directions point away from the epipole (expansion), where the map is strong.
+    s = ds.rf_sensitivity.isel(field=0)
+    strong = (s > 0.5 * s.max()).values
+    pref = np.radians(ds.rf_preferred_direction_deg.isel(field=0).values[strong])
+    az = ds.location_azimuth_deg.values[strong]
+    el = ds.location_elevation_deg.values[strong]
+    outward = np.cos(pref) * az + np.sin(pref) * el
+    assert np.all(outward > 0)
+    # Push–pull units inherit their field's estimate.
+    assert np.isfinite(ds.neuron_rf_size_deg.sel(neuron=ds.neuron_type == "expansion")).all()
+
+
+def test_looming_drives_expansion_units_more_than_receding():
+    ds = looming(EphysConfig(trials=2), l_over_v_s=(0.02, 0.05), duration_s=0.8)
+    peak = ds.lc_rate_peak.sel(neuron=ds.neuron_type == "expansion")
+    app = peak.sel(motion="approach").mean("neuron")
+    rec = peak.sel(motion="recede").mean("neuron")
+    assert np.all(app.values > 5.0 * rec.values + 5.0), (app.values, rec.values)
+    con = ds.lc_rate_peak.sel(neuron=ds.neuron_type == "contraction").mean("neuron")
+    assert np.all(con.sel(motion="recede").values > con.sel(motion="approach").values)
+    # The disc grows exactly as 2·atan((l/v)/(t_c − t)) until its cap.
+    t = ds.time.values
+    tc = ds.attrs["t_collision_s"]
+    lv = float(ds.l_over_v_s[0])
+    early = t < tc - 0.2
+    np.testing.assert_allclose(ds.angular_size_deg.sel(motion="approach").isel(l_over_v_s=0).values[early],
+                               np.degrees(2 * np.arctan(lv / (tc - t[early]))), rtol=1e-12)
+
+
+def test_recording_reopens_with_config_and_version_and_seed_reproduces(tmp_path):
+    import lobula
+    cfg = _with_neurons(EphysConfig(trials=3, seed=7), model="poisson")
+    kw = dict(temporal_frequencies_hz=[2.0, 8.0], duration_s=0.3, settle_s=0.1,
+              record=["lc.spikes[expansion]", "lc.rate[contraction]", "photoreceptor.v[0,5,9]"])
+    ds = tf_tuning(cfg, **kw)
+    path = write_netcdf(ds, tmp_path / "rec.nc")
+    back = xr.open_dataset(path, engine="h5netcdf")
+    assert back.attrs["lobula_version"] == lobula.__version__
+    conf = json.loads(back.attrs["config"])
+    assert EphysConfig.from_dict(conf["ephys"]) == cfg
+    assert back.lc_spikes.dims == ("temporal_frequency_hz", "contrast", "trial", "time", "neuron")
+    # Monitors of different subsets share the neuron dim; each is NaN where it did not record.
+    exp = back.neuron_type == "expansion"
+    con = back.neuron_type == "contraction"
+    assert set(back.neuron_type.values) == {"expansion", "contraction"}
+    assert np.isnan(back.lc_spikes.sel(neuron=con)).all() and np.isfinite(back.lc_spikes.sel(neuron=exp)).all()
+    assert np.isnan(back.lc_rate.sel(neuron=exp)).all() and np.isfinite(back.lc_rate.sel(neuron=con)).all()
+    assert back.photoreceptor_v.dims == ("temporal_frequency_hz", "contrast", "time", "ommatidium")
+    assert back.lc_rate.attrs["units"] == "Hz"
+    np.testing.assert_array_equal(back.lc_spikes.values, ds.lc_spikes.values)
+    np.testing.assert_array_equal(back.photoreceptor_v.ommatidium.values, [0, 5, 9])
+    back.close()
+    again = tf_tuning(cfg, **kw)
+    np.testing.assert_array_equal(again.lc_spikes.values, ds.lc_spikes.values)
+    other = tf_tuning(replace(cfg, seed=8), **kw)
+    assert not np.array_equal(other.lc_spikes.values, ds.lc_spikes.values)
+    assert ds.lc_spikes.sum() > 0
+    # PSTH (Hz, trial-averaged) and raster of a spiking unit.
+    p = psth(ds, bin_s=0.02)
+    assert p.attrs["units"] == "Hz" and "trial" not in p.dims
+    n = int(ds.neuron[exp.values][0])
+    times, trials = raster(ds, n, temporal_frequency_hz=8.0)
+    assert len(times) == int(ds.lc_spikes.sel(neuron=n, temporal_frequency_hz=8.0).sum())
+    assert set(np.unique(trials)) <= {0, 1, 2}
+
+
+def test_lif_units_record_membrane_and_spikes():
+    cfg = _with_neurons(EphysConfig(trials=2, seed=1), model="lif")
+    ds = looming(cfg, l_over_v_s=(0.04,), duration_s=0.5)
+    assert "lc_v" in ds and "lc_spikes" in ds
+    v = ds.lc_v.values
+    assert v.min() > -0.08 and v.max() < -0.049                      # volts, below threshold after reset
+    ex = ds.neuron_type.values == "expansion"
+    counts = ds.lc_spikes.sum(["time", "trial"]).isel(neuron=np.nonzero(ex)[0]).mean("neuron").squeeze("l_over_v_s")
+    assert float(counts.sel(motion="approach")) > float(counts.sel(motion="recede"))
+
+
+def test_monitor_parsing_and_errors():
+    rig = Rig(EphysConfig())
+    m = parse_monitor("lc.rate[expansion]", rig)
+    assert len(m.neurons) == rig.population.n_fields
+    assert parse_monitor("emd.response[0:5]", rig).neurons == (0, 1, 2, 3, 4)
+    assert parse_monitor("lc.r", rig).neurons is None
+    for bad in ("lc.volts", "lc.v", "lc.r[expansion]", "emd.response[99999]", "rate"):
+        with pytest.raises(ValueError):
+            parse_monitor(bad, rig)
+
+
+def test_steady_state_mean_uses_whole_periods():
+    t = np.arange(0, 2.0, 1e-3)
+    f = np.array([1.3, 3.7])
+    x = 2.0 + np.sin(2 * np.pi * f[:, None] * t[None, :])[..., None]      # (2, T, 1)
+    np.testing.assert_allclose(steady_state_mean(x, t, f, 0.25)[:, 0], 2.0, atol=2e-3)
+
+
+def test_command_line_writes_recording_and_plot(tmp_path):
+    parser = argparse.ArgumentParser(prog="lobula")
+    add_parser(parser.add_subparsers(dest="command"))
+    out, png = tmp_path / "loom.nc", tmp_path / "loom.png"
+    args = parser.parse_args(["ephys", "looming", "--l-over-v", "0.04", "--duration", "0.4", "--trials", "2",
+                              "--neuron-model", "poisson", "--seed", "3", "--record", "lc.spikes", "lc.rate",
+                              "--out", str(out), "--plot", str(png)])
+    assert args.func(args) == 0
+    assert out.exists() and png.exists() and png.stat().st_size > 1000
+    with xr.open_dataset(out, engine="h5netcdf") as ds:
+        assert ds.attrs["protocol"] == "looming" and ds.attrs["seed"] == 3
+        assert ds.sizes["trial"] == 2
+
+
+def test_rf_map_recovers_a_box_field():
+    cfg = _with_fields(EphysConfig(trials=1), size_deg=10.0, centres_deg=((-8.0, -4.0),), shape="box")
+    ds = rf_map(cfg, extent_deg=11.0, directions=3)
+    err = math.hypot(float(ds.rf_centre_azimuth_deg[0]) + 8.0, float(ds.rf_centre_elevation_deg[0]) + 4.0)
+    assert err < ds.attrs["dphi_deg"]
+    assert float(ds.rf_size_deg[0]) == pytest.approx(10.0, rel=0.2)
