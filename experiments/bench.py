@@ -133,6 +133,10 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) 
                       f"fields {e['fields']:.0f} frames/s; front end {e['emd_front_end']:.0f} frames/s; "
                       f"with PNG decoding {e['end_to_end']:.0f} frames/s (after building the eye once)")
                 rows.append(e)
+    from experiments.ephys import bench_tuning_sweep
+
+    print("ephys tuning sweep (20 TF x 5 contrasts x 10 trials, 2 s at 1 ms, 5,000-ommatidia eye + LC population):")
+    rows.append(bench_tuning_sweep())
     tv = bench_tv_depth()
     print(f"TV depth (lobula depth --method tv) at 320x240, cold start, 1 torch thread: "
           f"median {tv['median_ms']:.0f} ms/map, max {tv['max_ms']:.0f} ms")

@@ -52,7 +52,7 @@ __all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "tf_tuning", "rf_ma
            "steady_state_mean", "plot_tf_tuning", "plot_rf_map", "plot_looming", "plot_recording",
            "bench_tuning_sweep", "add_parser", "main", "PROTOCOLS"]
 
-PROTOCOLS = ("tf-tuning", "rf-map", "looming")
+PROTOCOLS = ("tf-tuning", "rf-map", "looming", "velocity-replay")
 
 
 # =========================================================================== configuration
@@ -914,7 +914,8 @@ def add_parser(subparsers):
     """Register ``lobula ephys PROTOCOL ...`` on an argparse subparsers object."""
     e = subparsers.add_parser("ephys", help="virtual electrophysiology: record LC/EMD/photoreceptor neurons",
                               description=__doc__.split("\n\n")[0])
-    e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming")
+    e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming | velocity-replay")
+    e.add_argument("--footage", help="velocity-replay: footage folder (default: render a built-in 10 s run)")
     e.add_argument("--record", nargs="+", metavar="POP.VAR",
                    help="monitors, e.g. lc.rate lc.spikes[expansion] emd.response[0:10] photoreceptor.v "
                         "(default: the protocol's)")
@@ -953,6 +954,19 @@ def main(args) -> int:
     """Handler of ``lobula ephys``: run the protocol, write the NetCDF (and PNG), print a summary."""
     from experiments.store import write_netcdf
 
+    if args.protocol == "velocity-replay":
+        from experiments.replay_protocol import plot_velocity_replay, replay_scores, velocity_replay
+
+        ds = velocity_replay(args.footage, trials=args.trials, seed=args.seed,
+                             spiking=(args.neuron_model or "poisson") != "rate", duration_s=args.duration or 10.0)
+        write_netcdf(ds, args.out)
+        print(f"wrote {args.out} (velocity-replay; " + ", ".join(f"{k}={v}" for k, v in ds.sizes.items()) + ")")
+        for k, v in replay_scores(ds).items():
+            print(f"  {k}: {v:.4f}")
+        if args.plot:
+            plot_velocity_replay(ds, args.plot)
+            print(f"wrote {args.plot}")
+        return 0
     cfg = _config_from_args(args)
     if args.protocol == "tf-tuning":
         kw = {}

@@ -135,7 +135,7 @@ def readout_neuron(t, r, r2, a, config: ReadoutNeuronConfig | None = None) -> di
     """
     cfg = config or ReadoutNeuronConfig()
     squeeze = np.ndim(r) == 2
-    as_t = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float64))
+    as_t = lambda x: torch.as_tensor(np.array(x, dtype=np.float64))
     r, r2, a = as_t(r), as_t(r2), as_t(a)
     if squeeze:
         r, r2, a = r[None], r2[None], a[None]
