@@ -171,8 +171,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     from experiments.depth import add_parser as add_depth
     from experiments.ephys import add_parser as add_ephys
+    from experiments.compare import add_parser as add_compare
+    from experiments.figures import add_parser as add_figures
+    from experiments.sweep import add_parser as add_sweep
     add_depth(sub)
     add_ephys(sub)
+    add_compare(sub)
+    add_sweep(sub)
+    add_figures(sub)
 
     b = sub.add_parser("bench", help="frames/s per stage and end to end, peak memory")
     b.add_argument("--frames", type=int, default=120)

@@ -1,0 +1,286 @@
+"""``lobula figures``: the hypothesis figures, each saved with the command and configuration that made it.
+
+One synthetic replay of the real FLIVVER trajectory is rendered once (cached in the
+output folder) and every figure is computed from it, deterministically (seeded scene,
+seeded IMU, seeded spikes; OpenCV DIS is deterministic). Each figure NAME gets
+``NAME.png`` and ``NAME.json`` (command, configuration, the numbers plotted, version).
+
+1. ``replay_emd_vs_dis`` — v̂ against truth for the EMD and DIS front ends.
+2. ``rmse_vs_field_size`` — RMSE against receptive-field size (and so field count).
+3. ``rmse_vs_dphi`` — RMSE against lattice resolution Δφ (EMD front end).
+4. ``rmse_vs_tau_contrast`` — RMSE against EMD delay τ for several stimulus contrasts.
+5. ``error_vs_acceleration`` — |error| and observability against |a|: where velocity
+   becomes unobservable, and that the readout says so (the paper's readout does not).
+6. ``rate_vs_spiking`` — readout-neuron RMSE against output firing rate and population size.
+"""
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from lobula import __version__
+from lobula.config import VelocityConfig
+from lobula.readout import ReadoutConfig, readout
+from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron
+from stimuli.footage import Footage, open_footage
+
+FIGURES = ("replay_emd_vs_dis", "rmse_vs_field_size", "rmse_vs_dphi", "rmse_vs_tau_contrast",
+           "error_vs_acceleration", "rate_vs_spiking")
+
+
+class ContrastFootage:
+    """A footage seen at another contrast: I' = m + c·(I − m), m the frame's mean (grey levels)."""
+
+    def __init__(self, footage: Footage, contrast: float):
+        self.__dict__.update(footage.__dict__)
+        self._footage, self.contrast = footage, contrast
+
+    def __len__(self):
+        return len(self._footage)
+
+    def frames(self, *a, **k):
+        for i, t, img in self._footage.frames(*a, **k):
+            m = img.mean()
+            yield i, t, np.clip(m + self.contrast * (img - m), 0, 255)
+
+    def depth_map(self, i):
+        return self._footage.depth_map(i)
+
+
+def _rmse(ds, skip_s=2.0):
+    from experiments.velocity import score
+    s = score(ds, skip_s)
+    return s["rmse_m_s"], s["observable_fraction"]
+
+
+def _save(fig, name, out: Path, record: dict):
+    from experiments.store import save_figure
+    import matplotlib.pyplot as plt
+    save_figure(fig, out / f"{name}.png", dpi=120)
+    plt.close(fig)
+    tmp = out / f".{name}.json.tmp"
+    tmp.write_text(json.dumps(record, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+    tmp.replace(out / f"{name}.json")
+
+
+def make_replay(out: Path, start_s: float, duration_s: float, seed: int, progress: bool) -> Path:
+    from stimuli.scene import SceneConfig
+    from stimuli.track import REAL_PROFILE, TrackRunConfig, make_track_run
+
+    folder = out / f"replay_{start_s:g}_{duration_s:g}_seed{seed}"
+    if not (folder / "frames.csv").exists():
+        profile = str(REAL_PROFILE) if REAL_PROFILE.exists() else None
+        cfg = TrackRunConfig(profile=profile, start_s=start_s, duration_s=duration_s, scale=0.5,
+                             scene=SceneConfig(seed=seed))
+        make_track_run(folder, cfg, progress=progress)
+    return folder
+
+
+def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0, duration_s: float = 25.0,
+                seed: int = 0, quick: bool = False, progress: bool = True) -> dict:
+    """Make the figures into ``out``; returns {name: record}. ``quick`` uses coarse grids (for tests)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    from experiments.velocity import estimate_velocity
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cache = out / ".cache"
+    replay = make_replay(cache, start_s, duration_s, seed, progress)
+    fo = open_footage(replay)
+    command = "lobula figures " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["figures"] \
+        else f"lobula figures --out {out} --start {start_s} --duration {duration_s} --seed {seed}"
+    base = dict(command=command, lobula_version=__version__, replay=dict(start_s=start_s, duration_s=duration_s,
+                seed=seed, profile="real FLIVVER trajectory (velocity.csv)"), quick=quick)
+    records = {}
+    runs = {}
+
+    def run(key, cfg, footage=fo):
+        if key not in runs:
+            t0 = time.perf_counter()
+            runs[key] = estimate_velocity(footage, cfg, progress=False)
+            if progress:
+                print(f"  {key}: {time.perf_counter() - t0:.1f} s", flush=True)
+        return runs[key]
+
+    if "replay_emd_vs_dis" in which or "error_vs_acceleration" in which or "rate_vs_spiking" in which:
+        dis, emd = run("dis", VelocityConfig()), run("emd", VelocityConfig(front_end="emd"))
+
+    if "replay_emd_vs_dis" in which:
+        fig, ax = plt.subplots(figsize=(9, 4.5), layout="constrained")
+        t = dis.time.values
+        ax.plot(t, dis.v_true, "k--", lw=1.2, label="truth")
+        nums = {}
+        for name, ds, col in (("DIS", dis, "tab:blue"), ("EMD", emd, "m")):
+            r, o = _rmse(ds)
+            nums[name] = dict(rmse_m_s=r, observable=o)
+            ax.plot(ds.time, ds.v_hat, color=col, lw=1.5, label=f"{name}: RMSE {r:.3f} m/s")
+        ax.set(xlabel="time (s)", ylabel="forward velocity (m/s)",
+               title="Replay of the real trajectory: EMD and DIS front ends, same readout")
+        ax.legend(fontsize=8)
+        records["replay_emd_vs_dis"] = dict(base, what="v̂ against truth, EMD and DIS front ends",
+                                            configs={k: json.loads(v.attrs["config"]) for k, v in (("dis", dis), ("emd", emd))},
+                                            results=nums)
+        _save(fig, "replay_emd_vs_dis", out, records["replay_emd_vs_dis"])
+
+    if "rmse_vs_field_size" in which:
+        sizes = [3.0, 5.0, 10.0] if quick else [2.0, 3.0, 5.0, 7.5, 10.0, 15.0]
+        res = []
+        for s in sizes:
+            cfg = VelocityConfig()
+            cfg.fields.size_deg = s
+            ds = run(f"dis_field{s}", cfg)
+            res.append((s, ds.sizes["field"], *_rmse(ds)))
+        res = np.array(res)
+        fig, ax = plt.subplots(figsize=(6, 4), layout="constrained")
+        ax.plot(res[:, 0], res[:, 2], "o-")
+        for s, n, r, _ in res:
+            ax.annotate(f"{int(n)} fields", (s, r), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        ax.set(xlabel="receptive-field size (deg)", ylabel="velocity RMSE (m/s)",
+               title="RMSE against receptive-field size (DIS, tiling the view)")
+        records["rmse_vs_field_size"] = dict(base, what="RMSE vs field size and count",
+                                             results=dict(size_deg=res[:, 0], n_fields=res[:, 1], rmse_m_s=res[:, 2],
+                                                          observable=res[:, 3]))
+        _save(fig, "rmse_vs_field_size", out, records["rmse_vs_field_size"])
+
+    if "rmse_vs_dphi" in which:
+        dphis = [0.75, 1.5] if quick else [0.5, 0.75, 1.0, 1.5, 2.0, 3.0]
+        res = []
+        for d in dphis:
+            cfg = VelocityConfig(front_end="emd")
+            cfg.emd.lattice = replace(cfg.emd.lattice, dphi_deg=d)
+            ds = run(f"emd_dphi{d}", cfg)
+            res.append((d, *_rmse(ds)))
+        res = np.array(res)
+        fig, ax = plt.subplots(figsize=(6, 4), layout="constrained")
+        ax.plot(res[:, 0], res[:, 1], "o-", color="m")
+        ax.set(xlabel="interommatidial angle Δφ (deg; Δρ = Δφ)", ylabel="velocity RMSE (m/s)",
+               title="RMSE against lattice resolution (EMD front end, 5° fields)")
+        records["rmse_vs_dphi"] = dict(base, what="RMSE vs Δφ", results=dict(dphi_deg=res[:, 0], rmse_m_s=res[:, 1],
+                                                                             observable=res[:, 2]))
+        _save(fig, "rmse_vs_dphi", out, records["rmse_vs_dphi"])
+
+    if "rmse_vs_tau_contrast" in which:
+        taus = [0.005, 0.035] if quick else [0.003, 0.005, 0.01, 0.02, 0.035, 0.07]
+        contrasts = [1.0, 0.25] if quick else [1.0, 0.5, 0.25]
+        grid = np.zeros((len(contrasts), len(taus)))
+        for i, c in enumerate(contrasts):
+            foot = fo if c == 1.0 else ContrastFootage(fo, c)
+            for j, tau in enumerate(taus):
+                cfg = VelocityConfig(front_end="emd")
+                cfg.emd.emd = replace(cfg.emd.emd, tau_s=tau)
+                grid[i, j] = _rmse(run(f"emd_tau{tau}_c{c}", cfg, foot))[0]
+        fig, ax = plt.subplots(figsize=(6, 4), layout="constrained")
+        for i, c in enumerate(contrasts):
+            ax.plot(np.array(taus) * 1000, grid[i], "o-", label=f"contrast ×{c:g}")
+        ax.set_xscale("log")
+        ax.set_xticks(np.array(taus) * 1000, [f"{1000 * x:g}" for x in taus])
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set(xlabel="EMD delay τ (ms)", ylabel="velocity RMSE (m/s)",
+               title="RMSE against EMD delay and stimulus contrast")
+        ax.legend(fontsize=8)
+        records["rmse_vs_tau_contrast"] = dict(base, what="RMSE vs EMD τ and contrast (frames rescaled about "
+                                               "their mean before the eye)",
+                                               results=dict(tau_s=taus, contrast=contrasts, rmse_m_s=grid))
+        _save(fig, "rmse_vs_tau_contrast", out, records["rmse_vs_tau_contrast"])
+
+    if "error_vs_acceleration" in which:
+        t, r, r2, a = dis.time.values, dis.r.values, dis.r2.values, dis.accel.values
+        vt = dis.v_true.values
+        ours = readout(t, r, r2, a, ReadoutConfig())
+        paper = readout(t, r, r2, a, ReadoutConfig.paper())
+        meas = ours.measurement  # the single-frame vision measurement, before the Kalman filter
+        edges = np.array([0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0])
+        absa = np.abs(a)
+        keep = t > t[0] + 2
+        rows = []
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            m = keep & (absa >= lo) & (absa < hi)
+            if m.sum() < 5:
+                continue
+            err = lambda v: float(np.nanmedian(np.abs(v - vt)[m])) if np.isfinite(v[m]).any() else np.nan
+            rows.append((0.5 * (lo + hi), m.sum(), err(ours.v_hat), err(paper.measurement),
+                         float(np.isfinite(meas[m]).mean()), err(meas)))
+        rows = np.array(rows)
+        fig, (ax, ax2) = plt.subplots(2, 1, figsize=(6.5, 6), sharex=True, layout="constrained")
+        ax.plot(rows[:, 0], rows[:, 3], "s-", color="tab:orange", label="paper: per-frame median of v_f")
+        ax.plot(rows[:, 0], rows[:, 5], "^-", color="tab:green", label="ours: per-frame vision measurement")
+        ax.plot(rows[:, 0], rows[:, 2], "o-", color="m", label="ours: after haltere integration (v̂)")
+        ax.set_yscale("log")
+        ax.set(ylabel="median |error| (m/s)", title="Velocity error against |acceleration| (DIS, replay)")
+        ax.legend(fontsize=7)
+        ax2.bar(rows[:, 0], rows[:, 4], width=np.diff(edges)[:len(rows)] * 0.8, color="tab:green", alpha=0.6)
+        ax2.set(xlabel="|a| bin centre (m/s²)", ylabel="fraction of frames with\na vision measurement", ylim=(0, 1.05))
+        records["error_vs_acceleration"] = dict(base, what="median |error| and informative fraction per |a| bin",
+                                                results=dict(a_bin_centre=rows[:, 0], n=rows[:, 1],
+                                                             v_hat_error=rows[:, 2], paper_error=rows[:, 3],
+                                                             informative_fraction=rows[:, 4],
+                                                             measurement_error=rows[:, 5]))
+        _save(fig, "error_vs_acceleration", out, records["error_vs_acceleration"])
+
+    if "rate_vs_spiking" in which:
+        t, r, r2, a, vt = emd.time.values, emd.r.values, emd.r2.values, emd.accel.values, emd.v_true.values
+        keep = t > t[0] + 2
+        gains = [50.0, 200.0] if quick else [20.0, 50.0, 100.0, 200.0, 500.0]
+        sizes = [10, 70] if quick else [5, 10, 20, 40, 70]
+        rng = np.random.default_rng(seed)
+        rm = lambda v: float(np.sqrt(np.nanmean((v - vt)[keep] ** 2)))
+        rate_rmse = rm(readout_neuron(t, r, r2, a)["v_hat"])
+        spk = [rm(readout_neuron(t, r, r2, a, ReadoutNeuronConfig(spiking=True, gain_hz_per_m_s=g, seed=seed))["v_hat"])
+               for g in gains]
+        pop_rate, pop_spk = [], []
+        for n in sizes:
+            idx = np.sort(rng.choice(r.shape[1], size=min(n, r.shape[1]), replace=False))
+            pop_rate.append(rm(readout_neuron(t, r[:, idx], r2[:, idx], a)["v_hat"]))
+            pop_spk.append(rm(readout_neuron(t, r[:, idx], r2[:, idx], a, ReadoutNeuronConfig(spiking=True, seed=seed))["v_hat"]))
+        fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), layout="constrained")
+        ax.plot(np.array(gains) * 0.3, spk, "o-", color="tab:red", label="spiking (Poisson)")
+        ax.axhline(rate_rmse, color="m", ls="--", label="rate neuron")
+        ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set(xlabel="readout firing rate at 0.3 m/s (Hz)", ylabel="velocity RMSE (m/s)",
+               title="Readout neuron: firing rate")
+        ax.legend(fontsize=8)
+        ax2.plot(sizes, pop_rate, "o-", color="m", label="rate")
+        ax2.plot(sizes, pop_spk, "s-", color="tab:red", label="spiking")
+        ax2.set(xlabel="LC fields converging on the readout", ylabel="velocity RMSE (m/s)",
+                title="Readout neuron: population size (EMD replay)")
+        ax2.legend(fontsize=8)
+        records["rate_vs_spiking"] = dict(base, what="readout neuron RMSE vs firing rate and population size",
+                                          results=dict(gain_hz_per_m_s=gains, spiking_rmse=spk, rate_rmse=rate_rmse,
+                                                       population=sizes, population_rate_rmse=pop_rate,
+                                                       population_spiking_rmse=pop_spk),
+                                          neuron=ReadoutNeuronConfig().to_dict())
+        _save(fig, "rate_vs_spiking", out, records["rate_vs_spiking"])
+    return records
+
+
+def add_parser(subparsers):
+    f = subparsers.add_parser("figures", help="make the hypothesis figures (PNG + JSON with command and config)")
+    f.add_argument("--out", default="figures", help="output folder (default figures/)")
+    f.add_argument("--only", nargs="+", choices=FIGURES, help="make only these figures")
+    f.add_argument("--start", type=float, default=5.0, help="replay window start in the real trajectory (s)")
+    f.add_argument("--duration", type=float, default=25.0, help="replay duration (s)")
+    f.add_argument("--seed", type=int, default=0, help="scene, IMU and spike seed")
+    f.add_argument("--quick", action="store_true", help="coarse grids (for tests)")
+    f.add_argument("--quiet", action="store_true")
+    f.set_defaults(func=main)
+    return f
+
+
+def main(args) -> int:
+    recs = run_figures(args.out, tuple(args.only or FIGURES), args.start, args.duration, args.seed, args.quick,
+                       progress=not args.quiet)
+    for name in recs:
+        print(f"wrote {Path(args.out) / name}.png and .json")
+    return 0

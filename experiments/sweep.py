@@ -1,0 +1,886 @@
+"""Parameter sweeps: a grid over configuration parameters, each point a full run scored against truth.
+
+``lobula sweep --param PATH=V1,V2,... [--param ...] --out SWEEP.zarr``
+
+**Parameters** are dotted paths into either configuration of a run:
+
+* the velocity configuration (:class:`lobula.config.VelocityConfig`): ``front_end``,
+  ``flow.gap``, ``fields.size_deg``, ``readout.cutoff_hz``, ``emd.emd.tau_s``,
+  ``emd.lattice.dphi_deg``, ``emd.photoreceptor.tau_s``, …;
+* the synthetic run (:class:`stimuli.track.TrackRunConfig`): ``scene.*`` (seed, texture,
+  noise, off-axis angles, …), ``imu.*`` (noise densities, biases, seed), ``start_s``,
+  ``duration_s``, ``scale``, ``profile``, ``constant_velocity_m_s``;
+* ``seed``: an alias setting both ``scene.seed`` and ``imu.seed``.
+
+A prefix ``velocity.`` or ``run.`` may be written for clarity. Values are a comma list
+(``3,5,10``), a JSON list (``[[0.03,0.4],[0.01,0.2]]`` for tuple-valued fields), or a range
+``lin:START:STOP:N`` / ``log:START:STOP:N``; each is converted to the type of the field's
+default (``none`` for None). ``lobula sweep --list-params`` prints every path and its default.
+Nested frozen dataclasses are replaced, never mutated, so points never share state.
+
+**Each grid point** is a full run: the synthetic footage for its run configuration is
+rendered (:func:`stimuli.track.make_track_run`; renders are cached in ``SWEEP.renders/``
+keyed by a hash of the run configuration, so points that differ only in the velocity
+configuration share one render, which is deleted once all its points are done unless
+``--keep-renders``), then :func:`experiments.velocity.estimate_velocity`, then the metrics of
+:mod:`experiments.compare` against the exact truth: RMSE and median |error| after
+``skip_s``, observable fraction, lock-on time, r̄_f error against the depth maps, ms/frame
+per stage. Points whose effective configurations coincide (e.g. ``emd.*`` values on a DIS
+point) are computed once.
+
+**Resumable.** Every finished point is written atomically to ``SWEEP.points/<key>.json``
+(the key is a hash of the point's effective velocity configuration, run configuration and
+scoring options; the record holds both configurations, the metrics, per-frame v̂, truth,
+acceleration and observability, its timings and the version). A sweep that is killed and
+started again with the same command recomputes only points without a record; deleting a
+record recomputes that point. The Zarr store is assembled from the records at the end and
+written atomically (a temporary directory, then a rename): one dim per swept parameter
+(named by its path, coordinates = the values), the metrics as variables over the grid,
+``stage_ms_per_frame`` over (grid, stage), per-frame ``v_hat``, ``v_true``, ``accel``,
+``observable`` over (grid, time) unless ``--no-series``, and in ``attrs`` the full base
+configurations, the sweep specification, the scoring options and the version.
+
+**Execution** uses Dask: by default a local ``dask.distributed`` cluster of ``--workers``
+single-threaded worker processes (``--scheduler threads`` for threads in this process,
+``--scheduler synchronous`` for a plain loop when debugging), or ``--scheduler ADDRESS`` to
+use an existing ``dask.distributed`` scheduler. One task renders each distinct run
+configuration; each point is a task depending on its render; the driver writes records as
+points complete and shows a progress bar.
+
+**Cost and scaling.** A point costs its render (if not shared) plus one velocity run. Measured
+with this module on this 2-core machine (shared, load ≈ 3) at 320×240 (the D435i camera at
+scale 0.5) on the 30 s replay (900 frames): rendering 74 s (82 ms/frame); a DIS point
+(flow, fields, readout, scoring) 8–13 s, mean 10 s, with two running at once; a 4-point
+sweep sharing one render took 104 s end to end. With ``W`` workers, wall time ≈ render +
+((R − 1)·render + N·point)/W for N points and R distinct renders
+(:func:`estimate_sweep_s`): a 100-point DIS sweep over velocity parameters (R = 1) ≈ 10 min
+on 2 workers; with 10 distinct scenes ≈ 15 min; with 100 distinct scenes ≈ 70 min (renders
+dominate: sweep scene parameters on shorter or smaller runs). On a ``dask.distributed``
+cluster the points are independent tasks, so wall time falls as 1/W until W nears the number
+of points (or of distinct renders, since a point waits for its render; one shared render is a
+serial head start of one render time); the scheduler's overhead (~1 ms per task) is negligible
+against seconds-long points, and the driver only receives small records. Workers need the
+``lobula`` package importable and the profile CSV (an absolute path in the run configuration)
+readable. Renders go to ``SWEEP.renders/``: on a shared filesystem each scene is rendered
+once; otherwise a worker that cannot see a render re-renders it locally (renders are
+deterministic, so results are unchanged). Records are written by the driver, so
+``SWEEP.points/`` needs no shared storage. A remote cluster should not set
+``MALLOC_TRIM_THRESHOLD_`` in its workers (dask's default; see :class:`_Client`).
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import hashlib
+import itertools
+import json
+import os
+import shutil
+import socket
+import sys
+import time as _time
+import warnings
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from lobula import __version__
+from lobula.config import VelocityConfig
+from stimuli.footage import FootageError
+from stimuli.track import REAL_PROFILE, TrackRunConfig
+
+from .compare import LOCK_HOLD_S, LOCK_TOL_M_S, METRIC_ATTRS, METRICS
+from .store import provenance
+
+ALIASES = {"seed": ("run.scene.seed", "run.imu.seed")}
+SWEEP_FRONT_ENDS = ("dis", "farneback", "emd")
+COUNTER_ENV = "LOBULA_SWEEP_COUNTER"  # test hook: a file each point computation appends its key to
+
+
+class SweepError(ValueError):
+    """A bad sweep specification (unknown path, bad value); the message says which and what to do."""
+
+
+class SweepInterrupted(RuntimeError):
+    """The sweep stopped before every point was done; finished points are recorded."""
+
+
+# ---------------------------------------------------------------------- paths into configurations
+def _is_dc(x) -> bool:
+    return dataclasses.is_dataclass(x) and not isinstance(x, type)
+
+
+def list_paths(obj, prefix: str = "") -> dict:
+    """Every leaf path of a (nested) dataclass instance and its value."""
+    out = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        p = f"{prefix}{f.name}"
+        if _is_dc(v):
+            out.update(list_paths(v, p + "."))
+        else:
+            out[p] = v
+    return out
+
+
+def get_path(obj, path: str):
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def set_path(obj, path: str, value):
+    """A copy of ``obj`` with the leaf at ``path`` set, via dataclasses.replace at every level
+    (works for frozen dataclasses and re-runs their validation)."""
+    head, _, rest = path.partition(".")
+    if not rest:
+        return dataclasses.replace(obj, **{head: value})
+    return dataclasses.replace(obj, **{head: set_path(getattr(obj, head), rest, value)})
+
+
+def _resolve(path: str, velocity: VelocityConfig, run: TrackRunConfig) -> tuple[str, ...]:
+    """Targets ("velocity.x.y" / "run.x.y") of a user path; raises SweepError for unknown paths."""
+    if path in ALIASES:
+        return ALIASES[path]
+    leaves = {f"velocity.{k}": v for k, v in list_paths(velocity).items()}
+    leaves.update({f"run.{k}": v for k, v in list_paths(run).items()})
+    candidates = [path] if path.startswith(("velocity.", "run.")) else [f"velocity.{path}", f"run.{path}"]
+    hits = [c for c in candidates if c in leaves]
+    if len(hits) == 1:
+        return (hits[0],)
+    if len(hits) > 1:
+        raise SweepError(f"--param {path}: ambiguous; write velocity.{path} or run.{path}")
+    branches = {p.rsplit(".", 1)[0] for p in leaves} | {".".join(p.split(".")[:k]) for p in leaves for k in (2, 3)}
+    if any(c in branches for c in candidates):
+        raise SweepError(f"--param {path}: a group of settings, not one value; name a field inside it "
+                         f"(see lobula sweep --list-params)")
+    short = [p.split(".", 1)[1] for p in leaves] + list(ALIASES)
+    near = difflib.get_close_matches(path.split(".", 1)[1] if path.startswith(("velocity.", "run.")) else path,
+                                     short, n=3, cutoff=0.5)
+    hint = f"; did you mean {', '.join(near)}?" if near else "; lobula sweep --list-params lists them"
+    raise SweepError(f"--param {path}: not a field of the velocity or run configuration{hint}")
+
+
+def _coerce(text, default, label: str):
+    """Convert one value (text, or a JSON-decoded object) to the type of the field's default."""
+    if not isinstance(text, str):
+        v = text
+        if isinstance(default, tuple) and isinstance(v, list):
+            return tuple(v)
+        if isinstance(default, float) and isinstance(v, int) and not isinstance(v, bool):
+            return float(v)
+        return v
+    t = text.strip()
+    low = t.lower()
+    try:
+        if isinstance(default, bool):
+            if low in ("true", "1", "yes", "on"):
+                return True
+            if low in ("false", "0", "no", "off"):
+                return False
+            raise ValueError("expected true or false")
+        if low in ("none", "null"):
+            return None
+        if isinstance(default, int):
+            f = float(t)
+            if not f.is_integer():
+                raise ValueError("expected an integer")
+            return int(f)
+        if isinstance(default, float):
+            return float(t)
+        if isinstance(default, (tuple, list)):
+            return tuple(json.loads(t))
+        for conv in (int, float):
+            try:
+                return conv(t)
+            except ValueError:
+                pass
+        return t
+    except (ValueError, TypeError) as exc:
+        raise SweepError(f"--param {label}: cannot use {t!r} ({exc}; the default is {default!r})") from None
+
+
+def _split_values(text: str):
+    t = text.strip()
+    if t.startswith("["):
+        try:
+            vals = json.loads(t)
+        except ValueError as exc:
+            raise SweepError(f"bad JSON list {t!r}: {exc}") from None
+        if not isinstance(vals, list):
+            raise SweepError(f"{t!r}: expected a JSON list")
+        return vals
+    if t.startswith(("lin:", "log:")):
+        try:
+            kind, a, b, n = t.split(":")
+            a, b, n = float(a), float(b), int(n)
+        except ValueError:
+            raise SweepError(f"{t!r}: ranges are lin:START:STOP:N or log:START:STOP:N") from None
+        vals = np.linspace(a, b, n) if kind == "lin" else np.geomspace(a, b, n)
+        return [float(f"{v:.12g}") for v in vals]
+    return [v for v in t.split(",") if v.strip()]
+
+
+@dataclass
+class Param:
+    """One swept parameter: its name (the dim), the configuration fields it sets, its values."""
+
+    name: str
+    targets: tuple[str, ...]
+    values: list
+
+    def to_dict(self) -> dict:
+        return dict(name=self.name, targets=list(self.targets), values=[_jsonable(v) for v in self.values])
+
+
+def _jsonable(v):
+    return list(v) if isinstance(v, tuple) else v
+
+
+def parse_param(text: str, velocity: VelocityConfig | None = None, run: TrackRunConfig | None = None) -> Param:
+    """``PATH=V1,V2,...`` → :class:`Param`, with values converted to the field's type."""
+    velocity = velocity or VelocityConfig()
+    run = run or TrackRunConfig()
+    path, eq, values = text.partition("=")
+    path = path.strip()
+    if not eq or not path or not values.strip():
+        raise SweepError(f"--param {text!r}: write PATH=V1,V2,... (e.g. fields.size_deg=3,5,10)")
+    targets = _resolve(path, velocity, run)
+    default = _target_value(targets[0], velocity, run)
+    vals = [_coerce(v, default, path) for v in _split_values(values)]
+    if not vals:
+        raise SweepError(f"--param {text!r}: no values")
+    keys = [json.dumps(_jsonable(v)) for v in vals]
+    if len(set(keys)) != len(keys):
+        raise SweepError(f"--param {path}: a value is listed twice ({values})")
+    if path in ("front_end", "velocity.front_end"):
+        bad = [v for v in vals if v not in SWEEP_FRONT_ENDS]
+        if bad:
+            raise SweepError(f"--param front_end: {bad} cannot be swept; choose from {', '.join(SWEEP_FRONT_ENDS)} "
+                             f"(flo needs precomputed flow for each render)")
+    return Param(path, targets, vals)
+
+
+def _target_value(target: str, velocity, run):
+    side, _, sub = target.partition(".")
+    return get_path(velocity if side == "velocity" else run, sub)
+
+
+def _apply(target: str, value, velocity, run):
+    side, _, sub = target.partition(".")
+    if side == "velocity":
+        return set_path(velocity, sub, value), run
+    return velocity, set_path(run, sub, value)
+
+
+# ---------------------------------------------------------------------- the grid
+def _hash(obj, n: int = 20) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:n]
+
+
+def effective_velocity(cfg: VelocityConfig) -> dict:
+    """The part of a velocity configuration a run depends on (for deduplicating points):
+    a flow front end ignores ``emd``, the EMD ignores ``flow``; ``flow.method`` follows ``front_end``."""
+    d = cfg.to_dict()
+    if cfg.front_end == "emd":
+        d.pop("flow", None)
+    else:
+        d.pop("emd", None)
+        d.get("flow", {}).pop("method", None)
+    return d
+
+
+def run_key(run: TrackRunConfig) -> str:
+    return _hash(run.to_dict(), 16)
+
+
+@dataclass
+class Point:
+    """One grid point: its index and coordinates, both configurations and their hashes."""
+
+    index: tuple
+    coords: dict
+    velocity: VelocityConfig
+    run: TrackRunConfig
+    key: str
+    run_key: str
+
+
+@dataclass
+class SweepSpec:
+    """What to sweep (params, in dim order) around which base configurations, and how to score."""
+
+    params: list[Param]
+    velocity: VelocityConfig = field(default_factory=VelocityConfig)
+    run: TrackRunConfig = field(default_factory=TrackRunConfig)
+    skip_s: float = 2.0
+    tol_m_s: float = LOCK_TOL_M_S
+    hold_s: float = LOCK_HOLD_S
+
+    @classmethod
+    def from_strings(cls, params: list[str], velocity: VelocityConfig | None = None,
+                     run: TrackRunConfig | None = None, **scoring) -> "SweepSpec":
+        velocity = velocity or VelocityConfig()
+        run = run or TrackRunConfig()
+        ps = [parse_param(p, velocity, run) for p in params]
+        names = [p.name for p in ps]
+        if len(set(names)) != len(names):
+            raise SweepError(f"a parameter is given twice: {names}")
+        targets = [t for p in ps for t in p.targets]
+        if len(set(targets)) != len(targets):
+            raise SweepError(f"two --param options set the same field: {targets}")
+        return cls(ps, velocity, run, **scoring)
+
+    @property
+    def scoring(self) -> dict:
+        return dict(skip_s=self.skip_s, tol_m_s=self.tol_m_s, hold_s=self.hold_s)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(len(p.values) for p in self.params)
+
+    @property
+    def dims(self) -> list[str]:
+        return [p.name for p in self.params]
+
+    def points(self) -> list[Point]:
+        """Every grid point, in C order over the params; configurations validated."""
+        out = []
+        for index in itertools.product(*(range(len(p.values)) for p in self.params)):
+            vel, run = copy.deepcopy(self.velocity), copy.deepcopy(self.run)
+            coords = {}
+            for p, i in zip(self.params, index):
+                v = p.values[i]
+                coords[p.name] = v
+                for tgt in p.targets:
+                    try:
+                        vel, run = _apply(tgt, v, vel, run)
+                    except (ValueError, TypeError) as exc:
+                        raise SweepError(f"--param {p.name}={v!r}: {exc}") from None
+            key = _hash(dict(velocity=effective_velocity(vel), run=run.to_dict(), scoring=self.scoring))
+            out.append(Point(index, coords, vel, run, key, run_key(run)))
+        return out
+
+    def to_dict(self) -> dict:
+        return dict(params=[p.to_dict() for p in self.params], dims=self.dims, shape=list(self.shape),
+                    scoring=self.scoring)
+
+
+# ---------------------------------------------------------------------- tasks (run on workers)
+def _limit_threads(threads: int):
+    if threads and threads > 0:
+        import cv2
+        import torch
+        cv2.setNumThreads(threads)
+        torch.set_num_threads(threads)
+
+
+def ensure_render(run: TrackRunConfig, renders_dir: str, key: str, threads: int = 0) -> dict:
+    """Render ``run`` into ``renders_dir/key`` unless it is already there; returns its path and cost.
+
+    Renders are deterministic functions of the run configuration, and the folder appears
+    atomically (:func:`stimuli.footage.write_footage`), so a complete folder is always reusable.
+    """
+    from stimuli.track import make_track_run
+
+    folder = Path(renders_dir) / key
+    timing = folder / "render_time.json"
+    if (folder / "frames.csv").exists():
+        try:
+            info = json.loads(timing.read_text())
+        except (OSError, ValueError):
+            info = {}
+        return dict(path=str(folder), render_s=float(info.get("render_s", float("nan"))), rendered=False,
+                    n_frames=info.get("n_frames"))
+    _limit_threads(threads)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    t0 = _time.perf_counter()
+    try:
+        make_track_run(folder, run, progress=False)
+    except OSError:
+        if not (folder / "frames.csv").exists():  # not a concurrent render of the same run: a real error
+            raise
+    render_s = _time.perf_counter() - t0
+    n = sum(1 for _ in open(folder / "frames.csv")) - 1
+    try:
+        timing.write_text(json.dumps(dict(render_s=render_s, n_frames=n, host=socket.gethostname())))
+    except OSError:
+        pass
+    return dict(path=str(folder), render_s=render_s, rendered=True, n_frames=n)
+
+
+def compute_point(render: dict, velocity: VelocityConfig, run: TrackRunConfig, scoring: dict, key: str,
+                  renders_dir: str, threads: int = 0) -> dict:
+    """One grid point: velocity on its render, scored against exact truth. Returns its record."""
+    from stimuli.footage import open_footage
+
+    from .compare import exact_rates, front_end_metrics, stage_ms_per_frame
+    from .velocity import estimate_velocity, forward_accel_at
+
+    counter = os.environ.get(COUNTER_ENV)
+    if counter:
+        with open(counter, "a") as fh:
+            fh.write(key + "\n")
+    _limit_threads(threads)
+    if not (Path(render["path"]) / "frames.csv").exists():  # a worker that cannot see the shared render
+        render = ensure_render(run, renders_dir, run_key(run), threads)
+    footage = open_footage(render["path"])
+    cfg = copy.deepcopy(velocity)
+    t0 = _time.perf_counter()
+    ds = estimate_velocity(footage, cfg, progress=False)
+    metrics = front_end_metrics(ds, footage, scoring["skip_s"], exact_rates(footage, cfg),
+                                scoring["tol_m_s"], scoring["hold_s"])
+    wall = _time.perf_counter() - t0
+    t_grid = footage.times - footage.times[0]
+    t = ds.time.values - footage.times[0]
+
+    def on_grid(x, fill=np.nan):
+        return np.interp(t_grid, t, np.asarray(x, float), left=fill, right=fill)
+
+    try:
+        accel = forward_accel_at(footage, footage.times, cfg)[0]
+    except FootageError:
+        accel = on_grid(ds.accel.values)
+    v_true = (np.interp(footage.times, footage.truth["time_s"], footage.truth["v_forward_m_s"])
+              if footage.truth is not None else np.full(t_grid.size, np.nan))
+    series = dict(time_s=t_grid.round(6).tolist(), v_hat=on_grid(ds.v_hat.values).tolist(),
+                  observable=(on_grid(ds.observable.values.astype(float), 0.0) >= 0.5).tolist(),
+                  accel=np.asarray(accel, float).tolist(), v_true=np.asarray(v_true, float).tolist())
+    return dict(key=key, velocity=velocity.to_dict(), run=run.to_dict(), scoring=scoring, metrics=metrics,
+                stage_ms_per_frame=stage_ms_per_frame(ds), series=series, wall_s=wall,
+                render_s=render.get("render_s"), n_frames=len(footage), n_estimates=int(ds.sizes["time"]),
+                host=socket.gethostname(), pid=os.getpid(), lobula_version=__version__,
+                finished_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+
+
+# ---------------------------------------------------------------------- records
+def sweep_paths(out: str | Path) -> tuple[Path, Path, Path]:
+    """(store, points folder, renders folder): ``X.zarr`` → ``X.points/``, ``X.renders/`` beside it."""
+    out = Path(out)
+    stem = out.name[:-5] if out.name.endswith(".zarr") else out.name
+    return out, out.parent / f"{stem}.points", out.parent / f"{stem}.renders"
+
+
+def write_record(points_dir: Path, record: dict) -> Path:
+    """Write one point's record atomically (temporary file, then rename)."""
+    points_dir.mkdir(parents=True, exist_ok=True)
+    path = points_dir / f"{record['key']}.json"
+    tmp = points_dir / f".{record['key']}.{os.getpid()}.tmp"
+    try:
+        tmp.write_text(json.dumps(record, default=float))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_record(points_dir: Path, key: str) -> dict | None:
+    """A finished point's record, or None (absent or unreadable: it will be recomputed)."""
+    try:
+        rec = json.loads((points_dir / f"{key}.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return rec if rec.get("key") == key and "metrics" in rec else None
+
+
+# ---------------------------------------------------------------------- running
+def _threads_per_worker(workers: int) -> int:
+    return max(1, (os.cpu_count() or 1) // max(workers, 1))
+
+
+class _Client:
+    """A dask.distributed client for 'processes' / 'threads' (a LocalCluster) or an address."""
+
+    def __init__(self, scheduler: str, workers: int):
+        import logging
+
+        from distributed import Client, LocalCluster
+
+        self.cluster = None
+        self._restore = None
+        if scheduler in ("processes", "threads"):
+            import dask
+
+            # dask's nanny sets MALLOC_TRIM_THRESHOLD_ in worker processes, which also fixes glibc's
+            # mmap threshold: every large numpy temporary is then mmapped and page-faulted afresh
+            # (measured: 6x the page faults, 5x the system time, fields stage 2x slower). Not here.
+            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+                self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
+                                            processes=scheduler == "processes", dashboard_address=None,
+                                            silence_logs=logging.ERROR)
+            self.client = Client(self.cluster)
+            self.threads = _threads_per_worker(workers)
+            if scheduler == "threads":  # tasks set torch/OpenCV threads process-wide: restore them after
+                import cv2
+                import torch
+                self._restore = (torch.get_num_threads(), cv2.getNumThreads())
+        else:
+            try:
+                self.client = Client(scheduler, timeout="20s")
+            except (OSError, TimeoutError) as exc:
+                raise SweepError(f"--scheduler {scheduler}: cannot reach a dask scheduler there ({exc})") from None
+            self.threads = 0  # the cluster's own business
+
+    def close(self):
+        try:
+            self.client.close()
+        finally:
+            if self.cluster is not None:
+                self.cluster.close()
+            if self._restore:
+                import cv2
+                import torch
+                torch.set_num_threads(self._restore[0])
+                cv2.setNumThreads(self._restore[1])
+
+
+def run_sweep(spec: SweepSpec, out: str | Path, scheduler: str = "processes", workers: int = 2,
+              progress: bool = True, keep_renders: bool = False, series: bool = True,
+              stop_after: int | None = None, log=None) -> xr.Dataset:
+    """Run (or resume) the sweep and write the Zarr store atomically; returns the assembled Dataset.
+
+    scheduler: "processes" (default: a local dask.distributed cluster of ``workers`` processes),
+    "threads", "synchronous" (no Dask; debugging) or a dask.distributed scheduler address.
+    stop_after: stop once this many points have been recorded in this call (a test hook that
+    simulates a killed sweep: raises :class:`SweepInterrupted`, no store is written).
+    """
+    from tqdm.auto import tqdm
+
+    say = log or (lambda s: None)
+    out, points_dir, renders_dir = sweep_paths(out)
+    grid = spec.points()
+    unique = {}
+    for p in grid:
+        unique.setdefault(p.key, p)
+    done = {k for k in unique if read_record(points_dir, k) is not None}
+    todo = [p for k, p in unique.items() if k not in done]
+    say(f"sweep: {len(grid)} grid points, {len(unique)} distinct runs, {len(done)} already recorded in "
+        f"{points_dir}, {len(todo)} to compute")
+    points_dir.mkdir(parents=True, exist_ok=True)
+    failed: dict[str, str] = {}
+    computed = 0
+    if todo:
+        remaining = {}
+        for p in todo:
+            remaining[p.run_key] = remaining.get(p.run_key, 0) + 1
+        bar = tqdm(total=len(todo), desc="sweep", unit="point", disable=not progress, mininterval=1)
+
+        def finished(p: Point, rec: dict | None, exc: BaseException | None):
+            nonlocal computed
+            if rec is not None:
+                write_record(points_dir, rec)
+                computed += 1
+            else:
+                failed[p.key] = f"{type(exc).__name__}: {exc}"
+                say(f"point {p.coords} failed: {failed[p.key]}")
+            bar.update(1)
+            remaining[p.run_key] -= 1
+            if remaining[p.run_key] == 0 and not keep_renders:
+                shutil.rmtree(renders_dir / p.run_key, ignore_errors=True)
+            if stop_after is not None and computed >= stop_after:
+                raise SweepInterrupted(f"stopped after {computed} point(s) (stop_after)")
+
+        try:
+            if scheduler == "synchronous":
+                threads = 0
+                renders = {}
+                for p in todo:
+                    try:
+                        if p.run_key not in renders:
+                            renders[p.run_key] = ensure_render(p.run, str(renders_dir), p.run_key, threads)
+                        rec = compute_point(renders[p.run_key], p.velocity, p.run, spec.scoring, p.key,
+                                            str(renders_dir), threads)
+                        exc = None
+                    except (FootageError, ValueError, RuntimeError, OSError) as e:
+                        rec, exc = None, e
+                    finished(p, rec, exc)
+            else:
+                _run_dask(todo, spec, renders_dir, scheduler, workers, finished)
+        finally:
+            bar.close()
+    ds = assemble(spec, grid, points_dir, series=series)
+    ds.attrs.update(points_computed=computed, points_reused=len(done), scheduler=scheduler,
+                    workers=workers if scheduler in ("processes", "threads") else 0,
+                    failed=json.dumps(failed))
+    write_zarr(ds, out)
+    if not failed and not keep_renders:
+        shutil.rmtree(renders_dir, ignore_errors=True)
+    say(f"wrote {out}: {' × '.join(f'{d} ({n})' for d, n in zip(spec.dims, spec.shape))}; "
+        f"computed {computed}, reused {len(done)}, failed {len(failed)}")
+    return ds
+
+
+def _run_dask(todo: list[Point], spec: SweepSpec, renders_dir: Path, scheduler: str, workers: int, finished):
+    from distributed import as_completed
+
+    c = _Client(scheduler, workers)
+    try:
+        client = c.client
+        renders = {}
+        for p in todo:
+            if p.run_key not in renders:
+                renders[p.run_key] = client.submit(ensure_render, p.run, str(renders_dir), p.run_key, c.threads,
+                                                   key=f"render-{p.run_key}", pure=False)
+        futures = {}
+        for p in todo:
+            f = client.submit(compute_point, renders[p.run_key], p.velocity, p.run, spec.scoring, p.key,
+                              str(renders_dir), c.threads, key=f"point-{p.key}", pure=False)
+            futures[f.key] = (f, p)
+        try:
+            for f in as_completed([f for f, _ in futures.values()]):
+                p = futures[f.key][1]
+                try:
+                    rec, exc = f.result(), None
+                except Exception as e:  # a failed point is reported, not recorded: a restart retries it
+                    rec, exc = None, e
+                finished(p, rec, exc)
+        except BaseException:
+            client.cancel([f for f, _ in futures.values()] + list(renders.values()), force=True)
+            raise
+    finally:
+        c.close()
+
+
+# ---------------------------------------------------------------------- the store
+def _coord_values(values: list):
+    if all(isinstance(v, bool) for v in values):
+        return np.array(values, dtype=bool)
+    if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+        return np.array(values, dtype=int if all(isinstance(v, int) for v in values) else float)
+    return np.array([v if isinstance(v, str) else json.dumps(_jsonable(v)) for v in values], dtype=object)
+
+
+def assemble(spec: SweepSpec, grid: list[Point], points_dir: Path, series: bool = True) -> xr.Dataset:
+    """The grid Dataset from the point records (NaN where a point has no record)."""
+    shape, dims = spec.shape, spec.dims
+    records = {}
+    for p in grid:
+        if p.key not in records:
+            records[p.key] = read_record(points_dir, p.key)
+    recs = [r for r in records.values() if r]
+    stages = list(dict.fromkeys(s for r in recs for s in r.get("stage_ms_per_frame", {})))
+    data = {k: np.full(shape, np.nan) for k in METRICS}
+    extra = {k: np.full(shape, np.nan) for k in ("render_s", "point_wall_s")}
+    stage = np.full(shape + (len(stages),), np.nan)
+    keys = np.empty(shape, dtype=object)
+    done = np.zeros(shape, dtype=bool)
+    t_grid = None
+    if series and recs:
+        longest = max(recs, key=lambda r: len(r["series"]["time_s"]))
+        t_grid = np.asarray(longest["series"]["time_s"], float)
+        ser = {k: np.full(shape + (t_grid.size,), np.nan) for k in ("v_hat", "v_true", "accel")}
+        obs = np.zeros(shape + (t_grid.size,), dtype=bool)
+    for p in grid:
+        keys[p.index] = p.key
+        r = records[p.key]
+        if not r:
+            continue
+        done[p.index] = True
+        for k in METRICS:
+            v = r["metrics"].get(k)
+            data[k][p.index] = np.nan if v is None else v
+        extra["render_s"][p.index] = np.nan if r.get("render_s") is None else r["render_s"]
+        extra["point_wall_s"][p.index] = r.get("wall_s", np.nan)
+        for j, s in enumerate(stages):
+            stage[p.index + (j,)] = r["stage_ms_per_frame"].get(s, np.nan)
+        if t_grid is not None:
+            s = r["series"]
+            ts = np.asarray(s["time_s"], float)
+            for k in ser:
+                ser[k][p.index] = np.interp(t_grid, ts, np.asarray(s[k], float), left=np.nan, right=np.nan)
+            obs[p.index] = np.interp(t_grid, ts, np.asarray(s["observable"], float), left=0, right=0) >= 0.5
+    vars_ = {k: (dims, data[k], METRIC_ATTRS[k]) for k in METRICS}
+    vars_["render_s"] = (dims, extra["render_s"], dict(units="s", long_name="time to render the point's footage"))
+    vars_["point_wall_s"] = (dims, extra["point_wall_s"], dict(units="s", long_name="velocity run + scoring wall time"))
+    vars_["stage_ms_per_frame"] = (dims + ["stage"], stage, dict(units="ms", long_name="wall time per estimate of each stage"))
+    vars_["point_key"] = (dims, keys, dict(long_name="record name in the points folder (<key>.json)"))
+    vars_["done"] = (dims, done, dict(long_name="point has a record"))
+    coords = {p.name: (p.name, _coord_values(p.values), dict(sets=", ".join(p.targets))) for p in spec.params}
+    coords["stage"] = ("stage", np.array(stages, dtype=object))
+    if t_grid is not None:
+        vars_["v_hat"] = (dims + ["time"], ser["v_hat"], dict(units="m/s", long_name="estimated forward velocity"))
+        vars_["v_true"] = (dims + ["time"], ser["v_true"], dict(units="m/s", long_name="true forward velocity"))
+        vars_["accel"] = (dims + ["time"], ser["accel"], dict(units="m/s2", long_name="forward acceleration used"))
+        vars_["observable"] = (dims + ["time"], obs, dict(long_name="velocity observable"))
+        coords["time"] = ("time", t_grid, dict(units="s", long_name="time since the run's first frame"))
+    ds = xr.Dataset(vars_, coords=coords)
+    base = dict(velocity=spec.velocity.to_dict(), run=spec.run.to_dict())
+    ds.attrs.update(provenance(json.dumps(base, sort_keys=True, default=str),
+                               base_velocity_config=spec.velocity.to_json(),
+                               base_run_config=json.dumps(spec.run.to_dict(), sort_keys=True, default=str),
+                               sweep=json.dumps(spec.to_dict(), default=str), skip_s=spec.skip_s,
+                               lock_tol_m_s=spec.tol_m_s, lock_hold_s=spec.hold_s,
+                               n_points=int(np.prod(shape)), n_distinct=len(records),
+                               points_dir=str(points_dir),
+                               created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds")))
+    return ds
+
+
+def write_zarr(ds: xr.Dataset, out: str | Path) -> Path:
+    """Write ``ds`` as a Zarr store atomically: a temporary directory beside it, then a rename."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    old = out.parent / f".{out.name}.old-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
+            ds.to_zarr(tmp, mode="w", consolidated=True)
+        if out.exists():
+            os.replace(out, old)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old.exists() and not out.exists():
+            os.replace(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+    return out
+
+
+def estimate_sweep_s(n_points: int, n_renders: int, point_s: float, render_s: float, workers: int = 2) -> float:
+    """Rough wall time (s) of a sweep: one render before anything, then the rest spread over workers."""
+    if n_points <= 0:
+        return 0.0
+    return render_s + ((n_renders - 1) * render_s + n_points * point_s) / max(workers, 1)
+
+
+# ---------------------------------------------------------------------- command line
+def run_config_from_dict(d: dict) -> TrackRunConfig:
+    """A :class:`TrackRunConfig` from its ``to_dict()`` (or a render's ``scene.json`` ``config``)."""
+    from stimuli.imu import IMUConfig
+    from stimuli.scene import SceneConfig
+
+    d = dict(d)
+    scene, imu = dict(d.pop("scene", None) or {}), dict(d.pop("imu", None) or {})
+    if "texture_wavelengths_m" in scene:
+        scene["texture_wavelengths_m"] = tuple(scene["texture_wavelengths_m"])
+    try:
+        return TrackRunConfig(**d, scene=SceneConfig(**scene), imu=IMUConfig(**imu))
+    except TypeError as exc:
+        raise SweepError(f"not a TrackRunConfig: {exc}") from None
+
+
+def _base_configs(args) -> tuple[VelocityConfig, TrackRunConfig]:
+    def load(path, what):
+        try:
+            return json.loads(Path(path).read_text())
+        except (OSError, ValueError) as exc:
+            raise SweepError(f"{path}: not a {what} JSON ({exc})") from None
+
+    if args.base_velocity:
+        d = load(args.base_velocity, "VelocityConfig")
+        if isinstance(d.get("config"), str):  # attrs of a velocity NetCDF saved as JSON
+            d = json.loads(d["config"])
+        try:
+            vel = VelocityConfig.from_dict(d)
+        except (TypeError, ValueError) as exc:
+            raise SweepError(f"{args.base_velocity}: not a VelocityConfig ({exc})") from None
+    elif args.paper:
+        vel = VelocityConfig.paper()
+    else:
+        vel = VelocityConfig()
+    if args.base_run:
+        d = load(args.base_run, "TrackRunConfig")
+        run = run_config_from_dict(d["config"] if isinstance(d.get("config"), dict) else d)
+    else:
+        profile = args.profile
+        if profile is None and not args.builtin_profile and REAL_PROFILE.exists():
+            profile = str(REAL_PROFILE)
+        run = TrackRunConfig(profile=profile, start_s=args.start, duration_s=args.base_duration, scale=args.scale)
+    return vel, run
+
+
+def _sweep(args) -> int:
+    say = (lambda s: None) if args.quiet else (lambda s: print(s, file=sys.stderr))
+    vel, run = _base_configs(args)
+    if args.list_params:
+        print("velocity configuration (VelocityConfig):")
+        for k, v in list_paths(vel).items():
+            print(f"  {k} = {v!r}")
+        print("synthetic run (TrackRunConfig):")
+        for k, v in list_paths(run).items():
+            print(f"  {k} = {v!r}")
+        print("aliases: " + ", ".join(f"{k} -> {' + '.join(t.split('.', 1)[1] for t in v)}" for k, v in ALIASES.items()))
+        return 0
+    if not args.param:
+        raise SweepError("give at least one --param PATH=V1,V2,... (lobula sweep --list-params lists the paths)")
+    if not args.out:
+        raise SweepError("--out SWEEP.zarr is required")
+    spec = SweepSpec.from_strings(args.param, vel, run, skip_s=args.skip, tol_m_s=args.tol, hold_s=args.hold)
+    grid = spec.points()
+    if args.dry_run:
+        _, points_dir, _ = sweep_paths(args.out)
+        keys = {p.key for p in grid}
+        done = sum(read_record(points_dir, k) is not None for k in keys)
+        print(f"{len(grid)} points ({' × '.join(map(str, spec.shape))}), {len(keys)} distinct runs, "
+              f"{len({p.run_key for p in grid})} renders, {done} already recorded")
+        for p in grid[:50]:
+            print(f"  {p.key}  {p.coords}")
+        return 0
+    try:
+        ds = run_sweep(spec, args.out, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
+                       keep_renders=args.keep_renders, series=not args.no_series, log=say)
+    except KeyboardInterrupt:
+        _, points_dir, _ = sweep_paths(args.out)
+        n = len(list(points_dir.glob("*.json")))
+        print(f"lobula sweep: interrupted; {n} finished point(s) are recorded in {points_dir}. "
+              f"Run the same command again to resume.", file=sys.stderr)
+        return 130
+    rm = ds.rmse_m_s
+    print(f"wrote {args.out}: dims {dict(zip(spec.dims, spec.shape))}; computed {ds.attrs['points_computed']}, "
+          f"reused {ds.attrs['points_reused']}")
+    if np.isfinite(rm.values).any():
+        best = np.unravel_index(int(np.nanargmin(rm.values)), rm.shape)
+        print(f"RMSE {np.nanmin(rm.values):.4f}..{np.nanmax(rm.values):.4f} m/s; best at "
+              + ", ".join(f"{d}={ds[d].values[i]}" for d, i in zip(spec.dims, best)))
+    failed = json.loads(ds.attrs.get("failed", "{}"))
+    if failed:
+        print(f"{len(failed)} point(s) failed (NaN in the store; rerun to retry): "
+              + "; ".join(f"{k}: {v}" for k, v in list(failed.items())[:3]), file=sys.stderr)
+        return 1
+    return 0
+
+
+def add_parser(subparsers):
+    """Register ``lobula sweep`` on an argparse subparsers object; returns the parser."""
+    s = subparsers.add_parser("sweep", help="a grid over configuration parameters, each point a scored synthetic run "
+                                            "(Dask, Zarr, resumable)",
+                              description="A grid over velocity and synthetic-run parameters; each point renders "
+                                          "(or reuses) a synthetic run, estimates velocity and scores it against "
+                                          "truth. Finished points are recorded beside the store, so an interrupted "
+                                          "sweep resumes where it stopped.")
+    s.add_argument("--param", action="append", metavar="PATH=V1,V2,...",
+                   help="a swept parameter: a dotted path into the velocity configuration (fields.size_deg, "
+                        "readout.cutoff_hz, front_end, emd.emd.tau_s, emd.lattice.dphi_deg, ...) or the synthetic "
+                        "run (scene.seed, scene.noise_grey, imu.accel_noise_density, duration_s, ...), or 'seed'; "
+                        "values comma-separated, a JSON list, or lin:A:B:N / log:A:B:N. Repeat for more dims")
+    s.add_argument("--out", help="output Zarr store (written atomically); records go to OUT's stem + .points/")
+    s.add_argument("--base-duration", type=float, default=30.0, help="duration of each synthetic run (s, default 30)")
+    s.add_argument("--start", type=float, default=0.0, help="window start in the velocity profile (s)")
+    s.add_argument("--scale", type=float, default=0.5, help="image scale of the D435i camera (0.5 = 320×240)")
+    s.add_argument("--profile", help="velocity CSV; default the real FLIVVER run when ../shared is present")
+    s.add_argument("--builtin-profile", action="store_true", help="use the built-in velocity profile")
+    s.add_argument("--base-velocity", help="VelocityConfig JSON (or a velocity NetCDF's attrs['config'] saved as JSON)")
+    s.add_argument("--base-run", help="TrackRunConfig JSON (or a rendered footage's scene.json)")
+    s.add_argument("--paper", action="store_true", help="start from the paper's velocity configuration")
+    s.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring (default 2)")
+    s.add_argument("--tol", type=float, default=LOCK_TOL_M_S, help="lock-on tolerance (m/s)")
+    s.add_argument("--hold", type=float, default=LOCK_HOLD_S, help="lock-on hold time (s)")
+    s.add_argument("--scheduler", default="processes",
+                   help="processes (default: a local dask.distributed cluster), threads, synchronous, or the "
+                        "ADDRESS of a dask.distributed scheduler (e.g. tcp://10.0.0.5:8786)")
+    s.add_argument("--workers", type=int, default=2, help="local workers (default 2)")
+    s.add_argument("--keep-renders", action="store_true", help="keep the rendered footage beside the store")
+    s.add_argument("--no-series", action="store_true", help="metrics only; no per-frame v_hat etc. in the store")
+    s.add_argument("--dry-run", action="store_true", help="print the grid and what is already recorded, run nothing")
+    s.add_argument("--list-params", action="store_true", help="print every sweepable path with its default")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_sweep)
+    return s
