@@ -231,8 +231,9 @@ class FloUnits:
     units: "rad/s" (pixel displacement / (fx_ref·gap_s): the FLIVVER files) or
     "px" (pixel displacement over the frame pair: FlowNet2's raw output).
     gap_s: time between the two frames (s). ref_width/ref_height: image size the flow
-    was computed at (the FLIVVER files: 640×448, resized from 480 rows);
-    fx_scale_width: whether rad/s units used the *original* fx for both axes (FLIVVER).
+    was computed at (the FLIVVER files: 640×448, resized from 480 rows). In "rad/s" the
+    FLIVVER convention divides both components by the *original* fx, so pixels of the
+    resized image are value·gap·fx on both axes.
     """
 
     units: str = "rad/s"
