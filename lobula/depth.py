@@ -56,6 +56,7 @@ import numpy as np
 import torch
 
 from lobula.camera import PinholeCamera
+from lobula.epipole import rotational_flow
 
 __all__ = [
     "DepthConfig",
@@ -521,17 +522,14 @@ def _tv_init(init, f: torch.Tensor, shape: tuple) -> tuple[torch.Tensor, torch.T
 def _rotational_flow(camera: PinholeCamera, omega, like=None):
     """Flow (2, H, W) in normalised units (1/s) of a pinhole camera rotating at ω (rad/s, camera frame).
 
-    u = ωx·x·y − ωy·(1+x²) + ωz·y,   v = ωx·(1+y²) − ωy·x·y − ωz·x
-    (static scene, camera frame x right, y down, z forward); the same field as
-    :func:`lobula.epipole.rotational_flow`, here on the camera's grid and on the device
-    and dtype of ``like`` (a tensor; returns a tensor), else numpy float64.
+    :func:`lobula.epipole.rotational_flow` on the camera's grid, on the device and dtype
+    of ``like`` (a tensor; returns a tensor), else numpy float64.
     """
     wx, wy, wz = (float(c) for c in np.asarray(
         omega.detach().cpu() if isinstance(omega, torch.Tensor) else omega, dtype=float).ravel())
     t = like if isinstance(like, torch.Tensor) else torch.zeros((), dtype=torch.float64)
     x, y = _grid(camera, t)
-    out = torch.stack([wx * x * y - wy * (1 + x * x) + wz * y,
-                       wx * (1 + y * y) - wy * x * y - wz * x])
+    out = rotational_flow((wx, wy, wz), x, y)
     return out if isinstance(like, torch.Tensor) else out.numpy()
 
 

@@ -11,16 +11,19 @@ the optical axis, so r must be measured about this point, not the principal poin
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 
 def rotational_flow(omega: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Flow (1/s), (2, ...), of a pinhole camera rotating at ω = (ωx, ωy, ωz) rad/s (camera frame).
 
-    x, y: normalised coordinates. Derived from Ṗ = −ω × P for static points.
+    x, y: normalised coordinates (numpy arrays or torch tensors; the result follows).
+    Derived from Ṗ = −ω × P for static points.
     """
-    wx, wy, wz = omega
-    return np.stack([wx * x * y - wy * (1 + x * x) + wz * y,
-                     wx * (1 + y * y) - wy * x * y - wz * x])
+    wx, wy, wz = (float(w) for w in omega)
+    u = wx * x * y - wy * (1 + x * x) + wz * y
+    v = wx * (1 + y * y) - wy * x * y - wz * x
+    return torch.stack([u, v]) if isinstance(u, torch.Tensor) else np.stack([u, v])
 
 
 def derotate(flow: np.ndarray, omega: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
