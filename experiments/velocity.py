@@ -119,8 +119,7 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
         e = est.update(flow) if config.epipole == "estimate" else np.zeros(2)
         r, r2 = pool_fields(flow, fields, e, pooling=config.fields.pooling)
         if config.fields.gap_correction:
-            r, r2 = gap_correction(r * s.dt, r2 * s.dt ** 2, 1.0)
-            r, r2 = r / s.dt, r2 / s.dt ** 2
+            r, r2 = gap_correction(r, r2, s.dt)
         timings["fields"] += _time.perf_counter() - t1
         ts.append(s.t_mid if config.timestamps == "mid" else s.t0)
         rs.append(r)

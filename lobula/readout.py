@@ -23,6 +23,7 @@ Two readouts share this arithmetic:
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -159,11 +160,9 @@ def paper_readout(t, r, r2, a, cfg: ReadoutConfig) -> ReadoutResult:
     r_dot = staggered_difference(rf, cfg.stagger, dt, centred=False)
     v_f, _ = field_velocity(r, r2, r_dot, a)
     v_f = np.where(np.isfinite(v_f), v_f, np.nan)
-    with np.errstate(all="ignore"):
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(v_f, axis=1)
+    with warnings.catch_warnings():  # all-NaN frames are expected: no field has a finite v_f
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(v_f, axis=1)
     v = butterworth(med, cfg.paper_wn, cfg.paper_order, zp) if np.isfinite(med).any() else med
     # The paper has no notion of observability; we add only the honest minimum:
     # without acceleration the ratio carries no speed information.
@@ -187,7 +186,6 @@ def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
     ok &= (np.abs(a) >= cfg.accel_min_m_s2)[:, None]
     v_f = np.where(ok, v_f, np.nan)
     n_ok = ok.sum(1)
-    import warnings
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         z = np.nanmedian(v_f, axis=1)
@@ -199,7 +197,6 @@ def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
 
 def rest_measurement(r, cfg: ReadoutConfig):
     """v = r·d with 0 < d ≤ rest_depth_max: small flow everywhere bounds |v| (returns z = 0, std)."""
-    import warnings
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         r_abs = np.nanmedian(np.abs(r), axis=1)
