@@ -8,3 +8,4 @@ from .gratings import GratingConfig, drifting_grating_frames, drifting_grating_l
 from .track import TrackRunConfig, build_track, builtin_profile, make_track_run
 from .lattice_stimuli import (GratingSource, dot_field, drifting_grating, looming_angular_size, looming_disc,
                               moving_edge, moving_spot, noise_panorama, radial_grating, sparse_noise)
+from .realsense_bag import BagFootage, open_realsense_bag

@@ -8,7 +8,8 @@ Three layouts are read (DESIGN.md, "Footage folder"):
   frames named by raw frame number, ``velocity.csv`` with raw_frame = sample + 3
   and no IMU, so forward acceleration is derived from the smoothed ground truth
   (and every output says so);
-* Middlebury ``.flo`` flow files (:func:`read_flo`), whose units depend on who wrote them.
+* Middlebury ``.flo`` flow files (:func:`read_flo`), whose units depend on who wrote them;
+* RealSense ROS bags as the RealSense Viewer records them (:mod:`stimuli.realsense_bag`).
 
 Frames are decoded one at a time on iteration, so memory does not grow with length.
 """
@@ -128,8 +129,12 @@ class Footage:
 def open_footage(path: str | Path) -> Footage:
     """Open a footage folder or the D435i sample layout, checking everything cheap up front."""
     path = Path(path)
+    if path.is_file() and path.suffix == ".bag":
+        from .realsense_bag import open_realsense_bag
+        return open_realsense_bag(path)
     if not path.is_dir():
-        raise FootageError(f"{path}: not a folder; give a footage folder (camera.json, frames/, frames.csv, imu.csv)")
+        raise FootageError(f"{path}: not a folder or a .bag; give a footage folder (camera.json, frames/, "
+                           f"frames.csv, imu.csv) or a RealSense Viewer recording (.bag)")
     if (path / "frames.csv").exists():
         return _open_folder(path)
     if (path / "velocity.csv").exists() and (path / "frames").is_dir():
