@@ -26,32 +26,40 @@ def _scene(args) -> int:
     return 0
 
 
+def apply_velocity_options(cfg, args):
+    """Apply the velocity options shared by `velocity` and `compare` (absent or None: unchanged)."""
+    from dataclasses import replace
+
+    opt = lambda name: getattr(args, name, None)
+    if opt("filter"):
+        cfg.readout.filter = args.filter
+    if opt("gap"):
+        cfg.flow.gap = args.gap
+    if opt("field_size"):
+        cfg.fields.size_deg = args.field_size
+    if opt("dis_preset"):
+        cfg.flow.dis_preset = args.dis_preset
+    if opt("epipole"):
+        cfg.epipole = args.epipole
+    if opt("accel_from_truth"):
+        cfg.accel_from_truth = True
+    e = cfg.emd
+    if opt("dphi") or opt("drho"):
+        e.lattice = replace(e.lattice, dphi_deg=opt("dphi") or e.lattice.dphi_deg,
+                            drho_deg=opt("drho") or e.lattice.drho_deg)
+    if opt("tau"):
+        e.emd = replace(e.emd, tau_s=args.tau)
+    if opt("emd_calibration"):
+        from experiments.calibrate import read_calibration
+        e.calibration, e.latency_s = read_calibration(args.emd_calibration)
+    return cfg
+
+
 def _velocity_config(args):
     from lobula.config import VelocityConfig
 
     cfg = VelocityConfig.paper(args.front_end, args.filter) if args.paper else VelocityConfig(front_end=args.front_end)
-    cfg.readout.filter = args.filter
-    if args.gap:
-        cfg.flow.gap = args.gap
-    if args.field_size:
-        cfg.fields.size_deg = args.field_size
-    if args.dis_preset:
-        cfg.flow.dis_preset = args.dis_preset
-    if args.epipole:
-        cfg.epipole = args.epipole
-    cfg.accel_from_truth = args.accel_from_truth
-    if args.front_end == "emd":
-        from dataclasses import replace
-        e = cfg.emd
-        if args.dphi or args.drho:
-            e.lattice = replace(e.lattice, dphi_deg=args.dphi or e.lattice.dphi_deg,
-                                drho_deg=args.drho if args.drho else e.lattice.drho_deg)
-        if args.tau:
-            e.emd = replace(e.emd, tau_s=args.tau)
-        if args.emd_calibration:
-            from experiments.calibrate import read_calibration
-            e.calibration, e.latency_s = read_calibration(args.emd_calibration)
-    return cfg
+    return apply_velocity_options(cfg, args)
 
 
 def _velocity(args) -> int:

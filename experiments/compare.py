@@ -448,7 +448,7 @@ def plot_comparison(ds: xr.Dataset, path: str | Path, title: str | None = None) 
 
 # ---------------------------------------------------------------------- command line
 def _config_from_args(args) -> VelocityConfig:
-    from dataclasses import replace
+    from .cli import apply_velocity_options
 
     if args.config:
         try:
@@ -459,24 +459,7 @@ def _config_from_args(args) -> VelocityConfig:
         cfg = VelocityConfig.paper("dis", args.filter or "zero-phase")
     else:
         cfg = VelocityConfig()
-    if args.filter:
-        cfg.readout.filter = args.filter
-    if args.gap:
-        cfg.flow.gap = args.gap
-    if args.field_size:
-        cfg.fields.size_deg = args.field_size
-    if args.accel_from_truth:
-        cfg.accel_from_truth = True
-    if args.dphi or args.drho:
-        e = cfg.emd
-        e.lattice = replace(e.lattice, dphi_deg=args.dphi or e.lattice.dphi_deg,
-                            drho_deg=args.drho if args.drho else e.lattice.drho_deg)
-    if args.tau:
-        cfg.emd.emd = replace(cfg.emd.emd, tau_s=args.tau)
-    if args.emd_calibration:
-        from .calibrate import read_calibration
-        cfg.emd.calibration, cfg.emd.latency_s = read_calibration(args.emd_calibration)
-    return cfg
+    return apply_velocity_options(cfg, args)
 
 
 def _compare(args) -> int:
