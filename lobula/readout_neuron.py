@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from .neurons import make_generator, poisson_spikes
+from .photoreceptor import lowpass_scan
 
 
 @dataclass
@@ -70,14 +71,12 @@ class ReadoutNeuronConfig:
 
 
 def _lowpass(x: torch.Tensor, tau: float, dt: float) -> torch.Tensor:
-    """Exact first-order low-pass along dim 1 (time) of (trials, time, ...), starting at x[:, 0]."""
+    """First-order low-pass along dim 1 (time) of (trials, time) or (trials, time, fields),
+    starting at x[:, 0] — the photoreceptors' :func:`lobula.photoreceptor.lowpass_scan`."""
     a = float(np.exp(-dt / tau))
-    y = torch.empty_like(x)
-    prev = x[:, 0]
-    for k in range(x.shape[1]):  # recursion in time only; trials and fields are batched
-        prev = a * prev + (1 - a) * x[:, k]
-        y[:, k] = prev
-    return y
+    if x.dim() == 2:
+        return lowpass_scan(x[..., None], a)[..., 0]
+    return lowpass_scan(x, a)
 
 
 def lc_pathways(r: torch.Tensor, r2: torch.Tensor, dt: float, cfg: ReadoutNeuronConfig):
