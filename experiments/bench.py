@@ -144,3 +144,19 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) 
     print(f"peak resident memory {_peak_mb():.0f} MiB. Memory is flat in footage length: frames are "
           f"streamed and only gap+1 frames are held; a run of N frames keeps O(N·fields) numbers.")
     return rows
+
+
+def _run(args) -> int:
+    from experiments.bench import run_bench
+
+    run_bench(frames=args.frames, scales=args.scales, presets=args.presets)
+    return 0
+
+
+def add_parser(subparsers):
+    """Register `lobula bench` (see experiments.cli)."""
+    b = subparsers.add_parser("bench", help="frames/s per stage and end to end, peak memory")
+    b.add_argument("--frames", type=int, default=120)
+    b.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.5], help="image scales of the D435i camera")
+    b.add_argument("--presets", nargs="+", default=["fast", "medium"], help="DIS presets to time")
+    b.set_defaults(func=_run)

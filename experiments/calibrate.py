@@ -85,3 +85,26 @@ def read_calibration(path):
         return (g[0] if len(g) == 1 else g), float(d["latency_s"])
     except (OSError, KeyError, ValueError, TypeError) as exc:
         raise FootageError(f"{path}: not a calibration file from `lobula calibrate-emd` ({exc})") from None
+
+
+def run_calibrate(args) -> int:
+    from experiments.calibrate import calibrate_emd, write_calibration
+    from lobula.config import VelocityConfig
+    from stimuli.footage import open_footage
+
+    fo = open_footage(args.footage)
+    gains, latency, n = calibrate_emd(fo, VelocityConfig(front_end="emd"), per_field=not args.single_gain)
+    write_calibration(gains, latency, args.out, str(fo.path))
+    g = np.atleast_1d(gains)
+    print(f"wrote {args.out}: {g.size} gain(s) from {n} frames with depth; median {np.median(g):.3f}, "
+          f"range {g.min():.3f}..{g.max():.3f}; latency {1000 * latency:.0f} ms")
+    return 0
+
+
+def add_parser(subparsers):
+    """Register `lobula calibrate-emd` (see experiments.cli)."""
+    c = subparsers.add_parser("calibrate-emd", help="fit the EMD front end's per-field gains on a synthetic run")
+    c.add_argument("footage", help="a synthetic footage folder with depth/ and truth.csv (not a test scene)")
+    c.add_argument("--out", required=True, help="gains JSON for `lobula velocity --emd-calibration`")
+    c.add_argument("--single-gain", action="store_true", help="one gain for all fields")
+    c.set_defaults(func=run_calibrate)

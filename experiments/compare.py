@@ -448,7 +448,7 @@ def plot_comparison(ds: xr.Dataset, path: str | Path, title: str | None = None) 
 
 # ---------------------------------------------------------------------- command line
 def _config_from_args(args) -> VelocityConfig:
-    from .cli import apply_velocity_options
+    from .velocity import apply_velocity_options
 
     if args.config:
         try:

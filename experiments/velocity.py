@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import re
 import time as _time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -285,3 +285,103 @@ def plot_velocity(ds: xr.Dataset, path, title: str | None = None):
     save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path
+
+
+def apply_velocity_options(cfg, args):
+    """Apply the velocity options shared by `velocity` and `compare` (absent or None: unchanged)."""
+
+    opt = lambda name: getattr(args, name, None)
+    if opt("filter"):
+        cfg.readout.filter = args.filter
+    if opt("gap"):
+        cfg.flow.gap = args.gap
+    if opt("field_size"):
+        cfg.fields.size_deg = args.field_size
+    if opt("dis_preset"):
+        cfg.flow.dis_preset = args.dis_preset
+    if opt("epipole"):
+        cfg.epipole = args.epipole
+    if opt("accel_from_truth"):
+        cfg.accel_from_truth = True
+    e = cfg.emd
+    if opt("dphi") or opt("drho"):
+        e.lattice = replace(e.lattice, dphi_deg=opt("dphi") or e.lattice.dphi_deg,
+                            drho_deg=opt("drho") or e.lattice.drho_deg)
+    if opt("tau"):
+        e.emd = replace(e.emd, tau_s=args.tau)
+    if opt("emd_calibration"):
+        from experiments.calibrate import read_calibration
+        e.calibration, e.latency_s = read_calibration(args.emd_calibration)
+    return cfg
+
+
+def _velocity_config(args):
+    cfg = VelocityConfig.paper(args.front_end, args.filter) if args.paper else VelocityConfig(front_end=args.front_end)
+    return apply_velocity_options(cfg, args)
+
+
+def run_velocity(args) -> int:
+    from stimuli.footage import open_footage
+
+    from .store import write_netcdf
+
+    footage = open_footage(args.footage)
+    cfg = _velocity_config(args)
+    flo_files = None
+    if args.front_end == "flo":
+        if not args.flo:
+            raise ValueError("--front-end flo needs --flo FILE_OR_DIR")
+        p = Path(args.flo)
+        flo_files = sorted(p.glob("*.flo")) if p.is_dir() else [p]
+    units = FloUnits(args.flo_units, args.flo_gap, *args.flo_size)
+    ds = estimate_velocity(footage, cfg, progress=not args.quiet, flo_files=flo_files, flo_units=units)
+    write_netcdf(ds, args.out)
+    # Short clips (the 1.2 s D435i sample) are scored after at most a quarter of their length.
+    skip = min(args.skip, 0.25 * float(ds.time[-1] - ds.time[0]))
+    sc = score(ds, skip)
+    print(f"wrote {args.out}: {ds.sizes['time']} frames x {ds.sizes['field']} fields "
+          f"[{ds.attrs['front_end']}, {ds.attrs['readout']} readout, {ds.attrs['filter']}; "
+          f"acceleration: {ds.attrs['acceleration_source']}]")
+    e = ds.epipole_x.values[-1], ds.epipole_y.values[-1]
+    print(f"epipole: ({np.degrees(np.arctan(e[0])):+.2f}°, {np.degrees(np.arctan(e[1])):+.2f}°) from the principal point")
+    print(f"observable fraction: {float(ds.observable.mean()):.3f}")
+    if sc:
+        print(f"after {skip:.3g} s: RMSE {sc['rmse_m_s']:.4f} m/s, median |error| {sc['median_abs_error_m_s']:.4f} m/s, "
+              f"observable {sc['observable_fraction']:.3f} of {sc['n_frames']} frames")
+    if ds.sizes["time"] < 3:
+        med = np.nanmedian(ds.r.values, axis=1)
+        print("too few flows for a velocity readout; median r̄ over fields per flow (1/s): "
+              + ", ".join(f"{x:+.3f}" for x in med))
+    if args.plot:
+        plot_velocity(ds, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def add_parser(subparsers):
+    """Register `lobula velocity` (see experiments.cli)."""
+    v = subparsers.add_parser("velocity", help="estimate forward velocity from footage")
+    v.add_argument("footage", help="footage folder, or the D435i sample folder")
+    v.add_argument("--front-end", default="dis", choices=["dis", "farneback", "flo", "emd"])
+    v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
+    v.add_argument("--plot", help="PNG of v̂ against truth")
+    v.add_argument("--paper", action="store_true", help="the paper's configuration, as its text states it")
+    v.add_argument("--filter", default="zero-phase", choices=["zero-phase", "causal"])
+    v.add_argument("--gap", type=int, help="frames between the two images of a flow pair (default 6)")
+    v.add_argument("--field-size", type=float, help="receptive-field size (deg, default 5)")
+    v.add_argument("--dis-preset", choices=["ultrafast", "fast", "medium"])
+    v.add_argument("--epipole", choices=["estimate", "principal"])
+    v.add_argument("--accel-from-truth", action="store_true",
+                   help="forward acceleration from truth.csv instead of imu.csv")
+    v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo)")
+    v.add_argument("--flo-units", default="rad/s", choices=["rad/s", "px"], help="units of the .flo values")
+    v.add_argument("--flo-gap", type=float, default=0.2, help="time between the .flo frame pair (s)")
+    v.add_argument("--flo-size", type=int, nargs=2, default=[640, 448], metavar=("W", "H"),
+                   help="image size the .flo refers to")
+    v.add_argument("--dphi", type=float, help="EMD front end: interommatidial angle (deg, default 0.75)")
+    v.add_argument("--drho", type=float, help="EMD front end: acceptance angle (deg, default = Δφ)")
+    v.add_argument("--tau", type=float, help="EMD front end: delay time constant (s, default 0.010)")
+    v.add_argument("--emd-calibration", help="EMD front end: gains JSON from `lobula calibrate-emd` on another scene")
+    v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
+    v.add_argument("--quiet", action="store_true")
+    v.set_defaults(func=run_velocity)
