@@ -1,6 +1,7 @@
 """stimuli: everything that makes or reads input — synthetic scenes with exact truth, footage readers."""
-from .footage import (IMU, FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
-                      open_footage, read_flo, read_frame, write_footage)
+from .footage_core import IMU, Footage, FootageError, frame_gaps, read_frame
+from .footage import (FloUnits, acceleration_from_truth, flo_to_normalised, footage_provenance,
+                      open_footage, read_flo, read_imu_csv, write_footage)
 from .imu import IMUConfig, synthesize_imu
 from .scene import SceneConfig, TrackScene, band_limited_texture
 from .trajectory import Trajectory, read_velocity_profile, trajectory_from_function, trajectory_from_profile
