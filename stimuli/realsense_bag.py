@@ -521,6 +521,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
     times = (stamps - origin) / 1e9
 
     # ---- camera
+    distortion = None
     info_topics = [t for t, ty in types.items() if CAMERA_INFO_TYPE in ty and counts[t] > 0]
     info_topic = f"{prefix}/info/camera_info" if f"{prefix}/info/camera_info" in info_topics else \
         _closest([t for t in info_topics if _image_rank(t) == _image_rank(topic)] or info_topics, topic)
@@ -546,6 +547,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
         camera = PinholeCamera(width=int(w), height=int(h), fx=float(k[0]), fy=float(k[4]), cx=float(k[2]),
                                cy=float(k[5]), frame_rate_hz=float(fps))
         if np.any(np.abs(info["D"]) > 1e-9):
+            distortion = dict(model=info["distortion_model"], coeffs=info["D"].tolist(), removed=False)
             notes.append(f"lens distortion ({info['distortion_model']}, D = {np.round(info['D'], 5).tolist()}) "
                          f"ignored: pinhole model")
     if (first.width, first.height) != (camera.width, camera.height):
@@ -602,7 +604,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
         notes.append("no IMU in this bag: velocity cannot be estimated from it")
 
     return BagFootage(path=path, camera=camera, times=times, files=FramePlaceholders(path, topic, len(times)),
-                      imu=imu, truth=None, kind="realsense-bag", notes=notes, topic=topic,
+                      imu=imu, truth=None, kind="realsense-bag", notes=notes, topic=topic, distortion=distortion,
                       encoding=first.encoding, time_origin_s=origin / 1e9, time_source=source,
                       bag_times_ns=bag_ns, stamps_ns=stamps,
                       streams=[dict(topic=t, type=", ".join(sorted(types[t])), messages=int(counts[t]))
