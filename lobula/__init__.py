@@ -1,5 +1,5 @@
 """lobula: a model of the fly's lobula that estimates absolute velocity from vision plus acceleration."""
-__version__ = "0.1.0"
+from .version import __version__, git_commit
 
 from .camera import PinholeCamera, angles_to_normalised, normalised_to_angles
 from .config import VelocityConfig
