@@ -58,6 +58,9 @@ def main(argv=None) -> int:
     except (FootageError, FileExistsError, FileNotFoundError, ValueError) as exc:
         print(f"lobula {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into `head` and closed: not an error
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":
