@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sweep": ("experiments.sweep", "a grid over any configuration path, on Dask, into Zarr"),
     "figures": ("experiments.figures", "regenerate the hypothesis figures with their JSON"),
     "bench": ("experiments.bench", "frames/s per stage and end to end, peak memory"),
+    "info": ("experiments.info", "what a recording holds: streams, rates, intrinsics, IMU, dropped frames, truth"),
 }
 
 
