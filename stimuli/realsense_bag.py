@@ -560,7 +560,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
                     f"origin {origin / 1e9:.6f} s")
 
     # ---- IMU: accel time base, gyro interpolated, rotated into the colour optical frame
-    imu = None
+    imu, r_imu = None, None
     if "accel" in imu_raw:
         pick = 0 if use_header else 1
         if united:
@@ -593,6 +593,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
         else:
             imu_note += "; no gyroscope topic (no derotation possible)"
         acc, gyro, axes = _to_colour_frame(reader, topics, prefix, accel_topic, gyro_topic, acc, gyro)
+        r_imu = _applied_rotation(reader, topics, prefix, accel_topic)
         notes.append(f"{imu_note}; {axes}")
         dom_imu = _timestamp_domain(reader, topics, _stream_prefix(accel_topic), "imu")
         if dom_img and dom_imu and dom_img != dom_imu:
@@ -605,6 +606,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
 
     return BagFootage(path=path, camera=camera, times=times, files=FramePlaceholders(path, topic, len(times)),
                       imu=imu, truth=None, kind="realsense-bag", notes=notes, topic=topic, distortion=distortion,
+                      imu_to_camera=r_imu,
                       encoding=first.encoding, time_origin_s=origin / 1e9, time_source=source,
                       bag_times_ns=bag_ns, stamps_ns=stamps,
                       streams=[dict(topic=t, type=", ".join(sorted(types[t])), messages=int(counts[t]))
@@ -621,6 +623,15 @@ def _dedupe_check(path: Path, topic: str, stamps: np.ndarray, values: np.ndarray
         raise FootageError(f"{path}: {what} message {row} on {topic} has NaN or infinite values; re-record")
     _check_increasing(path, topic, stamps, what)
     return stamps, values
+
+
+def _applied_rotation(reader, topics, prefix, accel_topic) -> np.ndarray | None:
+    """The accelerometer-to-image rotation _to_colour_frame applied (None when none was)."""
+    cam = _extrinsics(reader, topics, prefix)
+    ext = _extrinsics(reader, topics, _stream_prefix(accel_topic))
+    if ext is None or (cam is not None and cam[0] != ext[0]):
+        return None
+    return (cam[1] if cam else np.eye(3)) @ ext[1].T
 
 
 def _to_colour_frame(reader, topics, prefix, accel_topic, gyro_topic, acc, gyro):
