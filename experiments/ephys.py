@@ -43,9 +43,9 @@ from lobula.camera import PinholeCamera, normalised_to_angles
 from lobula.emd import emd_sine_response_discrete
 from lobula.lattice import Lattice, LatticeConfig, dphi_for_count
 from lobula.photoreceptor import photoreceptor_frequency_response
-from lobula.population import (FIELD_RECORDS, NEURON_RECORDS, UNIT_RECORDS, Circuit,
-                               CircuitConfig, LCNeuronConfig, LCPopulationConfig, ReceptiveFieldConfig,
-                               config_from_dict)
+from lobula.circuit import Circuit, CircuitConfig
+from lobula.population import (FIELD_RECORDS, NEURON_RECORDS, UNIT_RECORDS, LCNeuronConfig, LCPopulationConfig,
+                               ReceptiveFieldConfig, config_from_dict)
 from stimuli.lattice_stimuli import GratingSource, direction_from_angles, looming_disc, moving_spot, tangent_basis
 
 __all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "tf_tuning", "rf_map", "looming", "psth", "raster",

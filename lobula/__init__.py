@@ -15,8 +15,9 @@ from .emd import (EMDArray, EMDConfig, emd_coefficients, emd_init, emd_run, emd_
 from .lattice import Lattice, LatticeConfig, acceptance_attenuation, dphi_for_count
 from .neurons import (LIFConfig, LIFNeuron, PoissonConfig, PoissonNeuron, RateNeuron, RateNeuronConfig,
                       lif_fi_curve, lif_step, naka_rushton, poisson_spikes, rate_step)
-from .population import (UNIT_TYPES, Circuit, CircuitConfig, LCNeuronConfig, LCNeurons, LCPopulation,
+from .population import (UNIT_TYPES, LCNeuronConfig, LCNeurons, LCPopulation,
                          LCPopulationConfig, MatchedFilterConfig, NormalisationConfig, PathwayConfig,
                          ReceptiveFieldConfig)
+from .circuit import Circuit, CircuitConfig
 from .readout_neuron import ReadoutNeuronConfig, readout_neuron
 from .photoreceptor import PhotoreceptorConfig, Photoreceptors, photoreceptor_run, photoreceptor_step
