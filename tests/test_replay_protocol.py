@@ -15,7 +15,7 @@ def test_velocity_replay_records_the_circuit(tmp_path, capsys):
     assert main(["ephys", "velocity-replay", "--footage", str(run), "--trials", "3", "--seed", "7",
                  "--out", str(out), "--plot", str(tmp_path / "rec.png")]) == 0
     rec = xr.open_dataset(out)
-    assert rec.readout_spikes.dims == ("trial", "time", "neuron") and rec.sizes["trial"] == 3
+    assert rec.readout_spikes.dims == ("trial", "spike_time", "neuron") and rec.sizes["trial"] == 3
     assert list(rec.neuron.values) == ["plus", "minus"]
     assert {"azimuth_deg", "elevation_deg", "size_deg"} <= set(rec.coords)
     assert rec.attrs["lobula_version"] and "readout_neuron" in rec.attrs["config"]
