@@ -227,7 +227,7 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
         ax_r.set_yticklabels([str(i % (k + 1)) for i in ax_r.get_yticks()])
         ax_r.set_ylabel("trial (plus: lower block;\nminus: upper block)")
         ax_r.set_ylim(-0.6, 2 * k + 0.6)
-        ax_r.set_title(f"readout neurons' spikes ({dts * 1e3:g} ms steps): red plus, blue minus", fontsize=10)
+        ax_r.set_title(f"readout neurons' spikes ({dts * 1e3:.2f} ms steps): red plus, blue minus", fontsize=10)
         ax_p.set_ylabel(f"firing rate (Hz, {b * dts * 1e3:.0f} ms bins)")
         ax_p.set_title(f"PSTH ± SEM across {k} trials", fontsize=10)
     elif "readout_rate" in rec:

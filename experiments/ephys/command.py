@@ -44,11 +44,13 @@ def add_parser(subparsers):
                     "Options marked [tf-tuning] etc. apply to those protocols only; giving them to another "
                     "protocol is an error.")
     e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming | velocity-replay")
-    e.add_argument("--out", nargs="+", required=True, metavar="PATH",
+    e.add_argument("--out", nargs="+", required=True, metavar="PATH", default=S,
                    help="outputs, by suffix: .nc (NetCDF, CF-1.10) and/or .nwb (Neurodata Without Borders); "
                         "each written atomically")
-    e.add_argument("--plot", help="the protocol's figure: PNG (200 dpi) and a vector PDF beside it (.png or .pdf)")
-    g = e.add_argument_group("recording (every protocol)")
+    e.add_argument("--plot", default=S,
+                   help="the protocol's figure: PNG (200 dpi) and a vector PDF beside it (.png or .pdf) "
+                        "(default: no figure)")
+    g = e.add_argument_group("recording and rig (every protocol unless marked)")
     g.add_argument("--record", nargs="+", metavar="POP.VAR", default=S,
                    help="monitors, e.g. lc.rate lc.spikes[expansion] emd.response[0:10] photoreceptor.v; "
                         "velocity-replay: readout.v readout.rate readout.spikes readout.confidence lc.r lc.rdot "
@@ -239,8 +241,9 @@ def summary(ds) -> list[str]:
             vals = ds[d].values
             lines.append(f"{d} values: " + ", ".join(f"{v:g}" if np.issubdtype(vals.dtype, np.number) else str(v)
                                                      for v in vals))
-    lines.append(f"neuron model {ds.attrs.get('neuron_model')}, {ds.attrs.get('trials')} trial(s) stored"
-                 + (f" ({ds.attrs['trials_note']})" if ds.attrs.get("trials_note") else ""))
+    if p != "rf-map":  # rf-map maps field variables, before any neuron
+        lines.append(f"neuron model {ds.attrs.get('neuron_model')}, {ds.attrs.get('trials')} trial(s) stored"
+                     + (f" ({ds.attrs['trials_note']})" if ds.attrs.get("trials_note") else ""))
     if p == "tf-tuning":
         lines.append(f"optimum 1/(2πτ) = {ds.attrs['optimum_hz']:.3g} Hz (τ = {ds.attrs['emd_tau_s'] * 1e3:g} ms)")
         for v in ds.data_vars:
@@ -304,16 +307,17 @@ def main(args) -> int:
     """Handler of ``lobula ephys``: run the protocol, write its outputs and figure, print a summary."""
     opts = given(args)
     outs = check_outputs(args.out)
-    if args.plot and Path(args.plot).suffix.lower() not in (".png", ".pdf"):
-        raise ValueError(f"--plot {args.plot}: use a .png or .pdf file name (both are written)")
+    plot = getattr(args, "plot", None)
+    if plot and Path(plot).suffix.lower() not in (".png", ".pdf"):
+        raise ValueError(f"--plot {plot}: use a .png or .pdf file name (both are written)")
     ds = run_protocol(args.protocol, opts)
     for path in write_outputs(ds, outs):
         print(f"wrote {path} ({args.protocol})")
     for line in summary(ds):
         print("  " + line)
-    if args.plot:
+    if plot:
         from .figures import plot_recording
-        for path in plot_recording(ds, args.plot):
+        for path in plot_recording(ds, plot):
             print(f"wrote {path}")
     return 0
 

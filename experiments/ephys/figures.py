@@ -59,6 +59,12 @@ def nanmean(x, axis, keepdims=False):
         return np.where(n > 0, s / np.maximum(n, 1), np.nan)
 
 
+def _style(i: int) -> dict:
+    """Marker and line style of the i-th condition, so that overlapping curves stay visible."""
+    return dict(marker="osD^v"[i % 5], ms=5 - 0.6 * (i % 3), mfc="none" if i % 2 else None, capsize=2,
+                ls=("-", "--", ":", "-.")[i % 4], lw=1.3)
+
+
 def _units_of(ds: xr.Dataset, da: xr.DataArray, unit_type: str) -> xr.DataArray:
     keep = ds.neuron_type.sel(neuron=da.neuron).values == unit_type
     return da.isel(neuron=np.nonzero(keep)[0]) if keep.any() else da
@@ -85,7 +91,7 @@ def _raster_psth(fig, a_r, a_p, ds, neuron, colour, t_label, t_shift=0.0, bin_s=
     tt = p.time.values - t_shift
     a_p.plot(tt, p.values, color=colour, lw=1.2, label="PSTH (trial mean)")
     if k >= 2:
-        e = psthsem(one, bin_s=bin_s).squeeze().values
+        e = psth_sem(one, bin_s=bin_s).squeeze().values
         a_p.fill_between(tt, p.values - e, p.values + e, color=colour, alpha=0.3, lw=0, label=f"± SEM ({k} trials)")
     a_p.set_xlabel(t_label)
     a_p.set_ylabel(f"firing rate (Hz, {p.attrs['bin_s'] * 1e3:.0f} ms bins)")
@@ -109,11 +115,11 @@ def plot_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
     if "emd_response_tuning" in ds:
         a = ax[0]
         da = ds.emd_response_tuning
-        for c, col in zip(ds.contrast.values, cols):
+        for i, (c, col) in enumerate(zip(ds.contrast.values, cols)):
             y = da.sel(contrast=c).values
             y = y / np.nanmax(np.abs(y), axis=0, keepdims=True)
-            a.errorbar(tf, nanmean(y, 1), yerr=sem(y, 1), color=col, marker="o", ms=3, capsize=2,
-                       label=f"contrast {c:g}: mean ± SEM")
+            a.errorbar(tf, nanmean(y, 1), yerr=sem(y, 1), color=col, **_style(i),
+                       label=f"contrast {c:g}: mean ± SEM over pairs")
         a.plot(tf, ds.emd_prediction.values, "k--", lw=1, label="prediction (discrete EMD × photoreceptor)")
         a.set_title(f"EMD probe pairs (n = {da.sizes['pair']})", fontsize=10)
         a.set_ylabel("response / each pair's maximum")
@@ -126,11 +132,11 @@ def plot_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
             da = _units_of(ds, da, "expansion")
         nd = da.dims[-1]
         top = 0.0
-        for c, col in zip(ds.contrast.values, cols):
+        for i, (c, col) in enumerate(zip(ds.contrast.values, cols)):
             y = da.sel(contrast=c).values
             m = nanmean(y, 1)
             top = max(top, float(np.nanmax(m)))
-            a.errorbar(tf, m, yerr=sem(y, 1), color=col, marker="o", ms=3, capsize=2,
+            a.errorbar(tf, m, yerr=sem(y, 1), color=col, **_style(i),
                        label=f"contrast {c:g}: mean ± SEM over units")
         a.plot(tf, ds.lc_drive_prediction.values * top, "k--", lw=1, label="predicted drive, scaled to the peak")
         a.set_title(f"LC expansion units (n = {da.sizes[nd]}, {ds.attrs.get('neuron_model', '')} model)",
@@ -160,8 +166,9 @@ def plot_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
         live = [int(ds.neuron.values[u]) for u in units if np.isfinite(ds.lc_spikes.sel(neuron=ds.neuron.values[u])).all()]
         n = live[0] if live else int(ds.neuron.values[0])
         c0 = ds.contrast.values[-1]
+        dur = float(ds.time[-1] - ds.time[0])
         _raster_psth(fig, ax[2], ax[3], ds, n, cols[-1], "time since stimulus onset (s)",
-                     temporal_frequency_hz=tf[k], contrast=c0)
+                     bin_s=max(0.02, round(dur / 30, 2)), temporal_frequency_hz=tf[k], contrast=c0)
         ax[2].set_title(f"unit {n} (expansion), {tf[k]:.2f} Hz, contrast {c0:g}: raster", fontsize=10)
         ax[3].set_title("PSTH ± SEM across trials", fontsize=10)
     fig.tight_layout()
@@ -205,13 +212,16 @@ def plot_rf_map(ds: xr.Dataset, path) -> list[Path]:
         mag = np.clip(s / (np.nanmax(s) + 1e-300), 0, None)
         strong = mag > 0.2
         a.quiver(az[strong], el[strong], (mag * np.cos(pdir))[strong], (mag * np.sin(pdir))[strong], color="k",
-                 angles="xy", scale_units="xy", scale=1.0 / (0.8 * np.diff(ea).min()), width=0.005)
+                 angles="xy", scale_units="xy", scale=1.0 / (1.2 * np.diff(ea).min()), width=0.007)
         a.add_patch(Circle((float(ds.field_azimuth_deg.sel(field=f)), float(ds.field_elevation_deg.sel(field=f))),
                            float(ds.field_size_deg.sel(field=f)) / 2, fill=False, color="0.1", ls="--", lw=1.4))
         a.add_patch(Circle((float(ds.rf_centre_azimuth_deg.sel(field=f)), float(ds.rf_centre_elevation_deg.sel(field=f))),
                            float(ds.rf_size_deg.sel(field=f)) / 2, fill=False, color="tab:red", lw=1.6))
+        ext = float(json.loads(ds.attrs["parameters"])["extent_deg"])  # this field's own mapping grid
+        fa, fe = float(ds.field_azimuth_deg.sel(field=f)), float(ds.field_elevation_deg.sel(field=f))
+        a.set_xlim(max(ea[0], fa - ext), min(ea[-1], fa + ext))
+        a.set_ylim(min(ee[-1], fe + ext), max(ee[0], fe - ext))  # elevation positive down
         a.set_aspect("equal")
-        a.invert_yaxis()
         a.set_xlabel("azimuth (degree)")
         a.set_ylabel("elevation (degree, positive down)")
         a.set_title(f"LC field {f}: mapped size {float(ds.rf_size_deg.sel(field=f)):.1f}° "
