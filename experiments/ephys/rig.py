@@ -23,7 +23,7 @@ import xarray as xr
 from lobula.camera import PinholeCamera, normalised_to_angles
 from lobula.circuit import Circuit, CircuitConfig
 from lobula.lattice import Lattice, LatticeConfig
-from lobula.population import FIELD_RECORDS, FRONT_END_RECORDS, NEURON_RECORDS, UNIT_RECORDS, config_from_dict
+from lobula.population import FIELD_RECORDS, NEURON_RECORDS, UNIT_RECORDS, config_from_dict
 
 __all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "monitors_for", "record_dataset", "dim_coords",
            "recording_attrs", "cf_describe", "torch_threads", "VARIABLES", "neuron_model_attrs"]
