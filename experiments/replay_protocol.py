@@ -134,7 +134,7 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
         st = t[0] + np.arange(len(t) * sub) * spike_dt
         coords["spike_time"] = ("spike_time", st, {"units": "s", "long_name": "start of the spike generator's step"})
         data["readout_spikes"] = (("trial", "spike_time", "neuron"),
-                                  np.stack([out["spikes_plus"], out["spikes_minus"]], -1),
+                                  np.stack([out["spikes_plus"], out["spikes_minus"]], -1).astype(np.uint16),
                                   {"units": "1", "long_name": "readout neurons' spike count per spike-generator step",
                                    "neuron_model": "poisson", "dt_s": spike_dt,
                                    "neuron_parameters": json.dumps(ncfg.to_dict(), sort_keys=True)})

@@ -321,6 +321,8 @@ def record_dataset(rig: Rig, records: dict, monitors: list, cond: dict, n_steps:
             filled = np.full(arr.shape[:-1] + (size,), np.nan, dtype=arr.dtype)
             filled[..., where] = arr
             arr = filled
+        if mon.variable == "lc.spikes" and np.isfinite(arr).all():
+            arr = arr.astype(np.uint16)  # whole counts per step: 2 bytes, not 4 (a 1 ms step holds < 65536)
         dims = cdims + (["trial"] if mon.variable in NEURON_RECORDS else []) + ["time", dim]
         units, long_name = VARIABLES[mon.variable]
         a = {"units": units, "long_name": long_name, "monitor": mon.variable,
