@@ -20,7 +20,7 @@ __all__ = ["bench_tuning_sweep"]
 def bench_tuning_sweep(n_ommatidia: int = 5000, n_tf: int = 20, n_contrasts: int = 5, trials: int = 10,
                        duration_s: float = 2.0, dt_s: float = 1e-3, neuron_model: str = "poisson",
                        field_size_deg: float = 5.0, threads: int | None = 1, device: str = "cpu",
-                       chunk_steps: int = 8, compile: bool = True, max_steps: int | None = None,
+                       chunk_steps: int = 8, compile: bool = False, max_steps: int | None = None,
                        verbose: bool = True) -> dict:
     """Issue 5's benchmark: a tuning sweep of n_tf TFs × n_contrasts contrasts × trials, duration_s at dt_s,
     for an eye of ~n_ommatidia (D435i field of view at 320×240) with its LC population (5° Gaussian
@@ -30,9 +30,10 @@ def bench_tuning_sweep(n_ommatidia: int = 5000, n_tf: int = 20, n_contrasts: int
     stimulus condition (n_tf·n_contrasts conditions, all batched); the LC neurons run per
     trial (their noise differs). Only the steady-state spike counts/rates are kept (no
     time courses). threads: torch CPU threads during the run (1 is fastest on a shared
-    2-core machine: per-step tensors are small); compile: fuse the EMD array and pooling
+    2-core machine: per-step tensors are small); compile: fuse the pair pooling
     with torch.compile (its one-off compilation is timed separately, as ``compile_s``,
-    by a short warm-up run); max_steps: time only that many steps and extrapolate. Returns a dict with seconds and neuron-steps per second:
+    by a short warm-up run; off by default: since the circuit runs lobula.emd's correlator,
+    compiling the pooling alone was 1.5× slower on this CPU); max_steps: time only that many steps and extrapolate. Returns a dict with seconds and neuron-steps per second:
     ``computed`` counts each stage as run (front end per condition, LC per trial),
     ``equivalent`` as if every trial ran the whole eye.
     """
