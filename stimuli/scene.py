@@ -463,7 +463,7 @@ class TrackScene:
         frames of :meth:`render` are this, averaged over each pixel's sub-pixel rays.
         footprint_rad: angular size (rad) of each sample, scalar or (...); with the
         scene's mip-map on it picks the texture's blur level from the footprint on the
-        surface (range x angle / cos incidence). None: the finest level.
+        surface (range x angle / √cos incidence). None: the finest level.
         """
         d = np.asarray(directions_cam, dtype=float)
         rng_m, idx, a, b = self.cast_rays(d, t)
@@ -473,12 +473,14 @@ class TrackScene:
         return self._shade(idx, a, b, foot)
 
     def _footprint_m(self, d_cam, t, rng_m, idx, footprint_rad):
-        """Size (m) on the surface of a sample of angular size footprint_rad: range·angle/|cos incidence|."""
+        """Size (m) on the surface of a sample of angular size footprint_rad: range·angle/√|cos incidence|."""
         d_world = d_cam @ self.rotation(t).T
         axis = np.array([s.axis for s in self.surfaces])[np.maximum(idx, 0)]
         cos_inc = np.abs(np.take_along_axis(d_world, axis[..., None], -1)[..., 0]) / np.linalg.norm(d_world, axis=-1)
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(idx >= 0, rng_m * footprint_rad / np.maximum(cos_inc, 1e-3), 0.0)
+            # Geometric mean of the two axes of the footprint ellipse (r·θ and r·θ/cos): less blur
+            # at grazing incidence than the long axis, less aliasing than the short one.
+            return np.where(idx >= 0, rng_m * footprint_rad / np.sqrt(np.maximum(cos_inc, 1e-6)), 0.0)
 
     def _cast(self, x, y, t):
         """Nearest surface hit for normalised ray coordinates at time t.
