@@ -186,14 +186,16 @@ def score_series(t, v_hat, v_std, v_true, skip_s: float) -> dict:
     return out
 
 
-def dead_reckoning(footage, times: np.ndarray, v0: float, calib_s: float = 1.0) -> np.ndarray:
+def dead_reckoning(footage, times: np.ndarray, v0: float, calib_s: float = 1.0, still_rad_s: float = 0.01) -> np.ndarray:
     """IMU-only forward velocity (m/s) at ``times``: integrate the forward specific force minus gravity.
 
-    Gravity (as specific force) and the gyro bias are the means of the first calib_s
-    seconds; the attitude is propagated from the gyro so gravity is tracked through
-    turns. Starts from the true initial velocity v0 (a generous start no IMU alone has).
-    Any accelerometer bias or scale error, and any acceleration during the first second,
-    integrate into a drift that grows with time — the point of this baseline.
+    Gravity (as specific force) is the mean of the first calib_s seconds, as a device
+    calibrates at start-up; the gyro bias too, but only if the gyro is still then (every
+    axis's std below still_rad_s; a turning camera's mean rate is not a bias, so then the
+    bias is left as the factory's). The attitude is propagated from the gyro so gravity is
+    tracked through turns. Starts from the true initial velocity v0 (a generous start no
+    IMU alone has). Any accelerometer bias drift or scale error, any acceleration during
+    the first second and any attitude error integrate into a drift that grows with time.
     """
     from stimuli.imu import small_rotation
 
@@ -201,7 +203,8 @@ def dead_reckoning(footage, times: np.ndarray, v0: float, calib_s: float = 1.0) 
     ti, acc, gyr = imu.time_s, imu.accel, imu.gyro
     first = ti < ti[0] + calib_s
     f0 = acc[first].mean(0)
-    bg = gyr[first].mean(0) if gyr is not None else np.zeros(3)
+    still = gyr is not None and bool(np.all(gyr[first].std(0) < still_rad_s))
+    bg = gyr[first].mean(0) if still else np.zeros(3)
     n = len(ti)
     rot = np.empty((n, 3, 3))
     rot[0] = np.eye(3)
