@@ -262,7 +262,8 @@ def run_scene_job(job: SceneJob) -> dict:
     cfg = family_config(job.family, job.seed, job.duration_s, job.scale, job.imu, job.imu_mount)
     folder = out / "scenes" / job.name
     marker = out / "scenes" / f"{job.name}.json"
-    if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == cfg.to_dict()):
+    settings = json.loads(json.dumps(cfg.to_dict(), default=str))  # as the marker stores it (tuples -> lists)
+    if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == settings):
         import shutil
         shutil.rmtree(folder, ignore_errors=True)
         make_track_run(folder, cfg, progress=False)
