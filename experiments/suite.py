@@ -13,7 +13,8 @@ Metrics, per window — after a skip (``--skip``) and over the first 2 s —:
   error stays within 0.05 m/s + 10 % of |v| for a full second (NaN: never).
 
 Outputs in ``OUT``: ``suite.nc`` (family × seed × configuration × window × metric, with the
-per-scene settings), ``suite_table.csv`` (mean, sd and n over seeds), ``suite.png``, and
+per-scene settings), ``suite_table.csv`` (mean, sd and n over seeds), ``suite.png``,
+``worlds.png`` (a frame of each family), and
 ``series/<scene>.nc`` (truth, v̂ and v_std of every configuration, for plots). Scenes and
 per-scene results are kept, so an interrupted suite resumes where it stopped.
 """
@@ -365,7 +366,40 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
     rows = table_rows(ds)
     write_table_csv(rows, out / "suite_table.csv")
     plot_suite(ds, out / "suite.png")
+    plot_worlds(out, families)
     return ds, rows
+
+
+def plot_worlds(out: Path, families) -> Path | None:
+    """``worlds.png``: the middle frame of each family's first seed, to see what was measured."""
+    import cv2
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .store import save_figure
+
+    frames = []
+    for f in families:
+        folder = out / "scenes" / f"{f}-s0" / "frames"
+        files = sorted(folder.glob("*.png")) if folder.is_dir() else []
+        if files:
+            frames.append((f, cv2.imread(str(files[len(files) // 2]), cv2.IMREAD_GRAYSCALE)))
+    if not frames:
+        return None
+    cols = min(len(frames), 5)
+    rows = -(-len(frames) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.2 * rows), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (f, img) in zip(axes.ravel(), frames):
+        ax.imshow(img, cmap="gray", vmin=0, vmax=255)
+        ax.set_title(f, fontsize=9)
+    fig.suptitle("scene families (seed 0, middle frame)", fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, out / "worlds.png", dpi=150)
+    plt.close(fig)
+    return out / "worlds.png"
 
 
 def collect(results, families, seeds, configurations, settings):
