@@ -559,7 +559,8 @@ def add_parser(subparsers):
                               description=__doc__.split("\n\n")[0])
     s.add_argument("--out", required=True, help="output folder (scenes, per-scene results, suite.nc, table, figure)")
     s.add_argument("--families", default="all",
-                   help="comma-separated families, or all: " + "; ".join(f"{k}: {v}" for k, v in FAMILIES.items()))
+                   help="comma-separated families, or all: " + "; ".join(f"{k}: {v}" for k, v in FAMILIES.items())
+                   .replace("%", "%%"))
     s.add_argument("--seeds", type=int, default=3, help="seeds per family")
     s.add_argument("--duration", type=float, default=10.0, help="seconds per scene")
     s.add_argument("--scale", type=float, default=0.25,

@@ -108,3 +108,15 @@ def test_every_family_builds_a_distinct_seeded_world():
     assert abs(suite.family_config("fast", 2, 10.0, 0.1).random_peak_m_s - 2.0) < 1e-12
     off = suite.family_config("offaxis", 0, 4.0, 0.1).scene
     assert 5 <= abs(off.off_axis_yaw_deg) <= 9 and np.hypot(off.off_axis_yaw_deg, off.off_axis_pitch_deg) <= 10
+
+
+@pytest.mark.parametrize("command", ["suite", "scene"])
+def test_help_shows_every_option_with_its_default(command, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    assert "(default:" in text
+    for opt in {"suite": ["--families", "--seeds", "--duration", "--scale", "--workers", "--imu"],
+                "scene": ["--world", "--rotation3", "--peak-speed", "--imu", "--imu-mount", "--brightness"]}[command]:
+        assert opt in text
