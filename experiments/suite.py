@@ -16,7 +16,10 @@ Outputs in ``OUT``: ``suite.nc`` (family × seed × configuration × window × m
 per-scene settings), ``suite_table.csv`` (mean, sd and n over seeds), ``suite.png``,
 ``worlds.png`` (a frame of each family), and
 ``series/<scene>.nc`` (truth, v̂ and v_std of every configuration, for plots). Scenes and
-per-scene results are kept, so an interrupted suite resumes where it stopped.
+per-scene results are kept, so an interrupted suite resumes where it stopped: a scene is
+re-rendered only if its settings changed, a result reused only if the settings and the
+code's git commit match (with uncommitted changes, "+dirty", or outside a checkout,
+delete ``OUT/results`` to recompute).
 """
 from __future__ import annotations
 
@@ -237,8 +240,12 @@ class SceneJob:
         return f"{self.family}-s{self.seed}"
 
     def key(self) -> str:
+        """What a stored result must match to be reused: the settings and the code's git commit."""
+        from lobula.version import git_commit
+
         d = dict(self.__dict__)
         d.pop("out")
+        d["code"] = git_commit()
         return json.dumps(d, sort_keys=True)
 
 
