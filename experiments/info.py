@@ -140,8 +140,10 @@ def format_text(d: dict) -> str:
                                  + (f"; v_forward {tr['v_forward_range_m_s'][0]:+.3f}..{tr['v_forward_range_m_s'][1]:+.3f} m/s"
                                     if "v_forward_range_m_s" in tr else "")))
     if d["streams"]:
-        out.append("streams:")
-        for s in d["streams"]:
+        shown = [s for s in d["streams"] if "/option/" not in str(s.get("topic", ""))]
+        hidden = len(d["streams"]) - len(shown)
+        out.append("streams:" + (f" ({hidden} sensor-option topics not shown; see --json)" if hidden else ""))
+        for s in shown:
             out.append("  " + "  ".join(f"{v}" for v in s.values()))
     for n in d["notes"]:
         out.append(f"note: {n}")

@@ -4,12 +4,15 @@ Footage (a synthetic track run, or any footage folder) passes through the EMD fr
 (:mod:`lobula.emd_decoding`); the LC pathways and the readout neuron
 (:mod:`lobula.readout_neuron`) run over trials (Poisson spikes differ per trial, seeded);
 the arithmetic readout runs on the same input for comparison. The recording is a
-Dataset with dims ``trial``, ``time``, ``neuron`` (LC fields, or the readout's push–pull
-pair) like every other ephys recording.
+self-describing Dataset (the attributes every ephys recording carries) with dims
+``trial``, ``time`` (frames), ``neuron`` (the readout's push–pull pair), ``field`` (LC
+fields) and ``spike_time`` (the spike generator's 1 ms steps: readout spikes are counts
+per step, not per frame).
 """
 from __future__ import annotations
 
 import json
+import re
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -18,20 +21,66 @@ import numpy as np
 import xarray as xr
 
 from lobula.config import VelocityConfig
-from lobula.readout_neuron import ReadoutNeuronConfig, lc_pathways, readout_neuron
+from lobula.readout_neuron import ReadoutNeuronConfig, lc_pathways, readout_neuron, spike_steps_per_frame
+
+__all__ = ["velocity_replay", "replay_scores", "plot_velocity_replay", "REPLAY_RECORDS"]
+
+#: what velocity-replay can record (the arithmetic readout, truth and acceleration are always stored)
+REPLAY_RECORDS = ("readout.v", "readout.rate", "readout.spikes", "readout.confidence", "lc.r", "lc.rdot")
+
+
+def _replay_records(record, spiking: bool) -> tuple:
+    if not record:
+        return tuple(r for r in REPLAY_RECORDS if spiking or r != "readout.spikes")
+    out = []
+    for spec in record:
+        name = spec.strip()
+        if re.search(r"\[.*\]", name):
+            raise ValueError(f"velocity-replay records whole variables, no subsets: {spec!r}; "
+                             f"use one of {', '.join(REPLAY_RECORDS)}")
+        if name == "readout.spikes" and not spiking:
+            raise ValueError("cannot record 'readout.spikes': the rate readout neuron has no spikes; use "
+                             "--neuron-model poisson")
+        if name not in REPLAY_RECORDS:
+            raise ValueError(f"velocity-replay cannot record {spec!r}; it records {', '.join(REPLAY_RECORDS)} "
+                             f"(the LC rig's monitors such as lc.spikes[expansion] belong to tf-tuning, rf-map "
+                             f"and looming)")
+        if name in out:
+            raise ValueError(f"record each variable once; repeated: {name}")
+        out.append(name)
+    return tuple(out)
 
 
 def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, seed: int = 0,
-                    spiking: bool = True, duration_s: float = 10.0, progress: bool = False) -> xr.Dataset:
-    """Run the protocol; without footage, a built-in synthetic run of ``duration_s`` is rendered."""
+                    spiking: bool = True, duration_s: float = 10.0, progress: bool = False,
+                    tau_s: float | None = None, dphi_deg: float | None = None,
+                    field_size_deg: float | None = None, record=None) -> xr.Dataset:
+    """Run the protocol; without footage, a built-in synthetic run of ``duration_s`` is rendered.
+
+    tau_s, dphi_deg: the EMD front end's delay (s) and interommatidial angle (degree);
+    field_size_deg: the LC fields' size (degree); None keeps the velocity pipeline's
+    defaults. record: names from :data:`REPLAY_RECORDS` (default: all).
+    """
     import torch
 
-    from experiments.store import provenance
+    from experiments.ephys.rig import cf_describe, recording_attrs
     from experiments.velocity import estimate_velocity
     from stimuli.footage import open_footage
     from stimuli.scene import SceneConfig
     from stimuli.track import TrackRunConfig, make_track_run
 
+    if not (isinstance(trials, int) and trials >= 1):
+        raise ValueError(f"trials must be a positive integer, got {trials!r}")
+    if not spiking and trials != 1:
+        raise ValueError(f"trials={trials}: the rate readout is deterministic; use trials=1 or spiking=True")
+    want = _replay_records(record, spiking)
+    vcfg = VelocityConfig(front_end="emd")
+    if tau_s is not None:
+        vcfg = replace(vcfg, emd=replace(vcfg.emd, emd=replace(vcfg.emd.emd, tau_s=float(tau_s))))
+    if dphi_deg is not None:
+        vcfg = replace(vcfg, emd=replace(vcfg.emd, lattice=replace(vcfg.emd.lattice, dphi_deg=float(dphi_deg))))
+    if field_size_deg is not None:
+        vcfg = replace(vcfg, fields=replace(vcfg.fields, size_deg=float(field_size_deg)))
     with tempfile.TemporaryDirectory() as tmp:
         if footage_path is None:
             cfg = TrackRunConfig(profile=None, start_s=2.0, duration_s=duration_s, scale=0.5,
@@ -40,7 +89,6 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
             source = f"built-in profile, {duration_s} s, scene seed {seed}"
         else:
             source = str(footage_path)
-        vcfg = VelocityConfig(front_end="emd")
         ds = estimate_velocity(open_footage(footage_path), vcfg, progress=progress)
     t = ds.time.values
     ncfg = ReadoutNeuronConfig(spiking=spiking, seed=seed)
@@ -52,82 +100,152 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
     r_s, _, r_dot = lc_pathways(torch.as_tensor(np.nan_to_num(ds.r.values))[None],
                                 torch.as_tensor(np.nan_to_num(ds.r2.values))[None], dt, ncfg)
     field = np.arange(ds.sizes["field"])
-    rec = xr.Dataset(
-        dict(readout_v=(("trial", "time"), out["v_hat"], {"units": "m/s", "long_name": "readout neuron's velocity"}),
-             readout_rate=(("trial", "time", "neuron"), np.stack([out["rate_plus"], out["rate_minus"]], -1),
-                           {"units": "Hz", "long_name": "push-pull readout rates"}),
-             readout_confidence=(("trial", "time"), out["confidence"], {"units": "1"}),
-             lc_r=(("time", "field"), r_s[0].numpy(), {"units": "1/s", "long_name": "LC sustained pathway r"}),
-             lc_r_dot=(("time", "field"), r_dot[0].numpy(), {"units": "1/s2", "long_name": "LC transient pathway"}),
-             arithmetic_v=("time", ds.v_hat.values, {"units": "m/s", "long_name": "arithmetic readout (zero-phase)"}),
-             accel=("time", ds.accel.values, {"units": "m/s2"})),
-        coords=dict(trial=np.arange(trials), time=("time", t, {"units": "s"}), neuron=["plus", "minus"],
-                    field=field, azimuth_deg=("field", ds.azimuth_deg.values),
-                    elevation_deg=("field", ds.elevation_deg.values), size_deg=("field", ds.size_deg.values)))
-    if spiking:
-        rec["readout_spikes"] = (("trial", "time", "neuron"), np.stack([out["spikes_plus"], out["spikes_minus"]], -1),
-                                 {"units": "spikes per step"})
+    data = {}
+    if "readout.v" in want:
+        data["readout_v"] = (("trial", "time"), out["v_hat"], {"units": "m s-1",
+                             "long_name": "readout neuron's forward velocity (decoded; NaN where not confident)"})
+    if "readout.rate" in want:
+        data["readout_rate"] = (("trial", "time", "neuron"), np.stack([out["rate_plus"], out["rate_minus"]], -1),
+                                {"units": "Hz", "long_name": "push-pull readout neurons' firing rate"})
+    if "readout.confidence" in want:
+        data["readout_confidence"] = (("trial", "time"), out["confidence"],
+                                      {"units": "1", "long_name": "readout neuron's confidence (low-passed trust)"})
+    if "lc.r" in want:
+        data["lc_r"] = (("time", "field"), r_s[0].numpy(), {"units": "s-1",
+                        "long_name": "LC sustained pathway: low-passed expansion rate r"})
+    if "lc.rdot" in want:
+        data["lc_r_dot"] = (("time", "field"), r_dot[0].numpy(), {"units": "s-2",
+                            "long_name": "LC transient pathway: rate of change of r"})
+    data["arithmetic_v"] = ("time", ds.v_hat.values, {"units": "m s-1",
+                            "long_name": "arithmetic readout's forward velocity (zero-phase), for comparison"})
+    data["accel"] = ("time", ds.accel.values, {"units": "m s-2", "long_name": "forward acceleration (haltere input)"})
+    coords = dict(trial=("trial", np.arange(trials), {"long_name": "trial index", "units": "1"}),
+                  time=("time", t, {"units": "s", "long_name": "time of the footage frame"}),
+                  neuron=("neuron", ["plus", "minus"], {"long_name": "readout neuron (push-pull pair)"}),
+                  field=("field", field, {"units": "1", "long_name": "LC receptive-field index"}),
+                  azimuth_deg=("field", ds.azimuth_deg.values, {"units": "degree",
+                               "long_name": "receptive-field centre azimuth"}),
+                  elevation_deg=("field", ds.elevation_deg.values, {"units": "degree",
+                                 "long_name": "receptive-field centre elevation (positive down)"}),
+                  size_deg=("field", ds.size_deg.values, {"units": "degree", "long_name": "receptive-field size"}))
+    sub = spike_steps_per_frame(dt, ncfg)
+    spike_dt = dt / sub
+    if spiking and "readout.spikes" in want:
+        st = t[0] + np.arange(len(t) * sub) * spike_dt
+        coords["spike_time"] = ("spike_time", st, {"units": "s", "long_name": "start of the spike generator's step"})
+        data["readout_spikes"] = (("trial", "spike_time", "neuron"),
+                                  np.stack([out["spikes_plus"], out["spikes_minus"]], -1).astype(np.uint16),
+                                  {"units": "1", "long_name": "readout neurons' spike count per spike-generator step",
+                                   "neuron_model": "poisson", "dt_s": spike_dt,
+                                   "neuron_parameters": json.dumps(ncfg.to_dict(), sort_keys=True)})
     if "v_true" in ds:
-        rec["v_true"] = ("time", ds.v_true.values, {"units": "m/s"})
+        data["v_true"] = ("time", ds.v_true.values, {"units": "m s-1", "long_name": "true forward velocity"})
+    rec = xr.Dataset(data, coords=coords)
     full = dict(velocity=json.loads(vcfg.to_json()), readout_neuron=ncfg.to_dict(), trials=trials, seed=seed,
-                footage=source)
-    rec.attrs.update(provenance(json.dumps(full, sort_keys=True), protocol="velocity-replay", footage=source,
-                                trials=trials, seed=seed))
-    return rec
+                footage=source, record=list(want))
+    params = dict(footage=source, duration_s=duration_s if "built-in" in source else None, record=list(want))
+    rec.attrs.update(recording_attrs(
+        "velocity-replay", full, params, footage=source, dt_s=spike_dt, frame_interval_s=dt, trials=trials,
+        trials_requested=trials, trials_note="", seed=seed, emd_tau_s=vcfg.emd.emd.tau_s,
+        neuron_model="poisson" if spiking else "rate", neuron_parameters=json.dumps(ncfg.to_dict(), sort_keys=True)))
+    return cf_describe(rec)
 
 
 def replay_scores(rec: xr.Dataset, skip_s: float = 2.0) -> dict:
-    """RMSE of the neuron (trial mean) and of the arithmetic readout against truth after skip_s."""
-    if "v_true" not in rec:
+    """RMSE (m/s) of the neuron (trial mean) and of the arithmetic readout against truth after skip_s."""
+    if "v_true" not in rec or "readout_v" not in rec:
         return {}
     m = (rec.time >= rec.time[0] + skip_s).values
     vt = rec.v_true.values[m]
-    rm = lambda v: float(np.sqrt(np.nanmean((v[m] - vt) ** 2)))
-    return dict(neuron_rmse_m_s=rm(rec.readout_v.mean("trial").values), arithmetic_rmse_m_s=rm(rec.arithmetic_v.values))
+
+    def rm(v):
+        d = v[m] - vt
+        d = d[np.isfinite(d)]
+        return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
+
+    from experiments.ephys.figures import nanmean
+    neuron = nanmean(rec.readout_v.values, 0)  # trial mean where any trial is confident
+    return dict(neuron_rmse_m_s=rm(neuron), arithmetic_rmse_m_s=rm(rec.arithmetic_v.values))
 
 
-def plot_velocity_replay(rec: xr.Dataset, path) -> Path:
+def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
+    """Velocity (truth, arithmetic readout, readout neuron mean ± SEM over trials); the readout neurons'
+    raster (1 ms spike times, integer trial ticks) beside their PSTH ± SEM; the LC sustained pathway
+    of every field (labelled colour bar). PNG (200 dpi) and PDF."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from experiments.store import save_figure
+    from experiments.ephys.figures import nanmean, save_png_and_pdf, sem
 
     t = rec.time.values
-    fig, axes = plt.subplots(3, 1, figsize=(9, 7.5), sharex=True, gridspec_kw=dict(height_ratios=[3, 1.2, 1.5]),
-                             layout="constrained")
-    ax = axes[0]
+    spikes = "readout_spikes" in rec
+    fig = plt.figure(figsize=(13, 8.5), layout="constrained")
+    gs = fig.add_gridspec(3, 2, height_ratios=[2.2, 1.6, 1.5], width_ratios=[1, 1])
+    ax_v = fig.add_subplot(gs[0, :])
     if "v_true" in rec:
-        ax.plot(t, rec.v_true, "k--", lw=1.2, label="truth")
-    ax.plot(t, rec.arithmetic_v, color="tab:blue", lw=1.2, label="arithmetic readout (zero-phase)")
-    v = rec.readout_v
-    ax.plot(t, v.mean("trial"), color="m", lw=1.6, label=f"readout neuron (mean of {rec.sizes['trial']} trials)")
-    ax.fill_between(t, v.min("trial"), v.max("trial"), color="m", alpha=0.2, lw=0)
+        ax_v.plot(t, rec.v_true, "k--", lw=1.2, label="truth")
+    ax_v.plot(t, rec.arithmetic_v, color="tab:blue", lw=1.2, label="arithmetic readout (zero-phase)")
+    if "readout_v" in rec:
+        v = rec.readout_v.values
+        k = v.shape[0]
+        m = nanmean(v, 0)
+        e = sem(v, 0) if k > 1 else None
+        ax_v.plot(t, m, color="m", lw=1.6, label=f"readout neuron (mean of {k} trial{'s' if k > 1 else ''})")
+        if e is not None:
+            ax_v.fill_between(t, m - e, m + e, color="m", alpha=0.25, lw=0, label="± SEM across trials")
     sc = replay_scores(rec)
     if sc:
-        ax.set_title(f"velocity replay: neuron RMSE {sc['neuron_rmse_m_s']:.3f} m/s, arithmetic "
-                     f"{sc['arithmetic_rmse_m_s']:.3f} m/s")
-    ax.set_ylabel("v (m/s)")
-    ax.legend(fontsize=8, loc="upper right")
-    ax = axes[1]
-    if "readout_spikes" in rec:
-        for k, (name, col) in enumerate([("plus", "tab:red"), ("minus", "tab:blue")]):
+        ax_v.set_title(f"velocity replay: RMSE neuron {sc['neuron_rmse_m_s']:.3f} m/s, arithmetic "
+                       f"{sc['arithmetic_rmse_m_s']:.3f} m/s (after 2 s)", fontsize=10)
+    ax_v.set_ylabel("forward velocity (m/s)")
+    ax_v.set_xlabel("time (s)")
+    ax_v.legend(fontsize=8, loc="lower right", ncol=2, frameon=False)
+    ax_r = fig.add_subplot(gs[1, 0])
+    ax_p = fig.add_subplot(gs[1, 1], sharex=ax_r)
+    cols = {"plus": "tab:red", "minus": "tab:blue"}
+    if spikes:
+        st = rec.spike_time.values
+        dts = float(rec.readout_spikes.attrs["dt_s"])
+        k = rec.sizes["trial"]
+        for j, name in enumerate(("plus", "minus")):
             s = rec.readout_spikes.sel(neuron=name).values
             tr, ti = np.nonzero(s > 0)
-            ax.plot(t[ti], tr + k * (rec.sizes["trial"] + 1), "|", color=col, ms=4, label=f"{name} neuron")
-        ax.set_ylabel("trial")
-        ax.legend(fontsize=7, loc="upper right")
-    else:
-        ax.plot(t, rec.readout_rate.isel(trial=0).sel(neuron="plus"), color="tab:red", label="plus")
-        ax.plot(t, rec.readout_rate.isel(trial=0).sel(neuron="minus"), color="tab:blue", label="minus")
-        ax.set_ylabel("rate (Hz)")
-    ax = axes[2]
-    order = np.argsort(np.hypot(rec.azimuth_deg.values, rec.elevation_deg.values))
-    im = ax.imshow(rec.lc_r.values[:, order].T, aspect="auto", cmap="RdBu_r", vmin=-0.6, vmax=0.6,
-                   extent=(t[0], t[-1], len(order), 0), interpolation="nearest")
-    ax.set_ylabel("LC field\n(by eccentricity)")
-    ax.set_xlabel("time (s)")
-    fig.colorbar(im, ax=ax, label="LC r (1/s)")
-    save_figure(fig, path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+            row = tr + j * (k + 1)
+            ax_r.vlines(st[ti] + dts / 2, row - 0.4, row + 0.4, color=cols[name], lw=0.5)
+            b = max(1, int(round(0.1 / dts)))
+            n = s.shape[1] // b * b
+            rate = s[:, :n].reshape(k, -1, b).sum(-1) / (b * dts)
+            tb = st[:n].reshape(-1, b).mean(-1) + dts / 2
+            mm = rate.mean(0)
+            ax_p.plot(tb, mm, color=cols[name], lw=1.2, label=f"{name} neuron")
+            if k > 1:
+                ee = rate.std(0, ddof=1) / np.sqrt(k)
+                ax_p.fill_between(tb, mm - ee, mm + ee, color=cols[name], alpha=0.3, lw=0)
+        ticks = [j * (k + 1) + i for j in range(2) for i in range(k)]
+        ax_r.set_yticks(ticks if len(ticks) <= 12 else ticks[::max(1, len(ticks) // 8)])
+        ax_r.set_yticklabels([str(i % (k + 1)) for i in ax_r.get_yticks()])
+        ax_r.set_ylabel("trial (plus: lower block;\nminus: upper block)")
+        ax_r.set_ylim(-0.6, 2 * k + 0.6)
+        ax_r.set_title(f"readout neurons' spikes ({dts * 1e3:.2f} ms steps): red plus, blue minus", fontsize=10)
+        ax_p.set_ylabel(f"firing rate (Hz, {b * dts * 1e3:.0f} ms bins)")
+        ax_p.set_title(f"PSTH ± SEM across {k} trials", fontsize=10)
+    elif "readout_rate" in rec:
+        for name in ("plus", "minus"):
+            ax_p.plot(t, rec.readout_rate.isel(trial=0).sel(neuron=name), color=cols[name], label=f"{name} neuron")
+        ax_p.set_ylabel("firing rate (Hz)")
+        ax_p.set_title("readout neurons' rates (deterministic: one trial)", fontsize=10)
+        ax_r.set_axis_off()
+    ax_p.legend(fontsize=8, loc="upper right", frameon=False)
+    for a in (ax_r, ax_p):
+        a.set_xlabel("time (s)")
+    ax_h = fig.add_subplot(gs[2, :])
+    if "lc_r" in rec:
+        order = np.argsort(np.hypot(rec.azimuth_deg.values, rec.elevation_deg.values))
+        lim = float(np.nanpercentile(np.abs(rec.lc_r.values), 99)) or 1.0
+        im = ax_h.imshow(rec.lc_r.values[:, order].T, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim,
+                         extent=(t[0], t[-1], len(order), 0), interpolation="nearest")
+        ax_h.set_ylabel("LC field\n(by eccentricity)")
+        fig.colorbar(im, ax=ax_h, label="sustained pathway r (1/s)")
+    ax_h.set_xlabel("time (s)")
+    return save_png_and_pdf(fig, path)

@@ -26,7 +26,7 @@ _API = {
     "LIFConfig": "neurons", "LIFNeuron": "neurons", "PoissonConfig": "neurons", "PoissonNeuron": "neurons",
     "RateNeuron": "neurons", "RateNeuronConfig": "neurons", "lif_fi_curve": "neurons", "lif_step": "neurons",
     "naka_rushton": "neurons", "poisson_spikes": "neurons", "rate_step": "neurons",
-    "UNIT_TYPES": "population", "Circuit": "population", "CircuitConfig": "population",
+    "UNIT_TYPES": "population", "Circuit": "circuit", "CircuitConfig": "circuit",
     "LCNeuronConfig": "population", "LCNeurons": "population", "LCPopulation": "population",
     "LCPopulationConfig": "population", "MatchedFilterConfig": "population", "NormalisationConfig": "population",
     "PathwayConfig": "population", "ReceptiveFieldConfig": "population",

@@ -43,6 +43,7 @@ from scipy import sparse
 from .camera import PinholeCamera, normalised_to_angles
 from .emd import EMDArray, EMDConfig
 from .lattice import Lattice, LatticeConfig
+from .lc_geometry import expansion_templates
 from .photoreceptor import PhotoreceptorConfig, Photoreceptors
 from .receptive_field import ReceptiveFields
 
@@ -92,19 +93,18 @@ def pair_pooling_weights(lattice: Lattice, fields: ReceptiveFields, epipole=(0.0
 
     A pair belongs to a field when its midpoint's azimuth and elevation fall inside the
     field's box. m_j = ⟨p_j − e, u_j⟩ is the matched filter (normalised units),
-    c_j = 2τ/s_j with s_j the pair's separation in normalised image units.
+    c_j = 2τ/s_j with s_j the pair's separation in normalised image units, so
+    c_j·m_j = 2τ·t_j with t_j the expansion template of :func:`lobula.lc_geometry.expansion_templates`.
     """
     mid = lattice.pair_midpoint
     az, el = (np.degrees(a) for a in normalised_to_angles(mid[:, 0], mid[:, 1]))
     half = fields.size_deg / 2
     cen = fields.centres_deg
     inside = (np.abs(az[None, :] - cen[:, :1]) <= half) & (np.abs(el[None, :] - cen[:, 1:]) <= half)
-    step = lattice.normalised[lattice.pairs_b] - lattice.normalised[lattice.pairs_a]
-    s = np.linalg.norm(step, axis=1)
-    m = np.einsum("pk,pk->p", mid - np.asarray(epipole)[None, :], lattice.pair_direction)
-    c = 2.0 * tau_s / s
-    num = sparse.csr_matrix(inside * (c * m)[None, :])
-    den = sparse.csr_matrix(inside * (c * c * m * m)[None, :])
+    t, _ = expansion_templates(lattice, epipole)
+    cm = 2.0 * tau_s * t
+    num = sparse.csr_matrix(inside * cm[None, :])
+    den = sparse.csr_matrix(inside * (cm * cm)[None, :])
     return num, den
 
 

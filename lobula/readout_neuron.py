@@ -51,6 +51,9 @@ class ReadoutNeuronConfig:
     disagreement_m_s: scale of the presynaptic inhibition of branches that disagree with the output.
     tau_confidence_s: memory of the confidence; confidence_min: below it v̂ is unobservable.
     gain_hz_per_m_s: output rate per m/s; spiking: Poisson output instead of rates; window_s: rate-decoding window.
+    spike_dt_s: the spike generator's step (s): each frame's rate is held over the frame and
+        Poisson spikes are drawn every ``spike_dt_s`` (rounded to a whole number of steps per
+        frame), so spike times resolve 1 ms rather than the 33 ms frame interval.
     """
 
     tau_fast_s: float = 0.10
@@ -65,6 +68,11 @@ class ReadoutNeuronConfig:
     spiking: bool = False
     window_s: float = 0.2
     seed: int = 0
+    spike_dt_s: float = 0.001
+
+    def __post_init__(self):
+        if not (self.spike_dt_s > 0 and np.isfinite(self.spike_dt_s)):
+            raise ValueError(f"spike_dt_s must be a positive number of seconds, got {self.spike_dt_s!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -124,13 +132,20 @@ def pool_branches(v_f: torch.Tensor, g_s: torch.Tensor, v_now: torch.Tensor, cfg
     return (w * v_f).mean(-1) / (cfg.g_leak + g), g
 
 
+def spike_steps_per_frame(frame_dt: float, config: ReadoutNeuronConfig) -> int:
+    """Spike-generator steps per frame interval ``frame_dt`` (s): round(frame_dt / spike_dt_s), at least 1."""
+    return max(1, int(round(frame_dt / config.spike_dt_s)))
+
+
 def readout_neuron(t, r, r2, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:
     """Run the readout neuron on field rates.
 
     t (time,) s; r, r2 (time, fields) or (trials, time, fields) in 1/s, 1/s²; a (time,)
     or (trials, time) m/s². Returns numpy arrays (trials dim dropped if absent):
     v_hat (m/s, NaN where not confident), observable, confidence, v_vis, g_shunt,
-    rate_plus / rate_minus (Hz), and spikes_plus / spikes_minus when spiking.
+    rate_plus / rate_minus (Hz), and spikes_plus / spikes_minus when spiking: spike counts
+    (trials, time·m) at the generator's step frame_dt/m (:func:`spike_steps_per_frame`),
+    sample k·m + j lying in [t_k + j·frame_dt/m, t_k + (j+1)·frame_dt/m).
     """
     cfg = config or ReadoutNeuronConfig()
     squeeze = np.ndim(r) == 2
@@ -170,14 +185,18 @@ def readout_neuron(t, r, r2, a, config: ReadoutNeuronConfig | None = None) -> di
     v_dec = v_hat
     if cfg.spiking:
         gen = make_generator(cfg.seed)
-        sp = poisson_spikes(rate_p.float(), dt, gen).double()
-        sm = poisson_spikes(rate_m.float(), dt, gen).double()
+        sub = spike_steps_per_frame(dt, cfg)
+        hold = lambda r: r.float().repeat_interleave(sub, dim=1)  # noqa: E731  (trials, time·sub)
+        sp_fine = poisson_spikes(hold(rate_p), dt / sub, gen).double()
+        sm_fine = poisson_spikes(hold(rate_m), dt / sub, gen).double()
+        # Counts per frame (a sum of Poisson counts is Poisson) for the rate decoding.
+        sp, sm = (x.reshape(trials, n, sub).sum(-1) for x in (sp_fine, sm_fine))
         w = max(1, int(round(cfg.window_s / dt)))
         kern = torch.ones(1, 1, w, dtype=sp.dtype) / (w * dt)
         # Centred boxcar rate estimate of each spike train, then push–pull decoding.
         smooth = lambda s: torch.nn.functional.conv1d(s[:, None], kern, padding=w // 2)[:, 0, :n]
         v_dec = (smooth(sp) - smooth(sm)) / gain
-        out.update(spikes_plus=sp, spikes_minus=sm)
+        out.update(spikes_plus=sp_fine, spikes_minus=sm_fine)
     obs = c_out >= cfg.confidence_min
     out.update(v_hat=torch.where(obs, v_dec, torch.nan), observable=obs)
     res = {k: x.numpy() for k, x in out.items()}

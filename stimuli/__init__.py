@@ -21,6 +21,10 @@ _API = {
     "moving_spot": "lattice_stimuli", "noise_panorama": "lattice_stimuli", "radial_grating": "lattice_stimuli",
     "sparse_noise": "lattice_stimuli",
     "BagFootage": "realsense_bag", "open_realsense_bag": "realsense_bag",
+    "Rosbag2Footage": "rosbag2_db3", "open_rosbag2": "rosbag2_db3",
+    "EurocFootage": "euroc", "open_euroc": "euroc",
+    "VideoFootage": "video", "open_video": "video",
+    "ClockOffset": "clock_offset", "estimate_clock_offset": "clock_offset",
 }
 __all__ = sorted(_API)
 

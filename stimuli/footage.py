@@ -63,8 +63,8 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
         raise ValueError(f"unknown clock {clock!r}; choose device, header or record")
     suffix = path.suffix.lower()
     if not path.exists():
-        raise FootageError(f"{path}: not found; give a footage folder, a RealSense .bag/.db3, an EuRoC "
-                           f"folder or a video file")
+        raise FootageError(f"{path}: not found (not a folder or a file); give a footage folder, a RealSense "
+                           f".bag/.db3, an EuRoC folder or a video file")
     if path.is_file() and suffix == ".bag":
         from .realsense_bag import open_realsense_bag
         footage = open_realsense_bag(path, stream=stream, require_imu=require_imu,

@@ -521,6 +521,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
     times = (stamps - origin) / 1e9
 
     # ---- camera
+    distortion = None
     info_topics = [t for t, ty in types.items() if CAMERA_INFO_TYPE in ty and counts[t] > 0]
     info_topic = f"{prefix}/info/camera_info" if f"{prefix}/info/camera_info" in info_topics else \
         _closest([t for t in info_topics if _image_rank(t) == _image_rank(topic)] or info_topics, topic)
@@ -546,6 +547,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
         camera = PinholeCamera(width=int(w), height=int(h), fx=float(k[0]), fy=float(k[4]), cx=float(k[2]),
                                cy=float(k[5]), frame_rate_hz=float(fps))
         if np.any(np.abs(info["D"]) > 1e-9):
+            distortion = dict(model=info["distortion_model"], coeffs=info["D"].tolist(), removed=False)
             notes.append(f"lens distortion ({info['distortion_model']}, D = {np.round(info['D'], 5).tolist()}) "
                          f"ignored: pinhole model")
     if (first.width, first.height) != (camera.width, camera.height):
@@ -558,7 +560,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
                     f"origin {origin / 1e9:.6f} s")
 
     # ---- IMU: accel time base, gyro interpolated, rotated into the colour optical frame
-    imu = None
+    imu, r_imu = None, None
     if "accel" in imu_raw:
         pick = 0 if use_header else 1
         if united:
@@ -591,6 +593,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
         else:
             imu_note += "; no gyroscope topic (no derotation possible)"
         acc, gyro, axes = _to_colour_frame(reader, topics, prefix, accel_topic, gyro_topic, acc, gyro)
+        r_imu = _applied_rotation(reader, topics, prefix, accel_topic)
         notes.append(f"{imu_note}; {axes}")
         dom_imu = _timestamp_domain(reader, topics, _stream_prefix(accel_topic), "imu")
         if dom_img and dom_imu and dom_img != dom_imu:
@@ -602,7 +605,8 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
         notes.append("no IMU in this bag: velocity cannot be estimated from it")
 
     return BagFootage(path=path, camera=camera, times=times, files=FramePlaceholders(path, topic, len(times)),
-                      imu=imu, truth=None, kind="realsense-bag", notes=notes, topic=topic,
+                      imu=imu, truth=None, kind="realsense-bag", notes=notes, topic=topic, distortion=distortion,
+                      imu_to_camera=r_imu,
                       encoding=first.encoding, time_origin_s=origin / 1e9, time_source=source,
                       bag_times_ns=bag_ns, stamps_ns=stamps,
                       streams=[dict(topic=t, type=", ".join(sorted(types[t])), messages=int(counts[t]))
@@ -619,6 +623,15 @@ def _dedupe_check(path: Path, topic: str, stamps: np.ndarray, values: np.ndarray
         raise FootageError(f"{path}: {what} message {row} on {topic} has NaN or infinite values; re-record")
     _check_increasing(path, topic, stamps, what)
     return stamps, values
+
+
+def _applied_rotation(reader, topics, prefix, accel_topic) -> np.ndarray | None:
+    """The accelerometer-to-image rotation _to_colour_frame applied (None when none was)."""
+    cam = _extrinsics(reader, topics, prefix)
+    ext = _extrinsics(reader, topics, _stream_prefix(accel_topic))
+    if ext is None or (cam is not None and cam[0] != ext[0]):
+        return None
+    return (cam[1] if cam else np.eye(3)) @ ext[1].T
 
 
 def _to_colour_frame(reader, topics, prefix, accel_topic, gyro_topic, acc, gyro):

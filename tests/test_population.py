@@ -1,7 +1,7 @@
 """LC populations and the lattice stimulus library against known answers.
 
 Small eyes (Δφ = 2°, ~550 ommatidia) and short runs: the file takes ~20 s on two shared
-CPU cores. Known answers: the grid correlator is lobula.emd's correlator; pathways
+CPU cores. Known answers: the circuit's EMD stage is lobula.emd's correlator; pathways
 are exact for ramps and constants; push–pull pairs carry the sign of r for exact flow
 fields; stimuli have their stated geometry.
 """
@@ -12,11 +12,12 @@ import pytest
 import torch
 
 from lobula.camera import PinholeCamera, angles_to_normalised
-from lobula.emd import EMDConfig, EMDState, emd_coefficients, emd_run
+from lobula.circuit import Circuit, CircuitConfig
+from lobula.emd import EMDState, emd_run
 from lobula.lattice import Lattice, LatticeConfig
-from lobula.population import (Circuit, CircuitConfig, LCNeuronConfig, LCPopulation, LCPopulationConfig,
-                               MatchedFilterConfig, NormalisationConfig, PopulationState, ReceptiveFieldConfig,
-                               config_from_dict, correlator_factors, pair_templates)
+from lobula.population import (LCNeuronConfig, LCPopulation, LCPopulationConfig, MatchedFilterConfig,
+                               NormalisationConfig, PopulationState, ReceptiveFieldConfig, config_from_dict,
+                               pair_templates)
 from stimuli.gratings import drifting_grating_lattice
 from stimuli.lattice_stimuli import (GratingSource, dot_field, looming_angular_size, looming_disc, moving_edge,
                                      moving_spot, noise_panorama, radial_grating, sparse_noise)
@@ -39,14 +40,6 @@ def eye():
 
 
 # --------------------------------------------------------------------------- the circuit's EMD stage
-
-def test_correlator_factors_reproduce_the_antisymmetric_form():
-    for tau, dt in ((0.035, 1e-3), (0.01, 1 / 30), (0.05, 0.02)):
-        c = emd_coefficients(EMDConfig(tau), dt)
-        N = np.array([[0, c.n_lp, c.n_lc], [-c.n_lp, 0, c.n_pc], [-c.n_lc, -c.n_pc, 0]])
-        u, v, _ = correlator_factors(EMDConfig(tau), dt)
-        np.testing.assert_allclose(np.outer(u, v) - np.outer(v, u), N, atol=1e-15)
-
 
 @pytest.mark.parametrize("kind", ["hex", "rect"])
 def test_grid_correlator_equals_lobula_emd(kind):

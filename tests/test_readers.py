@@ -191,7 +191,7 @@ def _write_video(run: Path, dst: Path, fps: float, fourcc="MJPG", suffix=".avi",
     return video
 
 
-def test_video_times_come_from_the_container(run2, tmp_path):
+def test_video_times_come_from_the_container(run2, tmp_path, capsys):
     # written at 25 frames/s though camera.json says 30: the container's times rule
     video = _write_video(run2, tmp_path / "v", fps=25.0)
     fo = open_footage(video)
@@ -203,6 +203,10 @@ def test_video_times_come_from_the_container(run2, tmp_path):
     for (_, _, img), r in zip(got, ref):
         assert np.abs(img - r).mean() < 3.0        # MJPG is lossy, but it is the same picture
     assert open_footage(tmp_path / "v").kind == "video"   # the folder holding the video opens too
+    code, text, _ = cli(capsys, "info", video, "--json")
+    d = json.loads(text)
+    assert code == 0 and d["layout"] == "video" and d["frames"]["count"] == len(fo)
+    assert abs(d["frames"]["measured_rate_hz"] - 25.0) < 1e-3 and d["imu"]["samples"] > 400
 
 
 def test_velocity_on_a_video_matches_its_frames(run2, tmp_path, capsys):

@@ -328,6 +328,7 @@ def test_imu_extrinsics_rotate_into_the_colour_frame(tmp_path):
     w = write_bag(bag, tf={COLOR: r_col, ACCEL: r_imu, GYRO: r_imu}, gyro_span=(-0.06, 1.05))
     imu = open_realsense_bag(bag).imu
     r = r_col @ r_imu.T                           # imu -> reference -> colour
+    np.testing.assert_allclose(open_realsense_bag(bag).imu_to_camera, r, atol=1e-12)
     np.testing.assert_allclose(imu.accel, w["accel"] @ r.T, atol=1e-12)
     np.testing.assert_allclose(imu.gyro, gyro_fn(imu.time_s) @ r.T, atol=1e-12)
     # gravity's reading (−9.81 on the IMU's y) lands on the colour frame's x after the 90° turn about z

@@ -15,7 +15,7 @@ def test_velocity_replay_records_the_circuit(tmp_path, capsys):
     assert main(["ephys", "velocity-replay", "--footage", str(run), "--trials", "3", "--seed", "7",
                  "--out", str(out), "--plot", str(tmp_path / "rec.png")]) == 0
     rec = xr.open_dataset(out)
-    assert rec.readout_spikes.dims == ("trial", "time", "neuron") and rec.sizes["trial"] == 3
+    assert rec.readout_spikes.dims == ("trial", "spike_time", "neuron") and rec.sizes["trial"] == 3
     assert list(rec.neuron.values) == ["plus", "minus"]
     assert {"azimuth_deg", "elevation_deg", "size_deg"} <= set(rec.coords)
     assert rec.attrs["lobula_version"] and "readout_neuron" in rec.attrs["config"]
@@ -28,3 +28,97 @@ def test_velocity_replay_records_the_circuit(tmp_path, capsys):
     other = velocity_replay(run, trials=3, seed=8)
     assert not np.array_equal(other.readout_spikes.values, rec.readout_spikes.values)
     assert (tmp_path / "rec.png").stat().st_size > 10_000
+
+
+# --------------------------------------------------------------------------- options, errors, NWB
+
+import json  # noqa: E402
+
+import pytest  # noqa: E402
+
+from experiments.ephys.command import APPLIES, run_protocol  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def footage(tmp_path_factory):
+    return make_track_run(tmp_path_factory.mktemp("replay") / "run",
+                          TrackRunConfig(profile=None, start_s=5.0, duration_s=4.0, scale=0.25,
+                                         scene=SceneConfig(seed=4)), progress=False)
+
+
+def _cfg(ds):
+    return json.loads(ds.attrs["config"])
+
+
+def test_every_replay_option_changes_the_recording(footage):
+    base = run_protocol("velocity-replay", {"footage": str(footage), "seed": 7})
+    assert base.attrs["emd_tau_s"] == 0.01 and base.sizes["trial"] == 4
+    checks = {
+        "tau": (0.02, lambda ds: ds.attrs["emd_tau_s"] == 0.02 and _cfg(ds)["velocity"]["emd"]["emd"]["tau_s"] == 0.02),
+        "dphi": (1.5, lambda ds: _cfg(ds)["velocity"]["emd"]["lattice"]["dphi_deg"] == 1.5),
+        "field_size": (10.0, lambda ds: float(ds.size_deg[0]) == 10.0 and ds.sizes["field"] < base.sizes["field"]),
+        "trials": (2, lambda ds: ds.sizes["trial"] == 2),
+        "seed": (8, lambda ds: ds.attrs["seed"] == 8),
+        "record": (["readout.v", "lc.r"], lambda ds: "lc_r" in ds and "readout_spikes" not in ds),
+        "neuron_model": ("rate", lambda ds: ds.attrs["neuron_model"] == "rate" and "readout_spikes" not in ds),
+    }
+    documented = {k for k, ps in APPLIES.items() if "velocity-replay" in ps}
+    assert documented == set(checks) | {"footage", "duration"}
+    for opt, (val, ok) in checks.items():
+        extra = {"trials": 1} if opt == "neuron_model" else {}
+        ds = run_protocol("velocity-replay", {"footage": str(footage), "seed": 7, **extra, opt: val})
+        assert ok(ds), opt
+        assert ds.attrs["config"] != base.attrs["config"] or ds.attrs["seed"] != base.attrs["seed"], opt
+        if opt not in ("record",):  # the responses change (record only chooses what is stored)
+            var = "readout_spikes" if opt == "seed" else "readout_rate"  # the seed draws other spikes
+            a = ds[var].values if var in ds else None
+            b = base[var].values
+            assert a is None or a.shape != b.shape or not np.array_equal(a, b), opt
+    # --duration renders the built-in run of that length (footage brings its own).
+    with pytest.raises(ValueError, match="drop --duration"):
+        run_protocol("velocity-replay", {"footage": str(footage), "duration": 3.0})
+
+
+@pytest.mark.parametrize("opts,fix", [
+    ({"record": ["lc.spikes[expansion]"]}, r"no subsets.*readout\.v"),
+    ({"record": ["lc.spikes"]}, r"records readout\.v, readout\.rate.*belong to tf-tuning"),
+    ({"record": ["readout.spikes"], "neuron_model": "rate", "trials": 1}, r"--neuron-model poisson"),
+    ({"neuron_model": "lif"}, r"--neuron-model rate or poisson"),
+    ({"neuron_model": "rate", "trials": 3}, r"use --trials 1, or --neuron-model poisson"),
+    ({"tf": [3.0]}, r"--tf does not apply to velocity-replay"),
+    ({"device": "cuda"}, r"--device does not apply to velocity-replay"),
+])
+def test_replay_requests_that_cannot_work_fail_naming_the_fix(footage, opts, fix):
+    with pytest.raises(ValueError, match=fix):
+        run_protocol("velocity-replay", {"footage": str(footage), **opts})
+
+
+def test_replay_spikes_are_at_1_ms_and_nwb_round_trips(footage, tmp_path):
+    from nwbinspector import Importance, inspect_nwbfile
+
+    from experiments.nwb import epoch_layout, read_nwb_series, read_nwb_spike_counts, write_nwb
+    from experiments.store import write_netcdf
+
+    ds = run_protocol("velocity-replay", {"footage": str(footage), "trials": 3, "seed": 2})
+    frame = float(np.median(np.diff(ds.time.values)))
+    assert ds.readout_spikes.attrs["dt_s"] == pytest.approx(frame / round(frame / 1e-3))
+    assert ds.sizes["spike_time"] == ds.sizes["time"] * round(frame / 1e-3)
+    # Counts per 1 ms step, summed per frame, are the frame-rate Poisson counts' statistics: mean rate ≈ rate.
+    rate = ds.readout_rate.sel(neuron="plus").values.mean()
+    spk = ds.readout_spikes.sel(neuron="plus").values.sum(1).mean() / (ds.sizes["time"] * frame)
+    assert spk == pytest.approx(rate, rel=0.15)
+    for name in ds.variables:
+        assert "long_name" in ds[name].attrs, name
+    nc = write_netcdf(ds, tmp_path / "r.nc")
+    back = xr.open_dataset(nc, engine="h5netcdf").load()
+    nwb = write_nwb(back, tmp_path / "r.nwb")
+    assert list(inspect_nwbfile(nwbfile_path=str(nwb), importance_threshold=Importance.CRITICAL)) == []
+    lay = epoch_layout(back)
+    assert lay["C"] == 1 and lay["K"] == 3
+    counts = read_nwb_spike_counts(nwb, back, "readout_spikes")
+    np.testing.assert_array_equal(counts[0], back.readout_spikes.transpose("trial", "spike_time", "neuron").values)
+    data, ts, unit = read_nwb_series(nwb, "readout_rate")
+    np.testing.assert_array_equal(data.reshape(3, back.sizes["time"], 2), back.readout_rate.values)
+    assert unit == "Hz"
+    v, _, _ = read_nwb_series(nwb, "arithmetic_v")
+    np.testing.assert_array_equal(v, back.arithmetic_v.values)

@@ -1,0 +1,34 @@
+"""Virtual electrophysiology: show the model fly a stimulus, record any neuron, get labelled arrays.
+
+The package follows the physiologist's workflow, one module per stage:
+
+- :mod:`.rig` — the recording layer: the rig (eye + :class:`lobula.circuit.Circuit`),
+  Brian2-style monitors (``"lc.rate"``, ``"lc.spikes[expansion]"``,
+  ``"emd.response[0:20]"``, ``"photoreceptor.v"``), labelled :class:`xarray.Dataset`
+  recordings and their self-description (CF-1.10 units/long_name on every variable and
+  coordinate; configuration, version, commit, command line, creation time).
+- :mod:`.protocols` — ``tf-tuning`` (known answer: the optimum 1/(2πτ)), ``rf-map``
+  (local-motion spot mapping: centre, size, preferred directions), ``looming``
+  (approach vs recession, time relative to collision); :func:`psth`, :func:`psth_sem`,
+  :func:`raster`. ``velocity-replay`` lives in :mod:`experiments.replay_protocol`.
+- :mod:`.figures` — each protocol's figure (PNG + PDF), drawn from the stored data.
+- :mod:`.command` — ``lobula ephys`` (NetCDF and/or NWB via :mod:`experiments.nwb`).
+- :mod:`.bench` — issue 5's tuning-sweep benchmark.
+
+Recordings have dims ``trial``, ``time`` (s), ``neuron`` (LC units; coords ``neuron_type``,
+``azimuth_deg``, ``elevation_deg``, ``size_deg``, ``field_index``), ``field``,
+``ommatidium``, ``pair``, plus one dim per stimulus parameter. The front end is
+deterministic and carries no ``trial`` dim; neuron variables do (one trial for a
+deterministic neuron model). Spikes are counts per model step (``dt_s`` in their attrs,
+with the neuron model and its parameters).
+"""
+from .bench import bench_tuning_sweep
+from .command import PROTOCOLS, add_parser, main, run_protocol, summary
+from .figures import plot_looming, plot_recording, plot_rf_map, plot_tf_tuning
+from .protocols import TF_GRID_HZ, looming, psth, psth_sem, raster, rf_map, steady_state_mean, tf_tuning
+from .rig import EphysConfig, Monitor, Rig, cf_describe, parse_monitor, record_dataset, recording_attrs, torch_threads
+
+__all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "record_dataset", "recording_attrs", "cf_describe",
+           "torch_threads", "tf_tuning", "rf_map", "looming", "psth", "psth_sem", "raster", "steady_state_mean",
+           "TF_GRID_HZ", "plot_tf_tuning", "plot_rf_map", "plot_looming", "plot_recording", "bench_tuning_sweep",
+           "add_parser", "main", "run_protocol", "summary", "PROTOCOLS"]

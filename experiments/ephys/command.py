@@ -1,0 +1,331 @@
+"""``lobula ephys PROTOCOL``: options, checks that name the fix, outputs (NetCDF, NWB, figure) and a
+summary printed from the stored data.
+
+Every option either changes what a protocol does (and is written to the file) or, given to a
+protocol it does not apply to, fails with a message naming the protocols it applies to.
+Protocol-specific options have no argparse default (their help states the protocol's own
+default), so the command knows which ones were given.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+PROTOCOLS = ("tf-tuning", "rf-map", "looming", "velocity-replay")
+ALL = PROTOCOLS
+LC_RIG = ("tf-tuning", "rf-map", "looming")
+NEURONS = ("tf-tuning", "looming", "velocity-replay")
+
+#: option dest → protocols it applies to
+APPLIES = {
+    # rf-map maps LC field variables, before the neurons: trials, seed and the neuron model do not apply
+    "record": ALL, "trials": NEURONS, "seed": NEURONS, "neuron_model": NEURONS, "tau": ALL, "dphi": ALL,
+    "field_size": ALL,
+    "device": LC_RIG, "duration": ("tf-tuning", "looming", "velocity-replay"), "contrast": LC_RIG,
+    "tf": ("tf-tuning",), "wavelength": ("tf-tuning",), "stimulus": ("tf-tuning",), "settle": ("tf-tuning",),
+    "direction": ("tf-tuning",),
+    "fields": ("rf-map",), "directions": ("rf-map",), "spacing": ("rf-map",), "extent": ("rf-map",),
+    "spot_size": ("rf-map",), "spot_path": ("rf-map",), "spot_speed": ("rf-map",),
+    "l_over_v": ("looming",), "max_size": ("looming",), "collision_time": ("looming",),
+    "footage": ("velocity-replay",),
+}
+
+S = argparse.SUPPRESS
+
+
+def add_parser(subparsers):
+    """Register ``lobula ephys PROTOCOL ...`` on an argparse subparsers object."""
+    e = subparsers.add_parser(
+        "ephys", help="virtual electrophysiology: record LC/EMD/photoreceptor/readout neurons",
+        description="Virtual electrophysiology: show the model fly a stimulus, record any neuron, get labelled, "
+                    "self-describing data (NetCDF with CF-1.10 attributes and/or NWB) and a figure.\n"
+                    "Options marked [tf-tuning] etc. apply to those protocols only; giving them to another "
+                    "protocol is an error.")
+    e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming | velocity-replay")
+    e.add_argument("--out", nargs="+", required=True, metavar="PATH", default=S,
+                   help="outputs, by suffix: .nc (NetCDF, CF-1.10) and/or .nwb (Neurodata Without Borders); "
+                        "each written atomically")
+    e.add_argument("--plot", default=S,
+                   help="the protocol's figure: PNG (200 dpi) and a vector PDF beside it (.png or .pdf) "
+                        "(default: no figure)")
+    g = e.add_argument_group("recording and rig (every protocol unless marked)")
+    g.add_argument("--record", nargs="+", metavar="POP.VAR", default=S,
+                   help="monitors, e.g. lc.rate lc.spikes[expansion] emd.response[0:10] photoreceptor.v; "
+                        "velocity-replay: readout.v readout.rate readout.spikes readout.confidence lc.r lc.rdot "
+                        "(default: tf-tuning: probe EMD pairs + the neuron model's variables; rf-map: lc.input; "
+                        "looming: the neuron model's variables (rate: lc.rate; poisson: lc.rate lc.spikes; "
+                        "lif: lc.v lc.spikes); velocity-replay: all readout variables)")
+    g.add_argument("--trials", type=int, default=S,
+                   help="[tf-tuning, looming, velocity-replay] repeats per condition (default: 4 for spiking models; 1 for the deterministic rate "
+                        "model, which refuses more: its trials would be identical)")
+    g.add_argument("--seed", type=int, default=S,
+                   help="[tf-tuning, looming, velocity-replay] seed of the neurons' noise and of the built-in "
+                        "replay scene (default: 0)")
+    g.add_argument("--neuron-model", choices=["rate", "lif", "poisson"], default=S,
+                   help="[tf-tuning, looming, velocity-replay] LC units: rate (Naka-Rushton), poisson (spikes from rates), lif (integrate-and-fire) "
+                        "(default: rate; velocity-replay's readout neuron: poisson, or rate)")
+    g.add_argument("--tau", type=float, default=S,
+                   help="EMD delay τ (s) (default: 0.035; velocity-replay's EMD front end: 0.01)")
+    g.add_argument("--dphi", type=float, default=S,
+                   help="interommatidial angle Δφ (degree) (default: 2; velocity-replay's front end: 0.75)")
+    g.add_argument("--field-size", type=float, default=S,
+                   help="LC receptive-field size (degree) (default: 10; velocity-replay's fields: 5)")
+    g.add_argument("--device", default=S, help="[tf-tuning, rf-map, looming] torch device (default: cpu)")
+    g.add_argument("--duration", type=float, default=S,
+                   help="stimulus duration (s) [tf-tuning: 2; looming: 1; velocity-replay: 10, built-in run only]")
+    g.add_argument("--contrast", type=float, nargs="+", default=S,
+                   help="stimulus contrast [tf-tuning: 0.5 (several allowed); rf-map: spot 1.0; looming: disc 1.0]")
+    t = e.add_argument_group("tf-tuning")
+    t.add_argument("--tf", type=float, nargs="+", default=S,
+                   help="temporal frequencies (Hz) (default: 16 log-spaced from 0.5 to 32)")
+    t.add_argument("--wavelength", type=float, default=S, help="grating wavelength (degree) (default: 20)")
+    t.add_argument("--stimulus", choices=["rings", "grating"], default=S,
+                   help="rings expanding about the epipole, or a planar drum grating (default: rings)")
+    t.add_argument("--settle", type=float, default=S,
+                   help="time (s) left out before the steady-state mean (default: 0.5)")
+    t.add_argument("--direction", type=float, default=S,
+                   help="drum grating's motion direction (degree, image: 0 right, 90 down) (default: 0)")
+    r = e.add_argument_group("rf-map")
+    r.add_argument("--fields", type=int, nargs="+", default=S, help="LC field indices to map (default: all)")
+    r.add_argument("--directions", type=int, default=S, help="spot motion directions, ≥ 3 (default: 4)")
+    r.add_argument("--spacing", type=float, default=S, help="mapping grid spacing (degree) (default: Δφ)")
+    r.add_argument("--extent", type=float, default=S,
+                   help="mapping grid half-width about each field (degree) (default: 1.6 × field size)")
+    r.add_argument("--spot-size", type=float, default=S, help="spot FWHM (degree) (default: Δφ)")
+    r.add_argument("--spot-path", type=float, default=S, help="spot path length per passage (degree) (default: 2Δφ)")
+    r.add_argument("--spot-speed", type=float, default=S, help="spot speed (degree/s) (default: 50Δφ per s)")
+    lo = e.add_argument_group("looming")
+    lo.add_argument("--l-over-v", type=float, nargs="+", default=S,
+                    help="disc half-size over approach speed l/|v| (s) (default: 0.01 0.02 0.04 0.08)")
+    lo.add_argument("--max-size", type=float, default=S, help="disc's angular size cap (degree) (default: 60)")
+    lo.add_argument("--collision-time", type=float, default=S,
+                    help="collision time after stimulus onset (s); the stored time is relative to it "
+                         "(default: 0.8 × duration)")
+    v = e.add_argument_group("velocity-replay")
+    v.add_argument("--footage", default=S, help="footage folder (default: render a built-in run of --duration)")
+    e.set_defaults(func=main)
+    return e
+
+
+# =========================================================================== checks
+
+def given(args) -> dict:
+    """The options the user gave (protocol-specific ones have no argparse default)."""
+    return {k: getattr(args, k) for k in APPLIES if hasattr(args, k)}
+
+
+def check_applicable(protocol: str, opts: dict) -> None:
+    """Refuse options that do not apply to ``protocol``, naming the protocols they apply to."""
+    for k in opts:
+        if protocol not in APPLIES[k]:
+            flag = "--" + k.replace("_", "-")
+            raise ValueError(f"{flag} does not apply to {protocol}; it applies to {', '.join(APPLIES[k])}")
+
+
+def check_outputs(paths) -> list[Path]:
+    out = [Path(p) for p in paths]
+    bad = [str(p) for p in out if p.suffix.lower() not in (".nc", ".nwb")]
+    if bad:
+        raise ValueError(f"--out {' '.join(bad)}: use a .nc (NetCDF) or .nwb (Neurodata Without Borders) file name")
+    return out
+
+
+def _one(opts, key, protocol):
+    v = opts[key]
+    if len(v) != 1:
+        raise ValueError(f"{protocol} takes one --{key.replace('_', '-')} value, got {v}")
+    return v[0]
+
+
+def rig_config(protocol: str, opts: dict):
+    """The :class:`EphysConfig` of an LC-rig protocol from the given options."""
+    from dataclasses import replace
+
+    import torch
+
+    from lobula.population import LCNeurons
+
+    from .rig import EphysConfig
+
+    device = opts.get("device", "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise ValueError(f"--device {device!r} is not a torch device; use cpu or cuda") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {device}: no CUDA device on this machine; use --device cpu")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"--device {device}: the ephys rig runs on cpu or cuda")
+    cfg = EphysConfig(seed=opts.get("seed", 0), device=device)
+
+    if "dphi" in opts:
+        cfg = replace(cfg, lattice=replace(cfg.lattice, dphi_deg=opts["dphi"]))
+    if "field_size" in opts:
+        cfg = cfg.with_fields(size_deg=opts["field_size"])
+    cfg = cfg.with_tau(opts.get("tau")).with_neurons(opts.get("neuron_model"))
+    stochastic = LCNeurons(cfg.circuit.population.neurons).stochastic  # from the neuron config alone
+    trials = opts.get("trials", 4 if stochastic else 1)
+    if not stochastic and trials != 1:
+        raise ValueError(f"--trials {trials}: the {cfg.circuit.population.neurons.model} model is deterministic, "
+                         f"so every trial would be identical; use --trials 1, or --neuron-model poisson or lif "
+                         f"for trial-to-trial variability")
+    return replace(cfg, trials=trials)
+
+
+# =========================================================================== running
+
+def run_protocol(protocol: str, opts: dict):
+    """Run one protocol from a dict of given options (the command line's, or a test's); returns the Dataset."""
+    check_applicable(protocol, opts)
+    if protocol == "velocity-replay":
+        from experiments.replay_protocol import velocity_replay
+
+        model = opts.get("neuron_model", "poisson")
+        if model == "lif":
+            raise ValueError("velocity-replay's readout neuron is a rate or Poisson neuron; use --neuron-model "
+                             "rate or poisson")
+        if "footage" in opts and "duration" in opts:
+            raise ValueError("--duration sets the built-in run's length; footage has its own (drop --duration)")
+        if model == "rate" and opts.get("trials", 1) != 1:
+            raise ValueError(f"--trials {opts['trials']}: the rate readout is deterministic, so every trial would "
+                             f"be identical; use --trials 1, or --neuron-model poisson")
+        return velocity_replay(opts.get("footage"), trials=opts.get("trials", 4 if model == "poisson" else 1),
+                               seed=opts.get("seed", 0), spiking=model == "poisson",
+                               duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
+                               dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
+                               record=opts.get("record"))
+    from .protocols import looming, rf_map, tf_tuning
+
+    cfg = rig_config(protocol, opts)
+    rec = opts.get("record")
+    if protocol == "tf-tuning":
+        kw = {k2: opts[k] for k, k2 in (("tf", "temporal_frequencies_hz"), ("contrast", "contrasts"),
+                                        ("duration", "duration_s"), ("wavelength", "wavelength_deg"),
+                                        ("stimulus", "stimulus"), ("settle", "settle_s"),
+                                        ("direction", "direction_deg")) if k in opts}
+        if "direction" in opts and opts.get("stimulus", "rings") != "grating":
+            raise ValueError("--direction moves the drum grating; rings expand about the epipole "
+                             "(add --stimulus grating)")
+        return tf_tuning(cfg, record=rec, **kw)
+    if protocol == "rf-map":
+        kw = {k2: opts[k] for k, k2 in (("fields", "fields"), ("directions", "directions"),
+                                        ("spacing", "spacing_deg"), ("extent", "extent_deg"),
+                                        ("spot_size", "spot_size_deg"), ("spot_path", "path_deg"),
+                                        ("spot_speed", "speed_deg_s")) if k in opts}
+        if "contrast" in opts:
+            kw["contrast"] = _one(opts, "contrast", protocol)
+        return rf_map(cfg, record=rec, **kw)
+    kw = {k2: opts[k] for k, k2 in (("l_over_v", "l_over_v_s"), ("duration", "duration_s"),
+                                    ("max_size", "max_size_deg"), ("collision_time", "t_collision_s")) if k in opts}
+    if "contrast" in opts:
+        kw["contrast"] = _one(opts, "contrast", protocol)
+    return looming(cfg, record=rec, **kw)
+
+
+# =========================================================================== summary from the stored data
+
+def _med(x) -> str:
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    return "n/a (none recorded)" if x.size == 0 else f"{np.median(x):.3g} (range {x.min():.3g}–{x.max():.3g})"
+
+
+def summary(ds) -> list[str]:
+    """Lines that describe a stored recording, each naming its selection; computed from ``ds`` only."""
+    p = ds.attrs.get("protocol")
+    lines = ["sizes: " + ", ".join(f"{k}={v}" for k, v in ds.sizes.items())]
+    for d in ("temporal_frequency_hz", "contrast", "l_over_v_s", "motion"):
+        if d in ds.coords:
+            vals = ds[d].values
+            lines.append(f"{d} values: " + ", ".join(f"{v:g}" if np.issubdtype(vals.dtype, np.number) else str(v)
+                                                     for v in vals))
+    if p != "rf-map":  # rf-map maps field variables, before any neuron
+        lines.append(f"neuron model {ds.attrs.get('neuron_model')}, {ds.attrs.get('trials')} trial(s) stored"
+                     + (f" ({ds.attrs['trials_note']})" if ds.attrs.get("trials_note") else ""))
+    if p == "tf-tuning":
+        lines.append(f"optimum 1/(2πτ) = {ds.attrs['optimum_hz']:.3g} Hz (τ = {ds.attrs['emd_tau_s'] * 1e3:g} ms)")
+        for v in ds.data_vars:
+            if not v.endswith("_peak_temporal_frequency_hz"):
+                continue
+            da = ds[v]
+            base = v.replace("_peak_temporal_frequency_hz", "")
+            for c in ds.contrast.values:
+                x = da.sel(contrast=c)
+                if "neuron" in x.dims:
+                    types = ds.neuron_type.sel(neuron=x.neuron).values
+                    for ty in ("expansion",):
+                        sel = x.isel(neuron=np.nonzero(types == ty)[0])
+                        lines.append(f"{base}: peak temporal frequency (Hz) of the {int(np.isfinite(sel).sum())} "
+                                     f"recorded {ty} units at contrast {c:g}: median {_med(sel)}")
+                    lines.append(f"{base}: peak temporal frequency (Hz) of all {int(np.isfinite(x).sum())} recorded "
+                                 f"units at contrast {c:g}: median {_med(x)}")
+                else:
+                    lines.append(f"{base}: peak temporal frequency (Hz) of the {int(np.isfinite(x).sum())} recorded "
+                                 f"{x.dims[-1]}s at contrast {c:g}: median {_med(x)}")
+    elif p == "rf-map":
+        err = np.hypot(ds.rf_centre_azimuth_deg - ds.field_azimuth_deg,
+                       ds.rf_centre_elevation_deg - ds.field_elevation_deg)
+        lines.append(f"{ds.sizes['field']} mapped field(s) {ds.field.values.tolist()}: centre error (degree) median "
+                     f"{_med(err)}; size (degree) median {_med(ds.rf_size_deg)} vs designed "
+                     f"{_med(ds.field_size_deg)}")
+    elif p == "looming":
+        for v in ds.data_vars:
+            if v.endswith("_peak") and "neuron" in ds[v].dims:
+                ex = ds[v].isel(neuron=np.nonzero(ds.neuron_type.sel(neuron=ds[v].neuron).values == "expansion")[0])
+                for lv in ds.l_over_v_s.values:
+                    a = ex.sel(l_over_v_s=lv, motion="approach")
+                    r = ex.sel(l_over_v_s=lv, motion="recede")
+                    lines.append(f"{v} ({ds[v].attrs.get('units', '')}), {int(np.isfinite(a).sum())} expansion units, "
+                                 f"l/|v| = {lv:g} s: approach median {_med(a)}; recede median {_med(r)}")
+            if v.endswith("_time_of_peak_s") and "neuron" in ds[v].dims:
+                ex = ds[v].isel(neuron=np.nonzero(ds.neuron_type.sel(neuron=ds[v].neuron).values == "expansion")[0])
+                lines.append(f"{v} (s relative to collision), expansion units, approach, per l/|v|: " + "; ".join(
+                    f"{lv:g} s: {_med(ex.sel(l_over_v_s=lv, motion='approach'))}" for lv in ds.l_over_v_s.values))
+    elif p == "velocity-replay":
+        from experiments.replay_protocol import replay_scores
+        for k, val in replay_scores(ds).items():
+            lines.append(f"{k}: {val:.4f}")
+    return lines
+
+
+def write_outputs(ds, outs) -> list[Path]:
+    from experiments.store import write_netcdf
+
+    written = []
+    for o in outs:
+        if o.suffix.lower() == ".nc":
+            written.append(write_netcdf(ds, o))
+        else:
+            from experiments.nwb import write_nwb
+            written.append(write_nwb(ds, o))
+    return written
+
+
+def main(args) -> int:
+    """Handler of ``lobula ephys``: run the protocol, write its outputs and figure, print a summary."""
+    opts = given(args)
+    outs = check_outputs(args.out)
+    plot = getattr(args, "plot", None)
+    if plot and Path(plot).suffix.lower() not in (".png", ".pdf"):
+        raise ValueError(f"--plot {plot}: use a .png or .pdf file name (both are written)")
+    ds = run_protocol(args.protocol, opts)
+    for path in write_outputs(ds, outs):
+        print(f"wrote {path} ({args.protocol})")
+    for line in summary(ds):
+        print("  " + line)
+    if plot:
+        from .figures import plot_recording
+        for path in plot_recording(ds, plot):
+            print(f"wrote {path}")
+    return 0
+
+
+def parse_command(argv: list[str]):
+    """Parse ``ephys …`` arguments with this module's parser (for tests and notebooks)."""
+    parser = argparse.ArgumentParser(prog="lobula")
+    add_parser(parser.add_subparsers(dest="command"))
+    return parser.parse_args(argv)
+
+

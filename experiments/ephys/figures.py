@@ -1,0 +1,321 @@
+"""Figures of the ephys protocols, drawn from the stored recording only (so a figure can be redrawn
+from its NetCDF): axes in the science's words with units, one colour per stimulus condition
+across panels, SEM error bars, raster beside PSTH, labelled colour bars. Each figure is
+written as a PNG (200 dpi) and a vector PDF beside it.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from .protocols import psth, psth_sem, raster
+
+__all__ = ["plot_tf_tuning", "plot_rf_map", "plot_looming", "plot_recording", "save_png_and_pdf", "nanmean", "sem", "DPI"]
+
+DPI = 200
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def save_png_and_pdf(fig, path) -> list[Path]:
+    """Save ``fig`` at ``path`` (.png or .pdf) and the other format beside it, atomically; close it."""
+    from experiments.store import save_figure
+
+    path = Path(path)
+    if path.suffix.lower() not in (".png", ".pdf"):
+        raise ValueError(f"figure path {path} must end in .png or .pdf (both are written)")
+    other = path.with_suffix(".pdf" if path.suffix.lower() == ".png" else ".png")
+    out = [save_figure(fig, p, dpi=DPI) for p in (path, other)]
+    _plt().close(fig)
+    return out
+
+
+def _colours(n: int):
+    cmap = _plt().get_cmap("viridis" if n > 6 else "tab10")
+    return [cmap(i / max(1, n - 1) * 0.9) if n > 6 else cmap(i) for i in range(n)]
+
+
+def sem(x: np.ndarray, axis: int) -> np.ndarray:
+    """Standard error of the mean along ``axis`` ignoring NaN; NaN where fewer than 2 values (no warning)."""
+    n = np.sum(np.isfinite(x), axis=axis)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sd = np.sqrt(np.nansum((x - nanmean(x, axis, keepdims=True)) ** 2, axis=axis) / np.maximum(n - 1, 1))
+        return np.where(n >= 2, sd / np.sqrt(np.maximum(n, 1)), np.nan)
+
+
+def nanmean(x, axis, keepdims=False):
+    """Mean along ``axis`` ignoring NaN; NaN where no value (no warning)."""
+    n = np.sum(np.isfinite(x), axis=axis, keepdims=keepdims)
+    s = np.nansum(x, axis=axis, keepdims=keepdims)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, s / np.maximum(n, 1), np.nan)
+
+
+def _style(i: int) -> dict:
+    """Marker and line style of the i-th condition, so that overlapping curves stay visible."""
+    return dict(marker="osD^v"[i % 5], ms=5 - 0.6 * (i % 3), mfc="none" if i % 2 else None, capsize=2,
+                ls=("-", "--", ":", "-.")[i % 4], lw=1.3)
+
+
+def _units_of(ds: xr.Dataset, da: xr.DataArray, unit_type: str) -> xr.DataArray:
+    keep = ds.neuron_type.sel(neuron=da.neuron).values == unit_type
+    return da.isel(neuron=np.nonzero(keep)[0]) if keep.any() else da
+
+
+def _neuron_var(ds: xr.Dataset) -> str | None:
+    for v in ("lc_rate", "lc_spikes", "lc_v", "lc_x", "lc_drive"):
+        if v in ds:
+            return v
+    return None
+
+
+def _raster_psth(fig, a_r, a_p, ds, neuron, colour, t_label, t_shift=0.0, bin_s=0.02, **sel):
+    """A raster (integer trial ticks) of one unit and, beside it, its PSTH ± SEM across trials."""
+    ts, tr = raster(ds, neuron, **sel)
+    a_r.vlines(ts - t_shift, tr - 0.4, tr + 0.4, color=colour, lw=0.8)
+    k = ds.sizes["trial"]
+    a_r.set_yticks(range(k) if k <= 10 else np.linspace(0, k - 1, 6).astype(int))
+    a_r.set_ylim(-0.6, k - 0.4)
+    a_r.set_ylabel("trial")
+    a_r.set_xlabel(t_label)
+    one = ds[["lc_spikes"]].sel(neuron=[neuron]).sel(**sel)
+    p = psth(one, bin_s=bin_s).squeeze()
+    tt = p.time.values - t_shift
+    a_p.plot(tt, p.values, color=colour, lw=1.2, label="PSTH (trial mean)")
+    if k >= 2:
+        e = psth_sem(one, bin_s=bin_s).squeeze().values
+        a_p.fill_between(tt, p.values - e, p.values + e, color=colour, alpha=0.3, lw=0, label=f"± SEM ({k} trials)")
+    a_p.set_xlabel(t_label)
+    a_p.set_ylabel(f"firing rate (Hz, {p.attrs['bin_s'] * 1e3:.0f} ms bins)")
+    a_p.legend(fontsize=7, loc="upper left", frameon=False)
+
+
+# =========================================================================== tf-tuning
+
+def plot_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
+    """EMD probe pairs (normalised to each curve's maximum, with the exact prediction) and LC expansion
+    units (absolute rate, mean ± SEM across units) against temporal frequency, one colour per contrast;
+    with spikes, a raster and the PSTH ± SEM of one expansion unit at the optimum."""
+    plt = _plt()
+    spikes = "lc_spikes" in ds
+    var = _neuron_var(ds)
+    fig, ax = plt.subplots(1, 4 if spikes else 2, figsize=(17 if spikes else 10, 4.2), squeeze=False)
+    ax = ax[0]
+    tf = ds.temporal_frequency_hz.values
+    opt = ds.attrs.get("optimum_hz")
+    cols = _colours(ds.sizes["contrast"])
+    if "emd_response_tuning" in ds:
+        a = ax[0]
+        da = ds.emd_response_tuning
+        for i, (c, col) in enumerate(zip(ds.contrast.values, cols)):
+            y = da.sel(contrast=c).values
+            y = y / np.nanmax(np.abs(y), axis=0, keepdims=True)
+            a.errorbar(tf, nanmean(y, 1), yerr=sem(y, 1), color=col, **_style(i),
+                       label=f"contrast {c:g}: mean ± SEM over pairs")
+        a.plot(tf, ds.emd_prediction.values, "k--", lw=1, label="prediction (discrete EMD × photoreceptor)")
+        a.set_title(f"EMD probe pairs (n = {da.sizes['pair']})", fontsize=10)
+        a.set_ylabel("response / each pair's maximum")
+    else:
+        ax[0].set_axis_off()
+    if var and f"{var}_tuning" in ds:
+        a = ax[1]
+        da = ds[f"{var}_tuning"]
+        if "neuron" in da.dims:
+            da = _units_of(ds, da, "expansion")
+        nd = da.dims[-1]
+        top = 0.0
+        for i, (c, col) in enumerate(zip(ds.contrast.values, cols)):
+            y = da.sel(contrast=c).values
+            m = nanmean(y, 1)
+            top = max(top, float(np.nanmax(m)))
+            a.errorbar(tf, m, yerr=sem(y, 1), color=col, **_style(i),
+                       label=f"contrast {c:g}: mean ± SEM over units")
+        a.plot(tf, ds.lc_drive_prediction.values * top, "k--", lw=1, label="predicted drive, scaled to the peak")
+        a.set_title(f"LC expansion units (n = {da.sizes[nd]}, {ds.attrs.get('neuron_model', '')} model)",
+                    fontsize=10)
+        a.set_ylabel(f"steady-state {'firing rate' if var in ('lc_rate', 'lc_spikes') else var} "
+                     f"({da.attrs.get('units', '')})")
+    else:
+        ax[1].set_axis_off()
+    from matplotlib.ticker import LogLocator, ScalarFormatter
+    for a in ax[:2]:
+        if not a.axison:
+            continue
+        a.set_xscale("log")
+        a.xaxis.set_major_locator(LogLocator(base=10, subs=(1, 2, 5)))
+        a.xaxis.set_major_formatter(ScalarFormatter())
+        a.xaxis.set_minor_formatter(plt.NullFormatter())
+        a.set_xlabel("temporal frequency (Hz)")
+        if opt:
+            a.axvline(opt, color="0.5", ls=":", lw=1, label=f"1/(2πτ) = {opt:.2f} Hz")
+        a.set_ylim(bottom=min(0.0, a.get_ylim()[0]))
+        # Below the axes, clear of the data.
+        a.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False, ncol=1)
+
+    if spikes:
+        k = int(np.argmin(np.abs(tf - (opt or tf[len(tf) // 2]))))
+        units = np.nonzero(ds.neuron_type.values == "expansion")[0]
+        live = [int(ds.neuron.values[u]) for u in units if np.isfinite(ds.lc_spikes.sel(neuron=ds.neuron.values[u])).all()]
+        n = live[0] if live else int(ds.neuron.values[0])
+        c0 = ds.contrast.values[-1]
+        dur = float(ds.time[-1] - ds.time[0])
+        _raster_psth(fig, ax[2], ax[3], ds, n, cols[-1], "time since stimulus onset (s)",
+                     bin_s=max(0.02, round(dur / 30, 2)), temporal_frequency_hz=tf[k], contrast=c0)
+        ax[2].set_title(f"unit {n} (expansion), {tf[k]:.2f} Hz, contrast {c0:g}: raster", fontsize=10)
+        ax[3].set_title("PSTH ± SEM across trials", fontsize=10)
+    fig.tight_layout()
+    return save_png_and_pdf(fig, path)
+
+
+# =========================================================================== rf-map
+
+def _grid_image(az, el, v):
+    """Scattered values on a regular (az, el) grid → 2-D image with NaN where no location, and edges."""
+    ua, ue = np.unique(np.round(az, 6)), np.unique(np.round(el, 6))
+    img = np.full((len(ue), len(ua)), np.nan)
+    img[np.searchsorted(ue, np.round(el, 6)), np.searchsorted(ua, np.round(az, 6))] = v
+
+    def edges(u):
+        d = np.diff(u).min() if len(u) > 1 else 1.0
+        return np.concatenate([u - d / 2, [u[-1] + d / 2]])
+
+    return img, edges(ua), edges(ue)
+
+
+def plot_rf_map(ds: xr.Dataset, path) -> list[Path]:
+    """Per mapped field (up to 6): the local motion sensitivity map (colour bar labelled with its units),
+    local preferred directions (arrows), designed RF (white dashed circle, FWHM or box) and mapped RF
+    (red circle: centroid and deconvolved size)."""
+    plt = _plt()
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Circle
+
+    probed = [int(f) for f in ds.field.values][:6]
+    fig, ax = plt.subplots(1, len(probed), figsize=(4.6 * len(probed), 4.4), squeeze=False)
+    az, el = ds.location_azimuth_deg.values, ds.location_elevation_deg.values
+    units = ds.rf_sensitivity.attrs.get("units", "")
+    for a, f in zip(ax[0], probed):
+        s = ds.rf_sensitivity.sel(field=f).values
+        scale = 10.0 ** np.floor(np.log10(np.nanmax(np.abs(s)) + 1e-300))
+        img, ea, ee = _grid_image(az, el, s / scale)
+        lim = np.nanmax(np.abs(img))
+        pc = a.pcolormesh(ea, ee, img, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="flat", edgecolors="none")
+        pdir = np.radians(ds.rf_preferred_direction_deg.sel(field=f).values)
+        mag = np.clip(s / (np.nanmax(s) + 1e-300), 0, None)
+        strong = mag > 0.2
+        a.quiver(az[strong], el[strong], (mag * np.cos(pdir))[strong], (mag * np.sin(pdir))[strong], color="k",
+                 angles="xy", scale_units="xy", scale=1.0 / (1.2 * np.diff(ea).min()), width=0.007)
+        a.add_patch(Circle((float(ds.field_azimuth_deg.sel(field=f)), float(ds.field_elevation_deg.sel(field=f))),
+                           float(ds.field_size_deg.sel(field=f)) / 2, fill=False, color="0.1", ls="--", lw=1.4))
+        a.add_patch(Circle((float(ds.rf_centre_azimuth_deg.sel(field=f)), float(ds.rf_centre_elevation_deg.sel(field=f))),
+                           float(ds.rf_size_deg.sel(field=f)) / 2, fill=False, color="tab:red", lw=1.6))
+        ext = float(json.loads(ds.attrs["parameters"])["extent_deg"])  # this field's own mapping grid
+        fa, fe = float(ds.field_azimuth_deg.sel(field=f)), float(ds.field_elevation_deg.sel(field=f))
+        a.set_xlim(max(ea[0], fa - ext), min(ea[-1], fa + ext))
+        a.set_ylim(min(ee[-1], fe + ext), max(ee[0], fe - ext))  # elevation positive down
+        a.set_aspect("equal")
+        a.set_xlabel("azimuth (degree)")
+        a.set_ylabel("elevation (degree, positive down)")
+        a.set_title(f"LC field {f}: mapped size {float(ds.rf_size_deg.sel(field=f)):.1f}° "
+                    f"(designed {float(ds.field_size_deg.sel(field=f)):.1f}°)", fontsize=9)
+        cb = fig.colorbar(pc, ax=a, shrink=0.8)
+        cb.set_label(f"local motion sensitivity (×{scale:.0e} {units})", fontsize=8)
+        cb.formatter.set_useOffset(False)
+    handles = [Line2D([], [], color="0.1", ls="--", label="designed RF (FWHM or box side)"),
+               Line2D([], [], color="tab:red", label="mapped RF (centroid, deconvolved size)"),
+               Line2D([], [], color="k", marker=r"$\rightarrow$", ls="", ms=10,
+                      label="local preferred direction (length: sensitivity)")]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    return save_png_and_pdf(fig, path)
+
+
+# =========================================================================== looming
+
+def plot_looming(ds: xr.Dataset, path) -> list[Path]:
+    """Expansion units' response (mean ± SEM over units; PSTH with spikes) and the disc's angular size
+    against time relative to collision, one colour per l/|v| (solid approach, dashed recede), and the
+    peak time against l/|v| with its linear fit t_peak = α·l/|v| + δ."""
+    plt = _plt()
+    from matplotlib.lines import Line2D
+
+    var = _neuron_var(ds)
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.4), squeeze=False)
+    ax = ax[0]
+    lvs = ds.l_over_v_s.values
+    cols = _colours(len(lvs))
+    t = ds.time.values
+    if var:
+        da = ds[var]
+        if "neuron" in da.dims:
+            da = _units_of(ds, da, "expansion")
+        if var == "lc_spikes":
+            da = psth(ds.assign({var: da}), var, 0.02)
+            ylab = "expansion units' PSTH (Hz, 20 ms bins)"
+        else:
+            da = da.mean("trial") if "trial" in da.dims else da
+            ylab = f"expansion units' {da.attrs.get('long_name', var).replace('LC unit ', '')} ({da.attrs.get('units', '')})"
+        tt = da.time.values
+        nd = "neuron" if "neuron" in da.dims else None
+        for lv, col in zip(lvs, cols):
+            for mot, ls in (("approach", "-"), ("recede", "--")):
+                y = da.sel(l_over_v_s=lv, motion=mot).transpose("time", ...).values.reshape(len(tt), -1)
+                m, e = nanmean(y, 1), sem(y, 1)
+                ax[0].plot(tt, m, ls, color=col, lw=1.3)
+                if nd and np.isfinite(e).any():
+                    ax[0].fill_between(tt, m - e, m + e, color=col, alpha=0.2, lw=0)
+        n_units = da.sizes.get("neuron", 1)
+        ax[0].set_ylabel(ylab)
+        ax[0].set_title(f"LC expansion units (n = {n_units}; mean ± SEM over units)", fontsize=10)
+    for lv, col in zip(lvs, cols):
+        for mot, ls in (("approach", "-"), ("recede", "--")):
+            ax[1].plot(t, ds.angular_size_deg.sel(l_over_v_s=lv, motion=mot), ls, color=col, lw=1.3)
+    ax[1].set_ylabel("disc angular size (degree)")
+    ax[1].set_title(f"stimulus (size cap {json.loads(ds.attrs['parameters'])['max_size_deg']:g}°)", fontsize=10)
+    for a in ax[:2]:
+        a.axvline(0.0, color="0.5", lw=0.8, ls=":")
+        a.set_xlabel("time relative to collision (s)")
+    peak = f"{var}_time_of_peak_s" if var else None
+    if peak and peak in ds and "neuron" in ds[peak].dims:
+        p = _units_of(ds, ds[peak], "expansion").sel(motion="approach")
+        y = p.transpose("l_over_v_s", ...).values.reshape(len(lvs), -1)
+        m, e = nanmean(y, 1), sem(y, 1)
+        for lv, mm, ee, col in zip(lvs, m, e, cols):
+            ax[2].errorbar([lv], [mm], yerr=[ee] if np.isfinite(ee) else None, color=col, marker="o", capsize=3)
+        ok = np.isfinite(m)
+        if ok.sum() >= 2:
+            alpha, delta = np.polyfit(lvs[ok], m[ok], 1)
+            xx = np.linspace(0, lvs.max() * 1.05, 50)
+            ax[2].plot(xx, alpha * xx + delta, "k--", lw=1,
+                       label=f"fit: t_peak = {alpha:.2f}·l/|v| {'+' if delta >= 0 else '−'} {abs(delta) * 1e3:.0f} ms")
+            ax[2].legend(fontsize=8, loc="lower left", frameon=False)
+        ax[2].set_xlabel("l/|v| (s)")
+        ax[2].set_ylabel("time of peak relative to collision (s)")
+        ax[2].set_title("approach: peak time (mean ± SEM over units)", fontsize=10)
+    else:
+        ax[2].set_axis_off()
+    handles = [Line2D([], [], color=c, lw=2, label=f"l/|v| = {lv * 1e3:g} ms") for lv, c in zip(lvs, cols)]
+    handles += [Line2D([], [], color="k", ls="-", label="approach"), Line2D([], [], color="k", ls="--", label="recede")]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    return save_png_and_pdf(fig, path)
+
+
+def plot_recording(ds: xr.Dataset, path) -> list[Path]:
+    """The protocol's figure (from ds.attrs["protocol"]); PNG and PDF."""
+    p = ds.attrs.get("protocol")
+    if p == "velocity-replay":
+        from experiments.replay_protocol import plot_velocity_replay
+        return plot_velocity_replay(ds, path)
+    fn = {"tf-tuning": plot_tf_tuning, "rf-map": plot_rf_map, "looming": plot_looming}.get(p)
+    if fn is None:
+        raise ValueError(f"no figure for protocol {p!r}")
+    return fn(ds, path)

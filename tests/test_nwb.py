@@ -1,0 +1,114 @@
+"""NWB export: every ephys protocol writes a file that pynwb reads back and nwbinspector passes with no
+critical finding, and the NWB file holds the same numbers as the NetCDF recording (round trip).
+
+Tiny rig (Δφ = 4°, 20° fields), short stimuli: ~20 s. velocity-replay's NWB is checked in
+test_replay_protocol.py (it needs footage).
+"""
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from experiments.ephys.command import run_protocol
+from experiments.nwb import epoch_layout, read_nwb_series, read_nwb_spike_counts, write_nwb
+from experiments.store import write_netcdf
+
+TINY = dict(dphi=4.0, field_size=20.0)
+RUNS = {"tf-tuning": dict(TINY, tf=[2.0, 6.0], contrast=[0.3, 0.9], duration=0.25, settle=0.05,
+                          neuron_model="poisson", trials=3, seed=5),
+        "looming": dict(TINY, l_over_v=[0.02, 0.04], duration=0.3, neuron_model="lif", trials=2, seed=1),
+        "rf-map": dict(TINY, fields=[1], directions=3, spot_speed=400.0)}
+
+
+def critical_findings(path):
+    from nwbinspector import Importance, inspect_nwbfile
+    return [m for m in inspect_nwbfile(nwbfile_path=str(path), importance_threshold=Importance.CRITICAL)]
+
+
+@pytest.fixture(scope="module", params=list(RUNS))
+def recording(request, tmp_path_factory):
+    protocol = request.param
+    ds = run_protocol(protocol, dict(RUNS[protocol]))
+    d = tmp_path_factory.mktemp(protocol)
+    nc, nwb = write_netcdf(ds, d / "rec.nc"), write_nwb(ds, d / "rec.nwb")
+    back = xr.open_dataset(nc, engine="h5netcdf").load()
+    return protocol, back, nwb
+
+
+def test_nwb_reads_back_and_passes_the_inspector(recording):
+    from pynwb import NWBHDF5IO
+
+    protocol, ds, path = recording
+    assert critical_findings(path) == []
+    with NWBHDF5IO(str(path), "r") as io:
+        f = io.read()
+        notes = json.loads(f.notes)
+        assert notes["protocol"] == protocol and notes["git_commit"] == ds.attrs["git_commit"]
+        assert json.loads(notes["config"]) == json.loads(ds.attrs["config"])
+        assert f.source_script == ds.attrs["command_line"]
+        trials = f.trials.to_dataframe()
+        lay = epoch_layout(ds)
+        assert len(trials) == lay["C"] * lay["K"]
+        assert np.all(np.diff(trials.start_time.values) > 0)
+        if protocol == "rf-map":
+            assert set(trials.columns) >= {"location", "direction_deg", "location_azimuth_deg", "rf_response"}
+            assert "rf_centre_azimuth_deg" in f.processing["analysis"].data_interfaces
+        if "lc_spikes" in ds:
+            units = f.units.to_dataframe()
+            recorded = np.isfinite(ds.lc_spikes.isel({d: 0 for d in ds.lc_spikes.dims if d != "neuron"})).values
+            assert len(units) == recorded.sum()
+            assert set(units.unit_type) <= set(ds.neuron_type.values)
+            np.testing.assert_allclose(units.rf_azimuth_deg.values, ds.azimuth_deg.values[recorded])
+            np.testing.assert_allclose(units.rf_size_deg.values, ds.size_deg.values[recorded])
+            assert f.units.resolution == pytest.approx(float(ds.lc_spikes.attrs["dt_s"]))
+
+
+def test_nwb_and_netcdf_hold_the_same_numbers(recording):
+    protocol, ds, path = recording
+    lay = epoch_layout(ds)
+    C, K = lay["C"], lay["K"]
+    if "lc_spikes" in ds:  # spike times in the Units table → counts per model step = the NetCDF's counts
+        counts = read_nwb_spike_counts(path, ds, "lc_spikes")
+        ref = ds.lc_spikes.transpose(*lay["cdims"], "trial", "time", "neuron").values.reshape(C, K, ds.sizes["time"], -1)
+        np.testing.assert_array_equal(counts, ref)
+        assert counts.sum() > 0
+    for var in ("lc_rate", "lc_v", "emd_response"):
+        if var not in ds:
+            continue
+        data, ts, unit = read_nwb_series(path, var)
+        da = ds[var]
+        kk = K if "trial" in da.dims else 1
+        order = lay["cdims"] + (["trial"] if "trial" in da.dims else []) + ["time", da.dims[-1]]
+        ref = da.transpose(*order).values.reshape(C * kk * ds.sizes["time"], -1)
+        np.testing.assert_array_equal(data.reshape(ref.shape), ref)
+        assert unit == da.attrs["units"]
+        # timestamps: each epoch's start + the recording's own time since its first sample
+        t = ds.time.values - ds.time.values[0]
+        np.testing.assert_allclose(ts.reshape(C, kk, -1), lay["starts"][:, :kk, None] + t, atol=1e-9)
+    if protocol == "rf-map":
+        from pynwb import NWBHDF5IO
+        with NWBHDF5IO(str(path), "r") as io:
+            f = io.read()
+            resp = np.stack(f.trials.to_dataframe().rf_response.values)
+            np.testing.assert_array_equal(resp.ravel(), ds.rf_response.transpose("location", "direction_deg",
+                                                                                 "field").values.ravel())
+            size = f.processing["analysis"]["rf_size_deg"].to_dataframe()
+            np.testing.assert_array_equal(size.value.values, ds.rf_size_deg.values)
+
+
+def test_nwb_write_is_atomic(tmp_path, monkeypatch):
+    import pynwb
+
+    ds = run_protocol("looming", dict(TINY, l_over_v=[0.04], duration=0.2))
+    write_nwb(ds, tmp_path / "ok.nwb")
+    real = pynwb.NWBHDF5IO.write
+
+    def write_then_fail(self, *a, **k):  # a crash after part of the file is on disk
+        real(self, *a, **k)
+        raise OSError("disk full")
+
+    monkeypatch.setattr(pynwb.NWBHDF5IO, "write", write_then_fail)
+    with pytest.raises(OSError, match="disk full"):
+        write_nwb(ds, tmp_path / "broken.nwb")
+    assert [p.name for p in tmp_path.iterdir()] == ["ok.nwb"]
