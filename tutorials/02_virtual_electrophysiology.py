@@ -83,7 +83,7 @@ fig.savefig(work / "tutorial2_tuning.png", dpi=150)
 # SEM across trials (10 ms bins).
 
 # %%
-best = float(tf.temporal_frequency_hz[int(curve.mean("neuron").argmax())])
+best = float(tf.temporal_frequency_hz[int(curve.mean("neuron").argmax("temporal_frequency_hz"))])
 unit = int(curve.neuron[0])
 times, trials = raster(tf, unit, var="lc_spikes", temporal_frequency_hz=best, contrast=0.5)
 rate = psth(tf, "lc_spikes", 0.01).sel(temporal_frequency_hz=best, contrast=0.5, neuron=unit)
