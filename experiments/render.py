@@ -15,6 +15,8 @@ def run_scene(args) -> int:
     cfg = TrackRunConfig(profile=profile, start_s=args.start, duration_s=args.duration, scale=args.scale,
                          constant_velocity_m_s=args.constant_velocity, camera_json=args.camera, scene=scene)
     cfg.imu.seed = args.seed
+    if args.eye == "fly":  # compound-eye footage (issue 11): experiments.eye_velocity
+        from experiments.eye_scene import run_eye_scene; return run_eye_scene(args, cfg)
     out = make_track_run(args.out, cfg, progress=not args.quiet)
     print(f"wrote {out} ({int(args.duration * 30)} frames; profile: {profile or 'built-in'})")
     return 0
@@ -42,4 +44,5 @@ def add_parser(subparsers):
     s.add_argument("--no-floor", action="store_true")
     s.add_argument("--side-walls", action="store_true")
     s.add_argument("--quiet", action="store_true")
+    __import__("experiments.eye_scene").eye_scene.add_eye_scene_options(s)  # --eye fly (issue 11)
     s.set_defaults(func=run_scene)

@@ -31,6 +31,28 @@ Stages
    readout's own ``v_f = a·r̄/(ṙ − r²)`` with r²̄ replaced by r2_eff. Exact for any plane
    (a side wall gives r2_eff = 0, a frontal wall ρ²/cos θ).
 
+**Normalisation.** The gradient-ratio pool G = (x_B − x_A)² cancels contrast and pattern
+only while ωτ ≪ 1: for a sine, R̄/Ḡ = ωτ·cot(Δϕ/2)/(1 + (ωτ)²). A fly's eye in a
+textured world is far from that limit (components near the lattice's Nyquist limit have
+high temporal frequency), and the loss grows with speed, so ρ̂ is not proportional to ρ
+and ρ̂'s derivative misleads the readout. The default pool pairs the contrast difference
+with its own delayed copy, ``G = (LP_τ(x_B) − LP_τ(x_A))·(x_B − x_A)``, made of the same
+four signals the correlator multiplies: its mean is C²(1 − cos Δϕ)/(1 + (ωτ)²), so
+``R̄/Ḡ = ωτ·cot(Δϕ/2)`` exactly — the correlator's temporal-frequency tuning divides out
+(a divisive normalisation by a pool with the same temporal filtering as the EMD), and
+only the spatial-sampling factor (Δϕ/2)·cot(Δϕ/2), constant in speed, remains.
+
+**Columnar pooling** (a hypothesis, off by default). Before the EMDs each column's
+signal may be averaged with its six neighbours' (``column_pool``), as the T4/T5 input neurons pool over several columns
+(Tm3's receptive field spans ~2–3 columns: Takemura et al. 2013, Nature 500:175; Behnia
+et al. 2014, Nature 512:427). Why it matters here: the gradient ratio underestimates a
+sine of phase step Δϕ between neighbours by (Δϕ/2)·cot(Δϕ/2) (0 at the Nyquist limit),
+and with Δρ = Δφ a 1/f world puts much contrast near it; the 7-column average passes
+λ = 2Δφ at −1/7 and λ = 6Δφ at 0.78, which raises the decoded gain toward 1 — but
+measured on a panels world it also lowered the fields' correlation with the exact v/D
+(0.83 → 0.65) and raised the velocity RMSE, so it stays off. (The readout
+v = a·ρ/(ρ̇ − r²) is blind to a constant gain on ρ, not to one that varies.)
+
 Rotation, two hypotheses (``rotation``):
 
 - ``"haltere"``: the gyroscope's angular velocity ω predicts each pair's rotational image
@@ -109,7 +131,14 @@ class EyeCircuitConfig:
     photoreceptor, emd: stage configurations (see the module docstring for the values'
     sources). fields: :class:`EyeFieldConfig`. rotation: "none" | "haltere" |
     "wide-field" | "both". readout_rate_hz: rate of the LC outputs the readout sees
-    (block sums of the eye-rate signals). calibration: gain on ρ (1 = none).
+    (block sums of the eye-rate signals). r2_term: what the readout's r²̄ receives —
+    "convective" (ρ² cos θ − ρ sin θ·g, the material-derivative form; default), "point"
+    (ρ² cos θ: along a point, no convective term; an ablation) or "none" (0). normaliser: the contrast pool G of the decoding,
+    "delayed" (default, (LP(x_B) − LP(x_A))·(x_B − x_A)) or "gradient" ((x_B − x_A)², the
+    pinhole front end's); see "Normalisation" in the module docstring. column_pool: weight α of the six neighbouring
+    columns in each EMD input, x' = (1 − α)·x + α·mean(neighbours) (0: none, the default;
+    6/7: a uniform 7-column average) — see "Columnar pooling" in the module docstring.
+    calibration: gain on ρ (1 = none).
     latency_s: stamp shift; None = τ_photoreceptor + τ_EMD + half a block.
     """
 
@@ -118,6 +147,9 @@ class EyeCircuitConfig:
     emd: EMDConfig = field(default_factory=lambda: EMDConfig(tau_s=0.035))
     fields: EyeFieldConfig = field(default_factory=EyeFieldConfig)
     rotation: str = "haltere"
+    normaliser: str = "delayed"
+    r2_term: str = "convective"
+    column_pool: float = 0.0
     readout_rate_hz: float = 50.0
     calibration: float = 1.0
     latency_s: float | None = None
@@ -125,12 +157,21 @@ class EyeCircuitConfig:
     def __post_init__(self):
         if self.rotation not in ROTATION_MODES:
             raise ValueError(f"rotation must be one of {ROTATION_MODES}, got {self.rotation!r}")
+        if self.r2_term not in ("convective", "point", "none"):
+            raise ValueError(f"r2_term must be 'convective', 'point' or 'none', got {self.r2_term!r}")
+        if self.normaliser not in ("delayed", "gradient"):
+            raise ValueError(f"normaliser must be 'delayed' or 'gradient', got {self.normaliser!r}")
+        if not (0.0 <= self.column_pool <= 1.0):
+            raise ValueError(f"column_pool must lie in [0, 1], got {self.column_pool}")
         if not self.readout_rate_hz > 0:
             raise ValueError(f"readout_rate_hz must be positive, got {self.readout_rate_hz}")
 
     def to_dict(self) -> dict:
         return dict(photoreceptor=self.photoreceptor.to_dict(), emd=self.emd.to_dict(),
-                    fields=self.fields.to_dict(), rotation=self.rotation, readout_rate_hz=self.readout_rate_hz,
+                    fields=self.fields.to_dict(), rotation=self.rotation, normaliser=self.normaliser,
+                    r2_term=self.r2_term,
+                    column_pool=self.column_pool,
+                    readout_rate_hz=self.readout_rate_hz,
                     calibration=self.calibration, latency_s=self.latency_s)
 
     @classmethod
@@ -194,6 +235,21 @@ def eye_fields(eye: CompoundEye, config: EyeFieldConfig) -> EyeFields:
     return EyeFields(cen, f_eye, dirs, theta, w, mirror, float(config.size_deg))
 
 
+def _column_pool(eye: CompoundEye, alpha: float):
+    """Sparse (n, n) float32 matrix x' = (1 − α)x + α·mean over the lattice neighbours; None if α = 0."""
+    if alpha == 0.0:
+        return None
+    n = eye.n
+    a = np.concatenate([eye.pairs_a, eye.pairs_b])
+    b = np.concatenate([eye.pairs_b, eye.pairs_a])
+    deg = np.bincount(a, minlength=n).astype(float)
+    rows = np.concatenate([np.arange(n), a])
+    cols = np.concatenate([np.arange(n), b])
+    vals = np.concatenate([np.where(deg > 0, 1.0 - alpha, 1.0), alpha / np.maximum(deg[a], 1.0)])
+    idx = torch.as_tensor(np.stack([rows, cols]))
+    return torch.sparse_coo_tensor(idx, torch.as_tensor(vals, dtype=torch.float32), (n, n)).coalesce()
+
+
 class EyeCircuit:
     """Streaming circuit: ``process(luminance (T, n), gyro (T, 3))`` → completed readout steps.
 
@@ -229,9 +285,11 @@ class EyeCircuit:
         rot = [cgm * k[:, j] for j in range(3)] + [cgm * delta * k[:, j] for j in range(3)]
         self._num = torch.as_tensor(num.T, dtype=torch.float32)                  # (P, 2F)
         self._den = torch.as_tensor(np.concatenate(den + rot, 0).T, dtype=torch.float32)  # (P, 9F)
+        self._pool = _column_pool(eye, cfg.column_pool)
         self._a = torch.as_tensor(eye.pairs_a)
         self._b = torch.as_tensor(eye.pairs_b)
         self._gyro_state: torch.Tensor | None = None
+        self._lp_state: torch.Tensor | None = None
         self._carry: list = []           # partial block of per-step sums
         self._t0 = 0.0
         self._n_steps = 0
@@ -261,10 +319,19 @@ class EyeCircuit:
         import time as _time
         t0 = _time.perf_counter()
         y = self.photoreceptors.run(lum)
+        if self._pool is not None:
+            y = torch.sparse.mm(self._pool, y.t()).t()
         t1 = _time.perf_counter()
         R = self.emds.run(y)                                                    # (T, P)
         t2 = _time.perf_counter()
-        G = (y[:, self._b] - y[:, self._a]) ** 2
+        dy = y[:, self._b] - y[:, self._a]
+        if self.config.normaliser == "delayed":
+            # The contrast difference times its own delayed (low-passed) copy: the EMD's four signals.
+            lp = lowpass_scan(dy, math.exp(-self.dt / self.config.emd.tau_s), self._lp_state)
+            self._lp_state = lp[-1].clone()
+            G = lp * dy
+        else:
+            G = dy * dy
         out = torch.cat([R @ self._num, G @ self._den], dim=1)
         self.timings["photoreceptor"] += t1 - t0
         self.timings["emd"] += t2 - t1
@@ -327,5 +394,7 @@ class EyeCircuit:
         with np.errstate(divide="ignore", invalid="ignore"):
             rho = np.where(det > 0, (A22 * b1 - A12 * b2) / det, np.nan) * self.config.calibration
             grad = np.where(det > 0, (A11 * b2 - A12 * b1) / det, np.nan) * self.config.calibration
-        r2_eff = rho ** 2 * np.cos(theta)[None, :] - rho * np.sin(theta)[None, :] * grad
+        mode = self.config.r2_term
+        r2_eff = (rho ** 2 * np.cos(theta)[None, :] - rho * np.sin(theta)[None, :] * grad if mode == "convective"
+                  else rho ** 2 * np.cos(theta)[None, :] if mode == "point" else np.zeros_like(rho))
         return dict(t=t_end - self.latency_s, rho=rho, grad=grad, r2_eff=r2_eff)

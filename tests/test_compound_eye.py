@@ -216,3 +216,46 @@ def test_emd_on_the_sphere_signs_translation():
         ratio = np.median(late, 0) / (v / D)
         assert 0.8 < np.median(ratio) < 1.15, ratio
         assert np.mean(np.abs(ratio - 1) < 0.35) > 0.8, ratio
+
+
+# ------------------------------------------------------------------ end to end
+
+@pytest.fixture(scope="module")
+def eye_footage(tmp_path_factory):
+    """6 s of the built-in track profile (rest, forward, reversal) in the panels world, coarse eye at 250 Hz."""
+    from lobula.camera import PinholeCamera
+    from stimuli.eye import write_eye_footage
+    from stimuli.imu import IMUConfig, synthesize_imu
+    from stimuli.scene import SceneConfig, TrackScene
+    from stimuli.track import builtin_profile
+    from stimuli.trajectory import trajectory_from_function
+
+    traj = trajectory_from_function(lambda t: builtin_profile(t + 2.0), 6.0)
+    scene = TrackScene(PinholeCamera().scaled(0.25), traj, SceneConfig(seed=5, noise_grey=0.0))
+    imu = synthesize_imu(scene, 6.0, IMUConfig(seed=5))
+    eye = CompoundEye(CompoundEyeConfig(dphi_deg=8.0, rings=3))
+    times = np.arange(0.0, 6.0, 1 / 250.0)
+    return write_eye_footage(tmp_path_factory.mktemp("eye") / "panels", scene, eye, imu, times, {}, range_every=50)
+
+
+def test_eye_velocity_beats_the_zero_estimator(eye_footage):
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
+    from experiments.velocity import score
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(eye_footage)
+    # Acceleration from truth: in a 6 s record the causal gravity estimate (a running mean of the
+    # specific force, lobula.haltere) still carries the mean acceleration; the test is about the eye.
+    ds = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True))
+    assert set(["v_hat", "v_std", "observable", "accel", "r", "r2", "r_dot", "v_field", "v_true"]) <= set(ds)
+    assert ds.attrs["filter"] == "causal"
+    sc = score(ds, skip_s=1.0)
+    keep = (ds.time.values >= ds.time.values[0] + 1.0) & ds.observable.values
+    v_true, v_hat = ds.v_true.values[keep], ds.v_hat.values[keep]
+    zero = float(np.sqrt(np.mean(v_true ** 2)))
+    assert sc["observable_fraction"] > 0.8
+    # Measured: 0.277 against 0.319 for v̂ = 0 (Δφ = 8°; 0.249 at Δφ = 6°). A modest margin, honestly.
+    assert sc["rmse_m_s"] < 0.92 * zero, (sc, zero)
+    # It follows the trajectory's shape, if loosely (measured r = 0.40: v̂ lags and reads ~0.6× at
+    # the peaks); a sign error or a stalled estimate gives r ≤ 0.
+    assert np.corrcoef(v_hat, v_true)[0, 1] > 0.3

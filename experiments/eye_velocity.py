@@ -1,0 +1,188 @@
+"""Velocity from eye footage: photoreceptors → EMDs → LC fields → the project's readout, causal.
+
+``estimate_eye_velocity(eye_footage, config)`` streams the luminance of an eye-footage
+folder (``lobula scene OUT --eye fly``) through :class:`lobula.eye_circuit.EyeCircuit`
+with the gyroscope as haltere input, takes forward acceleration from the accelerometer
+(:func:`lobula.haltere.forward_acceleration`, causal: running gravity and bias), and reads
+velocity out with :func:`lobula.readout.readout` (the estimator's readout, causal filter).
+The LC fields' convective-corrected r²-term (see :mod:`lobula.eye_circuit`) is passed as
+the readout's r²̄, so ṙ − r²̄ is the material-derivative form of a/d on any surface.
+
+Returns the DESIGN.md velocity Dataset (dims ``time`` and ``field``).
+"""
+from __future__ import annotations
+
+import json
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+import xarray as xr
+
+from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
+from lobula.haltere import forward_acceleration, resample_to
+from lobula.readout import ReadoutConfig, readout
+
+from .store import provenance
+
+__all__ = ["EyeVelocityConfig", "estimate_eye_velocity", "causal_gyro", "add_parser", "run_eye_velocity"]
+
+
+@dataclass
+class EyeVelocityConfig:
+    """The eye velocity pipeline: circuit, readout (causal by default), streaming chunk (samples).
+
+    accel_from_truth: forward acceleration from truth.csv's a_forward_m_s2 instead of the
+    accelerometer (isolates the visual circuit from gravity removal; labelled in the output).
+    """
+
+    circuit: EyeCircuitConfig = field(default_factory=EyeCircuitConfig)
+    readout: ReadoutConfig = field(default_factory=lambda: ReadoutConfig(filter="causal"))
+    chunk: int = 500
+    accel_from_truth: bool = False
+
+    def to_dict(self) -> dict:
+        return dict(circuit=self.circuit.to_dict(), readout=self.readout.to_dict(), chunk=self.chunk,
+                    accel_from_truth=self.accel_from_truth)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+
+def causal_gyro(imu, times: np.ndarray) -> np.ndarray:
+    """Angular velocity (T, 3) at ``times``: the latest IMU sample at or before each time (no
+    look-ahead), minus the running mean of the samples so far (the gyro bias, since a
+    track's heading returns; lobula.haltere does the same)."""
+    g = imu.gyro
+    bias = np.cumsum(g, 0) / np.arange(1, len(g) + 1)[:, None]
+    k = np.clip(np.searchsorted(imu.time_s, times, side="right") - 1, 0, len(g) - 1)
+    return (g - bias)[k]
+
+
+def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress: bool = False) -> xr.Dataset:
+    """Velocity Dataset from an :class:`stimuli.eye.EyeFootage` (see the module docstring)."""
+    from stimuli.footage import FootageError
+
+    cfg = config or EyeVelocityConfig()
+    if fo.imu is None:
+        raise FootageError(f"{fo.path / 'imu.csv'}: missing; the eye's readout needs the accelerometer and gyro")
+    t_start = _time.perf_counter()
+    circ = EyeCircuit(fo.eye, fo.rate_hz, cfg.circuit)
+    gyro = causal_gyro(fo.imu, fo.times)
+    outs, t_read = [], 0.0
+    pos = 0
+    for ts, lum in fo.chunks(cfg.chunk):
+        outs.append(circ.process(lum, gyro[pos:pos + len(ts)]))
+        pos += len(ts)
+    outs.append(circ.finish())
+    t = np.concatenate([o["t"] for o in outs])
+    rho = np.concatenate([o["rho"] for o in outs])
+    r2 = np.concatenate([o["r2_eff"] for o in outs])
+    if len(t) < 3:
+        raise FootageError(f"{fo.path}: too short for a readout ({len(t)} LC steps)")
+    t_circ = _time.perf_counter() - t_start
+    dt = float(np.median(np.diff(t)))
+    if cfg.accel_from_truth:
+        if fo.truth is None or "a_forward_m_s2" not in fo.truth:
+            raise FootageError(f"{fo.path / 'truth.csv'}: no a_forward_m_s2 column for accel_from_truth")
+        a = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
+        a_source = "ground truth (a_forward_m_s2 of truth.csv; no accelerometer)"
+    else:
+        a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=True)
+        a = resample_to(t, fo.imu.time_s, a_imu, dt)
+        a_source = "accelerometer (causal gravity and bias removal)"
+    t1 = _time.perf_counter()
+    res = readout(t, rho, r2, a, cfg.readout)
+    t_readout = _time.perf_counter() - t1
+    f = circ.fields
+    keep = np.flatnonzero(f.eye == 0) if rho.shape[1] != f.n_fields else np.arange(f.n_fields)
+    data = dict(
+        v_hat=("time", res.v_hat, {"units": "m/s", "long_name": "estimated forward velocity"}),
+        observable=("time", res.observable, {"long_name": "velocity observable"}),
+        v_std=("time", res.v_std, {"units": "m/s", "long_name": "posterior std of v_hat"}),
+        accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": a_source}),
+        r=(("time", "field"), rho, {"units": "1/s", "long_name": "LC field expansion rate v/D"}),
+        r2=(("time", "field"), r2, {"units": "1/s2",
+                                    "long_name": "r-squared term with the convective correction (r2_eff)"}),
+        r_dot=(("time", "field"), res.r_dot, {"units": "1/s2"}),
+        v_field=(("time", "field"), res.v_field, {"units": "m/s"}),
+    )
+    if fo.truth is not None:
+        data["v_true"] = ("time", np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"]),
+                          {"units": "m/s", "long_name": "ground-truth forward velocity"})
+    coords = dict(time=("time", t, {"units": "s"}),
+                  azimuth_deg=("field", f.centres_deg[keep, 0]), elevation_deg=("field", f.centres_deg[keep, 1]),
+                  size_deg=("field", np.full(len(keep), f.size_deg)),
+                  eye=("field", np.where(f.eye[keep] == 0, "right" if len(keep) == f.n_fields else "both", "left")))
+    ds = xr.Dataset(data, coords=coords)
+    timings = dict(circ.timings, circuit_total=t_circ, readout=t_readout, n_ommatidia=fo.eye.n,
+                   n_pairs=fo.eye.n_pairs)
+    ds.attrs.update(provenance(cfg.to_json(), front_end="emd-compound-eye", filter=cfg.readout.filter,
+                               readout=cfg.readout.method, rotation=cfg.circuit.rotation,
+                               acceleration_source=a_source,
+                               footage=str(fo.path), footage_kind="compound-eye",
+                               eye=json.dumps(fo.eye.config.to_dict()), eye_rate_hz=fo.rate_hz,
+                               latency_s=circ.latency_s,
+                               timings_s=json.dumps({k: round(float(v), 4) for k, v in timings.items()}),
+                               wall_s=round(_time.perf_counter() - t_start, 3)))
+    return ds
+
+
+def apply_eye_options(cfg: EyeVelocityConfig, args) -> EyeVelocityConfig:
+    """The command-line options of `lobula eye-velocity` (None: unchanged)."""
+    from dataclasses import replace
+    c = cfg.circuit
+    if getattr(args, "rotation", None):
+        c.rotation = args.rotation
+    if getattr(args, "field_size", None):
+        c.fields = replace(c.fields, size_deg=args.field_size)
+    if getattr(args, "tau", None):
+        c.emd = replace(c.emd, tau_s=args.tau)
+    if getattr(args, "filter", None):
+        cfg.readout.filter = args.filter
+    if getattr(args, "accel_from_truth", False):
+        cfg.accel_from_truth = True
+    return cfg
+
+
+def run_eye_velocity(args) -> int:
+    from experiments.store import write_netcdf
+    from experiments.velocity import plot_velocity, score
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(args.footage)
+    cfg = apply_eye_options(EyeVelocityConfig(), args)
+    ds = estimate_eye_velocity(fo, cfg)
+    write_netcdf(ds, args.out)
+    skip = min(args.skip, 0.25 * float(ds.time[-1] - ds.time[0]))
+    sc = score(ds, skip)
+    tm = json.loads(ds.attrs["timings_s"])
+    print(f"wrote {args.out}: {ds.sizes['time']} LC steps x {ds.sizes['field']} fields "
+          f"[{fo.eye.summary()}; rotation: {cfg.circuit.rotation}; {cfg.readout.filter} readout]")
+    print(f"circuit {tm['circuit_total']:.1f} s for {len(fo) / fo.rate_hz:.1f} s of flight at {fo.rate_hz:.0f} Hz")
+    if sc:
+        print(f"after {skip:.3g} s: RMSE {sc['rmse_m_s']:.4f} m/s, median |error| {sc['median_abs_error_m_s']:.4f} m/s, "
+              f"observable {sc['observable_fraction']:.3f} of {sc['n_frames']} steps")
+    if args.plot:
+        plot_velocity(ds, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def add_parser(subparsers):
+    """Register `lobula eye-velocity` (see experiments.cli)."""
+    v = subparsers.add_parser("eye-velocity", help="estimate forward velocity from compound-eye footage "
+                                                   "(photoreceptors, EMDs, LC fields, readout; causal)")
+    v.add_argument("footage", help="eye-footage folder from `lobula scene OUT --eye fly`")
+    v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
+    v.add_argument("--plot", help="PNG of v̂ against truth")
+    v.add_argument("--rotation", default="haltere", choices=["none", "haltere", "wide-field", "both"],
+                   help="rotation handling: gyro-driven (haltere) subtraction, left+right wide-field sums, both, none")
+    v.add_argument("--field-size", type=float, default=30.0, help="LC field FWHM (deg)")
+    v.add_argument("--tau", type=float, default=0.035, help="EMD delay time constant (s)")
+    v.add_argument("--filter", default="causal", choices=["causal", "zero-phase"], help="readout filter kind")
+    v.add_argument("--accel-from-truth", action="store_true",
+                   help="forward acceleration from truth.csv instead of the accelerometer")
+    v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
+    v.set_defaults(func=run_eye_velocity)
+
