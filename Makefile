@@ -15,8 +15,11 @@ $(BIN)/lobula: pyproject.toml
 
 setup: $(BIN)/lobula
 
+# The scene follows the real FLIVVER velocity profile when ../shared is beside the clone,
+# else its built-in profile: the demo runs anywhere.
 demo: setup
-	$(BIN)/lobula scene $(OUT)/track --profile ../shared/data/flivver_d435i/velocity.csv --start 0 --duration 30 --scale 0.5
+	rm -rf $(OUT)/track
+	$(BIN)/lobula scene $(OUT)/track --start 0 --duration 30 --scale 0.5
 	$(BIN)/lobula velocity $(OUT)/track --front-end dis --out $(OUT)/run.nc --plot $(OUT)/run.png
 
 test: setup

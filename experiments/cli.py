@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "figures": ("experiments.figures", "regenerate the hypothesis figures with their JSON"),
     "eye-velocity": ("experiments.eye_velocity", "velocity from compound-eye footage: photoreceptors, EMDs, LC fields, readout"),
     "bench": ("experiments.bench", "frames/s per stage and end to end, peak memory"),
+    "info": ("experiments.info", "what a recording holds: streams, rates, intrinsics, IMU, dropped frames, truth"),
 }
 
 
@@ -50,6 +51,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser(argv).parse_args(argv)
+    from lobula.version import set_command_line
+
+    set_command_line(["lobula", *argv])
     if not hasattr(args, "func"):
         build_parser([args.command]).parse_args([args.command, "--help"])
     from stimuli.footage import FootageError
@@ -59,6 +63,9 @@ def main(argv=None) -> int:
     except (FootageError, FileExistsError, FileNotFoundError, ValueError) as exc:
         print(f"lobula {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into `head` and closed: not an error
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

@@ -12,26 +12,25 @@ seeded IMU, seeded spikes; OpenCV DIS is deterministic). Each figure NAME gets
 5. ``error_vs_acceleration`` — |error| and observability against |a|: where velocity
    becomes unobservable, and that the readout says so (the paper's readout does not).
 6. ``rate_vs_spiking`` — readout-neuron RMSE against output firing rate and population size.
+7. ``replay_velocity`` — the default pipeline (DIS, zero-phase) on the replay, with truth.
 """
 from __future__ import annotations
 
 import json
-import shlex
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from lobula import __version__
+from lobula.version import command_line, provenance_attrs
 from lobula.config import VelocityConfig
 from lobula.readout import ReadoutConfig, readout
 from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron
 from stimuli.footage import Footage, open_footage
 
 FIGURES = ("replay_emd_vs_dis", "rmse_vs_field_size", "rmse_vs_dphi", "rmse_vs_tau_contrast",
-           "error_vs_acceleration", "rate_vs_spiking")
+           "error_vs_acceleration", "rate_vs_spiking", "replay_velocity")
 
 
 class ContrastFootage:
@@ -62,24 +61,30 @@ def _rmse(ds, skip_s=2.0):
 def _save(fig, name, out: Path, record: dict):
     from experiments.store import save_figure
     import matplotlib.pyplot as plt
-    save_figure(fig, out / f"{name}.png", dpi=120)
+    save_figure(fig, out / f"{name}.png", dpi=150)
     plt.close(fig)
+    _save_record(name, out, record)
+
+
+def _save_record(name, out: Path, record: dict):
     tmp = out / f".{name}.json.tmp"
     tmp.write_text(json.dumps(record, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
     tmp.replace(out / f"{name}.json")
 
 
-def make_replay(out: Path, start_s: float, duration_s: float, seed: int, progress: bool) -> Path:
+def make_replay(out: Path, start_s: float, duration_s: float, seed: int, progress: bool) -> tuple[Path, str]:
+    """Render (once; cached) the replay the figures share; returns its folder and a label of its profile."""
     from stimuli.scene import SceneConfig
     from stimuli.track import REAL_PROFILE, TrackRunConfig, make_track_run
 
-    folder = out / f"replay_{start_s:g}_{duration_s:g}_seed{seed}"
+    real = REAL_PROFILE.exists()
+    label = "real FLIVVER trajectory (velocity.csv)" if real else "built-in profile (../shared absent)"
+    folder = out / f"replay_{'real' if real else 'builtin'}_{start_s:g}_{duration_s:g}_seed{seed}"
     if not (folder / "frames.csv").exists():
-        profile = str(REAL_PROFILE) if REAL_PROFILE.exists() else None
-        cfg = TrackRunConfig(profile=profile, start_s=start_s, duration_s=duration_s, scale=0.5,
-                             scene=SceneConfig(seed=seed))
+        cfg = TrackRunConfig(profile=str(REAL_PROFILE) if real else None, start_s=start_s, duration_s=duration_s,
+                             scale=0.5, scene=SceneConfig(seed=seed))
         make_track_run(folder, cfg, progress=progress)
-    return folder
+    return folder, label
 
 
 def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0, duration_s: float = 25.0,
@@ -95,12 +100,12 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cache = out / ".cache"
-    replay = make_replay(cache, start_s, duration_s, seed, progress)
+    replay, profile = make_replay(cache, start_s, duration_s, seed, progress)
     fo = open_footage(replay)
-    command = "lobula figures " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["figures"] \
+    command = command_line() if command_line().startswith("lobula figures") \
         else f"lobula figures --out {out} --start {start_s} --duration {duration_s} --seed {seed}"
-    base = dict(command=command, lobula_version=__version__, replay=dict(start_s=start_s, duration_s=duration_s,
-                seed=seed, profile="real FLIVVER trajectory (velocity.csv)"), quick=quick)
+    base = dict(provenance_attrs(), command=command,
+                replay=dict(start_s=start_s, duration_s=duration_s, seed=seed, profile=profile), quick=quick)
     records = {}
     runs = {}
 
@@ -112,7 +117,7 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
                 print(f"  {key}: {time.perf_counter() - t0:.1f} s", flush=True)
         return runs[key]
 
-    if "replay_emd_vs_dis" in which or "error_vs_acceleration" in which or "rate_vs_spiking" in which:
+    if {"replay_emd_vs_dis", "error_vs_acceleration", "rate_vs_spiking", "replay_velocity"} & set(which):
         dis, emd = run("dis", VelocityConfig()), run("emd", VelocityConfig(front_end="emd"))
 
     if "replay_emd_vs_dis" in which:
@@ -125,7 +130,7 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
             nums[name] = dict(rmse_m_s=r, observable=o)
             ax.plot(ds.time, ds.v_hat, color=col, lw=1.5, label=f"{name}: RMSE {r:.3f} m/s")
         ax.set(xlabel="time (s)", ylabel="forward velocity (m/s)",
-               title="Replay of the real trajectory: EMD and DIS front ends, same readout")
+               title=f"Replay ({profile.split(' (')[0]}): EMD and DIS front ends, same readout")
         ax.legend(fontsize=8)
         records["replay_emd_vs_dis"] = dict(base, what="v̂ against truth, EMD and DIS front ends",
                                             configs={k: json.loads(v.attrs["config"]) for k, v in (("dis", dis), ("emd", emd))},
@@ -262,6 +267,14 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
                                                        population_spiking_rmse=pop_spk),
                                           neuron=ReadoutNeuronConfig().to_dict())
         _save(fig, "rate_vs_spiking", out, records["rate_vs_spiking"])
+
+    if "replay_velocity" in which:
+        from experiments.velocity import plot_velocity, score
+
+        plot_velocity(dis, out / "replay_velocity.png", title=f"Default pipeline on the replay ({profile})")
+        records["replay_velocity"] = dict(base, what="v̂ ± 1σ against truth, default pipeline (DIS, zero-phase)",
+                                          config=json.loads(dis.attrs["config"]), results=score(dis, 2.0))
+        _save_record("replay_velocity", out, records["replay_velocity"])
     return records
 
 

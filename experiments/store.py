@@ -12,12 +12,13 @@ from pathlib import Path
 
 import xarray as xr
 
-from lobula import __version__
+from lobula.version import provenance_attrs
 
 
 def provenance(config_json: str, **extra) -> dict:
-    """Attributes every output carries: the package version and the full configuration (JSON)."""
-    attrs = {"lobula_version": __version__, "config": config_json}
+    """Attributes every output carries: the full configuration (JSON), the package version, the git
+    commit (or "unknown"), the command line and the creation time; ``extra`` adds more (non-strings as JSON)."""
+    attrs = {**provenance_attrs(), "config": config_json}
     attrs.update({k: (v if isinstance(v, (str, int, float)) else json.dumps(v, default=str))
                   for k, v in extra.items()})
     return attrs

@@ -25,9 +25,10 @@ from lobula.haltere import forward_acceleration, resample_to
 from lobula.readout import readout
 from lobula.receptive_field import ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
-                             read_flo)
+                             footage_provenance, read_flo)
 
 from .store import provenance
+from .stream import threaded
 
 
 @dataclass
@@ -91,12 +92,15 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     if config.front_end == "flo":
         if not flo_files:
             raise FootageError("--front-end flo needs --flo FILE_OR_DIR with *_<first>_to_<second>.flo files")
-        samples = flo_samples(footage, flo_files, flo_units or FloUnits())
+        samples = _timed(flo_samples(footage, flo_files, flo_units or FloUnits()), timings, "flow")
         total = len(flo_files)
     elif config.front_end in ("dis", "farneback"):
         config.flow.method = config.front_end
-        frames = _timed(footage.frames(), timings, "read")
-        samples = StaggeredFlow(cam, config.flow).run(frames)
+        # Decoding, flow and pooling overlap: each runs in its own thread, a few frames ahead.
+        frames = threaded(_timed(footage.frames(), timings, "read"), name="decode")
+        waited = dict(decode=0.0)
+        flows = StaggeredFlow(cam, config.flow).run(_timed(frames, waited, "decode"))
+        samples = threaded(_timed(flows, timings, "flow", minus=(waited, "decode")), name="flow")
         total = max(len(footage) - config.flow.gap, 0)
     else:
         raise ValueError(f"unknown front end {config.front_end!r}; choose dis, farneback, flo or emd")
@@ -104,15 +108,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     ts, rs, r2s, es = [], [], [], []
     bar = tqdm(total=total, desc=f"{config.front_end} flow → fields", unit="frame", disable=not progress,
                leave=False, mininterval=2)
-    it = iter(samples)
-    while True:
-        read_before, t0 = timings["read"], _time.perf_counter()
-        try:
-            s = next(it)
-        except StopIteration:
-            break
+    for s in samples:
         t1 = _time.perf_counter()
-        timings["flow"] += (t1 - t0) - (timings["read"] - read_before)
         flow = s.flow
         if config.derotate and gyro is not None:
             flow = derotate(flow, mean_angular_velocity(footage.imu.time_s, gyro, s.t0, s.t1), x, y)
@@ -155,16 +152,20 @@ def _emd_field_rates(footage: Footage, config: VelocityConfig, fields: Receptive
     return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.zeros((len(ts), 2)), timings, fields)
 
 
-def _timed(frames, timings, key):
-    """Pass items through, adding the time spent producing each to timings[key]."""
-    it = iter(frames)
+def _timed(items, timings: dict, key: str, minus: tuple[dict, str] | None = None):
+    """Pass items through, adding the time spent producing each to timings[key] (s).
+
+    minus=(other, k): leave out what other[k] grew by meanwhile — the time this stage spent
+    waiting for the stage before it, timed by a ``_timed`` on its input in the same thread.
+    """
+    it = iter(items)
     while True:
-        t0 = _time.perf_counter()
+        before, t0 = minus[0][minus[1]] if minus else 0.0, _time.perf_counter()
         try:
             item = next(it)
         except StopIteration:
             return
-        timings[key] += _time.perf_counter() - t0
+        timings[key] += _time.perf_counter() - t0 - ((minus[0][minus[1]] - before) if minus else 0.0)
         yield item
 
 
@@ -229,7 +230,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                                footage=str(footage.path), footage_kind=footage.kind,
                                notes="; ".join(footage.notes) or "none",
                                timings_s=json.dumps({k: round(v, 4) for k, v in rates.timings.items()}),
-                               wall_s=round(_time.perf_counter() - t_start, 3)))
+                               wall_s=round(_time.perf_counter() - t_start, 3), **footage_provenance(footage)))
     return ds
 
 
@@ -321,11 +322,10 @@ def _velocity_config(args):
 
 
 def run_velocity(args) -> int:
-    from stimuli.footage import open_footage
-
+    from .info import open_footage_from_args
     from .store import write_netcdf
 
-    footage = open_footage(args.footage)
+    footage = open_footage_from_args(args)
     cfg = _velocity_config(args)
     flo_files = None
     if args.front_end == "flo":
@@ -361,7 +361,7 @@ def run_velocity(args) -> int:
 def add_parser(subparsers):
     """Register `lobula velocity` (see experiments.cli)."""
     v = subparsers.add_parser("velocity", help="estimate forward velocity from footage")
-    v.add_argument("footage", help="footage folder, or the D435i sample folder")
+    v.add_argument("footage", help="footage folder, D435i sample, RealSense .bag/.db3, EuRoC folder or video file")
     v.add_argument("--front-end", default="dis", choices=["dis", "farneback", "flo", "emd"])
     v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
     v.add_argument("--plot", help="PNG of v̂ against truth")
@@ -384,4 +384,6 @@ def add_parser(subparsers):
     v.add_argument("--emd-calibration", help="EMD front end: gains JSON from `lobula calibrate-emd` on another scene")
     v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
     v.add_argument("--quiet", action="store_true")
+    from .info import add_footage_options
+    add_footage_options(v)  # --stream, --clock, --skip-bad-frames, --clock-offset, --undistort (readers)
     v.set_defaults(func=run_velocity)

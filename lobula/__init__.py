@@ -1,22 +1,49 @@
 """lobula: a model of the fly's lobula that estimates absolute velocity from vision plus acceleration."""
-__version__ = "0.1.0"
+from __future__ import annotations
 
-from .camera import PinholeCamera, angles_to_normalised, normalised_to_angles
-from .config import VelocityConfig
-from .epipole import EpipoleEstimator, derotate, rotational_flow
-from .flow import FlowConfig, FlowSample, StaggeredFlow, pixel_to_angular
-from .haltere import forward_acceleration, resample_to
-from .readout import ReadoutConfig, ReadoutResult, readout
-from .receptive_field import FieldConfig, ReceptiveFields, gap_correction, pool_fields, tile_fields
-from .depth import DepthConfig, DepthResult, depth_metrics, depth_parallax, depth_ratio, depth_tv
-from .emd_decoding import EMDFrontEnd, EMDFrontEndConfig, fit_calibration, pair_pooling_weights
-from .emd import (EMDArray, EMDConfig, emd_coefficients, emd_init, emd_run, emd_sine_response,
-                  emd_sine_response_discrete, emd_step)
-from .lattice import Lattice, LatticeConfig, acceptance_attenuation, dphi_for_count
-from .neurons import (LIFConfig, LIFNeuron, PoissonConfig, PoissonNeuron, RateNeuron, RateNeuronConfig,
-                      lif_fi_curve, lif_step, naka_rushton, poisson_spikes, rate_step)
-from .population import (UNIT_TYPES, Circuit, CircuitConfig, LCNeuronConfig, LCNeurons, LCPopulation,
-                         LCPopulationConfig, MatchedFilterConfig, NormalisationConfig, PathwayConfig,
-                         ReceptiveFieldConfig)
-from .readout_neuron import ReadoutNeuronConfig, readout_neuron
-from .photoreceptor import PhotoreceptorConfig, Photoreceptors, photoreceptor_run, photoreceptor_step
+import importlib
+
+from .version import __version__, git_commit
+
+#: public name -> the module of this package that defines it (imported on first use)
+_API = {
+    "PinholeCamera": "camera", "angles_to_normalised": "camera", "normalised_to_angles": "camera",
+    "VelocityConfig": "config",
+    "EpipoleEstimator": "epipole", "derotate": "epipole", "rotational_flow": "epipole",
+    "FlowConfig": "flow", "FlowSample": "flow", "StaggeredFlow": "flow", "pixel_to_angular": "flow",
+    "forward_acceleration": "haltere", "resample_to": "haltere",
+    "ReadoutConfig": "readout", "ReadoutResult": "readout", "readout": "readout",
+    "FieldConfig": "receptive_field", "ReceptiveFields": "receptive_field", "gap_correction": "receptive_field",
+    "pool_fields": "receptive_field", "tile_fields": "receptive_field",
+    "DepthConfig": "depth", "DepthResult": "depth", "depth_metrics": "depth", "depth_parallax": "depth",
+    "depth_ratio": "depth", "depth_tv": "depth",
+    "EMDFrontEnd": "emd_decoding", "EMDFrontEndConfig": "emd_decoding", "fit_calibration": "emd_decoding",
+    "pair_pooling_weights": "emd_decoding",
+    "EMDArray": "emd", "EMDConfig": "emd", "emd_coefficients": "emd", "emd_init": "emd", "emd_run": "emd",
+    "emd_sine_response": "emd", "emd_sine_response_discrete": "emd", "emd_step": "emd",
+    "Lattice": "lattice", "LatticeConfig": "lattice", "acceptance_attenuation": "lattice",
+    "dphi_for_count": "lattice",
+    "LIFConfig": "neurons", "LIFNeuron": "neurons", "PoissonConfig": "neurons", "PoissonNeuron": "neurons",
+    "RateNeuron": "neurons", "RateNeuronConfig": "neurons", "lif_fi_curve": "neurons", "lif_step": "neurons",
+    "naka_rushton": "neurons", "poisson_spikes": "neurons", "rate_step": "neurons",
+    "UNIT_TYPES": "population", "Circuit": "population", "CircuitConfig": "population",
+    "LCNeuronConfig": "population", "LCNeurons": "population", "LCPopulation": "population",
+    "LCPopulationConfig": "population", "MatchedFilterConfig": "population", "NormalisationConfig": "population",
+    "PathwayConfig": "population", "ReceptiveFieldConfig": "population",
+    "ReadoutNeuronConfig": "readout_neuron", "readout_neuron": "readout_neuron",
+    "PhotoreceptorConfig": "photoreceptor", "Photoreceptors": "photoreceptor", "photoreceptor_run": "photoreceptor",
+    "photoreceptor_step": "photoreceptor",
+}
+__all__ = ["__version__", "git_commit", *sorted(_API)]
+
+
+def __getattr__(name: str):
+    # Lazy public API (PEP 562): `import lobula` stays light, so the command line
+    # starts fast; each stage's module (and torch, scipy, OpenCV behind it) loads when first used.
+    if name in _API:
+        return getattr(importlib.import_module(f".{_API[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return __all__

@@ -1,11 +1,37 @@
 """stimuli: everything that makes or reads input — synthetic scenes with exact truth, footage readers."""
-from .footage import (IMU, FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
-                      open_footage, read_flo, read_frame, write_footage)
-from .imu import IMUConfig, synthesize_imu
-from .scene import SceneConfig, TrackScene, band_limited_texture
-from .trajectory import Trajectory, read_velocity_profile, trajectory_from_function, trajectory_from_profile
-from .gratings import GratingConfig, drifting_grating_frames, drifting_grating_lattice
-from .track import TrackRunConfig, build_track, builtin_profile, make_track_run
-from .lattice_stimuli import (GratingSource, dot_field, drifting_grating, looming_angular_size, looming_disc,
-                              moving_edge, moving_spot, noise_panorama, radial_grating, sparse_noise)
-from .realsense_bag import BagFootage, open_realsense_bag
+from __future__ import annotations
+
+import importlib
+
+#: public name -> the module of this package that defines it (imported on first use)
+_API = {
+    "IMU": "footage_core", "Footage": "footage_core", "FootageError": "footage_core", "frame_gaps": "footage_core",
+    "read_frame": "footage_core",
+    "FloUnits": "footage", "acceleration_from_truth": "footage", "flo_to_normalised": "footage",
+    "footage_provenance": "footage", "open_footage": "footage", "read_flo": "footage", "read_imu_csv": "footage",
+    "write_footage": "footage",
+    "IMUConfig": "imu", "synthesize_imu": "imu",
+    "SceneConfig": "scene", "TrackScene": "scene", "band_limited_texture": "scene",
+    "Trajectory": "trajectory", "read_velocity_profile": "trajectory", "trajectory_from_function": "trajectory",
+    "trajectory_from_profile": "trajectory",
+    "GratingConfig": "gratings", "drifting_grating_frames": "gratings", "drifting_grating_lattice": "gratings",
+    "TrackRunConfig": "track", "build_track": "track", "builtin_profile": "track", "make_track_run": "track",
+    "GratingSource": "lattice_stimuli", "dot_field": "lattice_stimuli", "drifting_grating": "lattice_stimuli",
+    "looming_angular_size": "lattice_stimuli", "looming_disc": "lattice_stimuli", "moving_edge": "lattice_stimuli",
+    "moving_spot": "lattice_stimuli", "noise_panorama": "lattice_stimuli", "radial_grating": "lattice_stimuli",
+    "sparse_noise": "lattice_stimuli",
+    "BagFootage": "realsense_bag", "open_realsense_bag": "realsense_bag",
+}
+__all__ = sorted(_API)
+
+
+def __getattr__(name: str):
+    # Lazy public API (PEP 562): `import stimuli` stays light, so the command line
+    # starts fast; each stage's module (and torch, scipy, OpenCV behind it) loads when first used.
+    if name in _API:
+        return getattr(importlib.import_module(f".{_API[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return __all__

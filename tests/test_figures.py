@@ -1,7 +1,13 @@
-"""`lobula figures` regenerates its figures deterministically (same seed, same numbers)."""
+"""`lobula figures` regenerates its figures deterministically, and the committed figures' numbers are current."""
 import json
+from pathlib import Path
 
-from experiments.figures import run_figures
+import numpy as np
+import pytest
+
+from experiments.figures import FIGURES, run_figures
+
+COMMITTED = Path(__file__).resolve().parents[1] / "figures"
 
 
 def test_figures_are_deterministic(tmp_path, real_profile):
@@ -14,3 +20,26 @@ def test_figures_are_deterministic(tmp_path, real_profile):
         assert ra == rb, name
         assert (tmp_path / "a" / f"{name}.png").stat().st_size > 10_000
         assert "lobula figures" in a[name]["command"]
+        assert a[name]["git_commit"] and a[name]["replay"]["profile"].startswith("real FLIVVER")
+
+
+def _numbers(x):
+    """The numeric leaves of a JSON record, in a stable order."""
+    if isinstance(x, dict):
+        return [v for k in sorted(x) for v in _numbers(x[k])]
+    if isinstance(x, list):
+        return [v for e in x for v in _numbers(e)]
+    if isinstance(x, (int, float)) and not isinstance(x, bool):
+        return [float(x)]
+    return []
+
+
+@pytest.mark.slow
+def test_committed_figures_are_reproduced(tmp_path, real_profile):
+    """Regenerate every figure with the committed command's settings; the numbers must match the JSON."""
+    recs = run_figures(tmp_path, FIGURES, progress=False)
+    for name in FIGURES:
+        committed = json.loads((COMMITTED / f"{name}.json").read_text())["results"]
+        fresh = json.loads(json.dumps(recs[name]["results"], default=lambda o: o.tolist() if hasattr(o, "tolist")
+                                      else str(o)))
+        np.testing.assert_allclose(_numbers(fresh), _numbers(committed), rtol=1e-3, atol=1e-6, err_msg=name)
