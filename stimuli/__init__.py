@@ -21,6 +21,8 @@ _API = {
     "moving_spot": "lattice_stimuli", "noise_panorama": "lattice_stimuli", "radial_grating": "lattice_stimuli",
     "sparse_noise": "lattice_stimuli",
     "BagFootage": "realsense_bag", "open_realsense_bag": "realsense_bag",
+    "EyeFootage": "eye", "open_eye_footage": "eye", "write_eye_footage": "eye", "make_eye_run": "eye",
+    "render_eye": "eye",
 }
 __all__ = sorted(_API)
 

@@ -41,7 +41,7 @@ import numpy as np
 
 from lobula.compound_eye import CompoundEye, CompoundEyeConfig
 
-from .footage import IMU, FootageError, _check_times, _read_csv
+from .footage_core import IMU, FootageError, check_times as _check_times, read_csv_columns as _read_csv
 
 __all__ = ["EyeFootage", "render_eye", "write_eye_footage", "open_eye_footage", "is_eye_footage"]
 
@@ -117,9 +117,13 @@ def write_eye_footage(folder: str | Path, scene, eye: CompoundEye, imu: dict, ti
         rng.flush()
         del lum, rng
         _write_csv(tmp / "times.csv", ["sample", "time_s"], ((i, f"{t:.6f}") for i, t in enumerate(times)))
+        acc_cam, gyr_cam = np.asarray(imu["accel"]), np.asarray(imu["gyro"])
+        if imu.get("imu_to_camera") is not None:  # contract 1: eye footage stores the camera frame
+            r = np.asarray(imu["imu_to_camera"], dtype=float)
+            acc_cam, gyr_cam = acc_cam @ r.T, gyr_cam @ r.T
         _write_csv(tmp / "imu.csv", ["time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z"],
                    ([f"{t:.6f}", *(f"{x:.6f}" for x in a), *(f"{x:.7f}" for x in g)]
-                    for t, a, g in zip(imu["time_s"], imu["accel"], imu["gyro"])))
+                    for t, a, g in zip(imu["time_s"], acc_cam, gyr_cam)))
         vel = scene.camera_velocity(times)
         acc = scene.trajectory.acceleration(times)
         # Forward (optical-axis) acceleration: the track acceleration projected on z_cam.
