@@ -14,7 +14,7 @@ def add_eye_scene_options(parser) -> None:
     parser.add_argument("--dphi", type=float, default=5.0, help="--eye fly: interommatidial angle Δφ (deg)")
     parser.add_argument("--drho", type=float, help="--eye fly: acceptance angle Δρ (deg; default Δφ)")
     parser.add_argument("--rate-hz", type=float, default=500.0, help="--eye fly: sampling rate of the eye (Hz)")
-    parser.add_argument("--rays", type=int, default=3, help="--eye fly: rings of acceptance rays (1: 7, 2: 19, 3: 37)")
+    parser.add_argument("--rays", type=int, default=2, help="--eye fly: rings of acceptance rays (1: 7, 2: 19, 3: 37)")
 
 
 def run_eye_scene(args, cfg) -> int:

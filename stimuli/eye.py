@@ -33,7 +33,7 @@ import json
 import os
 import shutil
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -54,14 +54,20 @@ def render_eye(scene, eye: CompoundEye, times: np.ndarray, chunk: int = 250) -> 
     One ``scene.luminance`` call per sample time over all n × m acceptance rays; the
     rays are fixed in the eye (camera) frame, the scene moves the eye through the world.
     """
+    import inspect
+
     rays = eye.rays()                                           # (n, m, 3)
     w = eye.ray_weights.astype(np.float64)
+    # Scenes with a texture mip-map blur each lookup to the ray's footprint (the quadrature's
+    # spacing), so texture finer than the rays cannot alias into the ommatidium's signal.
+    kw = ({"footprint_rad": eye.ray_spacing}
+          if "footprint_rad" in inspect.signature(scene.luminance).parameters else {})
     times = np.asarray(times, dtype=float)
     for s in range(0, len(times), chunk):
         ts = times[s:s + chunk]
         out = np.empty((len(ts), eye.n), dtype=np.float32)
         for i, t in enumerate(ts):  # the scene API takes one time; rays are vectorised
-            out[i] = np.asarray(scene.luminance(rays, float(t)), dtype=np.float64) @ w
+            out[i] = np.asarray(scene.luminance(rays, float(t), **kw), dtype=np.float64) @ w
         yield ts, out
 
 
@@ -244,6 +250,9 @@ def make_eye_run(folder, cfg, eye_config: CompoundEyeConfig | None = None, rate_
     if not (20.0 <= rate_hz <= 5000.0):
         raise ValueError(f"eye rate must be in [20, 5000] Hz, got {rate_hz}")
     eye = CompoundEye(eye_config or CompoundEyeConfig())
+    if getattr(cfg.scene, "mipmap", False) is None:
+        # Texture filtering, not world content: the eye's rays carry their footprint (see render_eye).
+        cfg = replace(cfg, scene=replace(cfg.scene, mipmap=True))
     scene, imu = build_track(cfg)
     times = np.arange(0.0, cfg.duration_s - 1e-9, 1.0 / rate_hz)
     meta = dict(lobula_version=__version__, config=cfg.to_dict(), eye=eye.config.to_dict(), rate_hz=rate_hz,
