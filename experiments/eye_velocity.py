@@ -194,7 +194,7 @@ def eye_figure(runs: dict, out_png, field_sizes=(20.0, 30.0, 45.0, 60.0),
     """RMSE of the causal eye circuit against LC field size and rotation handling, beside causal DIS.
 
     runs: {family: {"eye": [eye-footage folders (seeds)], "dis": [causal DIS velocity NetCDFs of the
-    same worlds and trajectories on the pinhole camera]}}. Every eye configuration is run on every
+    same worlds and trajectories on the pinhole camera] or "dis_rmse": [their RMSEs]}}. Every eye configuration is run on every
     seed; the plot shows the mean over seeds with min–max bars, DIS and the zero estimator as lines.
     Returns the numbers (JSON-able) and writes ``out_png`` (and ``out_png`` with .json).
     """
@@ -223,6 +223,7 @@ def eye_figure(runs: dict, out_png, field_sizes=(20.0, 30.0, 45.0, 60.0),
         for nc in spec.get("dis", []):
             with xr.open_dataset(nc) as d:
                 res["dis"].append(score(d, skip_s)["rmse_m_s"])
+        res["dis"].extend(float(x) for x in spec.get("dis_rmse", []))
     fams = list(results)
     fig, axes = plt.subplots(1, len(fams), figsize=(4.2 * len(fams), 3.8), squeeze=False, sharey=True)
     for ax, fam in zip(axes[0], fams):
@@ -235,8 +236,9 @@ def eye_figure(runs: dict, out_png, field_sizes=(20.0, 30.0, 45.0, 60.0),
             ax.errorbar(field_sizes, mean, yerr=[lo, hi], marker="o", ms=4, capsize=3, color=colour,
                         label=f"fly eye, rotation: {rot}")
         if res["dis"]:
-            ax.axhline(np.mean(res["dis"]), color="m", ls="--", label="DIS on the D435i camera (causal)")
-        ax.axhline(np.mean(res["zero"]), color="k", ls=":", label="zero estimator")
+            ax.axhspan(min(res["dis"]), max(res["dis"]), color="m", alpha=0.12, lw=0)
+            ax.axhline(np.mean(res["dis"]), color="m", ls="--", label="DIS on the D435i camera (causal; band: seeds)")
+        ax.axhline(np.mean(res["zero"]), color="k", ls=":", label="zero estimator (mean over seeds)")
         ax.set_title(f"{fam} ({res['seeds']} seed{'s' if res['seeds'] > 1 else ''})")
         ax.set_xlabel("LC field size, FWHM (deg)")
     axes[0][0].set_ylabel(f"velocity RMSE after {skip_s:g} s (m/s)")

@@ -255,8 +255,8 @@ def test_eye_velocity_beats_the_zero_estimator(eye_footage):
     v_true, v_hat = ds.v_true.values[keep], ds.v_hat.values[keep]
     zero = float(np.sqrt(np.mean(v_true ** 2)))
     assert sc["observable_fraction"] > 0.8
-    # Measured: 0.277 against 0.319 for v̂ = 0 (Δφ = 8°; 0.249 at Δφ = 6°). A modest margin, honestly.
-    assert sc["rmse_m_s"] < 0.92 * zero, (sc, zero)
-    # It follows the trajectory's shape, if loosely (measured r = 0.40: v̂ lags and reads ~0.6× at
-    # the peaks); a sign error or a stalled estimate gives r ≤ 0.
-    assert np.corrcoef(v_hat, v_true)[0, 1] > 0.3
+    # Measured: 0.240 against 0.319 for v̂ = 0 (Δφ = 8°, 6 s, a causal start from rest). A modest margin.
+    assert sc["rmse_m_s"] < 0.9 * zero, (sc, zero)
+    # It follows the trajectory's shape, if loosely (measured r = 0.59: v̂ lags and reads low at the
+    # peaks); a sign error or a stalled estimate gives r ≤ 0.
+    assert np.corrcoef(v_hat, v_true)[0, 1] > 0.4
