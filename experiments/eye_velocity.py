@@ -309,3 +309,22 @@ def eye_benchmark(workdir, families=("panels", "rotation", "corridor"), seeds=(0
             rows.append(row)
             print(json.dumps(row))
     return rows
+
+
+def figure_eye(out_dir, seeds=(0, 1, 2), duration_s: float = 10.0, workdir=None,
+               families=("panels", "rotation", "corridor"), field_sizes=(20.0, 30.0, 45.0),
+               rotations=("none", "haltere", "wide-field")):
+    """`lobula figures` entry: render (cached in ``workdir``) and score the eye beside causal DIS, then plot.
+
+    Writes ``out_dir/eye_rmse.png`` and its JSON; returns the path of the PNG.
+    """
+    from pathlib import Path
+
+    out_dir = Path(out_dir)
+    workdir = Path(workdir) if workdir else out_dir / "eye_runs"
+    rows = eye_benchmark(workdir, families, seeds, duration_s, rotations=("haltere",))
+    runs = {f: dict(eye=[workdir / f"{f}-{s}-eye" for s in seeds],
+                    dis_rmse=[r["dis_rmse"] for r in rows if r["family"] == f]) for f in families}
+    png = out_dir / "eye_rmse.png"
+    eye_figure(runs, png, field_sizes=field_sizes, rotations=rotations)
+    return png
