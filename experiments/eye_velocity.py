@@ -75,7 +75,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         outs.append(circ.process(lum, gyro[pos:pos + len(ts)]))
         pos += len(ts)
     outs.append(circ.finish())
-    t = np.concatenate([o["t"] for o in outs])
+    t = np.concatenate([o["t"] for o in outs]) + float(fo.times[0])   # the circuit counts from sample 0
     rho = np.concatenate([o["rho"] for o in outs])
     r2 = np.concatenate([o["r2_eff"] for o in outs])
     if len(t) < 3:

@@ -98,7 +98,7 @@ class EyeFieldConfig:
     right eye (the left mirrors it). gradient_ridge: prior weight keeping the fitted
     gradient g_f near 0 when a field's pairs do not constrain it, as a fraction of the
     field's own Σ c²Gm²δ². floor: semi-saturation floor on the pooled contrast, as a
-    fraction of its long-run mean over the field.
+    fraction of its running mean over past readout steps (causal, time constant ~100 steps).
     """
 
     size_deg: float = 30.0
@@ -386,9 +386,14 @@ class EyeCircuit:
             theta = theta[right]
         cfg = self.config.fields
         if len(A11):
-            level = np.mean(A11, axis=0)
-            self._floor = level if self._floor is None else 0.99 * self._floor + 0.01 * level
-            A11 = A11 + cfg.floor * self._floor[None, :]
+            # Semi-saturation floor: a running mean (over past blocks only) of each field's pool.
+            floors = np.empty_like(A11)
+            level = A11[0] if self._floor is None else self._floor
+            for k in range(len(A11)):  # a loop over readout steps, vectorised over fields
+                level = 0.99 * level + 0.01 * A11[k]
+                floors[k] = level
+            self._floor = level
+            A11 = A11 + cfg.floor * floors
         A22 = A22 * (1.0 + cfg.gradient_ridge)
         det = A11 * A22 - A12 * A12
         with np.errstate(divide="ignore", invalid="ignore"):
