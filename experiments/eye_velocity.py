@@ -228,13 +228,14 @@ def eye_figure(runs: dict, out_png, field_sizes=(20.0, 30.0, 45.0, 60.0),
     fig, axes = plt.subplots(1, len(fams), figsize=(4.2 * len(fams), 3.8), squeeze=False, sharey=True)
     for ax, fam in zip(axes[0], fams):
         res = results[fam]
-        for rot, colour in zip(rotations, ("0.5", "tab:blue", "tab:orange", "tab:green")):
+        for k, (rot, colour) in enumerate(zip(rotations, ("0.5", "tab:blue", "tab:orange", "tab:green"))):
             vals = [res["eye"].get(f"{rot}|{s:g}", [np.nan]) for s in field_sizes]
             mean = np.array([np.mean(v) for v in vals])
             lo = mean - np.array([np.min(v) for v in vals])
             hi = np.array([np.max(v) for v in vals]) - mean
-            ax.errorbar(field_sizes, mean, yerr=[lo, hi], marker="o", ms=4, capsize=3, color=colour,
-                        label=f"fly eye, rotation: {rot}")
+            shift = 0.6 * (k - 0.5 * (len(rotations) - 1))   # side by side where they coincide
+            ax.errorbar(np.asarray(field_sizes) + shift, mean, yerr=[lo, hi], marker="o", ms=4, capsize=3,
+                        color=colour, label=f"fly eye, rotation: {rot}")
         if res["dis"]:
             ax.axhspan(min(res["dis"]), max(res["dis"]), color="m", alpha=0.12, lw=0)
             ax.axhline(np.mean(res["dis"]), color="m", ls="--", label="DIS on the D435i camera (causal; band: seeds)")
@@ -242,7 +243,7 @@ def eye_figure(runs: dict, out_png, field_sizes=(20.0, 30.0, 45.0, 60.0),
         ax.set_title(f"{fam} ({res['seeds']} seed{'s' if res['seeds'] > 1 else ''})")
         ax.set_xlabel("LC field size, FWHM (deg)")
     axes[0][0].set_ylabel(f"velocity RMSE after {skip_s:g} s (m/s)")
-    axes[0][-1].legend(fontsize=7, loc="upper right")
+    axes[0][-1].legend(fontsize=7, loc="center right")
     ec = fo.eye.config
     fig.suptitle(f"Two compound eyes (Δφ = {ec.dphi_deg:g}°, Δρ = {ec.acceptance_deg:g}°, {fo.rate_hz:g} Hz): "
                  f"photoreceptors → EMDs (τ = {1000 * cfg.circuit.emd.tau_s:g} ms) → LC fields → readout, causal",
