@@ -243,12 +243,13 @@ def eye_figure(runs: dict, out_png, field_sizes=(20.0, 30.0, 45.0, 60.0),
         ax.set_title(f"{fam} ({res['seeds']} seed{'s' if res['seeds'] > 1 else ''})")
         ax.set_xlabel("LC field size, FWHM (deg)")
     axes[0][0].set_ylabel(f"velocity RMSE after {skip_s:g} s (m/s)")
-    axes[0][-1].legend(fontsize=7, loc="center right")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=7, frameon=False)
     ec = fo.eye.config
     fig.suptitle(f"Two compound eyes (Δφ = {ec.dphi_deg:g}°, Δρ = {ec.acceptance_deg:g}°, {fo.rate_hz:g} Hz): "
                  f"photoreceptors → EMDs (τ = {1000 * cfg.circuit.emd.tau_s:g} ms) → LC fields → readout, causal",
                  fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     save_figure(fig, out_png, dpi=150)
     plt.close(fig)
     from pathlib import Path
