@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "compare": ("experiments.compare", "every front end on the same footage and readout, scored side by side"),
     "sweep": ("experiments.sweep", "a grid over any configuration path, on Dask, into Zarr"),
     "figures": ("experiments.figures", "regenerate the hypothesis figures with their JSON"),
+    "eye-velocity": ("experiments.eye_velocity", "velocity from compound-eye footage: photoreceptors, EMDs, LC fields, readout"),
     "bench": ("experiments.bench", "frames/s per stage and end to end, peak memory"),
     "info": ("experiments.info", "what a recording holds: streams, rates, intrinsics, IMU, dropped frames, truth"),
 }

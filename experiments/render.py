@@ -31,6 +31,8 @@ def run_scene(args) -> int:
     from stimuli.track import make_track_run
 
     cfg = scene_config_from_args(args)
+    if args.eye == "fly":  # compound-eye footage (issue 11): experiments.eye_scene
+        from experiments.eye_scene import run_eye_scene; return run_eye_scene(args, cfg)
     out = make_track_run(args.out, cfg, progress=not args.quiet)
     src = ("random, peak %g m/s, from %s" % (cfg.random_peak_m_s, cfg.random_start)
            if cfg.random_peak_m_s is not None else cfg.profile or "built-in")
@@ -85,4 +87,5 @@ def add_parser(subparsers):
                    help="camera: imu.csv in the camera frame; rotated: IMU x forward/y left/z up plus a seeded "
                         "~1° mount error, imu.csv in the IMU frame and camera.json gets imu_to_camera")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    __import__("experiments.eye_scene").eye_scene.add_eye_scene_options(s)  # --eye fly (issue 11)
     s.set_defaults(func=run_scene)

@@ -33,6 +33,8 @@ _API = {
     "ReadoutNeuronConfig": "readout_neuron", "readout_neuron": "readout_neuron",
     "PhotoreceptorConfig": "photoreceptor", "Photoreceptors": "photoreceptor", "photoreceptor_run": "photoreceptor",
     "photoreceptor_step": "photoreceptor",
+    "CompoundEye": "compound_eye", "CompoundEyeConfig": "compound_eye", "acceptance_rule": "compound_eye",
+    "EyeCircuit": "eye_circuit", "EyeCircuitConfig": "eye_circuit", "EyeFieldConfig": "eye_circuit",
 }
 __all__ = ["__version__", "git_commit", *sorted(_API)]
 

@@ -25,6 +25,8 @@ _API = {
     "EurocFootage": "euroc", "open_euroc": "euroc",
     "VideoFootage": "video", "open_video": "video",
     "ClockOffset": "clock_offset", "estimate_clock_offset": "clock_offset",
+    "EyeFootage": "eye", "open_eye_footage": "eye", "write_eye_footage": "eye", "make_eye_run": "eye",
+    "render_eye": "eye",
 }
 __all__ = sorted(_API)
 

@@ -1,0 +1,30 @@
+"""`lobula scene OUT --eye fly`: the compound-eye options and branch of the scene command (issue 11).
+
+Kept apart from experiments.eye_velocity so that building the `scene` parser imports nothing heavy.
+"""
+from __future__ import annotations
+
+import time as _time
+
+
+def add_eye_scene_options(parser) -> None:
+    """The compound-eye options of `lobula scene` (experiments.render calls this)."""
+    parser.add_argument("--eye", default="pinhole", choices=["pinhole", "fly"],
+                        help="pinhole: a camera footage folder; fly: two compound eyes' footage (ommatidia × time)")
+    parser.add_argument("--dphi", type=float, default=5.0, help="--eye fly: interommatidial angle Δφ (deg)")
+    parser.add_argument("--drho", type=float, help="--eye fly: acceptance angle Δρ (deg; default Δφ)")
+    parser.add_argument("--rate-hz", type=float, default=500.0, help="--eye fly: sampling rate of the eye (Hz)")
+    parser.add_argument("--rays", type=int, default=2, help="--eye fly: rings of acceptance rays (1: 7, 2: 19, 3: 37)")
+
+
+def run_eye_scene(args, cfg) -> int:
+    """`lobula scene OUT --eye fly`: the run configuration ``cfg`` rendered onto the compound eye."""
+    from lobula.compound_eye import CompoundEye, CompoundEyeConfig
+    from stimuli.eye import make_eye_run
+
+    eye_cfg = CompoundEyeConfig(dphi_deg=args.dphi, drho_deg=args.drho, rings=args.rays)
+    t0 = _time.perf_counter()
+    out = make_eye_run(args.out, cfg, eye_cfg, args.rate_hz, progress=not args.quiet)
+    print(f"wrote {out}: {CompoundEye(eye_cfg).summary()}, {int(round(args.duration * args.rate_hz))} samples at "
+          f"{args.rate_hz:g} Hz in {_time.perf_counter() - t0:.1f} s")
+    return 0

@@ -1,0 +1,332 @@
+"""Velocity from eye footage: photoreceptors → EMDs → LC fields → the project's readout, causal.
+
+``estimate_eye_velocity(eye_footage, config)`` streams the luminance of an eye-footage
+folder (``lobula scene OUT --eye fly``) through :class:`lobula.eye_circuit.EyeCircuit`
+with the gyroscope as haltere input, takes forward acceleration from the accelerometer
+(:func:`lobula.haltere.forward_acceleration`, causal: running gravity and bias), and reads
+velocity out with :func:`lobula.readout.readout` (the estimator's readout, causal filter).
+The LC fields' convective-corrected r²-term (see :mod:`lobula.eye_circuit`) is passed as
+the readout's r²̄, so ṙ − r²̄ is the material-derivative form of a/d on any surface.
+
+Returns the DESIGN.md velocity Dataset (dims ``time`` and ``field``).
+"""
+from __future__ import annotations
+
+import json
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+import xarray as xr
+
+from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
+from lobula.haltere import forward_acceleration, resample_to
+from lobula.readout import ReadoutConfig, readout
+
+from .store import provenance
+
+__all__ = ["EyeVelocityConfig", "estimate_eye_velocity", "causal_gyro", "add_parser", "run_eye_velocity"]
+
+
+@dataclass
+class EyeVelocityConfig:
+    """The eye velocity pipeline: circuit, readout (causal by default), streaming chunk (samples).
+
+    accel_from_truth: forward acceleration from truth.csv's a_forward_m_s2 instead of the
+    accelerometer (isolates the visual circuit from gravity removal; labelled in the output).
+    """
+
+    circuit: EyeCircuitConfig = field(default_factory=EyeCircuitConfig)
+    readout: ReadoutConfig = field(default_factory=lambda: ReadoutConfig(filter="causal"))
+    chunk: int = 500
+    accel_from_truth: bool = False
+
+    def to_dict(self) -> dict:
+        return dict(circuit=self.circuit.to_dict(), readout=self.readout.to_dict(), chunk=self.chunk,
+                    accel_from_truth=self.accel_from_truth)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+
+def causal_gyro(imu, times: np.ndarray) -> np.ndarray:
+    """Angular velocity (T, 3) at ``times``: the latest IMU sample at or before each time (no
+    look-ahead), minus the running mean of the samples so far (the gyro bias, since a
+    track's heading returns; lobula.haltere does the same)."""
+    g = imu.gyro
+    bias = np.cumsum(g, 0) / np.arange(1, len(g) + 1)[:, None]
+    k = np.clip(np.searchsorted(imu.time_s, times, side="right") - 1, 0, len(g) - 1)
+    return (g - bias)[k]
+
+
+def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress: bool = False) -> xr.Dataset:
+    """Velocity Dataset from an :class:`stimuli.eye.EyeFootage` (see the module docstring)."""
+    from stimuli.footage import FootageError
+
+    cfg = config or EyeVelocityConfig()
+    if fo.imu is None:
+        raise FootageError(f"{fo.path / 'imu.csv'}: missing; the eye's readout needs the accelerometer and gyro")
+    t_start = _time.perf_counter()
+    circ = EyeCircuit(fo.eye, fo.rate_hz, cfg.circuit)
+    gyro = causal_gyro(fo.imu, fo.times)
+    outs, t_read = [], 0.0
+    pos = 0
+    for ts, lum in fo.chunks(cfg.chunk):
+        outs.append(circ.process(lum, gyro[pos:pos + len(ts)]))
+        pos += len(ts)
+    outs.append(circ.finish())
+    t = np.concatenate([o["t"] for o in outs]) + float(fo.times[0])   # the circuit counts from sample 0
+    rho = np.concatenate([o["rho"] for o in outs])
+    r2 = np.concatenate([o["r2_eff"] for o in outs])
+    if len(t) < 3:
+        raise FootageError(f"{fo.path}: too short for a readout ({len(t)} LC steps)")
+    t_circ = _time.perf_counter() - t_start
+    dt = float(np.median(np.diff(t)))
+    if cfg.accel_from_truth:
+        if fo.truth is None or "a_forward_m_s2" not in fo.truth:
+            raise FootageError(f"{fo.path / 'truth.csv'}: no a_forward_m_s2 column for accel_from_truth")
+        a = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
+        a_source = "ground truth (a_forward_m_s2 of truth.csv; no accelerometer)"
+    else:
+        a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=True)
+        a = resample_to(t, fo.imu.time_s, a_imu, dt)
+        a_source = "accelerometer (causal gravity and bias removal)"
+    t1 = _time.perf_counter()
+    res = readout(t, rho, r2, a, cfg.readout)
+    t_readout = _time.perf_counter() - t1
+    f = circ.fields
+    keep = np.flatnonzero(f.eye == 0) if rho.shape[1] != f.n_fields else np.arange(f.n_fields)
+    data = dict(
+        v_hat=("time", res.v_hat, {"units": "m/s", "long_name": "estimated forward velocity"}),
+        observable=("time", res.observable, {"long_name": "velocity observable"}),
+        v_std=("time", res.v_std, {"units": "m/s", "long_name": "posterior std of v_hat"}),
+        accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": a_source}),
+        r=(("time", "field"), rho, {"units": "1/s", "long_name": "LC field expansion rate v/D"}),
+        r2=(("time", "field"), r2, {"units": "1/s2",
+                                    "long_name": "r-squared term with the convective correction (r2_eff)"}),
+        r_dot=(("time", "field"), res.r_dot, {"units": "1/s2"}),
+        v_field=(("time", "field"), res.v_field, {"units": "m/s"}),
+    )
+    if fo.truth is not None:
+        data["v_true"] = ("time", np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"]),
+                          {"units": "m/s", "long_name": "ground-truth forward velocity"})
+    coords = dict(time=("time", t, {"units": "s"}),
+                  azimuth_deg=("field", f.centres_deg[keep, 0]), elevation_deg=("field", f.centres_deg[keep, 1]),
+                  size_deg=("field", np.full(len(keep), f.size_deg)),
+                  eye=("field", np.where(f.eye[keep] == 0, "right" if len(keep) == f.n_fields else "both", "left")))
+    ds = xr.Dataset(data, coords=coords)
+    timings = dict(circ.timings, circuit_total=t_circ, readout=t_readout, n_ommatidia=fo.eye.n,
+                   n_pairs=fo.eye.n_pairs)
+    ds.attrs.update(provenance(cfg.to_json(), front_end="emd-compound-eye", filter=cfg.readout.filter,
+                               readout=cfg.readout.method, rotation=cfg.circuit.rotation,
+                               acceleration_source=a_source,
+                               footage=str(fo.path), footage_kind="compound-eye",
+                               eye=json.dumps(fo.eye.config.to_dict()), eye_rate_hz=fo.rate_hz,
+                               latency_s=circ.latency_s,
+                               timings_s=json.dumps({k: round(float(v), 4) for k, v in timings.items()}),
+                               wall_s=round(_time.perf_counter() - t_start, 3)))
+    return ds
+
+
+def apply_eye_options(cfg: EyeVelocityConfig, args) -> EyeVelocityConfig:
+    """The command-line options of `lobula eye-velocity` (None: unchanged)."""
+    from dataclasses import replace
+    c = cfg.circuit
+    if getattr(args, "rotation", None):
+        c.rotation = args.rotation
+    if getattr(args, "field_size", None):
+        c.fields = replace(c.fields, size_deg=args.field_size)
+    if getattr(args, "tau", None):
+        c.emd = replace(c.emd, tau_s=args.tau)
+    if getattr(args, "filter", None):
+        cfg.readout.filter = args.filter
+    if getattr(args, "accel_from_truth", False):
+        cfg.accel_from_truth = True
+    return cfg
+
+
+def run_eye_velocity(args) -> int:
+    from experiments.store import write_netcdf
+    from experiments.velocity import plot_velocity, score
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(args.footage)
+    cfg = apply_eye_options(EyeVelocityConfig(), args)
+    ds = estimate_eye_velocity(fo, cfg)
+    write_netcdf(ds, args.out)
+    skip = min(args.skip, 0.25 * float(ds.time[-1] - ds.time[0]))
+    sc = score(ds, skip)
+    tm = json.loads(ds.attrs["timings_s"])
+    print(f"wrote {args.out}: {ds.sizes['time']} LC steps x {ds.sizes['field']} fields "
+          f"[{fo.eye.summary()}; rotation: {cfg.circuit.rotation}; {cfg.readout.filter} readout]")
+    print(f"circuit {tm['circuit_total']:.1f} s for {len(fo) / fo.rate_hz:.1f} s of flight at {fo.rate_hz:.0f} Hz")
+    if sc:
+        print(f"after {skip:.3g} s: RMSE {sc['rmse_m_s']:.4f} m/s, median |error| {sc['median_abs_error_m_s']:.4f} m/s, "
+              f"observable {sc['observable_fraction']:.3f} of {sc['n_frames']} steps")
+    if args.plot:
+        plot_velocity(ds, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def add_parser(subparsers):
+    """Register `lobula eye-velocity` (see experiments.cli)."""
+    v = subparsers.add_parser("eye-velocity", help="estimate forward velocity from compound-eye footage "
+                                                   "(photoreceptors, EMDs, LC fields, readout; causal)")
+    v.add_argument("footage", help="eye-footage folder from `lobula scene OUT --eye fly`")
+    v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
+    v.add_argument("--plot", help="PNG of v̂ against truth")
+    v.add_argument("--rotation", default="haltere", choices=["none", "haltere", "wide-field", "both"],
+                   help="rotation handling: gyro-driven (haltere) subtraction, left+right wide-field sums, both, none")
+    v.add_argument("--field-size", type=float, default=30.0, help="LC field FWHM (deg)")
+    v.add_argument("--tau", type=float, default=0.035, help="EMD delay time constant (s)")
+    v.add_argument("--filter", default="causal", choices=["causal", "zero-phase"], help="readout filter kind")
+    v.add_argument("--accel-from-truth", action="store_true",
+                   help="forward acceleration from truth.csv instead of the accelerometer")
+    v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
+    v.set_defaults(func=run_eye_velocity)
+
+
+
+# ---------------------------------------------------------------------- figure
+def eye_figure(runs: dict, out_png, field_sizes=(20.0, 30.0, 45.0, 60.0),
+               rotations=("none", "haltere", "wide-field", "both"), skip_s: float = 2.0) -> dict:
+    """RMSE of the causal eye circuit against LC field size and rotation handling, beside causal DIS.
+
+    runs: {family: {"eye": [eye-footage folders (seeds)], "dis": [causal DIS velocity NetCDFs of the
+    same worlds and trajectories on the pinhole camera] or "dis_rmse": [their RMSEs]}}. Every eye configuration is run on every
+    seed; the plot shows the mean over seeds with min–max bars, DIS and the zero estimator as lines.
+    Returns the numbers (JSON-able) and writes ``out_png`` (and ``out_png`` with .json).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from experiments.store import save_figure
+    from experiments.velocity import score
+    from stimuli.eye import open_eye_footage
+
+    results: dict = {}
+    for fam, spec in runs.items():
+        res = results.setdefault(fam, dict(eye={}, dis=[], zero=[], seeds=len(spec["eye"])))
+        for path in spec["eye"]:
+            fo = open_eye_footage(path)
+            for rot in rotations:
+                for size in field_sizes:
+                    cfg = EyeVelocityConfig()
+                    cfg.circuit.rotation = rot
+                    cfg.circuit.fields.size_deg = float(size)
+                    ds = estimate_eye_velocity(fo, cfg)
+                    res["eye"].setdefault(f"{rot}|{size:g}", []).append(score(ds, skip_s)["rmse_m_s"])
+            keep = ds.time.values >= ds.time.values[0] + skip_s
+            res["zero"].append(float(np.sqrt(np.mean(ds.v_true.values[keep] ** 2))))
+        for nc in spec.get("dis", []):
+            with xr.open_dataset(nc) as d:
+                res["dis"].append(score(d, skip_s)["rmse_m_s"])
+        res["dis"].extend(float(x) for x in spec.get("dis_rmse", []))
+    fams = list(results)
+    fig, axes = plt.subplots(1, len(fams), figsize=(4.2 * len(fams), 3.8), squeeze=False, sharey=True)
+    for ax, fam in zip(axes[0], fams):
+        res = results[fam]
+        for k, (rot, colour) in enumerate(zip(rotations, ("0.5", "tab:blue", "tab:orange", "tab:green"))):
+            vals = [res["eye"].get(f"{rot}|{s:g}", [np.nan]) for s in field_sizes]
+            mean = np.array([np.mean(v) for v in vals])
+            lo = mean - np.array([np.min(v) for v in vals])
+            hi = np.array([np.max(v) for v in vals]) - mean
+            shift = 0.6 * (k - 0.5 * (len(rotations) - 1))   # side by side where they coincide
+            ax.errorbar(np.asarray(field_sizes) + shift, mean, yerr=[lo, hi], marker="o", ms=4, capsize=3,
+                        color=colour, label=f"fly eye, rotation: {rot}")
+        if res["dis"]:
+            ax.axhspan(min(res["dis"]), max(res["dis"]), color="m", alpha=0.12, lw=0)
+            ax.axhline(np.mean(res["dis"]), color="m", ls="--", label="DIS on the D435i camera (causal; band: seeds)")
+        ax.axhline(np.mean(res["zero"]), color="k", ls=":", label="zero estimator (mean over seeds)")
+        ax.set_title(f"{fam} ({res['seeds']} seed{'s' if res['seeds'] > 1 else ''})")
+        ax.set_xlabel("LC field size, FWHM (deg)")
+    axes[0][0].set_ylabel(f"velocity RMSE after {skip_s:g} s (m/s)")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=7, frameon=False)
+    ec = fo.eye.config
+    fig.suptitle(f"Two compound eyes (Δφ = {ec.dphi_deg:g}°, Δρ = {ec.acceptance_deg:g}°, {fo.rate_hz:g} Hz): "
+                 f"photoreceptors → EMDs (τ = {1000 * cfg.circuit.emd.tau_s:g} ms) → LC fields → readout, causal",
+                 fontsize=9)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    save_figure(fig, out_png, dpi=150)
+    plt.close(fig)
+    from pathlib import Path
+    js = Path(str(out_png)).with_suffix(".json")
+    tmp = js.with_name(f".{js.name}.tmp")
+    tmp.write_text(json.dumps(results, indent=1))
+    tmp.replace(js)
+    return results
+
+
+# ---------------------------------------------------------------------- benchmark
+def eye_benchmark(workdir, families=("panels", "rotation", "corridor"), seeds=(0,), duration_s: float = 30.0,
+                  rate_hz: float = 500.0, eye_config=None, scale: float = 0.5,
+                  rotations=("haltere", "wide-field", "both", "none")) -> list[dict]:
+    """The fly eye against causal DIS on the D435i camera, same worlds and trajectories.
+
+    For each family (experiments.suite.family_config: the worlds' families) and seed, renders
+    (once, cached under ``workdir``) the eye footage and the pinhole footage of the same run
+    configuration, runs causal DIS (the project's default velocity pipeline, causal filter) and
+    the eye circuit under each rotation hypothesis, and returns one row per run with the RMSEs
+    (after 2 s), the zero estimator's, and the eye's render and circuit wall times.
+    """
+    from pathlib import Path
+
+    from experiments.suite import family_config
+    from experiments.velocity import estimate_velocity, score
+    from lobula.compound_eye import CompoundEyeConfig
+    from lobula.config import VelocityConfig
+    from stimuli.eye import make_eye_run, open_eye_footage
+    from stimuli.footage import open_footage
+    from stimuli.track import make_track_run
+
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for fam in families:
+        for seed in seeds:
+            cfg = family_config(fam, seed, duration_s, scale)
+            eye_dir, cam_dir = workdir / f"{fam}-{seed}-eye", workdir / f"{fam}-{seed}-cam"
+            if not eye_dir.exists():
+                make_eye_run(eye_dir, cfg, eye_config or CompoundEyeConfig(), rate_hz, progress=False)
+            if not cam_dir.exists():
+                make_track_run(cam_dir, cfg, progress=False)
+            vc = VelocityConfig(front_end="dis")
+            vc.readout.filter = "causal"
+            dis = estimate_velocity(open_footage(cam_dir), vc, progress=False)
+            fo = open_eye_footage(eye_dir)
+            row = dict(family=fam, seed=seed, dis_rmse=score(dis)["rmse_m_s"],
+                       render_s=float(fo.info.get("render_s", float("nan"))), duration_s=duration_s)
+            for rot in rotations:
+                ec = EyeVelocityConfig()
+                ec.circuit.rotation = rot
+                ds = estimate_eye_velocity(fo, ec)
+                row[f"eye_{rot}_rmse"] = score(ds)["rmse_m_s"]
+                row[f"eye_{rot}_observable"] = score(ds)["observable_fraction"]
+                row["circuit_s"] = json.loads(ds.attrs["timings_s"])["circuit_total"]
+            keep = ds.time.values >= ds.time.values[0] + 2.0
+            row["zero_rmse"] = float(np.sqrt(np.mean(ds.v_true.values[keep] ** 2)))
+            rows.append(row)
+            print(json.dumps(row))
+    return rows
+
+
+def figure_eye(out_dir, seeds=(0, 1, 2), duration_s: float = 10.0, workdir=None,
+               families=("panels", "rotation", "corridor"), field_sizes=(20.0, 30.0, 45.0),
+               rotations=("none", "haltere", "wide-field")):
+    """`lobula figures` entry: render (cached in ``workdir``) and score the eye beside causal DIS, then plot.
+
+    Writes ``out_dir/eye_rmse.png`` and its JSON; returns the path of the PNG.
+    """
+    from pathlib import Path
+
+    out_dir = Path(out_dir)
+    workdir = Path(workdir) if workdir else out_dir / "eye_runs"
+    rows = eye_benchmark(workdir, families, seeds, duration_s, rotations=("haltere",))
+    runs = {f: dict(eye=[workdir / f"{f}-{s}-eye" for s in seeds],
+                    dis_rmse=[r["dis_rmse"] for r in rows if r["family"] == f]) for f in families}
+    png = out_dir / "eye_rmse.png"
+    eye_figure(runs, png, field_sizes=field_sizes, rotations=rotations)
+    return png

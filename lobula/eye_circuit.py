@@ -1,0 +1,405 @@
+"""One circuit on the compound eye: photoreceptors → HR EMDs → LC matched filters for translation.
+
+Input: luminance of every ommatidium of :class:`lobula.compound_eye.CompoundEye` at the
+eye's own rate (500 Hz by default), and the gyroscope ("haltere") angular velocity.
+Output, per LC field f and readout step: the expansion rate ρ_f = v/D (1/s; D the range
+along the field's direction) and the convective-corrected r²-term the readout needs.
+
+Stages
+------
+1. **Photoreceptors** (:mod:`lobula.photoreceptor`): low-pass τ = 10 ms
+   (light-adapted Drosophila R1–6, Juusola & Hardie 2001) and an LMC-like high-pass of
+   0.25 s that removes the mean.
+2. **EMDs** (:mod:`lobula.emd`, the project's one correlator) along every neighbour pair
+   of the spherical lattice, delay τ = 35 ms (temporal-frequency optimum 1/(2πτ) ≈ 4.5 Hz,
+   as blowfly HS cells: Hausen 1982; Borst & Egelhaaf 1989, TINS 12:297).
+3. **LC fields**: Gaussian receptive fields of FWHM ``size_deg`` (tens of degrees, the
+   size of Drosophila LC receptive fields: Wu et al. 2016, eLife 5:e21022) on each eye.
+   Forward translation at speed v moves the image at direction d as
+   ``ḋ = ρ·((d·ẑ)d − ẑ)``, ρ = v/D, so along pair p (unit tangent u_p from A to B) the
+   image moves at ``ρ·m_p`` rad/s with the **matched-filter template** ``m_p = −ẑ·u_p``
+   (magnitude sin θ·|cos| of the angle to the pair axis; θ from the focus of expansion
+   ẑ, the body axis). With the gradient-ratio decoding of :mod:`lobula.emd_decoding`,
+   ``R_p ≈ c_p·G_p·(ḋ·u_p)``, c_p = 2τ/Δφ_p and G_p = (x_B − x_A)², a field fits
+   ρ(θ) = ρ_f + g_f·(θ − θ_f) by weighted least squares (noise variance ∝ G):
+   two matched filters per field (the template, and the template weighted by θ − θ_f),
+   divided by the pooled contrast signals — a 2×2 solve per field and step.
+4. **Material derivative.** ṙ = a/d + r² holds along a scene point; at a fixed direction
+   points flow through (issue 10). For ρ = v/D along a point, Dρ/Dt = a/D + ρ² cos θ, and
+   at a fixed direction ∂ρ/∂t = Dρ/Dt − θ̇·∂ρ/∂θ with θ̇ = ρ sin θ. So
+   ``v = a·ρ / (∂ρ/∂t − r2_eff)`` with ``r2_eff = ρ² cos θ − ρ sin θ · g`` — the
+   readout's own ``v_f = a·r̄/(ṙ − r²)`` with r²̄ replaced by r2_eff. Exact for any plane
+   (a side wall gives r2_eff = 0, a frontal wall ρ²/cos θ).
+
+**Normalisation.** The gradient-ratio pool G = (x_B − x_A)² cancels contrast and pattern
+only while ωτ ≪ 1: for a sine, R̄/Ḡ = ωτ·cot(Δϕ/2)/(1 + (ωτ)²). A fly's eye in a
+textured world is far from that limit (components near the lattice's Nyquist limit have
+high temporal frequency), and the loss grows with speed, so ρ̂ is not proportional to ρ
+and ρ̂'s derivative misleads the readout. The default pool pairs the contrast difference
+with its own delayed copy, ``G = (LP_τ(x_B) − LP_τ(x_A))·(x_B − x_A)``, made of the same
+four signals the correlator multiplies: its mean is C²(1 − cos Δϕ)/(1 + (ωτ)²), so
+``R̄/Ḡ = ωτ·cot(Δϕ/2)`` exactly — the correlator's temporal-frequency tuning divides out
+(a divisive normalisation by a pool with the same temporal filtering as the EMD), and
+only the spatial-sampling factor (Δϕ/2)·cot(Δϕ/2), constant in speed, remains.
+
+**Columnar pooling** (a hypothesis, off by default). Before the EMDs each column's
+signal may be averaged with its six neighbours' (``column_pool``), as the T4/T5 input neurons pool over several columns
+(Tm3's receptive field spans ~2–3 columns: Takemura et al. 2013, Nature 500:175; Behnia
+et al. 2014, Nature 512:427). Why it matters here: the gradient ratio underestimates a
+sine of phase step Δϕ between neighbours by (Δϕ/2)·cot(Δϕ/2) (0 at the Nyquist limit),
+and with Δρ = Δφ a 1/f world puts much contrast near it; the 7-column average passes
+λ = 2Δφ at −1/7 and λ = 6Δφ at 0.78, which raises the decoded gain toward 1 — but
+measured on a panels world it also lowered the fields' correlation with the exact v/D
+(0.83 → 0.65) and raised the velocity RMSE, so it stays off. (The readout
+v = a·ρ/(ρ̇ − r²) is blind to a constant gain on ρ, not to one that varies.)
+
+Rotation, two hypotheses (``rotation``):
+
+- ``"haltere"``: the gyroscope's angular velocity ω predicts each pair's rotational image
+  motion ``ω·(u_p × d_p)``; its EMD response ``c_p·G_p·ω·(u_p × d_p)`` is subtracted
+  before pooling (ω passes the photoreceptor and EMD low-passes first, to stay in phase).
+- ``"wide-field"``: mirror-image fields of the two eyes are summed before the solve. Yaw
+  and roll move mirror points with opposite signs along mirror templates and cancel;
+  translation adds (Krapp & Hengstenberg 1996, Nature 384:463 on matched wide-field
+  filters). Pitch is symmetric left–right and does not cancel.
+- ``"both"`` applies the two; ``"none"`` neither.
+
+Causality: every stage is a causal filter; the readout step is a block sum over the
+last ``1/readout_rate_hz`` s. Outputs are stamped ``latency_s`` earlier (photoreceptor
+τ + EMD τ + half a block), the same convention as the pinhole EMD front end: an estimate
+stamped t is available at t + latency.
+
+Shapes: luminance (T, n), gyro (T, 3); outputs per readout step (K, F). torch on CPU;
+Python loops run over time only (inside the photoreceptor and EMD stages).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from .compound_eye import CompoundEye
+from .emd import EMDArray, EMDConfig
+from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lowpass_scan
+
+__all__ = ["EyeFieldConfig", "EyeCircuitConfig", "EyeFields", "EyeCircuit", "eye_fields"]
+
+ROTATION_MODES = ("none", "haltere", "wide-field", "both")
+
+
+@dataclass
+class EyeFieldConfig:
+    """LC receptive fields on the eyes (degrees).
+
+    size_deg: Gaussian FWHM (weights cut at 1.5 FWHM). spacing_deg: centre grid spacing
+    (None = 2/3 of the size). azimuth_deg / elevation_deg: range of centres on the
+    right eye (the left mirrors it). gradient_ridge: prior weight keeping the fitted
+    gradient g_f near 0 when a field's pairs do not constrain it, as a fraction of the
+    field's own Σ c²Gm²δ². floor: semi-saturation floor on the pooled contrast, as a
+    fraction of its running mean over past readout steps (causal, time constant ~100 steps).
+    """
+
+    size_deg: float = 30.0
+    spacing_deg: float | None = None
+    azimuth_deg: tuple = (10.0, 150.0)
+    elevation_deg: tuple = (-45.0, 45.0)
+    gradient_ridge: float = 0.05
+    floor: float = 0.02
+
+    def __post_init__(self):
+        if not (2.0 <= self.size_deg <= 120.0):
+            raise ValueError(f"LC field size_deg must be in [2, 120] degrees, got {self.size_deg}")
+        if self.spacing_deg is not None and not self.spacing_deg > 0:
+            raise ValueError(f"spacing_deg must be positive or None, got {self.spacing_deg}")
+
+    @property
+    def spacing(self) -> float:
+        return float(self.spacing_deg if self.spacing_deg is not None else 2.0 * self.size_deg / 3.0)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["azimuth_deg"], d["elevation_deg"] = list(self.azimuth_deg), list(self.elevation_deg)
+        return d
+
+
+@dataclass
+class EyeCircuitConfig:
+    """The circuit from photoreceptor to LC fields on the compound eye (SI units).
+
+    photoreceptor, emd: stage configurations (see the module docstring for the values'
+    sources). fields: :class:`EyeFieldConfig`. rotation: "none" | "haltere" |
+    "wide-field" | "both". readout_rate_hz: rate of the LC outputs the readout sees
+    (block sums of the eye-rate signals). r2_term: what the readout's r²̄ receives —
+    "convective" (ρ² cos θ − ρ sin θ·g, the material-derivative form; default), "point"
+    (ρ² cos θ: along a point, no convective term; an ablation) or "none" (0). normaliser: the contrast pool G of the decoding,
+    "delayed" (default, (LP(x_B) − LP(x_A))·(x_B − x_A)) or "gradient" ((x_B − x_A)², the
+    pinhole front end's); see "Normalisation" in the module docstring. column_pool: weight α of the six neighbouring
+    columns in each EMD input, x' = (1 − α)·x + α·mean(neighbours) (0: none, the default;
+    6/7: a uniform 7-column average) — see "Columnar pooling" in the module docstring.
+    calibration: gain on ρ (1 = none).
+    latency_s: stamp shift; None = τ_photoreceptor + τ_EMD + half a block.
+    """
+
+    photoreceptor: PhotoreceptorConfig = field(default_factory=lambda: PhotoreceptorConfig(tau_s=0.010,
+                                                                                            tau_hp_s=0.25))
+    emd: EMDConfig = field(default_factory=lambda: EMDConfig(tau_s=0.035))
+    fields: EyeFieldConfig = field(default_factory=EyeFieldConfig)
+    rotation: str = "haltere"
+    normaliser: str = "delayed"
+    r2_term: str = "convective"
+    column_pool: float = 0.0
+    readout_rate_hz: float = 50.0
+    calibration: float = 1.0
+    latency_s: float | None = None
+
+    def __post_init__(self):
+        if self.rotation not in ROTATION_MODES:
+            raise ValueError(f"rotation must be one of {ROTATION_MODES}, got {self.rotation!r}")
+        if self.r2_term not in ("convective", "point", "none"):
+            raise ValueError(f"r2_term must be 'convective', 'point' or 'none', got {self.r2_term!r}")
+        if self.normaliser not in ("delayed", "gradient"):
+            raise ValueError(f"normaliser must be 'delayed' or 'gradient', got {self.normaliser!r}")
+        if not (0.0 <= self.column_pool <= 1.0):
+            raise ValueError(f"column_pool must lie in [0, 1], got {self.column_pool}")
+        if not self.readout_rate_hz > 0:
+            raise ValueError(f"readout_rate_hz must be positive, got {self.readout_rate_hz}")
+
+    def to_dict(self) -> dict:
+        return dict(photoreceptor=self.photoreceptor.to_dict(), emd=self.emd.to_dict(),
+                    fields=self.fields.to_dict(), rotation=self.rotation, normaliser=self.normaliser,
+                    r2_term=self.r2_term,
+                    column_pool=self.column_pool,
+                    readout_rate_hz=self.readout_rate_hz,
+                    calibration=self.calibration, latency_s=self.latency_s)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "EyeCircuitConfig":
+        d = dict(d)
+        f = dict(d.pop("fields", {}))
+        for k in ("azimuth_deg", "elevation_deg"):
+            if k in f:
+                f[k] = tuple(f[k])
+        return cls(photoreceptor=PhotoreceptorConfig(**d.pop("photoreceptor", {})),
+                   emd=EMDConfig(**d.pop("emd", {})), fields=EyeFieldConfig(**f), **d)
+
+
+@dataclass
+class EyeFields:
+    """LC fields: centres (F, 2) deg (az, el), eye (F,), unit centre directions (F, 3), theta (F,) rad
+    from ẑ, the (F, P) pair weights, and ``mirror`` (F,): the index of each field's mirror field."""
+
+    centres_deg: np.ndarray
+    eye: np.ndarray
+    directions: np.ndarray
+    theta: np.ndarray
+    weights: np.ndarray
+    mirror: np.ndarray
+    size_deg: float
+
+    @property
+    def n_fields(self) -> int:
+        return len(self.eye)
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles (radians) between unit vectors, broadcast over leading dims."""
+    return np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0))
+
+
+def eye_fields(eye: CompoundEye, config: EyeFieldConfig) -> EyeFields:
+    """Tile both eyes with mirror-symmetric Gaussian fields; weights over the eye's own pairs."""
+    from .compound_eye import eye_directions
+
+    sp = config.spacing
+    a0, a1 = config.azimuth_deg
+    e0, e1 = config.elevation_deg
+    naz = max(1, int(math.floor((a1 - a0) / sp + 1e-9)) + 1)
+    nel = max(1, int(math.floor((e1 - e0) / sp + 1e-9)) + 1)
+    az = a0 + 0.5 * ((a1 - a0) - (naz - 1) * sp) + sp * np.arange(naz)
+    el = e0 + 0.5 * ((e1 - e0) - (nel - 1) * sp) + sp * np.arange(nel)
+    AZ, EL = (x.ravel() for x in np.meshgrid(az, el, indexing="xy"))
+    present = [k for k in (0, 1) if (eye.eye == k).any()]
+    cen = np.concatenate([np.stack([AZ if k == 0 else -AZ, EL], -1) for k in present])
+    f_eye = np.concatenate([np.full(len(AZ), k) for k in present])
+    nf = len(AZ)
+    mirror = (np.concatenate([np.arange(nf) + nf, np.arange(nf)]) if len(present) == 2
+              else np.arange(nf))
+    dirs = eye_directions(np.radians(cen[:, 0]), np.radians(cen[:, 1]))
+    ang = _angle(dirs[:, None, :], eye.pair_midpoint[None, :, :])               # (F, P)
+    fwhm = math.radians(config.size_deg)
+    w = np.exp(-4.0 * math.log(2.0) * (ang / fwhm) ** 2)
+    w *= (ang <= 1.5 * fwhm) & (f_eye[:, None] == eye.eye[eye.pairs_a][None, :])
+    theta = _angle(dirs, np.array([0.0, 0.0, 1.0]))
+    return EyeFields(cen, f_eye, dirs, theta, w, mirror, float(config.size_deg))
+
+
+def _column_pool(eye: CompoundEye, alpha: float):
+    """Sparse (n, n) float32 matrix x' = (1 − α)x + α·mean over the lattice neighbours; None if α = 0."""
+    if alpha == 0.0:
+        return None
+    n = eye.n
+    a = np.concatenate([eye.pairs_a, eye.pairs_b])
+    b = np.concatenate([eye.pairs_b, eye.pairs_a])
+    deg = np.bincount(a, minlength=n).astype(float)
+    rows = np.concatenate([np.arange(n), a])
+    cols = np.concatenate([np.arange(n), b])
+    vals = np.concatenate([np.where(deg > 0, 1.0 - alpha, 1.0), alpha / np.maximum(deg[a], 1.0)])
+    idx = torch.as_tensor(np.stack([rows, cols]))
+    return torch.sparse_coo_tensor(idx, torch.as_tensor(vals, dtype=torch.float32), (n, n)).coalesce()
+
+
+class EyeCircuit:
+    """Streaming circuit: ``process(luminance (T, n), gyro (T, 3))`` → completed readout steps.
+
+    Keeps photoreceptor, EMD, gyro-filter and partial-block state between calls.
+    ``finish()`` returns the last, partial block (if any). Each result is a dict of
+    numpy arrays over readout steps: ``t`` (K,) stamped times, ``rho`` (K, F') 1/s,
+    ``grad`` (K, F') 1/s per rad, ``r2_eff`` (K, F') 1/s², with F' = F fields, or the
+    mirror groups (F/2) under wide-field rotation cancelling.
+    """
+
+    def __init__(self, eye: CompoundEye, rate_hz: float, config: EyeCircuitConfig | None = None):
+        self.config = cfg = config or EyeCircuitConfig()
+        self.eye = eye
+        self.dt = 1.0 / float(rate_hz)
+        self.block = max(1, int(round(rate_hz / cfg.readout_rate_hz)))
+        self.fields = fields = eye_fields(eye, cfg.fields)
+        self.photoreceptors = Photoreceptors(cfg.photoreceptor, self.dt)
+        self.emds = EMDArray(eye.pairs_a, eye.pairs_b, cfg.emd, self.dt)
+        self.latency_s = (cfg.latency_s if cfg.latency_s is not None
+                          else cfg.photoreceptor.tau_s + cfg.emd.tau_s + 0.5 * self.block * self.dt)
+        tau = cfg.emd.tau_s
+        c = 2.0 * tau / eye.pair_separation                                     # (P,)
+        zhat = np.array([0.0, 0.0, 1.0])
+        m = -(eye.pair_direction @ zhat)                                        # template (P,)
+        theta_p = _angle(eye.pair_midpoint, zhat)
+        delta = theta_p[None, :] - fields.theta[:, None]                        # (F, P)
+        W = fields.weights
+        k = np.cross(eye.pair_direction, eye.pair_midpoint)                     # rotational template (P, 3)
+        # Numerator filters (on R) and denominator filters (on G), stacked for one matmul each.
+        num = np.concatenate([(W * c * m), (W * c * m * delta)], 0)            # (2F, P)
+        cgm = W * c * c * m
+        den = [cgm * m, cgm * m * delta, cgm * m * delta ** 2]
+        rot = [cgm * k[:, j] for j in range(3)] + [cgm * delta * k[:, j] for j in range(3)]
+        self._num = torch.as_tensor(num.T, dtype=torch.float32)                  # (P, 2F)
+        self._den = torch.as_tensor(np.concatenate(den + rot, 0).T, dtype=torch.float32)  # (P, 9F)
+        self._pool = _column_pool(eye, cfg.column_pool)
+        self._a = torch.as_tensor(eye.pairs_a)
+        self._b = torch.as_tensor(eye.pairs_b)
+        self._gyro_state: torch.Tensor | None = None
+        self._lp_state: torch.Tensor | None = None
+        self._carry: list = []           # partial block of per-step sums
+        self._t0 = 0.0
+        self._n_steps = 0
+        self._floor = None
+        self.timings = dict(photoreceptor=0.0, emd=0.0, fields=0.0)
+
+    @property
+    def n_outputs(self) -> int:
+        F = self.fields.n_fields
+        return F // 2 if self.config.rotation in ("wide-field", "both") and F > 1 and \
+            (self.fields.mirror != np.arange(F)).all() else F
+
+    def _gyro_filtered(self, gyro: torch.Tensor) -> torch.Tensor:
+        """ω through the photoreceptor and EMD low-passes (continuing state), (T, 3)."""
+        cfg = self.config
+        if self._gyro_state is None:
+            self._gyro_state = torch.stack([gyro[0], gyro[0]])
+        a1 = math.exp(-self.dt / cfg.photoreceptor.tau_s) if cfg.photoreceptor.tau_s > 0 else 0.0
+        a2 = math.exp(-self.dt / cfg.emd.tau_s)
+        g1 = lowpass_scan(gyro, a1, self._gyro_state[0])
+        g2 = lowpass_scan(g1, a2, self._gyro_state[1])
+        self._gyro_state = torch.stack([g1[-1], g2[-1]])
+        return g2
+
+    def _sums(self, lum: torch.Tensor, gyro: torch.Tensor) -> torch.Tensor:
+        """Per-step pooled sums (T, 11F): b1, b2 (2F), A11, A12, A22 (3F), rotation terms (6F)."""
+        import time as _time
+        t0 = _time.perf_counter()
+        y = self.photoreceptors.run(lum)
+        if self._pool is not None:
+            y = torch.sparse.mm(self._pool, y.t()).t()
+        t1 = _time.perf_counter()
+        R = self.emds.run(y)                                                    # (T, P)
+        t2 = _time.perf_counter()
+        dy = y[:, self._b] - y[:, self._a]
+        if self.config.normaliser == "delayed":
+            # The contrast difference times its own delayed (low-passed) copy: the EMD's four signals.
+            lp = lowpass_scan(dy, math.exp(-self.dt / self.config.emd.tau_s), self._lp_state)
+            self._lp_state = lp[-1].clone()
+            G = lp * dy
+        else:
+            G = dy * dy
+        out = torch.cat([R @ self._num, G @ self._den], dim=1)
+        self.timings["photoreceptor"] += t1 - t0
+        self.timings["emd"] += t2 - t1
+        self.timings["fields"] += _time.perf_counter() - t2
+        F = self.fields.n_fields
+        if self.config.rotation in ("haltere", "both"):
+            w = self._gyro_filtered(gyro)                                       # (T, 3)
+            rot = out[:, 5 * F:].reshape(len(out), 2, 3, F)
+            corr = torch.einsum("tj,tkjf->tkf", w, rot)                         # (T, 2, F)
+            out[:, :2 * F] -= corr.reshape(len(out), 2 * F)
+        return out[:, :5 * F]
+
+    def process(self, luminance, gyro) -> dict:
+        """Feed (T, n) luminance and (T, 3) angular velocity (rad/s, camera frame) at the eye's rate."""
+        lum = torch.as_tensor(np.array(luminance, dtype=np.float32))
+        gyr = torch.as_tensor(np.array(gyro, dtype=np.float32))
+        if lum.dim() != 2 or lum.shape[1] != self.eye.n:
+            raise ValueError(f"luminance must be (time, {self.eye.n}) for this eye, got {tuple(lum.shape)}")
+        if gyr.shape != (lum.shape[0], 3):
+            raise ValueError(f"gyro must be (time, 3) matching the luminance, got {tuple(gyr.shape)}")
+        s = self._sums(lum, gyr).double()
+        if self._carry:
+            s = torch.cat([self._carry.pop(), s])
+        start = self._n_steps - (len(s) - lum.shape[0])
+        self._n_steps += lum.shape[0]
+        nb = len(s) // self.block
+        if len(s) > nb * self.block:
+            self._carry.append(s[nb * self.block:])
+        if nb == 0:
+            return self._solve(np.zeros((0, s.shape[1])), np.zeros(0))
+        blocks = s[:nb * self.block].reshape(nb, self.block, -1).sum(1).numpy()
+        t_end = (start + self.block * np.arange(1, nb + 1) - 1) * self.dt
+        return self._solve(blocks, t_end)
+
+    def finish(self) -> dict:
+        """The final partial block, if any."""
+        if not self._carry:
+            return self._solve(np.zeros((0, 5 * self.fields.n_fields)), np.zeros(0))
+        s = self._carry.pop()
+        t_end = np.array([(self._n_steps - 1) * self.dt])
+        return self._solve(s.sum(0, keepdim=True).numpy() * (self.block / len(s)), t_end)
+
+    def _solve(self, sums: np.ndarray, t_end: np.ndarray) -> dict:
+        """Per-block 2×2 weighted least squares for (ρ_f, g_f) and r2_eff."""
+        F = self.fields.n_fields
+        b1, b2, A11, A12, A22 = (sums[:, i * F:(i + 1) * F] for i in range(5))
+        theta = self.fields.theta
+        if self.n_outputs != F:   # wide-field: sum mirror fields (right f with left mirror[f])
+            right = np.flatnonzero(self.fields.eye == 0)
+            left = self.fields.mirror[right]
+            b1, b2, A11, A12, A22 = (x[:, right] + x[:, left] for x in (b1, b2, A11, A12, A22))
+            theta = theta[right]
+        cfg = self.config.fields
+        if len(A11):
+            # Semi-saturation floor: a running mean (over past blocks only) of each field's pool.
+            floors = np.empty_like(A11)
+            level = A11[0] if self._floor is None else self._floor
+            for k in range(len(A11)):  # a loop over readout steps, vectorised over fields
+                level = 0.99 * level + 0.01 * A11[k]
+                floors[k] = level
+            self._floor = level
+            A11 = A11 + cfg.floor * floors
+        A22 = A22 * (1.0 + cfg.gradient_ridge)
+        det = A11 * A22 - A12 * A12
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = np.where(det > 0, (A22 * b1 - A12 * b2) / det, np.nan) * self.config.calibration
+            grad = np.where(det > 0, (A11 * b2 - A12 * b1) / det, np.nan) * self.config.calibration
+        mode = self.config.r2_term
+        r2_eff = (rho ** 2 * np.cos(theta)[None, :] - rho * np.sin(theta)[None, :] * grad if mode == "convective"
+                  else rho ** 2 * np.cos(theta)[None, :] if mode == "point" else np.zeros_like(rho))
+        return dict(t=t_end - self.latency_s, rho=rho, grad=grad, r2_eff=r2_eff)

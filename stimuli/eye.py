@@ -1,0 +1,264 @@
+"""Eye footage: a world ray-cast onto the compound eye's ommatidia, written and read as a folder.
+
+Layout of an eye-footage folder (``lobula scene OUT --eye fly``)::
+
+    ommatidia.csv   index,eye,azimuth_deg,elevation_deg,x,y,z,drho_deg
+                    one row per ommatidium; eye "right"/"left"; azimuth from +z toward +x,
+                    elevation positive downward; (x, y, z) the unit axis in the camera
+                    optical frame (x right, y down, z forward); Δρ the acceptance FWHM.
+    luminance.npy   float32 (time, ommatidium): acceptance-weighted luminance (0..1,
+                    noise-free unless the scene adds noise) at the eye's rate.
+    times.csv       sample,time_s
+    range.npy       float32 (time/range_every, ommatidium): distance (m) along each
+                    ommatidial axis every ``range_every`` samples (inf: nothing hit).
+    imu.csv         time_s,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z (camera frame, as
+                    in a footage folder).
+    truth.csv       time_s,v_forward_m_s,a_forward_m_s2,position_m at the eye's samples.
+    eye.json        {"kind": "compound-eye", "rate_hz", "n_samples", "eye": CompoundEyeConfig,
+                     "range_every", "rays_per_ommatidium"}.
+    scene.json      the full configuration (scene, trajectory, IMU, eye) and provenance.
+
+Rendering: each ommatidium's luminance is the weighted sum of the scene's luminance
+along its acceptance rays (:meth:`lobula.compound_eye.CompoundEye.rays`), cast through
+the scene ray API ``scene.luminance(directions (..., 3), t)`` and
+``scene.cast_rays(directions, t) -> (range, surface, tex_a, tex_b)`` (COMMON.md
+contract 2) at every sample time. The luminance array is streamed into a
+``.npy`` file in chunks (memory bounded by the chunk) and the folder appears only when
+complete (written under a temporary name, then renamed).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import time as _time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from lobula.compound_eye import CompoundEye, CompoundEyeConfig
+
+from .footage_core import IMU, FootageError, check_times as _check_times, read_csv_columns as _read_csv
+
+__all__ = ["EyeFootage", "render_eye", "write_eye_footage", "open_eye_footage", "is_eye_footage"]
+
+OMMATIDIA_COLUMNS = ("index", "eye", "azimuth_deg", "elevation_deg", "x", "y", "z", "drho_deg")
+
+
+def render_eye(scene, eye: CompoundEye, times: np.ndarray, chunk: int = 250) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Yield (times (k,), luminance (k, n) float32) chunks of the eye's view of ``scene``.
+
+    One ``scene.luminance`` call per sample time over all n × m acceptance rays; the
+    rays are fixed in the eye (camera) frame, the scene moves the eye through the world.
+    """
+    import inspect
+
+    rays = eye.rays()                                           # (n, m, 3)
+    w = eye.ray_weights.astype(np.float64)
+    # Scenes with a texture mip-map blur each lookup to the ray's footprint (the quadrature's
+    # spacing), so texture finer than the rays cannot alias into the ommatidium's signal.
+    kw = ({"footprint_rad": eye.ray_spacing}
+          if "footprint_rad" in inspect.signature(scene.luminance).parameters else {})
+    times = np.asarray(times, dtype=float)
+    for s in range(0, len(times), chunk):
+        ts = times[s:s + chunk]
+        out = np.empty((len(ts), eye.n), dtype=np.float32)
+        for i, t in enumerate(ts):  # the scene API takes one time; rays are vectorised
+            out[i] = np.asarray(scene.luminance(rays, float(t), **kw), dtype=np.float64) @ w
+        yield ts, out
+
+
+def eye_range(scene, eye: CompoundEye, t: float) -> np.ndarray:
+    """Distance (m) along each ommatidial axis at time t, (n,) float32 (inf where nothing is hit)."""
+    return np.asarray(scene.cast_rays(eye.directions, float(t))[0], dtype=np.float32)
+
+
+def _write_csv(path: Path, header, rows) -> None:
+    with open(path, "w", newline="") as fh:
+        wr = csv.writer(fh)
+        wr.writerow(header)
+        wr.writerows(rows)
+
+
+def write_eye_footage(folder: str | Path, scene, eye: CompoundEye, imu: dict, times: np.ndarray,
+                      metadata: dict, range_every: int = 10, chunk: int = 250,
+                      progress: Callable[[int], None] | None = None) -> Path:
+    """Render ``scene`` onto ``eye`` at ``times`` (s) into an eye-footage folder, atomically.
+
+    imu: dict time_s (k,), accel (k, 3), gyro (k, 3) in the camera frame (as
+    :func:`stimuli.imu.synthesize_imu` returns). metadata: the configuration for scene.json.
+    """
+    folder = Path(folder)
+    if folder.exists() and any(folder.iterdir()):
+        raise FileExistsError(f"{folder}: exists and is not empty; choose a new folder or delete it")
+    times = np.asarray(times, dtype=float)
+    if len(times) < 2 or np.any(np.diff(times) <= 0):
+        raise ValueError("eye footage needs at least two strictly increasing sample times")
+    rate = 1.0 / float(np.median(np.diff(times)))
+    tmp = folder.parent / f".{folder.name}.partial-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    t_start = _time.perf_counter()
+    try:
+        tab = eye.table()
+        _write_csv(tmp / "ommatidia.csv", OMMATIDIA_COLUMNS,
+                   zip(tab["index"], tab["eye"], *(np.round(tab[c], 6) for c in OMMATIDIA_COLUMNS[2:])))
+        lum = np.lib.format.open_memmap(tmp / "luminance.npy", mode="w+", dtype=np.float32,
+                                        shape=(len(times), eye.n))
+        ridx = np.arange(0, len(times), range_every) if range_every else np.zeros(0, int)
+        rng = np.lib.format.open_memmap(tmp / "range.npy", mode="w+", dtype=np.float32,
+                                        shape=(len(ridx), eye.n))
+        pos = 0
+        for ts, block in render_eye(scene, eye, times, chunk):
+            lum[pos:pos + len(ts)] = block
+            pos += len(ts)
+            if progress is not None:
+                progress(len(ts))
+        for j, i in enumerate(ridx):
+            rng[j] = eye_range(scene, eye, times[i])
+        lum.flush()
+        rng.flush()
+        del lum, rng
+        _write_csv(tmp / "times.csv", ["sample", "time_s"], ((i, f"{t:.6f}") for i, t in enumerate(times)))
+        acc_cam, gyr_cam = np.asarray(imu["accel"]), np.asarray(imu["gyro"])
+        if imu.get("imu_to_camera") is not None:  # contract 1: eye footage stores the camera frame
+            r = np.asarray(imu["imu_to_camera"], dtype=float)
+            acc_cam, gyr_cam = acc_cam @ r.T, gyr_cam @ r.T
+        _write_csv(tmp / "imu.csv", ["time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z"],
+                   ([f"{t:.6f}", *(f"{x:.6f}" for x in a), *(f"{x:.7f}" for x in g)]
+                    for t, a, g in zip(imu["time_s"], acc_cam, gyr_cam)))
+        vel = scene.camera_velocity(times)
+        acc = scene.trajectory.acceleration(times)
+        # Forward (optical-axis) acceleration: the track acceleration projected on z_cam.
+        a_fwd = acc * np.einsum("nji,j->ni", scene.rotation(times), np.array([0.0, 0.0, 1.0]))[:, 2]
+        _write_csv(tmp / "truth.csv", ["time_s", "v_forward_m_s", "a_forward_m_s2", "position_m"],
+                   ((f"{t:.6f}", f"{v:.6f}", f"{a:.6f}", f"{s:.6f}")
+                    for t, v, a, s in zip(times, vel[:, 2], a_fwd, scene.trajectory.position(times))))
+        info = dict(kind="compound-eye", rate_hz=rate, n_samples=len(times), n_ommatidia=eye.n,
+                    eye=eye.config.to_dict(), range_every=int(range_every),
+                    rays_per_ommatidium=int(len(eye.ray_weights)),
+                    render_s=round(_time.perf_counter() - t_start, 2))
+        (tmp / "eye.json").write_text(json.dumps(info, indent=1))
+        (tmp / "scene.json").write_text(json.dumps(metadata, indent=1, default=str))
+        if folder.exists():
+            folder.rmdir()
+        tmp.rename(folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+@dataclass
+class EyeFootage:
+    """An eye-footage folder, opened lazily (luminance is memory-mapped).
+
+    eye: the :class:`CompoundEye` rebuilt from eye.json (checked against ommatidia.csv);
+    times (T,) s; rate_hz; imu (camera frame) or None; truth dict or None.
+    ``chunks(size)`` yields (times (k,), luminance (k, n) float32) in order.
+    """
+
+    path: Path
+    eye: CompoundEye
+    times: np.ndarray
+    rate_hz: float
+    imu: IMU | None
+    truth: dict | None
+    info: dict
+    kind: str = "compound-eye"
+    notes: list = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    @property
+    def luminance(self) -> np.ndarray:
+        """(T, n) float32, memory-mapped."""
+        return np.load(self.path / "luminance.npy", mmap_mode="r")
+
+    def chunks(self, size: int = 500) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        lum = self.luminance
+        for s in range(0, len(self.times), size):
+            yield self.times[s:s + size], np.asarray(lum[s:s + size], dtype=np.float32)
+
+    def range_samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """(times (k,), range (k, n)) of the stored axial ranges (m)."""
+        every = int(self.info.get("range_every", 0))
+        p = self.path / "range.npy"
+        if not every or not p.exists():
+            return np.zeros(0), np.zeros((0, self.eye.n), np.float32)
+        r = np.load(p, mmap_mode="r")
+        return self.times[::every][:len(r)], np.asarray(r)
+
+
+def is_eye_footage(path: str | Path) -> bool:
+    """True for a folder holding eye.json and luminance.npy."""
+    path = Path(path)
+    return path.is_dir() and (path / "eye.json").exists() and (path / "luminance.npy").exists()
+
+
+def open_eye_footage(path: str | Path) -> EyeFootage:
+    """Open an eye-footage folder, checking its parts against each other up front."""
+    path = Path(path)
+    if not is_eye_footage(path):
+        raise FootageError(f"{path}: not an eye-footage folder (needs eye.json and luminance.npy); "
+                           f"make one with `lobula scene OUT --eye fly`")
+    try:
+        info = json.loads((path / "eye.json").read_text())
+        eye = CompoundEye(CompoundEyeConfig.from_dict(info["eye"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FootageError(f"{path / 'eye.json'}: not a valid eye description ({exc}); re-render the folder") from None
+    tab = _read_csv(path / "ommatidia.csv", OMMATIDIA_COLUMNS)
+    xyz = np.stack([tab["x"], tab["y"], tab["z"]], -1)
+    if len(xyz) != eye.n or np.max(np.abs(xyz - eye.directions)) > 1e-4:
+        raise FootageError(f"{path / 'ommatidia.csv'}: does not match the eye described in eye.json "
+                           f"({len(xyz)} rows, {eye.n} expected); re-render the folder")
+    tt = _read_csv(path / "times.csv", ("sample", "time_s"))["time_s"]
+    _check_times(path / "times.csv", tt)
+    shape = np.load(path / "luminance.npy", mmap_mode="r").shape
+    if shape != (len(tt), eye.n):
+        raise FootageError(f"{path / 'luminance.npy'}: shape {shape}, expected ({len(tt)}, {eye.n}) from "
+                           f"times.csv and ommatidia.csv; re-render the folder")
+    imu = None
+    if (path / "imu.csv").exists():
+        d = _read_csv(path / "imu.csv", ("time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z"))
+        _check_times(path / "imu.csv", d["time_s"])
+        imu = IMU(d["time_s"], np.stack([d["accel_x"], d["accel_y"], d["accel_z"]], -1),
+                  np.stack([d["gyro_x"], d["gyro_y"], d["gyro_z"]], -1), source=str(path / "imu.csv"))
+    truth = None
+    if (path / "truth.csv").exists():
+        truth = _read_csv(path / "truth.csv", ("time_s", "v_forward_m_s"))
+    return EyeFootage(path, eye, tt, float(info.get("rate_hz", 1.0 / np.median(np.diff(tt)))), imu, truth, info)
+
+
+def make_eye_run(folder, cfg, eye_config: CompoundEyeConfig | None = None, rate_hz: float = 500.0,
+                 range_every: int = 10, progress: bool = True) -> Path:
+    """Render a track run (:class:`stimuli.track.TrackRunConfig`: the same world, trajectory and IMU
+    as the pinhole footage of that configuration) onto the compound eye at ``rate_hz``.
+
+    500 Hz default: the photoreceptor model's 2 ms step (τ = 10 ms is resolved five times over).
+    """
+    from tqdm.auto import tqdm
+
+    from lobula import __version__
+
+    from .track import build_track
+
+    if not (20.0 <= rate_hz <= 5000.0):
+        raise ValueError(f"eye rate must be in [20, 5000] Hz, got {rate_hz}")
+    eye = CompoundEye(eye_config or CompoundEyeConfig())
+    if getattr(cfg.scene, "mipmap", False) is None:
+        # Texture filtering, not world content: the eye's rays carry their footprint (see render_eye).
+        cfg = replace(cfg, scene=replace(cfg.scene, mipmap=True))
+    scene, imu = build_track(cfg)
+    times = np.arange(0.0, cfg.duration_s - 1e-9, 1.0 / rate_hz)
+    meta = dict(lobula_version=__version__, config=cfg.to_dict(), eye=eye.config.to_dict(), rate_hz=rate_hz,
+                accel_bias=imu["accel_bias"].tolist(), gyro_bias=imu["gyro_bias"].tolist(),
+                trajectory=scene.trajectory.source, world_camera=scene.camera.to_dict(),
+                note="the world is laid out for the pinhole camera named in world_camera (same seed, same world)")
+    with tqdm(total=len(times), desc="rendering eye", unit="sample", disable=not progress, leave=False,
+              mininterval=2) as bar:
+        return write_eye_footage(folder, scene, eye, imu, times, meta, range_every, progress=bar.update)
