@@ -21,9 +21,9 @@ from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import EpipoleEstimator, derotate, mean_angular_velocity
 from lobula.flow import FlowSample, StaggeredFlow
-from lobula.haltere import forward_acceleration, resample_to
-from lobula.readout import readout
-from lobula.receptive_field import ReceptiveFields, gap_correction, pool_fields, tile_fields
+from lobula.haltere import forward_acceleration, gyro_bias, resample_to
+from lobula.readout import MaterialRates, readout
+from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
                              read_flo)
 
@@ -35,7 +35,9 @@ from .stream import threaded
 class FieldRates:
     """What the front end and fields give the readout, time-major.
 
-    t (n,) s; r, r2 (n, F); epipole (n, 2) normalised; timings: seconds per stage.
+    t (n,) s; r, r2 (n, F) at fixed pixels; epipole (n, 2) normalised; timings: seconds per
+    stage; material: the rates along the content (ṙ̄ as Dr/Dt, lobula.readout.MaterialRates),
+    None where the front end gives no consecutive pairs (flo, emd) or fields.material is off.
     """
 
     t: np.ndarray
@@ -44,6 +46,7 @@ class FieldRates:
     epipole: np.ndarray
     timings: dict
     fields: ReceptiveFields
+    material: MaterialRates | None = None
 
 
 def flo_samples(footage: Footage, flo_files: list[Path], units: FloUnits):
@@ -81,10 +84,7 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     est = EpipoleEstimator(x, y, stride=max(1, int(np.sqrt(cam.width * cam.height / 5000))))
     gyro = footage.imu.gyro if (footage.imu is not None and footage.imu.gyro is not None) else None
     if gyro is not None:
-        # Gyro bias, as in lobula.haltere: on a track the heading returns, so the mean
-        # rate (whole record offline, running mean online) is the bias.
-        n = np.arange(1, len(gyro) + 1)[:, None]
-        gyro = gyro - (np.cumsum(gyro, 0) / n if config.readout.filter == "causal" else gyro.mean(0))
+        gyro = gyro - gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal")
     timings = dict(read=0.0, flow=0.0, fields=0.0)
 
     if config.front_end == "emd":
@@ -105,18 +105,24 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     else:
         raise ValueError(f"unknown front end {config.front_end!r}; choose dis, farneback, flo or emd")
 
-    ts, rs, r2s, es = [], [], [], []
+    stagger = max(2, config.readout.stagger + config.readout.stagger % 2)
+    material = (MaterialFields(fields, stagger, gap_correction=config.fields.gap_correction)
+                if config.fields.material and config.front_end in ("dis", "farneback") else None)
+    ts, rs, r2s, es, ms = [], [], [], [], []
     bar = tqdm(total=total, desc=f"{config.front_end} flow → fields", unit="frame", disable=not progress,
                leave=False, mininterval=2)
     for s in samples:
         t1 = _time.perf_counter()
-        flow = s.flow
+        flow, omega = s.flow, np.zeros(3)
         if config.derotate and gyro is not None:
-            flow = derotate(flow, mean_angular_velocity(footage.imu.time_s, gyro, s.t0, s.t1), x, y)
+            omega = mean_angular_velocity(footage.imu.time_s, gyro, s.t0, s.t1)
+            flow = derotate(flow, omega, x, y)
         e = est.update(flow) if config.epipole == "estimate" else np.zeros(2)
         r, r2 = pool_fields(flow, fields, e, pooling=config.fields.pooling)
         if config.fields.gap_correction:
             r, r2 = gap_correction(r, r2, s.dt)
+        if material is not None:
+            ms.append(material.update(s.t0, s.dt, flow, s.flow, e, omega))
         timings["fields"] += _time.perf_counter() - t1
         ts.append(s.t_mid if config.timestamps == "mid" else s.t0)
         rs.append(r)
@@ -127,7 +133,19 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     if not ts:
         raise FootageError(f"{footage.path}: too few frames for a flow pair "
                            f"({len(footage)} frames, gap {config.flow.gap})")
-    return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.array(es), timings, fields)
+    return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.array(es), timings, fields,
+                      _material_rates(ms, len(ts), fields.n_fields, stagger) if material is not None else None)
+
+
+def _material_rates(items: list, n: int, n_fields: int, stagger: int) -> MaterialRates:
+    """Place each difference (returned at pair k, over k − s … k) at its centre k − s/2."""
+    out = [np.full((n, n_fields), np.nan) for _ in range(4)]
+    h = stagger // 2
+    for k, item in enumerate(items):
+        if item is not None:
+            for arr, val in zip(out, item):
+                arr[k - h] = val
+    return MaterialRates(*out)
 
 
 def _emd_field_rates(footage: Footage, config: VelocityConfig, fields: ReceptiveFields, timings: dict,
@@ -199,7 +217,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     fields = rates.fields
     t0 = _time.perf_counter()
     if len(rates.t) >= 3:
-        res = readout(rates.t, rates.r, rates.r2, a, config.readout)
+        res = readout(rates.t, rates.r, rates.r2, a, config.readout, material=rates.material)
     else:
         res = None
     rates.timings["readout"] = _time.perf_counter() - t0

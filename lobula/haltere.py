@@ -2,8 +2,8 @@
 
 An accelerometer reads specific force f = a − g (plus bias) in the camera frame.
 Forward acceleration needs gravity removed, and the recording may start in motion,
-so nothing assumes an initial rest. Instead: the gyroscope (its mean taken as bias,
-since the camera's heading on a track returns) tracks the camera's orientation, the
+so nothing assumes an initial rest. Instead: the gyroscope (its bias estimated where the
+camera is still, :func:`gyro_bias`) tracks the camera's orientation, the
 specific force is rotated into the first frame where gravity is a constant vector,
 and that vector is the (zero-phase: whole-record; causal: running) mean, because the
 platform's mean acceleration over a bounded track is ~0. The remaining constant
@@ -17,14 +17,50 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 
+GYRO_NOISE_DENSITY = np.radians(0.014)  # rad/s/√Hz, Bosch BMI055 (the D435i's IMU) datasheet
+
+
+def gyro_bias(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False, window_s: float = 0.5,
+              noise_density: float = GYRO_NOISE_DENSITY) -> np.ndarray:
+    """Gyroscope bias (rad/s, (n, 3)) estimated where the camera is still — the one implementation.
+
+    A sample is still when, over a window of ``window_s`` around it (causal: ending at it),
+    the rate's standard deviation on every axis stays within 1.5× the white noise the
+    sensor's ``noise_density`` allows, i.e. the camera is not turning. The bias is the
+    mean rate over the still samples: online, those seen so far (0 before the first,
+    the bias's expected value); offline, all of the record's. A camera that keeps turning
+    gives no estimate rather than a wrong one: a mean rate over motion is the net angle
+    turned divided by the time, not the bias.
+    """
+    time_s, gyro = np.asarray(time_s, float), np.asarray(gyro, float)
+    n = len(time_s)
+    if n < 3:
+        return np.zeros((n, 3))
+    rate = 1.0 / float(np.median(np.diff(time_s)))
+    sigma = noise_density * np.sqrt(rate / 2)
+    k = max(3, int(round(window_s * rate)))
+    c1 = np.concatenate([np.zeros((1, 3)), np.cumsum(gyro, 0)])
+    c2 = np.concatenate([np.zeros((1, 3)), np.cumsum(gyro ** 2, 0)])
+    hi = np.arange(1, n + 1) if causal else np.minimum(np.arange(n) + k // 2 + 1, n)
+    lo = np.maximum(hi - k, 0)
+    m = (hi - lo)[:, None]
+    mean = (c1[hi] - c1[lo]) / m
+    var = np.maximum((c2[hi] - c2[lo]) / m - mean ** 2, 0.0)
+    still = (m[:, 0] >= k) & np.all(var <= (1.5 * sigma) ** 2, axis=1)
+    if causal:
+        count = np.cumsum(still)[:, None]
+        total = np.cumsum(gyro * still[:, None], 0)
+        return np.where(count > 0, total / np.maximum(count, 1), 0.0)
+    return np.broadcast_to(gyro[still].mean(0) if still.any() else np.zeros(3), (n, 3)).copy()
+
+
 def orientation_from_gyro(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False) -> np.ndarray:
     """Rotations (n, 3, 3) taking camera-frame vectors at each sample into the first sample's frame.
 
-    The gyro's mean (zero-phase) or running mean (causal) is removed as bias first.
+    The gyro bias (:func:`gyro_bias`) is removed first.
     """
     n = len(time_s)
-    bias = (np.cumsum(gyro, 0) / np.arange(1, n + 1)[:, None]) if causal else gyro.mean(0, keepdims=True)
-    w = gyro - bias
+    w = gyro - gyro_bias(time_s, gyro, causal)
     dt = np.diff(time_s, prepend=time_s[0])
     steps = Rotation.from_rotvec(w * dt[:, None]).as_matrix()
     out = np.empty((n, 3, 3))

@@ -47,6 +47,9 @@ class ReadoutConfig:
     bias_prior_m_s2: prior std of the accelerometer offset; v_prior_m_s: prior std of v.
     meas_floor_m_s: smallest standard deviation granted to one frame's measurement.
     max_std_m_s: posterior std above which v̂ is reported as unobservable (NaN).
+    r2_term: "field" (the field's mean of r², the geometry) or "mean_squared" (r̄², the ablation).
+    fusion: "kalman" (vision measurements fused with integrated acceleration) or "vision-only"
+        (the per-frame robust median of v_f through the same low-pass, no acceleration integration).
     """
 
     method: str = "kalman"
@@ -67,8 +70,14 @@ class ReadoutConfig:
     v_prior_m_s: float = 1.0
     meas_floor_m_s: float = 0.02
     max_std_m_s: float = 0.1
+    r2_term: str = "field"
+    fusion: str = "kalman"
 
     def __post_init__(self):
+        if self.r2_term not in ("field", "mean_squared"):
+            raise ValueError(f"unknown r2_term {self.r2_term!r}; use 'field' or 'mean_squared'")
+        if self.fusion not in ("kalman", "vision-only"):
+            raise ValueError(f"unknown fusion {self.fusion!r}; use 'kalman' or 'vision-only'")
         if self.method not in ("kalman", "median"):
             raise ValueError(f"unknown readout method {self.method!r}; use 'kalman' or 'median'")
         if self.filter not in ("zero-phase", "causal"):
@@ -242,45 +251,89 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool):
     return xs[:, 0], np.sqrt(np.maximum(Ps[:, 0, 0], 0.0))
 
 
-def kalman_readout(t, r, r2, a, cfg: ReadoutConfig) -> ReadoutResult:
-    """The project's readout (see module docstring)."""
+@dataclass
+class MaterialRates:
+    """Field rates taken along the image content (the material derivative), time-major (n, F).
+
+    For each frame k: r̄, r²̄ (1/s, 1/s²) averaged over the *same scene points* at both ends
+    of a difference, ṙ̄ = Dr/Dt (1/s²) over those points, and r_omega, the pooled r·g with
+    g = ωx(y − ey) − ωy(x − ex) (1/s²), the rotation's share of Dr/Dt. All belong to the
+    time of frame k (centred); NaN where no difference exists.
+    """
+
+    r: np.ndarray
+    r2: np.ndarray
+    r_dot: np.ndarray
+    r_omega: np.ndarray
+
+
+def _lag(x: np.ndarray, h: int) -> np.ndarray:
+    """x delayed by h frames along axis 0 (NaN-filled): what an online stage has at each step."""
+    return np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:-h]]) if h else x
+
+
+def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None) -> ReadoutResult:
+    """The project's readout (see module docstring).
+
+    Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
+    (exact only where r is uniform, a fronto-parallel surface); with it, the material
+    derivative along the content and r̄, r²̄ over the same points, minus the rotation term.
+    """
     zp = cfg.filter == "zero-phase"
     dt = float(np.median(np.diff(t)))
     wn = cfg.cutoff_hz / (0.5 / dt)
-    rf = butterworth(r, wn, cfg.order, zp)
-    r2f = butterworth(r2, wn, cfg.order, zp)
-    af = butterworth(a, wn, cfg.order, zp)
     stagger = max(2, cfg.stagger + cfg.stagger % 2)
-    if zp:
-        r_dot = staggered_difference(rf, stagger, dt, centred=True)
-        z, s, v_f = vision_measurement(rf, r2f, r_dot, af, cfg)
-        delay = 0.0
+    h = stagger // 2
+    lp = lambda x: butterworth(x, wn, cfg.order, zp)
+    rf = lp(r)
+    if material is None:
+        r2f = lp(r2) if cfg.r2_term == "field" else rf ** 2
+        if zp:
+            r_dot = staggered_difference(rf, stagger, dt, centred=True)
+            terms = (rf, r2f, r_dot, lp(a))
+        else:
+            # The backward difference belongs s/2 frames back; align r̄, r²̄ and a with it.
+            r_dot = staggered_difference(rf, stagger, dt, centred=False)
+            terms = (_lag(rf, h), _lag(r2f, h), r_dot, _lag(lp(a), h))
     else:
-        # The backward difference belongs s/2 frames back; align r̄, r²̄ and a with it.
-        h = stagger // 2
-        r_dot = staggered_difference(rf, stagger, dt, centred=False)
-        lag = lambda x: np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:-h]])
-        z, s, v_f = vision_measurement(lag(rf), lag(r2f), r_dot, lag(af), cfg)
-        # Filter group delay at DC plus the difference's half-width: bridge it with ∫a.
+        m = material
+        # Centred quantities are known h frames after their time: online, they arrive lagged.
+        arrive = (lambda x: x) if zp else (lambda x: _lag(x, h))
+        rm = lp(arrive(m.r))
+        r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp(arrive(m.r2))
+        r_dot = lp(arrive(m.r_dot)) - lp(arrive(m.r_omega))
+        terms = (rm, r2m, r_dot, lp(arrive(a)))
+    z, s, v_f = vision_measurement(*terms, cfg)
+    delay = 0.0
+    if not zp:
+        # Filter group delay at DC plus the difference's half-width.
         w, gd = signal.group_delay(signal.butter(cfg.order, wn), w=[1e-3])
         delay = float(gd[0]) * dt + h * dt
-        cum = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))])
-        z = z + (cum - np.interp(t - delay, t, cum))
-    zr, sr = rest_measurement(rf, cfg)
     # Low-passed measurements are correlated over about 1/(2·cutoff) s; treating each
     # frame as independent would make the posterior overconfident by √(that many frames).
     s = s * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
+    if cfg.fusion == "vision-only":
+        obs = np.isfinite(z) & (s <= cfg.max_std_m_s)
+        return ReadoutResult(np.where(obs, z, np.nan), obs, np.where(obs, s, np.nan), v_f, r_dot, z, s, a,
+                             info=dict(measurement_delay_s=delay))
+    if delay:
+        # Bridge the measurement's latency with ∫a (the haltere's fast path).
+        cum = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))])
+        z = z + (cum - np.interp(t - delay, t, cum))
+    zr, sr = rest_measurement(rf, cfg)
     v, v_std = kalman_velocity(t, a, [(z, s), (zr, sr)], cfg, smooth=zp)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
                          info=dict(measurement_delay_s=delay))
 
 
-def readout(t, r, r2, a, config: ReadoutConfig | None = None) -> ReadoutResult:
+def readout(t, r, r2, a, config: ReadoutConfig | None = None,
+            material: MaterialRates | None = None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
     t (n,) s, uniformly spaced; r, r2 (n, F) in 1/s and 1/s²; a (n,) forward
-    acceleration at the same times (m/s², gravity removed).
+    acceleration at the same times (m/s², gravity removed); material: the rates along
+    the content (:class:`MaterialRates`), used by the kalman readout when given.
     """
     cfg = config or ReadoutConfig()
     t, r, r2, a = (np.asarray(x, dtype=float) for x in (t, r, r2, a))
@@ -288,5 +341,6 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None) -> ReadoutResult:
         raise ValueError(f"need at least 3 flow frames for a readout, got {len(t)}")
     if not np.all(np.isfinite(a)):
         raise ValueError("acceleration has NaN or inf at flow times")
-    fn = kalman_readout if cfg.method == "kalman" else paper_readout
-    return fn(t, r, r2, a, cfg)
+    if cfg.method == "kalman":
+        return kalman_readout(t, r, r2, a, cfg, material)
+    return paper_readout(t, r, r2, a, cfg)

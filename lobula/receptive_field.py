@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+import cv2
 import numpy as np
 from scipy import sparse
 
@@ -28,6 +29,8 @@ class FieldConfig:
     the pair rate (d0/d1 − 1)/Δt by the exact mean rate ln(d0/d1)/Δt. pooling:
     "least-squares" (|p−e|²-weighted, robust at the epipole) or "pixel-mean" (the
     paper: the plain mean of per-pixel ratios ⟨ṗ,p−e⟩/|p−e|², which blows up there).
+    material: take ṙ̄ along the image content (:class:`MaterialFields`, the material
+    derivative Dr/Dt the geometry needs) instead of at fixed pixels (the paper).
     """
 
     size_deg: float = 5.0
@@ -36,6 +39,7 @@ class FieldConfig:
     shape: str = "box"
     pooling: str = "least-squares"
     gap_correction: bool = True
+    material: bool = True
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -151,3 +155,124 @@ def gap_correction(r_pair: np.ndarray, r2_pair: np.ndarray, dt_s: float) -> tupl
         r = np.where(arg > 0, np.log(np.where(arg > 0, arg, 1.0)) / dt_s, np.nan)
         scale = np.where(np.abs(r_pair) > 1e-12, r / r_pair, 1.0)
     return r, r2_pair * scale ** 2
+
+
+class MaterialFields:
+    """Receptive fields that follow the image content: ṙ̄ as the material derivative Dr/Dt.
+
+    ṙ = a/d + r² holds along a scene point. At a fixed pixel other points flow through
+    (∂r/∂t = Dr/Dt − u·∇r), which is wrong wherever r varies across the image (floors,
+    walls, slanted surfaces). Here each field's points at the flow of frame k − s are
+    carried by that flow to where they are at frame k, r is pooled at both ends over the
+    *same* points (least squares, the fields' weights), and
+    ``ṙ̄ = (r̄_end − r̄_start)/δ``, ``r̄``, ``r²̄`` the means of both ends (so all three
+    terms see one set of depths and v_f = a·r̄/(ṙ̄ − r²̄ − r·g) is exact per field).
+
+    Rotation: for a camera turning at ω, a point's forward depth changes as
+    ḋ = −v − d(ωx y − ωy x) and the camera-frame velocity as v̇ = a − v(ωx ey − ωy ex), so
+    Dr/Dt = a/d + r² + r·g with g = ωx(y − ey) − ωy(x − ex); the pooled r·g is returned
+    (``r_omega``) for the readout to subtract.
+
+    Work is done on b×b pixel blocks (b chosen so ~20,000 blocks cover the image): the
+    maps are smooth at that scale and the cost does not grow with the image.
+    """
+
+    def __init__(self, fields: ReceptiveFields, stagger: int, block: int | None = None, gap_correction: bool = True):
+        cam = fields.camera
+        self.fields, self.stagger, self.gap_correction = fields, int(stagger), gap_correction
+        b = self.block = block or max(1, int(round(np.sqrt(cam.width * cam.height / 20000))))
+        self.hs, self.ws = cam.height // b, cam.width // b
+        rows = np.arange(cam.height)[:, None] // b
+        cols = np.arange(cam.width)[None, :] // b
+        inside = (rows < self.hs) & (cols < self.ws)
+        blk = np.where(inside, rows * self.ws + cols, 0).ravel()
+        agg = sparse.csr_matrix((inside.ravel().astype(np.float64), (np.arange(blk.size), blk)),
+                                shape=(blk.size, self.hs * self.ws))
+        self.weights = (fields.weights.astype(np.float64) @ agg).tocsr()  # (F, blocks): Σ_pixels w
+        self.x = self._blocks(fields.x)
+        self.y = self._blocks(fields.y)
+        self.fx, self.fy, self.cx, self.cy = cam.fx, cam.fy, cam.cx, cam.cy
+        self._buf: list = []
+
+    def _blocks(self, m: np.ndarray) -> np.ndarray:
+        """Block means (hs, ws) of a full-resolution map; NaN stays NaN."""
+        b = self.block
+        m = np.asarray(m, np.float32)[: self.hs * b, : self.ws * b]
+        if b == 1:
+            return m.copy()
+        return cv2.resize(m, (self.ws, self.hs), interpolation=cv2.INTER_AREA)
+
+    @staticmethod
+    def _g(omega, e, x, y):
+        return np.float32(omega[0]) * (y - np.float32(e[1])) - np.float32(omega[1]) * (x - np.float32(e[0]))
+
+    def update(self, t0: float, dt_pair: float, flow: np.ndarray, flow_full: np.ndarray, epipole, omega):
+        """Add frame pair k (first frame at t0 s, gap dt_pair s) and return the rates of k − s/2.
+
+        flow: derotated flow (2, H, W) 1/s, expressed in the first frame's orientation;
+        flow_full: the image flow before derotation (how content moves); epipole (2,);
+        omega: mean angular velocity over the pair (rad/s, camera frame).
+        Returns None until s pairs are buffered, else (r̄, r²̄, ṙ̄, r_omega), each (F,).
+        """
+        dx = self.x - np.float32(epipole[0])
+        dy = self.y - np.float32(epipole[1])
+        u, v = self._blocks(flow[0]), self._blocks(flow[1])
+        num = u * dx + v * dy
+        den = dx * dx + dy * dy
+        item = dict(t0=t0, T=dt_pair, num=num, den=den, e=np.asarray(epipole, float), omega=np.asarray(omega, float),
+                    u=u, v=v, uf=self._blocks(flow_full[0]) - u, vf=self._blocks(flow_full[1]) - v)
+        self._buf.append(item)
+        if len(self._buf) <= self.stagger:
+            return None
+        s0 = self._buf.pop(0)
+        return self._difference(s0, item)
+
+    def _difference(self, s0: dict, s1: dict):
+        delta = s1["t0"] - s0["t0"]
+        T = s0["T"]
+        # Where the start's points are at the end: the translational displacement over δ
+        # is exact for a constant r along the pair (x − e scales by 1/(1 − ρδ), ρ = v/d0),
+        # the rotational one is the rotation's flow times δ.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = 1.0 + np.where(s0["den"] > 0, s0["num"] / s0["den"], 0.0) * T  # d0/d1 over the pair
+            rho = (1.0 - 1.0 / np.maximum(lam, 0.2)) / T
+            grow = np.where(np.abs(rho) * T > 1e-6,
+                            (1.0 / np.maximum(1.0 - rho * delta, 0.2) - 1.0) / np.where(np.abs(lam - 1) > 1e-9, lam - 1, 1.0),
+                            delta / T)
+        xe = self.x + grow * s0["u"] * T + s0["uf"] * delta
+        ye = self.y + grow * s0["v"] * T + s0["vf"] * delta
+        b = self.block
+        mx = ((xe * self.fx + self.cx) - (b - 1) / 2) / b
+        my = ((ye * self.fy + self.cy) - (b - 1) / 2) / b
+        inside = (mx >= 0) & (mx <= self.ws - 1) & (my >= 0) & (my <= self.hs - 1)
+        mx, my = np.nan_to_num(mx).astype(np.float32), np.nan_to_num(my).astype(np.float32)
+        dx1, dy1 = xe - np.float32(s1["e"][0]), ye - np.float32(s1["e"][1])
+        den1 = dx1 * dx1 + dy1 * dy1  # |p − e|² at the points' new place (exact, not interpolated)
+        num1 = cv2.remap(s1["num"] / np.where(s1["den"] > 0, s1["den"], np.inf), mx, my, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE) * den1  # r there, interpolated, times the new weight
+        num0, den0 = s0["num"], s0["den"]
+        ok = inside & np.isfinite(num0) & np.isfinite(num1)
+        g0 = self._g(s0["omega"], s0["e"], self.x, self.y)
+        g1 = self._g(s1["omega"], s1["e"], xe, ye)
+        cols = []
+        for num, den, g in ((num0, den0, g0), (num1, den1, g1)):
+            num = np.where(ok, num, 0.0)
+            den = np.where(ok, den, 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sq = np.where(den > 0, num * num / den, 0.0)
+            cols += [num.ravel(), den.ravel(), sq.ravel(), (num * g).ravel()]
+        pooled = self.weights @ np.stack(cols, axis=1).astype(np.float64)
+        out = []
+        for c in (0, 4):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = pooled[:, c] / pooled[:, c + 1]
+                r2 = pooled[:, c + 2] / pooled[:, c + 1]
+                rg = pooled[:, c + 3] / pooled[:, c + 1]
+            if self.gap_correction:
+                rc, r2 = gap_correction(r, r2, T)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    rg = rg * np.where(np.abs(r) > 1e-12, rc / r, 1.0)
+                r = rc
+            out.append((r, r2, rg))
+        (ra, r2a, rga), (rb, r2b, rgb) = out
+        return 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) / delta, 0.5 * (rga + rgb)
