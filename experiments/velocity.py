@@ -15,13 +15,14 @@ from pathlib import Path
 
 import numpy as np
 import xarray as xr
+from scipy.spatial.transform import Rotation, Slerp
 from tqdm.auto import tqdm
 
 from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
-from lobula.epipole import EpipoleEstimator, derotate, mean_angular_velocity
+from lobula.epipole import EpipoleEstimator, derotate, derotate_finite
 from lobula.flow import FlowSample, StaggeredFlow
-from lobula.haltere import forward_acceleration, gyro_bias, resample_to
+from lobula.haltere import forward_acceleration, orientation_from_gyro, resample_to
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
@@ -83,8 +84,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     # ~5,000 pixels are plenty for a 2-parameter fit, whatever the image size.
     est = EpipoleEstimator(x, y, stride=max(1, int(np.sqrt(cam.width * cam.height / 5000))))
     gyro = footage.imu.gyro if (footage.imu is not None and footage.imu.gyro is not None) else None
-    if gyro is not None:
-        gyro = gyro - gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal")
+    attitude = (_attitude_track(footage.imu.time_s, gyro, causal=config.readout.filter == "causal")
+                if (gyro is not None and config.derotate) else None)
     timings = dict(read=0.0, flow=0.0, fields=0.0)
 
     if config.front_end == "emd":
@@ -113,16 +114,26 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
                leave=False, mininterval=2)
     for s in samples:
         t1 = _time.perf_counter()
-        flow, omega = s.flow, np.zeros(3)
-        if config.derotate and gyro is not None:
-            omega = mean_angular_velocity(footage.imu.time_s, gyro, s.t0, s.t1)
-            flow = derotate(flow, omega, x, y)
-        e = est.update(flow) if config.epipole == "estimate" else np.zeros(2)
+        flow, q = s.flow, (None, None, None)
+        if attitude is not None:
+            q = attitude(np.array([s.t0, s.t1, s.t_mid]))  # camera → reference at t0, t1, middle
+            # The first-order derotation serves the fixed-pixel rates (outputs r, r2); the
+            # epipole and the material fields derotate exactly (finite rotation over the gap).
+            flow = derotate(flow, Rotation.from_matrix(q[0].T @ q[1]).as_rotvec() / s.dt, x, y)
+        if config.epipole == "estimate":
+            if attitude is not None:
+                sub = s.flow[:, ::est.stride, ::est.stride].reshape(2, -1)
+                pts = derotate_finite(est.x, est.y, sub, s.dt, q[2].T @ q[0], q[2].T @ q[1])
+                e = est.update(None, points=pts, attitude=q[2])
+            else:
+                e = est.update(flow)
+        else:
+            e = np.zeros(2)
         r, r2 = pool_fields(flow, fields, e, pooling=config.fields.pooling)
         if config.fields.gap_correction:
             r, r2 = gap_correction(r, r2, s.dt)
         if material is not None:
-            ms.append(material.update(s.t0, s.dt, flow, s.flow, e, omega))
+            ms.append(material.update(s.t0, s.dt, s.flow, e, *q))
         timings["fields"] += _time.perf_counter() - t1
         ts.append(s.t_mid if config.timestamps == "mid" else s.t0)
         rs.append(r)
@@ -137,9 +148,18 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
                       _material_rates(ms, len(ts), fields.n_fields, stagger) if material is not None else None)
 
 
+def _attitude_track(time_s: np.ndarray, gyro: np.ndarray, causal: bool):
+    """A function t (k,) -> camera orientations (k, 3, 3) (camera → the first sample's frame)
+    from the bias-corrected integrated gyro (lobula.haltere), interpolated by slerp."""
+    q = orientation_from_gyro(time_s, gyro, causal)
+    keep = np.concatenate([[True], np.diff(time_s) > 0])
+    slerp = Slerp(time_s[keep], Rotation.from_matrix(q[keep]))
+    return lambda t: slerp(np.clip(t, time_s[0], time_s[-1])).as_matrix()
+
+
 def _material_rates(items: list, n: int, n_fields: int, stagger: int) -> MaterialRates:
     """Place each difference (returned at pair k, over k − s … k) at its centre k − s/2."""
-    out = [np.full((n, n_fields), np.nan) for _ in range(4)]
+    out = [np.full((n, n_fields), np.nan) for _ in range(3)]
     h = stagger // 2
     for k, item in enumerate(items):
         if item is not None:

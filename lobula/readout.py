@@ -256,15 +256,13 @@ class MaterialRates:
     """Field rates taken along the image content (the material derivative), time-major (n, F).
 
     For each frame k: r̄, r²̄ (1/s, 1/s²) averaged over the *same scene points* at both ends
-    of a difference, ṙ̄ = Dr/Dt (1/s²) over those points, and r_omega, the pooled r·g with
-    g = ωx(y − ey) − ωy(x − ex) (1/s²), the rotation's share of Dr/Dt. All belong to the
-    time of frame k (centred); NaN where no difference exists.
+    of a difference and ṙ̄ = Dr/Dt (1/s²) over those points, all in the camera's orientation
+    at frame k (lobula.receptive_field.MaterialFields); NaN where no difference exists.
     """
 
     r: np.ndarray
     r2: np.ndarray
     r_dot: np.ndarray
-    r_omega: np.ndarray
 
 
 def _lag(x: np.ndarray, h: int) -> np.ndarray:
@@ -277,7 +275,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
 
     Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
     (exact only where r is uniform, a fronto-parallel surface); with it, the material
-    derivative along the content and r̄, r²̄ over the same points, minus the rotation term.
+    derivative along the content and r̄, r²̄ over the same points.
     """
     zp = cfg.filter == "zero-phase"
     dt = float(np.median(np.diff(t)))
@@ -301,7 +299,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
         arrive = (lambda x: x) if zp else (lambda x: _lag(x, h))
         rm = lp(arrive(m.r))
         r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp(arrive(m.r2))
-        r_dot = lp(arrive(m.r_dot)) - lp(arrive(m.r_omega))
+        r_dot = lp(arrive(m.r_dot))
         terms = (rm, r2m, r_dot, lp(arrive(a)))
     z, s, v_f = vision_measurement(*terms, cfg)
     delay = 0.0

@@ -162,16 +162,18 @@ class MaterialFields:
 
     ṙ = a/d + r² holds along a scene point. At a fixed pixel other points flow through
     (∂r/∂t = Dr/Dt − u·∇r), which is wrong wherever r varies across the image (floors,
-    walls, slanted surfaces). Here each field's points at the flow of frame k − s are
-    carried by that flow to where they are at frame k, r is pooled at both ends over the
-    *same* points (least squares, the fields' weights), and
-    ``ṙ̄ = (r̄_end − r̄_start)/δ``, ``r̄``, ``r²̄`` the means of both ends (so all three
-    terms see one set of depths and v_f = a·r̄/(ṙ̄ − r²̄ − r·g) is exact per field).
+    walls, slanted surfaces). Here each field's points in pair k − s are carried by the
+    flow to where they are in pair k, r is pooled at both ends over the *same* points
+    (least squares, the fields' weights), and ``ṙ̄ = (r̄_end − r̄_start)/δ``, with ``r̄``,
+    ``r²̄`` the means of both ends, so all three terms see one set of depths and
+    v_f = a·r̄/(ṙ̄ − r²̄) holds per field.
 
-    Rotation: for a camera turning at ω, a point's forward depth changes as
-    ḋ = −v − d(ωx y − ωy x) and the camera-frame velocity as v̇ = a − v(ωx ey − ωy ex), so
-    Dr/Dt = a/d + r² + r·g with g = ωx(y − ey) − ωy(x − ex); the pooled r·g is returned
-    (``r_omega``) for the readout to subtract.
+    Rotation: in a turning camera frame a point's forward depth also changes by the
+    rotation (ḋ = −v − d(ωx y − ωy x)), adding r·(ωx(y − ey) − ωy(x − ex)) to Dr/Dt. Both
+    ends are therefore expressed in ONE orientation, the camera's at the difference's
+    centre (pair k − s/2), by exact finite derotation of each pair
+    (:func:`lobula.epipole.derotate_finite`); in a fixed orientation the geometry has no
+    rotation term, and at the centre a and v are the camera's own.
 
     Work is done on b×b pixel blocks (b chosen so ~20,000 blocks cover the image): the
     maps are smooth at that scale and the cost does not grow with the image.
@@ -179,6 +181,8 @@ class MaterialFields:
 
     def __init__(self, fields: ReceptiveFields, stagger: int, block: int | None = None, gap_correction: bool = True):
         cam = fields.camera
+        if stagger < 2 or stagger % 2:
+            raise ValueError(f"the material difference needs an even stagger ≥ 2, got {stagger}")
         self.fields, self.stagger, self.gap_correction = fields, int(stagger), gap_correction
         b = self.block = block or max(1, int(round(np.sqrt(cam.width * cam.height / 20000))))
         self.hs, self.ws = cam.height // b, cam.width // b
@@ -202,77 +206,72 @@ class MaterialFields:
             return m.copy()
         return cv2.resize(m, (self.ws, self.hs), interpolation=cv2.INTER_AREA)
 
-    @staticmethod
-    def _g(omega, e, x, y):
-        return np.float32(omega[0]) * (y - np.float32(e[1])) - np.float32(omega[1]) * (x - np.float32(e[0]))
+    def update(self, t0: float, dt_pair: float, flow_full: np.ndarray, epipole,
+               q0: np.ndarray | None = None, q1: np.ndarray | None = None, qm: np.ndarray | None = None):
+        """Add frame pair k (first frame at t0 s, gap dt_pair s) and return the rates of pair k − s/2.
 
-    def update(self, t0: float, dt_pair: float, flow: np.ndarray, flow_full: np.ndarray, epipole, omega):
-        """Add frame pair k (first frame at t0 s, gap dt_pair s) and return the rates of k − s/2.
-
-        flow: derotated flow (2, H, W) 1/s, expressed in the first frame's orientation;
-        flow_full: the image flow before derotation (how content moves); epipole (2,);
-        omega: mean angular velocity over the pair (rad/s, camera frame).
-        Returns None until s pairs are buffered, else (r̄, r²̄, ṙ̄, r_omega), each (F,).
+        flow_full: the image flow (2, H, W) 1/s, rotation included (how content moves);
+        q0, q1, qm: the camera's orientation (camera → a fixed reference, from the integrated
+        gyro) at the pair's first frame, second frame and middle (None: not turning);
+        epipole (2,): the heading seen in the middle orientation.
+        Returns None until s pairs are buffered, else (r̄, r²̄, ṙ̄), each (F,), for pair k − s/2.
         """
-        dx = self.x - np.float32(epipole[0])
-        dy = self.y - np.float32(epipole[1])
-        u, v = self._blocks(flow[0]), self._blocks(flow[1])
-        num = u * dx + v * dy
-        den = dx * dx + dy * dy
-        item = dict(t0=t0, T=dt_pair, num=num, den=den, e=np.asarray(epipole, float), omega=np.asarray(omega, float),
-                    u=u, v=v, uf=self._blocks(flow_full[0]) - u, vf=self._blocks(flow_full[1]) - v)
+        eye = np.eye(3)
+        item = dict(t0=t0, T=dt_pair, uf=self._blocks(flow_full[0]), vf=self._blocks(flow_full[1]),
+                    e=np.asarray(epipole, float), q0=eye if q0 is None else np.asarray(q0, float),
+                    q1=eye if q1 is None else np.asarray(q1, float), qm=eye if qm is None else np.asarray(qm, float))
         self._buf.append(item)
         if len(self._buf) <= self.stagger:
             return None
-        s0 = self._buf.pop(0)
-        return self._difference(s0, item)
+        s0, sc = self._buf.pop(0), self._buf[self.stagger // 2 - 1]
+        return self._difference(s0, sc, item)
 
-    def _difference(self, s0: dict, s1: dict):
+    def _rates(self, item, qc, e, x, y, uf, vf):
+        """Pair rates in the orientation qc at points (x, y) with flow (uf, vf): num, den maps."""
+        from .epipole import derotate_finite
+
+        X, Y, d = derotate_finite(x, y, (uf, vf), item["T"], qc.T @ item["q0"], qc.T @ item["q1"])
+        dx, dy = X - e[0], Y - e[1]
+        return d[0] * dx + d[1] * dy, dx * dx + dy * dy, d, X, Y
+
+    def _difference(self, s0: dict, sc: dict, s1: dict):
         delta = s1["t0"] - s0["t0"]
         T = s0["T"]
-        # Where the start's points are at the end: the translational displacement over δ
-        # is exact for a constant r along the pair (x − e scales by 1/(1 − ρδ), ρ = v/d0),
-        # the rotational one is the rotation's flow times δ.
+        qc, e = sc["qm"], sc["e"]
+        num0, den0, d0, X0, Y0 = self._rates(s0, qc, e, self.x, self.y, s0["uf"], s0["vf"])
+        # Where the start's points are at the end. In the fixed orientation only translation
+        # moves them, exactly for constant r along the pair (x − e scales by 1/(1 − ρδ),
+        # ρ = v/d0), not linearly in δ; the gyro's rotation then says where pair k's first
+        # camera sees them.
         with np.errstate(divide="ignore", invalid="ignore"):
-            lam = 1.0 + np.where(s0["den"] > 0, s0["num"] / s0["den"], 0.0) * T  # d0/d1 over the pair
+            lam = 1.0 + np.where(den0 > 0, num0 / den0, 0.0) * T  # d0/d1 over the pair
             rho = (1.0 - 1.0 / np.maximum(lam, 0.2)) / T
             grow = np.where(np.abs(rho) * T > 1e-6,
                             (1.0 / np.maximum(1.0 - rho * delta, 0.2) - 1.0) / np.where(np.abs(lam - 1) > 1e-9, lam - 1, 1.0),
                             delta / T)
-        xe = self.x + grow * s0["u"] * T + s0["uf"] * delta
-        ye = self.y + grow * s0["v"] * T + s0["vf"] * delta
+        from .epipole import turn
+        xe, ye = turn(s1["q0"].T @ qc, X0 + grow * T * d0[0], Y0 + grow * T * d0[1])
         b = self.block
         mx = ((xe * self.fx + self.cx) - (b - 1) / 2) / b
         my = ((ye * self.fy + self.cy) - (b - 1) / 2) / b
         inside = (mx >= 0) & (mx <= self.ws - 1) & (my >= 0) & (my <= self.hs - 1)
         mx, my = np.nan_to_num(mx).astype(np.float32), np.nan_to_num(my).astype(np.float32)
-        dx1, dy1 = xe - np.float32(s1["e"][0]), ye - np.float32(s1["e"][1])
-        den1 = dx1 * dx1 + dy1 * dy1  # |p − e|² at the points' new place (exact, not interpolated)
-        num1 = cv2.remap(s1["num"] / np.where(s1["den"] > 0, s1["den"], np.inf), mx, my, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE) * den1  # r there, interpolated, times the new weight
-        num0, den0 = s0["num"], s0["den"]
+        remap = lambda m: cv2.remap(m, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        num1, den1, *_ = self._rates(s1, qc, e, xe, ye, remap(s1["uf"]), remap(s1["vf"]))
         ok = inside & np.isfinite(num0) & np.isfinite(num1)
-        g0 = self._g(s0["omega"], s0["e"], self.x, self.y)
-        g1 = self._g(s1["omega"], s1["e"], xe, ye)
         cols = []
-        for num, den, g in ((num0, den0, g0), (num1, den1, g1)):
+        for num, den in ((num0, den0), (num1, den1)):
             num = np.where(ok, num, 0.0)
             den = np.where(ok, den, 0.0)
             with np.errstate(divide="ignore", invalid="ignore"):
                 sq = np.where(den > 0, num * num / den, 0.0)
-            cols += [num.ravel(), den.ravel(), sq.ravel(), (num * g).ravel()]
+            cols += [num.ravel(), den.ravel(), sq.ravel()]
         pooled = self.weights @ np.stack(cols, axis=1).astype(np.float64)
         out = []
-        for c in (0, 4):
+        for c in (0, 3):
             with np.errstate(divide="ignore", invalid="ignore"):
                 r = pooled[:, c] / pooled[:, c + 1]
                 r2 = pooled[:, c + 2] / pooled[:, c + 1]
-                rg = pooled[:, c + 3] / pooled[:, c + 1]
-            if self.gap_correction:
-                rc, r2 = gap_correction(r, r2, T)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    rg = rg * np.where(np.abs(r) > 1e-12, rc / r, 1.0)
-                r = rc
-            out.append((r, r2, rg))
-        (ra, r2a, rga), (rb, r2b, rgb) = out
-        return 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) / delta, 0.5 * (rga + rgb)
+            out.append(gap_correction(r, r2, T) if self.gap_correction else (r, r2))
+        (ra, r2a), (rb, r2b) = out
+        return 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) / delta

@@ -103,6 +103,8 @@ def _exact_field_velocity(scene_cfg, times, flip=False, material=True, fps=30.0,
     The flow pairs are those the pipeline uses (gap_s apart, one every frame); derotation
     uses the exact mean angular velocity; the epipole is the scene's.
     """
+    from scipy.spatial.transform import Rotation
+
     from lobula.receptive_field import MaterialFields
     from stimuli.imu import angular_velocity
     from stimuli.scene import rotation_z
@@ -120,15 +122,16 @@ def _exact_field_velocity(scene_cfg, times, flip=False, material=True, fps=30.0,
         for k in range(stagger + 1):
             t0 = tc + (k - stagger / 2) / fps - gap_s / 2
             full = scene.flow(t0, t0 + gap_s) / gap_s
-            om = angular_velocity(scene.rotation, np.array([t0 + gap_s / 2]))[0]
+            q0, qm, q1 = scene.rotation(np.array([t0, t0 + gap_s / 2, t0 + gap_s]))
+            om = Rotation.from_matrix(q0.T @ q1).as_rotvec() / gap_s
             der = derotate(full, om, f.x, f.y)
             e = scene.epipole(t0 + gap_s / 2)
-            res = mf.update(t0, gap_s, der, full, e, om)
+            res = mf.update(t0, gap_s, full, e, q0, q1, qm)
             fixed.append(gap_correction(*pool_fields(der, f, e), gap_s))
-        r, r2, r_dot, r_om = res
+        r, r2, r_dot = res
         if not material:  # the fixed-pixel difference, for contrast
             (ra, r2a), (rb, r2b) = fixed[0], fixed[-1]
-            r, r2, r_dot, r_om = 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) * fps / stagger, 0 * ra
+            r, r2, r_dot = 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) * fps / stagger
         # Pair rates are means over gap_s and the difference spans stagger frames: the ṙ̄ they
         # give is Dr/Dt averaged by both boxes, so a is averaged the same way.
         u = np.linspace(-0.5, 0.5, 41)
@@ -138,7 +141,7 @@ def _exact_field_velocity(scene_cfg, times, flip=False, material=True, fps=30.0,
         a = float(a_cam.mean())
         v = scene.camera_velocity(tc)[2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            errors.append(np.nanmedian(a * r / (r_dot - r2 - r_om)) / v - 1)
+            errors.append(np.nanmedian(a * r / (r_dot - r2)) / v - 1)
         accel.append(a)
     return np.array(errors), np.abs(accel)
 
@@ -149,6 +152,8 @@ SURFACES = {
     "walls": (dict(n_panels=0, floor=False, side_walls=True, wall_halfwidth_m=0.8), False),
     "corridor": (dict(n_panels=0, floor=True, side_walls=True, wall_halfwidth_m=0.8), False),
     "slanted panels": (dict(n_panels=10, floor=False, off_axis_yaw_deg=20.0, off_axis_pitch_deg=6.0), False),
+    "corridor, turning": (dict(n_panels=0, floor=True, side_walls=True, wall_halfwidth_m=0.8,
+                               rotation_amp_deg=5.0, rotation_hz=1.0), False),
 }
 
 
