@@ -22,7 +22,7 @@ from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import EpipoleEstimator, derotate, derotate_finite
 from lobula.flow import FlowSample, StaggeredFlow
-from lobula.haltere import forward_acceleration, orientation_from_gyro, resample_to
+from lobula.haltere import GRAVITY_WINDOW_S, forward_acceleration, orientation_from_gyro, resample_to
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
@@ -207,6 +207,13 @@ def _timed(items, timings: dict, key: str, minus: tuple[dict, str] | None = None
         yield item
 
 
+def gravity_span(footage: Footage, times: np.ndarray, config: VelocityConfig) -> np.ndarray | None:
+    """Seconds of IMU record the online gravity estimate has averaged at each time (causal, IMU only)."""
+    if config.readout.filter != "causal" or config.accel_from_truth or footage.imu is None:
+        return None
+    return np.clip(times - footage.imu.time_s[0], 1e-3, GRAVITY_WINDOW_S)
+
+
 def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig) -> tuple[np.ndarray, str]:
     """Forward acceleration (m/s²) at ``times`` and a label saying where it came from."""
     causal = config.readout.filter == "causal"
@@ -237,7 +244,8 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     fields = rates.fields
     t0 = _time.perf_counter()
     if len(rates.t) >= 3:
-        res = readout(rates.t, rates.r, rates.r2, a, config.readout, material=rates.material)
+        res = readout(rates.t, rates.r, rates.r2, a, config.readout, material=rates.material,
+                      accel_span=gravity_span(footage, rates.t, config), accel_window_s=GRAVITY_WINDOW_S)
     else:
         res = None
     rates.timings["readout"] = _time.perf_counter() - t0

@@ -204,6 +204,27 @@ def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
     return np.where(enough, z, np.nan), np.where(enough, std, np.nan), v_f
 
 
+def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig):
+    """Vision's a/v per frame, κ = median over fields of (ṙ̄ − r²̄)/r̄ (1/s), and its standard error.
+
+    No accelerometer enters: ṙ − r² = a/d and r = v/d, so their ratio is a/v for every
+    field whatever its depth. Fields whose |r̄| is under a fifth of the frame's median
+    |r̄| (nothing expanding there to measure) are left out; a frame needs at least
+    min_valid_fraction of the fields. Returns κ, std (n,), NaN where uninformative.
+    """
+    with warnings.catch_warnings(), np.errstate(divide="ignore", invalid="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ra = np.abs(r)
+        ok = np.isfinite(r) & np.isfinite(r2) & np.isfinite(r_dot) & (ra >= 0.2 * np.nanmedian(ra, axis=1)[:, None])
+        k = np.where(ok, (r_dot - r2) / r, np.nan)
+        kap = np.nanmedian(k, axis=1)
+        mad = np.nanmedian(np.abs(k - kap[:, None]), axis=1)
+    n_ok = ok.sum(1)
+    std = 1.253 * 1.4826 * mad / np.sqrt(np.maximum(n_ok, 1))
+    enough = (n_ok >= max(3, cfg.min_valid_fraction * r.shape[1])) & np.isfinite(kap)
+    return np.where(enough, kap, np.nan), np.where(enough, std, np.nan)
+
+
 def rest_measurement(r, cfg: ReadoutConfig):
     """v = r·d with 0 < d ≤ rest_depth_max: small flow everywhere bounds |v| (returns z = 0, std)."""
     with warnings.catch_warnings():
@@ -216,36 +237,75 @@ def rest_measurement(r, cfg: ReadoutConfig):
     return np.where(use, 0.0, np.nan), np.where(use, std, np.nan)
 
 
-def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool):
-    """Two-state (v, accelerometer offset b) Kalman filter/RTS smoother driven by a.
+def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_span=None, window_s=None,
+                    ratio=None):
+    """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
     absent. Returns posterior mean and std of v, (n,) each.
+
+    accel_span (n,) s: when a's gravity was estimated online as the mean specific force
+    over the last ``accel_span`` seconds (lobula.haltere, causal), that mean also holds the
+    platform's own mean acceleration, (v(t) − v(t − span))/span, which a lacks. The filter
+    adds it back: while the window still grows from the record's start (span < window_s)
+    v(t − span) is the initial velocity, a third state v₀ (equal to v at the start);
+    once the window slides it is the filter's own earlier estimate.
+
+    ratio: (κ, σ_κ, a_m, shift), each (n,): vision's measurement of a/v (κ = (ṙ − r²)/r per
+    field, which needs no accelerometer) against the accelerometer's a_m (low-passed like
+    κ, belonging to t − delay, where v was v(t) − shift): a_m = κ·(v − shift) + b. Linear
+    in the state, it ties b to the accelerometer where a ≈ 0 and v to both elsewhere, so
+    an accelerometer offset cannot scale v the way it scales a·r/(ṙ − r²).
     """
     n = len(t)
-    x = np.array([0.0, 0.0])
-    P = np.diag([cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2])
-    xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 2)), np.zeros((n, 2, 2)), np.zeros((n, 2)),
-                                    np.zeros((n, 2, 2)), np.zeros((n, 2, 2)))
-    H = np.array([1.0, 0.0])
-    for k in range(n):  # a loop over time steps; the state is 2-dimensional
+    sv, sb = cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2
+    x = np.zeros(3)
+    P = np.array([[sv, 0.0, sv], [0.0, sb, 0.0], [sv, 0.0, sv]])
+    xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 3)),
+                                    np.zeros((n, 3, 3)), np.zeros((n, 3, 3)))
+    H = np.array([1.0, 0.0, 0.0])
+    for k in range(n):  # a loop over time steps; the state is 3-dimensional
         if k > 0:
             dt = t[k] - t[k - 1]
-            F = np.array([[1.0, -dt], [0.0, 1.0]])
-            x = F @ x + np.array([0.5 * (a[k] + a[k - 1]) * dt, 0.0])
-            P = F @ P @ F.T + np.diag([cfg.accel_noise ** 2 * dt, cfg.bias_walk ** 2 * dt])
+            F = np.array([[1.0, -dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+            u = 0.5 * (a[k] + a[k - 1]) * dt
+            if accel_span is not None and np.isfinite(accel_span[k]) and accel_span[k] > 0:
+                c = dt / accel_span[k]
+                F[0, 0] += c
+                if window_s is None or accel_span[k] < window_s:
+                    F[0, 2] = -c
+                else:
+                    u -= c * np.interp(t[k] - accel_span[k], t[:k], xs[:k, 0])
+            x = F @ x + np.array([u, 0.0, 0.0])
+            P = F @ P @ F.T + np.diag([cfg.accel_noise ** 2 * dt, cfg.bias_walk ** 2 * dt, 0.0])
             Fs[k] = F
         xs_pred[k], Ps_pred[k] = x, P
-        for z, s in measurements:
-            if np.isfinite(z[k]) and np.isfinite(s[k]):
-                S = P[0, 0] + s[k] ** 2
+        for z, sd in measurements:
+            if np.isfinite(z[k]) and np.isfinite(sd[k]):
+                S = P[0, 0] + sd[k] ** 2
                 K = P[:, 0] / S
                 x = x + K * (z[k] - x[0])
                 P = P - np.outer(K, H @ P)
+        if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
+            kap, skap, am, shift = (q[k] for q in ratio)
+            h = np.array([kap, 1.0, 0.0])
+            zk = am + kap * shift
+            if accel_span is not None and np.isfinite(accel_span[k]) and accel_span[k] > 0:
+                c = 1.0 / accel_span[k]  # a_m lacks the window's mean acceleration (see above)
+                h[0] -= c
+                if window_s is None or accel_span[k] < window_s:
+                    h[2] = c
+                else:
+                    zk -= c * np.interp(t[k] - accel_span[k], t[:k], xs[:k, 0]) if k else 0.0
+            R = (abs(x[0]) + cfg.meas_floor_m_s) ** 2 * skap ** 2 + cfg.accel_noise ** 2 * cfg.cutoff_hz
+            S = h @ P @ h + R
+            K = P @ h / S
+            x = x + K * (zk - h @ x)
+            P = P - np.outer(K, h @ P)
         xs[k], Ps[k] = x, P
     if smooth:
         for k in range(n - 2, -1, -1):
-            C = Ps[k] @ Fs[k + 1].T @ np.linalg.inv(Ps_pred[k + 1])
+            C = Ps[k] @ Fs[k + 1].T @ np.linalg.pinv(Ps_pred[k + 1])
             xs[k] = xs[k] + C @ (xs[k + 1] - xs_pred[k + 1])
             Ps[k] = Ps[k] + C @ (Ps[k + 1] - Ps_pred[k + 1]) @ C.T
     return xs[:, 0], np.sqrt(np.maximum(Ps[:, 0, 0], 0.0))
@@ -270,7 +330,8 @@ def _lag(x: np.ndarray, h: int) -> np.ndarray:
     return np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:-h]]) if h else x
 
 
-def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None) -> ReadoutResult:
+def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
+                   accel_span=None, accel_window_s=None) -> ReadoutResult:
     """The project's readout (see module docstring).
 
     Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
@@ -314,24 +375,30 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
         obs = np.isfinite(z) & (s <= cfg.max_std_m_s)
         return ReadoutResult(np.where(obs, z, np.nan), obs, np.where(obs, s, np.nan), v_f, r_dot, z, s, a,
                              info=dict(measurement_delay_s=delay))
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))])
     if delay:
         # Bridge the measurement's latency with ∫a (the haltere's fast path).
-        cum = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))])
         z = z + (cum - np.interp(t - delay, t, cum))
     zr, sr = rest_measurement(rf, cfg)
-    v, v_std = kalman_velocity(t, a, [(z, s), (zr, sr)], cfg, smooth=zp)
+    kap, skap = ratio_measurement(*terms[:3], cfg)
+    skap = skap * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
+    shift = (cum - np.interp(t - delay, t, cum)) if delay else np.zeros(len(t))
+    v, v_std = kalman_velocity(t, a, [(zr, sr)], cfg, smooth=zp, accel_span=accel_span,
+                               window_s=accel_window_s, ratio=(kap, skap, terms[3], shift))
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
                          info=dict(measurement_delay_s=delay))
 
 
 def readout(t, r, r2, a, config: ReadoutConfig | None = None,
-            material: MaterialRates | None = None) -> ReadoutResult:
+            material: MaterialRates | None = None, accel_span=None, accel_window_s=None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
     t (n,) s, uniformly spaced; r, r2 (n, F) in 1/s and 1/s²; a (n,) forward
     acceleration at the same times (m/s², gravity removed); material: the rates along
-    the content (:class:`MaterialRates`), used by the kalman readout when given.
+    the content (:class:`MaterialRates`), used by the kalman readout when given;
+    accel_span (n,) s and accel_window_s: how much of the record the online gravity
+    estimate had averaged at each frame (see :func:`kalman_velocity`), None offline.
     """
     cfg = config or ReadoutConfig()
     t, r, r2, a = (np.asarray(x, dtype=float) for x in (t, r, r2, a))
@@ -340,5 +407,5 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
     if not np.all(np.isfinite(a)):
         raise ValueError("acceleration has NaN or inf at flow times")
     if cfg.method == "kalman":
-        return kalman_readout(t, r, r2, a, cfg, material)
+        return kalman_readout(t, r, r2, a, cfg, material, accel_span, accel_window_s)
     return paper_readout(t, r, r2, a, cfg)
