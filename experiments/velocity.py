@@ -22,7 +22,8 @@ from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import EpipoleEstimator, derotate, derotate_finite
 from lobula.flow import FlowSample, StaggeredFlow
-from lobula.haltere import GRAVITY_WINDOW_S, forward_acceleration, orientation_from_gyro, resample_to
+from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, orientation_from_gyro,
+                            resample_to)
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
@@ -207,6 +208,9 @@ def _timed(items, timings: dict, key: str, minus: tuple[dict, str] | None = None
         yield item
 
 
+TRUTH_ACCEL_OFFSET_M_S2 = 0.01  # prior std of the offset of an acceleration derived from ground truth
+
+
 def gravity_span(footage: Footage, times: np.ndarray, config: VelocityConfig) -> np.ndarray | None:
     """Seconds of IMU record the online gravity estimate has averaged at each time (causal, IMU only)."""
     if config.readout.filter != "causal" or config.accel_from_truth or footage.imu is None:
@@ -243,9 +247,17 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     a, accel_source = forward_accel_at(footage, rates.t, config)
     fields = rates.fields
     t0 = _time.perf_counter()
+    rcfg = config.readout
+    if not accel_source.startswith("accelerometer"):
+        # A derivative of the true velocity has noise but no accelerometer offset to learn.
+        rcfg = replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2))
     if len(rates.t) >= 3:
-        res = readout(rates.t, rates.r, rates.r2, a, config.readout, material=rates.material,
-                      accel_span=gravity_span(footage, rates.t, config), accel_window_s=GRAVITY_WINDOW_S)
+        span = gravity_span(footage, rates.t, config)
+        drift = None
+        if span is not None and footage.imu.gyro is not None and config.derotate:
+            drift = np.interp(rates.t, footage.imu.time_s, gravity_drift_std(footage.imu.time_s, footage.imu.gyro))
+        res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material,
+                      accel_span=span, accel_window_s=GRAVITY_WINDOW_S, drift_std=drift)
     else:
         res = None
     rates.timings["readout"] = _time.perf_counter() - t0

@@ -134,20 +134,27 @@ def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray
     near-constant rate, so gravity drifts there linearly, at most |g|·σ_b. The slope's
     prior is that bound, with σ_b the bias estimate's own uncertainty (:func:`gyro_bias`):
     a camera that was still long enough has a known bias and a flat gravity; one that
-    never stops turning lets the slope be fitted.
+    never stops turning lets the slope be fitted. Online (causal) the fit is a plain
+    running mean — a slope from the last seconds is mostly the platform's acceleration —
+    and the ramp the bias leaves is the readout's to track (:func:`gravity_drift_std`).
     """
     if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(time_s))):
         raise ValueError("accelerometer samples contain NaN or inf")
     n = len(time_s)
     if gyro is not None:
         rot = orientation_from_gyro(time_s, gyro, causal)
-        slope_std = G * gyro_bias(time_s, gyro, causal, with_std=True)[1]
+        slope_std = 0.0 if causal else G * gyro_bias(time_s, gyro, causal, with_std=True)[1]
     else:
         rot, slope_std = np.broadcast_to(np.eye(3), (n, 3, 3)), 0.0
     f0 = np.einsum("nij,nj->ni", rot, accel)  # specific force in the first frame
     g0 = -local_linear(time_s, f0, window_s, causal, slope_std)
     g_cam = np.einsum("nji,nj->ni", rot, g0)
     return (accel + g_cam)[:, 2]
+
+
+def gravity_drift_std(time_s: np.ndarray, gyro: np.ndarray, causal: bool = True) -> np.ndarray:
+    """How fast (m/s²/s, (n,)) gravity may drift through the forward axis: |g|·σ_b of :func:`gyro_bias`."""
+    return G * gyro_bias(time_s, gyro, causal, with_std=True)[1]
 
 
 def resample_to(times: np.ndarray, sample_t: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:

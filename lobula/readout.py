@@ -204,18 +204,21 @@ def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
     return np.where(enough, z, np.nan), np.where(enough, std, np.nan), v_f
 
 
-def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig):
+def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
     """Vision's a/v per frame, κ = median over fields of (ṙ̄ − r²̄)/r̄ (1/s), and its standard error.
 
     No accelerometer enters: ṙ − r² = a/d and r = v/d, so their ratio is a/v for every
     field whatever its depth. Fields whose |r̄| is under a fifth of the frame's median
-    |r̄| (nothing expanding there to measure) are left out; a frame needs at least
-    min_valid_fraction of the fields. Returns κ, std (n,), NaN where uninformative.
+    |r̄| (nothing expanding there to measure) are left out, and so are fields outside
+    ``keep`` (n, F) bool (e.g. those whose implied depth is not physical); a frame needs at
+    least min_valid_fraction of the fields. Returns κ, std (n,), NaN where uninformative.
     """
     with warnings.catch_warnings(), np.errstate(divide="ignore", invalid="ignore"):
         warnings.simplefilter("ignore", RuntimeWarning)
         ra = np.abs(r)
         ok = np.isfinite(r) & np.isfinite(r2) & np.isfinite(r_dot) & (ra >= 0.2 * np.nanmedian(ra, axis=1)[:, None])
+        if keep is not None:
+            ok &= keep
         k = np.where(ok, (r_dot - r2) / r, np.nan)
         kap = np.nanmedian(k, axis=1)
         mad = np.nanmedian(np.abs(k - kap[:, None]), axis=1)
@@ -238,7 +241,7 @@ def rest_measurement(r, cfg: ReadoutConfig):
 
 
 def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_span=None, window_s=None,
-                    ratio=None):
+                    ratio=None, drift_std=None):
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
@@ -256,18 +259,24 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
     κ, belonging to t − delay, where v was v(t) − shift): a_m = κ·(v − shift) + b. Linear
     in the state, it ties b to the accelerometer where a ≈ 0 and v to both elsewhere, so
     an accelerometer offset cannot scale v the way it scales a·r/(ṙ − r²).
+
+    drift_std (n,) m/s²/s: how fast the offset may ramp — gravity seen through an attitude
+    integrated with an uncertain gyro bias σ_b drifts at up to |g|·σ_b — as a fourth state
+    ḃ whose std is held within drift_std at each frame (None: no ramp).
     """
     n = len(t)
     sv, sb = cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2
-    x = np.zeros(3)
-    P = np.array([[sv, 0.0, sv], [0.0, sb, 0.0], [sv, 0.0, sv]])
-    xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 3)),
-                                    np.zeros((n, 3, 3)), np.zeros((n, 3, 3)))
-    H = np.array([1.0, 0.0, 0.0])
-    for k in range(n):  # a loop over time steps; the state is 3-dimensional
+    sd0 = float(drift_std[0]) ** 2 if drift_std is not None else 0.0
+    x = np.zeros(4)
+    P = np.array([[sv, 0.0, sv, 0.0], [0.0, sb, 0.0, 0.0], [sv, 0.0, sv, 0.0], [0.0, 0.0, 0.0, sd0]])
+    xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 4)), np.zeros((n, 4, 4)), np.zeros((n, 4)),
+                                    np.zeros((n, 4, 4)), np.zeros((n, 4, 4)))
+    H = np.array([1.0, 0.0, 0.0, 0.0])
+    for k in range(n):  # a loop over time steps; the state is 4-dimensional
         if k > 0:
             dt = t[k] - t[k - 1]
-            F = np.array([[1.0, -dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+            F = np.eye(4)
+            F[0, 1], F[1, 3] = -dt, dt
             u = 0.5 * (a[k] + a[k - 1]) * dt
             if accel_span is not None and np.isfinite(accel_span[k]) and accel_span[k] > 0:
                 c = dt / accel_span[k]
@@ -276,8 +285,14 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
                     F[0, 2] = -c
                 else:
                     u -= c * np.interp(t[k] - accel_span[k], t[:k], xs[:k, 0])
-            x = F @ x + np.array([u, 0.0, 0.0])
-            P = F @ P @ F.T + np.diag([cfg.accel_noise ** 2 * dt, cfg.bias_walk ** 2 * dt, 0.0])
+            x = F @ x + np.array([u, 0.0, 0.0, 0.0])
+            P = F @ P @ F.T + np.diag([cfg.accel_noise ** 2 * dt, cfg.bias_walk ** 2 * dt, 0.0, 0.0])
+            if drift_std is not None and P[3, 3] > drift_std[k] ** 2:
+                # The gyro bias got better known (still samples): the ramp is bounded anew.
+                f = drift_std[k] / np.sqrt(P[3, 3])
+                x[3] *= f
+                P[3, :] *= f
+                P[:, 3] *= f
             Fs[k] = F
         xs_pred[k], Ps_pred[k] = x, P
         for z, sd in measurements:
@@ -288,7 +303,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
                 P = P - np.outer(K, H @ P)
         if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
             kap, skap, am, shift = (q[k] for q in ratio)
-            h = np.array([kap, 1.0, 0.0])
+            h = np.array([kap, 1.0, 0.0, 0.0])
             zk = am + kap * shift
             if accel_span is not None and np.isfinite(accel_span[k]) and accel_span[k] > 0:
                 c = 1.0 / accel_span[k]  # a_m lacks the window's mean acceleration (see above)
@@ -297,7 +312,10 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
                     h[2] = c
                 else:
                     zk -= c * np.interp(t[k] - accel_span[k], t[:k], xs[:k, 0]) if k else 0.0
-            R = (abs(x[0]) + cfg.meas_floor_m_s) ** 2 * skap ** 2 + cfg.accel_noise ** 2 * cfg.cutoff_hz
+            # In velocity units: v·σ_κ/κ from the fields' spread, floored at meas_floor (as a
+            # velocity measurement would be); the accelerometer's own noise after the low-pass
+            # is far below either, and its offset and ramp are states, not noise.
+            R = (abs(x[0]) * skap) ** 2 + (kap * cfg.meas_floor_m_s) ** 2 + (cfg.meas_floor_m_s * skap) ** 2
             S = h @ P @ h + R
             K = P @ h / S
             x = x + K * (zk - h @ x)
@@ -331,7 +349,7 @@ def _lag(x: np.ndarray, h: int) -> np.ndarray:
 
 
 def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
-                   accel_span=None, accel_window_s=None) -> ReadoutResult:
+                      accel_span=None, accel_window_s=None, drift_std=None) -> ReadoutResult:
     """The project's readout (see module docstring).
 
     Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
@@ -380,25 +398,30 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
         # Bridge the measurement's latency with ∫a (the haltere's fast path).
         z = z + (cum - np.interp(t - delay, t, cum))
     zr, sr = rest_measurement(rf, cfg)
-    kap, skap = ratio_measurement(*terms[:3], cfg)
+    # Where |a| is large enough to judge, fields implying an unphysical depth are left out
+    # (as for v_f); where it is not, κ ≈ 0 is exactly what ties the offset down.
+    keep = np.isfinite(v_f) | (np.abs(terms[3]) < cfg.accel_min_m_s2)[:, None]
+    kap, skap = ratio_measurement(*terms[:3], cfg, keep=keep)
     skap = skap * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
     shift = (cum - np.interp(t - delay, t, cum)) if delay else np.zeros(len(t))
     v, v_std = kalman_velocity(t, a, [(zr, sr)], cfg, smooth=zp, accel_span=accel_span,
-                               window_s=accel_window_s, ratio=(kap, skap, terms[3], shift))
+                               window_s=accel_window_s, ratio=(kap, skap, terms[3], shift), drift_std=drift_std)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
                          info=dict(measurement_delay_s=delay))
 
 
 def readout(t, r, r2, a, config: ReadoutConfig | None = None,
-            material: MaterialRates | None = None, accel_span=None, accel_window_s=None) -> ReadoutResult:
+            material: MaterialRates | None = None, accel_span=None, accel_window_s=None,
+            drift_std=None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
     t (n,) s, uniformly spaced; r, r2 (n, F) in 1/s and 1/s²; a (n,) forward
     acceleration at the same times (m/s², gravity removed); material: the rates along
     the content (:class:`MaterialRates`), used by the kalman readout when given;
     accel_span (n,) s and accel_window_s: how much of the record the online gravity
-    estimate had averaged at each frame (see :func:`kalman_velocity`), None offline.
+    estimate had averaged at each frame, and drift_std (n,) m/s²/s, how fast the
+    accelerometer's offset may ramp (see :func:`kalman_velocity`); None offline.
     """
     cfg = config or ReadoutConfig()
     t, r, r2, a = (np.asarray(x, dtype=float) for x in (t, r, r2, a))
@@ -407,5 +430,5 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
     if not np.all(np.isfinite(a)):
         raise ValueError("acceleration has NaN or inf at flow times")
     if cfg.method == "kalman":
-        return kalman_readout(t, r, r2, a, cfg, material, accel_span, accel_window_s)
+        return kalman_readout(t, r, r2, a, cfg, material, accel_span, accel_window_s, drift_std)
     return paper_readout(t, r, r2, a, cfg)
