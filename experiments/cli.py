@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sweep": ("experiments.sweep", "a grid over any configuration path, on Dask, into Zarr"),
     "figures": ("experiments.figures", "regenerate the hypothesis figures with their JSON"),
     "bench": ("experiments.bench", "frames/s per stage and end to end, peak memory"),
+    "info": ("experiments.info", "what a recording holds: streams, rates, intrinsics, IMU, dropped frames, truth"),
 }
 
 
@@ -49,6 +50,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser(argv).parse_args(argv)
+    from lobula.version import set_command_line
+
+    set_command_line(["lobula", *argv])
     if not hasattr(args, "func"):
         build_parser([args.command]).parse_args([args.command, "--help"])
     from stimuli.footage import FootageError

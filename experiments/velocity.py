@@ -27,7 +27,7 @@ from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drif
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
-                             read_flo)
+                             footage_provenance, read_flo)
 
 from .store import provenance
 from .stream import threaded
@@ -288,7 +288,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                                footage=str(footage.path), footage_kind=footage.kind,
                                notes="; ".join(footage.notes) or "none",
                                timings_s=json.dumps({k: round(v, 4) for k, v in rates.timings.items()}),
-                               wall_s=round(_time.perf_counter() - t_start, 3)))
+                               wall_s=round(_time.perf_counter() - t_start, 3), **footage_provenance(footage)))
     return ds
 
 
@@ -380,11 +380,10 @@ def _velocity_config(args):
 
 
 def run_velocity(args) -> int:
-    from stimuli.footage import open_footage
-
+    from .info import open_footage_from_args
     from .store import write_netcdf
 
-    footage = open_footage(args.footage)
+    footage = open_footage_from_args(args)
     cfg = _velocity_config(args)
     flo_files = None
     if args.front_end == "flo":
@@ -420,7 +419,7 @@ def run_velocity(args) -> int:
 def add_parser(subparsers):
     """Register `lobula velocity` (see experiments.cli)."""
     v = subparsers.add_parser("velocity", help="estimate forward velocity from footage")
-    v.add_argument("footage", help="footage folder, or the D435i sample folder")
+    v.add_argument("footage", help="footage folder, D435i sample, RealSense .bag/.db3, EuRoC folder or video file")
     v.add_argument("--front-end", default="dis", choices=["dis", "farneback", "flo", "emd"])
     v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
     v.add_argument("--plot", help="PNG of v̂ against truth")
@@ -443,4 +442,6 @@ def add_parser(subparsers):
     v.add_argument("--emd-calibration", help="EMD front end: gains JSON from `lobula calibrate-emd` on another scene")
     v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
     v.add_argument("--quiet", action="store_true")
+    from .info import add_footage_options
+    add_footage_options(v)  # --stream, --clock, --skip-bad-frames, --clock-offset, --undistort (readers)
     v.set_defaults(func=run_velocity)

@@ -30,9 +30,19 @@ def git_commit() -> str:
     return f"{head}+dirty" if dirty else head
 
 
+_invocation: list[str] | None = None
+
+
+def set_command_line(argv: list[str]) -> None:
+    """Record the command being run (the ``lobula`` entry point calls this with its arguments, so a
+    command run in-process from a notebook is recorded as the command, not as the notebook)."""
+    global _invocation
+    _invocation = list(argv)
+
+
 def command_line(argv: list[str] | None = None) -> str:
     """The command that is running, shell-quoted (``lobula velocity …`` for the console script)."""
-    argv = list(sys.argv if argv is None else argv)
+    argv = list(argv if argv is not None else _invocation if _invocation is not None else sys.argv)
     if argv and Path(argv[0]).name in ("lobula", "cli.py", "__main__.py"):
         argv[0] = "lobula"
     return " ".join(shlex.quote(a) for a in argv)

@@ -5,9 +5,11 @@ import importlib
 
 #: public name -> the module of this package that defines it (imported on first use)
 _API = {
-    "IMU": "footage", "FloUnits": "footage", "Footage": "footage", "FootageError": "footage",
-    "acceleration_from_truth": "footage", "flo_to_normalised": "footage", "open_footage": "footage",
-    "read_flo": "footage", "read_frame": "footage", "write_footage": "footage",
+    "IMU": "footage_core", "Footage": "footage_core", "FootageError": "footage_core", "frame_gaps": "footage_core",
+    "read_frame": "footage_core",
+    "FloUnits": "footage", "acceleration_from_truth": "footage", "flo_to_normalised": "footage",
+    "footage_provenance": "footage", "open_footage": "footage", "read_flo": "footage", "read_imu_csv": "footage",
+    "write_footage": "footage",
     "IMUConfig": "imu", "synthesize_imu": "imu",
     "SceneConfig": "scene", "TrackScene": "scene", "band_limited_texture": "scene",
     "Trajectory": "trajectory", "read_velocity_profile": "trajectory", "trajectory_from_function": "trajectory",

@@ -1,6 +1,6 @@
 """Footage: reading frames + IMU + truth, streamed frame by frame, and writing synthetic runs.
 
-Three layouts are read (DESIGN.md, "Footage folder"):
+:func:`open_footage` is the one entry point; it picks the layout reader (DESIGN.md, "Footage folder"):
 
 * a **footage folder**: camera.json, frames/, frames.csv, imu.csv, optional truth.csv
   and depth/ (what :func:`write_footage` makes);
@@ -9,7 +9,14 @@ Three layouts are read (DESIGN.md, "Footage folder"):
   and no IMU, so forward acceleration is derived from the smoothed ground truth
   (and every output says so);
 * Middlebury ``.flo`` flow files (:func:`read_flo`), whose units depend on who wrote them;
-* RealSense ROS bags as the RealSense Viewer records them (:mod:`stimuli.realsense_bag`).
+* RealSense ROS1 bags as the RealSense Viewer up to librealsense 2.57 records them
+  (:mod:`stimuli.realsense_bag`) and rosbag2 ``.db3`` as 2.58 and later do (:mod:`stimuli.rosbag2_db3`);
+* the ASL/EuRoC folder layout (:mod:`stimuli.euroc`);
+* video files with an IMU CSV and camera.json (:mod:`stimuli.video`).
+
+The data classes (:class:`Footage`, :class:`IMU`, :class:`FootageError`) live in
+:mod:`stimuli.footage_core`, which the layout readers import; this module imports the
+readers only inside :func:`open_footage`, so there is no import circle.
 
 Frames are decoded one at a time on iteration, so memory does not grow with length.
 """
@@ -20,9 +27,8 @@ import json
 import os
 import re
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np
@@ -30,117 +36,131 @@ from scipy.ndimage import gaussian_filter1d
 
 from lobula.camera import PinholeCamera
 
-
-class FootageError(ValueError):
-    """Bad or missing footage input; the message names the file and what to do."""
-
-
-def _read_csv(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
-    try:
-        with open(path, newline="") as fh:
-            reader = csv.DictReader(fh)
-            rows = list(reader)
-            cols = reader.fieldnames or []
-    except FileNotFoundError:
-        raise FootageError(f"{path}: file not found") from None
-    missing = [c for c in required if c not in cols]
-    if missing:
-        raise FootageError(f"{path}: missing column(s) {missing}; expected {list(required)}")
-    if not rows:
-        raise FootageError(f"{path}: no rows")
-    out = {}
-    for c in cols:
-        try:
-            out[c] = np.array([float(r[c]) for r in rows])
-        except (TypeError, ValueError):
-            out[c] = np.array([r[c] for r in rows])
-    return out
+from .footage_core import (IMU, Footage, FootageError, check_times as _check_times, frame_gaps,  # noqa: F401
+                           read_csv_columns as _read_csv, read_frame, rotation_deg, rotation_from_json, to_grey)
 
 
-def _check_times(path: Path, t: np.ndarray, what: str = "time_s") -> None:
-    if not np.all(np.isfinite(t)):
-        raise FootageError(f"{path}: {what} has NaN or infinite values; remove those rows")
-    bad = np.flatnonzero(np.diff(t) <= 0)
-    if bad.size:
-        raise FootageError(f"{path}: {what} does not increase at row {bad[0] + 2} "
-                           f"({t[bad[0]]} then {t[bad[0] + 1]}); sort the rows and drop duplicates")
+def open_footage(path: str | Path, *, stream: str | None = None, clock: str | None = None,
+                 require_imu: bool = True, skip_bad_frames: bool = False,
+                 clock_offset: float | str | None = None, undistort: str = "same-k") -> Footage:
+    """Open any footage the project reads, checking everything cheap up front.
 
-
-def read_frame(path: Path) -> np.ndarray:
-    """Decode one frame as grey float32 (H, W) in grey levels 0..255; clear error if corrupt."""
-    if not path.exists():
-        raise FootageError(f"{path}: frame file is missing")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise FootageError(f"{path}: cannot decode this image (corrupt or not an image); replace or remove it")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if img.dtype == np.uint16:
-        return img.astype(np.float32) / 257.0
-    return img.astype(np.float32)
-
-
-@dataclass
-class IMU:
-    """IMU samples in the camera optical frame: time_s (n,), accel (n, 3) m/s², gyro (n, 3) rad/s or None."""
-
-    time_s: np.ndarray
-    accel: np.ndarray
-    gyro: np.ndarray | None
-    source: str
-
-
-@dataclass
-class Footage:
-    """A streamed recording: camera intrinsics, frame times and files, IMU and truth.
-
-    Iterate :meth:`frames` for (index, time_s, image (H, W) float32 grey levels).
-    ``imu`` may be None (then velocity needs ``accel_from_truth``); ``truth`` maps
-    column name -> array at ``truth['time_s']``; ``accel_source`` says where forward
-    acceleration comes from.
+    path: a footage folder, the D435i sample folder, a RealSense ``.bag`` (ROS1) or ``.db3``
+    (rosbag2), an ASL/EuRoC folder (``mav0/``), or a video file (mp4, mkv, avi, mov) with
+    ``camera.json`` and ``imu.csv`` beside it (or a folder holding those and one video).
+    stream: RealSense recordings: image stream ("Color_0", "Infrared_1", or part of a topic;
+    default colour, else infrared). clock: RealSense recordings: "device" (the frames' own
+    time stamps, default), "header" (message header stamps) or "record" (the bag's record
+    times). require_imu: bags, EuRoC and video stop when there is no accelerometer (False:
+    open with ``imu=None``, as ``lobula info`` does). skip_bad_frames: leave undecodable
+    frames out (counted in ``skipped_frames``) instead of stopping. clock_offset: seconds
+    added to the IMU's times to put them on the frames' clock, or "auto" to estimate it
+    (:mod:`stimuli.clock_offset`). undistort: EuRoC: "same-k" (undistort onto the same
+    pinhole K) or "optimal" (onto OpenCV's optimal new K, all pixels valid).
     """
-
-    path: Path
-    camera: PinholeCamera
-    times: np.ndarray
-    files: list[Path]
-    imu: IMU | None = None
-    truth: dict[str, np.ndarray] | None = None
-    kind: str = "folder"
-    notes: list[str] = field(default_factory=list)
-
-    def __len__(self) -> int:
-        return len(self.files)
-
-    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
-        stop = len(self) if stop is None else min(stop, len(self))
-        for i in range(start, stop):
-            img = read_frame(self.files[i])
-            if img.shape != (self.camera.height, self.camera.width):
-                raise FootageError(f"{self.files[i]}: image is {img.shape[1]}x{img.shape[0]}, camera.json says "
-                                   f"{self.camera.width}x{self.camera.height}")
-            yield i, float(self.times[i]), img
-
-    def depth_map(self, index: int) -> np.ndarray | None:
-        p = self.path / "depth" / f"{index:06d}.npy"
-        return np.load(p) if p.exists() else None
-
-
-def open_footage(path: str | Path) -> Footage:
-    """Open a footage folder or the D435i sample layout, checking everything cheap up front."""
     path = Path(path)
-    if path.is_file() and path.suffix == ".bag":
+    if clock not in (None, "device", "header", "record"):
+        raise ValueError(f"unknown clock {clock!r}; choose device, header or record")
+    suffix = path.suffix.lower()
+    if not path.exists():
+        raise FootageError(f"{path}: not found; give a footage folder, a RealSense .bag/.db3, an EuRoC "
+                           f"folder or a video file")
+    if path.is_file() and suffix == ".bag":
         from .realsense_bag import open_realsense_bag
-        return open_realsense_bag(path)
-    if not path.is_dir():
-        raise FootageError(f"{path}: not a folder or a .bag; give a footage folder (camera.json, frames/, "
-                           f"frames.csv, imu.csv) or a RealSense Viewer recording (.bag)")
-    if (path / "frames.csv").exists():
-        return _open_folder(path)
-    if (path / "velocity.csv").exists() and (path / "frames").is_dir():
-        return _open_d435i_sample(path)
-    raise FootageError(f"{path}: neither a footage folder (frames.csv) nor the D435i sample layout "
-                       f"(frames/ + velocity.csv)")
+        footage = open_realsense_bag(path, stream=stream, require_imu=require_imu,
+                                     time_source={"record": "bag", "header": "header", "device": "header"}.get(clock))
+    elif suffix == ".db3" or (path.is_dir() and (path / "metadata.yaml").exists()):
+        from .rosbag2_db3 import open_rosbag2
+        footage = open_rosbag2(path, stream=stream, clock=clock or "device", require_imu=require_imu)
+    elif path.is_file() and suffix in VIDEO_SUFFIXES:
+        from .video import open_video
+        footage = open_video(path, require_imu=require_imu)
+    elif not path.is_dir():
+        raise FootageError(f"{path}: not a footage folder, a RealSense .bag/.db3 or a video "
+                           f"({', '.join(VIDEO_SUFFIXES)}); give one of those")
+    elif (path / "frames.csv").exists():
+        footage = _open_folder(path)
+    elif (path / "velocity.csv").exists() and (path / "frames").is_dir():
+        footage = _open_d435i_sample(path)
+    elif (path / "mav0").is_dir() or (path / "cam0" / "data.csv").exists():
+        from .euroc import open_euroc
+        footage = open_euroc(path, require_imu=require_imu, undistort=undistort)
+    elif videos := sorted(p for p in path.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES):
+        if len(videos) > 1:
+            raise FootageError(f"{path}: holds {len(videos)} videos ({videos[0].name}, {videos[1].name}, ...); "
+                               f"give the video file itself")
+        from .video import open_video
+        footage = open_video(videos[0], require_imu=require_imu)
+    else:
+        raise FootageError(f"{path}: neither a footage folder (frames.csv), the D435i sample layout "
+                           f"(frames/ + velocity.csv), an EuRoC folder (mav0/cam0) nor a folder with a video")
+    footage.skip_bad_frames = skip_bad_frames
+    if clock_offset not in (None, 0, 0.0, "0"):
+        _apply_clock_offset(footage, clock_offset)
+    return footage
+
+
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov", ".m4v", ".webm")
+
+
+def _apply_clock_offset(footage: Footage, clock_offset) -> None:
+    """Shift the IMU onto the frames' clock by a given or estimated constant offset (s)."""
+    if footage.imu is None:
+        raise FootageError(f"{footage.path}: --clock-offset needs an IMU, and this footage has none")
+    if isinstance(clock_offset, str) and clock_offset.strip().lower() == "auto":
+        from .clock_offset import estimate_clock_offset
+        est = estimate_clock_offset(footage)
+        offset, source = est.offset_s, (f"estimated: gyro vs image rotation, correlation {est.correlation:.2f} "
+                                        f"over {est.n_pairs} frame pairs")
+    else:
+        try:
+            offset = float(clock_offset)
+        except (TypeError, ValueError):
+            raise ValueError(f"--clock-offset {clock_offset!r}: give seconds (e.g. 0.012) or 'auto'") from None
+        if not np.isfinite(offset):
+            raise ValueError(f"--clock-offset {clock_offset!r}: must be finite")
+        source = "given"
+    footage.imu = footage.imu.shifted(offset)
+    footage.clock_offset_s, footage.clock_offset_source = float(offset), source
+    footage.notes.append(f"IMU clock shifted by {offset * 1e3:+.1f} ms onto the frames' clock ({source})")
+
+
+def footage_provenance(footage) -> dict:
+    """The attrs an output carries about its footage (works on wrappers without the method too)."""
+    fn = getattr(footage, "provenance", None)
+    if fn is None and hasattr(footage, "_footage"):
+        fn = getattr(footage._footage, "provenance", None)
+    return fn() if fn is not None else {}
+
+
+def _imu_to_camera(path: Path) -> np.ndarray | None:
+    """camera.json's optional "imu_to_camera" rotation (v_cam = R @ v_imu), checked."""
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if "imu_to_camera" not in d:
+        return None
+    return rotation_from_json(d["imu_to_camera"], str(path))
+
+
+def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None) -> IMU:
+    """imu.csv (time_s, accel_x..z m/s², gyro_x..z rad/s) as an IMU, rotated by ``rotation`` if given."""
+    cols = ("time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
+    d = _read_csv(imu_path, cols)
+    try:
+        acc = np.stack([d["accel_x"], d["accel_y"], d["accel_z"]], -1).astype(float)
+        gyr = np.stack([d["gyro_x"], d["gyro_y"], d["gyro_z"]], -1).astype(float)
+        t = d["time_s"].astype(float)
+    except ValueError:
+        raise FootageError(f"{imu_path}: non-numeric values; every IMU column must be a number") from None
+    if not (np.all(np.isfinite(acc)) and np.all(np.isfinite(gyr))):
+        row = int(np.flatnonzero(~np.isfinite(np.c_[acc, gyr]).all(1))[0]) + 2
+        raise FootageError(f"{imu_path}: NaN or missing values (first at row {row}); "
+                           f"repair or remove those rows")
+    _check_times(imu_path, t)
+    imu = IMU(t, acc, gyr, source=str(imu_path))
+    return imu.rotated(rotation) if rotation is not None else imu
 
 
 def _open_folder(path: Path) -> Footage:
@@ -154,22 +174,18 @@ def _open_folder(path: Path) -> Footage:
                            f"{missing[0].relative_to(path)}; restore them or drop their rows")
     imu = None
     imu_path = path / "imu.csv"
+    r = _imu_to_camera(path / "camera.json")
+    notes = []
     if imu_path.exists():
-        cols = ("time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
-        d = _read_csv(imu_path, cols)
-        acc = np.stack([d["accel_x"], d["accel_y"], d["accel_z"]], -1)
-        gyr = np.stack([d["gyro_x"], d["gyro_y"], d["gyro_z"]], -1)
-        if not (np.all(np.isfinite(acc)) and np.all(np.isfinite(gyr))):
-            row = int(np.flatnonzero(~np.isfinite(np.c_[acc, gyr]).all(1))[0]) + 2
-            raise FootageError(f"{imu_path}: NaN or missing values (first at row {row}); "
-                               f"repair or remove those rows")
-        _check_times(imu_path, d["time_s"])
-        imu = IMU(d["time_s"], acc, gyr, source=str(imu_path))
+        imu = read_imu_csv(imu_path, r)
+        if r is not None:
+            notes.append(f"IMU rotated into the camera frame by camera.json's imu_to_camera "
+                         f"({rotation_deg(r):.2f} deg)")
     truth = None
     if (path / "truth.csv").exists():
         truth = _read_csv(path / "truth.csv", ("time_s", "v_forward_m_s"))
         _check_times(path / "truth.csv", truth["time_s"])
-    return Footage(path, camera, fr["time_s"], files, imu, truth, kind="folder")
+    return Footage(path, camera, fr["time_s"], files, imu, truth, kind="folder", notes=notes, imu_to_camera=r)
 
 
 def _open_d435i_sample(path: Path) -> Footage:

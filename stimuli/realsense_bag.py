@@ -58,7 +58,7 @@ import numpy as np
 
 from lobula.camera import PinholeCamera
 
-from .footage import IMU, Footage, FootageError
+from .footage_core import IMU, Footage, FootageError, rotation_deg as _rotation_deg
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 IMU_TYPE = "sensor_msgs/msg/Imu"
@@ -88,25 +88,43 @@ _CORRUPT = (AssertionError, KeyError, IndexError, RuntimeError, OSError, EOFErro
 
 
 # ---------------------------------------------------------------------- message parsing
-# ROS1 wire format, little endian, no padding. Parsed by hand so that a message with
-# trailing bytes is still read: librealsense appends a float32 depth_units to every
-# sensor_msgs/Image whose header frame_id is "1" (all Viewer recordings since 2.3x),
-# which strict deserialisers reject as a size mismatch.
-def _header(raw, pos: int = 0) -> tuple[int, int]:
-    """(stamp in ns, position after the header) of a std_msgs/Header at ``pos``."""
-    _seq, sec, nsec, flen = struct.unpack_from("<IIII", raw, pos)
-    end = pos + 16 + flen
-    if end > len(raw):
-        raise ValueError("header runs past the end of the message")
-    return sec * 1_000_000_000 + nsec, end
+# ROS1 wire format through rosbags' Noetic typestore. librealsense appends a float32
+# depth_units to every sensor_msgs/Image whose header frame_id is "1" (all Viewer
+# recordings since 2.3x), which the typestore's strict ``deserialize_ros1`` rejects as
+# a size mismatch; :func:`_deserialize` runs the same message definition but accepts
+# trailing bytes after a complete message (never a message cut short).
+def _typestore():
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    ts.register(get_types_from_msg("uint32 fps\nstring encoding\nbool is_recommended\n", STREAM_INFO_TYPE))
+    return ts
 
 
-def _string(raw, pos: int) -> tuple[str, int]:
-    (n,) = struct.unpack_from("<I", raw, pos)
-    end = pos + 4 + n
-    if end > len(raw):
-        raise ValueError("string runs past the end of the message")
-    return bytes(raw[pos + 4:end]).decode("utf-8", "replace"), end
+_TS = None
+
+
+def _deserialize(raw, typename: str):
+    """A ROS1 message through the typestore, allowing trailing bytes (see above)."""
+    global _TS
+    if _TS is None:
+        _TS = _typestore()
+    msgdef = _TS.get_msgdef(typename)
+    try:
+        msg, pos = msgdef.deserialize_ros1(memoryview(raw), 0, msgdef.cls, _TS)
+    except (struct.error, UnicodeDecodeError, IndexError) as exc:
+        raise ValueError(f"{typename} message is truncated or damaged ({exc})") from None
+    if pos > len(raw):
+        raise ValueError(f"{typename} message runs past its end")
+    return msg
+
+
+def _stamp_ns(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _header(raw) -> tuple[int, None]:
+    """(stamp in ns, None) of the std_msgs/Header that every stamped message starts with."""
+    return _stamp_ns(_deserialize(raw, "std_msgs/msg/Header")), None
 
 
 @dataclass(frozen=True)
@@ -117,48 +135,42 @@ class _Image:
     encoding: str
     is_bigendian: int
     step: int
-    data: memoryview
+    data: np.ndarray
 
 
 def _parse_image(raw) -> _Image:
-    stamp, o = _header(raw)
-    height, width = struct.unpack_from("<II", raw, o)
-    encoding, o = _string(raw, o + 8)
-    is_big, step, n = struct.unpack_from("<BII", raw, o)
-    o += 9
-    if o + n > len(raw):
-        raise ValueError(f"image data truncated ({len(raw) - o} of {n} bytes)")
-    return _Image(stamp, height, width, encoding, is_big, step, memoryview(raw)[o:o + n])
+    m = _deserialize(raw, IMAGE_TYPE)
+    return _Image(_stamp_ns(m.header), int(m.height), int(m.width), m.encoding, int(m.is_bigendian),
+                  int(m.step), m.data)
 
 
 def _parse_imu(raw) -> tuple[int, np.ndarray, np.ndarray]:
     """(stamp ns, angular_velocity (3,), linear_acceleration (3,)) of a sensor_msgs/Imu."""
-    stamp, o = _header(raw)
-    # orientation 4, its covariance 9, angular_velocity 3, covariance 9, linear_acceleration 3, covariance 9
-    v = np.frombuffer(raw, "<f8", count=37, offset=o)
-    return stamp, v[13:16], v[25:28]
+    m = _deserialize(raw, IMU_TYPE)
+    w, a = m.angular_velocity, m.linear_acceleration
+    return _stamp_ns(m.header), np.array([w.x, w.y, w.z]), np.array([a.x, a.y, a.z])
 
 
 def _parse_camera_info(raw) -> dict:
-    _, o = _header(raw)
-    height, width = struct.unpack_from("<II", raw, o)
-    model, o = _string(raw, o + 8)
-    (nd,) = struct.unpack_from("<I", raw, o)
-    d = np.frombuffer(raw, "<f8", count=nd, offset=o + 4)
-    k = np.frombuffer(raw, "<f8", count=9, offset=o + 4 + 8 * nd)
-    return dict(height=height, width=width, distortion_model=model, D=d.copy(), K=k.copy())
+    m = _deserialize(raw, CAMERA_INFO_TYPE)
+    return dict(height=int(m.height), width=int(m.width), distortion_model=m.distortion_model,
+                D=np.asarray(m.D, float).copy(), K=np.asarray(m.K, float).copy())
 
 
 def _parse_transform(raw) -> tuple[np.ndarray, np.ndarray]:
     """(translation (3,), rotation matrix (3, 3)) of a geometry_msgs/Transform."""
-    v = np.frombuffer(raw, "<f8", count=7)
-    return v[:3].copy(), _quat_to_matrix(*v[3:7])
+    m = _deserialize(raw, TRANSFORM_TYPE)
+    t, q = m.translation, m.rotation
+    return np.array([t.x, t.y, t.z]), _quat_to_matrix(q.x, q.y, q.z, q.w)
 
 
 def _parse_key_value(raw) -> tuple[str, str]:
-    key, o = _string(raw, 0)
-    value, _ = _string(raw, o)
-    return key, value
+    m = _deserialize(raw, KEY_VALUE_TYPE)
+    return m.key, m.value
+
+
+def _parse_stream_info_fps(raw) -> int:
+    return int(_deserialize(raw, STREAM_INFO_TYPE).fps)
 
 
 def _quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
@@ -253,28 +265,9 @@ class BagFootage(Footage):
                     if i < start:
                         i += 1
                         continue
-                    try:
-                        img = _parse_image(raw)
-                    except (ValueError, struct.error) as exc:
-                        raise FootageError(f"{self.path}: frame {i} on {self.topic} is corrupt ({exc}); "
-                                           f"re-record, or read only frames before {i}") from None
-                    got = img.stamp_ns if self.time_source == "header" else bag_ns
-                    if got != int(self.stamps_ns[i]):
-                        raise FootageError(f"{self.path}: frame {i} on {self.topic} has stamp {got} ns, "
-                                           f"{int(self.stamps_ns[i])} ns when opened; the bag changed, "
-                                           f"open it again")
-                    if (img.width, img.height) != (self.camera.width, self.camera.height):
-                        raise FootageError(f"{self.path}: frame {i} on {self.topic} is {img.width}x{img.height}, "
-                                           f"camera_info says {self.camera.width}x{self.camera.height}")
-                    if img.encoding.lower() not in _ENCODINGS:
-                        raise FootageError(f"{self.path}: frame {i} on {self.topic} has encoding "
-                                           f"{img.encoding!r}; supported: {', '.join(SUPPORTED_ENCODINGS)}")
-                    try:
-                        grey = _to_grey(img)
-                    except ValueError as exc:
-                        raise FootageError(f"{self.path}: frame {i} on {self.topic}: {exc}; the message is "
-                                           f"damaged, re-record") from None
-                    yield i, float(self.times[i]), grey
+                    grey = self._decode_message(i, raw, bag_ns)
+                    if grey is not None:
+                        yield i, float(self.times[i]), grey
                     i += 1
                     if i >= stop:
                         break
@@ -287,6 +280,34 @@ class BagFootage(Footage):
         if i < stop:
             raise FootageError(f"{self.path}: {self.topic} ended after frame {i - 1}, {n} frames when opened; "
                                f"the bag changed, open it again")
+
+    def _decode_message(self, i: int, raw, bag_ns: int) -> np.ndarray | None:
+        """Frame i's grey image, or None when it is undecodable and skip_bad_frames is set."""
+        try:
+            img = _parse_image(raw)
+        except (ValueError, struct.error) as exc:
+            self.bad_frame(i, FootageError(f"{self.path}: frame {i} on {self.topic} is corrupt ({exc}); "
+                                           f"re-record, or read only frames before {i}"))
+            return None
+        got = img.stamp_ns if self.time_source == "header" else bag_ns
+        if got != int(self.stamps_ns[i]):
+            raise FootageError(f"{self.path}: frame {i} on {self.topic} has stamp {got} ns, "
+                               f"{int(self.stamps_ns[i])} ns when opened; the bag changed, open it again")
+        if img.encoding.lower() not in _ENCODINGS:
+            raise FootageError(f"{self.path}: frame {i} on {self.topic} has encoding "
+                               f"{img.encoding!r}; supported: {', '.join(SUPPORTED_ENCODINGS)}")
+        try:
+            if (img.width, img.height) != (self.camera.width, self.camera.height):
+                raise FootageError(f"{self.path}: frame {i} on {self.topic} is {img.width}x{img.height}, "
+                                   f"camera_info says {self.camera.width}x{self.camera.height}")
+            try:
+                return _to_grey(img)
+            except ValueError as exc:
+                raise FootageError(f"{self.path}: frame {i} on {self.topic}: {exc}; the message is "
+                                   f"damaged, re-record") from None
+        except FootageError as exc:
+            self.bad_frame(i, exc)
+            return None
 
     def depth_map(self, index: int) -> np.ndarray | None:
         return None
@@ -379,12 +400,8 @@ def _extrinsics(reader, topics: dict, prefix: str) -> tuple[str, np.ndarray] | N
     return None
 
 
-def _rotation_deg(r: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
-
-
 def open_realsense_bag(path: str | Path, stream: str | None = None, camera: PinholeCamera | None = None,
-                       require_imu: bool = True) -> BagFootage:
+                       require_imu: bool = True, time_source: str | None = None) -> BagFootage:
     """Open a RealSense ROS1 bag (RealSense Viewer recording) as streamed footage.
 
     stream: which image stream to read, as a Viewer stream name ("Color_0", "Infrared_1")
@@ -392,6 +409,8 @@ def open_realsense_bag(path: str | Path, stream: str | None = None, camera: Pinh
     camera: intrinsics to use instead of the bag's CameraInfo (needed when it has none).
     require_imu: raise when the bag has no accelerometer (True, as velocity needs it);
     with False such a bag opens with ``imu=None``.
+    time_source: "header" (the messages' header stamps: the device's frame timestamps) or
+    "bag" (the bag's record times); default: header stamps unless they are all zero.
 
     Reads the image stamps (only the message headers) and the IMU once, up front; images
     are decoded only by :meth:`BagFootage.frames`. Raises :class:`FootageError` with the
@@ -411,7 +430,7 @@ def open_realsense_bag(path: str | Path, stream: str | None = None, camera: Pinh
         raise FootageError(f"{path}: not a readable ROS1 bag ({exc}); give a .bag recorded by the RealSense "
                            f"Viewer (an interrupted recording may need `rosbag reindex`)") from exc
     try:
-        return _open(path, reader, stream, camera, require_imu)
+        return _open(path, reader, stream, camera, require_imu, time_source)
     except FootageError:
         raise
     except (ReaderError, *_CORRUPT) as exc:
@@ -421,7 +440,8 @@ def open_realsense_bag(path: str | Path, stream: str | None = None, camera: Pinh
         reader.close()
 
 
-def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, require_imu: bool) -> BagFootage:
+def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, require_imu: bool,
+          time_source: str | None = None) -> BagFootage:
     topics: dict[str, list] = {}
     for c in reader.connections:
         topics.setdefault(c.topic, []).append(c)
@@ -489,7 +509,11 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
 
     # ---- time source: header stamps unless they are missing (all zero) somewhere
     notes = []
+    if time_source not in (None, "header", "bag"):
+        raise ValueError(f"unknown time source {time_source!r}; choose header or bag")
     use_header = np.any(hdr_ns != 0) and all(np.any(v[0] != 0) for v in imu_raw.values())
+    if time_source is not None:
+        use_header = time_source == "header"
     source = "header" if use_header else "bag"
     stamps = hdr_ns if use_header else bag_ns
     _check_increasing(path, topic, stamps, "image")
@@ -503,7 +527,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
     fps = None
     si = [c for c in topics.get(f"{prefix}/info", []) if c.msgtype == STREAM_INFO_TYPE]
     if si:
-        fps = _first(reader, si, lambda raw: struct.unpack_from("<I", raw, 0)[0]) or None
+        fps = _first(reader, si, _parse_stream_info_fps) or None
     if fps is None and len(times) > 1:
         fps = 1.0 / float(np.median(np.diff(times)))
     if fps is None:
@@ -580,7 +604,9 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
     return BagFootage(path=path, camera=camera, times=times, files=FramePlaceholders(path, topic, len(times)),
                       imu=imu, truth=None, kind="realsense-bag", notes=notes, topic=topic,
                       encoding=first.encoding, time_origin_s=origin / 1e9, time_source=source,
-                      bag_times_ns=bag_ns, stamps_ns=stamps)
+                      bag_times_ns=bag_ns, stamps_ns=stamps,
+                      streams=[dict(topic=t, type=", ".join(sorted(types[t])), messages=int(counts[t]))
+                               for t in sorted(topics)])
 
 
 def _dedupe_check(path: Path, topic: str, stamps: np.ndarray, values: np.ndarray, what: str):

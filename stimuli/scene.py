@@ -111,6 +111,27 @@ def band_limited_texture(rng: np.random.Generator, size: int, texel_m: float,
     return (tex / tex.std()).astype(np.float32)
 
 
+def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a 2-D float32 image at pixel coordinates (u, v) of any shape.
+
+    cv2.remap takes 2-D maps under 32767 per side, so other shapes are laid out as
+    rows of 4096 samples (padded) and put back.
+    """
+    shape = np.shape(u)
+    if len(shape) == 2 and max(shape) < 32767:
+        return cv2.remap(image, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+    n = int(np.prod(shape))
+    cols = 4096 if n > 4096 else max(n, 1)
+    rows = -(-n // cols)
+    uu = np.zeros(rows * cols, np.float32)
+    vv = np.zeros(rows * cols, np.float32)
+    uu[:n], vv[:n] = np.ravel(u), np.ravel(v)
+    out = cv2.remap(image, uu.reshape(rows, cols), vv.reshape(rows, cols), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.ravel()[:n].reshape(shape)
+
+
 class TrackScene:
     """A rendered world plus camera motion along a :class:`~stimuli.trajectory.Trajectory`.
 
@@ -212,24 +233,24 @@ class TrackScene:
         return float(d[0] / d[2]), float(d[1] / d[2])
 
     # ---------------------------------------------------------------- ray casting
-    def _cast(self, x, y, t):
-        """Nearest surface hit for normalised ray coordinates at time t.
+    def _intersect(self, d_world: np.ndarray, origin: np.ndarray):
+        """Nearest surface hit along rays ``origin + λ·d_world`` (λ > 0), one loop over surfaces.
 
-        Returns forward depth (camera z, m), surface index and the two texture
-        coordinates (m), each shaped like x.
+        d_world: (..., 3) ray directions in the track frame, any length. Returns λ
+        (inf where nothing is hit), surface index (-1 where nothing is hit) and the two
+        texture coordinates (m), each shaped like d_world[..., 0].
         """
-        rot = self.rotation(t)
-        c = self.position(t)
-        d = np.stack([x, y, np.ones_like(x)], axis=-1) @ rot.T  # world directions, z_cam = 1
-        best = np.full(x.shape, np.inf)
-        idx = np.full(x.shape, -1, dtype=np.int32)
-        tex_a = np.zeros(x.shape)
-        tex_b = np.zeros(x.shape)
+        shape = d_world.shape[:-1]
+        best = np.full(shape, np.inf)
+        idx = np.full(shape, -1, dtype=np.int32)
+        tex_a = np.zeros(shape)
+        tex_b = np.zeros(shape)
+        c = origin
         with np.errstate(divide="ignore", invalid="ignore"):
             for i, s in enumerate(self.surfaces):
-                lam = (s.offset - c[s.axis]) / d[..., s.axis]
-                a = c[s.in_plane[0]] + lam * d[..., s.in_plane[0]]
-                b = c[s.in_plane[1]] + lam * d[..., s.in_plane[1]]
+                lam = (s.offset - c[s.axis]) / d_world[..., s.axis]
+                a = c[s.in_plane[0]] + lam * d_world[..., s.in_plane[0]]
+                b = c[s.in_plane[1]] + lam * d_world[..., s.in_plane[1]]
                 (a0, a1), (b0, b1) = s.bounds
                 hit = (lam > 1e-6) & (lam < best) & (a >= a0) & (a <= a1) & (b >= b0) & (b <= b1)
                 best = np.where(hit, lam, best)
@@ -238,13 +259,46 @@ class TrackScene:
                 tex_b = np.where(hit, b, tex_b)
         return best, idx, tex_a, tex_b
 
+    def cast_rays(self, directions_cam, t: float):
+        """Nearest surface along rays from the camera centre at time t (s).
+
+        directions_cam: (..., 3) unit direction vectors in the camera optical frame (x right,
+        y down, z forward), anywhere on the sphere (backward too). Returns ``(range_m,
+        surface_index, tex_a, tex_b)``, each shaped (...): distance along the ray (m; inf
+        where nothing is hit), the index into ``self.surfaces`` (-1 where nothing is hit)
+        and the hit's two in-plane texture coordinates (m). Directions that are not unit
+        length give λ in units of their length (range = λ·|d|).
+        """
+        d = np.asarray(directions_cam, dtype=float)
+        if d.shape[-1:] != (3,):
+            raise ValueError(f"directions_cam must have shape (..., 3), got {d.shape}")
+        return self._intersect(d @ self.rotation(t).T, self.position(t))
+
+    def luminance(self, directions_cam, t: float) -> np.ndarray:
+        """Noise-free luminance (0..1) seen along unit directions (..., 3) at time t (s).
+
+        0 where nothing is hit. The pinhole frames of :meth:`render` are this, averaged
+        over each pixel's sub-pixel rays.
+        """
+        _, idx, a, b = self.cast_rays(directions_cam, t)
+        return self._shade(idx, a, b)
+
+    def _cast(self, x, y, t):
+        """Nearest surface hit for normalised ray coordinates at time t.
+
+        Returns forward depth (camera z, m), surface index and the two texture
+        coordinates (m), each shaped like x: the rays (x, y, 1) have unit forward
+        component, so the ray parameter λ is the forward depth.
+        """
+        d = np.stack([x, y, np.ones_like(x)], axis=-1)
+        return self.cast_rays(d, t)
+
     def _shade(self, idx, tex_a, tex_b) -> np.ndarray:
         cfg = self.config
         n = cfg.texture_size
         u = np.mod(tex_a / cfg.texture_texel_m, n) + 1.0
         v = np.mod(tex_b / cfg.texture_texel_m, n) + 1.0 + np.maximum(idx, 0) * (n + 2)
-        tex = cv2.remap(self._atlas, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_REPLICATE)
+        tex = _bilinear(self._atlas, u, v)
         gain = np.array([s.gain for s in self.surfaces])[np.maximum(idx, 0)]
         lum = gain * (0.5 + 0.16 * tex)
         return np.where(idx >= 0, lum, 0.0)

@@ -105,3 +105,48 @@ def test_accelerometer_reads_gravity_and_forward_acceleration_is_recovered():
     assert np.sqrt(np.mean(err ** 2)) < 0.04
     # A naive reading that ignores the tilt would be off by g·sin(4°) ≈ 0.68 m/s².
     assert abs(np.mean(imu["accel"][:, 2] - truth)) > 0.5
+
+
+def unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def test_cast_rays_ranges_are_analytic_all_around_the_sphere():
+    """Rays anywhere on the sphere (backward too) hit the floor and walls at their analytic range."""
+    scene = constant_scene(v=0.4, side_walls=True)
+    t = 1.3
+    rng = np.random.default_rng(1)
+    # Backward and sideways rays that go down: the floor (y = +0.6) or a side wall (x = ±1.5) first.
+    d = unit(rng.normal(size=(400, 3)) * [1, 1, 1] + [0, 0.2, 0])
+    d = d[(d[:, 2] < 0) & (d[:, 1] > 0.05)]
+    assert len(d) > 50
+    rng_m, idx, a, b = scene.cast_rays(d, t)
+    expect = np.minimum(0.6 / d[:, 1], 1.5 / np.abs(d[:, 0]))
+    np.testing.assert_allclose(rng_m, expect, rtol=1e-9)
+    floor = [i for i, s in enumerate(scene.surfaces) if s.axis == 1][0]
+    np.testing.assert_array_equal(idx == floor, 0.6 / d[:, 1] < 1.5 / np.abs(d[:, 0]))
+    # Straight back, level: parallel to the floor, between the walls' ends: nothing is hit.
+    r0, i0, _, _ = scene.cast_rays(np.array([0.0, -0.3, -1.0]) / np.hypot(0.3, 1.0), t)
+    assert i0 == -1 and np.isinf(r0)
+    assert scene.luminance(np.array([0.0, -0.3, -1.0]) / np.hypot(0.3, 1.0), t) == 0.0
+    # Forward pixel rays: range = forward depth x |(x, y, 1)|, the same hits as the depth map.
+    x, y = CAM.normalised_grid()
+    dirs = unit(np.stack([x, y, np.ones_like(x)], -1))
+    rng_m, idx, _, _ = scene.cast_rays(dirs, t)
+    np.testing.assert_allclose(rng_m, scene.depth(t) * np.sqrt(x ** 2 + y ** 2 + 1), rtol=1e-6)
+
+
+def test_pinhole_frames_are_the_ray_luminance_averaged_over_sub_pixel_rays():
+    scene = constant_scene(v=0.4, rotation_amp_deg=2.0, side_walls=True)
+    t, ss = 0.7, scene.config.supersample
+    x, y = scene._rays
+    lum = scene.luminance(unit(np.stack([x, y, np.ones_like(x)], -1)), t)
+    img = lum.reshape(CAM.height, ss, CAM.width, ss).mean(axis=(1, 3))
+    np.testing.assert_allclose(img, scene._render_clean(t), atol=1e-5)
+    frame = scene.render(t)
+    assert np.abs(frame - np.clip(np.round(255 * img), 0, 255)).max() <= 1
+    # Any shape of directions, e.g. a flat list of 10,000 rays (cv2's 2-D map limits do not apply).
+    flat = unit(np.random.default_rng(2).normal(size=(10000, 3)))
+    l_flat = scene.luminance(flat, t)
+    np.testing.assert_allclose(l_flat[:100], scene.luminance(flat[:100].reshape(10, 10, 3), t).ravel(), atol=1e-6)

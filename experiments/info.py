@@ -1,0 +1,168 @@
+"""``lobula info FOOTAGE``: what a recording holds, for every layout the project reads.
+
+Streams, frame count, rates, duration, dropped frames (gaps in the time stamps),
+intrinsics and lens distortion, IMU presence, rates and ranges, camera–IMU extrinsics,
+truth — what ``ros2 bag info`` and ``rs-enumerate-devices`` tell, as plain text or
+``--json``. Also the footage options every footage-reading command shares
+(:func:`add_footage_options`, :func:`open_footage_from_args`).
+"""
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+
+def add_footage_options(p) -> None:
+    """The reader options (stream, clock, bad frames, clock offset, undistortion) on a subcommand parser."""
+    p.add_argument("--stream", default=None,
+                   help="RealSense .bag/.db3: image stream to read, e.g. Color_0 or Infrared_1 (default: colour, "
+                        "else infrared)")
+    p.add_argument("--clock", default="device", choices=["device", "header", "record"],
+                   help="RealSense .bag/.db3: frame and IMU times from the device's time stamps, the message "
+                        "header stamps, or the bag's record times")
+    p.add_argument("--skip-bad-frames", action="store_true",
+                   help="leave out frames that cannot be decoded (counted in the output's attrs) instead of stopping")
+    p.add_argument("--clock-offset", default=None, metavar="S|auto",
+                   help="seconds added to the IMU's times to put them on the camera's clock, or 'auto' to "
+                        "estimate it by cross-correlating the gyro with the image rotation (default: none)")
+    p.add_argument("--undistort", default="same-k", choices=["same-k", "optimal"],
+                   help="EuRoC: undistort onto the same pinhole K, or onto OpenCV's optimal new K")
+
+
+def open_footage_from_args(args, require_imu: bool = True):
+    """open_footage with the options of :func:`add_footage_options` (absent options: defaults)."""
+    from stimuli.footage import open_footage
+
+    clock = getattr(args, "clock", None)
+    return open_footage(args.footage, stream=getattr(args, "stream", None),
+                        clock=None if clock == "device" else clock, require_imu=require_imu,
+                        skip_bad_frames=getattr(args, "skip_bad_frames", False),
+                        clock_offset=getattr(args, "clock_offset", None),
+                        undistort=getattr(args, "undistort", "same-k"))
+
+
+def _rate(t: np.ndarray) -> float | None:
+    return float((len(t) - 1) / (t[-1] - t[0])) if len(t) > 1 and t[-1] > t[0] else None
+
+
+def _ranges(v: np.ndarray) -> dict:
+    return {ax: [round(float(v[:, k].min()), 4), round(float(v[:, k].max()), 4)] for k, ax in enumerate("xyz")}
+
+
+def describe(footage) -> dict:
+    """Everything ``lobula info`` reports about a footage, as plain JSON-able values."""
+    from stimuli.footage import frame_gaps
+
+    t = np.asarray(footage.times, float)
+    cam = footage.camera
+    d = dict(path=str(footage.path), layout=footage.kind,
+             frames=dict(count=int(len(t)), start_s=float(t[0]) if len(t) else None,
+                         duration_s=float(t[-1] - t[0]) if len(t) else 0.0,
+                         nominal_rate_hz=float(cam.frame_rate_hz), measured_rate_hz=_rate(t),
+                         median_interval_s=float(np.median(np.diff(t))) if len(t) > 1 else None,
+                         **{f"dropped_{k}": v for k, v in frame_gaps(t, 1.0 / cam.frame_rate_hz).items()}),
+             intrinsics=cam.to_dict(), distortion=footage.distortion or None)
+    for extra in ("topic", "encoding", "time_source", "time_origin_s"):
+        if getattr(footage, extra, None) not in (None, ""):
+            d["frames"][extra] = getattr(footage, extra)
+    imu = footage.imu
+    if imu is None:
+        d["imu"] = None
+    else:
+        d["imu"] = dict(samples=int(len(imu.time_s)), rate_hz=_rate(imu.time_s),
+                        span_s=[float(imu.time_s[0]), float(imu.time_s[-1])],
+                        accel_range_m_s2=_ranges(imu.accel),
+                        accel_mean_norm_m_s2=round(float(np.linalg.norm(imu.accel, axis=1).mean()), 4),
+                        gyro=None if imu.gyro is None else dict(range_rad_s=_ranges(imu.gyro),
+                                                                 mean_rad_s=np.round(imu.gyro.mean(0), 5).tolist()),
+                        gaps=frame_gaps(imu.time_s), source=imu.source,
+                        frame="camera optical (x right, y down, z forward)")
+    r = footage.imu_to_camera
+    d["extrinsics"] = None if r is None else dict(imu_to_camera=np.round(r, 6).tolist(),
+                                                   angle_deg=round(float(np.degrees(np.arccos(np.clip(
+                                                       (np.trace(r) - 1) / 2, -1, 1)))), 3))
+    if footage.truth is None:
+        d["truth"] = None
+    else:
+        tt = footage.truth["time_s"]
+        d["truth"] = dict(columns=sorted(footage.truth), samples=int(len(tt)), span_s=[float(tt[0]), float(tt[-1])])
+        if "v_forward_m_s" in footage.truth:
+            v = footage.truth["v_forward_m_s"]
+            d["truth"]["v_forward_range_m_s"] = [round(float(np.min(v)), 4), round(float(np.max(v)), 4)]
+    d["streams"] = list(footage.streams)
+    d["notes"] = list(footage.notes)
+    return d
+
+
+def format_text(d: dict) -> str:
+    """The plain-text report of :func:`describe`'s dict."""
+    f, c = d["frames"], d["intrinsics"]
+    out = [f"{d['path']}  [{d['layout']}]"]
+    rate = f"{f['measured_rate_hz']:.3f}" if f["measured_rate_hz"] else "-"
+    out.append(f"frames:     {f['count']} over {f['duration_s']:.3f} s; {rate} frames/s measured, "
+               f"{f['nominal_rate_hz']:g} nominal")
+    if f["dropped_gaps"]:
+        out.append(f"dropped:    {f['dropped_missing']} frame(s) in {f['dropped_gaps']} gap(s); longest interval "
+                   f"{f['dropped_largest_s'] * 1e3:.1f} ms, first at {f['dropped_first_at_s']:.3f} s")
+    else:
+        out.append("dropped:    none (no interval over 1.5 frame intervals)")
+    for k in ("topic", "encoding", "time_source"):
+        if k in f:
+            out.append(f"{k + ':':<11} {f[k]}")
+    out.append(f"intrinsics: {c['width']}x{c['height']}, fx {c['fx']:.3f}, fy {c['fy']:.3f}, "
+               f"cx {c['cx']:.3f}, cy {c['cy']:.3f}")
+    out.append(f"distortion: {json.dumps(d['distortion']) if d['distortion'] else 'none reported'}")
+    imu = d["imu"]
+    if imu is None:
+        out.append("imu:        none (velocity needs an accelerometer)")
+    else:
+        rate = f"{imu['rate_hz']:.1f} Hz" if imu["rate_hz"] else "-"
+        out.append(f"imu:        {imu['samples']} samples, {rate}, {imu['span_s'][0]:.3f}..{imu['span_s'][1]:.3f} s; "
+                   f"{imu['frame']}")
+        out.append("  accel:    " + ", ".join(f"{k} {v[0]:+.3f}..{v[1]:+.3f}" for k, v in
+                                              imu["accel_range_m_s2"].items())
+                   + f" m/s²; mean |a| {imu['accel_mean_norm_m_s2']:.3f}")
+        if imu["gyro"]:
+            out.append("  gyro:     " + ", ".join(f"{k} {v[0]:+.4f}..{v[1]:+.4f}" for k, v in
+                                                  imu["gyro"]["range_rad_s"].items())
+                       + f" rad/s; mean {imu['gyro']['mean_rad_s']}")
+        else:
+            out.append("  gyro:     none")
+        if imu["gaps"]["gaps"]:
+            out.append(f"  gaps:     {imu['gaps']['gaps']} IMU gap(s), longest {imu['gaps']['largest_s'] * 1e3:.1f} ms")
+    e = d["extrinsics"]
+    out.append(f"extrinsics: {'IMU→camera rotation of %.3f deg applied: %s' % (e['angle_deg'], e['imu_to_camera']) if e else 'none applied'}")
+    tr = d["truth"]
+    out.append("truth:      " + ("none" if tr is None else
+                                 f"{tr['samples']} samples, {', '.join(tr['columns'])}"
+                                 + (f"; v_forward {tr['v_forward_range_m_s'][0]:+.3f}..{tr['v_forward_range_m_s'][1]:+.3f} m/s"
+                                    if "v_forward_range_m_s" in tr else "")))
+    if d["streams"]:
+        out.append("streams:")
+        for s in d["streams"]:
+            out.append("  " + "  ".join(f"{v}" for v in s.values()))
+    for n in d["notes"]:
+        out.append(f"note: {n}")
+    return "\n".join(out)
+
+
+def run_info(args) -> int:
+    footage = open_footage_from_args(args, require_imu=False)
+    d = describe(footage)
+    if args.json:
+        json.dump(d, sys.stdout, indent=1, default=str)
+        print()
+    else:
+        print(format_text(d))
+    return 0
+
+
+def add_parser(subparsers):
+    """Register `lobula info` (see experiments.cli)."""
+    p = subparsers.add_parser("info", help="what a recording holds: streams, rates, intrinsics, IMU, gaps, truth")
+    p.add_argument("footage", help="footage folder, D435i sample, RealSense .bag/.db3, EuRoC folder or video file")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    add_footage_options(p)
+    p.set_defaults(func=run_info)

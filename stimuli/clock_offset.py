@@ -1,0 +1,104 @@
+"""A constant clock offset between camera and IMU, estimated from the footage itself.
+
+The image's rotation rate is measured from consecutive frames: dense flow at low
+resolution (OpenCV DIS), and per frame pair the least-squares angular velocity ω_img whose
+rotational flow field (:func:`lobula.epipole.rotational_flow`) best explains it (translation
+adds flow too but does not correlate with the gyro's rotation). The gyro, on its own clock,
+is compared with ω_img for every candidate offset τ (t_camera = t_imu + τ): the offset is
+the τ that maximises the normalised cross-correlation summed over the three axes, refined
+by a parabola through the peak. Too little rotation, or a peak correlation under
+``min_correlation``, is an error: the offset is then not identifiable from this footage and
+must be given.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .footage_core import FootageError
+
+
+@dataclass
+class ClockOffset:
+    """offset_s: add to IMU times to put them on the camera's clock; correlation at the peak; pairs used."""
+
+    offset_s: float
+    correlation: float
+    n_pairs: int
+    lags_s: np.ndarray
+    scores: np.ndarray
+
+
+def image_rotation_rates(footage, max_frames: int = 900, width: int = 160) -> tuple[np.ndarray, np.ndarray]:
+    """(mid times (n,), ω_img (n, 3) rad/s) from consecutive frames, flow computed at ``width`` pixels."""
+    from lobula.epipole import rotational_flow
+
+    cam = footage.camera
+    scale = min(1.0, width / cam.width)
+    small = cam.scaled(scale) if scale < 1 else cam
+    x, y = small.normalised_grid()
+    step = max(1, int(np.sqrt(small.width * small.height / 3000)))
+    xs, ys = x[::step, ::step].ravel(), y[::step, ::step].ravel()
+    basis = np.stack([rotational_flow(e, xs, ys).reshape(-1) for e in np.eye(3)], -1)   # (2P, 3)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST)
+    prev, out_t, out_w = None, [], []
+    for _, t, img in footage.frames(0, max_frames):
+        g = cv2.resize(img, (small.width, small.height), interpolation=cv2.INTER_AREA) if scale < 1 else img
+        g = np.clip(np.round(g), 0, 255).astype(np.uint8)
+        if prev is not None:
+            dt = t - prev[0]
+            f = dis.calc(prev[1], g, None)[::step, ::step]
+            b = np.concatenate([f[..., 0].ravel() / small.fx, f[..., 1].ravel() / small.fy]) / dt
+            w, *_ = np.linalg.lstsq(basis, b, rcond=None)
+            out_t.append(0.5 * (t + prev[0]))
+            out_w.append(w)
+        prev = (t, g)
+    return np.asarray(out_t), np.asarray(out_w).reshape(-1, 3)
+
+
+def estimate_clock_offset(footage, max_offset_s: float = 0.25, resolution_s: float = 0.001,
+                          min_correlation: float = 0.5, max_frames: int = 900) -> ClockOffset:
+    """Estimate the camera–IMU clock offset (see the module doc); FootageError when not identifiable."""
+    imu = footage.imu
+    if imu is None or imu.gyro is None:
+        raise FootageError(f"{footage.path}: --clock-offset auto needs a gyroscope; give --clock-offset S")
+    t_img, w_img = image_rotation_rates(footage, max_frames=max_frames)
+    if len(t_img) < 10:
+        raise FootageError(f"{footage.path}: too few frames ({len(t_img) + 1}) to estimate the clock offset; "
+                           f"give --clock-offset S")
+    w_img = w_img - w_img.mean(0)
+    if np.sqrt((w_img ** 2).sum(1).mean()) < 0.02:
+        raise FootageError(f"{footage.path}: too little rotation in the footage (< 0.02 rad/s RMS) to estimate "
+                           f"the clock offset; give --clock-offset S")
+    lags = np.arange(-max_offset_s, max_offset_s + resolution_s / 2, resolution_s)
+    scores = np.full(len(lags), np.nan)
+    for k, lag in enumerate(lags):
+        # gyro on the camera clock: ω(t_cam) = gyro(t_cam − τ)
+        tq = t_img - lag
+        ok = (tq >= imu.time_s[0]) & (tq <= imu.time_s[-1])
+        if ok.sum() < 0.8 * len(t_img):
+            continue
+        g = np.stack([np.interp(tq[ok], imu.time_s, imu.gyro[:, j]) for j in range(3)], -1)
+        g = g - g.mean(0)
+        a = w_img[ok]
+        den = np.sqrt((a ** 2).sum() * (g ** 2).sum())
+        scores[k] = (a * g).sum() / den if den > 0 else np.nan
+    if not np.isfinite(scores).any():
+        raise FootageError(f"{footage.path}: the IMU does not cover the frames within ±{max_offset_s} s; "
+                           f"give --clock-offset S")
+    k = int(np.nanargmax(scores))
+    best, peak = float(lags[k]), float(scores[k])
+    if 0 < k < len(lags) - 1 and np.isfinite(scores[k - 1]) and np.isfinite(scores[k + 1]):
+        s0, s1, s2 = scores[k - 1], scores[k], scores[k + 1]
+        den = s0 - 2 * s1 + s2
+        if den < 0:
+            best += float(0.5 * (s0 - s2) / den) * resolution_s
+    if peak < min_correlation:
+        raise FootageError(f"{footage.path}: gyro and image rotation correlate only {peak:.2f} at best "
+                           f"(< {min_correlation}); the clock offset is not identifiable here: give --clock-offset S")
+    if k in (0, len(lags) - 1):
+        raise FootageError(f"{footage.path}: the best clock offset is at the edge of ±{max_offset_s} s; "
+                           f"give --clock-offset S")
+    return ClockOffset(best, peak, int(len(t_img)), lags, scores)

@@ -1,0 +1,223 @@
+"""The footage core: what every layout reader returns, and the checks they share.
+
+:class:`Footage` is the streamed recording (camera, frame times, frames on demand, IMU,
+truth), :class:`IMU` its inertial samples, :class:`FootageError` the one error a bad
+input raises. Layout readers (:mod:`stimuli.footage`'s folders, :mod:`stimuli.realsense_bag`,
+:mod:`stimuli.rosbag2_db3`, :mod:`stimuli.euroc`, :mod:`stimuli.video`) import only this
+module; :func:`stimuli.footage.open_footage` imports them, so there is no import circle.
+
+Conventions every reader keeps (COMMON contract 4):
+
+* ``Footage.imu`` is in the camera optical frame (x right, y down, z forward), on the
+  frames' clock, in seconds;
+* ``frames()`` yields (index, time_s, grey float32 (H, W) in grey levels 0..255), decoding
+  one frame at a time, so memory does not grow with the recording's length;
+* with ``skip_bad_frames`` set, a frame that cannot be decoded is left out and its index
+  kept in ``skipped_frames`` instead of stopping the run.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from lobula.camera import PinholeCamera
+
+
+class FootageError(ValueError):
+    """Bad or missing footage input; the message names the file and what to do."""
+
+
+def read_csv_columns(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """A CSV with a header row as {column: array} (float where every value parses); clear errors."""
+    try:
+        with open(path, newline="") as fh:
+            reader = csv.DictReader(fh)
+            rows = list(reader)
+            cols = reader.fieldnames or []
+    except FileNotFoundError:
+        raise FootageError(f"{path}: file not found") from None
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise FootageError(f"{path}: not a readable CSV ({exc})") from None
+    missing = [c for c in required if c not in cols]
+    if missing:
+        raise FootageError(f"{path}: missing column(s) {missing}; expected {list(required)}")
+    if not rows:
+        raise FootageError(f"{path}: no rows")
+    out = {}
+    for c in cols:
+        try:
+            out[c] = np.array([float(r[c]) for r in rows])
+        except (TypeError, ValueError):
+            out[c] = np.array([r[c] for r in rows])
+    return out
+
+
+def check_times(path: Path, t: np.ndarray, what: str = "time_s") -> None:
+    """Times must be finite and strictly increasing; the error names the first bad row."""
+    if not np.all(np.isfinite(t)):
+        raise FootageError(f"{path}: {what} has NaN or infinite values; remove those rows")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        raise FootageError(f"{path}: {what} does not increase at row {bad[0] + 2} "
+                           f"({t[bad[0]]} then {t[bad[0] + 1]}); sort the rows and drop duplicates")
+
+
+def read_frame(path: Path) -> np.ndarray:
+    """Decode one frame as grey float32 (H, W) in grey levels 0..255; clear error if corrupt."""
+    if not path.exists():
+        raise FootageError(f"{path}: frame file is missing")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise FootageError(f"{path}: cannot decode this image (corrupt or not an image); replace or remove it")
+    return to_grey(img)
+
+
+def to_grey(img: np.ndarray) -> np.ndarray:
+    """OpenCV-decoded image (BGR, BGRA or grey; 8 or 16 bit) -> grey float32 in 0..255."""
+    if img.ndim == 3:
+        if img.shape[2] == 1:
+            img = img[..., 0]
+        else:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if img.dtype == np.uint16:
+        return img.astype(np.float32) / 257.0
+    return img.astype(np.float32)
+
+
+def frame_gaps(times: np.ndarray, nominal_dt: float | None = None) -> dict:
+    """Dropped frames judged from the time stamps: intervals over 1.5 nominal frame intervals.
+
+    nominal_dt: the frame interval (s); default the median interval. Returns
+    {"gaps": number of long intervals, "missing": frames missing in them (each interval
+    counts round(Δt/dt) − 1), "largest_s": the longest interval, "first_at_s": time of the
+    first gap or None}.
+    """
+    t = np.asarray(times, float)
+    if t.size < 2:
+        return dict(gaps=0, missing=0, largest_s=0.0, first_at_s=None)
+    d = np.diff(t)
+    dt = float(nominal_dt or np.median(d))
+    long = d > 1.5 * dt
+    return dict(gaps=int(long.sum()), missing=int(np.sum(np.round(d[long] / dt) - 1)),
+                largest_s=float(d.max()), first_at_s=float(t[np.flatnonzero(long)[0]]) if long.any() else None)
+
+
+def rotation_from_json(value, where: str) -> np.ndarray:
+    """A 3×3 rotation matrix from a list of lists; clear error unless it is orthonormal with det +1."""
+    try:
+        r = np.asarray(value, float)
+    except (TypeError, ValueError):
+        r = np.zeros(0)
+    if r.shape != (3, 3) or not np.all(np.isfinite(r)):
+        raise FootageError(f"{where}: imu_to_camera must be a 3x3 rotation matrix (list of 3 lists of 3 numbers)")
+    if np.abs(r @ r.T - np.eye(3)).max() > 1e-3 or np.linalg.det(r) < 0:
+        raise FootageError(f"{where}: imu_to_camera is not a rotation (R Rᵀ ≠ I or det < 0); give R with "
+                           f"v_cam = R @ v_imu")
+    return r
+
+
+def rotation_deg(r: np.ndarray) -> float:
+    """Angle (degrees) of a rotation matrix."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
+
+
+@dataclass
+class IMU:
+    """IMU samples in the camera optical frame: time_s (n,), accel (n, 3) m/s², gyro (n, 3) rad/s or None."""
+
+    time_s: np.ndarray
+    accel: np.ndarray
+    gyro: np.ndarray | None
+    source: str
+
+    def rotated(self, r: np.ndarray) -> "IMU":
+        """The same samples with every vector rotated by r (v' = r @ v)."""
+        return IMU(self.time_s, self.accel @ r.T, None if self.gyro is None else self.gyro @ r.T, self.source)
+
+    def shifted(self, offset_s: float) -> "IMU":
+        """The same samples on a clock ``offset_s`` later (t' = t + offset)."""
+        return IMU(self.time_s + offset_s, self.accel, self.gyro, self.source)
+
+
+@dataclass
+class Footage:
+    """A streamed recording: camera intrinsics, frame times and files, IMU and truth.
+
+    Iterate :meth:`frames` for (index, time_s, image (H, W) float32 grey levels).
+    ``imu`` may be None (then velocity needs ``accel_from_truth``); ``truth`` maps
+    column name -> array at ``truth['time_s']``. ``distortion`` describes lens distortion
+    the reader removed or ignored (None: none reported); ``imu_to_camera`` the rotation
+    applied to the IMU on reading (None: none needed or known). ``skip_bad_frames``,
+    ``skipped_frames`` and the clock offset fields are filled by :func:`stimuli.footage.open_footage`;
+    ``streams`` lists what the recording holds (one dict per topic or sensor: name, type, count, ...).
+    """
+
+    path: Path
+    camera: PinholeCamera
+    times: np.ndarray
+    files: list[Path]
+    imu: IMU | None = None
+    truth: dict[str, np.ndarray] | None = None
+    kind: str = "folder"
+    notes: list[str] = field(default_factory=list)
+    distortion: dict | None = None
+    imu_to_camera: np.ndarray | None = None
+    skip_bad_frames: bool = False
+    skipped_frames: list[int] = field(default_factory=list)
+    clock_offset_s: float = 0.0
+    clock_offset_source: str = "none"
+    streams: list[dict] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
+        stop = len(self) if stop is None else min(stop, len(self))
+        for i in range(start, stop):
+            try:
+                img = self.decode(i)
+            except FootageError as exc:
+                self.bad_frame(i, exc)
+                continue
+            yield i, float(self.times[i]), img
+
+    def decode(self, i: int) -> np.ndarray:
+        """Frame i as grey float32 (H, W); FootageError if it cannot be decoded or has the wrong size."""
+        img = read_frame(self.files[i])
+        self.check_size(img, self.files[i])
+        return img
+
+    def check_size(self, img: np.ndarray, where) -> None:
+        if img.shape != (self.camera.height, self.camera.width):
+            raise FootageError(f"{where}: image is {img.shape[1]}x{img.shape[0]}, the intrinsics say "
+                               f"{self.camera.width}x{self.camera.height}")
+
+    def bad_frame(self, i: int, exc: Exception) -> None:
+        """Frame i could not be decoded: raise, or (skip_bad_frames) remember it and go on."""
+        if not self.skip_bad_frames:
+            raise exc if isinstance(exc, FootageError) else FootageError(str(exc))
+        if i not in self.skipped_frames:
+            self.skipped_frames.append(i)
+
+    def depth_map(self, index: int) -> np.ndarray | None:
+        p = self.path / "depth" / f"{index:06d}.npy"
+        return np.load(p) if p.exists() else None
+
+    def provenance(self) -> dict:
+        """What an output's attrs say about how this footage was read (call after streaming it)."""
+        gaps = frame_gaps(self.times)
+        return dict(footage_layout=self.kind,
+                    frames_skipped=len(self.skipped_frames),
+                    frames_skipped_indices=json.dumps(self.skipped_frames[:100]),
+                    frames_dropped=gaps["missing"], frame_gaps=gaps["gaps"],
+                    clock_offset_s=float(self.clock_offset_s), clock_offset_source=self.clock_offset_source,
+                    camera_intrinsics=json.dumps(self.camera.to_dict()),
+                    lens_distortion=json.dumps(self.distortion) if self.distortion else "none",
+                    imu_to_camera=json.dumps(np.round(self.imu_to_camera, 9).tolist())
+                    if self.imu_to_camera is not None else "none")
