@@ -312,10 +312,11 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
                     h[2] = c
                 else:
                     zk -= c * np.interp(t[k] - accel_span[k], t[:k], xs[:k, 0]) if k else 0.0
-            # In velocity units: v·σ_κ/κ from the fields' spread, floored at meas_floor (as a
-            # velocity measurement would be); the accelerometer's own noise after the low-pass
-            # is far below either, and its offset and ramp are states, not noise.
-            R = (abs(x[0]) * skap) ** 2 + (kap * cfg.meas_floor_m_s) ** 2 + (cfg.meas_floor_m_s * skap) ** 2
+            # The fields' spread (v·σ_κ, floored at meas_floor as a velocity measurement would
+            # be) and the filtered accelerometer's noise floor (accel_min_m_s2); its offset and
+            # ramp are states, not noise.
+            R = ((abs(x[0]) * skap) ** 2 + (kap * cfg.meas_floor_m_s) ** 2 + (cfg.meas_floor_m_s * skap) ** 2
+                 + cfg.accel_min_m_s2 ** 2)
             S = h @ P @ h + R
             K = P @ h / S
             x = x + K * (zk - h @ x)
