@@ -2,11 +2,15 @@
 
 ``make_track_run`` is what ``lobula scene`` calls: it replays a velocity profile (by
 default the real FLIVVER trajectory when ``../shared`` is present, else a built-in
-profile with rests, accelerations and reversals) through a :class:`TrackScene`.
+profile with rests, accelerations and reversals, or a seeded random smooth profile with
+a given peak speed) through a :class:`TrackScene`, and synthesises the IMU from the same
+trajectory and rotation.
 """
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -31,15 +35,61 @@ def builtin_profile(t: np.ndarray) -> np.ndarray:
     return ramp ** 2 * (3 - 2 * ramp) * v
 
 
+def random_profile(seed: int, duration_s: float, peak_m_s: float, start: str = "rest",
+                   band_s: tuple[float, float] = (2.5, 9.0), n_components: int = 4):
+    """A seeded smooth velocity profile (m/s) whose largest |v| over [0, duration_s] is peak_m_s.
+
+    A sum of n_components sinusoids with periods drawn in band_s and random phases and
+    weights. start: "rest" holds still for the first second and eases in over 1.5 s
+    (v = a = 0 at t = 0); "motion" starts mid-stride (|v(0)| ≥ 40% of the peak).
+    Returns a vectorised function of t (s).
+    """
+    if start not in ("rest", "motion"):
+        raise ValueError(f"profile start must be 'rest' or 'motion', got {start!r}")
+    if peak_m_s <= 0:
+        raise ValueError(f"peak speed must be positive, got {peak_m_s}")
+    rng = np.random.default_rng([seed, 5])
+    for _ in range(100):
+        per = rng.uniform(*band_s, n_components)
+        ph = rng.uniform(0, 2 * np.pi, n_components)
+        w = rng.uniform(0.3, 1.0, n_components)
+
+        def raw(t, per=per, ph=ph, w=w):
+            t = np.asarray(t, dtype=float)
+            v = np.sum(w * np.sin(2 * np.pi * t[..., None] / per + ph), axis=-1)
+            if start == "rest":
+                ramp = np.clip((t - 1.0) / 1.5, 0.0, 1.0)
+                v = ramp ** 2 * (3 - 2 * ramp) * v
+            return v
+
+        tt = np.arange(0.0, duration_s + 0.01, 0.01)
+        peak = np.abs(raw(tt)).max()
+        if start == "motion" and abs(raw(0.0)) < 0.4 * peak:
+            continue  # redraw: this one starts nearly still
+        if peak > 0:
+            break
+    k = peak_m_s / peak
+    return lambda t: k * raw(t)
+
+
 @dataclass
 class TrackRunConfig:
-    """A synthetic run: profile (CSV path or None for the built-in one), window, camera scale."""
+    """A synthetic run: profile, window, camera scale, scene and IMU.
+
+    profile: CSV path, or None for the built-in profile. random_peak_m_s: if set, a
+    seeded random smooth profile (:func:`random_profile`, seed = scene seed) with this
+    peak speed, starting as random_start says ("rest" or "motion"); it overrides profile.
+    profile_scale: multiplies the profile's velocity (faster runs from the real one).
+    """
 
     profile: str | None = None
     start_s: float = 0.0
     duration_s: float = 30.0
     scale: float = 0.5
     constant_velocity_m_s: float | None = None
+    random_peak_m_s: float | None = None
+    random_start: str = "rest"
+    profile_scale: float = 1.0
     camera_json: str | None = None
     scene: SceneConfig = field(default_factory=SceneConfig)
     imu: IMUConfig = field(default_factory=IMUConfig)
@@ -53,26 +103,60 @@ def build_track(cfg: TrackRunConfig) -> tuple[TrackScene, dict]:
     """The scene (camera, trajectory, world) and its IMU recording for a run configuration."""
     cam = PinholeCamera.from_json(cfg.camera_json) if cfg.camera_json else PinholeCamera()
     cam = cam.scaled(cfg.scale) if cfg.scale != 1 else cam
+    k = float(cfg.profile_scale)
     if cfg.constant_velocity_m_s is not None:
         v0 = float(cfg.constant_velocity_m_s)
         traj = trajectory_from_function(lambda t: np.full_like(t, v0), cfg.duration_s)
+    elif cfg.random_peak_m_s is not None:
+        fn = random_profile(cfg.scene.seed, cfg.duration_s, cfg.random_peak_m_s, cfg.random_start)
+        traj = trajectory_from_function(lambda t: k * fn(t), cfg.duration_s)
+        traj.source = f"random(seed={cfg.scene.seed}, peak={cfg.random_peak_m_s} m/s, start={cfg.random_start})"
     elif cfg.profile:
-        traj = trajectory_from_profile(cfg.profile, cfg.start_s, cfg.duration_s)
+        traj = trajectory_from_profile(cfg.profile, cfg.start_s, cfg.duration_s, scale=k)
     else:
-        traj = trajectory_from_function(lambda t: builtin_profile(t + cfg.start_s), cfg.duration_s)
+        traj = trajectory_from_function(lambda t: k * builtin_profile(t + cfg.start_s), cfg.duration_s)
     scene = TrackScene(cam, traj, cfg.scene)
     imu = synthesize_imu(scene, cfg.duration_s, cfg.imu)
     return scene, imu
 
 
 def make_track_run(folder, cfg: TrackRunConfig, progress: bool = True) -> Path:
-    """Render a run into a footage folder (atomically) and return its path."""
+    """Render a run into a footage folder (atomically) and return its path.
+
+    With the IMU mounted rotated (IMUConfig.mount = "rotated"), imu.csv holds the IMU
+    frame and camera.json gains "imu_to_camera" (v_cam = R @ v_imu, a list of 3 lists).
+    """
     from tqdm.auto import tqdm
 
+    folder = Path(folder)
+    if folder.exists() and any(folder.iterdir()):
+        raise FileExistsError(f"{folder}: exists and is not empty; choose a new folder or delete it")
     scene, imu = build_track(cfg)
     times = np.arange(0.0, cfg.duration_s - 1e-9, 1.0 / scene.camera.frame_rate_hz)
     meta = dict(lobula_version=__version__, config=cfg.to_dict(), epipole=scene.epipole(0.0),
                 accel_bias=imu["accel_bias"].tolist(), gyro_bias=imu["gyro_bias"].tolist(),
-                trajectory=scene.trajectory.source)
+                trajectory=scene.trajectory.source,
+                surfaces=[dict(axis=s.axis, offset=s.offset, bounds=s.bounds) for s in scene.surfaces])
+    if cfg.imu.accel_bias_walk or cfg.imu.gyro_bias_walk:
+        meta.update(accel_bias_end=imu["accel_bias_t"][-1].tolist(), gyro_bias_end=imu["gyro_bias_t"][-1].tolist())
+    if cfg.imu.accel_scale_std or cfg.imu.accel_misalign_std or cfg.imu.gyro_scale_std or cfg.imu.gyro_misalign_std:
+        meta.update(accel_matrix=imu["accel_matrix"].tolist(), gyro_matrix=imu["gyro_matrix"].tolist())
+    rotated = cfg.imu.mount != "camera"
+    # A rotated IMU adds a key to camera.json after write_footage: write into a hidden
+    # sibling and rename only when complete, so the folder never looks finished early.
+    target = folder.parent / f".{folder.name}.track-{os.getpid()}" if rotated else folder
     with tqdm(total=len(times), desc="rendering", unit="frame", disable=not progress, leave=False, mininterval=2) as bar:
-        return write_footage(folder, scene, imu, times, meta, cfg.depth_every, progress=bar.update)
+        out = write_footage(target, scene, imu, times, meta, cfg.depth_every, progress=bar.update)
+    if not rotated:
+        return out
+    try:
+        cam = json.loads((out / "camera.json").read_text())
+        cam["imu_to_camera"] = imu["imu_to_camera"].tolist()
+        (out / "camera.json").write_text(json.dumps(cam, indent=1))
+        if folder.exists():
+            folder.rmdir()
+        out.rename(folder)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+    return folder

@@ -79,11 +79,12 @@ def read_velocity_profile(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def trajectory_from_profile(path: str | Path, start_s: float = 0.0, duration_s: float = 30.0,
-                            smoothing_s: float = 0.1) -> Trajectory:
+                            smoothing_s: float = 0.1, scale: float = 1.0) -> Trajectory:
     """The window [start_s, start_s + duration_s] of a CSV velocity profile.
 
     smoothing_s: standard deviation (s) of the Gaussian that smooths the samples
     before the spline; it removes tracking quantisation, not the motion.
+    scale: multiplies the velocity (a faster run of the same shape).
     """
     t, v = read_velocity_profile(path)
     if start_s < t[0] or start_s + duration_s > t[-1] + 1e-9:
@@ -92,5 +93,6 @@ def trajectory_from_profile(path: str | Path, start_s: float = 0.0, duration_s: 
     dt = float(np.median(np.diff(t)))
     v_s = gaussian_filter1d(v, smoothing_s / dt, mode="nearest") if smoothing_s > 0 else v
     keep = (t >= start_s - 1.0) & (t <= start_s + duration_s + 1.0)
-    return Trajectory(CubicSpline(t[keep] - start_s, v_s[keep]), float(duration_s),
-                      source=f"{path}[{start_s}:{start_s + duration_s}]")
+    src = f"{path}[{start_s}:{start_s + duration_s}]" + (f"x{scale:g}" if scale != 1 else "")
+    v_s = v_s * scale if scale != 1 else v_s
+    return Trajectory(CubicSpline(t[keep] - start_s, v_s[keep]), float(duration_s), source=src)

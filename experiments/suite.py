@@ -1,0 +1,583 @@
+"""`lobula suite`: the accuracy suite — scene families × seeds, every configuration, beside baselines.
+
+Each (family, seed) scene is rendered once (``lobula scene``'s generator, exact truth, a
+realistic IMU by default) into ``OUT/scenes/``; every estimator configuration runs on it
+(:func:`experiments.velocity.estimate_velocity`), zero-phase and causal, and so do two
+baselines that need no vision: the zero estimator (v̂ = 0) and IMU-only dead reckoning.
+Metrics, per window — after a skip (``--skip``) and over the first 2 s —:
+
+* ``rmse_m_s``, ``median_abs_error_m_s``: over frames where v̂ is observable (finite);
+* ``coverage_2sigma``: fraction of those frames with |v̂ − v| ≤ 2·v_std (NaN without a std);
+* ``observable_fraction``: fraction of the window's frames with an observable v̂;
+* ``lock_on_s`` (whole run, the same in both windows): time from the first frame until the
+  error stays within 0.05 m/s + 10 % of |v| for a full second (NaN: never).
+
+Outputs in ``OUT``: ``suite.nc`` (family × seed × configuration × window × metric, with the
+per-scene settings), ``suite_table.csv`` (mean, sd and n over seeds), ``suite.png``,
+``worlds.png`` (a frame of each family), and
+``series/<scene>.nc`` (truth, v̂ and v_std of every configuration, for plots). Scenes and
+per-scene results are kept, so an interrupted suite resumes where it stopped: a scene is
+re-rendered only if its settings changed, a result reused only if the settings and the
+code's git commit match (with uncommitted changes, "+dirty", or outside a checkout,
+delete ``OUT/results`` to recompute).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time as _time
+import zlib
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: window name -> description
+WINDOWS = ("after_skip", "first_2s")
+METRICS = ("rmse_m_s", "median_abs_error_m_s", "coverage_2sigma", "observable_fraction", "lock_on_s")
+
+#: family name -> what it is (the settings are in :func:`family_config`)
+FAMILIES = {
+    "panels": "frontal panels, a window of the real FLIVVER run",
+    "rotation": "frontal panels with 3-axis rotation (yaw, pitch, roll up to ±5°, 0.3-1.5 Hz)",
+    "corridor": "corridor (floor, ceiling, walls, end wall ~12 m beyond), to 1 m/s",
+    "fast": "corridor, to 2 m/s, starting in motion",
+    "offaxis": "frontal panels, heading 5-9° sideways and up to 4° vertically off the optical axis",
+    "dim": "frontal panels, 35% brightness, half contrast, pixel noise 6 grey levels",
+    "ground": "outdoor ground plane to the horizon, objects, backdrop 50-200 m, sky; to 1.5 m/s",
+    "rest": "frontal panels, random smooth run to 0.6 m/s starting at rest",
+    "moving": "frontal panels, random smooth run to 0.6 m/s starting in motion",
+}
+
+#: configuration name -> (base, filter, {config path: value}); base "lobula" or "paper"
+CONFIGURATIONS = {
+    "lobula zero-phase": ("lobula", "zero-phase", {}),
+    "lobula causal": ("lobula", "causal", {}),
+    "paper zero-phase": ("paper", "zero-phase", {}),
+    "paper causal": ("paper", "causal", {}),
+    "r2=mean_squared zero-phase": ("lobula", "zero-phase", {"readout.r2_term": "mean_squared"}),
+    "r2=mean_squared causal": ("lobula", "causal", {"readout.r2_term": "mean_squared"}),
+    "vision-only zero-phase": ("lobula", "zero-phase", {"readout.fusion": "vision-only"}),
+    "vision-only causal": ("lobula", "causal", {"readout.fusion": "vision-only"}),
+}
+BASELINES = ("zero", "imu dead reckoning")
+
+
+def family_seed(family: str, seed: int) -> int:
+    """The scene seed of a family's seed index: distinct across families, stable across runs."""
+    return zlib.crc32(family.encode()) % 100000 + 1000 * seed
+
+
+def family_config(family: str, seed: int, duration_s: float, scale: float, imu: str = "realistic",
+                  imu_mount: str = "rotated"):
+    """The stimuli.track.TrackRunConfig of one family's seed (all randomness from the seed)."""
+    from stimuli.imu import IMUConfig
+    from stimuli.scene import SceneConfig
+    from stimuli.track import REAL_PROFILE, TrackRunConfig
+
+    if family not in FAMILIES:
+        raise ValueError(f"unknown family {family!r}; choose from {', '.join(FAMILIES)}")
+    s = family_seed(family, seed)
+    rng = np.random.default_rng([s, 9])
+    scene = dict(seed=s)
+    run = dict(duration_s=duration_s, scale=scale)
+    real = REAL_PROFILE.exists()
+
+    def real_window():
+        # A window of the real run (or the built-in profile) starting anywhere after its first rest.
+        if real:
+            run.update(profile=str(REAL_PROFILE), start_s=float(rng.uniform(4.0, 77.5 - duration_s)))
+        else:
+            run.update(start_s=float(rng.uniform(3.0, 40.0)))
+
+    if family in ("panels", "rotation", "offaxis", "dim"):
+        real_window()
+    if family == "rotation":
+        scene.update(rotation3_amp_deg=tuple(float(a) for a in 5.0 * rng.uniform(0.6, 1.0, 3)))
+    elif family == "corridor":
+        scene.update(world="corridor")
+        run.update(random_peak_m_s=1.0, random_start="rest")
+    elif family == "fast":
+        scene.update(world="corridor")
+        run.update(random_peak_m_s=2.0, random_start="motion")
+    elif family == "offaxis":
+        scene.update(off_axis_yaw_deg=float(rng.choice([-1, 1]) * rng.uniform(5.0, 9.0)),
+                     off_axis_pitch_deg=float(rng.uniform(-4.0, 4.0)))
+    elif family == "dim":
+        scene.update(brightness=0.35, contrast=0.5, noise_grey=6.0)
+    elif family == "ground":
+        scene.update(world="ground")
+        run.update(random_peak_m_s=1.5, random_start="rest")
+    elif family in ("rest", "moving"):
+        run.update(random_peak_m_s=0.6, random_start="rest" if family == "rest" else "motion")
+    return TrackRunConfig(scene=SceneConfig(**scene), imu=IMUConfig.model(imu, seed=s, mount=imu_mount), **run)
+
+
+def velocity_config(name: str):
+    """The VelocityConfig of a configuration name; a config path the estimator lacks raises ValueError."""
+    from lobula.config import VelocityConfig
+
+    base, filt, paths = CONFIGURATIONS[name]
+    cfg = VelocityConfig.paper("dis", filt) if base == "paper" else VelocityConfig()
+    cfg.readout.filter = filt
+    for path, value in paths.items():
+        obj = cfg
+        *parents, leaf = path.split(".")
+        for p in parents:
+            obj = getattr(obj, p)
+        if not hasattr(obj, leaf):
+            raise ValueError(f"configuration {name!r}: {type(obj).__name__} has no field {leaf!r} "
+                             f"(config path {path}); this estimator does not implement it")
+        setattr(obj, leaf, value)
+        obj.__post_init__() if hasattr(obj, "__post_init__") else None
+    return cfg
+
+
+# ---------------------------------------------------------------------- metrics
+def lock_on_time(t: np.ndarray, err: np.ndarray, v_true: np.ndarray, hold_s: float = 1.0,
+                 moving_m_s: float = 0.1) -> float:
+    """Seconds from t[0] to the start of the first hold_s-long stretch in which |err| ≤ 0.05 m/s + 10 % of |v|
+    throughout, while the camera moves (|v| > moving_m_s) for at least half of it; NaN if none.
+
+    A NaN (unobservable) error breaks a stretch. Being right about a still camera alone does not count.
+    """
+    ok = np.isfinite(err) & (np.abs(err) <= 0.05 + 0.1 * np.abs(v_true))
+    moving = np.abs(v_true) > moving_m_s
+    start = None
+    for i in range(len(t)):  # a scan over frames (hundreds), not pixels
+        if not ok[i]:
+            start = None
+            continue
+        start = i if start is None else start
+        # Slide the stretch's start forward past still frames so motion can fill it.
+        while start < i and not moving[start] and t[i] - t[start + 1] >= hold_s:
+            start += 1
+        if t[i] - t[start] >= hold_s and moving[start:i + 1].mean() >= 0.5:
+            return float(t[start] - t[0])
+    return float("nan")
+
+
+def window_metrics(t, v_hat, v_std, v_true, mask) -> dict:
+    """RMSE, median |e|, 2σ coverage and observable fraction over the frames in mask."""
+    vh, vt = v_hat[mask], v_true[mask]
+    obs = np.isfinite(vh)
+    err = vh[obs] - vt[obs]
+    out = dict(observable_fraction=float(obs.mean()) if obs.size else float("nan"))
+    if err.size:
+        out.update(rmse_m_s=float(np.sqrt(np.mean(err ** 2))), median_abs_error_m_s=float(np.median(np.abs(err))))
+    else:
+        out.update(rmse_m_s=float("nan"), median_abs_error_m_s=float("nan"))
+    if v_std is None or not err.size:
+        out["coverage_2sigma"] = float("nan")
+    else:
+        sd = v_std[mask][obs]
+        # An estimator that reports no uncertainty at all has no coverage (NaN), not 0.
+        out["coverage_2sigma"] = (float(np.mean(np.isfinite(sd) & (np.abs(err) <= 2 * sd)))
+                                  if np.isfinite(sd).any() else float("nan"))
+    return out
+
+
+def score_series(t, v_hat, v_std, v_true, skip_s: float) -> dict:
+    """{window: {metric: value}} for one configuration's series (v̂ NaN where unobservable)."""
+    lock = lock_on_time(t, v_hat - v_true, v_true)
+    out = {}
+    for w, mask in (("after_skip", t >= t[0] + skip_s), ("first_2s", t < t[0] + 2.0)):
+        m = window_metrics(t, v_hat, v_std, v_true, mask)
+        m["lock_on_s"] = lock
+        out[w] = m
+    return out
+
+
+def dead_reckoning(footage, times: np.ndarray, v0: float, calib_s: float = 1.0, still_rad_s: float = 0.01) -> np.ndarray:
+    """IMU-only forward velocity (m/s) at ``times``: integrate the forward specific force minus gravity.
+
+    Gravity (as specific force) is the mean of the first calib_s seconds, as a device
+    calibrates at start-up; the gyro bias too, but only if the gyro is still then (every
+    axis's std below still_rad_s; a turning camera's mean rate is not a bias, so then the
+    bias is left as the factory's). The attitude is propagated from the gyro so gravity is
+    tracked through turns. Starts from the true initial velocity v0 (a generous start no
+    IMU alone has). Any accelerometer bias drift or scale error, any acceleration during
+    the first second and any attitude error integrate into a drift that grows with time.
+    """
+    from stimuli.imu import small_rotation
+
+    imu = footage.imu
+    ti, acc, gyr = imu.time_s, imu.accel, imu.gyro
+    first = ti < ti[0] + calib_s
+    f0 = acc[first].mean(0)
+    still = gyr is not None and bool(np.all(gyr[first].std(0) < still_rad_s))
+    bg = gyr[first].mean(0) if still else np.zeros(3)
+    n = len(ti)
+    rot = np.empty((n, 3, 3))
+    rot[0] = np.eye(3)
+    for k in range(n - 1):  # attitude relative to the first sample (samples, not pixels)
+        w = 0.5 * (gyr[k] + gyr[k + 1]) - bg if gyr is not None else np.zeros(3)
+        rot[k + 1] = rot[k] @ small_rotation(w * (ti[k + 1] - ti[k]))
+    f_rest = np.einsum("nji,j->ni", rot, f0)  # gravity's specific force in the current camera frame
+    a = (acc - f_rest)[:, 2]
+    v = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(ti))])
+    v -= np.interp(times[0], ti, v)
+    return v0 + np.interp(times, ti, v)
+
+
+# ---------------------------------------------------------------------- one scene
+@dataclass
+class SceneJob:
+    family: str
+    seed: int
+    duration_s: float
+    scale: float
+    imu: str
+    imu_mount: str
+    configurations: tuple
+    skip_s: float
+    out: str
+
+    @property
+    def name(self) -> str:
+        return f"{self.family}-s{self.seed}"
+
+    def key(self) -> str:
+        """What a stored result must match to be reused: the settings and the code's git commit."""
+        from lobula.version import git_commit
+
+        d = dict(self.__dict__)
+        d.pop("out")
+        d["code"] = git_commit()
+        return json.dumps(d, sort_keys=True)
+
+
+def run_scene_job(job: SceneJob) -> dict:
+    """Render (unless already there), run every configuration, write series and result; return the result."""
+    import xarray as xr
+
+    from stimuli.footage import open_footage
+    from stimuli.track import make_track_run
+
+    from .store import write_netcdf
+    from .velocity import estimate_velocity
+
+    out = Path(job.out)
+    res_path = out / "results" / f"{job.name}.json"
+    if res_path.exists():
+        res = json.loads(res_path.read_text())
+        if res.get("key") == job.key():
+            res["resumed"] = True
+            return res
+    t0 = _time.perf_counter()
+    cfg = family_config(job.family, job.seed, job.duration_s, job.scale, job.imu, job.imu_mount)
+    folder = out / "scenes" / job.name
+    marker = out / "scenes" / f"{job.name}.json"
+    settings = json.loads(json.dumps(cfg.to_dict(), default=str))  # as the marker stores it (tuples -> lists)
+    if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == settings):
+        import shutil
+        shutil.rmtree(folder, ignore_errors=True)
+        make_track_run(folder, cfg, progress=False)
+        marker.write_text(json.dumps(cfg.to_dict(), default=str))
+    render_s = _time.perf_counter() - t0
+    footage = open_footage(folder)
+    if cfg.imu.mount != "camera" and getattr(footage, "imu_to_camera", None) is None:
+        raise ValueError(f"{folder}: the footage reader did not apply camera.json's imu_to_camera; "
+                         f"run the suite with --imu-mount camera")
+    tt, vt = footage.truth["time_s"], footage.truth["v_forward_m_s"]
+    series, metrics, errors, wall = {}, {}, {}, {}
+    for name in job.configurations:
+        t1 = _time.perf_counter()
+        if name in BASELINES:
+            continue
+        try:
+            vc = velocity_config(name)
+            ds = estimate_velocity(footage, vc, progress=False)
+        except ValueError as exc:
+            errors[name] = str(exc)
+            continue
+        t = ds.time.values
+        v_hat = np.where(ds.observable.values, ds.v_hat.values, np.nan)
+        series[name] = (t, v_hat, ds.v_std.values)
+        wall[name] = _time.perf_counter() - t1
+    # Baselines on the frame times the estimator used (or all frames if it ran none).
+    t_ref = next(iter(series.values()))[0] if series else footage.times
+    v_true_ref = np.interp(t_ref, tt, vt)
+    if "zero" in job.configurations:
+        series["zero"] = (t_ref, np.zeros_like(t_ref), None)
+    if "imu dead reckoning" in job.configurations:
+        series["imu dead reckoning"] = (t_ref, dead_reckoning(footage, t_ref, float(np.interp(t_ref[0], tt, vt))),
+                                        None)
+    for name, (t, v_hat, v_std) in series.items():
+        metrics[name] = score_series(t, v_hat, v_std, np.interp(t, tt, vt), job.skip_s)
+    # Series file: every configuration on the reference times (the paper stamps pairs at their
+    # first frame, so its times differ; interpolated for the file only, scored on its own).
+    data = {"v_true": ("time", v_true_ref)}
+    for name, (t, v_hat, v_std) in series.items():
+        key = name.replace(" ", "_").replace("=", "-")
+        data[f"v_hat__{key}"] = ("time", np.interp(t_ref, t, v_hat, left=np.nan, right=np.nan))
+        if v_std is not None:
+            data[f"v_std__{key}"] = ("time", np.interp(t_ref, t, v_std, left=np.nan, right=np.nan))
+    ds = xr.Dataset(data, coords={"time": ("time", t_ref, {"units": "s"})},
+                    attrs=dict(scene=job.name, config=json.dumps(cfg.to_dict(), default=str)))
+    write_netcdf(ds, out / "series" / f"{job.name}.nc")
+    res = dict(key=job.key(), family=job.family, seed=job.seed, scene_seed=cfg.scene.seed, metrics=metrics,
+               errors=errors, render_s=render_s, estimator_s=wall, scene_config=cfg.to_dict(),
+               peak_speed_m_s=float(np.abs(vt).max()))
+    res_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = res_path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(res, default=str))
+    os.replace(tmp, res_path)
+    return res
+
+
+# ---------------------------------------------------------------------- the suite
+def run_suite(families, seeds, duration_s, scale, out, configurations=None, workers=1, skip_s=2.0,
+              imu="realistic", imu_mount="rotated", progress=print):
+    """Run every (family, seed) scene; returns the suite Dataset (also written with table and figure)."""
+    configurations = tuple(configurations or (*CONFIGURATIONS, *BASELINES))
+    bad = [c for c in configurations if c not in CONFIGURATIONS and c not in BASELINES]
+    if bad:
+        raise ValueError(f"unknown configuration(s) {bad}; choose from {list(CONFIGURATIONS) + list(BASELINES)}")
+    for f in families:
+        if f not in FAMILIES:
+            raise ValueError(f"unknown family {f!r}; choose from {', '.join(FAMILIES)}")
+    if duration_s <= skip_s:
+        raise ValueError(f"--duration ({duration_s} s) must exceed --skip ({skip_s} s)")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [SceneJob(f, s, duration_s, scale, imu, imu_mount, configurations, skip_s, str(out))
+            for f in families for s in range(seeds)]
+    results = []
+    t0 = _time.perf_counter()
+
+    def done(res):
+        results.append(res)
+        how = "resumed" if res.get("resumed") else f"scene ready in {res['render_s']:.0f} s"
+        lz = res["metrics"].get("lobula zero-phase", {}).get("after_skip", {}).get("rmse_m_s")
+        progress(f"[{len(results)}/{len(jobs)}] {res['family']} seed {res['seed']}: {how}"
+                 + (f", lobula zero-phase RMSE {lz:.3f} m/s" if lz is not None else "")
+                 + f" ({_time.perf_counter() - t0:.0f} s elapsed)")
+        for name, msg in res["errors"].items():
+            progress(f"  ERROR {name}: {msg}")
+
+    if workers > 1:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = [pool.submit(run_scene_job, j) for j in jobs]
+            for fut in as_completed(futures):
+                done(fut.result())
+    else:
+        for j in jobs:
+            done(run_scene_job(j))
+    ds = collect(results, families, seeds, configurations, dict(duration_s=duration_s, scale=scale, skip_s=skip_s,
+                                                                imu=imu, imu_mount=imu_mount))
+    from .store import write_netcdf
+    write_netcdf(ds, out / "suite.nc")
+    rows = table_rows(ds)
+    write_table_csv(rows, out / "suite_table.csv")
+    plot_suite(ds, out / "suite.png")
+    plot_worlds(out, families)
+    return ds, rows
+
+
+def plot_worlds(out: Path, families) -> Path | None:
+    """``worlds.png``: the middle frame of each family's first seed, to see what was measured."""
+    import cv2
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .store import save_figure
+
+    frames = []
+    for f in families:
+        folder = out / "scenes" / f"{f}-s0" / "frames"
+        files = sorted(folder.glob("*.png")) if folder.is_dir() else []
+        if files:
+            frames.append((f, cv2.imread(str(files[len(files) // 2]), cv2.IMREAD_GRAYSCALE)))
+    if not frames:
+        return None
+    cols = min(len(frames), 5)
+    rows = -(-len(frames) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.2 * rows), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (f, img) in zip(axes.ravel(), frames):
+        ax.imshow(img, cmap="gray", vmin=0, vmax=255)
+        ax.set_title(f, fontsize=9)
+    fig.suptitle("scene families (seed 0, middle frame)", fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, out / "worlds.png", dpi=150)
+    plt.close(fig)
+    return out / "worlds.png"
+
+
+def collect(results, families, seeds, configurations, settings):
+    """The suite Dataset: value (family, seed, configuration, window, metric), NaN where missing."""
+    import xarray as xr
+
+    from lobula.config import VelocityConfig
+
+    from .store import provenance
+
+    val = np.full((len(families), seeds, len(configurations), len(WINDOWS), len(METRICS)), np.nan)
+    peak = np.full((len(families), seeds), np.nan)
+    errors = {}
+    for r in results:
+        i, s = families.index(r["family"]), r["seed"]
+        peak[i, s] = r["peak_speed_m_s"]
+        for c, name in enumerate(configurations):
+            for w, win in enumerate(WINDOWS):
+                m = r["metrics"].get(name, {}).get(win, {})
+                val[i, s, c, w] = [m.get(k, np.nan) for k in METRICS]
+        for name, msg in r["errors"].items():
+            errors[name] = msg
+    ds = xr.Dataset(
+        dict(value=(("family", "seed", "configuration", "window", "metric"), val,
+                    {"long_name": "suite metric (units in the metric's name; fractions 0..1)"}),
+             peak_speed_m_s=(("family", "seed"), peak, {"units": "m/s"})),
+        coords=dict(family=list(families), seed=np.arange(seeds), configuration=list(configurations),
+                    window=list(WINDOWS), metric=list(METRICS),
+                    family_description=("family", [FAMILIES[f] for f in families])))
+    ds.attrs.update(provenance(VelocityConfig().to_json(), suite=settings,
+                               configurations={c: CONFIGURATIONS.get(c, "baseline") for c in configurations},
+                               configuration_errors=errors or "none"))
+    return ds
+
+
+def table_rows(ds) -> list[dict]:
+    """One row per (family, configuration, window): mean and sd over seeds of each metric."""
+    rows = []
+    for f in ds.family.values:
+        for c in ds.configuration.values:
+            for w in ds.window.values:
+                row = dict(family=str(f), configuration=str(c), window=str(w))
+                for m in ds.metric.values:
+                    x = ds.value.sel(family=f, configuration=c, window=w, metric=m).values
+                    fin = x[np.isfinite(x)]
+                    row[f"{m}_mean"] = float(fin.mean()) if fin.size else float("nan")
+                    row[f"{m}_sd"] = float(fin.std(ddof=1)) if fin.size > 1 else float("nan")
+                    row[f"{m}_n"] = int(fin.size)
+                rows.append(row)
+    return rows
+
+
+def write_table_csv(rows, path: Path):
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as fh:
+        wr = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        wr.writeheader()
+        wr.writerows(rows)
+    os.replace(tmp, path)
+
+
+def format_table(rows, window="after_skip") -> str:
+    """A printable (markdown) table of one window."""
+    def ms(r, m, pct=False):
+        mu, sd = r[f"{m}_mean"], r[f"{m}_sd"]
+        if not np.isfinite(mu):
+            return "—"
+        if pct:
+            return f"{100 * mu:.0f}%"
+        return f"{mu:.3f}" + (f" ± {sd:.3f}" if np.isfinite(sd) else "")
+
+    lines = ["| family | configuration | RMSE (m/s) | median abs e | 2σ coverage | observable | lock-on (s) |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["window"] != window:
+            continue
+        lock = r["lock_on_s_mean"]
+        lock_s = (f"{lock:.1f}" if np.isfinite(lock) else "never") + (
+            f" ({r['lock_on_s_n']}/{r['rmse_m_s_n']})" if r["lock_on_s_n"] != r["rmse_m_s_n"] else "")
+        lines.append(f"| {r['family']} | {r['configuration']} | {ms(r, 'rmse_m_s')} | "
+                     f"{ms(r, 'median_abs_error_m_s')} | {ms(r, 'coverage_2sigma', True)} | "
+                     f"{ms(r, 'observable_fraction', True)} | {lock_s} |")
+    return "\n".join(lines)
+
+
+def plot_suite(ds, path):
+    """RMSE (after the skip and over the first 2 s) and 2σ coverage per family and configuration."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .store import save_figure
+
+    fams = [str(f) for f in ds.family.values]
+    confs = [str(c) for c in ds.configuration.values]
+    x = np.arange(len(fams))
+    width = 0.8 / len(confs)
+    cmap = plt.get_cmap("tab10")
+    fig, axes = plt.subplots(3, 1, figsize=(max(11, 1.3 * len(fams) + 5), 10), sharex=True)
+    for ax, win, metric, label in ((axes[0], "after_skip", "rmse_m_s", "RMSE after skip (m/s)"),
+                                   (axes[1], "first_2s", "rmse_m_s", "RMSE, first 2 s (m/s)"),
+                                   (axes[2], "after_skip", "coverage_2sigma", "truth within ±2σ (after skip)")):
+        for k, c in enumerate(confs):
+            v = ds.value.sel(configuration=c, window=win, metric=metric).values  # (family, seed)
+            ran = np.isfinite(ds.value.sel(configuration=c, metric="observable_fraction").values).any()
+            if not np.isfinite(v).any():
+                if ax is axes[0]:  # keep its colour in the legend, saying it did not run
+                    ax.bar([np.nan], [np.nan], color=cmap(k % 10), label=c + ("" if ran else " (not run)"))
+                continue
+            with np.errstate(all="ignore"), __import__("warnings").catch_warnings():
+                __import__("warnings").simplefilter("ignore")
+                mu, sd = np.nanmean(v, axis=1), np.nanstd(v, axis=1)
+            ax.bar(x + (k - len(confs) / 2 + 0.5) * width, mu, width, yerr=sd, color=cmap(k % 10),
+                   label=c if ax is axes[0] else None, capsize=1.5, error_kw=dict(lw=0.6))
+        ax.set_ylabel(label)
+        ax.grid(axis="y", lw=0.3)
+        if metric == "rmse_m_s":
+            ax.set_yscale("log")
+        else:
+            ax.axhspan(0.85, 0.99, color="g", alpha=0.1, lw=0)
+            ax.set_ylim(0, 1.02)
+    axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    axes[2].set_xticks(x, fams)
+    settings = json.loads(ds.attrs.get("suite", "{}")) if isinstance(ds.attrs.get("suite"), str) else {}
+    fig.suptitle(f"lobula suite: {len(fams)} families × {ds.sizes['seed']} seeds "
+                 f"({settings.get('duration_s', '?')} s, scale {settings.get('scale', '?')}, "
+                 f"IMU {settings.get('imu', '?')}); bars: mean ± sd over seeds", y=0.995, fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    save_figure(fig, path, dpi=150)
+    plt.close(fig)
+    return path
+
+
+def run_suite_cli(args) -> int:
+    families = args.families.split(",") if args.families != "all" else list(FAMILIES)
+    configurations = None
+    if args.configurations != "all":
+        configurations = [c.strip() for c in args.configurations.split(",")]
+    ds, rows = run_suite(families, args.seeds, args.duration, args.scale, args.out, configurations,
+                         args.workers, args.skip, args.imu, args.imu_mount,
+                         progress=(lambda *a: None) if args.quiet else (lambda m: print(m, flush=True)))
+    print(f"\nAfter the first {args.skip:g} s (mean ± sd over {args.seeds} seeds):")
+    print(format_table(rows, "after_skip"))
+    print("\nFirst 2 s:")
+    print(format_table(rows, "first_2s"))
+    err = json.loads(ds.attrs["configuration_errors"]) if ds.attrs["configuration_errors"] != "none" else {}
+    for name, msg in err.items():
+        print(f"lobula suite: error: configuration {name!r} did not run: {msg}")
+    out = Path(args.out)
+    print(f"\nwrote {out / 'suite.nc'}, {out / 'suite_table.csv'}, {out / 'suite.png'}")
+    return 1 if err else 0
+
+
+def add_parser(subparsers):
+    """Register `lobula suite` (see experiments.cli)."""
+    s = subparsers.add_parser("suite", help="accuracy suite: scene families x seeds, all configurations, baselines",
+                              description=__doc__.split("\n\n")[0])
+    s.add_argument("--out", required=True, help="output folder (scenes, per-scene results, suite.nc, table, figure)")
+    s.add_argument("--families", default="all",
+                   help="comma-separated families, or all: " + "; ".join(f"{k}: {v}" for k, v in FAMILIES.items())
+                   .replace("%", "%%"))
+    s.add_argument("--seeds", type=int, default=3, help="seeds per family")
+    s.add_argument("--duration", type=float, default=10.0, help="seconds per scene")
+    s.add_argument("--scale", type=float, default=0.25,
+                   help="image scale of the D435i camera (0.25 = 160x120, for speed; 0.5 = 320x240)")
+    s.add_argument("--configurations", default="all",
+                   help="comma-separated, or all: " + ", ".join([*CONFIGURATIONS, *BASELINES]))
+    s.add_argument("--skip", type=float, default=2.0, help="seconds left out at the start for the after-skip window")
+    s.add_argument("--imu", default="realistic", choices=["ideal", "realistic"], help="IMU error model")
+    s.add_argument("--imu-mount", default="rotated", choices=["camera", "rotated"],
+                   help="IMU axes: rotated (imu.csv in the IMU frame, camera.json imu_to_camera) or camera")
+    s.add_argument("--workers", type=int, default=1, help="scenes run in parallel (processes)")
+    s.add_argument("--quiet", action="store_true", help="no progress lines")
+    s.set_defaults(func=run_suite_cli)

@@ -1,0 +1,122 @@
+"""`lobula suite` on tiny scenes: table, NetCDF and figure agree with what is stored and with truth."""
+import csv
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from experiments import suite
+from experiments.cli import main
+
+
+def read_truth(folder):
+    with open(folder / "truth.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    return np.array([float(r["time_s"]) for r in rows]), np.array([float(r["v_forward_m_s"]) for r in rows])
+
+
+def test_lock_on_time_needs_a_second_of_tracking_while_moving():
+    t = np.arange(0, 6, 0.1)
+    v = np.where(t < 2, 0.0, 0.5)
+    err = np.where(t < 3, 0.3, 0.01)
+    err[:20] = 0.0  # right about the still camera: does not count
+    assert suite.lock_on_time(t, err, v) == pytest.approx(3.0)
+    assert np.isnan(suite.lock_on_time(t, np.full_like(t, 0.2), v))
+    e2 = np.where(t < 3, 0.3, 0.01)
+    e2[35] = np.nan  # an unobservable frame (t = 3.5 s) restarts the hold
+    assert suite.lock_on_time(t, e2, v) == pytest.approx(3.6)
+
+
+def test_a_configuration_path_the_estimator_lacks_fails_loudly(monkeypatch):
+    monkeypatch.setitem(suite.CONFIGURATIONS, "bogus", ("lobula", "zero-phase", {"readout.no_such_field": 1}))
+    with pytest.raises(ValueError, match="no field 'no_such_field'"):
+        suite.velocity_config("bogus")
+    assert suite.velocity_config("paper causal").readout.filter == "causal"
+
+
+def test_suite_on_tiny_scenes_writes_consistent_files(tmp_path, capsys):
+    out = tmp_path / "suite"
+    argv = ["suite", "--out", str(out), "--families", "rest,ground", "--seeds", "1", "--duration", "3",
+            "--scale", "0.2", "--skip", "1", "--imu", "ideal",
+            "--configurations", "lobula zero-phase,zero,imu dead reckoning", "--quiet"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    ds = xr.load_dataset(out / "suite.nc")
+    assert ds.value.dims == ("family", "seed", "configuration", "window", "metric")
+    assert list(ds.family.values) == ["rest", "ground"] and ds.sizes["seed"] == 1
+    assert "config" in ds.attrs and "suite" in ds.attrs
+    # The table is the NetCDF's numbers (one seed: mean = the value).
+    with open(out / "suite_table.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 * 3 * 2
+    for r in rows:
+        for m in suite.METRICS:
+            v = float(ds.value.sel(family=r["family"], seed=0, configuration=r["configuration"],
+                                   window=r["window"], metric=m))
+            assert np.isnan(v) and r[f"{m}_mean"] == "nan" or float(r[f"{m}_mean"]) == pytest.approx(v)
+    # The zero estimator's RMSE is the RMS of the true velocity over the scored frames (from truth.csv).
+    for fam in ("rest", "ground"):
+        series = xr.load_dataset(out / "series" / f"{fam}-s0.nc")
+        tt, vt = read_truth(out / "scenes" / f"{fam}-s0")
+        t = series.time.values
+        v = np.interp(t, tt, vt)
+        after = t >= t[0] + 1.0
+        rmse0 = float(ds.value.sel(family=fam, seed=0, configuration="zero", window="after_skip", metric="rmse_m_s"))
+        assert rmse0 == pytest.approx(np.sqrt(np.mean(v[after] ** 2)), rel=1e-9)
+        first = t < t[0] + 2.0
+        r2 = float(ds.value.sel(family=fam, seed=0, configuration="zero", window="first_2s", metric="rmse_m_s"))
+        assert r2 == pytest.approx(np.sqrt(np.mean(v[first] ** 2)), rel=1e-9)
+        assert rmse0 > 0.05  # the scenes move
+    # Dead reckoning from rest with the ideal IMU (constant bias, removed by the first second's mean)
+    # stays close to the truth over 3 s; the vision estimate beats the zero estimator.
+    dr = ds.value.sel(configuration="imu dead reckoning", window="after_skip", metric="rmse_m_s").isel(seed=0)
+    zero = ds.value.sel(configuration="zero", window="after_skip", metric="rmse_m_s").isel(seed=0)
+    assert float(dr.sel(family="rest")) < 0.2 * float(zero.sel(family="rest"))
+    lob = ds.value.sel(configuration="lobula zero-phase", window="after_skip", metric="rmse_m_s").isel(seed=0)
+    assert np.all(np.isfinite(lob)) and float(lob.sel(family="rest")) < float(zero.sel(family="rest"))
+    assert (out / "suite.png").stat().st_size > 10_000
+    assert "| rest | lobula zero-phase |" in printed
+    # Resumable: a second run reuses the per-scene results and gives the same numbers.
+    mtime = (out / "results" / "rest-s0.json").stat().st_mtime
+    assert main(argv) == 0
+    assert (out / "results" / "rest-s0.json").stat().st_mtime == mtime
+    np.testing.assert_array_equal(xr.load_dataset(out / "suite.nc").value.values, ds.value.values)
+    res = json.loads((out / "results" / "ground-s0.json").read_text())
+    assert res["scene_config"]["scene"]["world"] == "ground"
+
+
+def test_every_family_builds_a_distinct_seeded_world():
+    from stimuli.track import build_track
+
+    seen = set()
+    for fam in suite.FAMILIES:
+        cfg = suite.family_config(fam, 0, 4.0, 0.1)
+        scene, imu = build_track(cfg)
+        frame = scene.render(1.0)
+        assert frame.std() > 5, fam  # textured, not blank
+        v = scene.trajectory.velocity(np.arange(0, 4.0, 0.01))
+        assert np.abs(v).max() <= {"fast": 2.0, "ground": 1.5, "corridor": 1.0}.get(fam, 0.7) + 1e-9, fam
+        assert imu["accel_bias_t"].std(0).max() > 0, fam  # the realistic IMU's bias walks
+        key = (cfg.scene.world, cfg.scene.seed)
+        assert key not in seen
+        seen.add(key)
+        # Another seed index: another world.
+        other = suite.family_config(fam, 1, 4.0, 0.1)
+        assert other.scene.seed != cfg.scene.seed
+    assert suite.family_config("rotation", 0, 4.0, 0.1).scene.rotation3_amp_deg != (0.0, 0.0, 0.0)
+    assert abs(suite.family_config("fast", 2, 10.0, 0.1).random_peak_m_s - 2.0) < 1e-12
+    off = suite.family_config("offaxis", 0, 4.0, 0.1).scene
+    assert 5 <= abs(off.off_axis_yaw_deg) <= 9 and np.hypot(off.off_axis_yaw_deg, off.off_axis_pitch_deg) <= 10
+
+
+@pytest.mark.parametrize("command", ["suite", "scene"])
+def test_help_shows_every_option_with_its_default(command, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    assert "(default:" in text
+    for opt in {"suite": ["--families", "--seeds", "--duration", "--scale", "--workers", "--imu"],
+                "scene": ["--world", "--rotation3", "--peak-speed", "--imu", "--imu-mount", "--brightness"]}[command]:
+        assert opt in text
