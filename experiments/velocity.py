@@ -251,6 +251,11 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     if not accel_source.startswith("accelerometer"):
         # A derivative of the true velocity has noise but no accelerometer offset to learn.
         rcfg = replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2))
+    elif rcfg.filter == "zero-phase":
+        # Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which
+        # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
+        span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
+        rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, rcfg.v_prior_m_s / max(span, 1.0))))
     if len(rates.t) >= 3:
         span = gravity_span(footage, rates.t, config)
         drift = None
