@@ -303,8 +303,11 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
                 P = P - np.outer(K, H @ P)
         if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
             kap, skap, am, shift = (q[k] for q in ratio)
-            h = np.array([kap, 1.0, 0.0, 0.0])
-            zk = am + kap * shift
+            # Below accel_min the acceleration carries no depth information (as for v_f): the
+            # frame then speaks for the offset b alone, not for v through a noisy κ ≈ 0.
+            informative = abs(am) >= cfg.accel_min_m_s2
+            h = np.array([kap if informative else 0.0, 1.0, 0.0, 0.0])
+            zk = am + (kap * shift if informative else 0.0)
             if accel_span is not None and np.isfinite(accel_span[k]) and accel_span[k] > 0:
                 c = 1.0 / accel_span[k]  # a_m lacks the window's mean acceleration (see above)
                 h[0] -= c
@@ -315,8 +318,10 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
             # The fields' spread (v·σ_κ, floored at meas_floor as a velocity measurement would
             # be) and the filtered accelerometer's noise floor (accel_min_m_s2); its offset and
             # ramp are states, not noise.
-            R = ((abs(x[0]) * skap) ** 2 + (kap * cfg.meas_floor_m_s) ** 2 + (cfg.meas_floor_m_s * skap) ** 2
-                 + cfg.accel_min_m_s2 ** 2)
+            # κ's error multiplies v, so it counts with E[v²] = v̂² + P_vv (errors in variables:
+            # a noisy κ ≈ 0 must not pin v while v is still unknown).
+            R = ((x[0] ** 2 + P[0, 0]) * skap ** 2 + (kap * cfg.meas_floor_m_s) ** 2
+                 + (cfg.meas_floor_m_s * skap) ** 2 + cfg.accel_min_m_s2 ** 2)
             S = h @ P @ h + R
             K = P @ h / S
             x = x + K * (zk - h @ x)
