@@ -68,7 +68,11 @@ def bench_command(folder: Path, preset: str, repeats: int = 1) -> dict:
         startup = float(np.median([wall(str(Path(tmp) / "missing"), "--out", out) for _ in range(repeats)]))
         full = float(np.median([wall(str(folder), "--dis-preset", preset, "--out", out) for _ in range(repeats)]))
     n = len(list((folder / "frames").iterdir()))
-    return dict(frames=n, startup_s=startup, command_s=full, command_fps=n / max(full - startup, 1e-9))
+    # Under load the two walls can come out nearly equal; a frame rate from their difference would then
+    # be noise, so it is reported as NaN (lengthen --frames) rather than as a huge number.
+    work = full - startup
+    return dict(frames=n, startup_s=startup, command_s=full,
+                command_fps=n / work if work > 0.1 * full else float("nan"))
 
 
 def bench_emd(folder: Path, n_ommatidia: int = 5000) -> dict:
