@@ -23,7 +23,7 @@ import xarray as xr
 from lobula.config import VelocityConfig
 from lobula.readout_neuron import ReadoutNeuronConfig, lc_pathways, readout_neuron, spike_steps_per_frame
 
-__all__ = ["velocity_replay", "replay_scores", "plot_velocity_replay", "REPLAY_RECORDS"]
+__all__ = ["velocity_replay", "REPLAY_RECORDS"]
 
 #: what velocity-replay can record (the arithmetic readout, truth and acceleration are always stored)
 REPLAY_RECORDS = ("readout.v", "readout.rate", "readout.spikes", "readout.confidence", "lc.r", "lc.rdot")
@@ -149,103 +149,3 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
         trials_requested=trials, trials_note="", seed=seed, emd_tau_s=vcfg.emd.emd.tau_s,
         neuron_model="poisson" if spiking else "rate", neuron_parameters=json.dumps(ncfg.to_dict(), sort_keys=True)))
     return cf_describe(rec)
-
-
-def replay_scores(rec: xr.Dataset, skip_s: float = 2.0) -> dict:
-    """RMSE (m/s) of the neuron (trial mean) and of the arithmetic readout against truth after skip_s."""
-    if "v_true" not in rec or "readout_v" not in rec:
-        return {}
-    m = (rec.time >= rec.time[0] + skip_s).values
-    vt = rec.v_true.values[m]
-
-    def rm(v):
-        d = v[m] - vt
-        d = d[np.isfinite(d)]
-        return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
-
-    from experiments.ephys.figures import nanmean
-    neuron = nanmean(rec.readout_v.values, 0)  # trial mean where any trial is confident
-    return dict(neuron_rmse_m_s=rm(neuron), arithmetic_rmse_m_s=rm(rec.arithmetic_v.values))
-
-
-def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
-    """Velocity (truth, arithmetic readout, readout neuron mean ± SEM over trials); the readout neurons'
-    raster (1 ms spike times, integer trial ticks) beside their PSTH ± SEM; the LC sustained pathway
-    of every field (labelled colour bar). PNG (200 dpi) and PDF."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from experiments.ephys.figures import nanmean, save_png_and_pdf, sem
-
-    t = rec.time.values
-    spikes = "readout_spikes" in rec
-    fig = plt.figure(figsize=(13, 8.5), layout="constrained")
-    gs = fig.add_gridspec(3, 2, height_ratios=[2.2, 1.6, 1.5], width_ratios=[1, 1])
-    ax_v = fig.add_subplot(gs[0, :])
-    if "v_true" in rec:
-        ax_v.plot(t, rec.v_true, "k--", lw=1.2, label="truth")
-    ax_v.plot(t, rec.arithmetic_v, color="tab:blue", lw=1.2, label="arithmetic readout (zero-phase)")
-    if "readout_v" in rec:
-        v = rec.readout_v.values
-        k = v.shape[0]
-        m = nanmean(v, 0)
-        e = sem(v, 0) if k > 1 else None
-        ax_v.plot(t, m, color="m", lw=1.6, label=f"readout neuron (mean of {k} trial{'s' if k > 1 else ''})")
-        if e is not None:
-            ax_v.fill_between(t, m - e, m + e, color="m", alpha=0.25, lw=0, label="± SEM across trials")
-    sc = replay_scores(rec)
-    if sc:
-        ax_v.set_title(f"velocity replay: RMSE neuron {sc['neuron_rmse_m_s']:.3f} m/s, arithmetic "
-                       f"{sc['arithmetic_rmse_m_s']:.3f} m/s (after 2 s)", fontsize=10)
-    ax_v.set_ylabel("forward velocity (m/s)")
-    ax_v.set_xlabel("time (s)")
-    ax_v.legend(fontsize=8, loc="lower right", ncol=2, frameon=False)
-    ax_r = fig.add_subplot(gs[1, 0])
-    ax_p = fig.add_subplot(gs[1, 1], sharex=ax_r)
-    cols = {"plus": "tab:red", "minus": "tab:blue"}
-    if spikes:
-        st = rec.spike_time.values
-        dts = float(rec.readout_spikes.attrs["dt_s"])
-        k = rec.sizes["trial"]
-        for j, name in enumerate(("plus", "minus")):
-            s = rec.readout_spikes.sel(neuron=name).values
-            tr, ti = np.nonzero(s > 0)
-            row = tr + j * (k + 1)
-            ax_r.vlines(st[ti] + dts / 2, row - 0.4, row + 0.4, color=cols[name], lw=0.5)
-            b = max(1, int(round(0.1 / dts)))
-            n = s.shape[1] // b * b
-            rate = s[:, :n].reshape(k, -1, b).sum(-1) / (b * dts)
-            tb = st[:n].reshape(-1, b).mean(-1) + dts / 2
-            mm = rate.mean(0)
-            ax_p.plot(tb, mm, color=cols[name], lw=1.2, label=f"{name} neuron")
-            if k > 1:
-                ee = rate.std(0, ddof=1) / np.sqrt(k)
-                ax_p.fill_between(tb, mm - ee, mm + ee, color=cols[name], alpha=0.3, lw=0)
-        ticks = [j * (k + 1) + i for j in range(2) for i in range(k)]
-        ax_r.set_yticks(ticks if len(ticks) <= 12 else ticks[::max(1, len(ticks) // 8)])
-        ax_r.set_yticklabels([str(i % (k + 1)) for i in ax_r.get_yticks()])
-        ax_r.set_ylabel("trial (plus: lower block;\nminus: upper block)")
-        ax_r.set_ylim(-0.6, 2 * k + 0.6)
-        ax_r.set_title(f"readout neurons' spikes ({dts * 1e3:.2f} ms steps): red plus, blue minus", fontsize=10)
-        ax_p.set_ylabel(f"firing rate (Hz, {b * dts * 1e3:.0f} ms bins)")
-        ax_p.set_title(f"PSTH ± SEM across {k} trials", fontsize=10)
-    elif "readout_rate" in rec:
-        for name in ("plus", "minus"):
-            ax_p.plot(t, rec.readout_rate.isel(trial=0).sel(neuron=name), color=cols[name], label=f"{name} neuron")
-        ax_p.set_ylabel("firing rate (Hz)")
-        ax_p.set_title("readout neurons' rates (deterministic: one trial)", fontsize=10)
-        ax_r.set_axis_off()
-    ax_p.legend(fontsize=8, loc="upper right", frameon=False)
-    for a in (ax_r, ax_p):
-        a.set_xlabel("time (s)")
-    ax_h = fig.add_subplot(gs[2, :])
-    if "lc_r" in rec:
-        order = np.argsort(np.hypot(rec.azimuth_deg.values, rec.elevation_deg.values))
-        lim = float(np.nanpercentile(np.abs(rec.lc_r.values), 99)) or 1.0
-        im = ax_h.imshow(rec.lc_r.values[:, order].T, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim,
-                         extent=(t[0], t[-1], len(order), 0), interpolation="nearest")
-        ax_h.set_ylabel("LC field\n(by eccentricity)")
-        fig.colorbar(im, ax=ax_h, label="sustained pathway r (1/s)")
-    ax_h.set_xlabel("time (s)")
-    return save_png_and_pdf(fig, path)

@@ -8,7 +8,7 @@ _API = {
     "IMU": "footage_core", "Footage": "footage_core", "FootageError": "footage_core", "frame_gaps": "footage_core",
     "read_frame": "footage_core",
     "FloUnits": "footage", "acceleration_from_truth": "footage", "flo_to_normalised": "footage",
-    "footage_provenance": "footage", "open_footage": "footage", "read_flo": "footage", "read_imu_csv": "footage",
+    "footage_provenance": "footage", "open_footage": "footage", "read_flo": "footage", "read_imu_csv": "footage_core",
     "write_footage": "footage",
     "IMUConfig": "imu", "synthesize_imu": "imu",
     "SceneConfig": "scene", "TrackScene": "scene", "band_limited_texture": "scene",

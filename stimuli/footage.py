@@ -37,7 +37,8 @@ from scipy.ndimage import gaussian_filter1d
 from lobula.camera import PinholeCamera
 
 from .footage_core import (IMU, Footage, FootageError, check_times as _check_times, frame_gaps,  # noqa: F401
-                           read_csv_columns as _read_csv, read_frame, rotation_deg, rotation_from_json, to_grey)
+                           imu_to_camera, read_csv_columns as _read_csv, read_frame, read_imu_csv, rotation_deg,
+                           rotation_from_json, to_grey)
 
 
 def open_footage(path: str | Path, *, stream: str | None = None, clock: str | None = None,
@@ -133,36 +134,6 @@ def footage_provenance(footage) -> dict:
     return fn() if fn is not None else {}
 
 
-def _imu_to_camera(path: Path) -> np.ndarray | None:
-    """camera.json's optional "imu_to_camera" rotation (v_cam = R @ v_imu), checked."""
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-    if "imu_to_camera" not in d:
-        return None
-    return rotation_from_json(d["imu_to_camera"], str(path))
-
-
-def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None) -> IMU:
-    """imu.csv (time_s, accel_x..z m/s², gyro_x..z rad/s) as an IMU, rotated by ``rotation`` if given."""
-    cols = ("time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
-    d = _read_csv(imu_path, cols)
-    try:
-        acc = np.stack([d["accel_x"], d["accel_y"], d["accel_z"]], -1).astype(float)
-        gyr = np.stack([d["gyro_x"], d["gyro_y"], d["gyro_z"]], -1).astype(float)
-        t = d["time_s"].astype(float)
-    except ValueError:
-        raise FootageError(f"{imu_path}: non-numeric values; every IMU column must be a number") from None
-    if not (np.all(np.isfinite(acc)) and np.all(np.isfinite(gyr))):
-        row = int(np.flatnonzero(~np.isfinite(np.c_[acc, gyr]).all(1))[0]) + 2
-        raise FootageError(f"{imu_path}: NaN or missing values (first at row {row}); "
-                           f"repair or remove those rows")
-    _check_times(imu_path, t)
-    imu = IMU(t, acc, gyr, source=str(imu_path))
-    return imu.rotated(rotation) if rotation is not None else imu
-
-
 def _open_folder(path: Path) -> Footage:
     camera = PinholeCamera.from_json(path / "camera.json")
     fr = _read_csv(path / "frames.csv", ("frame", "time_s", "file"))
@@ -174,7 +145,7 @@ def _open_folder(path: Path) -> Footage:
                            f"{missing[0].relative_to(path)}; restore them or drop their rows")
     imu = None
     imu_path = path / "imu.csv"
-    r = _imu_to_camera(path / "camera.json")
+    r = imu_to_camera(path / "camera.json")
     notes = []
     if imu_path.exists():
         imu = read_imu_csv(imu_path, r)

@@ -221,3 +221,33 @@ class Footage:
                     lens_distortion=json.dumps(self.distortion) if self.distortion else "none",
                     imu_to_camera=json.dumps(np.round(self.imu_to_camera, 9).tolist())
                     if self.imu_to_camera is not None else "none")
+
+
+def imu_to_camera(path: Path) -> np.ndarray | None:
+    """camera.json's optional "imu_to_camera" rotation (v_cam = R @ v_imu), checked."""
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if "imu_to_camera" not in d:
+        return None
+    return rotation_from_json(d["imu_to_camera"], str(path))
+
+
+def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None) -> IMU:
+    """imu.csv (time_s, accel_x..z m/s², gyro_x..z rad/s) as an IMU, rotated by ``rotation`` if given."""
+    cols = ("time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
+    d = read_csv_columns(imu_path, cols)
+    try:
+        acc = np.stack([d["accel_x"], d["accel_y"], d["accel_z"]], -1).astype(float)
+        gyr = np.stack([d["gyro_x"], d["gyro_y"], d["gyro_z"]], -1).astype(float)
+        t = d["time_s"].astype(float)
+    except ValueError:
+        raise FootageError(f"{imu_path}: non-numeric values; every IMU column must be a number") from None
+    if not (np.all(np.isfinite(acc)) and np.all(np.isfinite(gyr))):
+        row = int(np.flatnonzero(~np.isfinite(np.c_[acc, gyr]).all(1))[0]) + 2
+        raise FootageError(f"{imu_path}: NaN or missing values (first at row {row}); "
+                           f"repair or remove those rows")
+    check_times(imu_path, t)
+    imu = IMU(t, acc, gyr, source=str(imu_path))
+    return imu.rotated(rotation) if rotation is not None else imu

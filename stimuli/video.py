@@ -13,7 +13,6 @@ decodes again, one frame at a time.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Iterator
 
@@ -22,8 +21,8 @@ import numpy as np
 
 from lobula.camera import PinholeCamera
 
-from .footage_core import (Footage, FootageError, check_times, read_csv_columns, rotation_deg, rotation_from_json,
-                           to_grey)
+from .footage_core import (check_times, Footage, FootageError, imu_to_camera, read_csv_columns, read_imu_csv,
+                           rotation_deg, to_grey)
 
 
 def _beside(video: Path, name: str) -> Path:
@@ -105,8 +104,6 @@ class VideoFootage(Footage):
 
 def open_video(path: str | Path, require_imu: bool = True) -> VideoFootage:
     """Open a video with its camera.json and imu.csv (see the module doc); clear errors for anything missing."""
-    from .footage import read_imu_csv  # the folder layout's IMU CSV reader (footage imports us lazily)
-
     path = Path(path)
     if not path.is_file():
         raise FootageError(f"{path}: video file not found")
@@ -118,13 +115,7 @@ def open_video(path: str | Path, require_imu: bool = True) -> VideoFootage:
     check_times(path, times, "container time stamp")
     if (w, h) != (camera.width, camera.height):
         raise FootageError(f"{path}: video is {w}x{h} but {cam_path.name} says {camera.width}x{camera.height}")
-    r = None
-    try:
-        d = json.loads(cam_path.read_text())
-    except (OSError, json.JSONDecodeError):
-        d = {}
-    if "imu_to_camera" in d:
-        r = rotation_from_json(d["imu_to_camera"], str(cam_path))
+    r = imu_to_camera(cam_path)
     notes = [f"video: {len(times)} frames ({w}x{h}), frame times from the container's time stamps "
              f"(nominal {fps:g} frames/s in the container, {camera.frame_rate_hz:g} in {cam_path.name})"]
     imu_path = _beside(path, "imu.csv")

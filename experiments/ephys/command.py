@@ -284,7 +284,7 @@ def summary(ds) -> list[str]:
                 lines.append(f"{v} (s relative to collision), expansion units, approach, per l/|v|: " + "; ".join(
                     f"{lv:g} s: {_med(ex.sel(l_over_v_s=lv, motion='approach'))}" for lv in ds.l_over_v_s.values))
     elif p == "velocity-replay":
-        from experiments.replay_protocol import replay_scores
+        from .figures import replay_scores
         for k, val in replay_scores(ds).items():
             lines.append(f"{k}: {val:.4f}")
     return lines
