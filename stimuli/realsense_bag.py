@@ -327,9 +327,9 @@ def _stream_name(topic: str) -> str:
     return f"{m.group('stream')}_{m.group('index')}" if m else topic
 
 
-def _image_rank(topic: str) -> int | None:
+def _image_rank(topic: str, stream_name=None) -> int | None:
     """Preference for an image topic as footage: colour, then infrared, then others; never depth."""
-    name = _stream_name(topic).lower()
+    name = (stream_name or _stream_name)(topic).lower()
     if any(w in name for w in ("depth", "confidence", "disparity")):
         return None
     if "color" in name or "colour" in name or "rgb" in name:
@@ -339,6 +339,25 @@ def _image_rank(topic: str) -> int | None:
     if "fisheye" in name:
         return 2
     return 3
+
+
+def choose_image_topic(path, image_topics: list[str], stream: str | None, stream_name=None) -> str:
+    """The image topic to read as footage: the one ``stream`` names ("Color_0", "Infrared_1" or part of
+    a topic), else colour, then infrared; never depth. ``stream_name`` maps a topic to its stream's
+    name (the ROS1 Viewer layout by default). Raises FootageError naming the topics there are."""
+    name = stream_name or _stream_name
+    if stream is not None:
+        chosen = [t for t in image_topics if name(t).lower() == stream.lower() or stream in t]
+        if not chosen:
+            raise FootageError(f"{path}: no image stream matches {stream!r}; image topics here: "
+                               f"{', '.join(sorted(image_topics)) or 'none'}")
+        return sorted(chosen)[0]
+    ranked = sorted((r, t) for t in image_topics if (r := _image_rank(t, name)) is not None)
+    if not ranked:
+        raise FootageError(f"{path}: no colour or infrared image topic"
+                           f"{' (only ' + ', '.join(sorted(image_topics)) + ')' if image_topics else ''}; "
+                           f"record the Color (or Infrared) stream")
+    return ranked[0][1]
 
 
 def _common_prefix(a: str, b: str) -> int:
@@ -450,19 +469,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
 
     # ---- image topic
     image_topics = [t for t, ty in types.items() if IMAGE_TYPE in ty and counts[t] > 0]
-    if stream is not None:
-        chosen = [t for t in image_topics if _stream_name(t).lower() == stream.lower() or stream in t]
-        if not chosen:
-            raise FootageError(f"{path}: no image stream matches {stream!r}; image topics here: "
-                               f"{', '.join(sorted(image_topics)) or 'none'}")
-        topic = sorted(chosen)[0]
-    else:
-        ranked = sorted((r, t) for t in image_topics if (r := _image_rank(t)) is not None)
-        if not ranked:
-            raise FootageError(f"{path}: no colour or infrared image topic (sensor_msgs/Image"
-                               f"{'; only ' + ', '.join(sorted(image_topics)) if image_topics else ''}); "
-                               f"record the Color (or Infrared) stream in the RealSense Viewer")
-        topic = ranked[0][1]
+    topic = choose_image_topic(path, image_topics, stream)
     img_conns = [c for c in topics[topic] if c.msgtype == IMAGE_TYPE]
     prefix = _stream_prefix(topic)
 

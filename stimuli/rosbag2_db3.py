@@ -48,7 +48,7 @@ import numpy as np
 from lobula.camera import PinholeCamera
 
 from .footage_core import IMU, Footage, FootageError, rotation_deg, to_grey
-from .realsense_bag import FramePlaceholders
+from .realsense_bag import FramePlaceholders, choose_image_topic
 
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 IMAGE_TYPE = "sensor_msgs/msg/Image"
@@ -92,17 +92,6 @@ def _stream_name(topic: str) -> str:
 def _stream_prefix(topic: str) -> str:
     m = re.match(r"^/device_\d+/sensor_\d+/[A-Za-z]+_\d+", topic)
     return m.group(0) if m else topic.rsplit("/", 1)[0]
-
-
-def _image_rank(topic: str) -> int | None:
-    name = _stream_name(topic).lower()
-    if any(w in name for w in ("depth", "confidence", "disparity")):
-        return None
-    if "color" in name or "colour" in name or "rgb" in name:
-        return 0
-    if "infra" in name:
-        return 1
-    return 2
 
 
 class Rosbag2Footage(Footage):
@@ -312,19 +301,7 @@ def _open(path, reader, ts, stream, clock, require_imu, camera) -> Rosbag2Footag
 
     # ---- image topic
     image_topics = [t for t, ty in types.items() if ty & {COMPRESSED_TYPE, IMAGE_TYPE} and counts[t] > 0]
-    if stream is not None:
-        chosen = [t for t in image_topics if _stream_name(t).lower() == stream.lower() or stream in t]
-        if not chosen:
-            raise FootageError(f"{path}: no image stream matches {stream!r}; image topics here: "
-                               f"{', '.join(sorted(image_topics)) or 'none'}")
-        topic = sorted(chosen)[0]
-    else:
-        ranked = sorted((r, t) for t in image_topics if (r := _image_rank(t)) is not None)
-        if not ranked:
-            raise FootageError(f"{path}: no colour or infrared image topic"
-                               f"{' (only ' + ', '.join(sorted(image_topics)) + ')' if image_topics else ''}; "
-                               f"record the Color (or Infrared) stream")
-        topic = ranked[0][1]
+    topic = choose_image_topic(path, image_topics, stream, _stream_name)
     msgtype = COMPRESSED_TYPE if COMPRESSED_TYPE in types[topic] else IMAGE_TYPE
     img_conns = [c for c in topics[topic] if c.msgtype == msgtype]
     prefix = _stream_prefix(topic)
