@@ -15,15 +15,17 @@ from pathlib import Path
 
 import numpy as np
 import xarray as xr
+from scipy.spatial.transform import Rotation, Slerp
 from tqdm.auto import tqdm
 
 from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
-from lobula.epipole import EpipoleEstimator, derotate, mean_angular_velocity
+from lobula.epipole import EpipoleEstimator, derotate, derotate_finite
 from lobula.flow import FlowSample, StaggeredFlow
-from lobula.haltere import forward_acceleration, resample_to
-from lobula.readout import readout
-from lobula.receptive_field import ReceptiveFields, gap_correction, pool_fields, tile_fields
+from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, orientation_from_gyro,
+                            resample_to)
+from lobula.readout import MaterialRates, readout
+from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
                              footage_provenance, read_flo)
 
@@ -35,7 +37,9 @@ from .stream import threaded
 class FieldRates:
     """What the front end and fields give the readout, time-major.
 
-    t (n,) s; r, r2 (n, F); epipole (n, 2) normalised; timings: seconds per stage.
+    t (n,) s; r, r2 (n, F) at fixed pixels; epipole (n, 2) normalised; timings: seconds per
+    stage; material: the rates along the content (ṙ̄ as Dr/Dt, lobula.readout.MaterialRates),
+    None where the front end gives no consecutive pairs (flo, emd) or fields.material is off.
     """
 
     t: np.ndarray
@@ -44,6 +48,7 @@ class FieldRates:
     epipole: np.ndarray
     timings: dict
     fields: ReceptiveFields
+    material: MaterialRates | None = None
 
 
 def flo_samples(footage: Footage, flo_files: list[Path], units: FloUnits):
@@ -80,11 +85,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     # ~5,000 pixels are plenty for a 2-parameter fit, whatever the image size.
     est = EpipoleEstimator(x, y, stride=max(1, int(np.sqrt(cam.width * cam.height / 5000))))
     gyro = footage.imu.gyro if (footage.imu is not None and footage.imu.gyro is not None) else None
-    if gyro is not None:
-        # Gyro bias, as in lobula.haltere: on a track the heading returns, so the mean
-        # rate (whole record offline, running mean online) is the bias.
-        n = np.arange(1, len(gyro) + 1)[:, None]
-        gyro = gyro - (np.cumsum(gyro, 0) / n if config.readout.filter == "causal" else gyro.mean(0))
+    attitude = (_attitude_track(footage.imu.time_s, gyro, causal=config.readout.filter == "causal")
+                if (gyro is not None and config.derotate) else None)
     timings = dict(read=0.0, flow=0.0, fields=0.0)
 
     if config.front_end == "emd":
@@ -105,18 +107,34 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     else:
         raise ValueError(f"unknown front end {config.front_end!r}; choose dis, farneback, flo or emd")
 
-    ts, rs, r2s, es = [], [], [], []
+    stagger = max(2, config.readout.stagger + config.readout.stagger % 2)
+    material = (MaterialFields(fields, stagger, gap_correction=config.fields.gap_correction)
+                if config.fields.material and config.front_end in ("dis", "farneback") else None)
+    ts, rs, r2s, es, ms = [], [], [], [], []
     bar = tqdm(total=total, desc=f"{config.front_end} flow → fields", unit="frame", disable=not progress,
                leave=False, mininterval=2)
     for s in samples:
         t1 = _time.perf_counter()
-        flow = s.flow
-        if config.derotate and gyro is not None:
-            flow = derotate(flow, mean_angular_velocity(footage.imu.time_s, gyro, s.t0, s.t1), x, y)
-        e = est.update(flow) if config.epipole == "estimate" else np.zeros(2)
+        flow, q = s.flow, (None, None, None)
+        if attitude is not None:
+            q = attitude(np.array([s.t0, s.t1, s.t_mid]))  # camera → reference at t0, t1, middle
+            # The first-order derotation serves the fixed-pixel rates (outputs r, r2); the
+            # epipole and the material fields derotate exactly (finite rotation over the gap).
+            flow = derotate(flow, Rotation.from_matrix(q[0].T @ q[1]).as_rotvec() / s.dt, x, y)
+        if config.epipole == "estimate":
+            if attitude is not None:
+                sub = s.flow[:, ::est.stride, ::est.stride].reshape(2, -1)
+                pts = derotate_finite(est.x, est.y, sub, s.dt, q[2].T @ q[0], q[2].T @ q[1])
+                e = est.update(None, points=pts, attitude=q[2])
+            else:
+                e = est.update(flow)
+        else:
+            e = np.zeros(2)
         r, r2 = pool_fields(flow, fields, e, pooling=config.fields.pooling)
         if config.fields.gap_correction:
             r, r2 = gap_correction(r, r2, s.dt)
+        if material is not None:
+            ms.append(material.update(s.t0, s.dt, s.flow, e, *q))
         timings["fields"] += _time.perf_counter() - t1
         ts.append(s.t_mid if config.timestamps == "mid" else s.t0)
         rs.append(r)
@@ -127,7 +145,28 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     if not ts:
         raise FootageError(f"{footage.path}: too few frames for a flow pair "
                            f"({len(footage)} frames, gap {config.flow.gap})")
-    return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.array(es), timings, fields)
+    return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.array(es), timings, fields,
+                      _material_rates(ms, len(ts), fields.n_fields, stagger) if material is not None else None)
+
+
+def _attitude_track(time_s: np.ndarray, gyro: np.ndarray, causal: bool):
+    """A function t (k,) -> camera orientations (k, 3, 3) (camera → the first sample's frame)
+    from the bias-corrected integrated gyro (lobula.haltere), interpolated by slerp."""
+    q = orientation_from_gyro(time_s, gyro, causal)
+    keep = np.concatenate([[True], np.diff(time_s) > 0])
+    slerp = Slerp(time_s[keep], Rotation.from_matrix(q[keep]))
+    return lambda t: slerp(np.clip(t, time_s[0], time_s[-1])).as_matrix()
+
+
+def _material_rates(items: list, n: int, n_fields: int, stagger: int) -> MaterialRates:
+    """Place each difference (returned at pair k, over k − s … k) at its centre k − s/2."""
+    out = [np.full((n, n_fields), np.nan) for _ in range(3)]
+    h = stagger // 2
+    for k, item in enumerate(items):
+        if item is not None:
+            for arr, val in zip(out, item):
+                arr[k - h] = val
+    return MaterialRates(*out)
 
 
 def _emd_field_rates(footage: Footage, config: VelocityConfig, fields: ReceptiveFields, timings: dict,
@@ -169,6 +208,16 @@ def _timed(items, timings: dict, key: str, minus: tuple[dict, str] | None = None
         yield item
 
 
+TRUTH_ACCEL_OFFSET_M_S2 = 0.01  # prior std of the offset of an acceleration derived from ground truth
+
+
+def gravity_span(footage: Footage, times: np.ndarray, config: VelocityConfig) -> np.ndarray | None:
+    """Seconds of IMU record the online gravity estimate has averaged at each time (causal, IMU only)."""
+    if config.readout.filter != "causal" or config.accel_from_truth or footage.imu is None:
+        return None
+    return np.clip(times - footage.imu.time_s[0], 1e-3, GRAVITY_WINDOW_S)
+
+
 def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig) -> tuple[np.ndarray, str]:
     """Forward acceleration (m/s²) at ``times`` and a label saying where it came from."""
     causal = config.readout.filter == "causal"
@@ -198,8 +247,22 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     a, accel_source = forward_accel_at(footage, rates.t, config)
     fields = rates.fields
     t0 = _time.perf_counter()
+    rcfg = config.readout
+    if not accel_source.startswith("accelerometer"):
+        # A derivative of the true velocity has noise but no accelerometer offset to learn.
+        rcfg = replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2))
+    elif rcfg.filter == "zero-phase":
+        # Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which
+        # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
+        span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
+        rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, rcfg.v_prior_m_s / max(span, 1.0))))
     if len(rates.t) >= 3:
-        res = readout(rates.t, rates.r, rates.r2, a, config.readout)
+        span = gravity_span(footage, rates.t, config)
+        drift = None
+        if span is not None and footage.imu.gyro is not None and config.derotate:
+            drift = np.interp(rates.t, footage.imu.time_s, gravity_drift_std(footage.imu.time_s, footage.imu.gyro))
+        res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material,
+                      accel_span=span, accel_window_s=GRAVITY_WINDOW_S, drift_std=drift)
     else:
         res = None
     rates.timings["readout"] = _time.perf_counter() - t0

@@ -31,6 +31,32 @@ def derotate(flow: np.ndarray, omega: np.ndarray, x: np.ndarray, y: np.ndarray) 
     return flow - rotational_flow(omega, x, y).astype(flow.dtype)
 
 
+def turn(r: np.ndarray, x, y):
+    """Normalised coordinates of the rays (x, y, 1) after the rotation r (3, 3): the pixel
+    where a camera turned by r sees the same directions."""
+    qx = r[0, 0] * x + r[0, 1] * y + r[0, 2]
+    qy = r[1, 0] * x + r[1, 1] * y + r[1, 2]
+    qz = r[2, 0] * x + r[2, 1] * y + r[2, 2]
+    return qx / qz, qy / qz
+
+
+def derotate_finite(x, y, flow, dt: float, r_m0: np.ndarray, r_m1: np.ndarray):
+    """Exact derotation of a frame pair into the orientation at its middle.
+
+    x, y: normalised coordinates of points in the first frame (any shape); flow: their
+    image flow (2, ...) in 1/s over the pair's gap dt (s); r_m0, r_m1 (3, 3): rotations
+    taking camera vectors at the first / second frame into the camera frame at the pair's
+    middle (from the integrated gyro, e.g. Q(t_m)ᵀ·Q(t0)). A point's two rays are turned
+    into that one orientation, so what is left is the finite translation between them:
+    returns (X, Y) — where the points are in the middle orientation — and the
+    translational flow (2, ...) 1/s there. Exact for any rotation angle (the first-order
+    :func:`derotate` is not: at 0.8 rad/s over 0.2 s its error rivals the translational flow).
+    """
+    X0, Y0 = turn(r_m0, x, y)
+    X1, Y1 = turn(r_m1, x + flow[0] * dt, y + flow[1] * dt)
+    return X0, Y0, np.stack([(X1 - X0) / dt, (Y1 - Y0) / dt])
+
+
 def mean_angular_velocity(gyro_t: np.ndarray, gyro: np.ndarray, t0: float, t1: float) -> np.ndarray:
     """Mean gyro reading (rad/s, (3,)) over [t0, t1]: the rotation a frame pair saw, divided by its gap."""
     m = (gyro_t >= t0) & (gyro_t <= t1)
@@ -58,14 +84,33 @@ class EpipoleEstimator:
         self.e = np.asarray(prior, float)
         self.n_frames = 0
 
-    def update(self, flow: np.ndarray) -> np.ndarray:
-        """Add one flow field (2, H, W) (1/s) and return the updated epipole (2,)."""
-        u = flow[0, ::self.stride, ::self.stride].ravel().astype(float)
-        v = flow[1, ::self.stride, ::self.stride].ravel().astype(float)
+    def update(self, flow: np.ndarray, points=None, attitude: np.ndarray | None = None) -> np.ndarray:
+        """Add one derotated flow field (2, H, W) (1/s) and return the epipole (2,).
+
+        points: (X, Y, flow_at_points (2, N)) at the strided pixels instead, e.g. from
+        :func:`derotate_finite`, whose points sit where the pair's middle orientation sees them.
+        attitude (3, 3): the camera's orientation for this flow (camera → a fixed reference,
+        from the integrated gyro). The heading is then accumulated in that reference, where it
+        stays put while the camera turns, and the returned epipole is the heading seen from
+        the camera now; without it the camera is taken as not turning.
+        """
+        if points is None:
+            u = flow[0, ::self.stride, ::self.stride].ravel().astype(float)
+            v = flow[1, ::self.stride, ::self.stride].ravel().astype(float)
+            x, y = self.x, self.y
+        else:
+            x, y = np.asarray(points[0], float).ravel(), np.asarray(points[1], float).ravel()
+            u, v = (np.asarray(c, float).ravel() for c in points[2])
         ok = np.isfinite(u) & np.isfinite(v)
-        u, v, x, y = u[ok], v[ok], self.x[ok], self.y[ok]
+        u, v, x, y = u[ok], v[ok], x[ok], y[ok]
         a = np.stack([v, -u], -1)
         b = v * x - u * y
+        if attitude is not None:
+            # The line through a point along its flow, l = (−v, u, b), has the epipole on it
+            # (l·(e, 1) = 0); lines turn with the camera, so l_ref = R·l holds the heading.
+            l_ref = np.stack([-v, u, b], -1) @ np.asarray(attitude, float).T
+            a, b = -l_ref[:, :2], l_ref[:, 2]
+            x, y = self._seen(attitude, x, y)
         e = self.e
         for _ in range(3):  # IRLS about this frame's own fit, started from the running estimate
             res = a @ e - b
@@ -88,4 +133,13 @@ class EpipoleEstimator:
             self.atb += atb
             self.n_frames += 1
         self.e = np.linalg.solve(self.ata, self.atb)
+        if attitude is not None:
+            h = np.asarray(attitude, float).T @ np.array([self.e[0], self.e[1], 1.0])
+            return h[:2] / h[2]
         return self.e.copy()
+
+    @staticmethod
+    def _seen(attitude, x, y):
+        """Points (x, y) of the camera as the reference frame sees them (for the noise-bias terms)."""
+        q = np.stack([x, y, np.ones_like(x)], -1) @ np.asarray(attitude, float).T
+        return q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]

@@ -2,8 +2,8 @@
 
 An accelerometer reads specific force f = a − g (plus bias) in the camera frame.
 Forward acceleration needs gravity removed, and the recording may start in motion,
-so nothing assumes an initial rest. Instead: the gyroscope (its mean taken as bias,
-since the camera's heading on a track returns) tracks the camera's orientation, the
+so nothing assumes an initial rest. Instead: the gyroscope (its bias estimated where the
+camera is still, :func:`gyro_bias`) tracks the camera's orientation, the
 specific force is rotated into the first frame where gravity is a constant vector,
 and that vector is the (zero-phase: whole-record; causal: running) mean, because the
 platform's mean acceleration over a bounded track is ~0. The remaining constant
@@ -17,14 +17,61 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 
+GYRO_NOISE_DENSITY = np.radians(0.014)  # rad/s/√Hz, Bosch BMI055 (the D435i's IMU) datasheet
+GYRO_BIAS_PRIOR = np.radians(0.2)  # rad/s: spread of a factory-calibrated MEMS gyro's zero-rate offset
+ACCEL_CORRELATION_S = 1.0  # s: a track's accelerations stay correlated over about a second
+G = 9.80665  # m/s², standard gravity
+
+
+def gyro_bias(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False, window_s: float = 0.5,
+              noise_density: float = GYRO_NOISE_DENSITY, with_std: bool = False):
+    """Gyroscope bias (rad/s, (n, 3)) estimated where the camera is still — the one implementation.
+
+    A sample is still when, over a window of ``window_s`` around it (causal: ending at it),
+    the rate's standard deviation on every axis stays within 1.5× the white noise the
+    sensor's ``noise_density`` allows, i.e. the camera is not turning. The bias is the
+    mean rate over the still samples: online, those seen so far (0 before the first,
+    the bias's expected value); offline, all of the record's. A camera that keeps turning
+    gives no estimate rather than a wrong one: a mean rate over motion is the net angle
+    turned divided by the time, not the bias. with_std: also return the estimate's
+    standard deviation (rad/s, (n,)): the prior ``GYRO_BIAS_PRIOR`` narrowed by the still
+    samples' white noise.
+    """
+    time_s, gyro = np.asarray(time_s, float), np.asarray(gyro, float)
+    n = len(time_s)
+    if n < 3:
+        return (np.zeros((n, 3)), np.full(n, GYRO_BIAS_PRIOR)) if with_std else np.zeros((n, 3))
+    rate = 1.0 / float(np.median(np.diff(time_s)))
+    sigma = noise_density * np.sqrt(rate / 2)
+    k = max(3, int(round(window_s * rate)))
+    c1 = np.concatenate([np.zeros((1, 3)), np.cumsum(gyro, 0)])
+    c2 = np.concatenate([np.zeros((1, 3)), np.cumsum(gyro ** 2, 0)])
+    hi = np.arange(1, n + 1) if causal else np.minimum(np.arange(n) + k // 2 + 1, n)
+    lo = np.maximum(hi - k, 0)
+    m = (hi - lo)[:, None]
+    mean = (c1[hi] - c1[lo]) / m
+    var = np.maximum((c2[hi] - c2[lo]) / m - mean ** 2, 0.0)
+    still = (m[:, 0] >= k) & np.all(var <= (1.5 * sigma) ** 2, axis=1)
+    if causal:
+        count = np.cumsum(still)[:, None]
+        total = np.cumsum(gyro * still[:, None], 0)
+        bias = np.where(count > 0, total / np.maximum(count, 1), 0.0)
+        count = count[:, 0]
+    else:
+        bias = np.broadcast_to(gyro[still].mean(0) if still.any() else np.zeros(3), (n, 3)).copy()
+        count = np.full(n, still.sum())
+    if not with_std:
+        return bias
+    return bias, 1.0 / np.sqrt(1.0 / GYRO_BIAS_PRIOR ** 2 + count / sigma ** 2)
+
+
 def orientation_from_gyro(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False) -> np.ndarray:
     """Rotations (n, 3, 3) taking camera-frame vectors at each sample into the first sample's frame.
 
-    The gyro's mean (zero-phase) or running mean (causal) is removed as bias first.
+    The gyro bias (:func:`gyro_bias`) is removed first.
     """
     n = len(time_s)
-    bias = (np.cumsum(gyro, 0) / np.arange(1, n + 1)[:, None]) if causal else gyro.mean(0, keepdims=True)
-    w = gyro - bias
+    w = gyro - gyro_bias(time_s, gyro, causal)
     dt = np.diff(time_s, prepend=time_s[0])
     steps = Rotation.from_rotvec(w * dt[:, None]).as_matrix()
     out = np.empty((n, 3, 3))
@@ -35,21 +82,79 @@ def orientation_from_gyro(time_s: np.ndarray, gyro: np.ndarray, causal: bool = F
     return out
 
 
+GRAVITY_WINDOW_S = 60.0  # longer than a track's excursions (seconds), so its acceleration averages out
+
+
+def local_linear(time_s: np.ndarray, values: np.ndarray, window_s: float, causal: bool,
+                 slope_std: np.ndarray | float = np.inf, correlation_s: float = ACCEL_CORRELATION_S) -> np.ndarray:
+    """A straight line in time fitted to ``values`` (n, k) over a sliding window, evaluated at each sample.
+
+    Zero-phase: the window is centred on each sample (clipped to the record); causal: it
+    ends at the sample. The slope has a zero-mean Gaussian prior of std ``slope_std``
+    (per sample, (n,) or scalar; units of values per second) against the residual
+    variance in the window, whose samples count as independent once per
+    ``correlation_s``: a slope the data cannot tell from their own wander stays near 0.
+    Vectorised with cumulative sums; returns (n, k).
+    """
+    t = np.asarray(time_s, float) - float(np.mean(time_s))
+    y = np.asarray(values, float)
+    z = lambda a: np.concatenate([np.zeros((1,) + a.shape[1:]), np.cumsum(a, 0)])
+    c0, c1, c2 = z(np.ones_like(t)), z(t), z(t * t)
+    y0, y1, y2 = z(y), z(t[:, None] * y), z(y * y)
+    n = len(t)
+    if causal:
+        hi = np.arange(1, n + 1)
+        lo = np.searchsorted(t, t - window_s, side="left")
+    else:
+        lo = np.searchsorted(t, t - window_s / 2, side="left")
+        hi = np.searchsorted(t, t + window_s / 2, side="right")
+    m = (c0[hi] - c0[lo])[:, None]
+    tm = (c1[hi] - c1[lo])[:, None] / m
+    s2c = (c2[hi] - c2[lo])[:, None] - m * tm ** 2
+    ym = (y0[hi] - y0[lo]) / m
+    q1c = (y1[hi] - y1[lo]) - m * tm * ym
+    var = np.maximum((y2[hi] - y2[lo]) / m - ym ** 2, 0.0)
+    rate = 1.0 / float(np.median(np.diff(time_s))) if n > 1 else 1.0
+    prior = np.broadcast_to(np.asarray(slope_std, float), (n,))[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.where(np.isfinite(prior), var * max(correlation_s * rate, 1.0) / prior ** 2, 0.0)
+        slope = np.where(s2c + lam > 0, q1c / (s2c + lam), 0.0)
+    return ym + slope * (t[:, None] - tm)
+
+
 def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None,
-                         causal: bool = False) -> np.ndarray:
+                         causal: bool = False, window_s: float = GRAVITY_WINDOW_S) -> np.ndarray:
     """Gravity-free acceleration along the optical axis (m/s², (n,)) from specific force (n, 3).
 
     Raises ValueError for non-finite input. With ``gyro`` (n, 3) rad/s the gravity
     direction follows the camera's rotation; without it the orientation is taken as fixed.
+    Gravity in the gyro-stabilised frame is a local straight-line fit (window_s, centred
+    offline, trailing online) to the specific force there: a bounded track's acceleration
+    averages out over the window, and what is left of the gyro bias turns that frame at a
+    near-constant rate, so gravity drifts there linearly, at most |g|·σ_b. The slope's
+    prior is that bound, with σ_b the bias estimate's own uncertainty (:func:`gyro_bias`):
+    a camera that was still long enough has a known bias and a flat gravity; one that
+    never stops turning lets the slope be fitted. Online (causal) the fit is a plain
+    running mean — a slope from the last seconds is mostly the platform's acceleration —
+    and the ramp the bias leaves is the readout's to track (:func:`gravity_drift_std`).
     """
     if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(time_s))):
         raise ValueError("accelerometer samples contain NaN or inf")
     n = len(time_s)
-    rot = orientation_from_gyro(time_s, gyro, causal) if gyro is not None else np.broadcast_to(np.eye(3), (n, 3, 3))
+    if gyro is not None:
+        rot = orientation_from_gyro(time_s, gyro, causal)
+        slope_std = 0.0 if causal else G * gyro_bias(time_s, gyro, causal, with_std=True)[1]
+    else:
+        rot, slope_std = np.broadcast_to(np.eye(3), (n, 3, 3)), 0.0
     f0 = np.einsum("nij,nj->ni", rot, accel)  # specific force in the first frame
-    g0 = -(np.cumsum(f0, 0) / np.arange(1, n + 1)[:, None] if causal else f0.mean(0, keepdims=True))
-    g_cam = np.einsum("nji,nj->ni", rot, np.broadcast_to(g0, f0.shape))
+    g0 = -local_linear(time_s, f0, window_s, causal, slope_std)
+    g_cam = np.einsum("nji,nj->ni", rot, g0)
     return (accel + g_cam)[:, 2]
+
+
+def gravity_drift_std(time_s: np.ndarray, gyro: np.ndarray, causal: bool = True) -> np.ndarray:
+    """How fast (m/s²/s, (n,)) gravity may drift through the forward axis: |g|·σ_b of :func:`gyro_bias`."""
+    return G * gyro_bias(time_s, gyro, causal, with_std=True)[1]
 
 
 def resample_to(times: np.ndarray, sample_t: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:

@@ -47,6 +47,9 @@ class ReadoutConfig:
     bias_prior_m_s2: prior std of the accelerometer offset; v_prior_m_s: prior std of v.
     meas_floor_m_s: smallest standard deviation granted to one frame's measurement.
     max_std_m_s: posterior std above which v̂ is reported as unobservable (NaN).
+    r2_term: "field" (the field's mean of r², the geometry) or "mean_squared" (r̄², the ablation).
+    fusion: "kalman" (vision measurements fused with integrated acceleration) or "vision-only"
+        (the per-frame robust median of v_f through the same low-pass, no acceleration integration).
     """
 
     method: str = "kalman"
@@ -67,8 +70,14 @@ class ReadoutConfig:
     v_prior_m_s: float = 1.0
     meas_floor_m_s: float = 0.02
     max_std_m_s: float = 0.1
+    r2_term: str = "field"
+    fusion: str = "kalman"
 
     def __post_init__(self):
+        if self.r2_term not in ("field", "mean_squared"):
+            raise ValueError(f"unknown r2_term {self.r2_term!r}; use 'field' or 'mean_squared'")
+        if self.fusion not in ("kalman", "vision-only"):
+            raise ValueError(f"unknown fusion {self.fusion!r}; use 'kalman' or 'vision-only'")
         if self.method not in ("kalman", "median"):
             raise ValueError(f"unknown readout method {self.method!r}; use 'kalman' or 'median'")
         if self.filter not in ("zero-phase", "causal"):
@@ -195,6 +204,30 @@ def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
     return np.where(enough, z, np.nan), np.where(enough, std, np.nan), v_f
 
 
+def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
+    """Vision's a/v per frame, κ = median over fields of (ṙ̄ − r²̄)/r̄ (1/s), and its standard error.
+
+    No accelerometer enters: ṙ − r² = a/d and r = v/d, so their ratio is a/v for every
+    field whatever its depth. Fields whose |r̄| is under a fifth of the frame's median
+    |r̄| (nothing expanding there to measure) are left out, and so are fields outside
+    ``keep`` (n, F) bool (e.g. those whose implied depth is not physical); a frame needs at
+    least min_valid_fraction of the fields. Returns κ, std (n,), NaN where uninformative.
+    """
+    with warnings.catch_warnings(), np.errstate(divide="ignore", invalid="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ra = np.abs(r)
+        ok = np.isfinite(r) & np.isfinite(r2) & np.isfinite(r_dot) & (ra >= 0.2 * np.nanmedian(ra, axis=1)[:, None])
+        if keep is not None:
+            ok &= keep
+        k = np.where(ok, (r_dot - r2) / r, np.nan)
+        kap = np.nanmedian(k, axis=1)
+        mad = np.nanmedian(np.abs(k - kap[:, None]), axis=1)
+    n_ok = ok.sum(1)
+    std = 1.253 * 1.4826 * mad / np.sqrt(np.maximum(n_ok, 1))
+    enough = (n_ok >= max(3, cfg.min_valid_fraction * r.shape[1])) & np.isfinite(kap)
+    return np.where(enough, kap, np.nan), np.where(enough, std, np.nan)
+
+
 def rest_measurement(r, cfg: ReadoutConfig):
     """v = r·d with 0 < d ≤ rest_depth_max: small flow everywhere bounds |v| (returns z = 0, std)."""
     with warnings.catch_warnings():
@@ -207,80 +240,194 @@ def rest_measurement(r, cfg: ReadoutConfig):
     return np.where(use, 0.0, np.nan), np.where(use, std, np.nan)
 
 
-def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool):
-    """Two-state (v, accelerometer offset b) Kalman filter/RTS smoother driven by a.
+def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_span=None, window_s=None,
+                    ratio=None, drift_std=None):
+    """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
     absent. Returns posterior mean and std of v, (n,) each.
+
+    accel_span (n,) s: when a's gravity was estimated online as the mean specific force
+    over the last ``accel_span`` seconds (lobula.haltere, causal), that mean also holds the
+    platform's own mean acceleration, (v(t) − v(t − span))/span, which a lacks. The filter
+    adds it back: while the window still grows from the record's start (span < window_s)
+    v(t − span) is the initial velocity, a third state v₀ (equal to v at the start);
+    once the window slides it is the filter's own earlier estimate.
+
+    ratio: (κ, σ_κ, a_m, shift), each (n,): vision's measurement of a/v (κ = (ṙ − r²)/r per
+    field, which needs no accelerometer) against the accelerometer's a_m (low-passed like
+    κ, belonging to t − delay, where v was v(t) − shift): a_m = κ·(v − shift) + b. Linear
+    in the state, it ties b to the accelerometer where a ≈ 0 and v to both elsewhere, so
+    an accelerometer offset cannot scale v the way it scales a·r/(ṙ − r²).
+
+    drift_std (n,) m/s²/s: how fast the offset may ramp — gravity seen through an attitude
+    integrated with an uncertain gyro bias σ_b drifts at up to |g|·σ_b — as a fourth state
+    ḃ whose std is held within drift_std at each frame (None: no ramp).
     """
     n = len(t)
-    x = np.array([0.0, 0.0])
-    P = np.diag([cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2])
-    xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 2)), np.zeros((n, 2, 2)), np.zeros((n, 2)),
-                                    np.zeros((n, 2, 2)), np.zeros((n, 2, 2)))
-    H = np.array([1.0, 0.0])
-    for k in range(n):  # a loop over time steps; the state is 2-dimensional
+    sv, sb = cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2
+    sd0 = float(drift_std[0]) ** 2 if drift_std is not None else 0.0
+    x = np.zeros(4)
+    P = np.array([[sv, 0.0, sv, 0.0], [0.0, sb, 0.0, 0.0], [sv, 0.0, sv, 0.0], [0.0, 0.0, 0.0, sd0]])
+    xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 4)), np.zeros((n, 4, 4)), np.zeros((n, 4)),
+                                    np.zeros((n, 4, 4)), np.zeros((n, 4, 4)))
+    H = np.array([1.0, 0.0, 0.0, 0.0])
+    for k in range(n):  # a loop over time steps; the state is 4-dimensional
         if k > 0:
             dt = t[k] - t[k - 1]
-            F = np.array([[1.0, -dt], [0.0, 1.0]])
-            x = F @ x + np.array([0.5 * (a[k] + a[k - 1]) * dt, 0.0])
-            P = F @ P @ F.T + np.diag([cfg.accel_noise ** 2 * dt, cfg.bias_walk ** 2 * dt])
+            F = np.eye(4)
+            F[0, 1], F[1, 3] = -dt, dt
+            u = 0.5 * (a[k] + a[k - 1]) * dt
+            if accel_span is not None and np.isfinite(accel_span[k]) and accel_span[k] > 0:
+                c = dt / accel_span[k]
+                F[0, 0] += c
+                if window_s is None or accel_span[k] < window_s:
+                    F[0, 2] = -c
+                else:
+                    u -= c * np.interp(t[k] - accel_span[k], t[:k], xs[:k, 0])
+            x = F @ x + np.array([u, 0.0, 0.0, 0.0])
+            P = F @ P @ F.T + np.diag([cfg.accel_noise ** 2 * dt, cfg.bias_walk ** 2 * dt, 0.0, 0.0])
+            if drift_std is not None and P[3, 3] > drift_std[k] ** 2:
+                # The gyro bias got better known (still samples): the ramp is bounded anew.
+                f = drift_std[k] / np.sqrt(P[3, 3])
+                x[3] *= f
+                P[3, :] *= f
+                P[:, 3] *= f
             Fs[k] = F
         xs_pred[k], Ps_pred[k] = x, P
-        for z, s in measurements:
-            if np.isfinite(z[k]) and np.isfinite(s[k]):
-                S = P[0, 0] + s[k] ** 2
+        for z, sd in measurements:
+            if np.isfinite(z[k]) and np.isfinite(sd[k]):
+                S = P[0, 0] + sd[k] ** 2
                 K = P[:, 0] / S
                 x = x + K * (z[k] - x[0])
                 P = P - np.outer(K, H @ P)
+        if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
+            kap, skap, am, shift = (q[k] for q in ratio)
+            # Below accel_min the acceleration carries no depth information (as for v_f): the
+            # frame then speaks for the offset b alone, not for v through a noisy κ ≈ 0.
+            informative = abs(am) >= cfg.accel_min_m_s2
+            h = np.array([kap if informative else 0.0, 1.0, 0.0, 0.0])
+            zk = am + (kap * shift if informative else 0.0)
+            if accel_span is not None and np.isfinite(accel_span[k]) and accel_span[k] > 0:
+                c = 1.0 / accel_span[k]  # a_m lacks the window's mean acceleration (see above)
+                h[0] -= c
+                if window_s is None or accel_span[k] < window_s:
+                    h[2] = c
+                else:
+                    zk -= c * np.interp(t[k] - accel_span[k], t[:k], xs[:k, 0]) if k else 0.0
+            # The fields' spread (v·σ_κ, floored at meas_floor as a velocity measurement would
+            # be) and the filtered accelerometer's noise floor (accel_min_m_s2); its offset and
+            # ramp are states, not noise.
+            # κ's error multiplies v, so it counts with E[v²] = v̂² + P_vv (errors in variables:
+            # a noisy κ ≈ 0 must not pin v while v is still unknown).
+            R = ((x[0] ** 2 + P[0, 0]) * skap ** 2 + (kap * cfg.meas_floor_m_s) ** 2
+                 + (cfg.meas_floor_m_s * skap) ** 2 + cfg.accel_min_m_s2 ** 2)
+            S = h @ P @ h + R
+            K = P @ h / S
+            x = x + K * (zk - h @ x)
+            P = P - np.outer(K, h @ P)
         xs[k], Ps[k] = x, P
     if smooth:
         for k in range(n - 2, -1, -1):
-            C = Ps[k] @ Fs[k + 1].T @ np.linalg.inv(Ps_pred[k + 1])
+            C = Ps[k] @ Fs[k + 1].T @ np.linalg.pinv(Ps_pred[k + 1])
             xs[k] = xs[k] + C @ (xs[k + 1] - xs_pred[k + 1])
             Ps[k] = Ps[k] + C @ (Ps[k + 1] - Ps_pred[k + 1]) @ C.T
     return xs[:, 0], np.sqrt(np.maximum(Ps[:, 0, 0], 0.0))
 
 
-def kalman_readout(t, r, r2, a, cfg: ReadoutConfig) -> ReadoutResult:
-    """The project's readout (see module docstring)."""
+@dataclass
+class MaterialRates:
+    """Field rates taken along the image content (the material derivative), time-major (n, F).
+
+    For each frame k: r̄, r²̄ (1/s, 1/s²) averaged over the *same scene points* at both ends
+    of a difference and ṙ̄ = Dr/Dt (1/s²) over those points, all in the camera's orientation
+    at frame k (lobula.receptive_field.MaterialFields); NaN where no difference exists.
+    """
+
+    r: np.ndarray
+    r2: np.ndarray
+    r_dot: np.ndarray
+
+
+def _lag(x: np.ndarray, h: int) -> np.ndarray:
+    """x delayed by h frames along axis 0 (NaN-filled): what an online stage has at each step."""
+    return np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:-h]]) if h else x
+
+
+def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
+                      accel_span=None, accel_window_s=None, drift_std=None) -> ReadoutResult:
+    """The project's readout (see module docstring).
+
+    Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
+    (exact only where r is uniform, a fronto-parallel surface); with it, the material
+    derivative along the content and r̄, r²̄ over the same points.
+    """
     zp = cfg.filter == "zero-phase"
     dt = float(np.median(np.diff(t)))
     wn = cfg.cutoff_hz / (0.5 / dt)
-    rf = butterworth(r, wn, cfg.order, zp)
-    r2f = butterworth(r2, wn, cfg.order, zp)
-    af = butterworth(a, wn, cfg.order, zp)
     stagger = max(2, cfg.stagger + cfg.stagger % 2)
-    if zp:
-        r_dot = staggered_difference(rf, stagger, dt, centred=True)
-        z, s, v_f = vision_measurement(rf, r2f, r_dot, af, cfg)
-        delay = 0.0
+    h = stagger // 2
+    lp = lambda x: butterworth(x, wn, cfg.order, zp)
+    rf = lp(r)
+    if material is None:
+        r2f = lp(r2) if cfg.r2_term == "field" else rf ** 2
+        if zp:
+            r_dot = staggered_difference(rf, stagger, dt, centred=True)
+            terms = (rf, r2f, r_dot, lp(a))
+        else:
+            # The backward difference belongs s/2 frames back; align r̄, r²̄ and a with it.
+            r_dot = staggered_difference(rf, stagger, dt, centred=False)
+            terms = (_lag(rf, h), _lag(r2f, h), r_dot, _lag(lp(a), h))
     else:
-        # The backward difference belongs s/2 frames back; align r̄, r²̄ and a with it.
-        h = stagger // 2
-        r_dot = staggered_difference(rf, stagger, dt, centred=False)
-        lag = lambda x: np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:-h]])
-        z, s, v_f = vision_measurement(lag(rf), lag(r2f), r_dot, lag(af), cfg)
-        # Filter group delay at DC plus the difference's half-width: bridge it with ∫a.
+        m = material
+        # Centred quantities are known h frames after their time: online, they arrive lagged.
+        arrive = (lambda x: x) if zp else (lambda x: _lag(x, h))
+        rm = lp(arrive(m.r))
+        r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp(arrive(m.r2))
+        r_dot = lp(arrive(m.r_dot))
+        terms = (rm, r2m, r_dot, lp(arrive(a)))
+    z, s, v_f = vision_measurement(*terms, cfg)
+    delay = 0.0
+    if not zp:
+        # Filter group delay at DC plus the difference's half-width.
         w, gd = signal.group_delay(signal.butter(cfg.order, wn), w=[1e-3])
         delay = float(gd[0]) * dt + h * dt
-        cum = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))])
-        z = z + (cum - np.interp(t - delay, t, cum))
-    zr, sr = rest_measurement(rf, cfg)
     # Low-passed measurements are correlated over about 1/(2·cutoff) s; treating each
     # frame as independent would make the posterior overconfident by √(that many frames).
     s = s * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
-    v, v_std = kalman_velocity(t, a, [(z, s), (zr, sr)], cfg, smooth=zp)
+    if cfg.fusion == "vision-only":
+        obs = np.isfinite(z) & (s <= cfg.max_std_m_s)
+        return ReadoutResult(np.where(obs, z, np.nan), obs, np.where(obs, s, np.nan), v_f, r_dot, z, s, a,
+                             info=dict(measurement_delay_s=delay))
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))])
+    if delay:
+        # Bridge the measurement's latency with ∫a (the haltere's fast path).
+        z = z + (cum - np.interp(t - delay, t, cum))
+    zr, sr = rest_measurement(rf, cfg)
+    # Where |a| is large enough to judge, fields implying an unphysical depth are left out
+    # (as for v_f); where it is not, κ ≈ 0 is exactly what ties the offset down.
+    keep = np.isfinite(v_f) | (np.abs(terms[3]) < cfg.accel_min_m_s2)[:, None]
+    kap, skap = ratio_measurement(*terms[:3], cfg, keep=keep)
+    skap = skap * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
+    shift = (cum - np.interp(t - delay, t, cum)) if delay else np.zeros(len(t))
+    v, v_std = kalman_velocity(t, a, [(zr, sr)], cfg, smooth=zp, accel_span=accel_span,
+                               window_s=accel_window_s, ratio=(kap, skap, terms[3], shift), drift_std=drift_std)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
                          info=dict(measurement_delay_s=delay))
 
 
-def readout(t, r, r2, a, config: ReadoutConfig | None = None) -> ReadoutResult:
+def readout(t, r, r2, a, config: ReadoutConfig | None = None,
+            material: MaterialRates | None = None, accel_span=None, accel_window_s=None,
+            drift_std=None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
     t (n,) s, uniformly spaced; r, r2 (n, F) in 1/s and 1/s²; a (n,) forward
-    acceleration at the same times (m/s², gravity removed).
+    acceleration at the same times (m/s², gravity removed); material: the rates along
+    the content (:class:`MaterialRates`), used by the kalman readout when given;
+    accel_span (n,) s and accel_window_s: how much of the record the online gravity
+    estimate had averaged at each frame, and drift_std (n,) m/s²/s, how fast the
+    accelerometer's offset may ramp (see :func:`kalman_velocity`); None offline.
     """
     cfg = config or ReadoutConfig()
     t, r, r2, a = (np.asarray(x, dtype=float) for x in (t, r, r2, a))
@@ -288,5 +435,6 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None) -> ReadoutResult:
         raise ValueError(f"need at least 3 flow frames for a readout, got {len(t)}")
     if not np.all(np.isfinite(a)):
         raise ValueError("acceleration has NaN or inf at flow times")
-    fn = kalman_readout if cfg.method == "kalman" else paper_readout
-    return fn(t, r, r2, a, cfg)
+    if cfg.method == "kalman":
+        return kalman_readout(t, r, r2, a, cfg, material, accel_span, accel_window_s, drift_std)
+    return paper_readout(t, r, r2, a, cfg)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+import cv2
 import numpy as np
 from scipy import sparse
 
@@ -28,6 +29,8 @@ class FieldConfig:
     the pair rate (d0/d1 − 1)/Δt by the exact mean rate ln(d0/d1)/Δt. pooling:
     "least-squares" (|p−e|²-weighted, robust at the epipole) or "pixel-mean" (the
     paper: the plain mean of per-pixel ratios ⟨ṗ,p−e⟩/|p−e|², which blows up there).
+    material: take ṙ̄ along the image content (:class:`MaterialFields`, the material
+    derivative Dr/Dt the geometry needs) instead of at fixed pixels (the paper).
     """
 
     size_deg: float = 5.0
@@ -36,6 +39,7 @@ class FieldConfig:
     shape: str = "box"
     pooling: str = "least-squares"
     gap_correction: bool = True
+    material: bool = True
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -151,3 +155,123 @@ def gap_correction(r_pair: np.ndarray, r2_pair: np.ndarray, dt_s: float) -> tupl
         r = np.where(arg > 0, np.log(np.where(arg > 0, arg, 1.0)) / dt_s, np.nan)
         scale = np.where(np.abs(r_pair) > 1e-12, r / r_pair, 1.0)
     return r, r2_pair * scale ** 2
+
+
+class MaterialFields:
+    """Receptive fields that follow the image content: ṙ̄ as the material derivative Dr/Dt.
+
+    ṙ = a/d + r² holds along a scene point. At a fixed pixel other points flow through
+    (∂r/∂t = Dr/Dt − u·∇r), which is wrong wherever r varies across the image (floors,
+    walls, slanted surfaces). Here each field's points in pair k − s are carried by the
+    flow to where they are in pair k, r is pooled at both ends over the *same* points
+    (least squares, the fields' weights), and ``ṙ̄ = (r̄_end − r̄_start)/δ``, with ``r̄``,
+    ``r²̄`` the means of both ends, so all three terms see one set of depths and
+    v_f = a·r̄/(ṙ̄ − r²̄) holds per field.
+
+    Rotation: in a turning camera frame a point's forward depth also changes by the
+    rotation (ḋ = −v − d(ωx y − ωy x)), adding r·(ωx(y − ey) − ωy(x − ex)) to Dr/Dt. Both
+    ends are therefore expressed in ONE orientation, the camera's at the difference's
+    centre (pair k − s/2), by exact finite derotation of each pair
+    (:func:`lobula.epipole.derotate_finite`); in a fixed orientation the geometry has no
+    rotation term, and at the centre a and v are the camera's own.
+
+    Work is done on b×b pixel blocks (b chosen so ~20,000 blocks cover the image): the
+    maps are smooth at that scale and the cost does not grow with the image.
+    """
+
+    def __init__(self, fields: ReceptiveFields, stagger: int, block: int | None = None, gap_correction: bool = True):
+        cam = fields.camera
+        if stagger < 2 or stagger % 2:
+            raise ValueError(f"the material difference needs an even stagger ≥ 2, got {stagger}")
+        self.fields, self.stagger, self.gap_correction = fields, int(stagger), gap_correction
+        b = self.block = block or max(1, int(round(np.sqrt(cam.width * cam.height / 20000))))
+        self.hs, self.ws = cam.height // b, cam.width // b
+        rows = np.arange(cam.height)[:, None] // b
+        cols = np.arange(cam.width)[None, :] // b
+        inside = (rows < self.hs) & (cols < self.ws)
+        blk = np.where(inside, rows * self.ws + cols, 0).ravel()
+        agg = sparse.csr_matrix((inside.ravel().astype(np.float64), (np.arange(blk.size), blk)),
+                                shape=(blk.size, self.hs * self.ws))
+        self.weights = (fields.weights.astype(np.float64) @ agg).tocsr()  # (F, blocks): Σ_pixels w
+        self.x = self._blocks(fields.x)
+        self.y = self._blocks(fields.y)
+        self.fx, self.fy, self.cx, self.cy = cam.fx, cam.fy, cam.cx, cam.cy
+        self._buf: list = []
+
+    def _blocks(self, m: np.ndarray) -> np.ndarray:
+        """Block means (hs, ws) of a full-resolution map; NaN stays NaN."""
+        b = self.block
+        m = np.asarray(m, np.float32)[: self.hs * b, : self.ws * b]
+        if b == 1:
+            return m.copy()
+        return cv2.resize(m, (self.ws, self.hs), interpolation=cv2.INTER_AREA)
+
+    def update(self, t0: float, dt_pair: float, flow_full: np.ndarray, epipole,
+               q0: np.ndarray | None = None, q1: np.ndarray | None = None, qm: np.ndarray | None = None):
+        """Add frame pair k (first frame at t0 s, gap dt_pair s) and return the rates of pair k − s/2.
+
+        flow_full: the image flow (2, H, W) 1/s, rotation included (how content moves);
+        q0, q1, qm: the camera's orientation (camera → a fixed reference, from the integrated
+        gyro) at the pair's first frame, second frame and middle (None: not turning);
+        epipole (2,): the heading seen in the middle orientation.
+        Returns None until s pairs are buffered, else (r̄, r²̄, ṙ̄), each (F,), for pair k − s/2.
+        """
+        eye = np.eye(3)
+        item = dict(t0=t0, T=dt_pair, uf=self._blocks(flow_full[0]), vf=self._blocks(flow_full[1]),
+                    e=np.asarray(epipole, float), q0=eye if q0 is None else np.asarray(q0, float),
+                    q1=eye if q1 is None else np.asarray(q1, float), qm=eye if qm is None else np.asarray(qm, float))
+        self._buf.append(item)
+        if len(self._buf) <= self.stagger:
+            return None
+        s0, sc = self._buf.pop(0), self._buf[self.stagger // 2 - 1]
+        return self._difference(s0, sc, item)
+
+    def _rates(self, item, qc, e, x, y, uf, vf):
+        """Pair rates in the orientation qc at points (x, y) with flow (uf, vf): num, den maps."""
+        from .epipole import derotate_finite
+
+        X, Y, d = derotate_finite(x, y, (uf, vf), item["T"], qc.T @ item["q0"], qc.T @ item["q1"])
+        dx, dy = X - e[0], Y - e[1]
+        return d[0] * dx + d[1] * dy, dx * dx + dy * dy, d, X, Y
+
+    def _difference(self, s0: dict, sc: dict, s1: dict):
+        delta = s1["t0"] - s0["t0"]
+        T = s0["T"]
+        qc, e = sc["qm"], sc["e"]
+        num0, den0, d0, X0, Y0 = self._rates(s0, qc, e, self.x, self.y, s0["uf"], s0["vf"])
+        # Where the start's points are at the end. In the fixed orientation only translation
+        # moves them, exactly for constant r along the pair (x − e scales by 1/(1 − ρδ),
+        # ρ = v/d0), not linearly in δ; the gyro's rotation then says where pair k's first
+        # camera sees them.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = 1.0 + np.where(den0 > 0, num0 / den0, 0.0) * T  # d0/d1 over the pair
+            rho = (1.0 - 1.0 / np.maximum(lam, 0.2)) / T
+            grow = np.where(np.abs(rho) * T > 1e-6,
+                            (1.0 / np.maximum(1.0 - rho * delta, 0.2) - 1.0) / np.where(np.abs(lam - 1) > 1e-9, lam - 1, 1.0),
+                            delta / T)
+        from .epipole import turn
+        xe, ye = turn(s1["q0"].T @ qc, X0 + grow * T * d0[0], Y0 + grow * T * d0[1])
+        b = self.block
+        mx = ((xe * self.fx + self.cx) - (b - 1) / 2) / b
+        my = ((ye * self.fy + self.cy) - (b - 1) / 2) / b
+        inside = (mx >= 0) & (mx <= self.ws - 1) & (my >= 0) & (my <= self.hs - 1)
+        mx, my = np.nan_to_num(mx).astype(np.float32), np.nan_to_num(my).astype(np.float32)
+        remap = lambda m: cv2.remap(m, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        num1, den1, *_ = self._rates(s1, qc, e, xe, ye, remap(s1["uf"]), remap(s1["vf"]))
+        ok = inside & np.isfinite(num0) & np.isfinite(num1)
+        cols = []
+        for num, den in ((num0, den0), (num1, den1)):
+            num = np.where(ok, num, 0.0)
+            den = np.where(ok, den, 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sq = np.where(den > 0, num * num / den, 0.0)
+            cols += [num.ravel(), den.ravel(), sq.ravel()]
+        pooled = self.weights @ np.stack(cols, axis=1).astype(np.float64)
+        out = []
+        for c in (0, 3):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = pooled[:, c] / pooled[:, c + 1]
+                r2 = pooled[:, c + 2] / pooled[:, c + 1]
+            out.append(gap_correction(r, r2, T) if self.gap_correction else (r, r2))
+        (ra, r2a), (rb, r2b) = out
+        return 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) / delta

@@ -254,7 +254,7 @@ def test_command_line(synthetic, tmp_path, capsys):
     ds = xr.open_dataset(out)
     assert ds.attrs["method"] == "tv" and ds.sizes["time"] == math.ceil((len(fo) - 6) / 30)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    with pytest.raises(FootageError, match="not a folder"):
+    with pytest.raises(FootageError, match="not found"):
         _cli(["depth", str(tmp_path / "missing"), "--out", str(tmp_path / "x.nc")])
     with pytest.raises(ValueError, match="every"):
         _cli(["depth", str(fo.path), "--every", "0", "--out", str(tmp_path / "x.nc"),

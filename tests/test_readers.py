@@ -95,12 +95,7 @@ def test_euroc_frames_are_undistorted(euroc):
     assert fo2.camera.fx != fo.camera.fx and fo2.distortion["target_k"] == "optimal"
 
 
-@pytest.mark.parametrize("filt", [
-    "causal",
-    pytest.param("zero-phase", marks=pytest.mark.xfail(
-        strict=True, reason="estimator: on the IMU of the frames' span alone (rotor vibration, no expansion) the "
-                            "zero-phase readout claims ≈0.2 m/s at up to 7σ (RMS 0.15 m/s); issue 12, estimator's fix")),
-])
+@pytest.mark.parametrize("filt", ["causal", "zero-phase"])  # zero-phase fixed by the κ readout (issue 10)
 def test_euroc_stationary_reports_no_motion(euroc, tmp_path, capsys, filt):
     out = tmp_path / f"{filt}.nc"
     code, _, err = cli(capsys, "velocity", euroc, "--out", out, "--filter", filt, "--quiet")

@@ -22,7 +22,7 @@ def rmse_after(t, v_hat, v_true, observable, skip=2.0):
 
 def test_replay_default_dis_beats_the_bound(make_replay, replay_rates):
     rates, a, v_true = replay_rates
-    res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig())
+    res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig(), material=rates.material)
     rmse, obs = rmse_after(rates.t, res.v_hat, v_true, res.observable)
     # Causal end to end: running epipole, running gyro bias and gravity, forward filter.
     cfg = VelocityConfig()
@@ -30,14 +30,14 @@ def test_replay_default_dis_beats_the_bound(make_replay, replay_rates):
     causal = score(estimate_velocity(open_footage(make_replay(0.0, 30.0)), cfg, progress=False), 2.0)
     print(f"\nreplay 0-30 s, DIS: zero-phase RMSE {rmse:.4f} m/s (observable {obs:.3f}); "
           f"causal {causal['rmse_m_s']:.4f} ({causal['observable_fraction']:.3f})")
-    assert rmse <= 0.08 and obs >= 0.9
-    assert causal["rmse_m_s"] <= 0.08 and causal["observable_fraction"] >= 0.9
+    assert rmse <= 0.03 and obs >= 0.9  # issue 10: the README replay may not get worse than 0.03
+    assert causal["rmse_m_s"] <= max(1.5 * rmse, 0.03) and causal["observable_fraction"] >= 0.9
 
 
 def test_the_paper_readout_on_the_same_rates_is_worse(replay_rates):
     """The paper's median readout on the project's field rates: reported, and beaten."""
     rates, a, v_true = replay_rates
-    ours = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig())
+    ours = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig(), material=rates.material)
     paper = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig.paper())
     r_ours, _ = rmse_after(rates.t, ours.v_hat, v_true, ours.observable)
     r_paper, obs_paper = rmse_after(rates.t, paper.v_hat, v_true, paper.observable)
@@ -52,7 +52,7 @@ def test_replay_starting_in_motion(make_replay, replay_rates):
     ds = estimate_velocity(fo, VelocityConfig(), progress=False)
     sc = score(ds, 2.0)
     rates, a, v_true = replay_rates
-    res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig())
+    res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig(), material=rates.material)
     at_rest_rmse, _ = rmse_after(rates.t, res.v_hat, v_true, res.observable)
     print(f"\nreplay 40-55 s: RMSE {sc['rmse_m_s']:.4f} (observable {sc['observable_fraction']:.3f}); "
           f"from rest: {at_rest_rmse:.4f}")
@@ -71,7 +71,7 @@ def test_off_axis_translation(make_replay, replay_rates, yaw, pitch):
     true_e = json.loads((fo.path / "scene.json").read_text())["epipole"]
     err_deg = np.degrees(np.abs(np.arctan([ex, ey]) - np.arctan(true_e)))
     rates, a, v_true = replay_rates
-    res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig())
+    res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig(), material=rates.material)
     on_axis, _ = rmse_after(rates.t, res.v_hat, v_true, res.observable)
     sc = score(ds, 2.0)
     print(f"\noff-axis ({yaw}°, {pitch}°): epipole error {err_deg.round(3)}°, RMSE {sc['rmse_m_s']:.4f} "
