@@ -34,6 +34,13 @@ def _numbers(x):
     return []
 
 
+def test_every_committed_figure_has_its_record():
+    for name in FIGURES:
+        rec = json.loads((COMMITTED / f"{name}.json").read_text())
+        assert (COMMITTED / f"{name}.png").exists() and rec["command"].startswith("lobula figures"), name
+        assert "git_commit" in rec and rec["replay"]["profile"], name
+
+
 @pytest.mark.slow
 def test_committed_figures_are_reproduced(tmp_path, real_profile):
     """Regenerate every figure with the committed command's settings; the numbers must match the JSON."""
