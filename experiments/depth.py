@@ -54,8 +54,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import shutil
 import time as _time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -72,13 +70,15 @@ from lobula.epipole import EpipoleEstimator, derotate, mean_angular_velocity
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
 from stimuli.footage import FloUnits, Footage, FootageError, read_frame
 
-from .store import provenance, save_figure, write_netcdf
+from .store import MemorySink, ZarrSink, provenance, save_figure, write_netcdf
 
 __all__ = ["METHODS", "DepthRunConfig", "depth_at_first_frame", "estimate_depth", "pooled_scores",
            "format_scores", "plot_depth", "depth_flo_pair", "plot_flo_pair", "add_parser", "run_depth"]
 
 METHODS = ("ratio", "tv", "parallax")
 FOOTAGE_GAMMA = 1e-6     # TV weight for dense-flow footage (see DepthRunConfig)
+_MAPS = ("depth", "valid")  # per-time maps: one compressed chunk per map in the outputs
+_STATIC = ("y", "x", "ring", "ring_lo_deg", "ring_hi_deg")  # written once, not appended per batch
 _SCORES = ("abs_rel", "rmse_m", "delta_1_25", "valid_fraction")
 _SCORE_ATTRS = dict(abs_rel=dict(units="1", long_name="mean |d̂ − d| / d over pixels valid in both"),
                     rmse_m=dict(units="m", long_name="root mean square depth error"),
@@ -296,95 +296,6 @@ def _rings(cfg: DepthConfig) -> tuple[list[str], np.ndarray, np.ndarray]:
     return labels, lo, hi
 
 
-# ----------------------------------------------------------------------------- output sinks
-class _MemorySink:
-    """Collects per-time records; builds the Dataset at the end (NetCDF, or no file)."""
-
-    def __init__(self):
-        self.records: list[dict] = []
-
-    def add(self, rec: dict) -> None:
-        self.records.append(rec)
-
-    def finish(self, build, extra_vars: dict, attrs: dict, out: Path | None) -> xr.Dataset:
-        ds = build(self.records)
-        ds = ds.assign(extra_vars)
-        ds.attrs.update(attrs)
-        H, W = ds.sizes["y"], ds.sizes["x"]
-        for k in ("depth", "valid"):           # one compressed chunk per map
-            ds[k].encoding.update(zlib=True, complevel=1, chunksizes=(1, H, W))
-        if out is not None:
-            write_netcdf(ds, out)
-        return ds
-
-
-# Zarr format 2: its string arrays (the ring labels) and consolidated metadata are part of
-# the specification there, not yet in format 3.
-_ZARR_KW = dict(zarr_format=2)
-
-
-class _ZarrSink:
-    """Appends batches of per-time records to a Zarr store in a temporary directory,
-    renamed into place only when complete."""
-
-    def __init__(self, out: Path, batch: int):
-        import zarr  # noqa: F401  (fail early with ImportError if absent)
-
-        self.out, self.batch = Path(out), max(1, int(batch))
-        self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = self.out.parent / f".{self.out.name}.partial-{os.getpid()}"
-        shutil.rmtree(self.tmp, ignore_errors=True)
-        self.pending: list[dict] = []
-        self.started = False
-        self.build = None
-
-    def add(self, rec: dict) -> None:
-        self.pending.append(rec)
-        if len(self.pending) >= self.batch:
-            self._flush()
-
-    def _flush(self) -> None:
-        if not self.pending:
-            return
-        ds = self.build(self.pending)
-        if self.started:
-            ds.drop_vars([v for v in ("y", "x", "ring", "ring_lo_deg", "ring_hi_deg") if v in ds.variables]) \
-              .to_zarr(self.tmp, append_dim="time", consolidated=False, **_ZARR_KW)
-        else:
-            H, W = ds.sizes["y"], ds.sizes["x"]
-            enc = {k: {"chunks": (1, H, W)} for k in ("depth", "valid")}
-            ds.to_zarr(self.tmp, mode="w-", encoding=enc, consolidated=False, **_ZARR_KW)
-            self.started = True
-        self.pending = []
-
-    def finish(self, build, extra_vars: dict, attrs: dict, out) -> xr.Dataset:
-        import zarr
-
-        try:
-            self._flush()
-            if not self.started:
-                raise FootageError(f"{self.out}: no depth maps to write")
-            if extra_vars:
-                xr.Dataset(extra_vars).to_zarr(self.tmp, mode="a", consolidated=False, **_ZARR_KW)
-            g = zarr.open_group(str(self.tmp), mode="r+")
-            g.attrs.update({k: v for k, v in attrs.items()})
-            zarr.consolidate_metadata(str(self.tmp))
-            trash = None
-            if self.out.exists():
-                trash = self.out.parent / f".{self.out.name}.old-{os.getpid()}"
-                self.out.rename(trash)
-            self.tmp.rename(self.out)
-            if trash is not None:
-                shutil.rmtree(trash, ignore_errors=True)
-        except BaseException:
-            self.abort()
-            raise
-        return xr.open_zarr(self.out)
-
-    def abort(self) -> None:
-        shutil.rmtree(self.tmp, ignore_errors=True)
-
-
 # ----------------------------------------------------------------------------- the run
 def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
                    velocity_config: VelocityConfig | None = None, run: DepthRunConfig | None = None,
@@ -440,7 +351,7 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
     labels, ring_lo, ring_hi = _rings(dcfg)
     H, W = cam.height, cam.width
     out = Path(out) if out is not None else None
-    sink = _ZarrSink(out, run.batch) if (out is not None and out.suffix == ".zarr") else _MemorySink()
+    sink = ZarrSink(out, run.batch, _MAPS, _STATIC) if (out is not None and out.suffix == ".zarr") else MemorySink(_MAPS)
     has_truth_v = footage.truth is not None
 
     def build(records: list[dict]) -> xr.Dataset:
@@ -484,7 +395,7 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
         )
         return xr.Dataset(data, coords=coords)
 
-    if isinstance(sink, _ZarrSink):
+    if isinstance(sink, ZarrSink):
         sink.build = build
     timings = dict(read=0.0, flow=0.0, depth=0.0, score=0.0)
     prev_tv: DepthResult | None = None
@@ -598,7 +509,7 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
             wall_s=round(_time.perf_counter() - t_start, 3))
         return sink.finish(build, extra, attrs, out)
     except BaseException:
-        if isinstance(sink, _ZarrSink):
+        if isinstance(sink, ZarrSink):
             sink.abort()
         raise
     finally:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -52,3 +53,96 @@ def save_figure(fig, path: str | Path, **kwargs) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+# ----------------------------------------------------------------------------- streamed outputs
+class MemorySink:
+    """Collects per-time records; builds the Dataset at the end and writes it atomically as NetCDF
+    (or no file). ``maps``: variables over (time, y, x), stored as one compressed chunk per map."""
+
+    def __init__(self, maps: tuple[str, ...] = ()):
+        self.records: list[dict] = []
+        self.maps = maps
+
+    def add(self, rec: dict) -> None:
+        self.records.append(rec)
+
+    def finish(self, build, extra_vars: dict, attrs: dict, out: Path | None) -> xr.Dataset:
+        ds = build(self.records)
+        ds = ds.assign(extra_vars)
+        ds.attrs.update(attrs)
+        H, W = ds.sizes["y"], ds.sizes["x"]
+        for k in self.maps:
+            ds[k].encoding.update(zlib=True, complevel=1, chunksizes=(1, H, W))
+        if out is not None:
+            write_netcdf(ds, out)
+        return ds
+
+
+# Zarr format 2: its string arrays (the ring labels) and consolidated metadata are part of
+# the specification there, not yet in format 3.
+ZARR_KW = dict(zarr_format=2)
+
+
+class ZarrSink:
+    """Appends batches of per-time records to a Zarr store in a temporary directory, renamed into
+    place only when complete. ``maps``: variables over (time, y, x), one chunk per map; ``static``:
+    coordinates written with the first batch only."""
+
+    def __init__(self, out: Path, batch: int, maps: tuple[str, ...] = (), static: tuple[str, ...] = ()):
+        import zarr  # noqa: F401  (fail early with ImportError if absent)
+
+        self.out, self.batch = Path(out), max(1, int(batch))
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = self.out.parent / f".{self.out.name}.partial-{os.getpid()}"
+        shutil.rmtree(self.tmp, ignore_errors=True)
+        self.pending: list[dict] = []
+        self.started = False
+        self.build = None
+        self.maps, self.static = maps, static
+
+    def add(self, rec: dict) -> None:
+        self.pending.append(rec)
+        if len(self.pending) >= self.batch:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self.pending:
+            return
+        ds = self.build(self.pending)
+        if self.started:
+            ds.drop_vars([v for v in self.static if v in ds.variables]) \
+              .to_zarr(self.tmp, append_dim="time", consolidated=False, **ZARR_KW)
+        else:
+            H, W = ds.sizes["y"], ds.sizes["x"]
+            enc = {k: {"chunks": (1, H, W)} for k in self.maps}
+            ds.to_zarr(self.tmp, mode="w-", encoding=enc, consolidated=False, **ZARR_KW)
+            self.started = True
+        self.pending = []
+
+    def finish(self, build, extra_vars: dict, attrs: dict, out) -> xr.Dataset:
+        import zarr
+
+        try:
+            self._flush()
+            if not self.started:
+                raise ValueError(f"{self.out}: nothing to write")
+            if extra_vars:
+                xr.Dataset(extra_vars).to_zarr(self.tmp, mode="a", consolidated=False, **ZARR_KW)
+            g = zarr.open_group(str(self.tmp), mode="r+")
+            g.attrs.update({k: v for k, v in attrs.items()})
+            zarr.consolidate_metadata(str(self.tmp))
+            trash = None
+            if self.out.exists():
+                trash = self.out.parent / f".{self.out.name}.old-{os.getpid()}"
+                self.out.rename(trash)
+            self.tmp.rename(self.out)
+            if trash is not None:
+                shutil.rmtree(trash, ignore_errors=True)
+        except BaseException:
+            self.abort()
+            raise
+        return xr.open_zarr(self.out)
+
+    def abort(self) -> None:
+        shutil.rmtree(self.tmp, ignore_errors=True)
