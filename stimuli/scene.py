@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field
 import cv2
 import numpy as np
 
-from lobula.camera import PinholeCamera
+from lobula.camera import PinholeCamera, ray_directions
 
 
 def rotation_x(a: float) -> np.ndarray:
@@ -538,9 +538,7 @@ class TrackScene:
         ss = self.config.supersample
         x, y = self._rays
         if self.config.use_mipmap:
-            d = np.stack([x, y, np.ones_like(x)], axis=-1)
-            d /= np.linalg.norm(d, axis=-1, keepdims=True)
-            img = self.luminance(d, t, footprint_rad=1.0 / (self.camera.fx * ss))
+            img = self.luminance(ray_directions(x, y), t, footprint_rad=1.0 / (self.camera.fx * ss))
         else:
             _, idx, a, b = self._cast(x, y, t)
             img = self._shade(idx, a, b)
