@@ -36,9 +36,7 @@ import csv
 import io
 import json
 import math
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +45,7 @@ import xarray as xr
 from lobula.config import VelocityConfig
 from stimuli.footage import FloUnits, Footage, FootageError, open_footage
 
-from .store import provenance, save_figure, write_netcdf
+from .store import provenance, save_figure, write_netcdf, write_text
 
 DEFAULT_FRONT_ENDS = ("emd", "dis", "farneback", "flo")
 FRONT_ENDS = ("emd", "dis", "farneback", "flo")
@@ -351,20 +349,6 @@ def format_table(ds: xr.Dataset) -> str:
     return "\n".join(lines)
 
 
-def _atomic_text(path: str | Path, text: str) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
 def write_csv(ds: xr.Dataset, path: str | Path) -> Path:
     """The comparison table as CSV (one row per front end), written atomically."""
     rows = comparison_rows(ds)
@@ -374,7 +358,7 @@ def write_csv(ds: xr.Dataset, path: str | Path) -> Path:
     w.writeheader()
     for r in rows:
         w.writerow({k: ("" if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()})
-    return _atomic_text(path, buf.getvalue())
+    return write_text(path, buf.getvalue())
 
 
 COLOURS = {"emd": "tab:green", "dis": "tab:purple", "farneback": "tab:orange", "flo": "tab:blue"}

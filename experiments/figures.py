@@ -72,9 +72,10 @@ def _save(fig, name, out: Path, record: dict):
 
 
 def _save_record(name, out: Path, record: dict):
-    tmp = out / f".{name}.json.tmp"
-    tmp.write_text(json.dumps(record, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
-    tmp.replace(out / f"{name}.json")
+    from experiments.store import write_text
+
+    write_text(out / f"{name}.json",
+               json.dumps(record, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
 def make_replay(out: Path, start_s: float, duration_s: float, seed: int, progress: bool) -> tuple[Path, str]:

@@ -29,14 +29,14 @@ and :func:`read_nwb_series` read the numbers back on the recording's grid (the r
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import uuid
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
+
+from .store import atomic_path
 
 __all__ = ["write_nwb", "read_nwb_spike_counts", "read_nwb_series", "epoch_layout", "GAP_S"]
 
@@ -235,16 +235,8 @@ def write_nwb(ds: xr.Dataset, path: str | Path) -> Path:
                 unit = src.attrs.get("units") if src is not None else None
                 cols.append(VectorData(name=c, description=f"{desc}" + (f" ({unit})" if unit else ""), data=vals))
             mod.add(DynamicTable(name=var, description=str(da.attrs.get("long_name", var)), columns=cols))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp.nwb", dir=path.parent)
-    os.close(fd)
-    try:
-        with NWBHDF5IO(tmp, "w") as io:
-            io.write(nwb)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path, suffix=".tmp.nwb") as tmp, NWBHDF5IO(str(tmp), "w") as io:
+        io.write(nwb)
     return path
 
 
