@@ -181,6 +181,4 @@ def test_extrinsics_rotating_imu_back_gives_the_camera_frame_specific_force(tmp_
     assert np.abs(acc - f_cam).max() > 1.0  # imu.csv itself is not in the camera frame
     from stimuli.footage import open_footage
     fo = open_footage(out)
-    if not hasattr(fo, "imu_to_camera"):
-        pytest.skip("this branch's footage reader does not apply imu_to_camera yet (readers, issue 12)")
     np.testing.assert_allclose(fo.imu.accel, f_cam, atol=2e-6)
