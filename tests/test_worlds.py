@@ -3,7 +3,6 @@ import csv
 import json
 
 import numpy as np
-import pytest
 
 from lobula.camera import PinholeCamera
 from stimuli.imu import IMUConfig, bias_random_walk, small_rotation, synthesize_imu
