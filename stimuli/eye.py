@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import shutil
 import time as _time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -41,7 +39,7 @@ import numpy as np
 
 from lobula.compound_eye import CompoundEye, CompoundEyeConfig
 
-from .footage_core import IMU, FootageError, check_times as _check_times, read_csv_columns as _read_csv
+from .footage_core import IMU, FootageError, atomic_folder, check_times as _check_times, read_csv_columns as _read_csv
 
 __all__ = ["EyeFootage", "render_eye", "write_eye_footage", "open_eye_footage", "is_eye_footage"]
 
@@ -92,17 +90,12 @@ def write_eye_footage(folder: str | Path, scene, eye: CompoundEye, imu: dict, ti
     :func:`stimuli.imu.synthesize_imu` returns). metadata: the configuration for scene.json.
     """
     folder = Path(folder)
-    if folder.exists() and any(folder.iterdir()):
-        raise FileExistsError(f"{folder}: exists and is not empty; choose a new folder or delete it")
     times = np.asarray(times, dtype=float)
     if len(times) < 2 or np.any(np.diff(times) <= 0):
         raise ValueError("eye footage needs at least two strictly increasing sample times")
     rate = 1.0 / float(np.median(np.diff(times)))
-    tmp = folder.parent / f".{folder.name}.partial-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
     t_start = _time.perf_counter()
-    try:
+    with atomic_folder(folder) as tmp:
         tab = eye.table()
         _write_csv(tmp / "ommatidia.csv", OMMATIDIA_COLUMNS,
                    zip(tab["index"], tab["eye"], *(np.round(tab[c], 6) for c in OMMATIDIA_COLUMNS[2:])))
@@ -143,12 +136,6 @@ def write_eye_footage(folder: str | Path, scene, eye: CompoundEye, imu: dict, ti
                     render_s=round(_time.perf_counter() - t_start, 2))
         (tmp / "eye.json").write_text(json.dumps(info, indent=1))
         (tmp / "scene.json").write_text(json.dumps(metadata, indent=1, default=str))
-        if folder.exists():
-            folder.rmdir()
-        tmp.rename(folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return folder
 
 

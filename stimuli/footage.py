@@ -24,9 +24,7 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import re
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +35,7 @@ from scipy.ndimage import gaussian_filter1d
 from lobula.camera import PinholeCamera
 
 from .footage_core import (IMU, Footage, FootageError, check_times as _check_times, frame_gaps,  # noqa: F401
-                           imu_to_camera, read_csv_columns as _read_csv, read_frame, read_imu_csv, rotation_deg,
+                           atomic_folder, imu_to_camera, read_csv_columns as _read_csv, read_frame, read_imu_csv, rotation_deg,
                            rotation_from_json, to_grey)
 
 
@@ -266,13 +264,9 @@ def write_footage(folder: str | Path, scene, imu: dict, times: np.ndarray, metad
     when complete, so an interrupted run leaves no folder that looks finished.
     """
     folder = Path(folder)
-    if folder.exists() and any(folder.iterdir()):
-        raise FileExistsError(f"{folder}: exists and is not empty; choose a new folder or delete it")
-    tmp = folder.parent / f".{folder.name}.partial-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "frames").mkdir(parents=True)
-    (tmp / "depth").mkdir()
-    try:
+    with atomic_folder(folder) as tmp:
+        (tmp / "frames").mkdir()
+        (tmp / "depth").mkdir()
         cam = scene.camera
         (tmp / "camera.json").write_text(json.dumps(cam.to_dict(), indent=1))
         with open(tmp / "frames.csv", "w", newline="") as fh:
@@ -301,10 +295,4 @@ def write_footage(folder: str | Path, scene, imu: dict, times: np.ndarray, metad
             for t, v, a, s in zip(times, vel[:, 2], a_fwd, scene.trajectory.position(times)):
                 wr.writerow([f"{t:.6f}", f"{v:.6f}", f"{a:.6f}", f"{s:.6f}"])
         (tmp / "scene.json").write_text(json.dumps(metadata, indent=1, default=str))
-        if folder.exists():
-            folder.rmdir()
-        tmp.rename(folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return folder

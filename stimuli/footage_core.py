@@ -19,6 +19,9 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import shutil
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -251,3 +254,24 @@ def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None) -> IMU:
     check_times(imu_path, t)
     imu = IMU(t, acc, gyr, source=str(imu_path))
     return imu.rotated(rotation) if rotation is not None else imu
+
+
+@contextmanager
+def atomic_folder(folder: str | Path) -> Iterator[Path]:
+    """A hidden sibling folder to write footage into, renamed onto ``folder`` when the block ends
+    normally and removed when it raises, so an interrupted run leaves nothing that looks finished.
+    ``folder`` must not exist or be empty (FileExistsError otherwise)."""
+    folder = Path(folder)
+    if folder.exists() and any(folder.iterdir()):
+        raise FileExistsError(f"{folder}: exists and is not empty; choose a new folder or delete it")
+    tmp = folder.parent / f".{folder.name}.partial-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        yield tmp
+        if folder.exists():
+            folder.rmdir()
+        tmp.rename(folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
