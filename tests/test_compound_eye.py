@@ -284,3 +284,25 @@ def test_rotation_hypotheses_remove_a_turn():
         errors[mode] = float(np.median(np.abs(rho[late] - exact) / np.abs(exact)))
     assert errors["haltere"] < 0.3 * errors["none"], errors
     assert errors["wide-field"] < 0.85 * errors["none"], errors
+
+
+def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, tmp_path, capsys):
+    import xarray as xr
+
+    from experiments.cli import main
+
+    a, b = tmp_path / "velocity.nc", tmp_path / "eye.nc"
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--filter", "causal", "--accel-from-truth",
+                 "--out", str(a), "--quiet"]) == 0
+    assert main(["eye-velocity", str(eye_footage), "--accel-from-truth", "--out", str(b)]) == 0
+    with xr.open_dataset(a) as da, xr.open_dataset(b) as db:
+        assert da.attrs["front_end"] == "emd-compound-eye"
+        np.testing.assert_allclose(da.v_hat.values, db.v_hat.values, equal_nan=True)
+        np.testing.assert_allclose(da.r.values, db.r.values, equal_nan=True)
+    capsys.readouterr()
+    # A camera front end, or a camera option, cannot run on ommatidia: refused, naming the fix.
+    assert main(["velocity", str(eye_footage), "--out", str(tmp_path / "x.nc")]) == 2
+    assert "use --front-end emd" in capsys.readouterr().err
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--dphi", "3", "--out",
+                 str(tmp_path / "y.nc")]) == 2
+    assert "--dphi" in capsys.readouterr().err and not (tmp_path / "y.nc").exists()
