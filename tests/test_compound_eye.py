@@ -306,3 +306,21 @@ def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, 
     assert main(["velocity", str(eye_footage), "--front-end", "emd", "--dphi", "3", "--out",
                  str(tmp_path / "y.nc")]) == 2
     assert "--dphi" in capsys.readouterr().err and not (tmp_path / "y.nc").exists()
+
+
+def test_spiking_readout_on_the_eye_is_causal_and_close_to_the_rate_readout(eye_footage):
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
+    from experiments.velocity import score
+    from lobula.readout_neuron import ReadoutNeuronConfig
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(eye_footage)
+    rate = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True))
+    spk = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True, readout_kind="spikes",
+                                                      neuron=ReadoutNeuronConfig(spiking=True, population=10)))
+    assert "Poisson" in spk.attrs["readout"] and spk.attrs["filter"] == "causal"
+    r, s = score(rate, 1.0)["rmse_m_s"], score(spk, 1.0)["rmse_m_s"]
+    # 10 output pairs at 200 Hz per m/s add Poisson noise of ~0.04 m/s and a little lag.
+    assert 0.8 * r < s < 1.3 * r + 0.02, (r, s)
+    # Its std adds the decoding noise to the readout's posterior std.
+    assert np.all(spk.v_std.values[spk.observable.values] >= rate.v_std.values[spk.observable.values] - 1e-12)
