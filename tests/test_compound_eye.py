@@ -324,3 +324,20 @@ def test_spiking_readout_on_the_eye_is_causal_and_close_to_the_rate_readout(eye_
     assert 0.8 * r < s < 1.3 * r + 0.02, (r, s)
     # Its std adds the decoding noise to the readout's posterior std.
     assert np.all(spk.v_std.values[spk.observable.values] >= rate.v_std.values[spk.observable.values] - 1e-12)
+
+
+def test_interpolated_rendering_casts_every_kth_sample_and_interpolates_between():
+    from stimuli.eye import render_eye, render_eye_interpolated
+
+    world = Corridor(v=0.8)
+    eye = CompoundEye(CompoundEyeConfig(dphi_deg=10.0, rings=1))
+    times = np.arange(0.0, 0.105, 0.002)                       # 53 samples at 500 Hz (last one cast too)
+    exact = np.concatenate([l for _, l in render_eye(world, eye, times, chunk=7)])
+    ts, fast = zip(*render_eye_interpolated(world, eye, times, every=2, chunk=7))
+    fast = np.concatenate(fast)
+    np.testing.assert_array_equal(np.concatenate(ts), times)
+    np.testing.assert_allclose(fast[::2], exact[::2], atol=1e-6)              # cast samples are exact
+    np.testing.assert_allclose(fast[1:-1:2], 0.5 * (exact[0:-2:2] + exact[2::2]), atol=1e-6)
+    # Between casts the error is second order in time: far below the sample-to-sample change.
+    err = np.abs(fast - exact).mean()
+    assert err < 0.25 * np.abs(np.diff(exact, axis=0)).mean()
