@@ -199,7 +199,7 @@ def plot_rf_map(ds: xr.Dataset, path) -> list[Path]:
     from matplotlib.patches import Circle
 
     probed = [int(f) for f in ds.field.values][:6]
-    fig, ax = plt.subplots(1, len(probed), figsize=(4.6 * len(probed), 4.4), squeeze=False)
+    fig, ax = plt.subplots(1, len(probed), figsize=(max(4.6 * len(probed), 9.0), 4.4), squeeze=False)
     az, el = ds.location_azimuth_deg.values, ds.location_elevation_deg.values
     units = ds.rf_sensitivity.attrs.get("units", "")
     for a, f in zip(ax[0], probed):
