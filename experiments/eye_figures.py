@@ -11,7 +11,6 @@ work folder (:func:`experiments.eye_velocity.eye_benchmark`'s layout: ``FAMILY-S
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 

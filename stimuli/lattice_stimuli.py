@@ -39,7 +39,7 @@ import torch
 from scipy import special
 from torch import Tensor
 
-from lobula.camera import angles_to_normalised, normalised_to_angles
+from lobula.camera import angles_to_normalised
 from .gratings import GratingConfig, drifting_grating_lattice, drum_coordinates, frame_times
 
 __all__ = [
