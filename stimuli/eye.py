@@ -14,7 +14,8 @@ Layout of an eye-footage folder (``lobula scene OUT --eye fly``)::
     imu.csv         time_s,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z (camera frame, as
                     in a footage folder).
     truth.csv       time_s,v_forward_m_s,a_forward_m_s2,position_m at the eye's samples.
-    eye.json        {"kind": "compound-eye", "rate_hz", "n_samples", "eye": CompoundEyeConfig,
+    eye.json        {"kind": "compound-eye", "rate_hz", "n_samples", "eye": CompoundEyeConfig, "cast_every",
+                     "cast_rate_hz" (the world was ray-cast at that rate and interpolated),
                      "range_every", "rays_per_ommatidium"}.
     scene.json      the full configuration (scene, trajectory, IMU, eye) and provenance.
 
