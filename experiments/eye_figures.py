@@ -126,7 +126,7 @@ def figure_eye_rate_vs_spiking(out_dir, seeds=(0, 1, 2), workdir=None) -> tuple[
     return png, res
 
 
-def dphi_fov_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), dphis=(8.0, 5.0, 3.5), cast_every: int = 2) -> dict:
+def dphi_fov_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), dphis=(8.0, 5.0), cast_every: int = 2) -> dict:
     """Causal RMSE (arithmetic readout) against Δφ (Δρ = Δφ; renders cached, Δφ ≠ 5° cast at 250 Hz and
     interpolated) and field of view: LC fields over the whole eye (±150°) or only inside the D435i's
     69°×42° view (centres |az| ≤ 30°, |el| ≤ 20°), beside causal DIS on the D435i."""
@@ -161,7 +161,7 @@ def dphi_fov_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), dphis=(8.0, 5.
     return res
 
 
-def figure_eye_dphi_fov(out_dir, seeds=(0, 1, 2), workdir=None, dphis=(8.0, 5.0, 3.5)) -> tuple[Path, dict]:
+def figure_eye_dphi_fov(out_dir, seeds=(0, 1, 2), workdir=None, dphis=(8.0, 5.0)) -> tuple[Path, dict]:
     """Make ``eye_rmse_vs_dphi_fov.png``; returns (path, numbers)."""
     import matplotlib
     matplotlib.use("Agg")
