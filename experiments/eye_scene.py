@@ -15,6 +15,11 @@ def add_eye_scene_options(parser) -> None:
     parser.add_argument("--drho", type=float, help="--eye fly: acceptance angle Δρ (deg; default Δφ)")
     parser.add_argument("--rate-hz", type=float, default=500.0, help="--eye fly: sampling rate of the eye (Hz)")
     parser.add_argument("--rays", type=int, default=2, help="--eye fly: rings of acceptance rays (1: 7, 2: 19, 3: 37)")
+    parser.add_argument("--cast-rate-hz", type=float,
+                        help="--eye fly: ray-cast the world at this rate (--rate-hz divided by a whole number) and "
+                             "interpolate linearly to --rate-hz (default: half of --rate-hz from 200 Hz up, which halves the "
+                             "rendering; see stimuli.eye.render_eye_interpolated for why the 10 ms photoreceptors "
+                             "allow it; equal to --rate-hz casts every sample)")
 
 
 def run_eye_scene(args, cfg) -> int:
@@ -23,8 +28,15 @@ def run_eye_scene(args, cfg) -> int:
     from stimuli.eye import make_eye_run
 
     eye_cfg = CompoundEyeConfig(dphi_deg=args.dphi, drho_deg=args.drho, rings=args.rays)
+    every = 2 if args.rate_hz >= 200.0 else 1   # below 200 Hz the samples are already ≥ 5 ms apart
+    if getattr(args, "cast_rate_hz", None) is not None:
+        k = args.rate_hz / args.cast_rate_hz
+        if not (args.cast_rate_hz > 0 and abs(k - round(k)) < 1e-9 and round(k) >= 1):
+            raise ValueError(f"--cast-rate-hz {args.cast_rate_hz:g} must divide --rate-hz {args.rate_hz:g} "
+                             f"(e.g. {args.rate_hz / 2:g})")
+        every = int(round(k))
     t0 = _time.perf_counter()
-    out = make_eye_run(args.out, cfg, eye_cfg, args.rate_hz, progress=not args.quiet)
+    out = make_eye_run(args.out, cfg, eye_cfg, args.rate_hz, progress=not args.quiet, cast_every=every)
     print(f"wrote {out}: {CompoundEye(eye_cfg).summary()}, {int(round(args.duration * args.rate_hz))} samples at "
-          f"{args.rate_hz:g} Hz in {_time.perf_counter() - t0:.1f} s")
+          f"{args.rate_hz:g} Hz (ray-cast at {args.rate_hz / every:g} Hz) in {_time.perf_counter() - t0:.1f} s")
     return 0

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import xarray as xr
@@ -22,6 +22,7 @@ import xarray as xr
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
 from lobula.haltere import forward_acceleration, resample_to
 from lobula.readout import ReadoutConfig, readout
+from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron, spiking_output
 
 from .store import provenance
 
@@ -34,16 +35,30 @@ class EyeVelocityConfig:
 
     accel_from_truth: forward acceleration from truth.csv's a_forward_m_s2 instead of the
     accelerometer (isolates the visual circuit from gravity removal; labelled in the output).
+    readout_kind: "kalman" (:func:`lobula.readout.readout`, the arithmetic readout, causal
+    filter: v_std its posterior std), "spikes" (the same readout's v̂ carried by ``neuron.population``
+    push–pull Poisson output neurons and decoded causally, :func:`lobula.readout_neuron.spiking_output`:
+    v_std combines the posterior std and the Poisson decoding noise) or "neuron" (:func:`lobula.readout_neuron.readout_neuron`:
+    shunting division, haltere integration, push–pull output neurons; Poisson spikes decoded
+    causally when ``neuron.spiking``; v_std is then the spike decoding's Poisson noise only,
+    and ``observable`` the neuron's confidence).
     """
 
     circuit: EyeCircuitConfig = field(default_factory=EyeCircuitConfig)
     readout: ReadoutConfig = field(default_factory=lambda: ReadoutConfig(filter="causal"))
     chunk: int = 500
     accel_from_truth: bool = False
+    readout_kind: str = "kalman"
+    neuron: ReadoutNeuronConfig = field(default_factory=lambda: ReadoutNeuronConfig(spiking=True, population=10))
+
+    def __post_init__(self):
+        if self.readout_kind not in ("kalman", "spikes", "neuron"):
+            raise ValueError(f"readout_kind must be 'kalman', 'spikes' or 'neuron', got {self.readout_kind!r}")
 
     def to_dict(self) -> dict:
         return dict(circuit=self.circuit.to_dict(), readout=self.readout.to_dict(), chunk=self.chunk,
-                    accel_from_truth=self.accel_from_truth)
+                    accel_from_truth=self.accel_from_truth, readout_kind=self.readout_kind,
+                    neuron=self.neuron.to_dict())
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), sort_keys=True)
@@ -92,20 +107,40 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         a = resample_to(t, fo.imu.time_s, a_imu, dt)
         a_source = "accelerometer (causal gravity and bias removal)"
     t1 = _time.perf_counter()
-    res = readout(t, rho, r2, a, cfg.readout)
+    if cfg.readout_kind == "neuron":
+        nout = readout_neuron(t, rho, r2, a, cfg.neuron)
+        v_hat, observable, r_dot, v_field = nout["v_hat"], nout["observable"], nout["r_dot"], nout["v_field"]
+        v_std = nout["decode_std"]
+        std_name = ("std of the readout neuron's spike decoding (Poisson noise only; not the model error)"
+                    if cfg.neuron.spiking else "0: the rate readout neuron has no decoding noise (not the model error)")
+        method = "readout neuron (" + ("Poisson spikes, causal decoding" if cfg.neuron.spiking else "rate") + ")"
+        filt = "causal" if not cfg.neuron.spiking or cfg.neuron.decode == "causal" else "centred spike window"
+    else:
+        res = readout(t, rho, r2, a, cfg.readout)
+        v_hat, observable, r_dot, v_field, v_std = res.v_hat, res.observable, res.r_dot, res.v_field, res.v_std
+        std_name, method, filt = "posterior std of v_hat", cfg.readout.method, cfg.readout.filter
+        if cfg.readout_kind == "spikes":
+            if cfg.readout.filter != "causal":
+                raise ValueError("spiking output neurons decode causally; use the causal readout filter")
+            enc = spiking_output(t, res.v_hat, a, replace(cfg.neuron, spiking=True))
+            v_hat = np.where(observable, enc["v_dec"], np.nan)
+            v_std = np.sqrt(res.v_std ** 2 + enc["decode_std"] ** 2)
+            std_name = "posterior std of the readout combined with the Poisson noise of the spike decoding"
+            method = (f"{cfg.readout.method}, carried by {cfg.neuron.population} push-pull Poisson output "
+                      f"neuron pairs ({cfg.neuron.gain_hz_per_m_s:g} Hz per m/s), causal decoding")
     t_readout = _time.perf_counter() - t1
     f = circ.fields
     keep = np.flatnonzero(f.eye == 0) if rho.shape[1] != f.n_fields else np.arange(f.n_fields)
     data = dict(
-        v_hat=("time", res.v_hat, {"units": "m/s", "long_name": "estimated forward velocity"}),
-        observable=("time", res.observable, {"long_name": "velocity observable"}),
-        v_std=("time", res.v_std, {"units": "m/s", "long_name": "posterior std of v_hat"}),
+        v_hat=("time", v_hat, {"units": "m/s", "long_name": "estimated forward velocity"}),
+        observable=("time", observable, {"long_name": "velocity observable"}),
+        v_std=("time", v_std, {"units": "m/s", "long_name": std_name}),
         accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": a_source}),
         r=(("time", "field"), rho, {"units": "1/s", "long_name": "LC field expansion rate v/D"}),
         r2=(("time", "field"), r2, {"units": "1/s2",
                                     "long_name": "r-squared term with the convective correction (r2_eff)"}),
-        r_dot=(("time", "field"), res.r_dot, {"units": "1/s2"}),
-        v_field=(("time", "field"), res.v_field, {"units": "m/s"}),
+        r_dot=(("time", "field"), r_dot, {"units": "1/s2"}),
+        v_field=(("time", "field"), v_field, {"units": "m/s"}),
     )
     if fo.truth is not None:
         data["v_true"] = ("time", np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"]),
@@ -117,8 +152,8 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     ds = xr.Dataset(data, coords=coords)
     timings = dict(circ.timings, circuit_total=t_circ, readout=t_readout, n_ommatidia=fo.eye.n,
                    n_pairs=fo.eye.n_pairs)
-    ds.attrs.update(provenance(cfg.to_json(), front_end="emd-compound-eye", filter=cfg.readout.filter,
-                               readout=cfg.readout.method, rotation=cfg.circuit.rotation,
+    ds.attrs.update(provenance(cfg.to_json(), front_end="emd-compound-eye", filter=filt,
+                               readout=method, rotation=cfg.circuit.rotation,
                                acceleration_source=a_source,
                                footage=str(fo.path), footage_kind="compound-eye",
                                eye=json.dumps(fo.eye.config.to_dict()), eye_rate_hz=fo.rate_hz,
@@ -142,6 +177,14 @@ def apply_eye_options(cfg: EyeVelocityConfig, args) -> EyeVelocityConfig:
         cfg.readout.filter = args.filter
     if getattr(args, "accel_from_truth", False):
         cfg.accel_from_truth = True
+    ro = getattr(args, "readout", None)
+    if ro:
+        cfg.readout_kind = {"neuron-rate": "neuron"}.get(ro, ro)
+        cfg.neuron = replace(cfg.neuron, spiking=ro != "neuron-rate", seed=int(getattr(args, "seed", None) or 0))
+        if ro in ("kalman", "neuron-rate") and getattr(args, "seed", None) is not None:
+            raise ValueError(f"--seed seeds output spikes; --readout {ro} has none (use --readout spikes or neuron)")
+    if cfg.readout_kind != "kalman" and getattr(args, "filter", None) == "zero-phase":
+        raise ValueError(f"--readout {ro} is causal; --filter zero-phase applies to --readout kalman")
     return cfg
 
 
@@ -158,7 +201,7 @@ def run_eye_velocity(args) -> int:
     sc = score(ds, skip)
     tm = json.loads(ds.attrs["timings_s"])
     print(f"wrote {args.out}: {ds.sizes['time']} LC steps x {ds.sizes['field']} fields "
-          f"[{fo.eye.summary()}; rotation: {cfg.circuit.rotation}; {cfg.readout.filter} readout]")
+          f"[{fo.eye.summary()}; rotation: {cfg.circuit.rotation}; {ds.attrs['readout']}, {ds.attrs['filter']}]")
     print(f"circuit {tm['circuit_total']:.1f} s for {len(fo) / fo.rate_hz:.1f} s of flight at {fo.rate_hz:.0f} Hz")
     if sc:
         print(f"after {skip:.3g} s: RMSE {sc['rmse_m_s']:.4f} m/s, median |error| {sc['median_abs_error_m_s']:.4f} m/s, "
@@ -167,6 +210,44 @@ def run_eye_velocity(args) -> int:
         plot_velocity(ds, args.plot)
         print(f"wrote {args.plot}")
     return 0
+
+
+#: `lobula velocity` options that carry over to eye footage (the rest must stay at their defaults)
+_VELOCITY_OPTIONS_ON_EYE = ("footage", "front_end", "out", "plot", "filter", "field_size", "tau", "accel_from_truth",
+                            "skip", "quiet", "func", "command")
+
+
+def run_from_velocity_args(args) -> int:
+    """`lobula velocity EYE_FOOTAGE --front-end emd …`: the eye's circuit, as `lobula eye-velocity`.
+
+    --filter, --field-size, --tau, --accel-from-truth, --skip and --plot mean what they mean for
+    `lobula eye-velocity` (so the two commands give the same numbers for the same options;
+    `lobula velocity`'s --filter defaults to zero-phase, eye-velocity's to causal). Every other
+    option of `lobula velocity` describes a camera front end and is refused, naming the fix.
+    """
+    import argparse
+
+    from experiments import velocity as _velocity
+
+    if args.front_end != "emd":
+        raise ValueError(f"{args.footage}: compound-eye footage holds ommatidial luminance, not camera frames, "
+                         f"so --front-end {args.front_end} cannot run on it; use --front-end emd (the eye's "
+                         f"photoreceptors, EMDs and LC fields)")
+    parser = argparse.ArgumentParser()
+    _velocity.add_parser(parser.add_subparsers(dest="command"))
+    defaults = vars(parser.parse_args(["velocity", "X", "--out", "Y"]))
+    given = [k for k, v in vars(args).items() if k not in _VELOCITY_OPTIONS_ON_EYE and k in defaults
+             and v != defaults[k]]
+    if given:
+        flags = ", ".join("--" + k.replace("_", "-") for k in sorted(given))
+        raise ValueError(f"{args.footage}: {flags} set(s) a camera front end and does not apply to compound-eye "
+                         f"footage (Δφ and Δρ are the footage's own, from eye.json: re-render with "
+                         f"`lobula scene OUT --eye fly --dphi …`); drop it, or see `lobula eye-velocity --help`")
+    ns = argparse.Namespace(footage=args.footage, out=args.out, plot=args.plot, rotation=None,
+                            field_size=args.field_size, tau=args.tau, filter=args.filter,
+                            accel_from_truth=args.accel_from_truth, skip=args.skip,
+                            readout=getattr(args, "readout", None), seed=None)
+    return run_eye_velocity(ns)
 
 
 def add_parser(subparsers):
@@ -183,6 +264,11 @@ def add_parser(subparsers):
     v.add_argument("--filter", default="causal", choices=["causal", "zero-phase"], help="readout filter kind")
     v.add_argument("--accel-from-truth", action="store_true",
                    help="forward acceleration from truth.csv instead of the accelerometer")
+    v.add_argument("--readout", default="kalman", choices=["kalman", "spikes", "neuron", "neuron-rate"],
+                   help="kalman: the arithmetic readout (lobula.readout, rates); spikes: its v̂ carried by 10 "
+                        "push-pull Poisson output neuron pairs, decoded causally; neuron: the shunting readout "
+                        "neuron (lobula.readout_neuron) with Poisson spikes; neuron-rate: its rates")
+    v.add_argument("--seed", type=int, help="seed of the readout neuron's spikes (default 0)")
     v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
     v.set_defaults(func=run_eye_velocity)
 

@@ -16,6 +16,12 @@ seeded IMU, seeded spikes; OpenCV DIS is deterministic). Each figure NAME gets
 8. ``eye_rmse`` (only with ``--only eye_rmse``) — the fly's compound eye against causal DIS on the
    panels, rotation and corridor worlds, against LC field size and rotation handling
    (:func:`experiments.eye_velocity.figure_eye`).
+9. ``eye_rate_vs_spiking`` (only by name) — the eye's causal RMSE with rate readout, spiking output
+   neurons (1–30 pairs) and the shunting readout neuron, beside causal DIS, 3 worlds × 3 seeds
+   (:mod:`experiments.eye_figures`; ~2 min on cached renders).
+   ``eye_rmse_vs_dphi_fov`` (only by name) — the eye's RMSE against Δφ and field of view.
+10. ``rmse_vs_tau_contrast_noise`` (only by name) — ``rmse_vs_tau_contrast`` redone with the
+   sensor noise added after the contrast change, 3 replay seeds (:mod:`experiments.contrast_figure`).
 """
 from __future__ import annotations
 
@@ -35,7 +41,7 @@ from stimuli.footage import Footage, open_footage
 FIGURES = ("replay_emd_vs_dis", "rmse_vs_field_size", "rmse_vs_dphi", "rmse_vs_tau_contrast",
            "error_vs_acceleration", "rate_vs_spiking", "replay_velocity")
 #: made only when asked for by name (``--only eye_rmse``): it renders 9 fly-eye runs (CPU-minutes each)
-EXTRA_FIGURES = ("eye_rmse",)
+EXTRA_FIGURES = ("eye_rmse", "eye_rate_vs_spiking", "eye_rmse_vs_dphi_fov", "rmse_vs_tau_contrast_noise")
 
 
 class ContrastFootage:
@@ -106,8 +112,11 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cache = out / ".cache"
-    replay, profile = make_replay(cache, start_s, duration_s, seed, progress)
-    fo = open_footage(replay)
+    if set(which) - set(EXTRA_FIGURES):  # the shared replay; the extra figures render their own worlds
+        replay, profile = make_replay(cache, start_s, duration_s, seed, progress)
+        fo = open_footage(replay)
+    else:
+        profile, fo = "not used (this figure renders its own worlds)", None
     command = command_line() if command_line().startswith("lobula figures") \
         else f"lobula figures --out {out} --start {start_s} --duration {duration_s} --seed {seed}"
     base = dict(provenance_attrs(), command=command,
@@ -291,6 +300,39 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
                                    "beside causal DIS and the zero estimator (3 seeds per world, 10 s)",
                                    results=numbers)
         _save_record("eye_rmse", out, records["eye_rmse"])
+
+    if "eye_rate_vs_spiking" in which:
+        from experiments.eye_figures import figure_eye_rate_vs_spiking
+
+        t0 = time.perf_counter()
+        _, numbers = figure_eye_rate_vs_spiking(out, seeds=(seed, seed + 1, seed + 2), workdir=cache / "eye_runs")
+        records["eye_rate_vs_spiking"] = dict(base, what="causal fly-eye RMSE: rate readout, spiking output "
+                                              "neurons (N pairs), shunting readout neuron; causal DIS and the zero "
+                                              "estimator (3 seeds per world, 10 s)", results=numbers,
+                                              seconds=round(time.perf_counter() - t0, 1))
+        _save_record("eye_rate_vs_spiking", out, records["eye_rate_vs_spiking"])
+
+    if "eye_rmse_vs_dphi_fov" in which:
+        from experiments.eye_figures import figure_eye_dphi_fov
+
+        t0 = time.perf_counter()
+        _, numbers = figure_eye_dphi_fov(out, seeds=(seed, seed + 1, seed + 2), workdir=cache / "eye_runs")
+        records["eye_rmse_vs_dphi_fov"] = dict(base, what="causal fly-eye RMSE against Δφ (=Δρ) and field of view "
+                                               "(LC fields over both eyes or only in the D435i's view), beside "
+                                               "causal DIS (3 seeds per world, 10 s)", results=numbers,
+                                               seconds=round(time.perf_counter() - t0, 1))
+        _save_record("eye_rmse_vs_dphi_fov", out, records["eye_rmse_vs_dphi_fov"])
+
+    if "rmse_vs_tau_contrast_noise" in which:
+        from experiments.contrast_figure import figure_contrast_noise
+
+        t0 = time.perf_counter()
+        kw = dict(taus=(0.005, 0.035), contrasts=(1.0, 0.25), duration_s=6.0) if quick else {}
+        _, numbers = figure_contrast_noise(out, cache, seeds=(seed, seed + 1, seed + 2), **kw)
+        records["rmse_vs_tau_contrast_noise"] = dict(base, what="RMSE vs EMD τ and contrast; sensor noise added "
+                                                     "after the contrast change (noise-free renders)",
+                                                     results=numbers, seconds=round(time.perf_counter() - t0, 1))
+        _save_record("rmse_vs_tau_contrast_noise", out, records["rmse_vs_tau_contrast_noise"])
     return records
 
 
@@ -298,7 +340,8 @@ def add_parser(subparsers):
     f = subparsers.add_parser("figures", help="make the hypothesis figures (PNG + JSON with command and config)")
     f.add_argument("--out", default="figures", help="output folder (default figures/)")
     f.add_argument("--only", nargs="+", choices=FIGURES + EXTRA_FIGURES,
-                   help="make only these figures (default: all but eye_rmse, which is made only when named)")
+                   help="make only these figures (default: all but eye_rmse, eye_rate_vs_spiking, "
+                        "eye_rmse_vs_dphi_fov and rmse_vs_tau_contrast_noise, which are made only when named)")
     f.add_argument("--start", type=float, default=5.0, help="replay window start in the real trajectory (s)")
     f.add_argument("--duration", type=float, default=25.0, help="replay duration (s)")
     f.add_argument("--seed", type=int, default=0, help="scene, IMU and spike seed")

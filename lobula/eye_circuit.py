@@ -303,46 +303,80 @@ class EyeCircuit:
             (self.fields.mirror != np.arange(F)).all() else F
 
     def _gyro_filtered(self, gyro: torch.Tensor) -> torch.Tensor:
-        """ω through the photoreceptor and EMD low-passes (continuing state), (T, 3)."""
+        """ω through the photoreceptor and EMD low-passes (continuing state), (..., T, 3)."""
         cfg = self.config
         if self._gyro_state is None:
-            self._gyro_state = torch.stack([gyro[0], gyro[0]])
+            self._gyro_state = torch.stack([gyro[..., 0, :], gyro[..., 0, :]])
         a1 = math.exp(-self.dt / cfg.photoreceptor.tau_s) if cfg.photoreceptor.tau_s > 0 else 0.0
         a2 = math.exp(-self.dt / cfg.emd.tau_s)
         g1 = lowpass_scan(gyro, a1, self._gyro_state[0])
         g2 = lowpass_scan(g1, a2, self._gyro_state[1])
-        self._gyro_state = torch.stack([g1[-1], g2[-1]])
+        self._gyro_state = torch.stack([g1[..., -1, :], g2[..., -1, :]])
         return g2
 
-    def _sums(self, lum: torch.Tensor, gyro: torch.Tensor) -> torch.Tensor:
-        """Per-step pooled sums (T, 11F): b1, b2 (2F), A11, A12, A22 (3F), rotation terms (6F)."""
+    def _sums(self, lum: torch.Tensor, gyro: torch.Tensor | None, keep: dict | None = None) -> torch.Tensor:
+        """Per-step pooled sums (..., T, 5F): b1, b2 (2F), A11, A12, A22 (3F), haltere-corrected.
+
+        lum (..., T, n); gyro (..., T, 3) or None (no rotation signal: nothing subtracted).
+        keep: a dict that receives the stages' signals "photoreceptor.v" (..., T, n) and
+        "emd.response" (..., T, P) when it has those keys (for recording).
+        """
         import time as _time
         t0 = _time.perf_counter()
         y = self.photoreceptors.run(lum)
         if self._pool is not None:
-            y = torch.sparse.mm(self._pool, y.t()).t()
+            flat = y.reshape(-1, y.shape[-1])
+            y = torch.sparse.mm(self._pool, flat.t()).t().reshape(y.shape)
         t1 = _time.perf_counter()
-        R = self.emds.run(y)                                                    # (T, P)
+        R = self.emds.run(y)                                                    # (..., T, P)
         t2 = _time.perf_counter()
-        dy = y[:, self._b] - y[:, self._a]
+        if keep is not None:
+            if "photoreceptor.v" in keep:
+                keep["photoreceptor.v"] = y
+            if "emd.response" in keep:
+                keep["emd.response"] = R
+        dy = y[..., self._b] - y[..., self._a]
         if self.config.normaliser == "delayed":
             # The contrast difference times its own delayed (low-passed) copy: the EMD's four signals.
             lp = lowpass_scan(dy, math.exp(-self.dt / self.config.emd.tau_s), self._lp_state)
-            self._lp_state = lp[-1].clone()
+            self._lp_state = lp[..., -1, :].clone()
             G = lp * dy
         else:
             G = dy * dy
-        out = torch.cat([R @ self._num, G @ self._den], dim=1)
+        out = torch.cat([R @ self._num, G @ self._den], dim=-1)
         self.timings["photoreceptor"] += t1 - t0
         self.timings["emd"] += t2 - t1
         self.timings["fields"] += _time.perf_counter() - t2
         F = self.fields.n_fields
-        if self.config.rotation in ("haltere", "both"):
-            w = self._gyro_filtered(gyro)                                       # (T, 3)
-            rot = out[:, 5 * F:].reshape(len(out), 2, 3, F)
-            corr = torch.einsum("tj,tkjf->tkf", w, rot)                         # (T, 2, F)
-            out[:, :2 * F] -= corr.reshape(len(out), 2 * F)
-        return out[:, :5 * F]
+        if self.config.rotation in ("haltere", "both") and gyro is not None:
+            w = self._gyro_filtered(gyro)                                       # (..., T, 3)
+            rot = out[..., 5 * F:].reshape(out.shape[:-1] + (2, 3, F))
+            corr = torch.einsum("...tj,...tkjf->...tkf", w, rot)                # (..., T, 2, F)
+            out[..., :2 * F] -= corr.reshape(out.shape[:-1] + (2 * F,))
+        return out[..., :5 * F]
+
+    def run_steps(self, luminance, gyro=None, record=()) -> dict:
+        """The circuit at the eye's rate, batched over leading dims (stimulus conditions).
+
+        luminance (..., T, n); gyro (..., T, 3) rad/s or None (a stimulus without
+        self-rotation). Continues the circuit's state like :meth:`process`. Returns torch
+        tensors: ``sums`` (..., T, 5F), the per-step pooled signals (b1 = the matched
+        filter's input, b2, then the pools A11, A12, A22), plus "photoreceptor.v" and
+        "emd.response" when named in ``record``.
+        """
+        lum = torch.as_tensor(luminance, dtype=torch.float32)
+        if lum.dim() < 2 or lum.shape[-1] != self.eye.n:
+            raise ValueError(f"luminance must be (..., time, {self.eye.n}) for this eye, got {tuple(lum.shape)}")
+        gyr = None if gyro is None else torch.as_tensor(gyro, dtype=torch.float32)
+        if gyr is not None and gyr.shape != lum.shape[:-1] + (3,):
+            raise ValueError(f"gyro must be (..., time, 3) matching the luminance, got {tuple(gyr.shape)}")
+        keep = {k: None for k in record if k in ("photoreceptor.v", "emd.response")}
+        sums = self._sums(lum, gyr, keep)
+        return dict(sums=sums, **{k: v for k, v in keep.items() if v is not None})
+
+    def solve_blocks(self, block_sums: np.ndarray, t_end: np.ndarray) -> dict:
+        """ρ, g and r2_eff from block sums (..., K, 5F) (the readout's 2×2 solve; continues the floor)."""
+        return self._solve(np.asarray(block_sums, dtype=float), np.asarray(t_end, dtype=float))
 
     def process(self, luminance, gyro) -> dict:
         """Feed (T, n) luminance and (T, 3) angular velocity (rad/s, camera frame) at the eye's rate."""
@@ -377,21 +411,21 @@ class EyeCircuit:
     def _solve(self, sums: np.ndarray, t_end: np.ndarray) -> dict:
         """Per-block 2×2 weighted least squares for (ρ_f, g_f) and r2_eff."""
         F = self.fields.n_fields
-        b1, b2, A11, A12, A22 = (sums[:, i * F:(i + 1) * F] for i in range(5))
+        b1, b2, A11, A12, A22 = (sums[..., i * F:(i + 1) * F] for i in range(5))
         theta = self.fields.theta
         if self.n_outputs != F:   # wide-field: sum mirror fields (right f with left mirror[f])
             right = np.flatnonzero(self.fields.eye == 0)
             left = self.fields.mirror[right]
-            b1, b2, A11, A12, A22 = (x[:, right] + x[:, left] for x in (b1, b2, A11, A12, A22))
+            b1, b2, A11, A12, A22 = (x[..., right] + x[..., left] for x in (b1, b2, A11, A12, A22))
             theta = theta[right]
         cfg = self.config.fields
-        if len(A11):
+        if A11.shape[-2]:
             # Semi-saturation floor: a running mean (over past blocks only) of each field's pool.
             floors = np.empty_like(A11)
-            level = A11[0] if self._floor is None else self._floor
-            for k in range(len(A11)):  # a loop over readout steps, vectorised over fields
-                level = 0.99 * level + 0.01 * A11[k]
-                floors[k] = level
+            level = A11[..., 0, :] if self._floor is None else self._floor
+            for k in range(A11.shape[-2]):  # a loop over readout steps, vectorised over fields
+                level = 0.99 * level + 0.01 * A11[..., k, :]
+                floors[..., k, :] = level
             self._floor = level
             A11 = A11 + cfg.floor * floors
         A22 = A22 * (1.0 + cfg.gradient_ridge)
@@ -400,6 +434,6 @@ class EyeCircuit:
             rho = np.where(det > 0, (A22 * b1 - A12 * b2) / det, np.nan) * self.config.calibration
             grad = np.where(det > 0, (A11 * b2 - A12 * b1) / det, np.nan) * self.config.calibration
         mode = self.config.r2_term
-        r2_eff = (rho ** 2 * np.cos(theta)[None, :] - rho * np.sin(theta)[None, :] * grad if mode == "convective"
-                  else rho ** 2 * np.cos(theta)[None, :] if mode == "point" else np.zeros_like(rho))
+        r2_eff = (rho ** 2 * np.cos(theta) - rho * np.sin(theta) * grad if mode == "convective"
+                  else rho ** 2 * np.cos(theta) if mode == "point" else np.zeros_like(rho))
         return dict(t=t_end - self.latency_s, rho=rho, grad=grad, r2_eff=r2_eff)

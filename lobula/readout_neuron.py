@@ -27,8 +27,17 @@ circuit form, batched over trials in torch:
    proportion to the shunting conductance. Its confidence c (a low-pass of κ)
    says when v̂ is observable.
 5. **Output**: a push–pull pair of rate neurons r± = gain·[±v̂]₊ (Hz), or Poisson
-   spikes from them (:func:`lobula.neurons.poisson_spikes`), decoded back by
+   spikes from them (each step's count the Poisson quantile of its own uniform draw), decoded back by
    (r₊ − r₋)/gain, so rate and spiking readouts are compared on the same input.
+   ``population`` independent push–pull pairs share the rate (a small population of
+   descending neurons read together); their spikes are pooled.
+6. **Decoding spikes, causally** (``decode="causal"``, the default): each spike train passes
+   an exponential synaptic filter of time constant τ_d = window_s/2 (a postsynaptic
+   neuron's rate estimate: no look-ahead). It lags v̂ by τ_d, so the haltere's
+   acceleration adds the first-order lead τ_d·a (as in 3). Its Poisson noise is
+   ``decode_std`` = √((r₊ + r₋)/(2τ_d·population))/gain (m/s): the decoding's own
+   uncertainty, not the estimate's model error. ``decode="centred"`` is the earlier
+   centred boxcar of window_s (it sees window_s/2 ahead: not causal; for comparison only).
 """
 from __future__ import annotations
 
@@ -37,7 +46,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from .neurons import make_generator, poisson_spikes
+from .neurons import make_generator
 from .photoreceptor import lowpass_scan
 
 
@@ -54,6 +63,9 @@ class ReadoutNeuronConfig:
     spike_dt_s: the spike generator's step (s): each frame's rate is held over the frame and
         Poisson spikes are drawn every ``spike_dt_s`` (rounded to a whole number of steps per
         frame), so spike times resolve 1 ms rather than the 33 ms frame interval.
+    decode: "causal" (exponential synaptic filter, τ_d = window_s/2, with the haltere lead) or
+        "centred" (the centred boxcar of window_s: looks ahead; comparison only).
+    population: independent push–pull pairs firing at the same rate, decoded together.
     """
 
     tau_fast_s: float = 0.10
@@ -69,8 +81,14 @@ class ReadoutNeuronConfig:
     window_s: float = 0.2
     seed: int = 0
     spike_dt_s: float = 0.001
+    decode: str = "causal"
+    population: int = 1
 
     def __post_init__(self):
+        if self.decode not in ("causal", "centred"):
+            raise ValueError(f"decode must be 'causal' or 'centred', got {self.decode!r}")
+        if not (isinstance(self.population, (int, np.integer)) and self.population >= 1):
+            raise ValueError(f"population must be a positive integer, got {self.population!r}")
         if not (self.spike_dt_s > 0 and np.isfinite(self.spike_dt_s)):
             raise ValueError(f"spike_dt_s must be a positive number of seconds, got {self.spike_dt_s!r}")
 
@@ -137,6 +155,66 @@ def spike_steps_per_frame(frame_dt: float, config: ReadoutNeuronConfig) -> int:
     return max(1, int(round(frame_dt / config.spike_dt_s)))
 
 
+def _poisson_quantile(u: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """Poisson counts with means lam (≥ 0) from uniforms u (same shape): the inverse CDF."""
+    from scipy.stats import poisson
+    return np.where(lam > 0, poisson.ppf(u, np.maximum(lam, 1e-300)), 0.0)
+
+
+def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfig) -> dict:
+    """Push–pull Poisson output neurons for v (trials, time) m/s (NaN: silent), decoded back (see 5–6)."""
+    gain = cfg.gain_hz_per_m_s
+    v = torch.nan_to_num(v)
+    rate_p, rate_m = gain * v.clamp_min(0), gain * (-v).clamp_min(0)
+    trials, n = v.shape
+    gen = make_generator(cfg.seed)
+    sub = spike_steps_per_frame(dt, cfg)
+    N = int(cfg.population)
+    hold = lambda r: r.float().repeat_interleave(sub, dim=1)  # noqa: E731  (trials, time·sub)
+    # N independent pairs at the same rate: their pooled count is Poisson with N times the rate.
+    # Each step's count is the Poisson quantile of its own uniform draw, so a step's spikes depend
+    # on its own rate only: changing later rates leaves earlier spikes unchanged (a causal simulation).
+    lam_p, lam_m = (hold(x * N).double() * (dt / sub) for x in (rate_p, rate_m))
+    u = torch.rand((2,) + tuple(lam_p.shape), generator=gen, dtype=torch.float64)
+    sp_fine = torch.as_tensor(_poisson_quantile(u[0].numpy(), lam_p.numpy()))
+    sm_fine = torch.as_tensor(_poisson_quantile(u[1].numpy(), lam_m.numpy()))
+    # Counts per frame (a sum of Poisson counts is Poisson) for the rate decoding.
+    sp, sm = (x.reshape(trials, n, sub).sum(-1) for x in (sp_fine, sm_fine))
+    if cfg.decode == "causal":
+        tau_d = 0.5 * cfg.window_s
+        # Exponential synaptic filter of the pooled counts (rate per neuron), then the lead τ_d·a.
+        syn = lambda s: _lowpass(s / (N * dt), tau_d, dt)  # noqa: E731
+        v_dec = (syn(sp) - syn(sm)) / gain + tau_d * torch.nan_to_num(a)
+        # Poisson decoding noise of that filter: var = rate_total / (2 τ_d N) (Hz²).
+        std = torch.sqrt((rate_p + rate_m) / (2.0 * tau_d * N)) / gain
+    else:
+        w = max(1, int(round(cfg.window_s / dt)))
+        kern = torch.ones(1, 1, w, dtype=sp.dtype) / (w * dt * N)
+        # Centred boxcar rate estimate of each spike train (looks window_s/2 ahead), then push–pull decoding.
+        smooth = lambda s: torch.nn.functional.conv1d(s[:, None], kern, padding=w // 2)[:, 0, :n]  # noqa: E731
+        v_dec = (smooth(sp) - smooth(sm)) / gain
+        std = torch.sqrt((rate_p + rate_m) / (w * dt * N)) / gain
+    return dict(v_dec=v_dec, decode_std=std, spikes_plus=sp_fine, spikes_minus=sm_fine)
+
+
+def spiking_output(t, v, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:
+    """Carry a velocity estimate v (time,) m/s on push–pull Poisson output neurons and decode it back.
+
+    The output stage of :func:`readout_neuron` on its own (steps 5–6 of the module docstring),
+    for any readout's v̂ (NaN: the neurons fall silent). a (time,) m/s² gives the causal
+    decoder its lead. Returns numpy arrays: v_dec (m/s), decode_std (m/s, Poisson noise),
+    rate_plus / rate_minus (Hz), spikes_plus / spikes_minus (counts per generator step).
+    """
+    cfg = config or ReadoutNeuronConfig(spiking=True)
+    as_t = lambda x: torch.as_tensor(np.array(x, dtype=np.float64))[None]  # noqa: E731
+    v_t, a_t = as_t(v), as_t(a)
+    dt = float(np.median(np.diff(t)))
+    out = _spikes(v_t, a_t, dt, cfg)
+    vv = torch.nan_to_num(v_t)
+    out.update(rate_plus=cfg.gain_hz_per_m_s * vv.clamp_min(0), rate_minus=cfg.gain_hz_per_m_s * (-vv).clamp_min(0))
+    return {k: x[0].numpy() for k, x in out.items()}
+
+
 def readout_neuron(t, r, r2, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:
     """Run the readout neuron on field rates.
 
@@ -181,22 +259,14 @@ def readout_neuron(t, r, r2, a, config: ReadoutNeuronConfig | None = None) -> di
         c_out[:, k] = conf
     gain = cfg.gain_hz_per_m_s
     rate_p, rate_m = gain * v_hat.clamp_min(0), gain * (-v_hat).clamp_min(0)
-    out = dict(v_vis=v_vis, g_shunt=g_s, confidence=c_out, rate_plus=rate_p, rate_minus=rate_m)
+    out = dict(v_vis=v_vis, g_shunt=g_s, confidence=c_out, rate_plus=rate_p, rate_minus=rate_m, v_field=v_f, r_dot=r_dot)
     v_dec = v_hat
     if cfg.spiking:
-        gen = make_generator(cfg.seed)
-        sub = spike_steps_per_frame(dt, cfg)
-        hold = lambda r: r.float().repeat_interleave(sub, dim=1)  # noqa: E731  (trials, time·sub)
-        sp_fine = poisson_spikes(hold(rate_p), dt / sub, gen).double()
-        sm_fine = poisson_spikes(hold(rate_m), dt / sub, gen).double()
-        # Counts per frame (a sum of Poisson counts is Poisson) for the rate decoding.
-        sp, sm = (x.reshape(trials, n, sub).sum(-1) for x in (sp_fine, sm_fine))
-        w = max(1, int(round(cfg.window_s / dt)))
-        kern = torch.ones(1, 1, w, dtype=sp.dtype) / (w * dt)
-        # Centred boxcar rate estimate of each spike train, then push–pull decoding.
-        smooth = lambda s: torch.nn.functional.conv1d(s[:, None], kern, padding=w // 2)[:, 0, :n]
-        v_dec = (smooth(sp) - smooth(sm)) / gain
-        out.update(spikes_plus=sp_fine, spikes_minus=sm_fine)
+        enc = _spikes(v_hat, a, dt, cfg)
+        v_dec = enc.pop("v_dec")
+        out.update(enc)
+    else:
+        out["decode_std"] = torch.zeros_like(v_hat)
     obs = c_out >= cfg.confidence_min
     out.update(v_hat=torch.where(obs, v_dec, torch.nan), observable=obs)
     res = {k: x.numpy() for k, x in out.items()}

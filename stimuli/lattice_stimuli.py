@@ -39,7 +39,7 @@ import torch
 from scipy import special
 from torch import Tensor
 
-from lobula.camera import angles_to_normalised, normalised_to_angles
+from lobula.camera import angles_to_normalised
 from .gratings import GratingConfig, drifting_grating_lattice, drum_coordinates, frame_times
 
 __all__ = [
@@ -54,10 +54,15 @@ _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 # --------------------------------------------------------------------------- helpers
 
 def direction_from_angles(azimuth_deg, elevation_deg) -> np.ndarray:
-    """Unit viewing directions (..., 3) for azimuth/elevation in degrees (elevation + down)."""
-    x, y = angles_to_normalised(np.radians(np.asarray(azimuth_deg, float)), np.radians(np.asarray(elevation_deg, float)))
-    d = np.stack([x, y, np.ones_like(x)], axis=-1)
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+    """Unit viewing directions (..., 3) for azimuth/elevation in degrees (elevation + down).
+
+    ``(cos el·sin az, sin el, cos el·cos az)``: the pinhole convention of
+    :func:`lobula.camera.normalised_to_angles` in front (|az| < 90°), and valid on the
+    whole sphere (a compound eye looks sideways and backward too).
+    """
+    az, el = np.radians(np.asarray(azimuth_deg, float)), np.radians(np.asarray(elevation_deg, float))
+    ce = np.cos(el)
+    return np.stack([ce * np.sin(az), np.sin(el), ce * np.cos(az)], axis=-1)
 
 
 def tangent_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -447,7 +452,8 @@ def moving_spot(lattice, n_frames: int, *, centre_deg=(0.0, 0.0), direction_deg=
     prof = _blob(delta, p["size_deg"][:, None, None], _sigma(lattice, acceptance), shape)
     prof.mul_(torch.as_tensor(visible[..., None] * p["contrast"][:, None, None])).add_(1.0)
     lum = prof.mul_(torch.as_tensor(p["mean_luminance"][:, None, None]))
-    az, el = normalised_to_angles(c[..., 0] / c[..., 2], c[..., 1] / c[..., 2])
+    # Spherical angles (as normalised_to_angles in front, and valid behind the eye).
+    az, el = np.arctan2(c[..., 0], c[..., 2]), np.arctan2(c[..., 1], np.hypot(c[..., 0], c[..., 2]))
     track = np.degrees(np.stack([az, el], axis=-1))
     track[~visible] = np.nan
     info = {"kind": "moving_spot", "shape": shape, "centre_deg": cen.tolist(),

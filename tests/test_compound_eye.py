@@ -284,3 +284,60 @@ def test_rotation_hypotheses_remove_a_turn():
         errors[mode] = float(np.median(np.abs(rho[late] - exact) / np.abs(exact)))
     assert errors["haltere"] < 0.3 * errors["none"], errors
     assert errors["wide-field"] < 0.85 * errors["none"], errors
+
+
+def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, tmp_path, capsys):
+    import xarray as xr
+
+    from experiments.cli import main
+
+    a, b = tmp_path / "velocity.nc", tmp_path / "eye.nc"
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--filter", "causal", "--accel-from-truth",
+                 "--out", str(a), "--quiet"]) == 0
+    assert main(["eye-velocity", str(eye_footage), "--accel-from-truth", "--out", str(b)]) == 0
+    with xr.open_dataset(a) as da, xr.open_dataset(b) as db:
+        assert da.attrs["front_end"] == "emd-compound-eye"
+        np.testing.assert_allclose(da.v_hat.values, db.v_hat.values, equal_nan=True)
+        np.testing.assert_allclose(da.r.values, db.r.values, equal_nan=True)
+    capsys.readouterr()
+    # A camera front end, or a camera option, cannot run on ommatidia: refused, naming the fix.
+    assert main(["velocity", str(eye_footage), "--out", str(tmp_path / "x.nc")]) == 2
+    assert "use --front-end emd" in capsys.readouterr().err
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--dphi", "3", "--out",
+                 str(tmp_path / "y.nc")]) == 2
+    assert "--dphi" in capsys.readouterr().err and not (tmp_path / "y.nc").exists()
+
+
+def test_spiking_readout_on_the_eye_is_causal_and_close_to_the_rate_readout(eye_footage):
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
+    from experiments.velocity import score
+    from lobula.readout_neuron import ReadoutNeuronConfig
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(eye_footage)
+    rate = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True))
+    spk = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True, readout_kind="spikes",
+                                                      neuron=ReadoutNeuronConfig(spiking=True, population=10)))
+    assert "Poisson" in spk.attrs["readout"] and spk.attrs["filter"] == "causal"
+    r, s = score(rate, 1.0)["rmse_m_s"], score(spk, 1.0)["rmse_m_s"]
+    # 10 output pairs at 200 Hz per m/s add Poisson noise of ~0.04 m/s and a little lag.
+    assert 0.8 * r < s < 1.3 * r + 0.02, (r, s)
+    # Its std adds the decoding noise to the readout's posterior std.
+    assert np.all(spk.v_std.values[spk.observable.values] >= rate.v_std.values[spk.observable.values] - 1e-12)
+
+
+def test_interpolated_rendering_casts_every_kth_sample_and_interpolates_between():
+    from stimuli.eye import render_eye, render_eye_interpolated
+
+    world = Corridor(v=0.8)
+    eye = CompoundEye(CompoundEyeConfig(dphi_deg=10.0, rings=1))
+    times = np.arange(0.0, 0.105, 0.002)                       # 53 samples at 500 Hz (last one cast too)
+    exact = np.concatenate([l for _, l in render_eye(world, eye, times, chunk=7)])
+    ts, fast = zip(*render_eye_interpolated(world, eye, times, every=2, chunk=7))
+    fast = np.concatenate(fast)
+    np.testing.assert_array_equal(np.concatenate(ts), times)
+    np.testing.assert_allclose(fast[::2], exact[::2], atol=1e-6)              # cast samples are exact
+    np.testing.assert_allclose(fast[1:-1:2], 0.5 * (exact[0:-2:2] + exact[2::2]), atol=1e-6)
+    # Between casts the error is second order in time: far below the sample-to-sample change.
+    err = np.abs(fast - exact).mean()
+    assert err < 0.25 * np.abs(np.diff(exact, axis=0)).mean()

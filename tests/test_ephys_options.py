@@ -34,6 +34,8 @@ VARIANTS = {
         "record": (["lc.r"], lambda ds: "lc_r" in ds and "lc_rate" not in ds, True),
         # the drum grating's direction (rings have none): compared with a grating at 0°
         "direction": (90.0, lambda ds: _par(ds)["direction_deg"] == 90.0, True, {"stimulus": "grating"}),
+        # the compound eye's velocity circuit instead of the pinhole lattice (tests/test_eye_ephys.py)
+        "eye": ("fly", lambda ds: ds.attrs["eye"] == "fly" and "lc_input" in ds, True),
     },
     "looming": {
         "tau": (0.07, lambda ds: ds.attrs["emd_tau_s"] == 0.07, True),
@@ -43,6 +45,7 @@ VARIANTS = {
         "contrast": ([0.5], lambda ds: _par(ds)["contrast"] == 0.5, True),
         "l_over_v": ([0.02, 0.08], lambda ds: list(ds.l_over_v_s.values) == [0.02, 0.08], True),
         "max_size": (20.0, lambda ds: float(ds.angular_size_deg.max()) == pytest.approx(20.0), True),
+        "eye": ("fly", lambda ds: ds.attrs["eye"] == "fly" and "lc_r" in ds, True),
         "collision_time": (0.2, lambda ds: ds.attrs["t_collision_s"] == 0.2 and float(ds.time[0]) == -0.2, True),
         "neuron_model": ("lif", lambda ds: ds.attrs["neuron_model"] == "lif" and "lc_spikes" in ds, True),
         "record": (["lc.r2"], lambda ds: "lc_r2" in ds and "lc_rate" not in ds, True),
@@ -60,6 +63,8 @@ VARIANTS = {
         "spot_path": (12.0, lambda ds: _par(ds)["path_deg"] == 12.0, True),
         "spot_speed": (300.0, lambda ds: _par(ds)["speed_deg_s"] == 300.0, True),
         "record": (["lc.r"], lambda ds: ds.rf_response.attrs["monitor"] == "lc.r", True),
+        "eye": ("fly", lambda ds: ds.attrs["eye"] == "fly" and "rf_weight" in ds, True,
+                {"spacing": 12.0, "extent": 24.0}),
     },
 }
 # Options whose effect needs a spiking model (checked separately below), and the device.

@@ -61,3 +61,38 @@ def test_neuron_on_the_emd_replay_is_close_to_the_arithmetic_readout(emd_replay)
     assert rate["observable"][m].mean() > 0.9
     assert rm(rate["v_hat"]) <= 1.5 * rm(causal.v_hat)
     assert rm(spk["v_hat"]) <= 1.5 * rm(causal.v_hat)
+
+
+def test_spiking_output_decodes_causally_with_its_stated_noise():
+    from lobula.readout_neuron import spiking_output
+
+    t = np.arange(0, 40, 1 / 50)
+    v = np.where(t < 20, 0.5, -0.3)
+    a = np.zeros_like(t)
+    cfg = ReadoutNeuronConfig(spiking=True, population=10, seed=1)
+    out = spiking_output(t, v, a, cfg)
+    for sel, val in (((t > 2) & (t < 20), 0.5), (t > 22, -0.3)):
+        err = out["v_dec"][sel] - val
+        # Unbiased, and its spread is the stated Poisson decoding std (the filter's samples are correlated,
+        # so the spread is compared, not a standard error).
+        assert abs(err.mean()) < 0.01
+        assert 0.8 < err.std() / out["decode_std"][sel].mean() < 1.25
+    # Causal: changing the future leaves the past's spikes and decoding unchanged (same seed).
+    v2 = v.copy()
+    v2[t > 30] = 1.0
+    out2 = spiking_output(t, v2, a, cfg)
+    past = t < 30
+    np.testing.assert_array_equal(out2["v_dec"][past], out["v_dec"][past])
+    # The centred window of the earlier decoder sees the future: it fails the same test.
+    cen = ReadoutNeuronConfig(spiking=True, population=10, seed=1, decode="centred")
+    c1, c2 = spiking_output(t, v, a, cen), spiking_output(t, v2, a, cen)
+    assert not np.array_equal(c1["v_dec"][past], c2["v_dec"][past])
+    # The lead τ_d·a compensates the synaptic filter's lag τ_d·a (0.02 m/s) on a ramp (a = 0.2 m/s²).
+    t2 = np.arange(0, 10, 1 / 50)
+    v2 = 0.2 + 0.2 * t2
+    pop = ReadoutNeuronConfig(spiking=True, population=30, seed=2)
+    ramp = spiking_output(t2, v2, np.full_like(t2, 0.2), pop)
+    lagged = spiking_output(t2, v2, np.zeros_like(t2), pop)
+    sel = t2 > 2
+    bias = lambda o: float(np.mean(o["v_dec"][sel] - v2[sel]))  # noqa: E731
+    assert bias(lagged) < -0.012 and abs(bias(ramp)) < 0.5 * abs(bias(lagged))

@@ -30,6 +30,7 @@ APPLIES = {
     "spot_size": ("rf-map",), "spot_path": ("rf-map",), "spot_speed": ("rf-map",),
     "l_over_v": ("looming",), "max_size": ("looming",), "collision_time": ("looming",),
     "footage": ("velocity-replay",),
+    "eye": LC_RIG,
 }
 
 S = argparse.SUPPRESS
@@ -72,6 +73,12 @@ def add_parser(subparsers):
                    help="interommatidial angle Δφ (degree) (default: 2; velocity-replay's front end: 0.75)")
     g.add_argument("--field-size", type=float, default=S,
                    help="LC receptive-field size (degree) (default: 10; velocity-replay's fields: 5)")
+    g.add_argument("--eye", choices=["pinhole", "fly"], default=S,
+                   help="[tf-tuning, rf-map, looming] the eye recorded: pinhole (the lattice over the D435i's field "
+                        "of view and its LC population) or fly (the two compound eyes and the very circuit "
+                        "`lobula eye-velocity` estimates velocity with: Δφ 5°, 500 Hz, 30° LC matched filters; "
+                        "records photoreceptor.v, emd.response, lc.input, lc.pool, lc.r, lc.grad, lc.r2) "
+                        "(default: pinhole)")
     g.add_argument("--device", default=S, help="[tf-tuning, rf-map, looming] torch device (default: cpu)")
     g.add_argument("--duration", type=float, default=S,
                    help="stimulus duration (s) [tf-tuning: 2; looming: 1; velocity-replay: 10, built-in run only]")
@@ -196,6 +203,10 @@ def run_protocol(protocol: str, opts: dict):
                                duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
                                dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
                                record=opts.get("record"))
+    if opts.get("eye", "pinhole") == "fly":
+        from .eye_rig import run_eye_protocol
+
+        return run_eye_protocol(protocol, opts)
     from .protocols import looming, rf_map, tf_tuning
 
     cfg = rig_config(protocol, opts)

@@ -13,7 +13,7 @@ import xarray as xr
 
 from .protocols import psth, psth_sem, raster
 
-__all__ = ["plot_tf_tuning", "plot_rf_map", "plot_looming", "plot_velocity_replay", "replay_scores", "plot_recording", "save_png_and_pdf", "nanmean", "sem", "DPI"]
+__all__ = ["plot_tf_tuning", "plot_rf_map", "plot_looming", "plot_velocity_replay", "replay_scores", "plot_recording", "plot_eye_tf_tuning", "save_png_and_pdf", "nanmean", "sem", "DPI"]
 
 DPI = 200
 
@@ -199,7 +199,7 @@ def plot_rf_map(ds: xr.Dataset, path) -> list[Path]:
     from matplotlib.patches import Circle
 
     probed = [int(f) for f in ds.field.values][:6]
-    fig, ax = plt.subplots(1, len(probed), figsize=(4.6 * len(probed), 4.4), squeeze=False)
+    fig, ax = plt.subplots(1, len(probed), figsize=(max(4.6 * len(probed), 9.0), 4.4), squeeze=False)
     az, el = ds.location_azimuth_deg.values, ds.location_elevation_deg.values
     units = ds.rf_sensitivity.attrs.get("units", "")
     for a, f in zip(ax[0], probed):
@@ -407,9 +407,47 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
     return save_png_and_pdf(fig, path)
 
 
+def plot_eye_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
+    """tf-tuning on the compound eye: EMD probe pairs and LC matched-filter input (normalised, beside the
+    prediction and 1/(2πτ)), and the pooled expansion rate ρ (absolute: proportional to temporal frequency,
+    the same at every contrast). Mean ± SEM over recorded pairs/fields, one colour per contrast."""
+    plt = _plt()
+    panels = [(v, t) for v, t in (("emd_response_tuning", "EMD probe pairs"),
+                                  ("lc_input_tuning", "LC matched-filter input"),
+                                  ("lc_r_tuning", "LC expansion rate ρ (pooled)")) if v in ds]
+    fig, ax = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.0), squeeze=False)
+    tf = ds.temporal_frequency_hz.values
+    opt = float(ds.attrs["optimum_hz"])
+    for a, (v, title) in zip(ax[0], panels):
+        for i, c in enumerate(ds.contrast.values):
+            x = ds[v].sel(contrast=c).values                              # (TF, X)
+            norm = v != "lc_r_tuning"
+            if norm:
+                x = x / np.nanmax(np.abs(x), axis=0, keepdims=True)
+            a.errorbar(tf, nanmean(x, 1), yerr=sem(x, 1), **_style(i),
+                       label=f"contrast {c:g}: mean ± SEM over {x.shape[1]}")
+        if v != "lc_r_tuning" and "emd_prediction" in ds:
+            a.plot(tf, ds.emd_prediction.values, "k--", lw=1, label="prediction (discrete EMD × photoreceptor)")
+        a.axvline(opt, color="0.4", ls=":", lw=1, label=f"1/(2πτ) = {opt:.2f} Hz")
+        a.set_xscale("log")
+        a.set_xlabel("temporal frequency (Hz)")
+        a.set_ylabel("response / its maximum" if v != "lc_r_tuning" else f"ρ ({ds[v].attrs.get('units', '')})")
+        a.set_title(title, fontsize=10)
+        a.legend(fontsize=7, frameon=False)
+    fig.suptitle(f"Compound eye (Δφ = {ds.attrs.get('dphi_deg', '?')}°): expanding rings, the velocity circuit's "
+                 f"own units", fontsize=10)
+    fig.tight_layout()
+    return save_png_and_pdf(fig, path)
+
+
 def plot_recording(ds: xr.Dataset, path) -> list[Path]:
     """The protocol's figure (from ds.attrs["protocol"]); PNG and PDF."""
     p = ds.attrs.get("protocol")
+    if ds.attrs.get("eye") == "fly":
+        if p == "tf-tuning":
+            return plot_eye_tf_tuning(ds, path)
+        if p != "rf-map":
+            raise ValueError(f"no figure for {p} on the compound eye (--eye fly) yet; drop --plot")
     if p == "velocity-replay":
         return plot_velocity_replay(ds, path)
     fn = {"tf-tuning": plot_tf_tuning, "rf-map": plot_rf_map, "looming": plot_looming}.get(p)

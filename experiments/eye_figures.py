@@ -1,0 +1,197 @@
+"""Figures of the fly's compound eye (issue 11), each over ≥ 3 seeds with the spread shown.
+
+``eye_rate_vs_spiking`` — on the worlds' families (panels, rotation, corridor; seeds 0–2, 10 s):
+the causal velocity RMSE of the eye's circuit read out by (i) the arithmetic readout's rates,
+(ii) the same v̂ carried by N push–pull Poisson output-neuron pairs (N = 1, 3, 10, 30) and
+decoded causally, (iii) the shunting readout neuron (rates and spikes), beside causal DIS on the
+D435i camera (same world and trajectory) and the zero estimator. Renders are cached in the
+work folder (:func:`experiments.eye_velocity.eye_benchmark`'s layout: ``FAMILY-SEED-eye`` and
+``FAMILY-SEED-cam``); rendering them is the cost (CPU-minutes per run), the figure itself takes
+~1 min on cached renders.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["ensure_runs", "rate_vs_spiking_numbers", "figure_eye_rate_vs_spiking", "dphi_fov_numbers",
+           "figure_eye_dphi_fov"]
+
+FAMILIES = ("panels", "rotation", "corridor")
+
+
+def ensure_runs(workdir, families=FAMILIES, seeds=(0, 1, 2), duration_s: float = 10.0, scale: float = 0.5,
+                cast_every: int = 1) -> dict:
+    """Render (if absent) the eye and pinhole footage of each family × seed; return {(family, seed): DIS RMSE}.
+
+    DIS: the project's default velocity pipeline on the pinhole footage, causal filter, scored after 2 s.
+    """
+    from experiments.suite import family_config
+    from experiments.velocity import estimate_velocity, score
+    from lobula.compound_eye import CompoundEyeConfig
+    from lobula.config import VelocityConfig
+    from stimuli.eye import make_eye_run
+    from stimuli.footage import open_footage
+    from stimuli.track import make_track_run
+
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    dis = {}
+    for fam in families:
+        for seed in seeds:
+            cfg = family_config(fam, seed, duration_s, scale)
+            eye_dir, cam_dir = workdir / f"{fam}-{seed}-eye", workdir / f"{fam}-{seed}-cam"
+            if not eye_dir.exists():
+                make_eye_run(eye_dir, cfg, CompoundEyeConfig(), 500.0, progress=False, cast_every=cast_every)
+            if not cam_dir.exists():
+                make_track_run(cam_dir, cfg, progress=False)
+            vc = VelocityConfig(front_end="dis")
+            vc.readout.filter = "causal"
+            dis[(fam, seed)] = score(estimate_velocity(open_footage(cam_dir), vc, progress=False))["rmse_m_s"]
+    return dis
+
+
+def rate_vs_spiking_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), populations=(1, 3, 10, 30)) -> dict:
+    """RMSEs per family and seed: kalman (rates), spikes with N output pairs, readout neuron, DIS, zero."""
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
+    from experiments.velocity import score
+    from lobula.readout_neuron import ReadoutNeuronConfig
+    from stimuli.eye import open_eye_footage
+
+    dis = ensure_runs(workdir, families, seeds)
+    res: dict = {}
+    for fam in families:
+        rows = res.setdefault(fam, {})
+        for seed in seeds:
+            fo = open_eye_footage(Path(workdir) / f"{fam}-{seed}-eye")
+            t0 = time.perf_counter()
+            ds = estimate_eye_velocity(fo, EyeVelocityConfig())
+            rows.setdefault("rate (arithmetic readout)", []).append(score(ds)["rmse_m_s"])
+            for n in populations:
+                c = EyeVelocityConfig(readout_kind="spikes",
+                                      neuron=ReadoutNeuronConfig(spiking=True, population=n, seed=seed))
+                rows.setdefault(f"spikes, {n} pair{'s' if n > 1 else ''}", []).append(
+                    score(estimate_eye_velocity(fo, c))["rmse_m_s"])
+            for spk in (False, True):
+                c = EyeVelocityConfig(readout_kind="neuron",
+                                      neuron=ReadoutNeuronConfig(spiking=spk, population=10, seed=seed))
+                rows.setdefault(f"readout neuron ({'spikes, 10 pairs' if spk else 'rate'})", []).append(
+                    score(estimate_eye_velocity(fo, c))["rmse_m_s"])
+            keep = ds.time.values >= ds.time.values[0] + 2.0
+            rows.setdefault("zero estimator", []).append(float(np.sqrt(np.mean(ds.v_true.values[keep] ** 2))))
+            rows.setdefault("DIS on the D435i (causal)", []).append(dis[(fam, seed)])
+            print(f"  {fam} seed {seed}: {time.perf_counter() - t0:.1f} s", flush=True)
+    return res
+
+
+def figure_eye_rate_vs_spiking(out_dir, seeds=(0, 1, 2), workdir=None) -> tuple[Path, dict]:
+    """Make ``eye_rate_vs_spiking.png`` (and its numbers); returns (path, numbers)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from experiments.store import save_figure
+
+    out_dir = Path(out_dir)
+    workdir = Path(workdir) if workdir else out_dir / "eye_runs"
+    res = rate_vs_spiking_numbers(workdir, FAMILIES, tuple(seeds))
+    keys = [k for k in next(iter(res.values())) if k not in ("zero estimator", "DIS on the D435i (causal)")]
+    fig, axes = plt.subplots(1, len(res), figsize=(4.6 * len(res), 4.6), sharey=True, squeeze=False)
+    x = np.arange(len(keys))
+    for ax, (fam, rows) in zip(axes[0], res.items()):
+        vals = [np.array(rows[k]) for k in keys]
+        mean = np.array([v.mean() for v in vals])
+        col = ["tab:blue"] + ["tab:red"] * (len(keys) - 3) + ["tab:green", "tab:green"]
+        ax.bar(x, mean, color=col, alpha=0.55)
+        for i, v in enumerate(vals):
+            ax.plot(np.full(len(v), x[i]), v, "k.", ms=5)
+            ax.plot([x[i], x[i]], [v.min(), v.max()], "k-", lw=1)
+        d = np.array(rows["DIS on the D435i (causal)"])
+        ax.axhspan(d.min(), d.max(), color="m", alpha=0.12, lw=0)
+        ax.axhline(d.mean(), color="m", ls="--", label="DIS on the D435i, causal (mean; band: seeds)")
+        ax.axhline(1.5 * d.mean(), color="m", ls=":", label="1.5 × DIS")
+        ax.axhline(np.mean(rows["zero estimator"]), color="k", ls=":", label="zero estimator (mean)")
+        ax.set_xticks(x, keys, rotation=60, ha="right", fontsize=7)
+        ax.set_title(f"{fam} ({len(vals[0])} seeds: bar mean, dots seeds)", fontsize=9)
+    axes[0][0].set_ylabel("velocity RMSE after 2 s (m/s)")
+    axes[0][0].legend(fontsize=7, loc="upper left")
+    fig.suptitle("Fly eye (Δφ = 5°, both eyes, 500 Hz), causal: rate readout against spiking output neurons "
+                 "(200 Hz per m/s, causal synaptic decoding)", fontsize=9)
+    fig.tight_layout()
+    png = out_dir / "eye_rate_vs_spiking.png"
+    save_figure(fig, png, dpi=150)
+    plt.close(fig)
+    return png, res
+
+
+def dphi_fov_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), dphis=(8.0, 5.0), cast_every: int = 2) -> dict:
+    """Causal RMSE (arithmetic readout) against Δφ (Δρ = Δφ; renders cached, Δφ ≠ 5° cast at 250 Hz and
+    interpolated) and field of view: LC fields over the whole eye (±150°) or only inside the D435i's
+    69°×42° view (centres |az| ≤ 30°, |el| ≤ 20°), beside causal DIS on the D435i."""
+    from dataclasses import replace as _replace
+
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
+    from experiments.suite import family_config
+    from experiments.velocity import score
+    from lobula.compound_eye import CompoundEyeConfig
+    from stimuli.eye import make_eye_run, open_eye_footage
+
+    workdir = Path(workdir)
+    dis = ensure_runs(workdir, families, seeds)
+    res: dict = {}
+    for fam in families:
+        rows = res.setdefault(fam, {})
+        for seed in seeds:
+            for d in dphis:
+                path = workdir / (f"{fam}-{seed}-eye" if d == 5.0 else f"{fam}-{seed}-eye-dphi{d:g}")
+                if not path.exists():
+                    make_eye_run(path, family_config(fam, seed, 10.0, 0.5), CompoundEyeConfig(dphi_deg=d), 500.0,
+                                 progress=False, cast_every=cast_every)
+                fo = open_eye_footage(path)
+                for fov in ("wide", "frontal"):
+                    cfg = EyeVelocityConfig()
+                    if fov == "frontal":
+                        cfg.circuit.fields = _replace(cfg.circuit.fields, azimuth_deg=(10.0, 30.0),
+                                                      elevation_deg=(-20.0, 20.0), spacing_deg=20.0)
+                    rows.setdefault(f"{fov}|{d:g}", []).append(score(estimate_eye_velocity(fo, cfg))["rmse_m_s"])
+            rows.setdefault("dis", []).append(dis[(fam, seed)])
+            print(f"  {fam} seed {seed} done", flush=True)
+    return res
+
+
+def figure_eye_dphi_fov(out_dir, seeds=(0, 1, 2), workdir=None, dphis=(8.0, 5.0)) -> tuple[Path, dict]:
+    """Make ``eye_rmse_vs_dphi_fov.png``; returns (path, numbers)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from experiments.store import save_figure
+
+    out_dir = Path(out_dir)
+    workdir = Path(workdir) if workdir else out_dir / "eye_runs"
+    res = dphi_fov_numbers(workdir, FAMILIES, tuple(seeds), dphis)
+    fig, axes = plt.subplots(1, len(res), figsize=(4.4 * len(res), 3.9), sharey=True, squeeze=False)
+    for ax, (fam, rows) in zip(axes[0], res.items()):
+        for k, (fov, col, lab) in enumerate((("wide", "tab:blue", "both eyes, LC fields over ±150°"),
+                                             ("frontal", "tab:orange", "LC fields only in the D435i's 69°×42°"))):
+            v = [np.array(rows[f"{fov}|{d:g}"]) for d in dphis]
+            m = np.array([x.mean() for x in v])
+            ax.errorbar(np.array(dphis) * (1 + 0.02 * (k - 0.5)), m,
+                        yerr=[m - [x.min() for x in v], [x.max() for x in v] - m], marker="o", capsize=3,
+                        color=col, label=lab)
+        d = np.array(rows["dis"])
+        ax.axhspan(d.min(), d.max(), color="m", alpha=0.12, lw=0)
+        ax.axhline(d.mean(), color="m", ls="--", label="DIS on the D435i (0.2° pixels), causal")
+        ax.set_xlabel("interommatidial angle Δφ = Δρ (deg)")
+        ax.set_title(f"{fam} ({len(seeds)} seeds: mean, bars min–max)", fontsize=9)
+    axes[0][0].set_ylabel("velocity RMSE after 2 s (m/s)")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle("Fly eye, causal arithmetic readout: resolution and field of view (pinhole-sized against wide)",
+                 fontsize=9)
+    fig.tight_layout()
+    png = out_dir / "eye_rmse_vs_dphi_fov.png"
+    save_figure(fig, png, dpi=150)
+    plt.close(fig)
+    return png, res
