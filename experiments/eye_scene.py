@@ -20,6 +20,18 @@ def add_eye_scene_options(parser) -> None:
                              "interpolate linearly to --rate-hz (default: half of --rate-hz from 200 Hz up, which halves the "
                              "rendering; see stimuli.eye.render_eye_interpolated for why the 10 ms photoreceptors "
                              "allow it; equal to --rate-hz casts every sample)")
+    parser.set_defaults(_eye_only_defaults={a.dest: a.default for a in parser._actions if a.dest in EYE_ONLY})
+
+
+EYE_ONLY = ("dphi", "drho", "rate_hz", "rays", "cast_rate_hz")  # options that mean nothing to the pinhole camera
+
+
+def refuse_eye_options_for_pinhole(args) -> None:
+    """ValueError naming any --eye fly option given with the (default) pinhole camera: it would be ignored."""
+    given = [f"--{k.replace('_', '-')}" for k, d in args._eye_only_defaults.items() if getattr(args, k) != d]
+    if given:
+        raise ValueError(f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} only to compound-eye "
+                         f"footage; add --eye fly, or drop {'it' if len(given) == 1 else 'them'}")
 
 
 def run_eye_scene(args, cfg) -> int:

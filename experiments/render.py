@@ -31,8 +31,11 @@ def run_scene(args) -> int:
     from stimuli.track import make_track_run
 
     cfg = scene_config_from_args(args)
-    if args.eye == "fly":  # compound-eye footage (issue 11): experiments.eye_scene
-        from experiments.eye_scene import run_eye_scene; return run_eye_scene(args, cfg)
+    from experiments.eye_scene import refuse_eye_options_for_pinhole, run_eye_scene
+
+    if args.eye == "fly":  # compound-eye footage (issue 11)
+        return run_eye_scene(args, cfg)
+    refuse_eye_options_for_pinhole(args)
     out = make_track_run(args.out, cfg, progress=not args.quiet)
     src = ("random, peak %g m/s, from %s" % (cfg.random_peak_m_s, cfg.random_start)
            if cfg.random_peak_m_s is not None else cfg.profile or "built-in")

@@ -21,3 +21,13 @@ def test_every_option_states_its_default_exactly_once(command):
         n = len(re.findall(r"default", text, flags=re.IGNORECASE))
         assert n >= 1, f"lobula {command} {action.option_strings[0]}: help does not state its default"
         assert n == 1 or "(default:" not in text, f"lobula {command} {action.option_strings[0]}: default twice: {text}"
+
+
+def test_scene_refuses_eye_options_without_the_fly_eye(tmp_path, capsys):
+    from experiments.cli import main
+
+    out = tmp_path / "run"
+    assert main(["scene", str(out), "--duration", "0.2", "--scale", "0.1", "--dphi", "4", "--cast-rate-hz", "250",
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--dphi, --cast-rate-hz apply only to compound-eye footage" in err and not out.exists()
