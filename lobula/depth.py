@@ -70,6 +70,12 @@ __all__ = [
     "derotate_flow",
     "depth_parallax",
     "depth_metrics",
+    "scorable",
+    "error_stats",
+    "flow_noise",
+    "refine_motion",
+    "precision_weights",
+    "translational_snr",
 ]
 
 
@@ -125,6 +131,8 @@ class DepthResult:
         met, seconds spent; None for the closed-form methods.
     coarse_iterations: TV cold start: iterations on each pyramid level, coarsest first
         (each costs about a quarter of the one above); () for a warm start.
+    epipole: the epipole (ex, ey) the map was computed with, when the caller refined it
+        (:func:`refine_motion`); None otherwise.
     dual, step: (2, H, W) the TV solver's dual variable and its adapted primal step,
         for warm starts (pass the whole result as ``init`` to :func:`depth_tv`); None
         otherwise.
@@ -141,6 +149,7 @@ class DepthResult:
     dual: object = field(default=None, repr=False)
     step: float | None = None
     coarse_iterations: tuple = ()
+    epipole: tuple | None = None
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -300,10 +309,11 @@ def _tv(z: torch.Tensor, fx: float, fy: float) -> torch.Tensor:
     return torch.sqrt((g * g).sum(0)).sum()
 
 
-def tv_objective(z, flow, camera: PinholeCamera, epipole, gamma: float) -> float:
-    """The TV depth objective Σ|ṗ − z(p−e)|² + γ·Σ|∇z| (∇ in normalised units) at ``z`` (H, W).
+def tv_objective(z, flow, camera: PinholeCamera, epipole, gamma: float, weights=None) -> float:
+    """The TV depth objective Σ c·|ṗ − z(p−e)|² + γ·Σ|∇z| (∇ in normalised units) at ``z`` (H, W).
 
-    Non-finite flow pixels carry no data term (as in :func:`depth_tv`).
+    c: per-pixel data weights (``weights``, (H, W), default 1). Non-finite flow pixels
+    carry no data term (as in :func:`depth_tv`).
     """
     f, _ = _check_flow(flow, camera)
     f = f.to(torch.float64)
@@ -311,13 +321,16 @@ def tv_objective(z, flow, camera: PinholeCamera, epipole, gamma: float) -> float
     q = _offsets(camera, epipole, f)
     ok = torch.isfinite(f).all(0)
     res = torch.where(ok, ((f - zt * q) ** 2).sum(0), torch.zeros_like(zt))
+    if weights is not None:
+        c = _to_tensor(weights, device=f.device, dtype=torch.float64)
+        res = torch.where(ok, res * c, res)
     return float(res.sum() + gamma * _tv(zt, camera.fx, camera.fy))
 
 
 def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None = None,
              init=None, iters: int | None = None, tol: float | None = None,
-             config: DepthConfig | None = None) -> DepthResult:
-    """TV-regularised depth: minimise Σ|ṗ − z(p−e)|² + γ·TV(z) over z = v/d, then d = v/z.
+             config: DepthConfig | None = None, weights=None) -> DepthResult:
+    """TV-regularised depth: minimise Σ c·|ṗ − z(p−e)|² + γ·TV(z) over z = v/d, then d = v/z.
 
     flow: (2, H, W) normalised flow (1/s); pixels with non-finite flow get no data term
     (TV fills them in). v: forward speed (m/s); epipole: (ex, ey) normalised.
@@ -327,6 +340,10 @@ def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None
     best), or a (H, W) z map (1/s); None is a cold start, solved coarse to fine.
     iters, tol: iteration cap (at full resolution) and tolerance on the relative
     primal–dual residuals (see :class:`DepthConfig`).
+    weights: per-pixel data weights c (H, W), ≥ 0, default 1 — the flow's relative
+    precision (:func:`precision_weights`: 1/σ² of each pixel's flow noise over its
+    median), so that pixels whose flow is unreliable lean on their neighbours through
+    the TV term instead of being masked. Scaled to median 1, γ keeps its meaning.
 
     Method: Chambolle–Pock primal–dual (θ = 1) on min_z G(z) + F(Kz) with K = ∇,
     F = γ‖·‖₂,₁ (dual prox: projection onto the ball of radius γ per pixel) and
@@ -357,6 +374,11 @@ def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None
         f0 = torch.where(ok, f, torch.zeros_like(f))
         w = (q * q).sum(0) * ok.to(f.dtype)   # data weight |p−e|², 0 where flow is missing
         b = (f0 * q).sum(0)                   # ⟨ṗ, p−e⟩, 0 where missing
+        if weights is not None:
+            c = _to_tensor(weights, device=f.device, dtype=f.dtype)
+            if tuple(c.shape) != tuple(w.shape) or not bool(torch.all(torch.isfinite(c) & (c >= 0))):
+                raise ValueError(f"weights must be finite and ≥ 0 with the flow's shape {tuple(w.shape)}")
+            w, b = w * c, b * c
         fx, fy = float(camera.fx), float(camera.fy)
         coarse: list[int] = []
         if init is None:
@@ -366,7 +388,7 @@ def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None
         z, y, n_done, converged, tau = _tv_solve(w, b, gamma, fx, fy, z, y, iters, tol,
                                                  cfg.tv_check_every, tau)
         solve_s = time.perf_counter() - t0
-        objective = tv_objective(z, f, camera, epipole, gamma)
+        objective = tv_objective(z, f, camera, epipole, gamma, weights=weights)
         depth, valid = rate_to_depth(z, _speed(v), cfg.max_depth_m)
     return DepthResult(depth=_like_input(depth, as_numpy), valid=_like_input(valid, as_numpy),
                        rate=_like_input(z, as_numpy), method="tv", iterations=n_done,
@@ -518,6 +540,150 @@ def _tv_init(init, f: torch.Tensor, shape: tuple) -> tuple[torch.Tensor, torch.T
     return z, y, tau
 
 
+# ----------------------------------------------------------------------------- flow precision
+def flow_noise(flow, camera: PinholeCamera, epipole, window_deg: float = 3.0):
+    """Per-pixel flow noise σ (1/s, (H, W)) of derotated flow, from the flow itself.
+
+    Under rigid translation the (derotated) flow is radial from the epipole, so its
+    component perpendicular to p − e, n = ⟨ṗ, (p−e)⊥⟩/|p−e|, is pure error: flow noise,
+    what is left of the rotation, a wrong epipole, non-rigid motion. Its local mean
+    square over a square window of ``window_deg`` (degrees of view) estimates σ² of
+    each flow component there (isotropic noise); pixels where the direction is
+    undefined (at the epipole) or the flow is not finite do not contribute. A floor of
+    (σ_image / 2)², σ_image = 1.4826·median|n| over the image, keeps a locally lucky
+    patch from claiming perfect flow. Same array kind as ``flow``.
+    """
+    import torch.nn.functional as F
+
+    f, as_numpy = _check_flow(flow, camera)
+    q = _offsets(camera, epipole, f)
+    nq = torch.sqrt((q * q).sum(0))
+    ok = torch.isfinite(f).all(0) & (nq > 0)
+    n = torch.where(ok, (f[1] * q[0] - f[0] * q[1]) / nq.clamp(min=1e-30), torch.zeros_like(nq))
+    if not bool(ok.any()):
+        return _like_input(torch.full_like(nq, float("nan")), as_numpy)
+    k = max(3, int(round(math.radians(window_deg) * float(camera.fx))) | 1)
+    m = ok.to(f.dtype)
+    num = F.avg_pool2d((n * n)[None, None], k, stride=1, padding=k // 2, count_include_pad=False)[0, 0]
+    den = F.avg_pool2d(m[None, None], k, stride=1, padding=k // 2, count_include_pad=False)[0, 0]
+    local = num / den.clamp(min=1e-12)
+    s_img = 1.4826 * n[ok].abs().median()
+    floor = (0.5 * s_img) ** 2
+    var = torch.where(den > 0, torch.maximum(local, floor), torch.full_like(local, float(s_img) ** 2))
+    return _like_input(torch.sqrt(var), as_numpy)
+
+
+def precision_weights(sigma, clip: float = 1e3):
+    """Relative precision c = median(σ²)/σ² of each pixel's flow (σ from :func:`flow_noise`),
+    clipped to [1/clip, clip]; the data weights of :func:`depth_tv`. Same array kind."""
+    as_numpy = not isinstance(sigma, torch.Tensor)
+    s = _to_tensor(sigma)
+    v = s * s
+    good = torch.isfinite(v) & (v > 0)
+    if not bool(good.any()):
+        return _like_input(torch.ones_like(s), as_numpy)
+    med = v[good].median()
+    c = torch.where(good, med / v.clamp(min=1e-30), torch.ones_like(v)).clamp(1.0 / clip, clip)
+    return _like_input(c, as_numpy)
+
+
+def translational_snr(flow, camera: PinholeCamera, epipole, sigma):
+    """Predicted translational flow over flow noise, per pixel ((H, W), dimensionless).
+
+    The prediction is |z̄|·|p − e| with z̄ = Σ⟨ṗ, p−e⟩ / Σ|p−e|² the image's pooled
+    expansion rate (a typical scene point's v/d; the least-squares pooling of the
+    receptive fields over the whole image): how far a typical point at that pixel moves
+    per second. Its ratio to the pixel's flow noise σ (1/s) is the inverse relative
+    precision of the pixel's depth: σ_d/d ≈ 1/SNR. It falls to 0 at the epipole, where
+    depth from flow is ill-conditioned. Same array kind as ``flow``.
+    """
+    f, as_numpy = _check_flow(flow, camera)
+    q = _offsets(camera, epipole, f)
+    ok = torch.isfinite(f).all(0)
+    w = (q * q).sum(0)
+    z_bar = (torch.where(ok, (f * q).sum(0), torch.zeros_like(w)).sum()
+             / torch.where(ok, w, torch.zeros_like(w)).sum().clamp(min=1e-30))
+    s = _to_tensor(sigma, device=f.device, dtype=f.dtype)
+    snr = z_bar.abs() * torch.sqrt(w) / s.clamp(min=1e-30)
+    return _like_input(torch.where(torch.isfinite(snr), snr, torch.zeros_like(snr)), as_numpy)
+
+
+# ----------------------------------------------------------------------------- ego-motion refinement
+def refine_motion(flow, camera: PinholeCamera, epipole, iters: int = 6, n_points: int = 5000,
+                  rate_prior: float = 0.05):
+    """Residual rotation and epipole of (gyro-)derotated flow, jointly, robustly.
+
+    A gyroscope's scale-factor and misalignment errors leave a rotation of a few tenths of
+    a degree over a pair while the camera turns; its flow B(p)·δω (δω rad/s,
+    :func:`lobula.epipole.rotational_flow`) then bends the translational field and biases
+    the epipole and every depth. What is left after removing it is radial from e:
+    (ṗ − Bδω) × (p − e) = 0 at every pixel — bilinear in (δω, e), solved by alternating
+    a weighted least-squares step in δω (Cauchy weights, a ridge prior of ``rate_prior``
+    rad/s against the residuals' scale) and a fresh :class:`lobula.epipole.EpipoleEstimator`
+    fit of e (started at, and falling back to, the given epipole) on ``n_points`` pixels.
+
+    flow: (2, H, W) normalised flow (1/s) after the gyro's derotation; epipole: start
+    (ex, ey). Near-frontal scenes confound a rotation with an epipole shift, so the
+    alternation is started twice — at the given epipole (e.g. the gyro-stabilised
+    heading) and at this flow's own epipole fit — and the motion whose flow is most
+    nearly radial (the smaller median perpendicular residual) is kept.
+    Returns (e (2,), δω (3,) rad/s, flow with Bδω removed (same kind as flow)).
+    """
+    from lobula.epipole import EpipoleEstimator
+
+    f, as_numpy = _check_flow(flow, camera)
+    fn = f.detach().cpu().numpy().astype(np.float64)
+    x, y = camera.normalised_grid(np.float64)
+    stride = max(1, int(math.sqrt(camera.width * camera.height / max(n_points, 1))))
+    xs, ys = x[::stride, ::stride].ravel(), y[::stride, ::stride].ravel()
+    us, vs = fn[0, ::stride, ::stride].ravel(), fn[1, ::stride, ::stride].ravel()
+    ok = np.isfinite(us) & np.isfinite(vs)
+    xs, ys, us, vs = xs[ok], ys[ok], us[ok], vs[ok]
+    # Rotational flow basis per unit rate about x, y, z (columns), at the points.
+    bu = np.stack([xs * ys, -(1 + xs * xs), ys], -1)
+    bv = np.stack([1 + ys * ys, -xs * ys, -xs], -1)
+    starts = [np.array(_epipole(epipole), float)]
+    own = EpipoleEstimator(xs[None], ys[None], prior=starts[0], stride=1).update(np.stack([us, vs])[:, None, :])
+    if np.all(np.isfinite(own)):
+        starts.append(own)
+    best = None
+    for e0 in starts:
+        e, dw = _alternate(xs, ys, us, vs, bu, bv, e0, iters, rate_prior)
+        dx, dy = xs - e[0], ys - e[1]
+        u2, v2 = us - bu @ dw, vs - bv @ dw
+        perp = np.median(np.abs(v2 * dx - u2 * dy) / np.maximum(np.hypot(dx, dy), 1e-9))
+        if best is None or perp < best[0]:
+            best = (perp, e, dw)
+    _, e, dw = best
+    rot = rotational_flow(tuple(dw), torch.as_tensor(x, dtype=f.dtype, device=f.device),
+                          torch.as_tensor(y, dtype=f.dtype, device=f.device))
+    return e, dw, _like_input(f - rot, as_numpy)
+
+
+def _alternate(xs, ys, us, vs, bu, bv, e_start, iters, rate_prior):
+    """The alternation of :func:`refine_motion` from one start: returns (e, δω)."""
+    from lobula.epipole import EpipoleEstimator
+
+    e = e_start.copy()
+    dw = np.zeros(3)
+    for _ in range(max(1, iters)):
+        dx, dy = xs - e[0], ys - e[1]
+        a = bv * dx[:, None] - bu * dy[:, None]            # (N, 3)
+        b = vs * dx - us * dy
+        res = b - a @ dw
+        scale = 1.4826 * np.median(np.abs(res)) + 1e-12
+        w = 1.0 / (1.0 + (res / (2.385 * scale)) ** 2)
+        ata = (a * w[:, None]).T @ a
+        # Gaussian prior δω ~ N(0, rate_prior²) against residuals of std `scale`: ridge (scale/prior)².
+        dw = np.linalg.solve(ata + (scale / max(rate_prior, 1e-12)) ** 2 * np.eye(3), (a * w[:, None]).T @ b)
+        u2, v2 = us - bu @ dw, vs - bv @ dw
+        est = EpipoleEstimator(xs[None], ys[None], prior=e_start, stride=1)
+        e = est.update(np.stack([u2, v2])[:, None, :])
+        if not np.all(np.isfinite(e)):
+            e = e_start.copy()
+    return e, dw
+
+
 # ----------------------------------------------------------------------------- (c) parallax
 def _rotational_flow(camera: PinholeCamera, omega, like=None):
     """Flow (2, H, W) in normalised units (1/s) of a pinhole camera rotating at ω (rad/s, camera frame).
@@ -591,20 +757,49 @@ def depth_parallax(flow, camera: PinholeCamera, v: float, epipole, gyro=None,
 
 
 # ----------------------------------------------------------------------------- scoring
+def scorable(true, max_depth_m: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which pixels of an exact depth map (H, W) are scored: (scored, sky, far) bool masks.
+
+    sky: no surface (true depth non-finite or ≤ 0); far: finite but beyond
+    ``max_depth_m`` (the stated range of the scores); scored: the rest.
+    """
+    t = np.asarray(true.detach().cpu() if isinstance(true, torch.Tensor) else true, dtype=np.float64)
+    sky = ~(np.isfinite(t) & (t > 0))
+    far = ~sky & (np.where(sky, 0.0, t) > max_depth_m)
+    return ~sky & ~far, sky, far
+
+
+def error_stats(pred: np.ndarray, true: np.ndarray) -> dict:
+    """Depth errors over paired 1-D arrays of estimated and exact depth (m, both > 0).
+
+    abs_rel (mean |d̂−d|/d), median_abs_rel, rmse_m, rmse_log (RMS of ln d̂ − ln d),
+    delta_1_25 (fraction with max(d̂/d, d/d̂) < 1.25); NaN for empty input.
+    """
+    if pred.size == 0:
+        return dict(abs_rel=float("nan"), median_abs_rel=float("nan"), rmse_m=float("nan"),
+                    rmse_log=float("nan"), delta_1_25=float("nan"))
+    rel = np.abs(pred - true) / true
+    lr = np.log(pred / true)
+    return dict(abs_rel=float(np.mean(rel)), median_abs_rel=float(np.median(rel)),
+                rmse_m=float(np.sqrt(np.mean((pred - true) ** 2))), rmse_log=float(np.sqrt(np.mean(lr * lr))),
+                delta_1_25=float(np.mean(np.abs(lr) < math.log(1.25))))
+
+
 def depth_metrics(pred, true, mask, epipole, camera: PinholeCamera,
-                  rings_deg=(0.0, 5.0, 10.0, 20.0, 90.0)) -> dict:
+                  rings_deg=(0.0, 5.0, 10.0, 20.0, 90.0), max_depth_m: float = math.inf) -> dict:
     """Score a depth map against exact depth, overall and in rings around the epipole.
 
     pred, true: (H, W) forward depth (m); mask: (H, W) bool validity of ``pred`` (None:
-    finite pred). Pixels count only where ``true`` is finite and > 0. rings_deg: ring
+    finite pred). Pixels are scored where ``true`` is finite, > 0 and ≤ ``max_depth_m``
+    (:func:`scorable`; the others are counted as n_sky and n_far). rings_deg: ring
     edges in degrees of angle between the pixel's ray and the epipole's ray; ring i is
     [rings_deg[i], rings_deg[i+1]).
 
-    Returns {"all": m, "0-5": m, "5-10": m, ...} where each m is a dict with
-    abs_rel = mean |pred−true|/true, rmse_m = sqrt(mean (pred−true)²),
-    delta_1_25 = fraction with max(pred/true, true/pred) < 1.25 (these three over
-    pixels valid in both), valid_fraction = valid pixels / pixels with true depth, and
-    n_true, n_valid. Metrics over no valid pixels are NaN.
+    Returns {"all": m, "0-5": m, "5-10": m, ...} where each m is a dict with the
+    :func:`error_stats` (abs_rel = mean |pred−true|/true, median_abs_rel, rmse_m,
+    rmse_log, delta_1_25) over pixels valid in both, valid_fraction (the coverage:
+    valid scored pixels / scored pixels), n_true (scored pixels), n_valid, n_sky, n_far.
+    Metrics over no valid pixels are NaN.
     """
     def _np(a):
         return a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
@@ -615,22 +810,16 @@ def depth_metrics(pred, true, mask, epipole, camera: PinholeCamera,
         raise ValueError(f"pred {p.shape} and true {t.shape} must both be the camera's (H, W) = "
                          f"({camera.height}, {camera.width})")
     m = np.isfinite(p) if mask is None else (_np(mask).astype(bool) & np.isfinite(p))
-    has_true = np.isfinite(t) & (t > 0)
+    has_true, sky, far = scorable(t, max_depth_m)
     ang = angle_from_epipole(camera, epipole)
 
     def _score(region: np.ndarray) -> dict:
         tr = region & has_true
         ok = tr & m & (p > 0)
         n_true, n_ok = int(tr.sum()), int(ok.sum())
-        out = dict(n_true=n_true, n_valid=n_ok,
+        out = dict(n_true=n_true, n_valid=n_ok, n_sky=int((region & sky).sum()), n_far=int((region & far).sum()),
                    valid_fraction=(n_ok / n_true) if n_true else float("nan"))
-        if n_ok:
-            pe, te = p[ok], t[ok]
-            out["abs_rel"] = float(np.mean(np.abs(pe - te) / te))
-            out["rmse_m"] = float(np.sqrt(np.mean((pe - te) ** 2)))
-            out["delta_1_25"] = float(np.mean(np.maximum(pe / te, te / pe) < 1.25))
-        else:
-            out.update(abs_rel=float("nan"), rmse_m=float("nan"), delta_1_25=float("nan"))
+        out.update(error_stats(p[ok], t[ok]))
         return out
 
     result = {"all": _score(np.ones_like(has_true))}
