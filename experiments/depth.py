@@ -119,6 +119,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     d.add_argument("--velocity-run", help="a velocity NetCDF of this footage (from `lobula velocity`) to reuse")
     d.add_argument("--epipole", default="final", choices=["final", "running", "principal"],
                    help="heading: the velocity pass's final or running gyro-stabilised estimate, or the principal point")
+    d.add_argument("--dis-preset", choices=["ultrafast", "fast", "medium"],
+                   help="velocity pass: DIS preset (default: the velocity pipeline's own, fast)")
     d.add_argument("--accel-from-truth", action="store_true",
                    help="velocity pass: forward acceleration from truth.csv instead of imu.csv")
     d.add_argument("--gamma", type=float, default=FOOTAGE_GAMMA, help="TV weight (1/s x normalised length)")
@@ -180,6 +182,8 @@ def run_depth(args) -> int:
         return 0
     vcfg = VelocityConfig(front_end=args.front_end)
     vcfg.accel_from_truth = args.accel_from_truth
+    if getattr(args, "dis_preset", None):
+        vcfg.flow.dis_preset = args.dis_preset
     velocity = None
     if args.velocity_run:
         p = Path(args.velocity_run)
