@@ -59,7 +59,7 @@ from lobula.depth import (DepthConfig, DepthResult, depth_parallax, depth_ratio,
 from lobula.epipole import derotate_finite
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
 from lobula.haltere import orientation_from_gyro
-from stimuli.footage import Footage, FootageError
+from stimuli.footage import Footage, FootageError, footage_provenance
 
 __all__ = ["METHODS", "FOOTAGE_GAMMA", "DepthRunConfig", "Pair", "estimate_depth", "attitude_track", "pair_rotation",
            "depth_at_first_frame", "ranged_pairs", "depth_flow_fn", "footage_attitude", "flow_config", "mean_truth_velocity", "torch_threads",
@@ -655,7 +655,7 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
             footage=str(footage.path), footage_kind=footage.kind, notes="; ".join(footage.notes) or "none",
             velocity_config=velocity.attrs["config"],
             timings_s=json.dumps({k: round(v, 4) for k, v in timings.items()}),
-            wall_s=round(_time.perf_counter() - t_start, 3))
+            wall_s=round(_time.perf_counter() - t_start, 3), **footage_provenance(footage))
         return sink.finish(build, extra, attrs, out)
     except BaseException:
         if isinstance(sink, ZarrSink):

@@ -583,7 +583,10 @@ def precision_weights(sigma, clip: float = 1e3):
     if not bool(good.any()):
         return _like_input(torch.ones_like(s), as_numpy)
     med = v[good].median()
-    c = torch.where(good, med / v.clamp(min=1e-30), torch.ones_like(v)).clamp(1.0 / clip, clip)
+    if not bool(med > 0):
+        return _like_input(torch.ones_like(s), as_numpy)
+    # Relative floor (not an absolute one): exact synthetic flow has σ² ~ 1e-32.
+    c = torch.where(good, med / torch.maximum(v, med / clip), torch.ones_like(v)).clamp(1.0 / clip, clip)
     return _like_input(c, as_numpy)
 
 
