@@ -32,11 +32,11 @@ pair from truth.csv, which shows what the geometry gives when the speed is right
 output's ``velocity_source`` says which.
 
 **Where the flow cannot tell depth.** Each pixel's flow noise σ is estimated from the
-flow itself (:func:`lobula.depth.flow_noise`: the component perpendicular to the
+flow itself (:func:`lobula.depth_motion.flow_noise`: the component perpendicular to the
 epipolar direction). The TV fit weights its data term by the flow's relative precision
-1/σ² (:func:`lobula.depth.precision_weights`) and lets the TV term fill in where it is
+1/σ² (:func:`lobula.depth_motion.precision_weights`) and lets the TV term fill in where it is
 poor; the ratio and parallax maps report nothing where the translational flow a typical
-scene point would make is below ``snr_min``·σ (:func:`lobula.depth.translational_snr`:
+scene point would make is below ``snr_min``·σ (:func:`lobula.depth_motion.translational_snr`:
 σ_d/d ≈ 1/SNR, so SNR 3 is a depth good to about ⅓). What is not known is not guessed:
 a pair whose speed is NaN (unobservable) or below ``min_speed_m_s`` gives an all-invalid
 map and is not solved.
@@ -54,8 +54,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from lobula.camera import PinholeCamera
 from lobula.config import VelocityConfig
-from lobula.depth import (DepthConfig, DepthResult, depth_parallax, depth_ratio, depth_tv, flow_noise,
-                          precision_weights, refine_motion, translational_snr)
+from lobula.depth import DepthConfig, DepthResult, depth_parallax, depth_ratio, depth_tv
+from lobula.depth_motion import flow_noise, precision_weights, refine_motion, translational_snr
 from lobula.epipole import derotate_finite
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
 from lobula.haltere import orientation_from_gyro
@@ -93,7 +93,7 @@ class DepthRunConfig:
     velocity run's own flow settings. Farneback runs stay Farneback either way.
     refine: estimate per pair the rotation the gyro left (scale-factor and misalignment
     errors: tenths of a degree a pair while turning) jointly with the epipole, started at
-    the gyro-stabilised heading (:func:`lobula.depth.refine_motion`); the maps and the
+    the gyro-stabilised heading (:func:`lobula.depth_motion.refine_motion`); the maps and the
     rings are then about that epipole.
     weighted: TV data term weighted by the flow's relative precision (default) or
     uniform (the paper's). snr_min: ratio and parallax report depth only where the
@@ -198,13 +198,13 @@ def depth_at_first_frame(flow, camera: PinholeCamera, v: float, epipole, dt: flo
     angular velocity (rad/s) over the pair, turned into R₀₁ = exp([ω]×dt); neither: no
     rotation. The derotation is exact (finite rotation, module doc); ``d₀ = v/z + v·dt``.
     refine: then estimate what rotation the gyro left and the epipole from this flow
-    (:func:`lobula.depth.refine_motion`, started at ``epipole``); the result's
+    (:func:`lobula.depth_motion.refine_motion`, started at ``epipole``); the result's
     ``epipole`` is the one used.
     weighted, snr_min, noise_window_deg: as :class:`DepthRunConfig`. init: a previous TV
     solve for a warm start.
 
     Returns (result with numpy ``depth``/``valid``/``rate`` at the first frame and the
-    per-pixel flow noise in ``sigma``-less form — see :func:`lobula.depth.flow_noise` —,
+    per-pixel flow noise in ``sigma``-less form — see :func:`lobula.depth_motion.flow_noise` —,
     the raw TV result for the next warm start or None). v non-finite or 0 gives an
     all-invalid result.
     """

@@ -16,7 +16,8 @@ import pytest
 from experiments.depth_score import PooledScores, ring_masks
 from experiments.depth_stream import (DepthRunConfig, attitude_track, depth_at_first_frame, estimate_depth,
                                       ring_edges)
-from lobula.depth import angle_from_epipole, depth_metrics, flow_noise, refine_motion, scorable
+from lobula.depth import angle_from_epipole, depth_metrics, scorable
+from lobula.depth_motion import flow_noise, refine_motion
 from stimuli.imu import IMUConfig
 from stimuli.scene import SceneConfig
 from stimuli.track import TrackRunConfig, build_track
