@@ -30,7 +30,15 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """--help shows every option's default and keeps descriptions' line breaks."""
+    """--help shows every option's default and keeps descriptions' line breaks.
+
+    An option whose help already explains its default (e.g. "default: colour, else
+    infrared" for a None that means something) is not given a second, literal one.
+    """
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        return text if "default" in text.lower() else super()._get_help_string(action)
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:

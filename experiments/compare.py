@@ -456,7 +456,10 @@ def _compare(args) -> int:
             raise FootageError(f"{args.flo}: no .flo files there")
     units = FloUnits(args.flo_units, args.flo_gap, *args.flo_size)
     say = (lambda s: None) if args.quiet else (lambda s: print(s, file=sys.stderr))
-    ds = compare_front_ends(args.footage, front_ends, _config_from_args(args), flo_files, units,
+    from .info import open_footage_from_args
+
+    footage = open_footage_from_args(args, require_imu=not args.accel_from_truth)
+    ds = compare_front_ends(footage, front_ends, _config_from_args(args), flo_files, units,
                             skip_s=args.skip, tol_m_s=args.tol, hold_s=args.hold, progress=not args.quiet, log=say)
     write_netcdf(ds, args.out)
     print(format_table(ds))
@@ -502,5 +505,7 @@ def add_parser(subparsers):
     c.add_argument("--tol", type=float, default=LOCK_TOL_M_S, help="lock-on tolerance (m/s, default 0.1)")
     c.add_argument("--hold", type=float, default=LOCK_HOLD_S, help="lock-on hold time (s, default 1)")
     c.add_argument("--quiet", action="store_true")
+    from .info import add_footage_options
+    add_footage_options(c)  # the readers' options, as for lobula velocity
     c.set_defaults(func=_compare)
     return c

@@ -44,10 +44,25 @@ def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
         raise
 
 
+def compressed_encoding(ds: xr.Dataset, level: int = 4, min_size: int = 1024) -> dict:
+    """NetCDF-4 encoding that deflates every numeric variable of at least ``min_size`` values.
+
+    Recordings are mostly repeated values (spike rasters of 0/1, constants), so zlib at a
+    moderate level shrinks them many-fold at little cost; readers decompress transparently.
+    Variables that already carry an encoding (chunks, compression) keep theirs.
+    """
+    enc = {}
+    for name, var in ds.variables.items():
+        if var.dtype.kind in "biuf" and var.size >= min_size and not ({"zlib", "compression", "chunksizes"}
+                                                                       & set(var.encoding)):
+            enc[name] = {"zlib": True, "complevel": level}
+    return enc
+
+
 def write_netcdf(ds: xr.Dataset, path: str | Path) -> Path:
-    """Write ``ds`` to NetCDF (h5netcdf engine) atomically."""
+    """Write ``ds`` to NetCDF (h5netcdf engine) atomically, numeric variables deflated (:func:`compressed_encoding`)."""
     with atomic_path(path) as tmp:
-        ds.to_netcdf(tmp, engine="h5netcdf")
+        ds.to_netcdf(tmp, engine="h5netcdf", encoding=compressed_encoding(ds))
     return Path(path)
 
 

@@ -2,21 +2,21 @@
 
 Layout: the video, and beside it ``<video stem>.camera.json`` or ``camera.json`` (the
 footage folder's camera.json, optionally with "imu_to_camera"), ``<video stem>.imu.csv`` or
-``imu.csv`` (time_s, accel_x..z, gyro_x..z; time_s on the video's clock: 0 = the
-container's time 0) and optionally ``truth.csv`` (time_s, v_forward_m_s).
+``imu.csv`` (time_s, accel_x..z, gyro_x..z; time_s on the video's clock: the container's
+presentation time, pts × time base) and optionally ``truth.csv`` (time_s, v_forward_m_s).
 
-Frame times are the container's presentation time stamps, read through OpenCV
-(``CAP_PROP_POS_MSEC`` after each grab), never an assumed frame rate: a variable-rate
-video or one with dropped frames keeps its true times. Opening grabs every frame once
-to read its time (decoding but not converting; memory flat); :meth:`VideoFootage.frames`
-decodes again, one frame at a time.
+Frame times are the container's presentation time stamps, read through PyAV (FFmpeg),
+never an assumed frame rate: a variable-rate video or one with dropped frames keeps its
+true times. Opening only demultiplexes — it reads each packet's time stamp without decoding
+a picture, so opening an hour of 4K video costs seconds and no memory beyond the time
+stamps; :meth:`VideoFootage.frames` decodes one packet at a time.
 """
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Iterator
 
-import cv2
+import av
 import numpy as np
 
 from lobula.camera import PinholeCamera
@@ -30,31 +30,55 @@ def _beside(video: Path, name: str) -> Path:
     return own if own.exists() else video.with_name(name)
 
 
-def _open_capture(path: Path) -> cv2.VideoCapture:
-    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
-    if not cap.isOpened():
-        cap.release()
-        raise FootageError(f"{path}: OpenCV cannot open this video (unknown container or codec, or a damaged "
-                           f"file); re-encode it, e.g. to H.264 mp4 or MJPG avi")
-    return cap
-
-
-def container_times(path: Path) -> tuple[np.ndarray, int, int, float]:
-    """(frame times s (n,), width, height, nominal fps) from the container's time stamps."""
-    cap = _open_capture(path)
+def _open_container(path: Path):
+    """(container, its first video stream); FootageError naming the file when FFmpeg cannot read it."""
     try:
-        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        container = av.open(str(path))
+    except (av.error.FFmpegError, UnicodeDecodeError) as exc:
+        raise FootageError(f"{path}: FFmpeg cannot open this video ({exc.__class__.__name__}: unknown container "
+                           f"or codec, or a damaged file); re-encode it, e.g. to H.264 mp4 or MJPG avi") from None
+    if not container.streams.video:
+        container.close()
+        raise FootageError(f"{path}: the file holds no video stream")
+    return container, container.streams.video[0]
+
+
+def _packet_time(packet, path: Path) -> float | None:
+    """Presentation time (s) of a demultiplexed packet; None for the flush packet at the end."""
+    if packet.size == 0:
+        return None
+    stamp = packet.pts if packet.pts is not None else packet.dts
+    if stamp is None or packet.time_base is None:
+        raise FootageError(f"{path}: a packet of the video has no time stamp; remux it (ffmpeg -i IN -c copy OUT.mkv)")
+    return float(stamp * packet.time_base)
+
+
+def container_times(path: Path) -> tuple[np.ndarray, int, int, float, str]:
+    """(frame times s (n,) ascending, width, height, nominal frames/s, codec) from the packets' time stamps.
+
+    Packets arrive in decoding order (B-frames come before the pictures they refer to), so
+    the presentation times are sorted.
+    """
+    container, stream = _open_container(path)
+    try:
+        w, h = stream.codec_context.width, stream.codec_context.height
+        fps = float(stream.average_rate or stream.guessed_rate or 0.0)
         times = []
-        while cap.grab():
-            times.append(cap.get(cv2.CAP_PROP_POS_MSEC) / 1e3)
+        try:
+            for packet in container.demux(stream):
+                t = _packet_time(packet, path)
+                if t is not None:
+                    times.append(t)
+        except av.error.FFmpegError as exc:
+            raise FootageError(f"{path}: the container is damaged after {len(times)} packets ({exc}); "
+                               f"re-encode or remux it") from None
+        return np.sort(np.asarray(times, float)), w, h, fps, stream.codec_context.name
     finally:
-        cap.release()
-    return np.asarray(times, float), w, h, fps
+        container.close()
 
 
 class VideoFootage(Footage):
-    """Footage decoded from a video file, one frame at a time."""
+    """Footage decoded from a video file, one packet at a time."""
 
     def __len__(self) -> int:
         return len(self.times)
@@ -64,39 +88,51 @@ class VideoFootage(Footage):
         start, stop = max(0, int(start)), (n if stop is None else min(int(stop), n))
         if start >= stop:
             return
-        cap = _open_capture(self.path)
+        container, stream = _open_container(self.path)
+        done = np.zeros(n, bool)  # yielded, or reported bad
         try:
-            i = 0
-            while i < stop:
-                ok = cap.grab()
-                if not ok:
-                    break
-                t = cap.get(cv2.CAP_PROP_POS_MSEC) / 1e3
-                if abs(t - self.times[i]) > 1e-4:
-                    raise FootageError(f"{self.path}: frame {i} has time {t:.6f} s, {self.times[i]:.6f} s when "
-                                       f"opened; the file changed, open it again")
-                if i >= start:
-                    ok, img = cap.retrieve()
+            for packet in container.demux(stream):  # the last, empty packet flushes the decoder's delayed pictures
+                t = _packet_time(packet, self.path)
+                i = None if t is None else self._index(t)
+                try:
+                    pictures = packet.decode()
+                except av.error.FFmpegError as exc:
+                    if i is not None and start <= i < stop:
+                        done[i] = True
+                        self.bad_frame(i, FootageError(f"{self.path}: frame {i} (t = {t:.3f} s) cannot be decoded "
+                                                       f"({exc}); re-encode the video, or pass --skip-bad-frames"))
+                    continue
+                for picture in pictures:  # in presentation order, possibly some packets later
+                    k = i if picture.time is None else self._index(float(picture.time))
+                    if k is None or not start <= k < stop or done[k]:
+                        continue
+                    done[k] = True
+                    grey = to_grey(picture.to_ndarray(format="bgr24"))  # the same grey as every reader
                     try:
-                        if not ok or img is None:
-                            raise FootageError(f"{self.path}: frame {i} (t = {t:.3f} s) cannot be decoded; "
-                                               f"re-encode the video, or pass --skip-bad-frames")
-                        grey = to_grey(img)
-                        self.check_size(grey, f"{self.path}: frame {i}")
+                        self.check_size(grey, f"{self.path}: frame {k}")
                     except FootageError as exc:
-                        self.bad_frame(i, exc)
+                        self.bad_frame(k, exc)
                     else:
-                        yield i, float(self.times[i]), grey
-                i += 1
+                        yield k, float(self.times[k]), grey
+                if done[start:stop].all():
+                    break
         finally:
-            cap.release()
-        if i < stop:
-            if self.skip_bad_frames:
-                for k in range(i, stop):
-                    self.bad_frame(k, FootageError(""))
-            else:
-                raise FootageError(f"{self.path}: the video ended after frame {i - 1}, {n} frames when opened; "
-                                   f"the file changed or is damaged, or pass --skip-bad-frames")
+            container.close()
+        missing = np.flatnonzero(~done[start:stop]) + start
+        if len(missing):
+            if not self.skip_bad_frames:
+                raise FootageError(f"{self.path}: the video ended before frame {missing[0]}, {n} frames when "
+                                   f"opened; the file changed or is damaged, or pass --skip-bad-frames")
+            for k in missing:
+                self.bad_frame(int(k), FootageError(""))
+
+    def _index(self, t: float) -> int:
+        """The frame whose time stamp is t (s); FootageError if none is (the file changed since opening)."""
+        i = int(np.searchsorted(self.times, t - 1e-7))
+        if i >= len(self.times) or abs(self.times[i] - t) > 1e-6:
+            raise FootageError(f"{self.path}: a picture has time {t:.6f} s, unknown when the video was opened; "
+                               f"the file changed, open it again")
+        return i
 
     def depth_map(self, index: int) -> np.ndarray | None:
         return None
@@ -109,7 +145,7 @@ def open_video(path: str | Path, require_imu: bool = True) -> VideoFootage:
         raise FootageError(f"{path}: video file not found")
     cam_path = _beside(path, "camera.json")
     camera = PinholeCamera.from_json(cam_path)
-    times, w, h, fps = container_times(path)
+    times, w, h, fps, codec = container_times(path)
     if len(times) == 0:
         raise FootageError(f"{path}: no frames could be read (empty or damaged video)")
     check_times(path, times, "container time stamp")
@@ -132,15 +168,7 @@ def open_video(path: str | Path, require_imu: bool = True) -> VideoFootage:
     if tp.exists():
         truth = read_csv_columns(tp, ("time_s", "v_forward_m_s"))
         check_times(tp, truth["time_s"])
-    streams = [dict(stream="video", codec=_fourcc(path), frames=len(times), nominal_fps=fps)]
+    streams = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=fps)]
     return VideoFootage(path, camera, times, [path] * 0, imu, truth, kind="video", notes=notes,
                         imu_to_camera=r, streams=streams)
 
-
-def _fourcc(path: Path) -> str:
-    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
-    try:
-        code = int(cap.get(cv2.CAP_PROP_FOURCC))
-    finally:
-        cap.release()
-    return "".join(chr((code >> 8 * k) & 0xFF) for k in range(4)).strip("\x00") or "?"

@@ -413,3 +413,35 @@ def test_info_on_every_layout(run2, d435i, tmp_path, capsys):
     assert d["truth"]["samples"] == 60
     code, _, err = cli(capsys, "info", tmp_path / "nothing")
     assert code == 2 and "nothing" in err
+
+
+def test_h264_with_b_frames_and_a_gap_keeps_presentation_times(run2, tmp_path):
+    """H.264 in mp4, B-frames (decode order ≠ presentation order) and 50 ms missing after frame 10."""
+    import av
+    from fractions import Fraction
+
+    fo = open_footage(run2)
+    dst = tmp_path / "h"
+    dst.mkdir()
+    video = dst / "rec.mp4"
+    pts_ms = [round(k * 1000 / 30) + (50 if k > 10 else 0) for k in range(20)]
+    with av.open(str(video), "w") as c:
+        s = c.add_stream("libx264", rate=30, options={"bf": "2", "g": "12", "crf": "12"})
+        s.width, s.height, s.pix_fmt = fo.camera.width, fo.camera.height, "yuv420p"
+        s.codec_context.time_base = Fraction(1, 1000)
+        for (_, _, img), p in zip(fo.frames(0, 20), pts_ms):
+            frame = av.VideoFrame.from_ndarray(np.repeat(img.astype(np.uint8)[..., None], 3, -1), format="rgb24")
+            frame.pts, frame.time_base = p, Fraction(1, 1000)
+            for packet in s.encode(frame):
+                c.mux(packet)
+        for packet in s.encode():
+            c.mux(packet)
+    for name in ("camera.json", "imu.csv"):
+        shutil.copy(run2 / name, dst / name)
+    fv = open_footage(video)
+    np.testing.assert_allclose(fv.times, np.array(pts_ms) / 1000, atol=1e-6)
+    ref = {i: img for i, _, img in fo.frames(6, 14)}
+    got = list(fv.frames(6, 14))
+    assert [i for i, _, _ in got] == list(range(6, 14))   # presentation order, none lost in the decoder's delay
+    for i, t, img in got:
+        assert t == fv.times[i] and np.abs(img - ref[i]).mean() < 3.0   # each picture is its own frame

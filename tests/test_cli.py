@@ -1,0 +1,23 @@
+"""The command line: every subcommand's --help works and states each option's default once."""
+import argparse
+import re
+
+import pytest
+
+from experiments.cli import COMMANDS, _Formatter, build_parser
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_every_option_states_its_default_exactly_once(command):
+    parser = build_parser([command])
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    fmt = _Formatter(command)
+    for action in sub._actions:
+        if (not action.option_strings or action.required or action.default is argparse.SUPPRESS
+                or action.help in (None, argparse.SUPPRESS) or action.dest == "help"):
+            continue
+        text = fmt._get_help_string(action) % {"default": action.default, "prog": command, "dest": action.dest,
+                                                 "choices": action.choices, "type": action.type}
+        n = len(re.findall(r"default", text, flags=re.IGNORECASE))
+        assert n >= 1, f"lobula {command} {action.option_strings[0]}: help does not state its default"
+        assert n == 1 or "(default:" not in text, f"lobula {command} {action.option_strings[0]}: default twice: {text}"
