@@ -86,7 +86,7 @@ def depth_panel(frame: np.ndarray, true: np.ndarray | None, results: dict, camer
         cb.set_ticks(np.unique(np.round(np.geomspace(vmin, vmax, 5), 2)))
         cb.ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
     fig.suptitle(title, fontsize=10)
-    save_figure(fig, path, dpi=110, bbox_inches="tight")
+    save_figure(fig, path, dpi=150, bbox_inches="tight")
     plt.close(fig)
     return Path(path)
 
