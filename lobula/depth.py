@@ -40,8 +40,14 @@ the depth at the *later* frame for the translational part (the displacement is
 ``v·dt/(d₀ − v·dt)·(p−e)``); add ``v·dt`` for the depth at the earlier frame. The
 depth maps are indexed by the pixel grid the flow is sampled on.
 
-Scoring against exact depth: :func:`depth_metrics` (AbsRel, RMSE, δ<1.25 and valid
-fraction overall and in rings of angular distance from the epipole).
+Scoring against exact depth: :func:`depth_metrics` (mean and median AbsRel, RMSE,
+RMSE(log), δ<1.25 and coverage, overall and in rings of angular distance from the
+epipole) over the pixels :func:`scorable` keeps (exact depth finite and within a stated
+range; sky and farther pixels are counted, not scored).
+
+How precise each pixel's flow is, where depth is ill-conditioned, and the rotation a
+gyroscope leaves: :mod:`lobula.depth_motion` (``flow_noise``, ``precision_weights`` —
+the data weights :func:`depth_tv` takes —, ``translational_snr``, ``refine_motion``).
 
 Every array input may be a numpy array or a torch tensor; outputs come back as the same
 kind (torch outputs on the input's device).
@@ -70,6 +76,8 @@ __all__ = [
     "derotate_flow",
     "depth_parallax",
     "depth_metrics",
+    "scorable",
+    "error_stats",
 ]
 
 
@@ -125,6 +133,8 @@ class DepthResult:
         met, seconds spent; None for the closed-form methods.
     coarse_iterations: TV cold start: iterations on each pyramid level, coarsest first
         (each costs about a quarter of the one above); () for a warm start.
+    epipole: the epipole (ex, ey) the map was computed with, when the caller refined it
+        (:func:`refine_motion`); None otherwise.
     dual, step: (2, H, W) the TV solver's dual variable and its adapted primal step,
         for warm starts (pass the whole result as ``init`` to :func:`depth_tv`); None
         otherwise.
@@ -141,6 +151,7 @@ class DepthResult:
     dual: object = field(default=None, repr=False)
     step: float | None = None
     coarse_iterations: tuple = ()
+    epipole: tuple | None = None
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -300,10 +311,11 @@ def _tv(z: torch.Tensor, fx: float, fy: float) -> torch.Tensor:
     return torch.sqrt((g * g).sum(0)).sum()
 
 
-def tv_objective(z, flow, camera: PinholeCamera, epipole, gamma: float) -> float:
-    """The TV depth objective Σ|ṗ − z(p−e)|² + γ·Σ|∇z| (∇ in normalised units) at ``z`` (H, W).
+def tv_objective(z, flow, camera: PinholeCamera, epipole, gamma: float, weights=None) -> float:
+    """The TV depth objective Σ c·|ṗ − z(p−e)|² + γ·Σ|∇z| (∇ in normalised units) at ``z`` (H, W).
 
-    Non-finite flow pixels carry no data term (as in :func:`depth_tv`).
+    c: per-pixel data weights (``weights``, (H, W), default 1). Non-finite flow pixels
+    carry no data term (as in :func:`depth_tv`).
     """
     f, _ = _check_flow(flow, camera)
     f = f.to(torch.float64)
@@ -311,13 +323,16 @@ def tv_objective(z, flow, camera: PinholeCamera, epipole, gamma: float) -> float
     q = _offsets(camera, epipole, f)
     ok = torch.isfinite(f).all(0)
     res = torch.where(ok, ((f - zt * q) ** 2).sum(0), torch.zeros_like(zt))
+    if weights is not None:
+        c = _to_tensor(weights, device=f.device, dtype=torch.float64)
+        res = torch.where(ok, res * c, res)
     return float(res.sum() + gamma * _tv(zt, camera.fx, camera.fy))
 
 
 def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None = None,
              init=None, iters: int | None = None, tol: float | None = None,
-             config: DepthConfig | None = None) -> DepthResult:
-    """TV-regularised depth: minimise Σ|ṗ − z(p−e)|² + γ·TV(z) over z = v/d, then d = v/z.
+             config: DepthConfig | None = None, weights=None) -> DepthResult:
+    """TV-regularised depth: minimise Σ c·|ṗ − z(p−e)|² + γ·TV(z) over z = v/d, then d = v/z.
 
     flow: (2, H, W) normalised flow (1/s); pixels with non-finite flow get no data term
     (TV fills them in). v: forward speed (m/s); epipole: (ex, ey) normalised.
@@ -327,6 +342,10 @@ def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None
     best), or a (H, W) z map (1/s); None is a cold start, solved coarse to fine.
     iters, tol: iteration cap (at full resolution) and tolerance on the relative
     primal–dual residuals (see :class:`DepthConfig`).
+    weights: per-pixel data weights c (H, W), ≥ 0, default 1 — the flow's relative
+    precision (:func:`lobula.depth_motion.precision_weights`: 1/σ² of each pixel's flow noise over its
+    median), so that pixels whose flow is unreliable lean on their neighbours through
+    the TV term instead of being masked. Scaled to median 1, γ keeps its meaning.
 
     Method: Chambolle–Pock primal–dual (θ = 1) on min_z G(z) + F(Kz) with K = ∇,
     F = γ‖·‖₂,₁ (dual prox: projection onto the ball of radius γ per pixel) and
@@ -357,6 +376,11 @@ def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None
         f0 = torch.where(ok, f, torch.zeros_like(f))
         w = (q * q).sum(0) * ok.to(f.dtype)   # data weight |p−e|², 0 where flow is missing
         b = (f0 * q).sum(0)                   # ⟨ṗ, p−e⟩, 0 where missing
+        if weights is not None:
+            c = _to_tensor(weights, device=f.device, dtype=f.dtype)
+            if tuple(c.shape) != tuple(w.shape) or not bool(torch.all(torch.isfinite(c) & (c >= 0))):
+                raise ValueError(f"weights must be finite and ≥ 0 with the flow's shape {tuple(w.shape)}")
+            w, b = w * c, b * c
         fx, fy = float(camera.fx), float(camera.fy)
         coarse: list[int] = []
         if init is None:
@@ -366,7 +390,7 @@ def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None
         z, y, n_done, converged, tau = _tv_solve(w, b, gamma, fx, fy, z, y, iters, tol,
                                                  cfg.tv_check_every, tau)
         solve_s = time.perf_counter() - t0
-        objective = tv_objective(z, f, camera, epipole, gamma)
+        objective = tv_objective(z, f, camera, epipole, gamma, weights=weights)
         depth, valid = rate_to_depth(z, _speed(v), cfg.max_depth_m)
     return DepthResult(depth=_like_input(depth, as_numpy), valid=_like_input(valid, as_numpy),
                        rate=_like_input(z, as_numpy), method="tv", iterations=n_done,
@@ -591,20 +615,49 @@ def depth_parallax(flow, camera: PinholeCamera, v: float, epipole, gyro=None,
 
 
 # ----------------------------------------------------------------------------- scoring
+def scorable(true, max_depth_m: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which pixels of an exact depth map (H, W) are scored: (scored, sky, far) bool masks.
+
+    sky: no surface (true depth non-finite or ≤ 0); far: finite but beyond
+    ``max_depth_m`` (the stated range of the scores); scored: the rest.
+    """
+    t = np.asarray(true.detach().cpu() if isinstance(true, torch.Tensor) else true, dtype=np.float64)
+    sky = ~(np.isfinite(t) & (t > 0))
+    far = ~sky & (np.where(sky, 0.0, t) > max_depth_m)
+    return ~sky & ~far, sky, far
+
+
+def error_stats(pred: np.ndarray, true: np.ndarray) -> dict:
+    """Depth errors over paired 1-D arrays of estimated and exact depth (m, both > 0).
+
+    abs_rel (mean |d̂−d|/d), median_abs_rel, rmse_m, rmse_log (RMS of ln d̂ − ln d),
+    delta_1_25 (fraction with max(d̂/d, d/d̂) < 1.25); NaN for empty input.
+    """
+    if pred.size == 0:
+        return dict(abs_rel=float("nan"), median_abs_rel=float("nan"), rmse_m=float("nan"),
+                    rmse_log=float("nan"), delta_1_25=float("nan"))
+    rel = np.abs(pred - true) / true
+    lr = np.log(pred / true)
+    return dict(abs_rel=float(np.mean(rel)), median_abs_rel=float(np.median(rel)),
+                rmse_m=float(np.sqrt(np.mean((pred - true) ** 2))), rmse_log=float(np.sqrt(np.mean(lr * lr))),
+                delta_1_25=float(np.mean(np.abs(lr) < math.log(1.25))))
+
+
 def depth_metrics(pred, true, mask, epipole, camera: PinholeCamera,
-                  rings_deg=(0.0, 5.0, 10.0, 20.0, 90.0)) -> dict:
+                  rings_deg=(0.0, 5.0, 10.0, 20.0, 90.0), max_depth_m: float = math.inf) -> dict:
     """Score a depth map against exact depth, overall and in rings around the epipole.
 
     pred, true: (H, W) forward depth (m); mask: (H, W) bool validity of ``pred`` (None:
-    finite pred). Pixels count only where ``true`` is finite and > 0. rings_deg: ring
+    finite pred). Pixels are scored where ``true`` is finite, > 0 and ≤ ``max_depth_m``
+    (:func:`scorable`; the others are counted as n_sky and n_far). rings_deg: ring
     edges in degrees of angle between the pixel's ray and the epipole's ray; ring i is
     [rings_deg[i], rings_deg[i+1]).
 
-    Returns {"all": m, "0-5": m, "5-10": m, ...} where each m is a dict with
-    abs_rel = mean |pred−true|/true, rmse_m = sqrt(mean (pred−true)²),
-    delta_1_25 = fraction with max(pred/true, true/pred) < 1.25 (these three over
-    pixels valid in both), valid_fraction = valid pixels / pixels with true depth, and
-    n_true, n_valid. Metrics over no valid pixels are NaN.
+    Returns {"all": m, "0-5": m, "5-10": m, ...} where each m is a dict with the
+    :func:`error_stats` (abs_rel = mean |pred−true|/true, median_abs_rel, rmse_m,
+    rmse_log, delta_1_25) over pixels valid in both, valid_fraction (the coverage:
+    valid scored pixels / scored pixels), n_true (scored pixels), n_valid, n_sky, n_far.
+    Metrics over no valid pixels are NaN.
     """
     def _np(a):
         return a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
@@ -615,22 +668,16 @@ def depth_metrics(pred, true, mask, epipole, camera: PinholeCamera,
         raise ValueError(f"pred {p.shape} and true {t.shape} must both be the camera's (H, W) = "
                          f"({camera.height}, {camera.width})")
     m = np.isfinite(p) if mask is None else (_np(mask).astype(bool) & np.isfinite(p))
-    has_true = np.isfinite(t) & (t > 0)
+    has_true, sky, far = scorable(t, max_depth_m)
     ang = angle_from_epipole(camera, epipole)
 
     def _score(region: np.ndarray) -> dict:
         tr = region & has_true
         ok = tr & m & (p > 0)
         n_true, n_ok = int(tr.sum()), int(ok.sum())
-        out = dict(n_true=n_true, n_valid=n_ok,
+        out = dict(n_true=n_true, n_valid=n_ok, n_sky=int((region & sky).sum()), n_far=int((region & far).sum()),
                    valid_fraction=(n_ok / n_true) if n_true else float("nan"))
-        if n_ok:
-            pe, te = p[ok], t[ok]
-            out["abs_rel"] = float(np.mean(np.abs(pe - te) / te))
-            out["rmse_m"] = float(np.sqrt(np.mean((pe - te) ** 2)))
-            out["delta_1_25"] = float(np.mean(np.maximum(pe / te, te / pe) < 1.25))
-        else:
-            out.update(abs_rel=float("nan"), rmse_m=float("nan"), delta_1_25=float("nan"))
+        out.update(error_stats(p[ok], t[ok]))
         return out
 
     result = {"all": _score(np.ones_like(has_true))}
