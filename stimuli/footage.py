@@ -93,10 +93,25 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
     else:
         raise FootageError(f"{path}: neither a footage folder (frames.csv), the D435i sample layout "
                            f"(frames/ + velocity.csv), an EuRoC folder (mav0/cam0) nor a folder with a video")
+    _refuse_options_for_layout(footage, stream, clock, undistort)
     footage.skip_bad_frames = skip_bad_frames
     if clock_offset not in (None, 0, 0.0, "0"):
         _apply_clock_offset(footage, clock_offset)
     return footage
+
+
+def _refuse_options_for_layout(footage: Footage, stream, clock, undistort) -> None:
+    """FootageError for a reader option the opened layout has no use for: it would be silently ignored."""
+    realsense = "only RealSense .bag/.db3 recordings"
+    unused = []
+    if not footage.kind.startswith("realsense"):
+        unused += [f"--stream ({realsense})"] * (stream is not None)
+        unused += [f"--clock ({realsense})"] * (clock not in (None, "device"))
+    if footage.kind != "euroc" and undistort != "same-k":
+        unused.append("--undistort (only EuRoC/ASL folders)")
+    if unused:
+        raise FootageError(f"{footage.path}: {'; '.join(unused)} — this is a {footage.kind} footage; drop "
+                           f"{'it' if len(unused) == 1 else 'them'}")
 
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov", ".m4v", ".webm")

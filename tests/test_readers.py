@@ -445,3 +445,12 @@ def test_h264_with_b_frames_and_a_gap_keeps_presentation_times(run2, tmp_path):
     assert [i for i, _, _ in got] == list(range(6, 14))   # presentation order, none lost in the decoder's delay
     for i, t, img in got:
         assert t == fv.times[i] and np.abs(img - ref[i]).mean() < 3.0   # each picture is its own frame
+
+
+def test_reader_options_the_layout_cannot_use_fail_loudly(run2, tmp_path, capsys):
+    out = tmp_path / "o.nc"
+    for opts, needle in ((["--stream", "Infrared_1"], "--stream (only RealSense"),
+                         (["--clock", "record"], "--clock (only RealSense"),
+                         (["--undistort", "optimal"], "--undistort (only EuRoC")):
+        code, _, err = cli(capsys, "velocity", run2, "--out", out, "--quiet", *opts)
+        assert_clean_failure(code, err, out, needle)
