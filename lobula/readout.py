@@ -240,19 +240,17 @@ def rest_measurement(r, cfg: ReadoutConfig):
     return np.where(use, 0.0, np.nan), np.where(use, std, np.nan)
 
 
-def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_span=None, window_s=None,
+def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravity_tau=None,
                     ratio=None, drift_std=None):
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
     absent. Returns posterior mean and std of v, (n,) each.
 
-    accel_span (n,) s: when a's gravity was estimated online as the mean specific force
-    over the last ``accel_span`` seconds (lobula.haltere, causal), that mean also holds the
-    platform's own mean acceleration, (v(t) − v(t − span))/span, which a lacks. The filter
-    adds it back: while the window still grows from the record's start (span < window_s)
-    v(t − span) is the initial velocity, a third state v₀ (equal to v at the start);
-    once the window slides it is the filter's own earlier estimate.
+    gravity_tau (n,) s: when a's gravity was estimated online by an average of time constant
+    τ (lobula.haltere.online_gravity), that average also takes in the platform's own
+    acceleration, so the offset moves as ḃ = −a/τ (a the acceleration given): a known
+    input to the offset state, not noise. None: the offset only random-walks.
 
     ratio: (κ, σ_κ, a_m, shift), each (n,): vision's measurement of a/v (κ = (ṙ − r²)/r per
     field, which needs no accelerometer) against the accelerometer's a_m (low-passed like
@@ -268,7 +266,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
     sv, sb = cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2
     sd0 = float(drift_std[0]) ** 2 if drift_std is not None else 0.0
     x = np.zeros(4)
-    P = np.array([[sv, 0.0, sv, 0.0], [0.0, sb, 0.0, 0.0], [sv, 0.0, sv, 0.0], [0.0, 0.0, 0.0, sd0]])
+    # States: v, the offset b, an unused slot (kept so the layout stays v, b, ·, ḃ), the ramp ḃ.
+    P = np.diag([sv, sb, 0.0, sd0])
     xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 4)), np.zeros((n, 4, 4)), np.zeros((n, 4)),
                                     np.zeros((n, 4, 4)), np.zeros((n, 4, 4)))
     H = np.array([1.0, 0.0, 0.0, 0.0])
@@ -278,14 +277,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
             F = np.eye(4)
             F[0, 1], F[1, 3] = -dt, dt
             u = 0.5 * (a[k] + a[k - 1]) * dt
-            if accel_span is not None and np.isfinite(accel_span[k]) and accel_span[k] > 0:
-                c = dt / accel_span[k]
-                F[0, 0] += c
-                if window_s is None or accel_span[k] < window_s:
-                    F[0, 2] = -c
-                else:
-                    u -= c * np.interp(t[k] - accel_span[k], t[:k], xs[:k, 0])
-            x = F @ x + np.array([u, 0.0, 0.0, 0.0])
+            ub = -u / gravity_tau[k] if gravity_tau is not None else 0.0
+            x = F @ x + np.array([u, ub, 0.0, 0.0])
             P = F @ P @ F.T + np.diag([cfg.accel_noise ** 2 * dt, cfg.bias_walk ** 2 * dt, 0.0, 0.0])
             if drift_std is not None and P[3, 3] > drift_std[k] ** 2:
                 # The gyro bias got better known (still samples): the ramp is bounded anew.
@@ -308,13 +301,6 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, accel_
             informative = abs(am) >= cfg.accel_min_m_s2
             h = np.array([kap if informative else 0.0, 1.0, 0.0, 0.0])
             zk = am + (kap * shift if informative else 0.0)
-            if accel_span is not None and np.isfinite(accel_span[k]) and accel_span[k] > 0:
-                c = 1.0 / accel_span[k]  # a_m lacks the window's mean acceleration (see above)
-                h[0] -= c
-                if window_s is None or accel_span[k] < window_s:
-                    h[2] = c
-                else:
-                    zk -= c * np.interp(t[k] - accel_span[k], t[:k], xs[:k, 0]) if k else 0.0
             # The fields' spread (v·σ_κ, floored at meas_floor as a velocity measurement would
             # be) and the filtered accelerometer's noise floor (accel_min_m_s2); its offset and
             # ramp are states, not noise.
@@ -355,7 +341,7 @@ def _lag(x: np.ndarray, h: int) -> np.ndarray:
 
 
 def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
-                      accel_span=None, accel_window_s=None, drift_std=None) -> ReadoutResult:
+                   gravity_tau=None, drift_std=None) -> ReadoutResult:
     """The project's readout (see module docstring).
 
     Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
@@ -410,24 +396,23 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     kap, skap = ratio_measurement(*terms[:3], cfg, keep=keep)
     skap = skap * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
     shift = (cum - np.interp(t - delay, t, cum)) if delay else np.zeros(len(t))
-    v, v_std = kalman_velocity(t, a, [(zr, sr)], cfg, smooth=zp, accel_span=accel_span,
-                               window_s=accel_window_s, ratio=(kap, skap, terms[3], shift), drift_std=drift_std)
+    v, v_std = kalman_velocity(t, a, [(zr, sr)], cfg, smooth=zp, gravity_tau=gravity_tau,
+                               ratio=(kap, skap, terms[3], shift), drift_std=drift_std)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
                          info=dict(measurement_delay_s=delay))
 
 
 def readout(t, r, r2, a, config: ReadoutConfig | None = None,
-            material: MaterialRates | None = None, accel_span=None, accel_window_s=None,
-            drift_std=None) -> ReadoutResult:
+            material: MaterialRates | None = None, gravity_tau=None, drift_std=None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
     t (n,) s, uniformly spaced; r, r2 (n, F) in 1/s and 1/s²; a (n,) forward
     acceleration at the same times (m/s², gravity removed); material: the rates along
     the content (:class:`MaterialRates`), used by the kalman readout when given;
-    accel_span (n,) s and accel_window_s: how much of the record the online gravity
-    estimate had averaged at each frame, and drift_std (n,) m/s²/s, how fast the
-    accelerometer's offset may ramp (see :func:`kalman_velocity`); None offline.
+    gravity_tau (n,) s: the online gravity estimate's time constant at each frame
+    (lobula.haltere.gravity_time_constant; None offline), and drift_std (n,) m/s²/s, how
+    fast the accelerometer's offset may ramp (see :func:`kalman_velocity`).
     """
     cfg = config or ReadoutConfig()
     t, r, r2, a = (np.asarray(x, dtype=float) for x in (t, r, r2, a))
@@ -436,5 +421,5 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
     if not np.all(np.isfinite(a)):
         raise ValueError("acceleration has NaN or inf at flow times")
     if cfg.method == "kalman":
-        return kalman_readout(t, r, r2, a, cfg, material, accel_span, accel_window_s, drift_std)
+        return kalman_readout(t, r, r2, a, cfg, material, gravity_tau, drift_std)
     return paper_readout(t, r, r2, a, cfg)
