@@ -212,9 +212,9 @@ TRUTH_ACCEL_OFFSET_M_S2 = 0.01  # prior std of the offset of an acceleration der
 
 
 #: m/s²: prior std of the platform's acceleration at the record's start, which the online gravity
-#: reference (lobula.haltere.online_gravity, set over the first GRAVITY_INIT_S) takes in. A walking
-#: or handheld camera's or a vehicle's acceleration is mostly under this; a priori, not fitted.
-START_ACCEL_PRIOR_M_S2 = 0.5
+#: reference (lobula.haltere.online_gravity, set over the first GRAVITY_INIT_S) takes in: 0.1 g,
+#: a priori (a walking or handheld camera's or a road vehicle's acceleration mostly stays under it).
+START_ACCEL_PRIOR_M_S2 = 1.0
 
 
 def gravity_tau(footage: Footage, times: np.ndarray, config: VelocityConfig) -> np.ndarray | None:

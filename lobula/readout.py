@@ -134,6 +134,30 @@ def butterworth(x: np.ndarray, wn: float, order: int, zero_phase: bool) -> np.nd
     return y
 
 
+def gaussian_lowpass(x: np.ndarray, cutoff_hz: float, dt: float, truncate: float = 2.5) -> tuple[np.ndarray, int]:
+    """Linear-phase (symmetric Gaussian FIR) low-pass along axis 0, centred; NaNs bridged, then restored.
+
+    The Gaussian's gain is ½ at ``cutoff_hz``, as for the zero-phase (forward–backward)
+    Butterworth of order 2. Returns the centred smoothing (n, ...) and its half-width M
+    (frames): the value at k needs data up to k + M, so lagged by M it is causal, and every
+    frequency is delayed by the same M frames. (A causal IIR delays each frequency by a
+    different amount, so ratios of filtered signals such as (ṙ̄ − r²̄)/r̄ are biased.)
+    Edges are padded with the edge values.
+    """
+    sigma = np.sqrt(np.log(2.0) / 2.0) / (np.pi * cutoff_hz) / dt  # frames
+    m = max(1, int(np.ceil(truncate * sigma)))
+    k = np.exp(-0.5 * (np.arange(-m, m + 1) / sigma) ** 2)
+    k /= k.sum()
+    nan = ~np.isfinite(x)
+    xf = _fill_nan(x)
+    pad = np.concatenate([np.repeat(xf[:1], m, 0), xf, np.repeat(xf[-1:], m, 0)])
+    flat = pad.reshape(len(pad), -1)
+    y = np.stack([np.convolve(flat[:, j], k, mode="valid") for j in range(flat.shape[1])], 1)  # per field, not pixel
+    y = y.reshape(xf.shape)
+    y[nan] = np.nan
+    return y, m
+
+
 def staggered_difference(x: np.ndarray, stagger: int, dt: float, centred: bool) -> np.ndarray:
     """Derivative by a difference ``stagger`` frames wide, along axis 0.
 
@@ -241,7 +265,7 @@ def rest_measurement(r, cfg: ReadoutConfig):
 
 
 def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravity_tau=None,
-                    ratio=None, drift_std=None):
+                    ratio=None, drift_std=None, delay: float = 0.0):
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
@@ -258,6 +282,10 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     in the state, it ties b to the accelerometer where a ≈ 0 and v to both elsewhere, so
     an accelerometer offset cannot scale v the way it scales a·r/(ṙ − r²).
 
+    delay (s): the measurements' latency (online). They speak of v(t − D) = v(t) − shift + b·D −
+    ḃ·D²/2 (shift = ∫a over the last D, which holds the offset b) and of b(t − D) = b − ḃ·D,
+    so their rows in the state carry those terms; the measurements' z already hold the shift.
+
     drift_std (n,) m/s²/s: how fast the offset may ramp — gravity seen through an attitude
     integrated with an uncertain gyro bias σ_b drifts at up to |g|·σ_b — as a fourth state
     ḃ whose std is held within drift_std at each frame (None: no ramp).
@@ -270,7 +298,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     P = np.diag([sv, sb, 0.0, sd0])
     xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 4)), np.zeros((n, 4, 4)), np.zeros((n, 4)),
                                     np.zeros((n, 4, 4)), np.zeros((n, 4, 4)))
-    H = np.array([1.0, 0.0, 0.0, 0.0])
+    D = float(delay)
+    H = np.array([1.0, D, 0.0, -0.5 * D * D])  # v(t − D) + shift, in the state at t
     for k in range(n):  # a loop over time steps; the state is 4-dimensional
         if k > 0:
             dt = t[k] - t[k - 1]
@@ -290,23 +319,25 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
         xs_pred[k], Ps_pred[k] = x, P
         for z, sd in measurements:
             if np.isfinite(z[k]) and np.isfinite(sd[k]):
-                S = P[0, 0] + sd[k] ** 2
-                K = P[:, 0] / S
-                x = x + K * (z[k] - x[0])
+                S = H @ P @ H + sd[k] ** 2
+                K = P @ H / S
+                x = x + K * (z[k] - H @ x)
                 P = P - np.outer(K, H @ P)
         if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
             kap, skap, am, shift = (q[k] for q in ratio)
             # Below accel_min the acceleration carries no depth information (as for v_f): the
             # frame then speaks for the offset b alone, not for v through a noisy κ ≈ 0.
             informative = abs(am) >= cfg.accel_min_m_s2
-            h = np.array([kap if informative else 0.0, 1.0, 0.0, 0.0])
+            kv = kap if informative else 0.0
+            h = np.array([kv, 1.0 + kv * D, 0.0, -D - 0.5 * kv * D * D])
             zk = am + (kap * shift if informative else 0.0)
             # The fields' spread (v·σ_κ, floored at meas_floor as a velocity measurement would
             # be) and the filtered accelerometer's noise floor (accel_min_m_s2); its offset and
             # ramp are states, not noise.
-            # κ's error multiplies v, so it counts with E[v²] = v̂² + P_vv (errors in variables:
-            # a noisy κ ≈ 0 must not pin v while v is still unknown).
-            R = ((x[0] ** 2 + P[0, 0]) * skap ** 2 + (kap * cfg.meas_floor_m_s) ** 2
+            # κ's error multiplies the v it was measured at, v(t − D) (H above), so it counts with
+            # E[v(t − D)²] (errors in variables: a noisy κ ≈ 0 must not pin v while v is unknown).
+            vd, pd = H @ x - shift, H @ P @ H
+            R = ((vd ** 2 + pd) * skap ** 2 + (kap * cfg.meas_floor_m_s) ** 2
                  + (cfg.meas_floor_m_s * skap) ** 2 + cfg.accel_min_m_s2 ** 2)
             S = h @ P @ h + R
             K = P @ h / S
@@ -353,31 +384,28 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     wn = cfg.cutoff_hz / (0.5 / dt)
     stagger = max(2, cfg.stagger + cfg.stagger % 2)
     h = stagger // 2
-    lp = lambda x: butterworth(x, wn, cfg.order, zp)
+    if zp:
+        lp = lambda x: butterworth(x, wn, cfg.order, True)
+        lag = 0
+    else:
+        # Online: the same centred (linear-phase) computation as offline, known `lag` frames
+        # later — every term delayed alike, so the ratios the readout takes stay unbiased.
+        lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt)[0]
+        lag = gaussian_lowpass(np.zeros(3), cfg.cutoff_hz, dt)[1] + h
     rf = lp(r)
     if material is None:
         r2f = lp(r2) if cfg.r2_term == "field" else rf ** 2
-        if zp:
-            r_dot = staggered_difference(rf, stagger, dt, centred=True)
-            terms = (rf, r2f, r_dot, lp(a))
-        else:
-            # The backward difference belongs s/2 frames back; align r̄, r²̄ and a with it.
-            r_dot = staggered_difference(rf, stagger, dt, centred=False)
-            terms = (_lag(rf, h), _lag(r2f, h), r_dot, _lag(lp(a), h))
+        r_dot = staggered_difference(rf, stagger, dt, centred=True)
+        terms = (rf, r2f, r_dot, lp(a))
     else:
         m = material
-        # Centred quantities are known h frames after their time: online, they arrive lagged.
-        arrive = (lambda x: x) if zp else (lambda x: _lag(x, h))
-        rm = lp(arrive(m.r))
-        r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp(arrive(m.r2))
-        r_dot = lp(arrive(m.r_dot))
-        terms = (rm, r2m, r_dot, lp(arrive(a)))
+        rm = lp(m.r)
+        r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp(m.r2)
+        terms = (rm, r2m, lp(m.r_dot), lp(a))
+    terms = tuple(_lag(x, lag) for x in terms)
+    r_dot = terms[2]
     z, s, v_f = vision_measurement(*terms, cfg)
-    delay = 0.0
-    if not zp:
-        # Filter group delay at DC plus the difference's half-width.
-        w, gd = signal.group_delay(signal.butter(cfg.order, wn), w=[1e-3])
-        delay = float(gd[0]) * dt + h * dt
+    delay = lag * dt
     # Low-passed measurements are correlated over about 1/(2·cutoff) s; treating each
     # frame as independent would make the posterior overconfident by √(that many frames).
     s = s * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
@@ -389,15 +417,17 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     if delay:
         # Bridge the measurement's latency with ∫a (the haltere's fast path).
         z = z + (cum - np.interp(t - delay, t, cum))
-    zr, sr = rest_measurement(rf, cfg)
-    # Where |a| is large enough to judge, fields implying an unphysical depth are left out
-    # (as for v_f); where it is not, κ ≈ 0 is exactly what ties the offset down.
-    keep = np.isfinite(v_f) | (np.abs(terms[3]) < cfg.accel_min_m_s2)[:, None]
-    kap, skap = ratio_measurement(*terms[:3], cfg, keep=keep)
+    zr, sr = rest_measurement(_lag(rf, lag), cfg)
+    if delay:
+        zr = zr + (cum - np.interp(t - delay, t, cum))  # at rest then; what a did since
+    # κ needs no accelerometer, so no field is judged by one: an accelerometer offset (the
+    # online gravity reference's, up to the start's acceleration) makes a/(ṙ̄ − r²̄) look
+    # unphysical everywhere exactly when κ ≈ 0 is what would pin that offset down.
+    kap, skap = ratio_measurement(*terms[:3], cfg)
     skap = skap * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
     shift = (cum - np.interp(t - delay, t, cum)) if delay else np.zeros(len(t))
     v, v_std = kalman_velocity(t, a, [(zr, sr)], cfg, smooth=zp, gravity_tau=gravity_tau,
-                               ratio=(kap, skap, terms[3], shift), drift_std=drift_std)
+                               ratio=(kap, skap, terms[3], shift), drift_std=drift_std, delay=delay)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
                          info=dict(measurement_delay_s=delay))
