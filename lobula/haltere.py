@@ -4,11 +4,13 @@ An accelerometer reads specific force f = a − g (plus bias) in the camera fram
 Forward acceleration needs gravity removed, and the recording may start in motion,
 so nothing assumes an initial rest. Instead: the gyroscope (its bias estimated where the
 camera is still, :func:`gyro_bias`) tracks the camera's orientation, the
-specific force is rotated into the first frame where gravity is a constant vector,
-and that vector is the (zero-phase: whole-record; causal: running) mean, because the
-platform's mean acceleration over a bounded track is ~0. The remaining constant
-offset (mean acceleration Δv/T, accelerometer bias along z) is left for the readout's
-bias state to absorb. Samples are then averaged over each flow interval and
+specific force is rotated into the first frame where gravity is a constant vector.
+Offline that vector is the mean over a long centred window (the platform's mean
+acceleration over a bounded track is ~0); online it is a reference set over the first
+quarter second and updated slowly (:func:`online_gravity`), so its error is nearly a
+constant offset (the start's acceleration) that the readout's offset state learns from
+vision. What the gyro bias leaves (gravity ramping through the forward axis) is the
+readout's ramp state, not fitted here. Samples are then averaged over each flow interval and
 interpolated to the flow's time stamps.
 """
 from __future__ import annotations

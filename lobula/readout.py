@@ -10,14 +10,17 @@ Two readouts share this arithmetic:
   the median across fields, a final Butterworth. Its error concentrates where a
   changes sign or stays near zero, because v_f is then a ratio of two small numbers.
 * ``"kalman"`` — the project's default. r̄, r²̄ and a pass through the *same*
-  low-pass so the three terms stay in phase; fields whose implied depth d_f is not a
-  physical, positive distance are rejected; the median of the rest is a measurement of
-  v whose uncertainty comes from the spread across fields; and a two-state Kalman
-  filter (v, accelerometer offset) integrates the acceleration between informative
-  frames (the remedy the paper's discussion proposes). When nothing moves in the image,
+  low-pass so the three terms stay in phase (offline a zero-phase Butterworth; online a
+  linear-phase Gaussian FIR, so every term is delayed by the same, known latency); vision
+  measures a/v without the accelerometer, κ = median over fields of (ṙ̄ − r²̄)/r̄, with a
+  standard error from the fields' spread plus an error all fields share
+  (``kappa_rel_error``); and a Kalman filter on (v, accelerometer offset b, offset ramp
+  ḃ) integrates the acceleration and fuses a_m = κ·v + b (the remedy the paper's
+  discussion proposes; an offset in a cannot scale v). The ramp is gravity leaking through
+  an attitude integrated with an uncertain gyro bias. When nothing moves in the image,
   ``v = r·d`` with ``d`` bounded says the camera is still. The zero-phase variant is a
-  Rauch–Tung–Striebel smoother; the causal one is the forward filter, with the
-  measurement's filter and difference latency bridged by integrating acceleration.
+  Rauch–Tung–Striebel smoother; the causal one is the forward filter, whose measurements
+  speak of v and b one latency ago, bridged by integrating acceleration.
   v̂ is NaN (``observable`` False) wherever the posterior standard deviation exceeds
   ``max_std_m_s``: the readout says when it does not know.
 """
