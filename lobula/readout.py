@@ -430,12 +430,11 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     if delay:
         zr = zr + (cum - np.interp(t - delay, t, cum))  # at rest then; what a did since
     # κ needs no accelerometer, so a field is judged by one (its implied depth a/(ṙ̄ − r²̄)
-    # physical) only where |a| says something. Offline, beyond accel_min (the offset is the
-    # record's small mean acceleration; without the judgement a still camera's noise fields
-    # speak: EuRoC at rest). Online, only beyond what the offset (prior std: up to the start's
-    # acceleration, the online gravity reference's) could make of nothing: it would otherwise
-    # make every field look unphysical exactly when κ ≈ 0 is what pins it down.
-    judge = np.abs(terms[3]) >= cfg.accel_min_m_s2 + (0.0 if zp else 2.0 * cfg.bias_prior_m_s2)
+    # physical) only where |a| is beyond what the accelerometer's offset (prior std) could
+    # make of nothing: an offset (the online gravity reference's, up to the start's
+    # acceleration) would otherwise make every field look unphysical exactly when κ ≈ 0
+    # is what pins it down. Elsewhere κ ≈ 0 ties the offset down.
+    judge = np.abs(terms[3]) >= cfg.accel_min_m_s2 + 2.0 * cfg.bias_prior_m_s2
     keep = np.isfinite(v_f) | ~judge[:, None]
     kap, skap = ratio_measurement(*terms[:3], cfg, keep=keep)
     skap = skap * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
