@@ -22,8 +22,8 @@ from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import EpipoleEstimator, derotate, derotate_finite
 from lobula.flow import FlowSample, StaggeredFlow
-from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, orientation_from_gyro,
-                            resample_to)
+from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
+                            orientation_from_gyro, resample_to)
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
@@ -211,11 +211,17 @@ def _timed(items, timings: dict, key: str, minus: tuple[dict, str] | None = None
 TRUTH_ACCEL_OFFSET_M_S2 = 0.01  # prior std of the offset of an acceleration derived from ground truth
 
 
-def gravity_span(footage: Footage, times: np.ndarray, config: VelocityConfig) -> np.ndarray | None:
-    """Seconds of IMU record the online gravity estimate has averaged at each time (causal, IMU only)."""
+#: m/s²: prior std of the platform's acceleration at the record's start, which the online gravity
+#: reference (lobula.haltere.online_gravity, set over the first GRAVITY_INIT_S) takes in: 0.1 g,
+#: a priori (a walking or handheld camera's or a road vehicle's acceleration mostly stays under it).
+START_ACCEL_PRIOR_M_S2 = 1.0
+
+
+def gravity_tau(footage: Footage, times: np.ndarray, config: VelocityConfig) -> np.ndarray | None:
+    """Time constant (s) of the online gravity estimate at each time (causal, IMU only; else None)."""
     if config.readout.filter != "causal" or config.accel_from_truth or footage.imu is None:
         return None
-    return np.clip(times - footage.imu.time_s[0], 1e-3, GRAVITY_WINDOW_S)
+    return gravity_time_constant(times, float(footage.imu.time_s[0]))
 
 
 def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig) -> tuple[np.ndarray, str]:
@@ -256,13 +262,19 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
         # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
         span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
         rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, rcfg.v_prior_m_s / max(span, 1.0))))
+    else:
+        # Online, the gravity reference is set at the start and holds the acceleration there.
+        rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, START_ACCEL_PRIOR_M_S2)))
     if len(rates.t) >= 3:
-        span = gravity_span(footage, rates.t, config)
+        tau = gravity_tau(footage, rates.t, config)
         drift = None
-        if span is not None and footage.imu.gyro is not None and config.derotate:
-            drift = np.interp(rates.t, footage.imu.time_s, gravity_drift_std(footage.imu.time_s, footage.imu.gyro))
-        res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material,
-                      accel_span=span, accel_window_s=GRAVITY_WINDOW_S, drift_std=drift)
+        if accel_source.startswith("accelerometer") and footage.imu.gyro is not None and config.derotate:
+            # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.haltere):
+            # a state of the readout's filter, offline and online alike.
+            drift = np.interp(rates.t, footage.imu.time_s,
+                              gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=rcfg.filter == "causal"))
+        res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material, gravity_tau=tau,
+                      drift_std=drift)
     else:
         res = None
     rates.timings["readout"] = _time.perf_counter() - t0

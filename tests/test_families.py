@@ -34,7 +34,8 @@ def family_run(tmp_path_factory):
 @pytest.mark.parametrize("family", [
     "corridor",
     pytest.param("rotation", marks=pytest.mark.xfail(
-        strict=True, reason="3-axis rotation with the realistic IMU: RMSE 0.16 m/s, ±2σ 10 % (issue 10, open)")),
+        strict=True, reason="3-axis rotation with the realistic IMU: RMSE 0.18 m/s, ±2σ 0 % — DIS flow under fast "
+                            "turns and the unestimated gyro bias (issue 10, open)")),
     "ground", "fast", "moving"])
 def test_family_beats_the_baselines(family_run, family):
     fo = family_run(family)
@@ -52,3 +53,26 @@ def test_family_beats_the_baselines(family_run, family):
     assert ok.sum() >= 0.8 * m.sum()
     assert rmse <= 0.35 * zero
     assert rmse <= 0.5 * const
+
+
+@pytest.mark.parametrize("filt", ["zero-phase", pytest.param("causal", marks=pytest.mark.xfail(
+    strict=True, reason="online band too wide here: truth inside ±2σ on 100 % of frames (issue 10, open)"))])
+def test_posterior_std_is_calibrated_on_a_family_it_was_not_fitted_on(family_run, filt):
+    """Truth inside ±2σ for 85–99.5 % of the frames on the corridor (floor, walls, ceiling).
+
+    The readout's one calibration constant (ReadoutConfig.kappa_rel_error) was fitted on the
+    "moving" family's dev seed 100 only; this is another world and seed. Both ends count: a
+    band too narrow misses the truth, one too wide (or a v_std that says nothing) covers it always.
+    """
+    fo = family_run("corridor")
+    cfg = VelocityConfig()
+    cfg.readout.filter = filt
+    ds = estimate_velocity(fo, cfg, progress=False)
+    t, v, vt, sd = ds.time.values, ds.v_hat.values, ds.v_true.values, ds.v_std.values
+    m = (t >= t[0] + SKIP_S) & np.isfinite(v)
+    cover = float(np.mean(np.abs(v - vt)[m] <= 2 * sd[m]))
+    print(f"\ncorridor {filt}: ±2σ {cover:.3f}, median σ {np.median(sd[m]):.3f} m/s, "
+          f"RMSE {np.sqrt(np.mean((v - vt)[m] ** 2)):.3f}")
+    assert m.sum() >= 0.8 * (t >= t[0] + SKIP_S).sum()
+    assert 0.85 <= cover <= 0.995
+    assert np.median(sd[m]) <= 0.1 * np.sqrt(np.mean(vt[m] ** 2))  # a band that says something

@@ -88,10 +88,9 @@ def test_librealsense_recording_reads_back_exactly(run, tmp_path, suffix):
 @pytest.mark.parametrize("suffix", [".db3", ".bag"])
 @pytest.mark.parametrize("filt, bound, coverage", [
     pytest.param("zero-phase", 0.01, None, marks=pytest.mark.xfail(
-        strict=True, reason="estimator: 0.06 m/s on this 3 s 160×120 clip (the folder it was recorded from gives the "
+        strict=True, reason="estimator: 0.012 m/s on this 3 s 160×120 clip (the folder it was recorded from gives the "
                             "same); issue 12's 0.01 needs the estimator's work")),
-    pytest.param("causal", 0.05, 0.85, marks=pytest.mark.xfail(
-        strict=True, reason="estimator: causal RMSE 0.07 m/s on this clip; issue 12's 0.05 needs the estimator's work")),
+    ("causal", 0.05, 0.85),
 ])
 def test_velocity_on_a_librealsense_recording(run, tmp_path, suffix, filt, bound, coverage):
     """The must-show: zero-phase RMSE ≤ 0.01 m/s; causal ≤ 0.05 m/s with truth inside ±2σ for ≥ 85% of frames."""
@@ -103,6 +102,7 @@ def test_velocity_on_a_librealsense_recording(run, tmp_path, suffix, filt, bound
     cfg.readout.filter = filt
     ds = estimate_velocity(fo, cfg, progress=False)
     sc = score(ds, 0.75)
+    print(f"\n{suffix} {filt}: {sc}")
     assert sc["observable_fraction"] > 0.5
     assert sc["rmse_m_s"] <= bound, sc
     if coverage:
