@@ -43,6 +43,14 @@ FIGURES = ("replay_emd_vs_dis", "rmse_vs_field_size", "rmse_vs_dphi", "rmse_vs_t
            "error_vs_acceleration", "rate_vs_spiking", "replay_velocity")
 #: made only when asked for by name (``--only eye_rmse``): it renders 9 fly-eye runs (CPU-minutes each)
 EXTRA_FIGURES = ("eye_rmse", "eye_rate_vs_spiking", "eye_rmse_vs_dphi_fov")
+#: the fly-eye figures of experiments.eye_figures: name -> (function, what the record says it shows)
+EYE_FIGURES = {
+    "eye_rate_vs_spiking": ("figure_eye_rate_vs_spiking", "causal fly-eye RMSE: rate readout, spiking output neurons "
+                            "(N pairs), shunting readout neuron; causal DIS and the zero estimator (3 seeds per world, "
+                            "10 s)"),
+    "eye_rmse_vs_dphi_fov": ("figure_eye_dphi_fov", "causal fly-eye RMSE against Δφ (=Δρ) and field of view (LC fields "
+                             "over both eyes or only in the D435i's view), beside causal DIS (3 seeds per world, 10 s)"),
+}
 
 
 def _rmse(ds, skip_s=2.0):
@@ -259,27 +267,14 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
                                    results=numbers)
         _save_record("eye_rmse", out, records["eye_rmse"])
 
-    if "eye_rate_vs_spiking" in which:
-        from experiments.eye_figures import figure_eye_rate_vs_spiking
+    for name, (func, what) in EYE_FIGURES.items():  # each renders its own 3 worlds × 3 seeds
+        if name in which:
+            import experiments.eye_figures as eye_figures
 
-        t0 = time.perf_counter()
-        _, numbers = figure_eye_rate_vs_spiking(out, seeds=(seed, seed + 1, seed + 2), workdir=cache / "eye_runs")
-        records["eye_rate_vs_spiking"] = dict(base, what="causal fly-eye RMSE: rate readout, spiking output "
-                                              "neurons (N pairs), shunting readout neuron; causal DIS and the zero "
-                                              "estimator (3 seeds per world, 10 s)", results=numbers,
-                                              seconds=round(time.perf_counter() - t0, 1))
-        _save_record("eye_rate_vs_spiking", out, records["eye_rate_vs_spiking"])
-
-    if "eye_rmse_vs_dphi_fov" in which:
-        from experiments.eye_figures import figure_eye_dphi_fov
-
-        t0 = time.perf_counter()
-        _, numbers = figure_eye_dphi_fov(out, seeds=(seed, seed + 1, seed + 2), workdir=cache / "eye_runs")
-        records["eye_rmse_vs_dphi_fov"] = dict(base, what="causal fly-eye RMSE against Δφ (=Δρ) and field of view "
-                                               "(LC fields over both eyes or only in the D435i's view), beside "
-                                               "causal DIS (3 seeds per world, 10 s)", results=numbers,
-                                               seconds=round(time.perf_counter() - t0, 1))
-        _save_record("eye_rmse_vs_dphi_fov", out, records["eye_rmse_vs_dphi_fov"])
+            t0 = time.perf_counter()
+            _, numbers = getattr(eye_figures, func)(out, seeds=(seed, seed + 1, seed + 2), workdir=cache / "eye_runs")
+            records[name] = dict(base, what=what, results=numbers, seconds=round(time.perf_counter() - t0, 1))
+            _save_record(name, out, records[name])
 
     if "rmse_vs_tau_contrast_noise" in which:
         from experiments.contrast_figure import figure_contrast_noise
