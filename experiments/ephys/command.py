@@ -203,36 +203,39 @@ def run_protocol(protocol: str, opts: dict):
                                duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
                                dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
                                record=opts.get("record"))
+    kw = stimulus_kwargs(protocol, opts)
     if opts.get("eye", "pinhole") == "fly":
         from .eye_rig import run_eye_protocol
 
-        return run_eye_protocol(protocol, opts)
+        return run_eye_protocol(protocol, opts, kw)
     from .protocols import looming, rf_map, tf_tuning
 
-    cfg = rig_config(protocol, opts)
-    rec = opts.get("record")
-    if protocol == "tf-tuning":
-        kw = {k2: opts[k] for k, k2 in (("tf", "temporal_frequencies_hz"), ("contrast", "contrasts"),
-                                        ("duration", "duration_s"), ("wavelength", "wavelength_deg"),
-                                        ("stimulus", "stimulus"), ("settle", "settle_s"),
-                                        ("direction", "direction_deg")) if k in opts}
-        if "direction" in opts and opts.get("stimulus", "rings") != "grating":
-            raise ValueError("--direction moves the drum grating; rings expand about the epipole "
-                             "(add --stimulus grating)")
-        return tf_tuning(cfg, record=rec, **kw)
-    if protocol == "rf-map":
-        kw = {k2: opts[k] for k, k2 in (("fields", "fields"), ("directions", "directions"),
-                                        ("spacing", "spacing_deg"), ("extent", "extent_deg"),
-                                        ("spot_size", "spot_size_deg"), ("spot_path", "path_deg"),
-                                        ("spot_speed", "speed_deg_s")) if k in opts}
-        if "contrast" in opts:
-            kw["contrast"] = _one(opts, "contrast", protocol)
-        return rf_map(cfg, record=rec, **kw)
-    kw = {k2: opts[k] for k, k2 in (("l_over_v", "l_over_v_s"), ("duration", "duration_s"),
-                                    ("max_size", "max_size_deg"), ("collision_time", "t_collision_s")) if k in opts}
-    if "contrast" in opts:
+    run = {"tf-tuning": tf_tuning, "rf-map": rf_map, "looming": looming}[protocol]
+    return run(rig_config(protocol, opts), record=opts.get("record"), **kw)
+
+
+#: command-line option -> protocol keyword, per protocol (the same for the pinhole lattice and the fly eye)
+_STIMULUS_OPTIONS = {
+    "tf-tuning": (("tf", "temporal_frequencies_hz"), ("contrast", "contrasts"), ("duration", "duration_s"),
+                  ("wavelength", "wavelength_deg"), ("stimulus", "stimulus"), ("settle", "settle_s"),
+                  ("direction", "direction_deg")),
+    "rf-map": (("fields", "fields"), ("directions", "directions"), ("spacing", "spacing_deg"),
+               ("extent", "extent_deg"), ("spot_size", "spot_size_deg"), ("spot_path", "path_deg"),
+               ("spot_speed", "speed_deg_s")),
+    "looming": (("l_over_v", "l_over_v_s"), ("duration", "duration_s"), ("max_size", "max_size_deg"),
+                ("collision_time", "t_collision_s")),
+}
+
+
+def stimulus_kwargs(protocol: str, opts: dict) -> dict:
+    """The stimulus keywords of tf-tuning, rf-map or looming from the given options (checked)."""
+    kw = {k2: opts[k] for k, k2 in _STIMULUS_OPTIONS[protocol] if k in opts}
+    if protocol == "tf-tuning" and "direction" in opts and opts.get("stimulus", "rings") != "grating":
+        raise ValueError("--direction moves the drum grating; rings expand about the epipole "
+                         "(add --stimulus grating)")
+    if protocol != "tf-tuning" and "contrast" in opts:
         kw["contrast"] = _one(opts, "contrast", protocol)
-    return looming(cfg, record=rec, **kw)
+    return kw
 
 
 # =========================================================================== summary from the stored data

@@ -534,42 +534,17 @@ _NOT_ON_EYE = {
 }
 
 
-def run_eye_protocol(protocol: str, opts: dict) -> xr.Dataset:
-    """``lobula ephys PROTOCOL --eye fly``: the command's options mapped onto the compound eye's rig."""
+def run_eye_protocol(protocol: str, opts: dict, stimulus: dict) -> xr.Dataset:
+    """``lobula ephys PROTOCOL --eye fly``: the command's options mapped onto the compound eye's rig.
+
+    stimulus: the protocol's stimulus keywords (:func:`experiments.ephys.command.stimulus_kwargs`).
+    """
     for k, why in _NOT_ON_EYE.items():
         if k in opts:
             raise ValueError(f"--{k.replace('_', '-')} does not apply with --eye fly: {why}; drop it")
-    cfg = EyeEphysConfig().with_options(tau_s=opts.get("tau"), dphi_deg=opts.get("dphi"),
-                                        field_size_deg=opts.get("field_size"))
-    rec = opts.get("record")
-
-    def one(key):
-        v = opts[key]
-        if len(v) != 1:
-            raise ValueError(f"{protocol} takes one --{key.replace('_', '-')} value, got {v}")
-        return v[0]
-
-    if protocol == "tf-tuning":
-        kw = {k2: opts[k] for k, k2 in (("tf", "temporal_frequencies_hz"), ("contrast", "contrasts"),
-                                        ("duration", "duration_s"), ("wavelength", "wavelength_deg"),
-                                        ("stimulus", "stimulus"), ("settle", "settle_s"),
-                                        ("direction", "direction_deg")) if k in opts}
-        if "direction" in opts and opts.get("stimulus", "rings") != "grating":
-            raise ValueError("--direction moves the drum grating; rings expand about the focus of expansion "
-                             "(add --stimulus grating)")
-        return eye_tf_tuning(cfg, record=rec, **kw)
-    if protocol == "rf-map":
-        kw = {k2: opts[k] for k, k2 in (("fields", "fields"), ("directions", "directions"),
-                                        ("spacing", "spacing_deg"), ("extent", "extent_deg"),
-                                        ("spot_size", "spot_size_deg"), ("spot_path", "path_deg"),
-                                        ("spot_speed", "speed_deg_s")) if k in opts}
-        if "contrast" in opts:
-            kw["contrast"] = one("contrast")
-        return eye_rf_map(cfg, record=rec, **kw)
-    if protocol == "looming":
-        kw = {k2: opts[k] for k, k2 in (("l_over_v", "l_over_v_s"), ("duration", "duration_s"),
-                                        ("max_size", "max_size_deg"), ("collision_time", "t_collision_s")) if k in opts}
-        if "contrast" in opts:
-            kw["contrast"] = one("contrast")
-        return eye_looming(cfg, record=rec, **kw)
+    run = {"tf-tuning": eye_tf_tuning, "rf-map": eye_rf_map, "looming": eye_looming}.get(protocol)
+    if run is not None:
+        cfg = EyeEphysConfig().with_options(tau_s=opts.get("tau"), dphi_deg=opts.get("dphi"),
+                                            field_size_deg=opts.get("field_size"))
+        return run(cfg, record=opts.get("record"), **stimulus)
     raise ValueError(f"--eye fly applies to tf-tuning, rf-map and looming, not {protocol}")
