@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "velocity": ("experiments.velocity", "estimate forward velocity from footage"),
     "calibrate-emd": ("experiments.calibrate", "fit the EMD front end's per-field gains on a synthetic run"),
     "depth": ("experiments.depth", "dense forward depth from flow and v̂ (ratio, TV, parallax)"),
+    "depth-suite": ("experiments.depth_suite", "depth on the suite's families x seeds, beside baselines"),
     "ephys": ("experiments.ephys", "virtual electrophysiology: record photoreceptor/EMD/LC/readout neurons"),
     "compare": ("experiments.compare", "every front end on the same footage and readout, scored side by side"),
     "sweep": ("experiments.sweep", "a grid over any configuration path, on Dask, into Zarr"),
@@ -33,12 +34,15 @@ class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescription
     """--help shows every option's default and keeps descriptions' line breaks.
 
     An option whose help already explains its default (e.g. "default: colour, else
-    infrared" for a None that means something) is not given a second, literal one.
+    infrared" for a None that means something) is not given a second, literal one, and
+    a required option has none to show.
     """
 
     def _get_help_string(self, action):
         text = action.help or ""
-        return text if "default" in text.lower() else super()._get_help_string(action)
+        if "default" in text.lower() or getattr(action, "required", False):
+            return text
+        return super()._get_help_string(action)
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:

@@ -100,7 +100,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Estimate v̂ with the velocity pipeline, then dense forward depth at the first frame of "
                     "every N-th flow pair (exact finite derotation from the gyro, the gyro-stabilised heading as "
                     "epipole); scores against depth/NNNNNN.npy when the footage has it. For scene families x "
-                    "seeds beside baselines: python -m experiments.depth_suite --help.")
+                    "seeds beside baselines: lobula depth-suite --help.")
     run0 = DepthRunConfig()
     d.add_argument("footage", help="footage folder, D435i sample, RealSense .bag/.db3, EuRoC folder or video file")
     d.add_argument("--method", default="tv", choices=list(METHODS),

@@ -1,6 +1,6 @@
 """Depth on the accuracy suite's scene families × seeds, beside baselines.
 
-``python -m experiments.depth_suite --out DIR`` renders each (family, seed) scene with
+``lobula depth-suite --out DIR`` renders each (family, seed) scene with
 the suite's own generator (:func:`experiments.suite.family_config`: the realistic IMU
 mounted rotated, every family's geometry, texture, rotation and profile from the seed),
 short (6 s, 160×120 by default; pairs of the first 2 s, while the velocity readout
@@ -329,7 +329,7 @@ def plot_maps(records: list[dict], path, max_range_m: float) -> Path:
 
 
 def run_depth_suite(args) -> int:
-    """Handler of ``python -m experiments.depth_suite``: returns 0."""
+    """Handler of ``lobula depth-suite``: returns 0."""
     from .store import provenance, write_netcdf, write_text
     from .suite import FAMILIES
 
@@ -378,12 +378,9 @@ def run_depth_suite(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _add_options(p: argparse.ArgumentParser) -> None:
     from .suite import FAMILIES
 
-    p = argparse.ArgumentParser(prog="python -m experiments.depth_suite",
-                                description=__doc__.split("\n\n")[0] + " See the module doc for what is scored.",
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--out", required=True, help="output folder (scenes are kept there and reused)")
     p.add_argument("--families", default="all", help=f"comma-separated, or 'all': {', '.join(FAMILIES)}")
     p.add_argument("--seeds", type=int, default=3, help="number of seeds per family")
@@ -401,17 +398,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--imu-mount", default="rotated", choices=["camera", "rotated"], help="IMU mounting")
     p.add_argument("--sample-map", type=int, default=6, help="which scored pair of each family's first seed "
                                                             "the maps figure shows")
-    return p
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return run_depth_suite(args)
-    except (ValueError, FileNotFoundError) as exc:
-        build_parser().error(str(exc))
-        return 2
+def _description() -> str:
+    return __doc__.split("\n\n")[0] + " See the module doc for what is scored."
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+def add_parser(subparsers) -> None:
+    """``lobula depth-suite``."""
+    p = subparsers.add_parser("depth-suite", help="depth on the suite's families x seeds, beside baselines",
+                              description=_description())
+    _add_options(p)
+    p.set_defaults(func=run_depth_suite)
+
+
+if __name__ == "__main__":  # ``python -m experiments.depth_suite`` is ``lobula depth-suite``
+    import sys
+
+    from experiments.cli import main
+
+    raise SystemExit(main(["depth-suite", *sys.argv[1:]]))

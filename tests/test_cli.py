@@ -31,3 +31,12 @@ def test_scene_refuses_eye_options_without_the_fly_eye(tmp_path, capsys):
                  "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "--dphi, --cast-rate-hz apply only to compound-eye footage" in err and not out.exists()
+
+
+def test_a_required_option_shows_no_default():
+    parser = build_parser(["depth-suite"])
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["depth-suite"]
+    text = sub.format_help()
+    body = text[text.index("options:"):]
+    out = body[body.index("--out OUT"):body.index("--families")]
+    assert "output folder" in out and "default" not in out.lower(), out
