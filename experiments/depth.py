@@ -123,6 +123,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="velocity pass: DIS preset (default: the velocity pipeline's own, fast)")
     d.add_argument("--accel-from-truth", action="store_true",
                    help="velocity pass: forward acceleration from truth.csv instead of imu.csv")
+    d.add_argument("--average-frames", type=int, default=None, metavar="K",
+                   help="depth flow: each image the mean of frames i-K..i+K turned into frame i's orientation by "
+                        "the gyro; 0: single frames (default: 2 with a gyroscope, 0 without)")
     d.add_argument("--gamma", type=float, default=FOOTAGE_GAMMA, help="TV weight (1/s x normalised length)")
     d.add_argument("--unweighted", action="store_true",
                    help="TV: uniform data term (the paper's) instead of weighting by the flow's precision 1/sigma^2")
@@ -146,8 +149,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true", help="no progress bars")
     from .info import add_footage_options
     add_footage_options(d)  # --stream, --clock, --skip-bad-frames, --clock-offset, --undistort (readers)
-    d.set_defaults(func=run_depth)
+    d.set_defaults(func=run_depth, flo_ignores={k: d.get_default(k) for k in _FOOTAGE_ROUTE_ONLY})
     return d
+
+
+#: options of the two-pass footage route that the single ``--flo`` pair has no use for
+_FOOTAGE_ROUTE_ONLY = ("every", "velocity", "velocity_run", "dis_preset", "accel_from_truth", "unweighted",
+                       "snr_min", "tv_start", "min_speed", "average_frames", "plot_time", "front_end")
 
 
 def run_depth(args) -> int:
@@ -162,10 +170,16 @@ def run_depth(args) -> int:
     # The reader options, applied as `lobula velocity` applies them; the .flo route needs no IMU.
     footage = open_footage_from_args(args, require_imu=not args.flo)
     if args.flo:
+        unused = [f"--{k.replace('_', '-')}" for k, v in getattr(args, "flo_ignores", {}).items()
+                  if getattr(args, k) != v] + (["--epipole running"] if args.epipole == "running" else [])
+        if unused:
+            raise ValueError(f"{', '.join(unused)} apply to depth along footage, not to one --flo pair: leave "
+                             "them out or drop --flo")
         if out.suffix == ".zarr":
             raise ValueError("--flo writes one map: use a .nc output")
         units = FloUnits(args.flo_units, args.flo_gap, *args.flo_size)
-        pair = depth_flo_pair(footage, args.flo, units, config=dcfg, device=args.device)
+        pair = depth_flo_pair(footage, args.flo, units, config=dcfg, device=args.device,
+                              epipole="principal" if args.epipole == "principal" else "estimate")
         one = pair.sel(estimator=args.method).drop_vars("estimator").expand_dims(time=[float(pair.attrs["t0"])])
         one["frame"] = ("time", [int(pair.attrs["first_frame"])])
         one = one.set_coords("frame")
@@ -195,7 +209,7 @@ def run_depth(args) -> int:
     run = DepthRunConfig(method=args.method, every=args.every, velocity=args.velocity, epipole=args.epipole,
                          min_speed_m_s=args.min_speed, tv_start=args.tv_start, device=args.device,
                          weighted=not args.unweighted, snr_min=args.snr_min, max_range_m=args.max_range,
-                         depth=dcfg)
+                         average_frames=args.average_frames, depth=dcfg)
     ds = estimate_depth(footage, velocity_config=vcfg, run=run, velocity=velocity, out=out,
                         progress=not args.quiet)
     print(f"wrote {out}: {ds.sizes['time']} maps of {ds.sizes['x']}x{ds.sizes['y']} "

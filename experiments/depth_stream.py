@@ -84,6 +84,16 @@ class DepthRunConfig:
     point, as the paper). min_speed_m_s: pairs slower than this are not ranged (all
     invalid): at 0.03 m/s a 0.2 s pair moves the camera 6 mm, about a pixel of parallax
     at 1 m and 15° from the epipole at 320×240.
+    average_frames: half-width k of the gyro-stabilised frame average each flow image is
+    made of: frames i−k..i+k, each turned into frame i's orientation by the integrated gyro
+    (a pure-rotation homography; the few tenths of a pixel of parallax between neighbours
+    stay), then averaged pixel by pixel — the pixel noise of each image falls by √(2k+1)
+    while the flow between the two averages still spans the pair (its centre frames). None
+    (default): k = 2 with a gyroscope, 0 without (unturned neighbours of a turning camera
+    smear the image: median flow error 0.08 → 0.87 px on a development rotation scene).
+    Measured against exact flow on development seeds (100, 101; 160×120, "fine" flow):
+    median error 0.30/0.28 → 0.17/0.15 px on ``dim``, 0.05 → 0.05 panels, 0.09 → 0.07 fast,
+    0.05 → 0.04 corridor, 0.08 → 0.08 rotation. It adds k frames of latency to each map.
     flow: "fine" (default): the depth pass computes its flow with DIS at the "medium"
     preset refined down to full resolution (finest scale 0) — measured against exact
     flow on a development corridor (seed 100, 160×120, 0.2 s pairs): median error
@@ -120,6 +130,7 @@ class DepthRunConfig:
     epipole: str = "final"
     min_speed_m_s: float = 0.03
     flow: str = "fine"
+    average_frames: int | None = None
     refine: bool = True
     weighted: bool = True
     snr_min: float = 3.0
@@ -144,6 +155,8 @@ class DepthRunConfig:
             raise ValueError(f"tv_start must be 'cold' or 'warm', got {self.tv_start!r}")
         if not self.min_speed_m_s >= 0:
             raise ValueError(f"min_speed_m_s must be ≥ 0, got {self.min_speed_m_s}")
+        if self.average_frames is not None and int(self.average_frames) < 0:
+            raise ValueError(f"average_frames must be ≥ 0 (a half-width in frames) or None, got {self.average_frames}")
         if self.flow not in ("fine", "velocity"):
             raise ValueError(f"flow must be 'fine' or 'velocity', got {self.flow!r}")
         if not self.snr_min >= 0:
@@ -329,6 +342,44 @@ def depth_flow_fn(fcfg: FlowConfig, quality: str = "fine"):
     return fn
 
 
+def stabilised_average(read, i: int, half: int, n_frames: int, times: np.ndarray, attitude,
+                       camera: PinholeCamera) -> np.ndarray:
+    """Frame i (H, W) float32 as the mean of frames i−half..i+half turned into its orientation.
+
+    read: index -> image; attitude: t -> camera orientations (k, 3, 3) (:func:`attitude_track`).
+    Frame j is warped by the homography K·Q_iᵀ·Q_j·K⁻¹ (a pure rotation, which maps its
+    pixels to where frame i sees the same directions); each output pixel averages the
+    frames that cover it (frames past either end of the footage are left out).
+    """
+    import cv2
+
+    img = np.asarray(read(i), np.float32)
+    js = [j for j in range(i - half, i + half + 1) if 0 <= j < n_frames and j != i]
+    if not js:
+        return img
+    K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+    q = attitude(np.asarray(times, float)[[i] + js])
+    total, count = img.copy(), np.ones_like(img)
+    size = (img.shape[1], img.shape[0])
+    for j, qj in zip(js, q[1:]):  # a loop over the 2·half neighbours; each warp is vectorised
+        h = K @ q[0].T @ qj @ np.linalg.inv(K)
+        total += cv2.warpPerspective(np.asarray(read(j), np.float32), h, size, flags=cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        count += cv2.warpPerspective(np.ones_like(img), h, size, flags=cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return total / count
+
+
+def frames_averaged(run: "DepthRunConfig", attitude) -> int:
+    """The half-width of :func:`stabilised_average` a run uses (DepthRunConfig.average_frames)."""
+    if run.average_frames is None:
+        return 2 if attitude is not None else 0
+    if run.average_frames > 0 and attitude is None:
+        raise ValueError("averaging frames needs a gyroscope to turn them into one orientation (this footage has "
+                         "none, or derotation is off): use --average-frames 0")
+    return int(run.average_frames)
+
+
 class _FrameReader:
     """Reads single frames by index, keeping the ``keep`` most recently used (pairs overlap)."""
 
@@ -442,7 +493,10 @@ def ranged_pairs(footage: Footage, velocity, run: DepthRunConfig, timings: dict 
         raise ValueError(f"pair start frames must lie in 0..{n_pairs - 1}, got {starts}")
     heads = _heading_at_first_frames(footage, velocity, vcfg, run, attitude, starts, gap)
     flow_fn = depth_flow_fn(fcfg, run.flow)
-    read = _FrameReader(footage, keep=gap + 2)
+    half = frames_averaged(run, attitude)
+    read = _FrameReader(footage, keep=gap + 2 + 2 * half)
+    image = (lambda i: read(i)) if half == 0 else (
+        lambda i: stabilised_average(read, i, half, len(footage), t_all, attitude, cam))
     timings = timings if timings is not None else {}
     timings.setdefault("read", 0.0)
     timings.setdefault("flow", 0.0)
@@ -456,12 +510,12 @@ def ranged_pairs(footage: Footage, velocity, run: DepthRunConfig, timings: dict 
         ranged = bool(math.isfinite(v) and abs(v) >= run.min_speed_m_s and all(map(math.isfinite, e)))
         pair = Pair(k, i0, i1, t0, t1, v_hat, v_true, v, e, ranged)
         if ranged:
-            r0 = read.read_s
-            a, b = read(i0), read(i1)
-            timings["read"] += read.read_s - r0
-            tf = _time.perf_counter()
+            r0, tf = read.read_s, _time.perf_counter()
+            a, b = image(i0), image(i1)
             pair.flow = pixel_to_angular(flow_fn(a, b), cam, t1 - t0)
-            timings["flow"] += _time.perf_counter() - tf
+            reading = read.read_s - r0
+            timings["read"] += reading
+            timings["flow"] += _time.perf_counter() - tf - reading   # the frame average included
             if attitude is not None:
                 q0, q1 = attitude(np.array([t0, t1]))
                 pair.rotation = q0.T @ q1
@@ -646,6 +700,8 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
                             "principal": "principal point"}[run.epipole],
             derotation=("gyro: exact finite rotation over each pair from the integrated, bias-corrected gyro, "
                         "into the first frame's orientation" if gyro_used else "none (no gyroscope)"),
+            frames_averaged=(f"{2 * frames_averaged(run, footage_attitude(footage, vcfg)) + 1} (frames i-k..i+k "
+                             "turned into frame i's orientation by the gyro, then averaged)"),
             depth_reference="first frame of each flow pair: d0 = v/z + v*dt (time = t0, frame = first index)",
             max_range_m=run.max_range_m,
             near_epipole=("tv: data weighted by the flow's relative precision 1/sigma^2, TV fills in"

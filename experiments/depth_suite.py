@@ -159,7 +159,7 @@ def run_one(out: Path, family: str, seed: int, args) -> dict:
     vmed = estimate_velocity(footage, mcfg, progress=False)
     v_medium = np.where(vmed.observable.values.astype(bool), vmed.v_hat.values, np.nan)
     scene, _ = build_track(cfg)
-    run = DepthRunConfig(max_range_m=args.max_range)
+    run = DepthRunConfig(max_range_m=args.max_range, average_frames=args.average_frames)
     with torch_threads(1):
         scores, sample = range_scene(footage, velocity, scene, run, cfg.depth_every, keep_map=args.sample_map,
                                      skip_s=args.skip, v_medium=v_medium)
@@ -356,7 +356,7 @@ def run_depth_suite(args) -> int:
     summary = (f"{len(seeds)} seeds ({seeds[0]}..{seeds[-1]}), {args.duration:g} s (scored after {args.skip:g} s), "
                f"scale {args.scale:g}, "
                f"depth every {args.every} frames, scored ≤ {args.max_range:g} m, {args.imu} IMU ({args.imu_mount})")
-    run = DepthRunConfig(max_range_m=args.max_range)
+    run = DepthRunConfig(max_range_m=args.max_range, average_frames=args.average_frames)
     attrs = provenance(json.dumps(dict(depth_run=run.to_dict(), args=vars(args)), sort_keys=True, default=str),
                        scene_summary=summary, sources="estimate: v̂ of the velocity pipeline; truth: exact mean "
                        "forward velocity over each pair", baselines="constant: median of the exact depth over the "
@@ -394,6 +394,9 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-range", type=float, default=DepthRunConfig().max_range_m,
                    help="score pixels whose exact depth is within this range (m)")
     p.add_argument("--filter", default="zero-phase", choices=["zero-phase", "causal"], help="velocity readout filter")
+    p.add_argument("--average-frames", type=int, default=None, metavar="K",
+                   help="depth flow: each image the mean of frames i-K..i+K turned into frame i's orientation by "
+                        "the gyro (default: 2 with a gyroscope, 0 without)")
     p.add_argument("--imu", default="realistic", choices=["ideal", "realistic"], help="synthetic IMU model")
     p.add_argument("--imu-mount", default="rotated", choices=["camera", "rotated"], help="IMU mounting")
     p.add_argument("--sample-map", type=int, default=6, help="which scored pair of each family's first seed "
