@@ -20,13 +20,14 @@ import numpy as np
 import xarray as xr
 
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
-from lobula.haltere import forward_acceleration, resample_to
+from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
+                            resample_to)
 from lobula.readout import ReadoutConfig, readout
 from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron, spiking_output
 
 from .store import provenance
 
-__all__ = ["EyeVelocityConfig", "estimate_eye_velocity", "causal_gyro", "add_parser", "run_eye_velocity"]
+__all__ = ["EyeVelocityConfig", "estimate_eye_velocity", "causal_gyro", "readout_inputs", "add_parser", "run_eye_velocity"]
 
 
 @dataclass
@@ -42,6 +43,8 @@ class EyeVelocityConfig:
     shunting division, haltere integration, push–pull output neurons; Poisson spikes decoded
     causally when ``neuron.spiking``; v_std is then the spike decoding's Poisson noise only,
     and ``observable`` the neuron's confidence).
+    settle_s: LC output the readout ignores at the start while the circuit's filters leave their
+    resting state (None: :meth:`settle_time`'s default, 0.59 s for the default circuit).
     """
 
     circuit: EyeCircuitConfig = field(default_factory=EyeCircuitConfig)
@@ -50,15 +53,27 @@ class EyeVelocityConfig:
     accel_from_truth: bool = False
     readout_kind: str = "kalman"
     neuron: ReadoutNeuronConfig = field(default_factory=lambda: ReadoutNeuronConfig(spiking=True, population=10))
+    settle_s: float | None = None
 
     def __post_init__(self):
         if self.readout_kind not in ("kalman", "spikes", "neuron"):
             raise ValueError(f"readout_kind must be 'kalman', 'spikes' or 'neuron', got {self.readout_kind!r}")
+        if self.settle_s is not None and not self.settle_s >= 0:
+            raise ValueError(f"settle_s must be >= 0 seconds or None, got {self.settle_s}")
+
+    def settle_time(self, circuit: EyeCircuitConfig | None = None) -> float:
+        """Seconds of LC output the readout ignores at the start (``settle_s``; None: twice the sum of the
+        photoreceptor low-pass, EMD delay and photoreceptor high-pass time constants, the circuit's
+        filters from rest to within e⁻² of their moving level)."""
+        if self.settle_s is not None:
+            return float(self.settle_s)
+        c = circuit or self.circuit
+        return 2.0 * (c.photoreceptor.tau_s + c.emd.tau_s + (c.photoreceptor.tau_hp_s or 0.0))
 
     def to_dict(self) -> dict:
         return dict(circuit=self.circuit.to_dict(), readout=self.readout.to_dict(), chunk=self.chunk,
                     accel_from_truth=self.accel_from_truth, readout_kind=self.readout_kind,
-                    neuron=self.neuron.to_dict())
+                    neuron=self.neuron.to_dict(), settle_s=self.settle_time())
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), sort_keys=True)
@@ -72,6 +87,38 @@ def causal_gyro(imu, times: np.ndarray) -> np.ndarray:
     bias = np.cumsum(g, 0) / np.arange(1, len(g) + 1)[:, None]
     k = np.clip(np.searchsorted(imu.time_s, times, side="right") - 1, 0, len(g) - 1)
     return (g - bias)[k]
+
+
+def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
+    """What the readout's filter must know about the acceleration it is given, as for the camera.
+
+    The same terms :func:`experiments.velocity.estimate_velocity` gives the readout (the
+    accelerometer is the same, so its errors are): online, the gravity reference is set over
+    the first seconds and holds the platform's acceleration there, an offset of up to
+    ``START_ACCEL_PRIOR_M_S2`` (measured on a panels world: −0.44 m/s², four times the
+    readout's default offset prior, which then cannot absorb it), and it keeps learning
+    with time constant τ(t) (:func:`lobula.haltere.gravity_time_constant`), so the offset
+    moves as ḃ = −a/τ; gravity seen through a gyro-integrated attitude ramps at up to
+    |g|·σ_b (:func:`lobula.haltere.gravity_drift_std`). Offline, gravity is a windowed
+    mean that holds Δv/T. Acceleration from truth has no offset to learn.
+    Returns (ReadoutConfig, gravity_tau (n,) or None, drift_std (n,) or None).
+    """
+    from experiments.velocity import START_ACCEL_PRIOR_M_S2, TRUTH_ACCEL_OFFSET_M_S2
+
+    rcfg = cfg.readout
+    if cfg.accel_from_truth:
+        return replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2)), None, None
+    causal = rcfg.filter == "causal"
+    imu_t = fo.imu.time_s
+    if causal:
+        rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, START_ACCEL_PRIOR_M_S2)))
+        tau = gravity_time_constant(t, float(imu_t[0]))
+    else:
+        span = min(GRAVITY_WINDOW_S, float(imu_t[-1] - imu_t[0]))
+        rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, rcfg.v_prior_m_s / max(span, 1.0))))
+        tau = None
+    drift = np.interp(t, imu_t, gravity_drift_std(imu_t, fo.imu.gyro, causal=causal))
+    return rcfg, tau, drift
 
 
 def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress: bool = False) -> xr.Dataset:
@@ -93,6 +140,13 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     t = np.concatenate([o["t"] for o in outs]) + float(fo.times[0])   # the circuit counts from sample 0
     rho = np.concatenate([o["rho"] for o in outs])
     r2 = np.concatenate([o["r2_eff"] for o in outs])
+    # The circuit starts at rest (the EMD delay lines and the photoreceptors' high-pass set to
+    # the first sample, as if nothing had moved), so the LC outputs climb to their moving level
+    # over the first few time constants: a ṙ that is the circuit's, not the world's (measured on
+    # a dev panels world: a κ·v of +1.5 m/s² against a true −0.7 at the start, which the readout
+    # took as the accelerometer's offset for the rest of the run). The readout ignores them.
+    cold = (t - t[0]) < cfg.settle_time(circ.config)
+    rho[cold], r2[cold] = np.nan, np.nan
     if len(t) < 3:
         raise FootageError(f"{fo.path}: too short for a readout ({len(t)} LC steps)")
     t_circ = _time.perf_counter() - t_start
@@ -103,9 +157,10 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         a = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
         a_source = "ground truth (a_forward_m_s2 of truth.csv; no accelerometer)"
     else:
-        a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=True)
+        a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=cfg.readout.filter == "causal")
         a = resample_to(t, fo.imu.time_s, a_imu, dt)
         a_source = "accelerometer (causal gravity and bias removal)"
+    rcfg, tau, drift = readout_inputs(fo, t, cfg)
     t1 = _time.perf_counter()
     if cfg.readout_kind == "neuron":
         nout = readout_neuron(t, rho, r2, a, cfg.neuron)
@@ -116,7 +171,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         method = "readout neuron (" + ("Poisson spikes, causal decoding" if cfg.neuron.spiking else "rate") + ")"
         filt = "causal" if not cfg.neuron.spiking or cfg.neuron.decode == "causal" else "centred spike window"
     else:
-        res = readout(t, rho, r2, a, cfg.readout)
+        res = readout(t, rho, r2, a, rcfg, gravity_tau=tau, drift_std=drift)
         v_hat, observable, r_dot, v_field, v_std = res.v_hat, res.observable, res.r_dot, res.v_field, res.v_std
         std_name, method, filt = "posterior std of v_hat", cfg.readout.method, cfg.readout.filter
         if cfg.readout_kind == "spikes":

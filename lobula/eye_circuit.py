@@ -150,6 +150,7 @@ class EyeCircuitConfig:
     normaliser: str = "delayed"
     r2_term: str = "convective"
     column_pool: float = 0.0
+    rotation_gain: str = "adaptive"
     readout_rate_hz: float = 50.0
     calibration: float = 1.0
     latency_s: float | None = None
@@ -161,6 +162,8 @@ class EyeCircuitConfig:
             raise ValueError(f"r2_term must be 'convective', 'point' or 'none', got {self.r2_term!r}")
         if self.normaliser not in ("delayed", "gradient"):
             raise ValueError(f"normaliser must be 'delayed' or 'gradient', got {self.normaliser!r}")
+        if self.rotation_gain not in ("adaptive", "fixed"):
+            raise ValueError(f"rotation_gain must be 'adaptive' or 'fixed', got {self.rotation_gain!r}")
         if not (0.0 <= self.column_pool <= 1.0):
             raise ValueError(f"column_pool must lie in [0, 1], got {self.column_pool}")
         if not self.readout_rate_hz > 0:
@@ -170,7 +173,7 @@ class EyeCircuitConfig:
         return dict(photoreceptor=self.photoreceptor.to_dict(), emd=self.emd.to_dict(),
                     fields=self.fields.to_dict(), rotation=self.rotation, normaliser=self.normaliser,
                     r2_term=self.r2_term,
-                    column_pool=self.column_pool,
+                    column_pool=self.column_pool, rotation_gain=self.rotation_gain,
                     readout_rate_hz=self.readout_rate_hz,
                     calibration=self.calibration, latency_s=self.latency_s)
 
@@ -260,6 +263,9 @@ class EyeCircuit:
     mirror groups (F/2) under wide-field rotation cancelling.
     """
 
+    #: haltere gain regression: running-mean time constant and memory (readout steps), prior std of α
+    HP_STEPS, MEMORY_STEPS, ALPHA_PRIOR_STD = 50, 500, 0.5
+
     def __init__(self, eye: CompoundEye, rate_hz: float, config: EyeCircuitConfig | None = None):
         self.config = cfg = config or EyeCircuitConfig()
         self.eye = eye
@@ -294,6 +300,7 @@ class EyeCircuit:
         self._t0 = 0.0
         self._n_steps = 0
         self._floor = None
+        self._rot_state = None
         self.timings = dict(photoreceptor=0.0, emd=0.0, fields=0.0)
 
     @property
@@ -314,8 +321,12 @@ class EyeCircuit:
         self._gyro_state = torch.stack([g1[..., -1, :], g2[..., -1, :]])
         return g2
 
-    def _sums(self, lum: torch.Tensor, gyro: torch.Tensor | None, keep: dict | None = None) -> torch.Tensor:
+    def _sums(self, lum: torch.Tensor, gyro: torch.Tensor | None, keep: dict | None = None,
+              with_rotation: bool = False) -> torch.Tensor:
         """Per-step pooled sums (..., T, 5F): b1, b2 (2F), A11, A12, A22 (3F), haltere-corrected.
+
+        with_rotation: when the haltere correction ran, also return the two subtracted
+        predictions (the rotational response of b1, b2 at unit gain), as (..., T, 7F).
 
         lum (..., T, n); gyro (..., T, 3) or None (no rotation signal: nothing subtracted).
         keep: a dict that receives the stages' signals "photoreceptor.v" (..., T, n) and
@@ -352,7 +363,11 @@ class EyeCircuit:
             w = self._gyro_filtered(gyro)                                       # (..., T, 3)
             rot = out[..., 5 * F:].reshape(out.shape[:-1] + (2, 3, F))
             corr = torch.einsum("...tj,...tkjf->...tkf", w, rot)                # (..., T, 2, F)
-            out[..., :2 * F] -= corr.reshape(out.shape[:-1] + (2 * F,))
+            corr = corr.reshape(out.shape[:-1] + (2 * F,))
+            out[..., :2 * F] -= corr
+            if with_rotation:
+                # The subtracted prediction travels with the sums: the solve learns its gain (see _solve).
+                return torch.cat([out[..., :5 * F], corr], dim=-1)
         return out[..., :5 * F]
 
     def run_steps(self, luminance, gyro=None, record=()) -> dict:
@@ -386,7 +401,7 @@ class EyeCircuit:
             raise ValueError(f"luminance must be (time, {self.eye.n}) for this eye, got {tuple(lum.shape)}")
         if gyr.shape != (lum.shape[0], 3):
             raise ValueError(f"gyro must be (time, 3) matching the luminance, got {tuple(gyr.shape)}")
-        s = self._sums(lum, gyr).double()
+        s = self._sums(lum, gyr, with_rotation=self.config.rotation_gain == "adaptive").double()
         if self._carry:
             s = torch.cat([self._carry.pop(), s])
         start = self._n_steps - (len(s) - lum.shape[0])
@@ -408,16 +423,56 @@ class EyeCircuit:
         t_end = np.array([(self._n_steps - 1) * self.dt])
         return self._solve(s.sum(0, keepdim=True).numpy() * (self.block / len(s)), t_end)
 
+    def _rotation_gain(self, rho: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Causal per-field estimate of α = γ − 1, the field's gain γ less the haltere's unit gain, (K, F').
+
+        The decoded image motion is γ·(true motion) with γ = (Δϕ/2)·cot(Δϕ/2) averaged
+        over the field's texture (< 1, and the same for rotation and translation: one set
+        of EMDs sees both). The haltere predicts the rotational response at gain 1, so
+        ρ̂ = γρ + α·q after the subtraction, q the subtracted rotation's ρ. Rotation is
+        independent of translation, so α is the regression of ρ̂ on q — over past readout
+        steps only, both with their running means (time constant ``HP_STEPS``, learning starts
+        once they have run that long; a constant turn is not told from translation) removed, with
+        forgetting (``MEMORY_STEPS``) and a prior α = 0 ± ``ALPHA_PRIOR_STD`` against ρ̂'s
+        own running variance as the noise (no rotation seen: no correction). α is held in [−1, 0.5]
+        (γ between 0 and 1.5) and the estimate at step k uses steps before k only.
+        """
+        K, Fo = rho.shape[-2], rho.shape[-1]
+        st = self._rot_state
+        if st is None:
+            z = np.zeros(rho.shape[:-2] + (Fo,))
+            st = dict(mr=np.nan_to_num(rho[..., 0, :]), mq=q[..., 0, :].copy(), sxy=z.copy(), sxx=z.copy(),
+                      vr=z.copy(), n=0)
+        hp, mem = 1.0 / self.HP_STEPS, 1.0 / self.MEMORY_STEPS
+        alpha = np.empty_like(rho)
+        for k in range(K):  # a loop over readout steps, vectorised over fields
+            with np.errstate(invalid="ignore", divide="ignore"):
+                a = st["sxy"] / (st["sxx"] + st["vr"] / self.ALPHA_PRIOR_STD ** 2 + 1e-300)
+            alpha[..., k, :] = np.clip(np.nan_to_num(a), -1.0, 0.5)
+            r, qk = rho[..., k, :], q[..., k, :]
+            ok = np.isfinite(r)
+            dr, dq = np.where(ok, r - st["mr"], 0.0), np.where(ok, qk - st["mq"], 0.0)
+            st["mr"] = np.where(ok, st["mr"] + hp * dr, st["mr"])
+            st["mq"] = st["mq"] + hp * (qk - st["mq"])
+            st["n"] += 1
+            if st["n"] > self.HP_STEPS:   # the running means have settled: learn
+                st["sxy"] = (1 - mem) * st["sxy"] + dr * dq
+                st["sxx"] = (1 - mem) * st["sxx"] + dq * dq
+                st["vr"] = (1 - mem) * st["vr"] + mem * dr * dr
+        self._rot_state = st
+        return alpha
+
     def _solve(self, sums: np.ndarray, t_end: np.ndarray) -> dict:
         """Per-block 2×2 weighted least squares for (ρ_f, g_f) and r2_eff."""
         F = self.fields.n_fields
-        b1, b2, A11, A12, A22 = (sums[..., i * F:(i + 1) * F] for i in range(5))
+        parts = [sums[..., i * F:(i + 1) * F] for i in range(sums.shape[-1] // F)]
         theta = self.fields.theta
         if self.n_outputs != F:   # wide-field: sum mirror fields (right f with left mirror[f])
             right = np.flatnonzero(self.fields.eye == 0)
             left = self.fields.mirror[right]
-            b1, b2, A11, A12, A22 = (x[..., right] + x[..., left] for x in (b1, b2, A11, A12, A22))
+            parts = [x[..., right] + x[..., left] for x in parts]
             theta = theta[right]
+        b1, b2, A11, A12, A22 = parts[:5]
         cfg = self.config.fields
         if A11.shape[-2]:
             # Semi-saturation floor: a running mean (over past blocks only) of each field's pool.
@@ -431,8 +486,16 @@ class EyeCircuit:
         A22 = A22 * (1.0 + cfg.gradient_ridge)
         det = A11 * A22 - A12 * A12
         with np.errstate(divide="ignore", invalid="ignore"):
-            rho = np.where(det > 0, (A22 * b1 - A12 * b2) / det, np.nan) * self.config.calibration
-            grad = np.where(det > 0, (A11 * b2 - A12 * b1) / det, np.nan) * self.config.calibration
+            rho = np.where(det > 0, (A22 * b1 - A12 * b2) / det, np.nan)
+            grad = np.where(det > 0, (A11 * b2 - A12 * b1) / det, np.nan)
+            if len(parts) == 7 and A11.shape[-2]:
+                # ρ and g of the rotation the haltere subtracted, at unit gain.
+                c1, c2 = parts[5:]
+                q = np.where(det > 0, (A22 * c1 - A12 * c2) / det, 0.0)
+                qg = np.where(det > 0, (A11 * c2 - A12 * c1) / det, 0.0)
+                alpha = self._rotation_gain(rho, q)
+                rho, grad = rho - alpha * q, grad - alpha * qg
+            rho, grad = rho * self.config.calibration, grad * self.config.calibration
         mode = self.config.r2_term
         r2_eff = (rho ** 2 * np.cos(theta) - rho * np.sin(theta) * grad if mode == "convective"
                   else rho ** 2 * np.cos(theta) if mode == "point" else np.zeros_like(rho))
