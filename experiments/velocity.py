@@ -101,7 +101,14 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
         # Decoding, flow and pooling overlap: each runs in its own thread, a few frames ahead.
         frames = threaded(_timed(footage.frames(), timings, "read"), name="decode")
         waited = dict(decode=0.0)
-        flows = StaggeredFlow(cam, config.flow).run(_timed(frames, waited, "decode"))
+        # With a gyro, each pair's flow is taken on the image turned by the gyro's rotation
+        # (lobula.flow.prewarp_flow): the flow method then sees only small displacements.
+        turn = None
+        if attitude is not None:
+            def turn(t0, t1):
+                q = attitude(np.array([t0, t1]))
+                return q[0].T @ q[1]
+        flows = StaggeredFlow(cam, config.flow, rotation=turn).run(_timed(frames, waited, "decode"))
         samples = threaded(_timed(flows, timings, "flow", minus=(waited, "decode")), name="flow")
         total = max(len(footage) - config.flow.gap, 0)
     else:

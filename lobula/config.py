@@ -48,7 +48,7 @@ class VelocityConfig:
     def paper(cls, front_end: str = "dis", filter: str = "zero-phase") -> "VelocityConfig":
         """The FLIVVER paper's text: 6-frame pairs stamped at their first frame, epipole at the
         principal point, per-pixel v/d averaged in 5° fields, the paper's median readout."""
-        return cls(front_end=front_end, flow=FlowConfig(gap=6),
+        return cls(front_end=front_end, flow=FlowConfig(gap=6, prewarp=False),
                    fields=FieldConfig(size_deg=5.0, pooling="pixel-mean", gap_correction=False, material=False),
                    readout=ReadoutConfig.paper(filter), epipole="principal", timestamps="start")
 
