@@ -107,8 +107,9 @@ def prewarp_flow(fn, a: np.ndarray, b: np.ndarray, camera: PinholeCamera, r01: n
     resampled at W(p) (the pixel where b sees a's ray p): b_w(p) = b(W(p)). The flow δ
     from a to b_w holds only translation and what the gyro got wrong, and the raw
     displacement is W(p + δ) − p, exact for any rotation angle (a homography, no small-
-    angle step). Pixels whose ray falls outside b take b's nearest edge value; the flow
-    method treats them as it treats any pixel leaving the view.
+    angle step). Pixels whose match falls outside b (their scene point left the view) are
+    NaN: b_w holds b's replicated edge there, so the method's flow would be the rotation
+    alone, a translational flow of zero (downstream every stage skips non-finite flow).
     """
     import cv2
 
@@ -127,6 +128,10 @@ def prewarp_flow(fn, a: np.ndarray, b: np.ndarray, camera: PinholeCamera, r01: n
     grid = _pixel_grid(h, w)
     pts = fn(a, bw).transpose(1, 2, 0) + grid  # where a's pixels went in b_w, (h, w, 2) px
     moved = cv2.perspectiveTransform(pts.reshape(-1, 1, 2), hom).reshape(h, w, 2)
+    # A point whose match lies outside b left the view: b_w there is b's replicated edge, and
+    # the "flow" the method found is the rotation alone. Unknown, not zero: NaN.
+    out = (moved[..., 0] < 0) | (moved[..., 0] > w - 1) | (moved[..., 1] < 0) | (moved[..., 1] > h - 1)
+    moved[out] = np.nan
     return (moved - grid).transpose(2, 0, 1)  # float32, a view like the flow functions' own
 
 

@@ -26,9 +26,15 @@ def test_prewarp_recovers_a_fast_turn_that_plain_dis_loses():
     true = np.stack([wu - u, wv - v])
     fn = make_flow_fn(FlowConfig())
     inner = (slice(None), slice(30, -30), slice(40, -40))
-    err_pre = np.median(np.abs(prewarp_flow(fn, a, b, cam, r01) - true)[inner])
+    pre = prewarp_flow(fn, a, b, cam, r01)
+    err_pre = np.nanmedian(np.abs(pre - true)[inner])
     err_raw = np.median(np.abs(fn(a, b) - true)[inner])
     assert np.abs(true).max() > 40
+    # NaN exactly where the point leaves the view (to within a pixel of the edge).
+    gone = (wu < -1) | (wu > cam.width) | (wv < -1) | (wv > cam.height)
+    stays = (wu > 1) & (wu < cam.width - 2) & (wv > 1) & (wv < cam.height - 2)
+    assert np.isnan(pre[0][gone]).all() and gone.sum() > 1000
+    assert np.isfinite(pre[0][stays]).mean() > 0.99
     assert err_pre < 0.05, err_pre
     assert err_raw > 20 * err_pre, (err_raw, err_pre)
 
@@ -100,7 +106,7 @@ def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path)
     truth_imu = imu["gyro_bias_t"] @ imu["imu_to_camera"].T  # camera frame
     assert np.abs(gyro_bias(fo.imu.time_s, fo.imu.gyro)).max() == 0.0  # never still: nothing from the gyro alone
     for filt in ("zero-phase", "causal"):
-        vc = VelocityConfig()
+        vc = VelocityConfig(gyro_bias_from_vision=True)
         vc.readout.filter = filt
         ds = estimate_velocity(fo, vc, progress=False)
         t = ds.time.values
