@@ -447,6 +447,8 @@ def apply_velocity_options(cfg, args):
         cfg.epipole = args.epipole
     if opt("accel_from_truth"):
         cfg.accel_from_truth = True
+    if opt("gyro_bias_from_vision"):
+        cfg.gyro_bias_from_vision = True
     e = cfg.emd
     if opt("dphi") or opt("drho"):
         e.lattice = replace(e.lattice, dphi_deg=opt("dphi") or e.lattice.dphi_deg,
@@ -520,6 +522,9 @@ def add_parser(subparsers):
     v.add_argument("--epipole", choices=["estimate", "principal"])
     v.add_argument("--accel-from-truth", action="store_true",
                    help="forward acceleration from truth.csv instead of imu.csv")
+    v.add_argument("--gyro-bias-from-vision", action="store_true",
+                   help="estimate the gyro bias from the flow's residual rotation (lobula.haltere.vision_gyro_bias) "
+                        "for gravity removal and the drift std; writes gyro_bias, gyro_bias_std")
     v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo)")
     v.add_argument("--flo-units", default="rad/s", choices=["rad/s", "px"], help="units of the .flo values")
     v.add_argument("--flo-gap", type=float, default=0.2, help="time between the .flo frame pair (s)")

@@ -119,3 +119,16 @@ def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path)
         print(f"\n{filt}: bias error rms {1e3 * rms:.2f} mrad/s (still-only {1e3 * still_only:.2f}), ±2σ {cover:.2f}")
         assert rms < 0.5 * still_only
         assert cover >= 0.8
+
+
+def test_gyro_bias_from_vision_option_reaches_the_config():
+    import argparse
+
+    from experiments.velocity import _velocity_config, add_parser
+
+    p = argparse.ArgumentParser()
+    add_parser(p.add_subparsers())
+    on = _velocity_config(p.parse_args(["velocity", "x", "--out", "y.nc", "--gyro-bias-from-vision"]))
+    off = _velocity_config(p.parse_args(["velocity", "x", "--out", "y.nc"]))
+    assert on.gyro_bias_from_vision and not off.gyro_bias_from_vision
+    assert off.flow.prewarp and not _velocity_config(p.parse_args(["velocity", "x", "--out", "y.nc", "--paper"])).flow.prewarp
