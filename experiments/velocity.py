@@ -20,10 +20,11 @@ from tqdm.auto import tqdm
 
 from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
-from lobula.epipole import EpipoleEstimator, derotate, derotate_finite
+from lobula.depth_motion import refine_motion
+from lobula.epipole import EpipoleEstimator, derotate, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
 from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
-                            orientation_from_gyro, resample_to)
+                            gyro_bias, orientation_from_gyro, resample_to, vision_gyro_bias)
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
@@ -40,6 +41,9 @@ class FieldRates:
     t (n,) s; r, r2 (n, F) at fixed pixels; epipole (n, 2) normalised; timings: seconds per
     stage; material: the rates along the content (ṙ̄ as Dr/Dt, lobula.readout.MaterialRates),
     None where the front end gives no consecutive pairs (flo, emd) or fields.material is off.
+    gyro_residual: (t (m,) s, residual (m, 3) rad/s, rate (m, 3) rad/s): on non-overlapping
+    pairs, the gyro bias the derotated flow says and the gyro's rate over the pair
+    (lobula.haltere.vision_gyro_bias's measurements and regressors), or None.
     """
 
     t: np.ndarray
@@ -49,6 +53,7 @@ class FieldRates:
     timings: dict
     fields: ReceptiveFields
     material: MaterialRates | None = None
+    gyro_residual: tuple | None = None
 
 
 def flo_samples(footage: Footage, flo_files: list[Path], units: FloUnits):
@@ -88,6 +93,9 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     attitude = (_attitude_track(footage.imu.time_s, gyro, causal=config.readout.filter == "causal")
                 if (gyro is not None and config.derotate) else None)
     timings = dict(read=0.0, flow=0.0, fields=0.0)
+    # The gyro bias the derotation removed (still-camera estimate), to add back to what vision finds left.
+    b0 = (gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal")
+          if attitude is not None and config.gyro_bias_from_vision else None)
 
     if config.front_end == "emd":
         return _emd_field_rates(footage, config, fields, timings, progress)
@@ -101,7 +109,14 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
         # Decoding, flow and pooling overlap: each runs in its own thread, a few frames ahead.
         frames = threaded(_timed(footage.frames(), timings, "read"), name="decode")
         waited = dict(decode=0.0)
-        flows = StaggeredFlow(cam, config.flow).run(_timed(frames, waited, "decode"))
+        # With a gyro, each pair's flow is taken on the image turned by the gyro's rotation
+        # (lobula.flow.prewarp_flow): the flow method then sees only small displacements.
+        turn = None
+        if attitude is not None:
+            def turn(t0, t1):
+                q = attitude(np.array([t0, t1]))
+                return q[0].T @ q[1]
+        flows = StaggeredFlow(cam, config.flow, rotation=turn).run(_timed(frames, waited, "decode"))
         samples = threaded(_timed(flows, timings, "flow", minus=(waited, "decode")), name="flow")
         total = max(len(footage) - config.flow.gap, 0)
     else:
@@ -110,7 +125,7 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     stagger = max(2, config.readout.stagger + config.readout.stagger % 2)
     material = (MaterialFields(fields, stagger, gap_correction=config.fields.gap_correction)
                 if config.fields.material and config.front_end in ("dis", "farneback") else None)
-    ts, rs, r2s, es, ms = [], [], [], [], []
+    ts, rs, r2s, es, ms, gres = [], [], [], [], [], []
     bar = tqdm(total=total, desc=f"{config.front_end} flow → fields", unit="frame", disable=not progress,
                leave=False, mininterval=2)
     for s in samples:
@@ -135,6 +150,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
             r, r2 = gap_correction(r, r2, s.dt)
         if material is not None:
             ms.append(material.update(s.t0, s.dt, s.flow, e, *q))
+        if b0 is not None and len(ts) % config.flow.gap == 0:
+            gres.append(_residual_rate(footage, s, q[0].T @ q[1], e, b0))
         timings["fields"] += _time.perf_counter() - t1
         ts.append(s.t_mid if config.timestamps == "mid" else s.t0)
         rs.append(r)
@@ -146,7 +163,44 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
         raise FootageError(f"{footage.path}: too few frames for a flow pair "
                            f"({len(footage)} frames, gap {config.flow.gap})")
     return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.array(es), timings, fields,
-                      _material_rates(ms, len(ts), fields.n_fields, stagger) if material is not None else None)
+                      _material_rates(ms, len(ts), fields.n_fields, stagger) if material is not None else None,
+                      tuple(np.array([g[i] for g in gres]) for i in range(3)) if gres else None)
+
+
+#: pixels per pair for the residual-rotation fit: a 3-parameter fit (with a 2-parameter
+#: epipole) needs far fewer than the image holds, and it runs on every gap-th pair.
+RESIDUAL_POINTS = 1500
+
+
+def _residual_rate(footage: Footage, s: FlowSample, r01: np.ndarray, e: np.ndarray, b0: np.ndarray):
+    """(t_mid, b (3,) rad/s, ω (3,) rad/s): the gyro bias this pair's flow says, b0(t_mid) − δω,
+    and the gyro's mean rate over the pair (the regressor of its scale-factor errors).
+
+    The raw flow is derotated exactly (each point's second ray turned into the first
+    frame's orientation by the gyro's r01) and lobula.depth_motion.refine_motion fits the
+    rotation δω still in it jointly with the epipole (started at the running estimate e).
+    The gyro read ω + b and the derotation removed ω + b − b0, so the flow is left turning
+    by −(b − b0): δω = b0 − b.
+    """
+    x, y = footage.camera.normalised_grid(np.float64)
+    f = np.asarray(s.flow, np.float64)
+    x1, y1 = turn(r01, x + f[0] * s.dt, y + f[1] * s.dt)
+    fd = np.stack([(x1 - x) / s.dt, (y1 - y) / s.dt])
+    _, dw, _ = refine_motion(fd, footage.camera, tuple(e), n_points=RESIDUAL_POINTS)
+    tb = footage.imu.time_s
+    b_then = np.array([np.interp(s.t_mid, tb, b0[:, k]) for k in range(3)])
+    return s.t_mid, b_then - dw, Rotation.from_matrix(r01).as_rotvec() / s.dt
+
+
+def vision_bias_track(footage: Footage, rates: FieldRates, causal: bool):
+    """The gyro bias and its std ((n, 3) rad/s each, at the IMU samples) from the flow's residual
+    rotation (lobula.haltere.vision_gyro_bias), started from the still-camera estimate; None without."""
+    if rates.gyro_residual is None or footage.imu is None or footage.imu.gyro is None:
+        return None
+    tb, gyro = footage.imu.time_s, footage.imu.gyro
+    b_still, s_still = gyro_bias(tb, gyro, causal, with_std=True)
+    t_m, res, rate = rates.gyro_residual
+    return vision_gyro_bias(t_m, res, tb, b_still[0], s_still[0], causal, rate=rate)
 
 
 def _attitude_track(time_s: np.ndarray, gyro: np.ndarray, causal: bool):
@@ -224,8 +278,12 @@ def gravity_tau(footage: Footage, times: np.ndarray, config: VelocityConfig) -> 
     return gravity_time_constant(times, float(footage.imu.time_s[0]))
 
 
-def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig) -> tuple[np.ndarray, str]:
-    """Forward acceleration (m/s²) at ``times`` and a label saying where it came from."""
+def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig,
+                     bias: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+    """Forward acceleration (m/s²) at ``times`` and a label saying where it came from.
+
+    bias: gyro bias track (n_imu, 3) rad/s for the attitude that removes gravity
+    (:func:`vision_bias_track`); None: the still-camera estimate."""
     causal = config.readout.filter == "causal"
     if config.accel_from_truth or footage.imu is None:
         if not config.accel_from_truth and footage.kind != "d435i-sample":
@@ -239,7 +297,8 @@ def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig
     if times[0] < imu.time_s[0] - 0.5 or times[-1] > imu.time_s[-1] + 0.5:
         raise FootageError(f"{footage.path / 'imu.csv'}: covers {imu.time_s[0]:.2f}..{imu.time_s[-1]:.2f} s "
                            f"but frames need {times[0]:.2f}..{times[-1]:.2f} s; the time stamps do not match")
-    a = forward_acceleration(imu.time_s, imu.accel, imu.gyro if config.derotate else None, causal=causal)
+    a = forward_acceleration(imu.time_s, imu.accel, imu.gyro if config.derotate else None, causal=causal,
+                             bias=bias)
     dt = float(np.median(np.diff(footage.times)))
     return resample_to(times, imu.time_s, a, dt), "accelerometer (gravity and bias removed)"
 
@@ -250,7 +309,8 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     config = config or VelocityConfig()
     t_start = _time.perf_counter()
     rates = field_rates(footage, config, flo_files, flo_units, progress)
-    a, accel_source = forward_accel_at(footage, rates.t, config)
+    vb = vision_bias_track(footage, rates, config.readout.filter == "causal")
+    a, accel_source = forward_accel_at(footage, rates.t, config, bias=None if vb is None else vb[0])
     fields = rates.fields
     t0 = _time.perf_counter()
     rcfg = config.readout
@@ -272,7 +332,8 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
             # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.haltere):
             # a state of the readout's filter, offline and online alike.
             drift = np.interp(rates.t, footage.imu.time_s,
-                              gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=rcfg.filter == "causal"))
+                              gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=rcfg.filter == "causal",
+                                                bias_std=None if vb is None else vb[1], accel=footage.imu.accel))
         res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material, gravity_tau=tau,
                       drift_std=drift)
     else:
@@ -299,6 +360,13 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                   azimuth_deg=("field", fields.centres_deg[:, 0]),
                   elevation_deg=("field", fields.centres_deg[:, 1]),
                   size_deg=("field", np.full(F, fields.size_deg)))
+    if vb is not None:
+        tb = footage.imu.time_s
+        at_t = lambda b: np.stack([np.interp(rates.t, tb, b[:, k]) for k in range(3)], -1)
+        data["gyro_bias"] = (("time", "axis"), at_t(vb[0]), {"units": "rad/s", "long_name":
+                             "gyro bias from the flow's residual rotation (camera frame)"})
+        data["gyro_bias_std"] = (("time", "axis"), at_t(vb[1]), {"units": "rad/s"})
+        coords["axis"] = ("axis", ["x", "y", "z"])
     ds = xr.Dataset(data, coords=coords)
     ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=config.readout.filter,
                                readout=config.readout.method, acceleration_source=accel_source,
@@ -379,6 +447,8 @@ def apply_velocity_options(cfg, args):
         cfg.epipole = args.epipole
     if opt("accel_from_truth"):
         cfg.accel_from_truth = True
+    if opt("gyro_bias_from_vision"):
+        cfg.gyro_bias_from_vision = True
     e = cfg.emd
     if opt("dphi") or opt("drho"):
         e.lattice = replace(e.lattice, dphi_deg=opt("dphi") or e.lattice.dphi_deg,
@@ -452,6 +522,9 @@ def add_parser(subparsers):
     v.add_argument("--epipole", choices=["estimate", "principal"])
     v.add_argument("--accel-from-truth", action="store_true",
                    help="forward acceleration from truth.csv instead of imu.csv")
+    v.add_argument("--gyro-bias-from-vision", action="store_true",
+                   help="estimate the gyro bias from the flow's residual rotation (lobula.haltere.vision_gyro_bias) "
+                        "for gravity removal and the drift std; writes gyro_bias, gyro_bias_std")
     v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo)")
     v.add_argument("--flo-units", default="rad/s", choices=["rad/s", "px"], help="units of the .flo values")
     v.add_argument("--flo-gap", type=float, default=0.2, help="time between the .flo frame pair (s)")

@@ -21,6 +21,12 @@ class VelocityConfig:
     front_end: "dis" | "farneback" | "flo" | "emd". epipole: "estimate" (from the
     derotated flow) or "principal" (assume the principal point, as the paper does).
     derotate: subtract gyro-predicted rotational flow when a gyroscope is present.
+    gyro_bias_from_vision: with a gyroscope, estimate its bias from the rotation the
+    derotated flow still shows (lobula.haltere.vision_gyro_bias) for the attitude that
+    removes gravity and for the readout's gravity-drift std; else (the default) only where
+    the camera is still. Off by default: on frontal scenes a pitch/yaw bias is nearly
+    confounded with an epipole shift, and on 2 of 7 development scenes one axis's estimate
+    stayed near 0 with a std that claimed otherwise.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
@@ -34,6 +40,7 @@ class VelocityConfig:
     readout: ReadoutConfig = field(default_factory=ReadoutConfig)
     epipole: str = "estimate"
     derotate: bool = True
+    gyro_bias_from_vision: bool = False
     timestamps: str = "mid"
     accel_from_truth: bool = False
     emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)
@@ -48,7 +55,7 @@ class VelocityConfig:
     def paper(cls, front_end: str = "dis", filter: str = "zero-phase") -> "VelocityConfig":
         """The FLIVVER paper's text: 6-frame pairs stamped at their first frame, epipole at the
         principal point, per-pixel v/d averaged in 5° fields, the paper's median readout."""
-        return cls(front_end=front_end, flow=FlowConfig(gap=6),
+        return cls(front_end=front_end, flow=FlowConfig(gap=6, prewarp=False),
                    fields=FieldConfig(size_deg=5.0, pooling="pixel-mean", gap_correction=False, material=False),
                    readout=ReadoutConfig.paper(filter), epipole="principal", timestamps="start")
 

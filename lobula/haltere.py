@@ -67,13 +67,15 @@ def gyro_bias(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False, window
     return bias, 1.0 / np.sqrt(1.0 / GYRO_BIAS_PRIOR ** 2 + count / sigma ** 2)
 
 
-def orientation_from_gyro(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False) -> np.ndarray:
+def orientation_from_gyro(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False,
+                          bias: np.ndarray | None = None) -> np.ndarray:
     """Rotations (n, 3, 3) taking camera-frame vectors at each sample into the first sample's frame.
 
-    The gyro bias (:func:`gyro_bias`) is removed first.
+    The gyro bias is removed first: ``bias`` (n, 3) rad/s where given (e.g.
+    :func:`vision_gyro_bias`'s), else the still-camera estimate of :func:`gyro_bias`.
     """
     n = len(time_s)
-    w = gyro - gyro_bias(time_s, gyro, causal)
+    w = gyro - (gyro_bias(time_s, gyro, causal) if bias is None else np.asarray(bias, float))
     dt = np.diff(time_s, prepend=time_s[0])
     steps = Rotation.from_rotvec(w * dt[:, None]).as_matrix()
     out = np.empty((n, 3, 3))
@@ -167,7 +169,8 @@ def local_linear(time_s: np.ndarray, values: np.ndarray, window_s: float, causal
 
 
 def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None,
-                         causal: bool = False, window_s: float = GRAVITY_WINDOW_S) -> np.ndarray:
+                         causal: bool = False, window_s: float = GRAVITY_WINDOW_S,
+                         bias: np.ndarray | None = None) -> np.ndarray:
     """Gravity-free acceleration along the optical axis (m/s², (n,)) from specific force (n, 3).
 
     Raises ValueError for non-finite input. With ``gyro`` (n, 3) rad/s the gravity
@@ -182,12 +185,13 @@ def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray
     acceleration trend (ablation, rotation family with a perfect IMU and exact flow:
     0.048 m/s RMSE with a fitted slope, 0.024 without). It is left for the readout's ramp
     state, where vision tells the two apart (:func:`gravity_drift_std`, offline and online).
+    bias: the gyro bias track (n, 3) rad/s to stabilise with (:func:`orientation_from_gyro`).
     """
     if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(time_s))):
         raise ValueError("accelerometer samples contain NaN or inf")
     n = len(time_s)
     if gyro is not None:
-        rot = orientation_from_gyro(time_s, gyro, causal)
+        rot = orientation_from_gyro(time_s, gyro, causal, bias)
     else:
         rot = np.broadcast_to(np.eye(3), (n, 3, 3))
     f0 = np.einsum("nij,nj->ni", rot, accel)  # specific force in the first frame
@@ -196,12 +200,131 @@ def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray
     return (accel + g_cam)[:, 2]
 
 
-def gravity_drift_std(time_s: np.ndarray, gyro: np.ndarray, causal: bool = True) -> np.ndarray:
-    """How fast (m/s²/s, (n,)) gravity may drift through the forward axis: |g|·σ_b of :func:`gyro_bias`.
+def gravity_drift_std(time_s: np.ndarray, gyro: np.ndarray, causal: bool = True,
+                      bias_std: np.ndarray | None = None, accel: np.ndarray | None = None) -> np.ndarray:
+    """How fast (m/s²/s, (n,)) gravity may drift through the forward axis: |g|·σ_b.
 
-    causal: σ_b from the still samples seen so far (online); else from the whole record's.
+    σ_b: that of :func:`gyro_bias` — causal: from the still samples seen so far (online);
+    else from the whole record's — or ``bias_std`` (n, 3) rad/s per camera axis where given
+    (e.g. :func:`vision_gyro_bias`'s). A bias error δb turns gravity g at δb × g, whose
+    forward (z) part is δb_x·g_y − δb_y·g_x: with ``accel`` (n, 3), the specific force whose
+    mean (expanding, causal; whole record, offline) gives g's direction in the camera,
+    the std is |g|·√(σ_x²ĝ_y² + σ_y²ĝ_x²); without it, |g|·max σ (any orientation).
     """
-    return G * gyro_bias(time_s, gyro, causal, with_std=True)[1]
+    if bias_std is None:
+        return G * gyro_bias(time_s, gyro, causal, with_std=True)[1]
+    b = np.asarray(bias_std, float)
+    if accel is None:
+        return G * b.max(axis=-1)
+    f = np.asarray(accel, float)
+    g = np.cumsum(f, 0) / np.arange(1, len(f) + 1)[:, None] if causal else np.broadcast_to(f.mean(0), f.shape)
+    g = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-9)
+    return G * np.sqrt(b[:, 0] ** 2 * g[:, 1] ** 2 + b[:, 1] ** 2 * g[:, 0] ** 2)
+
+
+#: rad/s²/√Hz: how fast a MEMS gyro's bias may wander (random walk), a generous figure for
+#: consumer units (Allan-variance fits for the BMI055 give a few 1e-5; temperature adds more).
+GYRO_BIAS_WALK = 1e-4
+#: rad/s: a single pair's residual rate before the record has told its own scatter
+#: (first-order: flow noise ~0.5 px over a 0.2 s pair across a ~0.5 rad field of view).
+RESIDUAL_RATE_PRIOR_STD = 0.02
+MIN_RESIDUALS = 5  # residuals needed before their own scatter sets the measurement noise
+#: fraction: prior std of each entry of a gyro's scale-factor and misalignment error E
+#: (data sheets: sensitivity ±1–2 %, cross-axis ±1–2 %).
+GYRO_SCALE_PRIOR = 0.02
+RESIDUAL_GATE = 4.0  # innovations beyond this many σ are taken as failed pairs, not as the bias
+
+
+def vision_gyro_bias(t_meas: np.ndarray, residual: np.ndarray, time_s: np.ndarray, prior_bias: np.ndarray,
+                     prior_std: np.ndarray | float, causal: bool, rate: np.ndarray | None = None,
+                     walk: float = GYRO_BIAS_WALK, scale_std: float = GYRO_SCALE_PRIOR):
+    """The gyro bias (rad/s) from what vision says the gyro-derotated flow still turns by.
+
+    A camera that never stops turning gives :func:`gyro_bias` nothing. Vision does: after
+    derotation with the gyro (bias b₀ removed), the flow of a rigid scene is radial from the
+    epipole except for the rotation the gyro got wrong, δω = b − b₀ + E·ω, with E the
+    gyro's scale-factor and misalignment errors; :func:`lobula.depth_motion.refine_motion`
+    fits it per flow pair. ``t_meas`` (m,) s and ``residual`` (m, 3) rad/s: those fits (use
+    pairs that do not overlap, so their flow errors are independent), with b₀ already added
+    back (residual = b₀(t) + δω); ``rate`` (m, 3) rad/s: the gyro's mean rate over each
+    pair, the regressor of E (None: E·ω is left in the noise, where it is not white).
+
+    Per camera axis i, a Kalman filter on (b_i, E_i·) — b a random walk (``walk``
+    rad/s²/√Hz) started at ``prior_bias`` (3,) ± ``prior_std`` (the still-camera estimate
+    and its std at the start), the row E_i· constant with prior std ``scale_std``. Its
+    measurement noise is the residuals' own scatter, 1.4826·MAD of successive differences
+    / √2 (robust to the slow drift and to outlying pairs; it also holds the part of E·ω that
+    changes between pairs, so it errs wide), from the pairs seen so far (causal) or all of
+    them (offline; followed by an RTS smoother); a residual more than ``RESIDUAL_GATE`` σ
+    from the prediction is left out. Returns (bias (n, 3), std (n, 3)) at ``time_s`` (n,):
+    causal values hold until the next pair, with the walk's variance growing in between.
+    """
+    t_meas = np.asarray(t_meas, float)
+    z = np.asarray(residual, float).reshape(-1, 3)
+    w = np.zeros_like(z) if rate is None else np.asarray(rate, float).reshape(-1, 3)
+    time_s = np.asarray(time_s, float)
+    n = len(time_s)
+    b0 = np.broadcast_to(np.asarray(prior_bias, float), (3,)).copy()
+    p0 = np.broadcast_to(np.asarray(prior_std, float) ** 2, (3,)).copy()
+    ok = np.all(np.isfinite(z), axis=1) & np.all(np.isfinite(w), axis=1)
+    t_meas, z, w = t_meas[ok], z[ok], w[ok]
+    m = len(t_meas)
+    if m == 0:
+        return np.broadcast_to(b0, (n, 3)).copy(), np.broadcast_to(np.sqrt(p0), (n, 3)).copy()
+    # Measurement variance per pair (m, 3).
+    dz = np.abs(np.diff(z, axis=0)) if m > 1 else np.zeros((0, 3))
+    r = np.full((m, 3), RESIDUAL_RATE_PRIOR_STD ** 2)
+    if causal:
+        for k in range(MIN_RESIDUALS, m):  # m ~ 5 per second: a short loop over pairs, not pixels
+            r[k] = (1.4826 * np.median(dz[:k], axis=0) / np.sqrt(2)) ** 2
+    elif m > MIN_RESIDUALS:
+        r[:] = (1.4826 * np.median(dz, axis=0) / np.sqrt(2)) ** 2
+    r = np.maximum(r, 1e-12)
+    # State per axis (3 axes batched): [b, E_i0, E_i1, E_i2]; measurement h = [1, ω].
+    q_rate = walk ** 2
+    x = np.zeros((3, 4))
+    x[:, 0] = b0
+    P = np.zeros((3, 4, 4))
+    P[:, 0, 0] = p0
+    P[:, 1:, 1:] = np.eye(3) * max(scale_std, 1e-6) ** 2  # without rate, ω = 0: E never enters
+    xf, xp = np.empty((m, 3, 4)), np.empty((m, 3, 4))
+    Pf, Pp = np.empty((m, 3, 4, 4)), np.empty((m, 3, 4, 4))
+    t_prev = float(time_s[0]) if n else float(t_meas[0])
+    for k in range(m):
+        P = P.copy()
+        P[:, 0, 0] += q_rate * max(t_meas[k] - t_prev, 0.0)
+        xp[k], Pp[k] = x, P
+        h = np.concatenate([[1.0], w[k]])
+        s = np.einsum("i,aij,j->a", h, P, h) + r[k]
+        innov = z[k] - x @ h
+        # A pair whose flow failed (occlusion, a moving object) claims a wild rotation: gate it.
+        use = np.abs(innov) <= RESIDUAL_GATE * np.sqrt(s)
+        g = np.einsum("aij,j->ai", P, h) / s[:, None] * use[:, None]
+        x = x + g * innov[:, None]
+        P = P - np.einsum("ai,j,ajk->aik", g, h, P)
+        xf[k], Pf[k], t_prev = x, P, t_meas[k]
+    if causal:
+        j = np.searchsorted(t_meas, time_s, side="right") - 1
+        before = j < 0
+        jj = np.maximum(j, 0)
+        gap = np.where(before, time_s - time_s[0], time_s - t_meas[jj])
+        bias = np.where(before[:, None], b0, xf[jj, :, 0])
+        var = np.where(before[:, None], p0, Pf[jj, :, 0, 0]) + q_rate * np.maximum(gap, 0.0)[:, None]
+        return bias, np.sqrt(var)
+    xs, Ps = xf.copy(), Pf.copy()
+    for k in range(m - 2, -1, -1):  # Rauch–Tung–Striebel smoother (transition: identity)
+        c = Pf[k] @ np.linalg.inv(Pp[k + 1])
+        xs[k] = xf[k] + np.einsum("aij,aj->ai", c, xs[k + 1] - xp[k + 1])
+        Ps[k] = Pf[k] + c @ (Ps[k + 1] - Pp[k + 1]) @ np.swapaxes(c, -1, -2)
+    bias = np.stack([np.interp(time_s, t_meas, xs[:, i, 0]) for i in range(3)], -1)
+    # Between pairs the walk adds at most its variance over half the spacing; beyond the ends, over the distance.
+    if m == 1:
+        d = np.abs(time_s - t_meas[0])
+    else:
+        j = np.clip(np.searchsorted(t_meas, time_s), 1, m - 1)
+        d = np.minimum(np.abs(time_s - t_meas[j - 1]), np.abs(t_meas[j] - time_s))
+    var = np.stack([np.interp(time_s, t_meas, Ps[:, i, 0, 0]) for i in range(3)], -1) + q_rate * d[:, None]
+    return bias, np.sqrt(var)
 
 
 def resample_to(times: np.ndarray, sample_t: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:
