@@ -262,14 +262,25 @@ def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
 
 
 def rest_measurement(r, cfg: ReadoutConfig):
-    """v = r·d with 0 < d ≤ rest_depth_max: small flow everywhere bounds |v| (returns z = 0, std)."""
+    """v = r·d with 0 < d ≤ rest_depth_max: little expansion bounds |v| (returns z = 0, std (n,)).
+
+    Translation makes every field's r̄ = v/d_f of one sign (v's), while flow noise and residual
+    rotation scatter the fields' r̄ about zero (rotation's divergence is odd across the image).
+    So the fields' *signed* median r̄_m, known to within its standard error SE
+    (1.253·1.4826·MAD/√n), bounds the speed: |v| ≤ d_max·(|r̄_m| + 2·SE) at 95%; that bound
+    is the measurement's 2σ. (The median of |r̄| would count the noise as motion: a still
+    camera's DIS flow noise alone is ~0.02 1/s per field, which at 5 m is 0.1 m/s.)
+    """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        r_abs = np.nanmedian(np.abs(r), axis=1)
-    std = np.maximum(cfg.rest_depth_max_m * r_abs, cfg.meas_floor_m_s)
+        r_med = np.nanmedian(r, axis=1)
+        mad = np.nanmedian(np.abs(r - r_med[:, None]), axis=1)
+    n = np.isfinite(r).sum(1)
+    se = 1.253 * 1.4826 * mad / np.sqrt(np.maximum(n, 1))
+    std = np.maximum(0.5 * cfg.rest_depth_max_m * (np.abs(r_med) + 2.0 * se), cfg.meas_floor_m_s)
     # It is a bound, not a noisy sample: repeating a loose bound frame after frame must
     # not add up to confidence, so it only counts where it alone would be decisive.
-    use = np.isfinite(r_abs) & (std <= 0.5 * cfg.max_std_m_s)
+    use = np.isfinite(r_med) & (n >= max(3, cfg.min_valid_fraction * r.shape[1])) & (std <= 0.5 * cfg.max_std_m_s)
     return np.where(use, 0.0, np.nan), np.where(use, std, np.nan)
 
 
@@ -278,7 +289,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
-    absent. Returns posterior mean and std of v, (n,) each.
+    absent, each of v one ``delay`` ago, or (z, std, own_delay) for a measurement with its own
+    latency (s; 0: of v now). Returns posterior mean and std of v, (n,) each.
 
     gravity_tau (n,) s: when a's gravity was estimated online by an average of time constant
     τ (lobula.haltere.online_gravity), that average also takes in the platform's own
@@ -326,12 +338,14 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                 P[:, 3] *= f
             Fs[k] = F
         xs_pred[k], Ps_pred[k] = x, P
-        for z, sd in measurements:
+        for m in measurements:
+            z, sd = m[0], m[1]
+            Hm = H if len(m) < 3 else np.array([1.0, m[2], 0.0, -0.5 * m[2] ** 2])
             if np.isfinite(z[k]) and np.isfinite(sd[k]):
-                S = H @ P @ H + sd[k] ** 2
-                K = P @ H / S
-                x = x + K * (z[k] - H @ x)
-                P = P - np.outer(K, H @ P)
+                S = Hm @ P @ Hm + sd[k] ** 2
+                K = P @ Hm / S
+                x = x + K * (z[k] - Hm @ x)
+                P = P - np.outer(K, Hm @ P)
         if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
             kap, skap, am, shift = (q[k] for q in ratio)
             # Below accel_min the acceleration carries no depth information (as for v_f): the
@@ -426,9 +440,16 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     if delay:
         # Bridge the measurement's latency with ∫a (the haltere's fast path).
         z = z + (cum - np.interp(t - delay, t, cum))
-    zr, sr = rest_measurement(_lag(rf, lag), cfg)
-    if delay:
-        zr = zr + (cum - np.interp(t - delay, t, cum))  # at rest then; what a did since
+    # Whether the image expands needs no derivative and no band-limiting: online it is judged
+    # on the newest fields' r̄ (no latency to bridge with an offset-laden ∫a), offline on the
+    # low-passed r̄ like everything else.
+    zr, sr = rest_measurement(rf if zp else r, cfg)
+    if zp:
+        # Like every low-passed measurement here, the offline bound is correlated over
+        # ~1/(2·cutoff) s: a filter taking each frame as independent would shrink it by √(that
+        # many frames). (Online it is each pair's own r̄, not low-passed; consecutive pairs
+        # still overlap by gap − 1 frames, which this leaves out.)
+        sr = sr * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
     # κ needs no accelerometer, so a field is judged by one (its implied depth a/(ṙ̄ − r²̄)
     # physical) only where |a| is beyond what the accelerometer's offset (prior std) could
     # make of nothing: an offset (the online gravity reference's, up to the start's
@@ -442,7 +463,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     # rotation's), taken as a fraction of κ itself.
     skap = np.hypot(skap, cfg.kappa_rel_error * np.abs(kap))
     shift = (cum - np.interp(t - delay, t, cum)) if delay else np.zeros(len(t))
-    v, v_std = kalman_velocity(t, a, [(zr, sr)], cfg, smooth=zp, gravity_tau=gravity_tau,
+    v, v_std = kalman_velocity(t, a, [(zr, sr, 0.0)], cfg, smooth=zp, gravity_tau=gravity_tau,
                                ratio=(kap, skap, terms[3], shift), drift_std=drift_std, delay=delay)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
