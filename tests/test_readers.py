@@ -95,9 +95,7 @@ def test_euroc_frames_are_undistorted(euroc):
     assert fo2.camera.fx != fo.camera.fx and fo2.distortion["target_k"] == "optimal"
 
 
-@pytest.mark.parametrize("filt", ["causal", pytest.param("zero-phase", marks=pytest.mark.xfail(
-    strict=True, reason="est3 regression: RMS |v̂| 0.068 m/s at rest offline since κ's fields are judged by the "
-                        "accelerometer only beyond its offset's reach (issue 12 must-show, open)"))])
+@pytest.mark.parametrize("filt", ["causal", "zero-phase"])
 def test_euroc_stationary_reports_no_motion(euroc, tmp_path, capsys, filt):
     out = tmp_path / f"{filt}.nc"
     code, _, err = cli(capsys, "velocity", euroc, "--out", out, "--filter", filt, "--quiet")
@@ -108,6 +106,9 @@ def test_euroc_stationary_reports_no_motion(euroc, tmp_path, capsys, filt):
     assert rms <= 0.01, rms
     # never confidently moving: wherever it claims a speed, zero is inside ±2σ
     assert np.all(np.abs(v[obs]) <= 2 * s[obs]), np.nanmax(np.abs(v) / s)
+    # a still camera in a room is *known* to be still (no expansion anywhere, depths bounded),
+    # not unobservable: both filters say so for most frames (online after its first latency)
+    assert obs.mean() >= 0.8, obs.mean()
     assert ds.attrs["footage_layout"] == "euroc" and "radial-tangential" in ds.attrs["lens_distortion"]
 
 

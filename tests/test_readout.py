@@ -90,3 +90,41 @@ def test_kalman_uncertainty_is_roughly_calibrated():
     m = res.observable & (t > 2)
     z = np.abs(res.v_hat - v(t))[m] / res.v_std[m]
     assert np.mean(z < 2) > 0.8
+
+
+def test_rest_bound_uses_the_signed_expansion_not_the_flow_noise():
+    """A still camera whose fields' r̄ scatter by 0.03 1/s (a real DIS flow at rest, EuRoC) is bounded
+    still; a camera moving 0.3 m/s past depths of 2-4 m is seen to expand and not called still."""
+    from lobula.readout import rest_measurement
+    rng = np.random.default_rng(3)
+    cfg = ReadoutConfig()
+    still = rng.normal(0.0, 0.03, (200, 120))
+    z, s = rest_measurement(still, cfg)
+    assert np.isfinite(z).mean() > 0.9 and np.all(z[np.isfinite(z)] == 0.0)
+    # the median of |r̄| (0.02 1/s) times 5 m would claim ±0.1 m/s of "motion" from noise alone
+    assert np.nanmedian(s) < 0.05
+    moving = 0.3 / rng.uniform(2.0, 4.0, (200, 120)) + rng.normal(0.0, 0.03, (200, 120))
+    z, s = rest_measurement(moving, cfg)
+    assert not np.isfinite(z).any()   # expansion detected: no bound on an assumed depth pulls v̂ to 0
+
+
+def test_adaptive_noise_widens_the_band_when_vision_is_worse_than_it_claims():
+    """κ corrupted by an error all fields share (invisible in their spread, beyond kappa_rel_error):
+    the innovations show it, and the offline band widens to cover the truth; without adaptation
+    (adapt_s = 0) the same readout is confidently wrong on about half the frames."""
+    v = lambda t: 0.3 * np.sin(2 * np.pi * t / 5) + 0.35
+    a = lambda t: 0.3 * 2 * np.pi / 5 * np.cos(2 * np.pi * t / 5)
+    t = np.arange(0, 20, 1 / 30)
+    r, r2, acc = analytic_rates(v, a, t, np.linspace(4, 8, 40))
+    rng = np.random.default_rng(1)
+    shared = butterworth(rng.normal(0, 1, t.shape), 0.05, 2, True)
+    shared *= 0.05 / shared.std()
+    noise = rng.normal(0, 0.003, r.shape)
+    acc = acc + rng.normal(0, 0.02, t.shape)
+    cover = {}
+    for adapt in (0.0, 2.0):
+        res = readout(t, r + noise, r2 + shared[:, None] + 2 * r * noise, acc, ReadoutConfig(adapt_s=adapt))
+        m = res.observable & (t > 2)
+        assert m.mean() > 0.8
+        cover[adapt] = float(np.mean(np.abs(res.v_hat - v(t))[m] <= 2 * res.v_std[m]))
+    assert cover[0.0] < 0.7 and cover[2.0] >= 0.8, cover
