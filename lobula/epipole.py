@@ -82,6 +82,7 @@ class EpipoleEstimator:
         self.ata = np.eye(2) * prior_weight
         self.atb = np.asarray(prior, float) * prior_weight
         self.e = np.asarray(prior, float)
+        self.prior = np.asarray(prior, float)
         self.n_frames = 0
 
     def update(self, flow: np.ndarray, points=None, attitude: np.ndarray | None = None) -> np.ndarray:
@@ -111,8 +112,37 @@ class EpipoleEstimator:
             l_ref = np.stack([-v, u, b], -1) @ np.asarray(attitude, float).T
             a, b = -l_ref[:, :2], l_ref[:, 2]
             x, y = self._seen(attitude, x, y)
-        e = self.e
-        for _ in range(3):  # IRLS about this frame's own fit, started from the running estimate
+        # IRLS about this frame's own fit, started from the running estimate; where that start
+        # is so far off that the fit degenerates, from the prior instead (a wrong running
+        # estimate must not lock every later frame out).
+        fit = self._frame_fit(a, b, x, y, self.e)
+        if fit is None:
+            fit = self._frame_fit(a, b, x, y, self.prior)
+        if fit is not None:
+            self.ata += fit[0]
+            self.atb += fit[1]
+            self.n_frames += 1
+        self.e = np.linalg.solve(self.ata, self.atb)
+        if attitude is not None:
+            h = np.asarray(attitude, float).T @ np.array([self.e[0], self.e[1], 1.0])
+            return h[:2] / h[2]
+        return self.e.copy()
+
+    @staticmethod
+    def _frame_fit(a, b, x, y, start, iters: int = 3, t_min: float = 3.0):
+        """One frame's noise-corrected normal equations (ata (2, 2), atb (2,)), or None.
+
+        None where the frame says nothing about the heading: the fit degenerates, or the
+        flow is not significantly radial about the frame's own epipole. Each line's residual
+        a·e − b is its flow's component across the ray from the epipole (times |p − e|); the
+        flow along it (−a₁, a₀) gives the radial component. Noise alone (a camera at rest)
+        makes both alike; translation makes the radial one dominate. The test is the
+        t-statistic of d = radial² − across² over the points, which is about N(0, 1) for
+        noise: below ``t_min`` the frame is not counted — one such frame must not move the
+        heading, and a heading placed by noise must not lock later frames out.
+        """
+        e = np.asarray(start, float)
+        for _ in range(iters):
             res = a @ e - b
             scale = 1.4826 * np.median(np.abs(res)) + 1e-12
             w = 1.0 / (1.0 + (res / (2.385 * scale)) ** 2)
@@ -126,17 +156,13 @@ class EpipoleEstimator:
             ata = ata - s2 * np.sum(w) * np.eye(2)
             atb = atb - s2 * np.array([np.sum(w * x), np.sum(w * y)])
             if np.linalg.cond(ata) > 1e8 or np.any(np.linalg.eigvalsh(ata) <= 0):
-                break
+                return None
             e = np.linalg.solve(ata, atb)
-        else:
-            self.ata += ata
-            self.atb += atb
-            self.n_frames += 1
-        self.e = np.linalg.solve(self.ata, self.atb)
-        if attitude is not None:
-            h = np.asarray(attitude, float).T @ np.array([self.e[0], self.e[1], 1.0])
-            return h[:2] / h[2]
-        return self.e.copy()
+        radial = (x - e[0]) * -a[:, 1] + (y - e[1]) * a[:, 0]
+        d = radial ** 2 - (a @ e - b) ** 2
+        if np.sum(d) < t_min * np.sqrt(np.sum(d ** 2)):
+            return None
+        return ata, atb
 
     @staticmethod
     def _seen(attitude, x, y):

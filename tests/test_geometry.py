@@ -83,6 +83,27 @@ def test_epipole_estimator_recovers_a_known_epipole_from_noisy_flow():
     assert err_deg.max() < 0.2
 
 
+def test_a_camera_at_rest_leaves_the_epipole_where_motion_then_puts_it():
+    """Noise-only flow (a still camera) must not move the heading; later motion must find it.
+
+    Before: one rest frame could place the running estimate far outside the image, and every
+    later frame's fit, started there, degenerated and was dropped (suite corridor: the online
+    epipole locked 48° and 70° off for the whole run).
+    """
+    f = tile_fields(CAM)
+    rng = np.random.default_rng(3)
+    e = np.array([np.tan(np.radians(-5.0)), np.tan(np.radians(3.0))])
+    depth = rng.uniform(1.0, 4.0, f.x.shape)
+    est = EpipoleEstimator(f.x, f.y)
+    for _ in range(40):   # at rest: DIS noise only
+        est.update(rng.normal(0, 0.01, (2,) + f.x.shape))
+    assert est.n_frames <= 2 and np.abs(est.e).max() < 0.05, (est.n_frames, est.e)
+    for _ in range(10):   # then moving: translational flow a few times the noise
+        got = est.update((0.2 / depth) * np.stack([f.x - e[0], f.y - e[1]]) + rng.normal(0, 0.01, (2,) + f.x.shape))
+    err_deg = np.degrees(np.abs(np.arctan(got) - np.arctan(e)))
+    assert est.n_frames >= 8 and err_deg.max() < 0.5, (est.n_frames, err_deg)
+
+
 def test_rotational_flow_matches_the_renderer_for_a_rotating_camera():
     traj = trajectory_from_function(lambda t: np.zeros_like(t), 2.0)
     scene = TrackScene(CAM, traj, SceneConfig(rotation_amp_deg=3.0, rotation_hz=0.5, noise_grey=0))
