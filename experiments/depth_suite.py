@@ -27,12 +27,11 @@ a pair the method cannot range (v̂ unobservable or slow) counts as zero coverag
 Metrics pooled over a scene's maps: median and mean AbsRel, δ<1.25, RMSE(log),
 coverage; then mean ± sd over seeds.
 
-Measured with the defaults (seeds 0–2, commit ace6f55; TV median AbsRel, mean over
-seeds): with the exact speed 0.04–0.11 on every family but ``dim`` (0.25: DIS's error
-there is 0.28 px on 1 px displacements), against 0.27–0.38 for the oracle constant; with
-v̂ of the default velocity pipeline 0.07–0.10 on panels, fast, ground, rest and moving,
-0.17 corridor, 0.21 offaxis, 0.41 dim and 0.71 rotation, where v̂ itself is off by
-0.28 m/s RMS: depth inherits v̂'s relative error one to one.
+Measured with the defaults (seeds 0–2, commit f3d6c47; TV median AbsRel, mean over
+seeds): with the exact speed 0.035–0.14 on every family (``dim`` the worst), against
+0.27–0.38 for the oracle constant; with v̂ of the default pipeline 0.06–0.16 on seven
+families, 0.26 on ``rotation`` and 0.32 on ``dim``, where v̂ itself errs most: depth
+inherits v̂'s relative error one to one.
 
 Outputs in DIR: ``depth_suite.nc`` (family × seed × source × estimator × metric; "method" would clash with
 xarray's ``sel`` keyword),
