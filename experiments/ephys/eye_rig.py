@@ -48,7 +48,7 @@ from lobula.emd import emd_sine_response_discrete
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
 from lobula.photoreceptor import photoreceptor_frequency_response
 
-from .rig import cf_describe, recording_attrs, torch_threads
+from .rig import cf_describe, protocol, recording_attrs
 
 __all__ = ["EyeEphysConfig", "EyeRig", "EYE_RECORDS", "eye_tf_tuning", "eye_rf_map", "eye_looming"]
 
@@ -501,25 +501,12 @@ def _eye_looming(cfg: EyeEphysConfig, *, l_over_v_s=(0.01, 0.02, 0.04, 0.08), du
     return cf_describe(ds)
 
 
-def eye_tf_tuning(config: EyeEphysConfig | None = None, **kw) -> xr.Dataset:
-    """Temporal-frequency tuning of the compound eye's velocity circuit (see the module docstring)."""
-    cfg = config or EyeEphysConfig()
-    with torch_threads(cfg.threads):
-        return _eye_tf_tuning(cfg, **kw)
-
-
-def eye_rf_map(config: EyeEphysConfig | None = None, **kw) -> xr.Dataset:
-    """Receptive-field maps of the compound eye's LC fields (see the module docstring)."""
-    cfg = config or EyeEphysConfig()
-    with torch_threads(cfg.threads):
-        return _eye_rf_map(cfg, **kw)
-
-
-def eye_looming(config: EyeEphysConfig | None = None, **kw) -> xr.Dataset:
-    """A dark disc approaching (or receding) straight ahead of the compound eye."""
-    cfg = config or EyeEphysConfig()
-    with torch_threads(cfg.threads):
-        return _eye_looming(cfg, **kw)
+eye_tf_tuning = protocol(_eye_tf_tuning, EyeEphysConfig,
+                         "Temporal-frequency tuning of the compound eye's velocity circuit (see the module docstring).")
+eye_rf_map = protocol(_eye_rf_map, EyeEphysConfig,
+                      "Receptive-field maps of the compound eye's LC fields (see the module docstring).")
+eye_looming = protocol(_eye_looming, EyeEphysConfig,
+                       "A dark disc approaching (or receding) straight ahead of the compound eye.")
 
 
 

@@ -22,8 +22,8 @@ from lobula.photoreceptor import photoreceptor_frequency_response
 from lobula.population import FIELD_RECORDS
 from stimuli.lattice_stimuli import GratingSource, direction_from_angles, looming_disc, moving_spot, tangent_basis
 
-from .rig import (VARIABLES, EphysConfig, Rig, cf_describe, dim_coords, monitors_for, record_dataset, rig_attrs,
-                  torch_threads)
+from .rig import (VARIABLES, EphysConfig, Rig, cf_describe, dim_coords, monitors_for, protocol, record_dataset,
+                  rig_attrs)
 
 __all__ = ["tf_tuning", "rf_map", "looming", "psth", "psth_sem", "raster", "steady_state_mean", "TF_GRID_HZ",
            "LOOMING_L_OVER_V_S"]
@@ -457,26 +457,8 @@ def _looming(config: EphysConfig, *, l_over_v_s=LOOMING_L_OVER_V_S, duration_s: 
 
 
 
-def tf_tuning(config: EphysConfig | None = None, **kw) -> xr.Dataset:
-    cfg = config or EphysConfig()
-    with torch_threads(cfg.threads):
-        return _tf_tuning(cfg, **kw)
-
-
-def rf_map(config: EphysConfig | None = None, **kw) -> xr.Dataset:
-    cfg = config or EphysConfig()
-    with torch_threads(cfg.threads):
-        return _rf_map(cfg, **kw)
-
-
-def looming(config: EphysConfig | None = None, **kw) -> xr.Dataset:
-    cfg = config or EphysConfig()
-    with torch_threads(cfg.threads):
-        return _looming(cfg, **kw)
-
-
-tf_tuning.__doc__ = _tf_tuning.__doc__
-rf_map.__doc__ = _rf_map.__doc__
-looming.__doc__ = _looming.__doc__
+tf_tuning = protocol(_tf_tuning, EphysConfig)
+rf_map = protocol(_rf_map, EphysConfig)
+looming = protocol(_looming, EphysConfig)
 
 

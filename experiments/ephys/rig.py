@@ -122,6 +122,18 @@ def torch_threads(n: int | None):
         torch.set_num_threads(old)
 
 
+def protocol(impl, config_type, doc: str | None = None):
+    """The public form of a protocol ``impl(cfg, **kw)``: ``config`` defaults to
+    ``config_type()``, and the protocol runs with that configuration's torch threads."""
+    def run(config=None, **kw):
+        cfg = config or config_type()
+        with torch_threads(cfg.threads):
+            return impl(cfg, **kw)
+    run.__name__ = run.__qualname__ = impl.__name__.lstrip("_")
+    run.__doc__ = doc or impl.__doc__
+    return run
+
+
 class Rig:
     """An eye and its circuit, built from an :class:`EphysConfig`."""
 
