@@ -360,12 +360,11 @@ def stabilised_average(read, i: int, half: int, n_frames: int, times: np.ndarray
     js = [j for j in range(i - half, i + half + 1) if 0 <= j < n_frames and j != i]
     if not js:
         return img
-    K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
     q = attitude(np.asarray(times, float)[[i] + js])
     total, count = img.copy(), np.ones_like(img)
     size = (img.shape[1], img.shape[0])
     for j, qj in zip(js, q[1:]):  # a loop over the 2·half neighbours; each warp is vectorised
-        h = K @ q[0].T @ qj @ np.linalg.inv(K)
+        h = camera.rotation_homography(q[0].T @ qj)
         total += cv2.warpPerspective(np.asarray(read(j), np.float32), h, size, flags=cv2.INTER_LINEAR,
                                      borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         count += cv2.warpPerspective(np.ones_like(img), h, size, flags=cv2.INTER_LINEAR,

@@ -91,6 +91,15 @@ class PinholeCamera:
     def normalised_to_pixel(self, x, y):
         return np.asarray(x) * self.fx + self.cx, np.asarray(y) * self.fy + self.cy
 
+    def rotation_homography(self, r: np.ndarray) -> np.ndarray:
+        """Pixel homography (3, 3) of a pure rotation: K·r·K⁻¹.
+
+        r (3, 3) takes a ray seen from one orientation to the same ray seen from another
+        (v' = r·v); the result takes a pixel (u, v, 1) of the first to the second's.
+        """
+        k = np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+        return k @ np.asarray(r, float) @ np.linalg.inv(k)
+
     def flow_px_to_normalised(self, du_px, dv_px, dt_s: float):
         """Pixel displacement over ``dt_s`` seconds -> normalised flow (1/s)."""
         return np.asarray(du_px) / (self.fx * dt_s), np.asarray(dv_px) / (self.fy * dt_s)

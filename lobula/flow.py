@@ -88,8 +88,7 @@ def rotation_warp(camera: PinholeCamera, r01: np.ndarray):
     frame (Q(t0)ᵀ·Q(t1) from the integrated gyro). A pixel (u, v) of the first frame looks
     along the ray d0; the second frame sees that ray at r01ᵀ·d0, i.e. at the returned pixel.
     """
-    k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
-    h = k @ np.asarray(r01, float).T @ np.linalg.inv(k)
+    h = camera.rotation_homography(np.asarray(r01, float).T)
     h = h / h[2, 2]
 
     def warp(u, v):
@@ -114,8 +113,7 @@ def prewarp_flow(fn, a: np.ndarray, b: np.ndarray, camera: PinholeCamera, r01: n
     import cv2
 
     h, w = a.shape[:2]
-    k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
-    hom = k @ np.asarray(r01, float).T @ np.linalg.inv(k)  # a's pixel -> b's pixel (homogeneous)
+    hom = camera.rotation_homography(np.asarray(r01, float).T)  # a's pixel -> b's pixel (homogeneous)
     warp = rotation_warp(camera, r01)
     # A rotation's homography displaces the image most at its border: test corners and edge middles.
     bu = np.array([0, w / 2, w - 1, 0, w - 1, 0, w / 2, w - 1], float)
