@@ -221,6 +221,17 @@ def paper_readout(t, r, r2, a, cfg: ReadoutConfig) -> ReadoutResult:
                          np.full(len(t), np.nan), a)
 
 
+def median_and_error(values: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median over fields of values (n_frames, F), NaN left out, and its standard error
+    1.253·1.4826·MAD/√n (n (n_frames,) the fields counted; 1.253: the median's efficiency
+    for Gaussian samples, 1.4826: MAD to σ)."""
+    with warnings.catch_warnings():  # all-NaN frames are expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(values, axis=1)
+        mad = np.nanmedian(np.abs(values - med[:, None]), axis=1)
+    return med, 1.253 * 1.4826 * mad / np.sqrt(np.maximum(n, 1))
+
+
 def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
     """One velocity measurement per frame from the fields, with its standard deviation.
 
@@ -235,11 +246,8 @@ def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
     ok &= (np.abs(a) >= cfg.accel_min_m_s2)[:, None]
     v_f = np.where(ok, v_f, np.nan)
     n_ok = ok.sum(1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        z = np.nanmedian(v_f, axis=1)
-        mad = np.nanmedian(np.abs(v_f - z[:, None]), axis=1)
-    std = np.maximum(1.253 * 1.4826 * mad / np.sqrt(np.maximum(n_ok, 1)), cfg.meas_floor_m_s)
+    z, se = median_and_error(v_f, n_ok)
+    std = np.maximum(se, cfg.meas_floor_m_s)
     enough = n_ok >= max(3, cfg.min_valid_fraction * r.shape[1])
     return np.where(enough, z, np.nan), np.where(enough, std, np.nan), v_f
 
@@ -260,10 +268,8 @@ def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
         if keep is not None:
             ok &= keep
         k = np.where(ok, (r_dot - r2) / r, np.nan)
-        kap = np.nanmedian(k, axis=1)
-        mad = np.nanmedian(np.abs(k - kap[:, None]), axis=1)
     n_ok = ok.sum(1)
-    std = 1.253 * 1.4826 * mad / np.sqrt(np.maximum(n_ok, 1))
+    kap, std = median_and_error(k, n_ok)
     enough = (n_ok >= max(3, cfg.min_valid_fraction * r.shape[1])) & np.isfinite(kap)
     return np.where(enough, kap, np.nan), np.where(enough, std, np.nan)
 
@@ -283,12 +289,8 @@ def rest_measurement(r, cfg: ReadoutConfig):
     is ~0.02 1/s per field, which at 5 m is 0.1 m/s.) Where expansion is detected the camera
     moves, and a bound resting on an assumed depth would only pull v̂ toward 0: not used.
     """
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        r_med = np.nanmedian(r, axis=1)
-        mad = np.nanmedian(np.abs(r - r_med[:, None]), axis=1)
     n = np.isfinite(r).sum(1)
-    se = 1.253 * 1.4826 * mad / np.sqrt(np.maximum(n, 1))
+    r_med, se = median_and_error(r, n)
     std = np.maximum(0.5 * cfg.rest_depth_max_m * (np.abs(r_med) + 2.0 * se), cfg.meas_floor_m_s)
     # It is a bound, not a noisy sample: repeating a loose bound frame after frame must
     # not add up to confidence, so it only counts where it alone would be decisive.
