@@ -331,7 +331,13 @@ def run_scene_job(job: SceneJob) -> dict:
 # ---------------------------------------------------------------------- the suite
 def run_suite(families, seeds, duration_s, scale, out, configurations=None, workers=1, skip_s=2.0,
               imu="realistic", imu_mount="rotated", progress=print):
-    """Run every (family, seed) scene; returns the suite Dataset (also written with table and figure)."""
+    """Run every (family, seed) scene; returns the suite Dataset (also written with table and figure).
+
+    ``seeds``: a count N (seeds 0..N-1, the reported ones) or a list of seeds (e.g. development seeds 100, 101).
+    """
+    seeds = list(range(seeds)) if isinstance(seeds, int) else [int(s) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ValueError(f"seeds must be a count or distinct non-negative integers, got {seeds}")
     configurations = tuple(configurations or (*CONFIGURATIONS, *BASELINES))
     bad = [c for c in configurations if c not in CONFIGURATIONS and c not in BASELINES]
     if bad:
@@ -344,7 +350,7 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [SceneJob(f, s, duration_s, scale, imu, imu_mount, configurations, skip_s, str(out))
-            for f in families for s in range(seeds)]
+            for f in families for s in seeds]
     results = []
     t0 = _time.perf_counter()
 
@@ -373,12 +379,12 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
     rows = table_rows(ds)
     write_table_csv(rows, out / "suite_table.csv")
     plot_suite(ds, out / "suite.png")
-    plot_worlds(out, families)
+    plot_worlds(out, families, seeds[0])
     return ds, rows
 
 
-def plot_worlds(out: Path, families) -> Path | None:
-    """``worlds.png``: the middle frame of each family's first seed, to see what was measured."""
+def plot_worlds(out: Path, families, seed: int = 0) -> Path | None:
+    """``worlds.png``: the middle frame of each family's scene at ``seed``, to see what was measured."""
     import cv2
     import matplotlib
     matplotlib.use("Agg")
@@ -388,7 +394,7 @@ def plot_worlds(out: Path, families) -> Path | None:
 
     frames = []
     for f in families:
-        folder = out / "scenes" / f"{f}-s0" / "frames"
+        folder = out / "scenes" / f"{f}-s{seed}" / "frames"
         files = sorted(folder.glob("*.png")) if folder.is_dir() else []
         if files:
             frames.append((f, cv2.imread(str(files[len(files) // 2]), cv2.IMREAD_GRAYSCALE)))
@@ -402,7 +408,7 @@ def plot_worlds(out: Path, families) -> Path | None:
     for ax, (f, img) in zip(axes.ravel(), frames):
         ax.imshow(img, cmap="gray", vmin=0, vmax=255)
         ax.set_title(f, fontsize=9)
-    fig.suptitle("scene families (seed 0, middle frame)", fontsize=10)
+    fig.suptitle(f"scene families (seed {seed}, middle frame)", fontsize=10)
     fig.tight_layout()
     save_figure(fig, out / "worlds.png", dpi=150)
     plt.close(fig)
@@ -417,11 +423,11 @@ def collect(results, families, seeds, configurations, settings):
 
     from .store import provenance
 
-    val = np.full((len(families), seeds, len(configurations), len(WINDOWS), len(METRICS)), np.nan)
-    peak = np.full((len(families), seeds), np.nan)
+    val = np.full((len(families), len(seeds), len(configurations), len(WINDOWS), len(METRICS)), np.nan)
+    peak = np.full((len(families), len(seeds)), np.nan)
     errors = {}
     for r in results:
-        i, s = families.index(r["family"]), r["seed"]
+        i, s = families.index(r["family"]), seeds.index(r["seed"])
         peak[i, s] = r["peak_speed_m_s"]
         for c, name in enumerate(configurations):
             for w, win in enumerate(WINDOWS):
@@ -433,7 +439,7 @@ def collect(results, families, seeds, configurations, settings):
         dict(value=(("family", "seed", "configuration", "window", "metric"), val,
                     {"long_name": "suite metric (units in the metric's name; fractions 0..1)"}),
              peak_speed_m_s=(("family", "seed"), peak, {"units": "m/s"})),
-        coords=dict(family=list(families), seed=np.arange(seeds), configuration=list(configurations),
+        coords=dict(family=list(families), seed=np.asarray(seeds), configuration=list(configurations),
                     window=list(WINDOWS), metric=list(METRICS),
                     family_description=("family", [FAMILIES[f] for f in families])))
     ds.attrs.update(provenance(VelocityConfig().to_json(), suite=settings,
@@ -540,15 +546,28 @@ def plot_suite(ds, path):
     return path
 
 
+def parse_seeds(text: str) -> int | list[int]:
+    """``--seeds``: "3" means seeds 0, 1, 2; "100,101" means exactly those seeds."""
+    try:
+        if "," not in text:
+            n = int(text)
+            if n < 1:
+                raise ValueError
+            return n
+        return [int(t) for t in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--seeds must be a positive count or a comma-separated list of seeds, got {text!r}") from None
+
+
 def run_suite_cli(args) -> int:
     families = args.families.split(",") if args.families != "all" else list(FAMILIES)
     configurations = None
     if args.configurations != "all":
         configurations = [c.strip() for c in args.configurations.split(",")]
-    ds, rows = run_suite(families, args.seeds, args.duration, args.scale, args.out, configurations,
+    ds, rows = run_suite(families, parse_seeds(args.seeds), args.duration, args.scale, args.out, configurations,
                          args.workers, args.skip, args.imu, args.imu_mount,
                          progress=(lambda *a: None) if args.quiet else (lambda m: print(m, flush=True)))
-    print(f"\nAfter the first {args.skip:g} s (mean ± sd over {args.seeds} seeds):")
+    print(f"\nAfter the first {args.skip:g} s (mean ± sd over seeds {', '.join(map(str, ds.seed.values))}):")
     print(format_table(rows, "after_skip"))
     print("\nFirst 2 s:")
     print(format_table(rows, "first_2s"))
@@ -568,7 +587,9 @@ def add_parser(subparsers):
     s.add_argument("--families", default="all",
                    help="comma-separated families, or all: " + "; ".join(f"{k}: {v}" for k, v in FAMILIES.items())
                    .replace("%", "%%"))
-    s.add_argument("--seeds", type=int, default=3, help="seeds per family")
+    s.add_argument("--seeds", default="3",
+                   help="seeds per family: a count N (seeds 0..N-1) or a comma-separated list (e.g. 100,101 "
+                        "for development seeds that the reported 0..N-1 never see)")
     s.add_argument("--duration", type=float, default=10.0, help="seconds per scene")
     s.add_argument("--scale", type=float, default=0.5,
                    help="image scale of the D435i camera (0.5 = 320x240; at 0.25 = 160x120 DIS resolves "

@@ -120,3 +120,15 @@ def test_help_shows_every_option_with_its_default(command, capsys):
     for opt in {"suite": ["--families", "--seeds", "--duration", "--scale", "--workers", "--imu"],
                 "scene": ["--world", "--rotation3", "--peak-speed", "--imu", "--imu-mount", "--brightness"]}[command]:
         assert opt in text
+
+
+def test_seeds_are_a_count_or_an_explicit_list(tmp_path, capsys):
+    assert suite.parse_seeds("3") == 3
+    assert suite.parse_seeds("100,101") == [100, 101]
+    for bad in ("0", "-2", "a", "1,,2"):
+        with pytest.raises(ValueError, match="--seeds"):
+            suite.parse_seeds(bad)
+    with pytest.raises(ValueError, match="distinct"):
+        suite.run_suite(["rest"], [5, 5], 3.0, 0.2, tmp_path / "s")
+    assert main(["suite", "--out", str(tmp_path / "s"), "--seeds", "x"]) == 2
+    assert "--seeds" in capsys.readouterr().err
