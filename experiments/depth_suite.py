@@ -43,7 +43,6 @@ settings match).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import shutil
@@ -55,6 +54,7 @@ import numpy as np
 
 from .depth_score import PooledScores, ring_masks
 from .depth_stream import DepthRunConfig, depth_at_first_frame, ranged_pairs, ring_edges, torch_threads
+from .store import seed_summary
 
 SOURCES = ("estimate", "estimate_medium", "truth")
 METHODS = ("ratio", "tv", "parallax", "constant", "tv exact flow")
@@ -215,11 +215,7 @@ def table_rows(ds) -> list[dict]:
             for m in ds.estimator.values:
                 row = dict(family=str(f), source=str(s), method=str(m))
                 for k in METRICS:
-                    x = ds.score.sel(family=f, source=s, estimator=m, metric=k).values
-                    x = x[np.isfinite(x)]
-                    row[f"{k}_mean"] = float(x.mean()) if x.size else float("nan")
-                    row[f"{k}_sd"] = float(x.std(ddof=1)) if x.size > 1 else float("nan")
-                    row[f"{k}_n"] = int(x.size)
+                    row.update(seed_summary(ds.score.sel(family=f, source=s, estimator=m, metric=k).values, k))
                 rows.append(row)
     return rows
 
@@ -329,7 +325,7 @@ def plot_maps(records: list[dict], path, max_range_m: float) -> Path:
 
 def run_depth_suite(args) -> int:
     """Handler of ``lobula depth-suite``: returns 0."""
-    from .store import provenance, write_netcdf, write_text
+    from .store import provenance, write_csv, write_netcdf, write_text
     from .suite import FAMILIES
 
     out = Path(args.out)
@@ -363,11 +359,7 @@ def run_depth_suite(args) -> int:
     ds = collect(records, families, seeds, attrs)
     write_netcdf(ds, out / "depth_suite.nc")
     rows = table_rows(ds)
-    with (out / ".depth_suite_table.csv.tmp").open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    (out / ".depth_suite_table.csv.tmp").replace(out / "depth_suite_table.csv")
+    write_csv(rows, out / "depth_suite_table.csv")
     text = "\n\n".join(format_table(rows, s) for s in SOURCES)
     write_text(out / "depth_suite_table.md", text + "\n")
     print(text)

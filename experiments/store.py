@@ -73,6 +73,29 @@ def write_text(path: str | Path, text: str) -> Path:
     return Path(path)
 
 
+def write_csv(rows: list[dict], path: str | Path) -> Path:
+    """Write rows (dicts sharing the first row's keys) as CSV with a header, atomically."""
+    import csv
+
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return Path(path)
+
+
+def seed_summary(values, name: str) -> dict:
+    """``{name}_mean``, ``{name}_sd`` (ddof 1; NaN below two) and ``{name}_n`` of the finite values:
+    how the suites report a metric over seeds."""
+    import numpy as np
+
+    x = np.asarray(values, float).ravel()
+    x = x[np.isfinite(x)]
+    return {f"{name}_mean": float(x.mean()) if x.size else float("nan"),
+            f"{name}_sd": float(x.std(ddof=1)) if x.size > 1 else float("nan"),
+            f"{name}_n": int(x.size)}
+
+
 def save_figure(fig, path: str | Path, **kwargs) -> Path:
     """Save a matplotlib figure atomically (format from the suffix)."""
     with atomic_path(path, suffix=Path(path).suffix) as tmp:

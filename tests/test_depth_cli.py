@@ -273,6 +273,33 @@ def test_command_line(synthetic, tmp_path, capsys):
         assert cli.main(["depth", str(tmp_path / "missing"), "--out", str(tmp_path / "x.nc")]) == 2
 
 
+def test_depth_suite_scores_against_its_baselines_and_the_table_is_the_netcdf(tmp_path, capsys):
+    """`lobula depth-suite` end to end on one tiny scene (96×72, 3.5 s): the oracle "tv exact flow"
+    baseline with the exact speed is near exact, TV on DIS flow beats the oracle constant depth,
+    and the CSV table holds the NetCDF's numbers."""
+    import csv
+
+    from experiments import cli
+
+    out = tmp_path / "ds"
+    argv = ["depth-suite", "--out", str(out), "--families", "panels", "--seeds", "1", "--duration", "3.5",
+            "--skip", "1", "--scale", "0.15", "--every", "10"]
+    assert cli.main(argv) == 0
+    assert "speed: truth" in capsys.readouterr().out
+    ds = xr.load_dataset(out / "depth_suite.nc")
+    med = ds.score.sel(family="panels", seed=0, metric="median_abs_rel")
+    assert float(med.sel(source="truth", estimator="tv exact flow")) < 0.01
+    assert float(med.sel(source="truth", estimator="tv")) < 0.5 * float(med.sel(source="truth", estimator="constant"))
+    with open(out / "depth_suite_table.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == ds.sizes["source"] * ds.sizes["estimator"]
+    for r in rows:
+        v = float(med.sel(source=r["source"], estimator=r["method"]))
+        assert float(r["median_abs_rel_mean"]) == pytest.approx(v) and r["median_abs_rel_n"] == "1"
+    assert "git_commit" in ds.attrs and "depth_run" in ds.attrs["config"]
+    assert cli.main([*argv[:-2], "--every", "0"]) == 2  # bad option: one-line error
+
+
 # ----------------------------------------------------------------------------- real data
 def test_real_flownet2_pair_gives_depths_in_the_scene_range(d435i, capsys):
     fo = open_footage(d435i)
