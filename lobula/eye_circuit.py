@@ -278,8 +278,9 @@ class EyeCircuit:
     Keeps photoreceptor, EMD, gyro-filter and partial-block state between calls.
     ``finish()`` returns the last, partial block (if any). Each result is a dict of
     numpy arrays over readout steps: ``t`` (K,) stamped times, ``rho`` (K, F') 1/s,
-    ``grad`` (K, F') 1/s per rad, ``r2_eff`` (K, F') 1/s², with F' = F fields, or the
-    mirror groups (F/2) under wide-field rotation cancelling.
+    ``grad`` (K, F') 1/s per rad, ``r2_eff`` (K, F') 1/s², ``rot`` (K, F') 1/s (the rotation
+    the haltere subtracted, as ρ at the learned gain; 0 without haltere subtraction), with
+    F' = F fields, or the mirror groups (F/2) under wide-field rotation cancelling.
     """
 
     #: haltere gain regression: running-mean time constant and memory (readout steps), prior std of α
