@@ -23,7 +23,8 @@ Stages
    ``R_p ≈ c_p·G_p·(ḋ·u_p)``, c_p = 2τ/Δφ_p and G_p = (x_B − x_A)², a field fits
    ρ(θ) = ρ_f + g_f·(θ − θ_f) by weighted least squares (noise variance ∝ G):
    two matched filters per field (the template, and the template weighted by θ − θ_f),
-   divided by the pooled contrast signals — a 2×2 solve per field and step.
+   divided by the pooled contrast signals — a 2×2 solve per field and step. By default
+   each pair's speed is decoded before the pooling (see "Per-pair decoding" below).
 4. **Material derivative.** ṙ = a/d + r² holds along a scene point; at a fixed direction
    points flow through (issue 10). For ρ = v/D along a point, Dρ/Dt = a/D + ρ² cos θ, and
    at a fixed direction ∂ρ/∂t = Dρ/Dt − θ̇·∂ρ/∂θ with θ̇ = ρ sin θ. So
@@ -35,12 +36,28 @@ Stages
 only while ωτ ≪ 1: for a sine, R̄/Ḡ = ωτ·cot(Δϕ/2)/(1 + (ωτ)²). A fly's eye in a
 textured world is far from that limit (components near the lattice's Nyquist limit have
 high temporal frequency), and the loss grows with speed, so ρ̂ is not proportional to ρ
-and ρ̂'s derivative misleads the readout. The default pool pairs the contrast difference
+and ρ̂'s derivative misleads the readout. The "delayed" pool pairs the contrast difference
 with its own delayed copy, ``G = (LP_τ(x_B) − LP_τ(x_A))·(x_B − x_A)``, made of the same
 four signals the correlator multiplies: its mean is C²(1 − cos Δϕ)/(1 + (ωτ)²), so
 ``R̄/Ḡ = ωτ·cot(Δϕ/2)`` exactly — the correlator's temporal-frequency tuning divides out
 (a divisive normalisation by a pool with the same temporal filtering as the EMD), and
 only the spatial-sampling factor (Δϕ/2)·cot(Δϕ/2), constant in speed, remains.
+
+**Per-pair decoding** (``normaliser = "pair"``, the default). Summed over a field *before*
+the division, each pair counts with its pool, ∝ 1/(1 + (ωτ)²): the faster a part of the
+field moves (the nearer its surface), the less it counts, so a field's ρ̂ leans on its far,
+slow parts and grows slower than ρ. Measured on the dev worlds (seeds 7, 8; log–log slope β of
+each field's ρ̂ against the exact v/D from the rendered range): β = 0.59–0.63 in a corridor,
+where walls at very different distances share a field, and the readout's (ρ̇ − r²)/ρ of ρ^β
+is β·a/v. So each pair's speed is decoded first, s_p = LP(R_p)/(c_p·(LP(G_p)⁺ + ε_p)), and
+the field fits ρ_f, g_f to the s_p weighted by the pair's contrast energy LP((x_B − x_A)²),
+which does not depend on speed (:meth:`EyeCircuit._pair_speeds`). Test: rings moving at
+0.5 rad/s on one half of a field and 2 rad/s on the other read 0.999 of the mean of the two
+alone (the delayed pool: 0.78). On the dev worlds β rises to 0.78–0.79 in the corridor and the
+κ = a/v error falls from 0.46–0.51 to 0.26–0.30 of the rms acceleration. Each T4/T5 input in
+the fly is normalised by its own recent local contrast (Drews et al. 2020, Curr Biol 30:209;
+Matulis et al. 2020, Curr Biol 30:222); the field's synaptic drive Σ w·c·m·R (``lc.input``)
+keeps the correlator's temporal-frequency tuning either way.
 
 **Columnar pooling** (a hypothesis, off by default). Before the EMDs each column's
 signal may be averaged with its six neighbours' (``column_pool``), as the T4/T5 input neurons pool over several columns
@@ -134,8 +151,10 @@ class EyeCircuitConfig:
     (block sums of the eye-rate signals). r2_term: what the readout's r²̄ receives —
     "convective" (ρ² cos θ − ρ sin θ·g, the material-derivative form; default), "point"
     (ρ² cos θ: along a point, no convective term; an ablation) or "none" (0). normaliser: the contrast pool G of the decoding,
-    "delayed" (default, (LP(x_B) − LP(x_A))·(x_B − x_A)) or "gradient" ((x_B − x_A)², the
-    pinhole front end's); see "Normalisation" in the module docstring. column_pool: weight α of the six neighbouring
+    "delayed" ((LP(x_B) − LP(x_A))·(x_B − x_A)), "gradient" ((x_B − x_A)², the
+    pinhole front end's) or "pair" (default: each pair's speed decoded with its own delayed pool,
+    then pooled with contrast-energy weights); see "Normalisation" and "Per-pair decoding" in the
+    module docstring. column_pool: weight α of the six neighbouring
     columns in each EMD input, x' = (1 − α)·x + α·mean(neighbours) (0: none, the default;
     6/7: a uniform 7-column average) — see "Columnar pooling" in the module docstring.
     calibration: gain on ρ (1 = none).
@@ -147,7 +166,7 @@ class EyeCircuitConfig:
     emd: EMDConfig = field(default_factory=lambda: EMDConfig(tau_s=0.035))
     fields: EyeFieldConfig = field(default_factory=EyeFieldConfig)
     rotation: str = "haltere"
-    normaliser: str = "delayed"
+    normaliser: str = "pair"
     r2_term: str = "convective"
     column_pool: float = 0.0
     rotation_gain: str = "adaptive"
@@ -160,8 +179,8 @@ class EyeCircuitConfig:
             raise ValueError(f"rotation must be one of {ROTATION_MODES}, got {self.rotation!r}")
         if self.r2_term not in ("convective", "point", "none"):
             raise ValueError(f"r2_term must be 'convective', 'point' or 'none', got {self.r2_term!r}")
-        if self.normaliser not in ("delayed", "gradient"):
-            raise ValueError(f"normaliser must be 'delayed' or 'gradient', got {self.normaliser!r}")
+        if self.normaliser not in ("delayed", "gradient", "pair"):
+            raise ValueError(f"normaliser must be 'delayed', 'gradient' or 'pair', got {self.normaliser!r}")
         if self.rotation_gain not in ("adaptive", "fixed"):
             raise ValueError(f"rotation_gain must be 'adaptive' or 'fixed', got {self.rotation_gain!r}")
         if not (0.0 <= self.column_pool <= 1.0):
@@ -259,8 +278,9 @@ class EyeCircuit:
     Keeps photoreceptor, EMD, gyro-filter and partial-block state between calls.
     ``finish()`` returns the last, partial block (if any). Each result is a dict of
     numpy arrays over readout steps: ``t`` (K,) stamped times, ``rho`` (K, F') 1/s,
-    ``grad`` (K, F') 1/s per rad, ``r2_eff`` (K, F') 1/s², with F' = F fields, or the
-    mirror groups (F/2) under wide-field rotation cancelling.
+    ``grad`` (K, F') 1/s per rad, ``r2_eff`` (K, F') 1/s², ``rot`` (K, F') 1/s (the rotation
+    the haltere subtracted, as ρ at the learned gain; 0 without haltere subtraction), with
+    F' = F fields, or the mirror groups (F/2) under wide-field rotation cancelling.
     """
 
     #: haltere gain regression: running-mean time constant and memory (readout steps), prior std of α
@@ -289,12 +309,23 @@ class EyeCircuit:
         cgm = W * c * c * m
         den = [cgm * m, cgm * m * delta, cgm * m * delta ** 2]
         rot = [cgm * k[:, j] for j in range(3)] + [cgm * delta * k[:, j] for j in range(3)]
+        if cfg.normaliser == "pair":
+            # Each pair's speed is decoded first (R/(c·G)), then pooled with speed-independent weights.
+            num = np.concatenate([W * m, W * m * delta], 0)
+            wm = W * m
+            den = [wm * m, wm * m * delta, wm * m * delta ** 2]
+            rot = [wm * k[:, j] for j in range(3)] + [wm * delta * k[:, j] for j in range(3)]
+        self._c = torch.as_tensor(c, dtype=torch.float32)
+        # The LC's synaptic drive from its EMDs, Σ_p w·c·m·R_p (recorded as lc.input, whatever the pool).
+        self._lc_input = torch.as_tensor((W * c * m).T, dtype=torch.float32)    # (P, F)
         self._num = torch.as_tensor(num.T, dtype=torch.float32)                  # (P, 2F)
         self._den = torch.as_tensor(np.concatenate(den + rot, 0).T, dtype=torch.float32)  # (P, 9F)
+        self._pair_state = None
         self._pool = _column_pool(eye, cfg.column_pool)
         self._a = torch.as_tensor(eye.pairs_a)
         self._b = torch.as_tensor(eye.pairs_b)
         self._gyro_state: torch.Tensor | None = None
+        self._gyro_pair: torch.Tensor | None = None
         self._lp_state: torch.Tensor | None = None
         self._carry: list = []           # partial block of per-step sums
         self._t0 = 0.0
@@ -319,7 +350,44 @@ class EyeCircuit:
         g1 = lowpass_scan(gyro, a1, self._gyro_state[0])
         g2 = lowpass_scan(g1, a2, self._gyro_state[1])
         self._gyro_state = torch.stack([g1[..., -1, :], g2[..., -1, :]])
+        if cfg.normaliser == "pair":   # the pairs' speeds pass one more low-pass (see _pair_speeds)
+            if self._gyro_pair is None:
+                self._gyro_pair = g2[..., 0, :]
+            g2 = lowpass_scan(g2, a2, self._gyro_pair)
+            self._gyro_pair = g2[..., -1, :]
         return g2
+
+    #: time constant (s) of the running mean of each pair's contrast energy that sets its semi-saturation floor
+    PAIR_FLOOR_TAU_S = 2.0
+
+    def _pair_speeds(self, R: torch.Tensor, dy: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+        """Per-pair decoded image speed times its contrast weight, and the weights: (..., T, 2F + 9F) sums.
+
+        Each EMD's output is divided by its own delayed-contrast pool before any pooling,
+        s_p = LP(R_p) / (c_p·(LP(G_p)⁺ + ε_p)) (rad/s along u_p; LP the EMD's own τ, which
+        averages the correlator's ripple; ε_p = ``fields.floor`` × the pair's contrast energy
+        (x_B − x_A)² averaged over ``PAIR_FLOOR_TAU_S``, a semi-saturation constant), and the
+        LC field then fits ρ_f, g_f to the s_p weighted by the contrast energy H_p = LP((x_B − x_A)²),
+        which does not depend on the speed. Why: pooled first (default "delayed"), a pair's weight in
+        the fit is its pool G_p ∝ C²/(1 + (ωτ)²), smaller the faster its image moves, so the fit leans
+        on the far, slow parts of a field and ρ̂ grows slower than ρ (measured on dev worlds, log–log
+        slope β of ρ̂ against the exact v/D: 0.6 in a corridor); the readout's (ρ̇ − r²)/ρ of ρ^β is
+        β·a/v. Local contrast normalisation before the direction-selective stage is what the fly's
+        motion pathway does (Drews et al. 2020, Curr Biol 30:209; Matulis et al. 2020, Curr Biol
+        30:222): each T4/T5 input is normalised by its own recent contrast.
+        """
+        a = math.exp(-self.dt / self.config.emd.tau_s)
+        af = math.exp(-self.dt / self.PAIR_FLOOR_TAU_S)
+        H = dy * dy
+        st = self._pair_state or {}
+        lR = lowpass_scan(R, a, st.get("R"))
+        lG = lowpass_scan(G, a, st.get("G"))
+        lH = lowpass_scan(H, a, st.get("H"))
+        slow = lowpass_scan(H, af, st.get("slow"))
+        self._pair_state = dict(R=lR[..., -1, :].clone(), G=lG[..., -1, :].clone(), H=lH[..., -1, :].clone(),
+                                slow=slow[..., -1, :].clone())
+        speed = lR / (self._c * (lG.clamp(min=0.0) + self.config.fields.floor * slow + 1e-12))
+        return torch.cat([(speed * lH) @ self._num, lH @ self._den], dim=-1)
 
     def _sums(self, lum: torch.Tensor, gyro: torch.Tensor | None, keep: dict | None = None,
               with_rotation: bool = False) -> torch.Tensor:
@@ -346,15 +414,18 @@ class EyeCircuit:
                 keep["photoreceptor.v"] = y
             if "emd.response" in keep:
                 keep["emd.response"] = R
+            if "lc.input" in keep:
+                keep["lc.input"] = R @ self._lc_input
         dy = y[..., self._b] - y[..., self._a]
-        if self.config.normaliser == "delayed":
+        if self.config.normaliser in ("delayed", "pair"):
             # The contrast difference times its own delayed (low-passed) copy: the EMD's four signals.
             lp = lowpass_scan(dy, math.exp(-self.dt / self.config.emd.tau_s), self._lp_state)
             self._lp_state = lp[..., -1, :].clone()
             G = lp * dy
         else:
             G = dy * dy
-        out = torch.cat([R @ self._num, G @ self._den], dim=-1)
+        out = (self._pair_speeds(R, dy, G) if self.config.normaliser == "pair"
+               else torch.cat([R @ self._num, G @ self._den], dim=-1))
         self.timings["photoreceptor"] += t1 - t0
         self.timings["emd"] += t2 - t1
         self.timings["fields"] += _time.perf_counter() - t2
@@ -375,9 +446,10 @@ class EyeCircuit:
 
         luminance (..., T, n); gyro (..., T, 3) rad/s or None (a stimulus without
         self-rotation). Continues the circuit's state like :meth:`process`. Returns torch
-        tensors: ``sums`` (..., T, 5F), the per-step pooled signals (b1 = the matched
-        filter's input, b2, then the pools A11, A12, A22), plus "photoreceptor.v" and
-        "emd.response" when named in ``record``.
+        tensors: ``sums`` (..., T, 5F), the per-step pooled signals (b1, b2, then the pools
+        A11, A12, A22), plus "photoreceptor.v", "emd.response" and "lc.input" (the fields'
+        matched-filter input Σ_p w·c·m·R_p, (..., T, F): b1 itself for the "delayed" and
+        "gradient" pools) when named in ``record``.
         """
         lum = torch.as_tensor(luminance, dtype=torch.float32)
         if lum.dim() < 2 or lum.shape[-1] != self.eye.n:
@@ -385,7 +457,7 @@ class EyeCircuit:
         gyr = None if gyro is None else torch.as_tensor(gyro, dtype=torch.float32)
         if gyr is not None and gyr.shape != lum.shape[:-1] + (3,):
             raise ValueError(f"gyro must be (..., time, 3) matching the luminance, got {tuple(gyr.shape)}")
-        keep = {k: None for k in record if k in ("photoreceptor.v", "emd.response")}
+        keep = {k: None for k in record if k in ("photoreceptor.v", "emd.response", "lc.input")}
         sums = self._sums(lum, gyr, keep)
         return dict(sums=sums, **{k: v for k, v in keep.items() if v is not None})
 
@@ -474,6 +546,7 @@ class EyeCircuit:
             theta = theta[right]
         b1, b2, A11, A12, A22 = parts[:5]
         cfg = self.config.fields
+        q = np.zeros_like(b1)
         if A11.shape[-2]:
             # Semi-saturation floor: a running mean (over past blocks only) of each field's pool.
             floors = np.empty_like(A11)
@@ -495,8 +568,9 @@ class EyeCircuit:
                 qg = np.where(det > 0, (A11 * c2 - A12 * c1) / det, 0.0)
                 alpha = self._rotation_gain(rho, q)
                 rho, grad = rho - alpha * q, grad - alpha * qg
+                q = (1.0 + alpha) * q
             rho, grad = rho * self.config.calibration, grad * self.config.calibration
         mode = self.config.r2_term
         r2_eff = (rho ** 2 * np.cos(theta) - rho * np.sin(theta) * grad if mode == "convective"
                   else rho ** 2 * np.cos(theta) if mode == "point" else np.zeros_like(rho))
-        return dict(t=t_end - self.latency_s, rho=rho, grad=grad, r2_eff=r2_eff)
+        return dict(t=t_end - self.latency_s, rho=rho, grad=grad, r2_eff=r2_eff, rot=q * self.config.calibration)

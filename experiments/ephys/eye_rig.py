@@ -182,7 +182,7 @@ class EyeRig:
         first = src(0, 1)
         B = first.shape[0] if first.dim() == 3 else 1
         circ.run_steps(torch.full((B, 1, self.eye.n), float(baseline)))     # adapted to the mean luminance
-        front = [k for k in want if k in ("photoreceptor.v", "emd.response")]
+        front = [k for k in want if k in ("photoreceptor.v", "emd.response", "lc.input")]
         parts: dict = {k: [] for k in front}
         sums = []
         for a in range(0, n_steps, chunk):  # time chunks: memory only
@@ -195,8 +195,6 @@ class EyeRig:
         s = torch.cat(sums, dim=-2).numpy()                                    # (B, T, 5F)
         F = self.fields.n_fields
         rec = {k: np.concatenate(v, axis=1) for k, v in parts.items()}
-        if "lc.input" in want:
-            rec["lc.input"] = _sel(s[..., :F], want["lc.input"])
         if "lc.pool" in want:
             rec["lc.pool"] = _sel(s[..., 2 * F:3 * F], want["lc.pool"])
         if any(k in want for k in _BLOCK):

@@ -1,0 +1,136 @@
+"""Where the fly eye loses velocity accuracy: the same readout fed ever less ideal LC inputs.
+
+Levels (each a velocity Dataset's RMSE after ``skip_s``, with the acceleration from the
+accelerometer and from truth, so the readout's own share shows too):
+
+1. ``exact``  — each LC field's fit to the exact translational image motion of every pair,
+   ρ_p·m_p with ρ_p = v/D_p (D_p the rendered range along the pair, ``range.npy``), all pairs
+   weighted alike: the geometry and resolution of the eye (Δφ, field layout, the linear
+   gradient fit, the material-derivative r²-term) with perfect motion detectors.
+2. ``ideal``  — the same exact motion, but weighted as the circuit weights its pairs (each pair
+   by its own contrast pool, from the rendered luminance): texture-dependent pooling, still a
+   perfect, linear detector.
+3. ``emd``    — the circuit itself (:class:`lobula.eye_circuit.EyeCircuit`, the configuration
+   given): the correlators' velocity tuning and pattern noise, and the haltere's residue
+   under rotation.
+
+The exact motion uses the forward velocity of ``truth.csv`` only (the tracks translate along
+the body axis; the lateral velocity a turn adds in the camera frame changed the exact level by
+< 0.006 m/s on the dev worlds). Run: ``python -m experiments.eye_decompose EYE_FOOTAGE ...``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
+from lobula.haltere import forward_acceleration, resample_to
+from lobula.photoreceptor import lowpass_scan
+from lobula.readout import readout
+
+from .eye_velocity import EyeVelocityConfig, estimate_eye_velocity, readout_inputs
+
+__all__ = ["exact_pair_motion", "IdealDetectorCircuit", "ideal_fields", "readout_rmse", "decompose"]
+
+
+def exact_pair_motion(fo) -> np.ndarray:
+    """True translational image motion along every pair's unit tangent (rad/s), (T, P) at the eye's samples.
+
+    ḋ·u_p = −(v·u_p)/D for a translation v (camera frame) and range D; with v = v_fwd·ẑ this is
+    −v_fwd·(ẑ·u_p)/D_p, D_p the pair's mean inverse range (linear in time between stored ranges)."""
+    rt, R = fo.range_samples()
+    if not len(rt) or fo.truth is None:
+        raise ValueError(f"{fo.path}: needs range.npy and truth.csv for the exact image motion")
+    inv = np.where(np.isfinite(R) & (R > 0), 1.0 / np.maximum(R, 1e-9), 0.0)
+    inv_t = np.stack([np.interp(fo.times, rt, inv[:, i]) for i in range(inv.shape[1])], 1)
+    e = fo.eye
+    inv_p = 0.5 * (inv_t[:, e.pairs_a] + inv_t[:, e.pairs_b])
+    v = np.interp(fo.times, fo.truth["time_s"], fo.truth["v_forward_m_s"])
+    return (-v[:, None] * e.pair_direction[None, :, 2] * inv_p).astype(np.float32)
+
+
+class IdealDetectorCircuit(EyeCircuit):
+    """The eye circuit with each EMD replaced by a perfect linear detector of the given motion.
+
+    ``uniform``: every pair weighted alike (level 1); else each pair by its delayed contrast pool
+    from the luminance (level 2). No rotation (the motion is translational)."""
+
+    def __init__(self, eye, rate_hz, motion: np.ndarray, uniform: bool, config: EyeCircuitConfig | None = None):
+        cfg = replace(config or EyeCircuitConfig(), rotation="none", rotation_gain="fixed", normaliser="delayed",
+                      latency_s=None)
+        super().__init__(eye, rate_hz, cfg)
+        self.latency_s = 0.5 * self.block * self.dt    # exact motion has no detector latency
+        self._motion, self._pos, self.uniform = motion, 0, uniform
+
+    def _sums(self, lum, gyro, keep=None, with_rotation=False):
+        n = lum.shape[-2]
+        mot = torch.as_tensor(self._motion[self._pos:self._pos + n])
+        self._pos += n
+        if self.uniform:
+            G = torch.ones_like(mot)
+        else:
+            y = self.photoreceptors.run(lum)
+            dy = y[..., self._b] - y[..., self._a]
+            lp = lowpass_scan(dy, math.exp(-self.dt / self.config.emd.tau_s), self._lp_state)
+            self._lp_state = lp[..., -1, :].clone()
+            G = lp * dy
+        F = self.fields.n_fields
+        return torch.cat([(self._c * G * mot) @ self._num, (G @ self._den)[..., :3 * F]], -1)
+
+
+def ideal_fields(fo, uniform: bool, config: EyeCircuitConfig | None = None, chunk: int = 500):
+    """(t, ρ, r2_eff) of :class:`IdealDetectorCircuit` over an eye footage."""
+    circ = IdealDetectorCircuit(fo.eye, fo.rate_hz, exact_pair_motion(fo), uniform, config)
+    outs = [circ.process(lum, np.zeros((len(ts), 3))) for ts, lum in fo.chunks(chunk)] + [circ.finish()]
+    t = np.concatenate([o["t"] for o in outs]) + float(fo.times[0])
+    return t, np.concatenate([o["rho"] for o in outs]), np.concatenate([o["r2_eff"] for o in outs])
+
+
+def readout_rmse(fo, t, rho, r2, accel_from_truth: bool, cfg: EyeVelocityConfig | None = None,
+                 skip_s: float = 2.0) -> tuple[float, float]:
+    """The eye pipeline's readout (settle time, acceleration, readout inputs) on given fields: (RMSE, ±2σ coverage)."""
+    cfg = replace(cfg or EyeVelocityConfig(), accel_from_truth=accel_from_truth)
+    rho, r2 = rho.copy(), r2.copy()
+    cold = (t - t[0]) < cfg.settle_time()
+    rho[cold], r2[cold] = np.nan, np.nan
+    if accel_from_truth:
+        a = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
+    else:
+        a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=cfg.readout.filter == "causal")
+        a = resample_to(t, fo.imu.time_s, a_imu, float(np.median(np.diff(t))))
+    rcfg, tau, drift = readout_inputs(fo, t, cfg)
+    res = readout(t, rho, r2, a, rcfg, gravity_tau=tau, drift_std=drift)
+    vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
+    k = (t >= t[0] + skip_s) & np.isfinite(res.v_hat)
+    err = res.v_hat[k] - vt[k]
+    return float(np.sqrt(np.mean(err ** 2))), float(np.mean(np.abs(err) <= 2 * res.v_std[k]))
+
+
+def decompose(fo, config: EyeVelocityConfig | None = None, skip_s: float = 2.0) -> dict:
+    """RMSE (m/s) and ±2σ coverage of the readout at each level, with accelerometer ("imu") and true acceleration."""
+    cfg = config or EyeVelocityConfig()
+    out = {}
+    for level, uniform in (("exact", True), ("ideal", False)):
+        t, rho, r2 = ideal_fields(fo, uniform, cfg.circuit)
+        for src, truth in (("true", True), ("imu", False)):
+            out[f"{level}|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s)
+    ds = estimate_eye_velocity(fo, replace(cfg, readout_kind="kalman"))
+    t, rho, r2 = ds.time.values, ds.r.values, ds.r2.values
+    for src, truth in (("true", True), ("imu", False)):
+        out[f"emd|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s)
+    vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
+    out["zero"] = float(np.sqrt(np.mean(vt[t >= t[0] + skip_s] ** 2)))
+    return out
+
+
+if __name__ == "__main__":
+    from stimuli.eye import open_eye_footage
+
+    for path in sys.argv[1:]:
+        print(path, json.dumps({k: np.round(v, 4).tolist() for k, v in decompose(open_eye_footage(path)).items()}),
+              flush=True)
