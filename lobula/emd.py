@@ -37,7 +37,10 @@ discrete scheme, :func:`emd_sine_response` the continuous-time formula above.
 Shapes: per frame (..., n) → (..., P); per sequence (..., T, n) → (..., T, P), with
 P pairs given as index arrays (A, B) into the n ommatidia (see
 :class:`lobula.lattice.Lattice`: ``pairs_a``, ``pairs_b``). Leading dims are trials;
-device and dtype follow the input; the only Python loop is over time.
+device and dtype follow the input. Pairs are computed pair-major, ommatidium rows against
+ommatidium rows: where a lattice numbered row by row gives runs of consecutive pairs
+(:func:`pair_runs`) each run is two slices (no gather); Python loops run over time steps
+and over those runs (one per lattice row and axis), never over pairs.
 """
 from __future__ import annotations
 
