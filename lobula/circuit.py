@@ -86,6 +86,7 @@ class Circuit:
         self.neurons = LCNeurons(cfg.population.neurons)
         self._AB = torch.cat([torch.as_tensor(lattice.pairs_a, dtype=torch.long),
                               torch.as_tensor(lattice.pairs_b, dtype=torch.long)]).to(self.device)
+        self._R_buffer = None
         self._pool = self.population.pool_pairs
         if cfg.compile:
             self._pool = torch.compile(self.population.pool_pairs, dynamic=False)
@@ -127,7 +128,15 @@ class Circuit:
         cfg = self.config
         dt = cfg.dt_s
         y, pr = photoreceptor_run(cfg.photoreceptor, dt, x, state.pr)          # (B, Tc, n)
-        R, emd_state = emd_run(cfg.emd, dt, y, None, None, state.emd, pair_index=self._AB)   # (B, Tc, P)
+        # R's storage is reused chunk to chunk unless it is recorded (a fresh block this large is
+        # page-faulted in anew each chunk, which cost more than the correlator itself).
+        P, Tc, B = self.lattice.n_pairs, y.shape[1], y.shape[0]
+        buf = None
+        if "emd.response" not in want:
+            buf = self._R_buffer
+            if buf is None or buf.shape != (P, Tc, B) or buf.dtype != y.dtype or buf.device != y.device:
+                buf = self._R_buffer = y.new_empty((P, Tc, B))
+        R, emd_state = emd_run(cfg.emd, dt, y, None, None, state.emd, pair_index=self._AB, out=buf)  # (B, Tc, P)
         out = {}
         if "photoreceptor.v" in want:
             out["photoreceptor.v"] = _select(y, want["photoreceptor.v"]).transpose(0, 1)

@@ -37,7 +37,10 @@ discrete scheme, :func:`emd_sine_response` the continuous-time formula above.
 Shapes: per frame (..., n) → (..., P); per sequence (..., T, n) → (..., T, P), with
 P pairs given as index arrays (A, B) into the n ommatidia (see
 :class:`lobula.lattice.Lattice`: ``pairs_a``, ``pairs_b``). Leading dims are trials;
-device and dtype follow the input; the only Python loop is over time.
+device and dtype follow the input. Pairs are computed pair-major, ommatidium rows against
+ommatidium rows: where a lattice numbered row by row gives runs of consecutive pairs
+(:func:`pair_runs`) each run is two slices (no gather); Python loops run over time steps
+and over those runs (one per lattice row and axis), never over pairs.
 """
 from __future__ import annotations
 
@@ -52,7 +55,7 @@ from torch import Tensor
 
 __all__ = [
     "EMDConfig", "EMDCoefficients", "EMDState", "EMDArray", "emd_coefficients",
-    "emd_init", "emd_step", "emd_run", "emd_sine_response", "emd_sine_response_discrete",
+    "emd_init", "emd_step", "emd_run", "pair_runs", "pair_difference", "emd_sine_response", "emd_sine_response_discrete",
 ]
 
 
@@ -154,6 +157,52 @@ def _pair_index(pairs_a, pairs_b, n: int, device) -> Tensor:
     return torch.cat([A, B]).to(device)
 
 
+# A run of pairs whose A and B ends are both consecutive ommatidia is read as two slices of
+# the signal (views, no copy); a lattice's rows give long runs. Below this mean run length
+# the per-run Python overhead outweighs the gather it saves and the pairs are gathered.
+_MIN_MEAN_RUN = 8
+
+
+def pair_runs(pairs_a, pairs_b) -> np.ndarray | None:
+    """Runs of pairs (p0, a0, b0, L): pairs p0..p0+L−1 join ommatidia a0+i and b0+i, (K, 4) int.
+
+    None when the mean run is shorter than 8 pairs (an irregular lattice: gather instead).
+    A regular lattice numbered row by row has one run per row and axis.
+    """
+    A = np.asarray(pairs_a, dtype=np.int64).ravel()
+    B = np.asarray(pairs_b, dtype=np.int64).ravel()
+    if len(A) == 0:
+        return None
+    start = np.flatnonzero(np.r_[True, (np.diff(A) != 1) | (np.diff(B) != 1)])
+    if len(A) < _MIN_MEAN_RUN * len(start):
+        return None
+    length = np.diff(np.r_[start, len(A)])
+    return np.stack([start, A[start], B[start], length], axis=1)
+
+
+def _runs_of(AB: Tensor) -> np.ndarray | None:
+    P = AB.shape[0] // 2
+    ab = AB.detach().cpu().numpy()
+    return pair_runs(ab[:P], ab[P:])
+
+
+def pair_difference(y: Tensor, AB: Tensor, runs: np.ndarray | None = None, out: Tensor | None = None) -> Tensor:
+    """``y[B] − y[A]`` along dim 0 for every pair: y (n, ...) → (P, ...), ommatidium-major.
+
+    runs: :func:`pair_runs` of the pairs (None: gather). Slices, not a gather, where the
+    pairs run along the lattice's rows.
+    """
+    P = AB.shape[0] // 2
+    if out is None:
+        out = y.new_empty((P,) + tuple(y.shape[1:]))
+    if runs is None:
+        torch.sub(y.index_select(0, AB[P:]), y.index_select(0, AB[:P]), out=out)
+        return out
+    for p0, a0, b0, L in runs.tolist():  # one slice pair per lattice row and axis, not per pair
+        torch.sub(y[b0:b0 + L], y[a0:a0 + L], out=out[p0:p0 + L])
+    return out
+
+
 def _as_signal(x) -> Tensor:
     x = torch.as_tensor(x)
     return x if x.is_floating_point() else x.to(torch.get_default_dtype())
@@ -165,38 +214,54 @@ def emd_init(x0) -> EMDState:
     return EMDState(x0.clone(), x0.clone())
 
 
-def _correlate(l0: Tensor, xp: Tensor, xc: Tensor, AB: Tensor, c: EMDCoefficients) -> Tensor:
-    """Frame outputs (..., P) from start-of-frame low-pass l0, previous xp and current xc (..., n).
+def _correlate(l0: Tensor, xp: Tensor, xc: Tensor, AB: Tensor, c: EMDCoefficients, runs: np.ndarray | None,
+               out: Tensor) -> Tensor:
+    """Frame outputs into ``out`` (P, ...) from start-of-frame low-pass l0, previous xp and
+    current xc, each ommatidium-major (n, ...) (views allowed).
 
-    AB: the pair indices A then B concatenated, (2P,).
+    AB: the pair indices A then B concatenated, (2P,); runs: their :func:`pair_runs` or None.
+    Ommatidium-major so that both ends of a pair are whole rows: a slice of rows per run
+    (no copy) or one row gather (several times faster than gathering along the last dim).
     """
-    lead, n = xc.shape[:-1], xc.shape[-1]
     P = AB.shape[0] // 2
     w = xp * c.n_lp + xc * c.n_lc
-    # Ommatidium-major (4, n, rest) so that one index_select of whole rows fetches both
-    # ends of every pair; gathering along the last dim is several times slower on CPU.
-    s = torch.stack([l0.reshape(-1, n), w.reshape(-1, n), xp.reshape(-1, n), xc.reshape(-1, n)], dim=0)
-    sab = s.movedim(-1, 1).contiguous().index_select(1, AB)            # (4, 2P, rest)
-    sa, sb = sab[:, :P], sab[:, P:]
-    r = sa[0] * sb[1]
-    r -= sa[1] * sb[0]
-    if c.n_pc != 0.0:
-        cross = sa[2] * sb[3]
-        cross -= sa[3] * sb[2]
-        r += c.n_pc * cross
-    return r.t().reshape(*lead, P)
+    if runs is None:
+        A, B = AB[:P], AB[P:]
+        torch.mul(l0.index_select(0, A), w.index_select(0, B), out=out)
+        out.addcmul_(w.index_select(0, A), l0.index_select(0, B), value=-1.0)
+        if c.n_pc != 0.0:
+            out.addcmul_(xp.index_select(0, A), xc.index_select(0, B), value=c.n_pc)
+            out.addcmul_(xc.index_select(0, A), xp.index_select(0, B), value=-c.n_pc)
+        return out
+    for p0, a0, b0, L in runs.tolist():  # one run per lattice row and axis
+        a, b, r = slice(a0, a0 + L), slice(b0, b0 + L), out[p0:p0 + L]
+        torch.mul(l0[a], w[b], out=r)
+        r.addcmul_(w[a], l0[b], value=-1.0)
+        if c.n_pc != 0.0:
+            r.addcmul_(xp[a], xc[b], value=c.n_pc)
+            r.addcmul_(xc[a], xp[b], value=-c.n_pc)
+    return out
 
 
 def emd_run(config: EMDConfig, dt: float, x, pairs_a, pairs_b, state: EMDState | None = None,
-            max_chunk: int = 4_000_000, pair_index: Tensor | None = None) -> tuple[Tensor, EMDState]:
+            max_chunk: int = 4_000_000, pair_index: Tensor | None = None,
+            runs: np.ndarray | None | str = "auto", out: Tensor | None = None) -> tuple[Tensor, EMDState]:
     """Correlator outputs for a whole sequence.
 
     x: (..., T, n) photoreceptor signals (any units u) sampled every ``dt`` seconds;
     pairs_a, pairs_b: (P,) indices into n. Returns (R (..., T, P) in u², state after
     the last frame). ``state`` continues a stream; None starts at rest on x[..., 0, :]
-    (so the first output is 0). ``max_chunk`` bounds the elements of the per-chunk
-    gather (memory only; results do not depend on it). ``pair_index``: the checked
-    concatenation (A, B) on x's device, to skip rebuilding it (as :class:`EMDArray` does).
+    (so the first output is 0). ``max_chunk`` bounds the elements of the per-piece
+    work buffers (memory only; results do not depend on it). ``pair_index``: the checked
+    concatenation (A, B) on x's device, to skip rebuilding it (as :class:`EMDArray`
+    does); ``runs``: its :func:`pair_runs` ("auto": work them out; None: gather).
+
+    R is computed pair-major and returned as a (..., T, P) view of its (P, T, M)
+    storage, M = the leading dims' size (not contiguous): matrix products and
+    :meth:`lobula.population.LCPopulation.pool_pairs` read it without a transposing copy;
+    call ``.contiguous()`` where a layout matters. ``out``: a contiguous (P, T, M) buffer
+    of x's dtype to write that storage into (a caller stepping in chunks reuses it and
+    spares the allocator a fresh large block each chunk).
     """
     dt = _check_dt(dt)
     x = _as_signal(x)
@@ -205,43 +270,54 @@ def emd_run(config: EMDConfig, dt: float, x, pairs_a, pairs_b, state: EMDState |
     c = emd_coefficients(config, dt)
     n = x.shape[-1]
     AB = pair_index if pair_index is not None else _pair_index(pairs_a, pairs_b, n, x.device)
+    if isinstance(runs, str):
+        if runs != "auto":
+            raise ValueError(f"runs must be 'auto', None or pair_runs(...), got {runs!r}")
+        runs = _runs_of(AB)
     P = AB.shape[0] // 2
     if state is None:
         state = emd_init(x[..., 0, :])
-    xt = x.movedim(-2, 0).contiguous()                      # (T, ..., n): time-major
-    T = xt.shape[0]
-    x_last = state.x.to(device=xt.device, dtype=xt.dtype).expand_as(xt[0])
-    lp_last = state.lp.to(device=xt.device, dtype=xt.dtype).expand_as(xt[0])
-    xp = torch.cat([x_last.unsqueeze(0), xt[:-1]], dim=0)
-    # Low-pass at the end of each frame: l_t = decay·l_{t−1} + beta·x_{t−1} + gamma·x_t.
-    drive = xp * c.beta + xt * c.gamma
-    lend = torch.empty_like(xt)
-    prev = lp_last
-    for t in range(T):  # the recursion is sequential in time only
-        prev = torch.add(drive[t], prev, alpha=c.decay, out=lend[t])
-    l0 = torch.cat([lp_last.unsqueeze(0), lend[:-1]], dim=0)
-    per_frame = max(1, xt[0].numel() // n * P * 8)
-    step = max(1, max_chunk // per_frame)
-    out = torch.empty(xt.shape[:-1] + (P,), dtype=xt.dtype, device=xt.device)   # (T, ..., P)
-    for i in range(0, T, step):  # time chunks bound memory only
-        out[i:i + step] = _correlate(l0[i:i + step], xp[i:i + step], xt[i:i + step], AB, c)
-    return out.movedim(0, -2), EMDState(lend[-1].clone(), xt[-1].clone())
+    lead, T = x.shape[:-2], x.shape[-2]
+    M = math.prod(lead)
+    if out is None:
+        out = x.new_empty((P, T, M))
+    elif out.shape != (P, T, M) or not out.is_contiguous() or out.dtype != x.dtype or out.device != x.device:
+        raise ValueError(f"out must be a contiguous {(P, T, M)} {x.dtype} tensor on {x.device}, "
+                         f"got {tuple(out.shape)} {out.dtype} on {out.device}")
+    xv = x.reshape(M, T, n)
+    x_last = state.x.to(device=x.device, dtype=x.dtype).expand(lead + (n,)).reshape(M, n)
+    lp_last = state.lp.to(device=x.device, dtype=x.dtype).expand(lead + (n,)).reshape(M, n)
+    # Time pieces bound the work buffers (memory only); where pairs are gathered, the
+    # gathered copies (P per piece and signal) too.
+    per_frame = n * M if runs is not None else max(n, 4 * P) * M
+    step = max(1, min(T, max_chunk // max(1, per_frame)))
+    for i in range(0, T, step):
+        j = min(T, i + step)
+        # Ommatidium-major (n, frames + 1, M) with the previous frame in front: x_prev and x
+        # are two overlapping views of it, and a pair's ends are whole rows (slices per run).
+        X = x.new_empty((n, j - i + 1, M))
+        X[:, 0] = x_last.t()
+        X[:, 1:] = xv[:, i:j].permute(2, 1, 0)
+        # Low-pass at the end of each frame: l_t = decay·l_{t−1} + beta·x_{t−1} + gamma·x_t.
+        drive = X[:, :-1] * c.beta + X[:, 1:] * c.gamma
+        Lp = torch.empty_like(X)
+        Lp[:, 0] = lp_last.t()
+        for t in range(j - i):  # the recursion is sequential in time only
+            torch.add(drive[:, t], Lp[:, t], alpha=c.decay, out=Lp[:, t + 1])
+        _correlate(Lp[:, :-1], X[:, :-1], X[:, 1:], AB, c, runs, out[:, i:j])
+        x_last, lp_last = X[:, -1].t(), Lp[:, -1].t()
+    R = out.permute(1, 2, 0).reshape((T,) + lead + (P,)).movedim(0, -2)
+    new = EMDState(lp_last.clone(memory_format=torch.contiguous_format).reshape(lead + (n,)),
+                   x_last.clone(memory_format=torch.contiguous_format).reshape(lead + (n,)))
+    return R, new
 
 
 def emd_step(config: EMDConfig, dt: float, x, pairs_a, pairs_b, state: EMDState | None = None,
-             pair_index: Tensor | None = None) -> tuple[Tensor, EMDState]:
+             pair_index: Tensor | None = None, runs: np.ndarray | None | str = "auto") -> tuple[Tensor, EMDState]:
     """One frame x (..., n) → (R (..., P), new state); the streaming form of :func:`emd_run`."""
-    dt = _check_dt(dt)
     x = _as_signal(x)
-    c = emd_coefficients(config, dt)
-    AB = pair_index if pair_index is not None else _pair_index(pairs_a, pairs_b, x.shape[-1], x.device)
-    if state is None:
-        state = emd_init(x)
-    l0 = state.lp.to(device=x.device, dtype=x.dtype).expand_as(x)
-    xp = state.x.to(device=x.device, dtype=x.dtype).expand_as(x)
-    r = _correlate(l0, xp, x, AB, c)
-    lend = torch.add(xp * c.beta + x * c.gamma, l0, alpha=c.decay)
-    return r, EMDState(lend, x.clone())
+    R, new = emd_run(config, dt, x.unsqueeze(-2), pairs_a, pairs_b, state, pair_index=pair_index, runs=runs)
+    return R.squeeze(-2), new
 
 
 def emd_sine_response(tau_s: float, temporal_freq_hz, phase_diff_rad, amplitude_a=1.0, amplitude_b=None):
@@ -300,10 +376,11 @@ class EMDArray:
     def coefficients(self) -> EMDCoefficients:
         return emd_coefficients(self.config, self.dt)
 
-    def _pairs(self, device, n: int) -> Tensor:
+    def _pairs(self, device, n: int) -> tuple[Tensor, np.ndarray | None]:
         key = (torch.device(device), n)
         if key not in self._pairs_cache:
-            self._pairs_cache[key] = _pair_index(self.pairs_a, self.pairs_b, n, key[0])
+            self._pairs_cache[key] = (_pair_index(self.pairs_a, self.pairs_b, n, key[0]),
+                                      pair_runs(self.pairs_a, self.pairs_b))
         return self._pairs_cache[key]
 
     def reset(self) -> None:
@@ -312,13 +389,13 @@ class EMDArray:
     def step(self, x) -> Tensor:
         """One frame (..., n) → (..., P), continuing the stored state."""
         x = _as_signal(x)
-        r, self.state = emd_step(self.config, self.dt, x, None, None, self.state,
-                                 pair_index=self._pairs(x.device, x.shape[-1]))
+        AB, runs = self._pairs(x.device, x.shape[-1])
+        r, self.state = emd_step(self.config, self.dt, x, None, None, self.state, pair_index=AB, runs=runs)
         return r
 
     def run(self, x) -> Tensor:
         """A sequence (..., T, n) → (..., T, P), continuing the stored state."""
         x = _as_signal(x)
-        r, self.state = emd_run(self.config, self.dt, x, None, None, self.state,
-                                pair_index=self._pairs(x.device, x.shape[-1]))
+        AB, runs = self._pairs(x.device, x.shape[-1])
+        r, self.state = emd_run(self.config, self.dt, x, None, None, self.state, pair_index=AB, runs=runs)
         return r

@@ -72,8 +72,18 @@ def _u8(img: np.ndarray) -> np.ndarray:
 
 
 def pixel_to_angular(flow_px: np.ndarray, camera: PinholeCamera, dt_s: float) -> np.ndarray:
-    """Pixel displacement over dt_s seconds (2, H, W) -> normalised flow in 1/s (2, H, W)."""
-    return np.stack(camera.flow_px_to_normalised(flow_px[0], flow_px[1], dt_s)).astype(np.float32)
+    """Pixel displacement over dt_s seconds (2, H, W) -> normalised flow in 1/s (2, H, W) float32.
+
+    Divides into one float32 output (as :meth:`PinholeCamera.flow_px_to_normalised` does, the
+    same operation and rounding) instead of stacking two temporaries and copying them again.
+    """
+    flow_px = np.asarray(flow_px)
+    if flow_px.dtype != np.float32:
+        return np.stack(camera.flow_px_to_normalised(flow_px[0], flow_px[1], dt_s)).astype(np.float32)
+    out = np.empty(flow_px.shape, np.float32)
+    np.divide(flow_px[0], camera.fx * dt_s, out=out[0])
+    np.divide(flow_px[1], camera.fy * dt_s, out=out[1])
+    return out
 
 
 #: px: below this predicted rotational displacement anywhere in the image a pair is not warped
@@ -123,14 +133,29 @@ def prewarp_flow(fn, a: np.ndarray, b: np.ndarray, camera: PinholeCamera, r01: n
         return fn(a, b)
     bw = cv2.warpPerspective(_u8(b), hom, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                              borderMode=cv2.BORDER_REPLICATE)
+    return compose_homography(fn(a, bw), hom)
+
+
+def compose_homography(flow_px: np.ndarray, hom: np.ndarray) -> np.ndarray:
+    """The raw displacement W(p + δ) − p (2, H, W) float32 of a flow δ (2, H, W) px taken on
+    the warped image, W the homography ``hom`` (3, 3) of a's pixel to b's; NaN where W(p + δ)
+    falls outside the image (the point left the view). Returned as a view of (H, W, 2), like
+    the flow functions' own.
+
+    Each step is one OpenCV pass (the transform, the in-image test and a masked subtraction
+    into a NaN-filled output): boolean indexing of the interleaved points cost 3× the rest.
+    """
+    h, w = flow_px.shape[1:]
     grid = _pixel_grid(h, w)
-    pts = fn(a, bw).transpose(1, 2, 0) + grid  # where a's pixels went in b_w, (h, w, 2) px
+    pts = cv2.add(flow_px.transpose(1, 2, 0), grid)               # where a's pixels went in b_w (px)
     moved = cv2.perspectiveTransform(pts.reshape(-1, 1, 2), hom).reshape(h, w, 2)
     # A point whose match lies outside b left the view: b_w there is b's replicated edge, and
-    # the "flow" the method found is the rotation alone. Unknown, not zero: NaN.
-    out = (moved[..., 0] < 0) | (moved[..., 0] > w - 1) | (moved[..., 1] < 0) | (moved[..., 1] > h - 1)
-    moved[out] = np.nan
-    return (moved - grid).transpose(2, 0, 1)  # float32, a view like the flow functions' own
+    # the "flow" the method found is the rotation alone. Unknown, not zero: NaN. (The flow
+    # methods here give no NaN; cv2.perspectiveTransform would map one to the pixel (0, 0).)
+    inside = cv2.inRange(moved, (0.0, 0.0), (float(w - 1), float(h - 1)))
+    out = np.full((h, w, 2), np.nan, np.float32)
+    cv2.subtract(moved, grid, dst=out, mask=inside)
+    return out.transpose(2, 0, 1)
 
 
 _GRIDS: dict = {}

@@ -61,6 +61,7 @@ torch on CPU or GPU; Python loops run over time steps only.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import MISSING, asdict, dataclass, field, fields as dc_fields, is_dataclass
 from typing import NamedTuple
 
@@ -69,6 +70,7 @@ import torch
 from torch import Tensor
 
 from .camera import normalised_to_angles
+from .emd import pair_difference, pair_runs
 from .lc_geometry import field_centres, field_weights, pair_blocks, pair_templates
 from .neurons import (LIFConfig, LIFNeuron, LIFState, PoissonConfig, PoissonNeuron, PoissonState, RateNeuron,
                       RateNeuronConfig, RateState)
@@ -382,6 +384,20 @@ class LCPopulation:
                 static_s=mk(self.static_s), static_f=mk(self.static_f),
                 floor_s=mk(floor * self.kappa * self.static_s), floor_f=mk(floor * self.kappa * self.static_f),
                 kappa_static_s=mk(self.kappa * self.static_s), unit_gain=mk(self._unit_gain))
+            t = self._tensors[key]
+            t["AB"] = torch.cat([t["pairs_a"], t["pairs_b"]])
+            t["runs"] = pair_runs(self.lattice.pairs_a, self.lattice.pairs_b)
+            # Pairs → subunits as a sparse (S, P) matrix (one entry per pair): a CSR product on
+            # pair-major signals, several times faster than index_add along the last dim.
+            rows = torch.as_tensor(self.pair_subunit, dtype=torch.long, device=key[0])
+            P = len(self.pair_subunit)
+            order = torch.argsort(rows, stable=True)
+            crow = torch.zeros(self.n_subunits + 1, dtype=torch.long, device=key[0])
+            crow[1:] = torch.cumsum(torch.bincount(rows, minlength=self.n_subunits), 0)
+            with warnings.catch_warnings():  # torch calls its CSR support "beta": a warning users need not see
+                warnings.simplefilter("ignore", UserWarning)
+                for name, w in (("mu_csr", t["mu"]), ("den_csr", t["den"])):
+                    t[name] = torch.sparse_csr_tensor(crow, order, w[order], (self.n_subunits, P))
         return self._tensors[key]
 
     # -- the first stage: pairs → subunits
@@ -394,14 +410,18 @@ class LCPopulation:
         dendritic compartment on which its T4/T5 terminal converges.
         """
         T = self.tensors(R.device, R.dtype)
-        S = self.n_subunits
-        num = R.new_zeros(R.shape[:-1] + (S,)).index_add_(-1, T["subunit"], R * T["mu"])
+        Rm, back = _pair_major(R)
+        num = back(T["mu_csr"] @ Rm)
         if y is None:
             return num, None
-        G = y.index_select(-1, T["pairs_b"]) - y.index_select(-1, T["pairs_a"])
-        G = G * G
-        den = y.new_zeros(y.shape[:-1] + (S,)).index_add_(-1, T["subunit"], G * T["den"])
-        return num, den
+        ym, back = _pair_major(y)                                                  # (n, M)
+        den = ym.new_empty((self.n_subunits, ym.shape[1]))
+        step = max(1, _PIECE // max(1, len(self.pair_subunit)))
+        for i in range(0, ym.shape[1], step):  # column pieces: small work buffers (memory, not results)
+            G = pair_difference(ym[:, i:i + step], T["AB"], T["runs"])             # (P, m): y_B − y_A
+            G.mul_(G)
+            den[:, i:i + step] = T["den_csr"] @ G
+        return num, back(den)
 
     # -- the second stage: subunits → fields and pathways, stepped in time
     def init_state(self, den_s0: Tensor | None, batch: int, device, dtype) -> "PopulationState":
@@ -486,6 +506,31 @@ class LCPopulation:
         if "rdot+" in part and "rdot-" in part:
             out["rdot"] = nc.scale_rdot * (part["rdot+"] - part["rdot-"])
         return out
+
+
+# Elements of one work buffer in pool_pairs (16 MB in float32): pieces below glibc's largest
+# mmap threshold (32 MB) are recycled by malloc instead of page-faulted in afresh each chunk.
+_PIECE = 1 << 22
+
+
+def _pair_major(x: Tensor):
+    """x (..., P) as a 2-D (P, M) matrix (a view when x's storage is pair-major, as
+    :func:`lobula.emd.emd_run` returns it; else one copy) and the function that turns a
+    (K, M) result back into (..., K)."""
+    lead = x.shape[:-1]
+    dims = sorted(range(len(lead)), key=lambda d: -x.stride(d))        # lead dims in memory order
+    xp = x.permute(len(lead), *dims)
+    if not xp.is_contiguous():
+        xp = xp.contiguous()
+    shape = tuple(lead[d] for d in dims)
+    inverse = [0] * len(dims)
+    for i, d in enumerate(dims):
+        inverse[d] = i
+
+    def back(m: Tensor) -> Tensor:
+        return m.reshape((m.shape[0],) + shape).permute(*[1 + i for i in inverse], 0)
+
+    return xp.reshape(xp.shape[0], -1), back
 
 
 class PopulationState(NamedTuple):

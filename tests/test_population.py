@@ -228,3 +228,27 @@ def test_compiled_kernel_matches_eager(eye):
     b = Circuit(eye, CircuitConfig(chunk_steps=16, compile=True)).run(stim, record=rec)
     for k in rec:
         torch.testing.assert_close(b[k], a[k], rtol=1e-4, atol=1e-6 * float(a[k].abs().max()))
+
+
+@pytest.mark.parametrize("kind", ["hex", "rect"])
+def test_pool_pairs_equals_plain_sums(kind):
+    # The CSR product on pair-major R and the run-sliced differences of y against a plain
+    # per-pair index_add in float64, for R contiguous and as emd_run's pair-major view.
+    lat = Lattice(CAM, LatticeConfig(kind=kind, dphi_deg=3.0))
+    pop = LCPopulation(lat, LCPopulationConfig())
+    rng = np.random.default_rng(1)
+    y = torch.as_tensor(rng.standard_normal((3, 5, lat.n)), dtype=torch.float32)
+    R = torch.as_tensor(rng.standard_normal((3, 5, lat.n_pairs)), dtype=torch.float32)
+    sub = torch.as_tensor(pop.pair_subunit)
+    mu, den = torch.as_tensor(pop.mu), torch.as_tensor(pop.kappa * pop.mu * pop.t)
+    G = (y.double()[..., lat.pairs_b] - y.double()[..., lat.pairs_a]) ** 2
+    ref_num = torch.zeros(3, 5, pop.n_subunits, dtype=torch.float64).index_add_(-1, sub, R.double() * mu)
+    ref_den = torch.zeros(3, 5, pop.n_subunits, dtype=torch.float64).index_add_(-1, sub, G * den)
+    pair_major = R.permute(2, 1, 0).contiguous().permute(2, 1, 0)        # (P, T, B) storage, as emd_run returns
+    for r in (R, pair_major):
+        num, dsum = pop.pool_pairs(r, y)
+        assert num.shape == dsum.shape == (3, 5, pop.n_subunits)
+        torch.testing.assert_close(num.double(), ref_num, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(dsum.double(), ref_den, rtol=1e-5, atol=1e-5)
+    assert pop.pool_pairs(R[0, 0], None)[1] is None
+    torch.testing.assert_close(pop.pool_pairs(R[0, 0], None)[0].double(), ref_num[0, 0], rtol=1e-5, atol=1e-5)

@@ -69,11 +69,12 @@ def bench_tuning_sweep(n_ommatidia: int = 5000, n_tf: int = 20, n_contrasts: int
             tc = _time.perf_counter()
             circuit.run(src, chunk_steps, trials=trials, record=(var,), seed=0, baseline=1.0, callback=lambda *a: None)
             compile_s = _time.perf_counter() - tc
-        t1 = _time.perf_counter()
+        t1, c1 = _time.perf_counter(), _time.process_time()
         circuit.run(src, run_steps, trials=trials, record=(var,), seed=0, baseline=1.0, callback=keep)
         if device != "cpu":
             torch.cuda.synchronize()
         run_s = _time.perf_counter() - t1
+        run_cpu_s = _time.process_time() - c1
     B, U, n, P = TF.size, circuit.population.n_units, lat.n, lat.n_pairs
     scale = n_steps / run_steps
     total = run_s * scale
@@ -82,7 +83,7 @@ def bench_tuning_sweep(n_ommatidia: int = 5000, n_tf: int = 20, n_contrasts: int
     res = {"n_ommatidia": n, "n_pairs": P, "n_lc_units": U, "n_fields": circuit.population.n_fields,
            "conditions": B, "trials": trials, "steps": n_steps, "dt_s": dt_s, "neuron_model": neuron_model,
            "device": device, "threads": threads, "compile": compile, "setup_s": setup, "compile_s": compile_s,
-           "run_s": total,
+           "run_s": total, "run_cpu_s": run_cpu_s * scale,
            "extrapolated_from_steps": run_steps if run_steps < n_steps else None,
            "computed_neuron_steps_per_s": computed / total, "equivalent_neuron_steps_per_s": equivalent / total,
            "target_s": 60.0}
@@ -90,6 +91,7 @@ def bench_tuning_sweep(n_ommatidia: int = 5000, n_tf: int = 20, n_contrasts: int
         print(f"ephys tuning sweep: {n_tf} TF × {n_contrasts} contrasts × {trials} trials, {duration_s:g} s at "
               f"{dt_s * 1e3:g} ms; eye {n} ommatidia, {P} EMDs, {U} LC units ({neuron_model}) on {device}: "
               f"{total:.1f} s{' (extrapolated from %d steps)' % run_steps if run_steps < n_steps else ''} "
+              f"({run_cpu_s * scale:.1f} s CPU) "
               f"+ {setup:.1f} s setup{' + %.1f s compilation' % compile_s if compile else ''}; "
               f"{computed / total:.3g} neuron-steps/s computed, "
               f"{equivalent / total:.3g} equivalent (target < 60 s)")
