@@ -15,9 +15,10 @@ Two readouts share this arithmetic:
   measures a/v without the accelerometer, κ = median over fields of (ṙ̄ − r²̄)/r̄, with a
   standard error from the fields' spread plus an error all fields share
   (``kappa_rel_error``); and a Kalman filter on (v, accelerometer offset b, offset ramp
-  ḃ) integrates the acceleration and fuses a_m = κ·v + b (the remedy the paper's
-  discussion proposes; an offset in a cannot scale v). The ramp is gravity leaking through
-  an attitude integrated with an uncertain gyro bias. When nothing moves in the image,
+  ḃ) integrates the acceleration and fuses a_m = κ·lp(v) + b (the remedy the paper's
+  discussion proposes; an offset in a cannot scale v; κ is a ratio of low-passed terms, so it
+  multiplies the low-passed velocity, which the state and ∫a give exactly). The ramp is
+  gravity leaking through an attitude integrated with an uncertain gyro bias. When nothing moves in the image,
   ``v = r·d`` with ``d`` bounded says the camera is still. The zero-phase variant is a
   Rauch–Tung–Striebel smoother; the causal one is the forward filter, whose measurements
   speak of v and b one latency ago, bridged by integrating acceleration.
