@@ -32,9 +32,9 @@ def family_run(tmp_path_factory):
 
 
 @pytest.mark.parametrize("family", [
-    "corridor",
+    "panels", "corridor",
     "rotation",  # with the gyro pre-warp (lobula.flow.prewarp_flow): 0.055 m/s against zero 0.314
-    "ground", "fast", "moving"])
+    "ground", "fast", "offaxis", "dim", "rest", "moving"])
 def test_family_beats_the_baselines(family_run, family):
     fo = family_run(family)
     cfg = VelocityConfig()
