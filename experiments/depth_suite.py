@@ -269,7 +269,7 @@ def plot_suite(ds, path) -> Path:
                 "estimate_medium": "v̂ of the velocity pipeline with DIS medium",
                 "truth": "exact mean velocity over each pair"}[s]
         rm = {"estimate": "v_hat_rmse", "estimate_medium": "v_hat_rmse_medium"}.get(s)
-        extra = (f"; v̂ RMSE per family: " + ", ".join(f"{float(x):.2f}" for x in ds[rm].mean("seed").values)
+        extra = ("; v̂ RMSE per family: " + ", ".join(f"{float(x):.2f}" for x in ds[rm].mean("seed").values)
                  if rm else "")
         ax.set_title(f"speed: {what} (numbers over bars: coverage of ratio / TV; dashed: 0.2){extra}", fontsize=8)
     axes[0].legend(ncol=5, fontsize=8, loc="upper left")

@@ -23,7 +23,6 @@ delete ``OUT/results`` to recompute).
 """
 from __future__ import annotations
 
-import csv
 import json
 import os
 import time as _time
@@ -33,6 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from .store import seed_summary
 
 #: window name -> description
 WINDOWS = ("after_skip", "first_2s")
@@ -374,10 +375,10 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
             done(run_scene_job(j))
     ds = collect(results, families, seeds, configurations, dict(duration_s=duration_s, scale=scale, skip_s=skip_s,
                                                                 imu=imu, imu_mount=imu_mount))
-    from .store import write_netcdf
+    from .store import write_csv, write_netcdf
     write_netcdf(ds, out / "suite.nc")
     rows = table_rows(ds)
-    write_table_csv(rows, out / "suite_table.csv")
+    write_csv(rows, out / "suite_table.csv")
     plot_suite(ds, out / "suite.png")
     plot_worlds(out, families, seeds[0])
     return ds, rows
@@ -456,22 +457,9 @@ def table_rows(ds) -> list[dict]:
             for w in ds.window.values:
                 row = dict(family=str(f), configuration=str(c), window=str(w))
                 for m in ds.metric.values:
-                    x = ds.value.sel(family=f, configuration=c, window=w, metric=m).values
-                    fin = x[np.isfinite(x)]
-                    row[f"{m}_mean"] = float(fin.mean()) if fin.size else float("nan")
-                    row[f"{m}_sd"] = float(fin.std(ddof=1)) if fin.size > 1 else float("nan")
-                    row[f"{m}_n"] = int(fin.size)
+                    row.update(seed_summary(ds.value.sel(family=f, configuration=c, window=w, metric=m).values, m))
                 rows.append(row)
     return rows
-
-
-def write_table_csv(rows, path: Path):
-    tmp = path.with_suffix(".csv.tmp")
-    with open(tmp, "w", newline="") as fh:
-        wr = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        wr.writeheader()
-        wr.writerows(rows)
-    os.replace(tmp, path)
 
 
 def format_table(rows, window="after_skip") -> str:
