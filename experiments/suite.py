@@ -479,7 +479,8 @@ def format_table(rows, window="after_skip") -> str:
             continue
         lock = r["lock_on_s_mean"]
         lock_s = (f"{lock:.1f}" if np.isfinite(lock) else "never") + (
-            f" ({r['lock_on_s_n']}/{r['rmse_m_s_n']})" if r["lock_on_s_n"] != r["rmse_m_s_n"] else "")
+            f" ({r['lock_on_s_n']} of {r['observable_fraction_n']} seeds)"
+            if r["lock_on_s_n"] != r["observable_fraction_n"] else "")
         lines.append(f"| {r['family']} | {r['configuration']} | {ms(r, 'rmse_m_s')} | "
                      f"{ms(r, 'median_abs_error_m_s')} | {ms(r, 'coverage_2sigma', True)} | "
                      f"{ms(r, 'observable_fraction', True)} | {lock_s} |")
