@@ -71,18 +71,23 @@ def derotate(flow: np.ndarray, omega: np.ndarray, x: np.ndarray, y: np.ndarray) 
     return out
 
 
-_SQUARES: list = []  # [(x, y, 1 + x², 1 + y²)] for the last grid seen
+_SQUARES: dict = {}  # (id(x), id(y)) -> (x, y, 1 + x², 1 + y²) for the last few grids seen
 
 
 def _one_plus_squares(x: np.ndarray, y: np.ndarray):
     """1 + x² and 1 + y² for the grid (x, y), computed once per grid.
 
-    The cache holds x and y themselves and is used only for those very arrays (``is``), so a
-    new camera or field tiling (new grid arrays) recomputes it; the grids are never written.
+    An entry holds x and y themselves (so their ids cannot be reused while it lives) and is
+    used only for those very arrays (``is``): a new camera or field tiling (new grid arrays)
+    computes its own. The grids are never written to. At most 4 grids are kept.
     """
-    if not (_SQUARES and _SQUARES[0][0] is x and _SQUARES[0][1] is y):
-        _SQUARES[:] = [(x, y, 1 + x * x, 1 + y * y)]
-    return _SQUARES[0][2], _SQUARES[0][3]
+    key = (id(x), id(y))
+    hit = _SQUARES.get(key)
+    if hit is None or hit[0] is not x or hit[1] is not y:
+        if len(_SQUARES) >= 4:
+            _SQUARES.clear()
+        hit = _SQUARES[key] = (x, y, 1 + x * x, 1 + y * y)
+    return hit[2], hit[3]
 
 
 def turn(r: np.ndarray, x, y):

@@ -17,6 +17,7 @@ import numpy as np
 from scipy import sparse
 
 from .camera import PinholeCamera, angles_to_normalised, normalised_to_angles
+from .epipole import derotate
 
 
 @dataclass
@@ -110,12 +111,16 @@ def tile_fields(camera: PinholeCamera, config: FieldConfig | None = None) -> Rec
 
 
 def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
-                valid: np.ndarray | None = None, pooling: str = "least-squares") -> tuple[np.ndarray, np.ndarray]:
+                valid: np.ndarray | None = None, pooling: str = "least-squares",
+                rotation=None) -> tuple[np.ndarray, np.ndarray]:
     """Matched-filter pooling of one flow field (2, H, W) in 1/s about the epipole.
 
     Returns r̄ (F,) and r²̄ (F,) in 1/s and 1/s². ``valid`` (H, W) bool excludes pixels
     (e.g. where flow is unknown); non-finite flow is excluded automatically. All fields
     are pooled by one sparse product of the (F, H·W) weights with three per-pixel maps.
+    rotation: the camera's angular velocity ω (3,) rad/s, whose rotational flow is
+    subtracted first (:func:`lobula.epipole.derotate`), only on the pixels pooled; the
+    result equals pooling ``derotate(flow, ω, fields.x, fields.y)``.
 
     This runs on every frame pair, so the per-pixel maps are made only inside the
     rectangle that holds every field's pixels (:func:`_pool_support`, ~80% of a 640×480
@@ -126,10 +131,13 @@ def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
         raise ValueError(f"unknown pooling {pooling!r}; use 'least-squares' or 'pixel-mean'")
     flow = np.asarray(flow, dtype=np.float32)
     rows, cols, weights, x, y = _pool_support(fields)
+    flow = flow[:, rows, cols]
+    if rotation is not None:
+        flow = derotate(flow, rotation, x, y)
     dx = x - np.float32(epipole[0])
     dy = y - np.float32(epipole[1])
-    num = flow[0, rows, cols] * dx
-    t = flow[1, rows, cols] * dy
+    num = flow[0] * dx
+    t = flow[1] * dy
     num += t
     den = np.multiply(dx, dx, out=dx)
     den += np.multiply(dy, dy, out=dy)
@@ -191,9 +199,13 @@ def _pool_support(fields: ReceptiveFields):
 
 
 def pool_fields_reference(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
-                          valid: np.ndarray | None = None, pooling: str = "least-squares"):
+                          valid: np.ndarray | None = None, pooling: str = "least-squares", rotation=None):
     """:func:`pool_fields` written plainly on the whole image (the definition it is tested against)."""
     flow = np.asarray(flow, dtype=np.float32)
+    if rotation is not None:
+        from .epipole import rotational_flow
+
+        flow = flow - rotational_flow(rotation, fields.x, fields.y).astype(np.float32)
     dx = fields.x - np.float32(epipole[0])
     dy = fields.y - np.float32(epipole[1])
     num = flow[0] * dx + flow[1] * dy

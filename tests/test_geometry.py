@@ -228,10 +228,16 @@ def test_pool_fields_equals_its_whole_image_reference(pooling):
     valid = np.random.default_rng(3).random(f.x.shape) > 0.1
     for v in (None, valid):
         for e in ((0.0, 0.0), (0.05, -0.03), (f.x[100, 100], f.y[100, 100])):  # last: on a pixel
-            got = pool_fields(flow, f, e, valid=v, pooling=pooling)
-            want = pool_fields_reference(flow, f, e, valid=v, pooling=pooling)
-            for a, b in zip(got, want):
-                assert np.array_equal(a, b, equal_nan=True)
+            for w in (None, np.array([0.3, -0.5, 0.2])):
+                got = pool_fields(flow, f, e, valid=v, pooling=pooling, rotation=w)
+                want = pool_fields_reference(flow, f, e, valid=v, pooling=pooling, rotation=w)
+                for a, b in zip(got, want):
+                    assert np.array_equal(a, b, equal_nan=True)
+    # Derotating inside pool_fields is pooling the derotated flow.
+    w = np.array([-0.4, 0.7, 0.1])
+    for a, b in zip(pool_fields(flow, f, (0.02, 0.01), pooling=pooling, rotation=w),
+                    pool_fields(derotate(flow, w, f.x, f.y), f, (0.02, 0.01), pooling=pooling)):
+        assert np.array_equal(a, b, equal_nan=True)
     # Replacing the tiling's weights (here: one field dropped to zero) must rebuild the cache.
     f.weights = f.weights.multiply(np.arange(f.n_fields)[:, None] > 0).tocsr()
     got = pool_fields(flow, f, (0.0, 0.0), pooling=pooling)
