@@ -20,7 +20,6 @@ from tqdm.auto import tqdm
 
 from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
-from lobula.depth_motion import refine_motion
 from lobula.epipole import EpipoleEstimator, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
 from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
@@ -183,6 +182,8 @@ def _residual_rate(footage: Footage, s: FlowSample, r01: np.ndarray, e: np.ndarr
     The gyro read ω + b and the derotation removed ω + b − b0, so the flow is left turning
     by −(b − b0): δω = b0 − b.
     """
+    from lobula.depth_motion import refine_motion  # torch-based; only --gyro-bias-from-vision needs it
+
     x, y = footage.camera.normalised_grid(np.float64)
     f = np.asarray(s.flow, np.float64)
     x1, y1 = turn(r01, x + f[0] * s.dt, y + f[1] * s.dt)
