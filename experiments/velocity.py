@@ -20,8 +20,7 @@ from tqdm.auto import tqdm
 
 from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
-from lobula.depth_motion import refine_motion
-from lobula.epipole import EpipoleEstimator, derotate, derotate_finite, turn
+from lobula.epipole import EpipoleEstimator, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
 from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
                             gyro_bias, orientation_from_gyro, resample_to, vision_gyro_bias)
@@ -130,12 +129,13 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
                leave=False, mininterval=2)
     for s in samples:
         t1 = _time.perf_counter()
-        flow, q = s.flow, (None, None, None)
+        flow, q, omega = s.flow, (None, None, None), None
         if attitude is not None:
             q = attitude(np.array([s.t0, s.t1, s.t_mid]))  # camera → reference at t0, t1, middle
-            # The first-order derotation serves the fixed-pixel rates (outputs r, r2); the
-            # epipole and the material fields derotate exactly (finite rotation over the gap).
-            flow = derotate(flow, Rotation.from_matrix(q[0].T @ q[1]).as_rotvec() / s.dt, x, y)
+            # The first-order derotation serves the fixed-pixel rates (outputs r, r2; done inside
+            # pool_fields, on the pixels it pools); the epipole and the material fields
+            # derotate exactly (finite rotation over the gap).
+            omega = Rotation.from_matrix(q[0].T @ q[1]).as_rotvec() / s.dt
         if config.epipole == "estimate":
             if attitude is not None:
                 sub = s.flow[:, ::est.stride, ::est.stride].reshape(2, -1)
@@ -145,7 +145,7 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
                 e = est.update(flow)
         else:
             e = np.zeros(2)
-        r, r2 = pool_fields(flow, fields, e, pooling=config.fields.pooling)
+        r, r2 = pool_fields(flow, fields, e, pooling=config.fields.pooling, rotation=omega)
         if config.fields.gap_correction:
             r, r2 = gap_correction(r, r2, s.dt)
         if material is not None:
@@ -182,6 +182,8 @@ def _residual_rate(footage: Footage, s: FlowSample, r01: np.ndarray, e: np.ndarr
     The gyro read ω + b and the derotation removed ω + b − b0, so the flow is left turning
     by −(b − b0): δω = b0 − b.
     """
+    from lobula.depth_motion import refine_motion  # torch-based; only --gyro-bias-from-vision needs it
+
     x, y = footage.camera.normalised_grid(np.float64)
     f = np.asarray(s.flow, np.float64)
     x1, y1 = turn(r01, x + f[0] * s.dt, y + f[1] * s.dt)

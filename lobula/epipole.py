@@ -10,8 +10,15 @@ the optical axis, so r must be measured about this point, not the principal poin
 """
 from __future__ import annotations
 
+import sys
+
 import numpy as np
-import torch
+
+
+def _is_tensor(a) -> bool:
+    """Whether a is a torch tensor, without importing torch (only a caller that has it can pass one)."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(a, torch.Tensor)
 
 
 def rotational_flow(omega: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -23,12 +30,64 @@ def rotational_flow(omega: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
     wx, wy, wz = (float(w) for w in omega)
     u = wx * x * y - wy * (1 + x * x) + wz * y
     v = wx * (1 + y * y) - wy * x * y - wz * x
-    return torch.stack([u, v]) if isinstance(u, torch.Tensor) else np.stack([u, v])
+    if _is_tensor(u):
+        return sys.modules["torch"].stack([u, v])
+    return np.stack([u, v])
 
 
 def derotate(flow: np.ndarray, omega: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Subtract the gyro-predicted rotational flow from flow (2, H, W), both in 1/s."""
-    return flow - rotational_flow(omega, x, y).astype(flow.dtype)
+    """Subtract the gyro-predicted rotational flow from flow (2, H, W), both in 1/s.
+
+    Runs every frame pair on the whole image, so for float32 flow and grid it is done in
+    place in one output with the ω-free terms 1 + x², 1 + y² kept from the last call
+    (:func:`_one_plus_squares`); the operations and their order are those of
+    :func:`rotational_flow`, so the result is bit-identical to ``flow − rotational_flow``.
+    """
+    flow = np.asarray(flow)
+    if not (flow.dtype == np.float32 and isinstance(x, np.ndarray) and isinstance(y, np.ndarray)
+            and x.dtype == np.float32 and y.dtype == np.float32 and flow.shape[1:] == x.shape == y.shape):
+        return flow - rotational_flow(omega, x, y).astype(flow.dtype)
+    wx, wy, wz = (float(w) for w in omega)
+    opx2, opy2 = _one_plus_squares(x, y)
+    out = np.empty(flow.shape, np.float32)
+    t = np.empty(x.shape, np.float32)
+    u, v = out[0], out[1]
+    # u = wx·x·y − wy·(1 + x²) + wz·y, evaluated left to right as rotational_flow does.
+    np.multiply(x, wx, out=u)
+    u *= y
+    np.multiply(opx2, wy, out=t)
+    u -= t
+    np.multiply(y, wz, out=t)
+    u += t
+    np.subtract(flow[0], u, out=u)
+    # v = wx·(1 + y²) − wy·x·y − wz·x
+    np.multiply(opy2, wx, out=v)
+    np.multiply(x, wy, out=t)
+    t *= y
+    v -= t
+    np.multiply(x, wz, out=t)
+    v -= t
+    np.subtract(flow[1], v, out=v)
+    return out
+
+
+_SQUARES: dict = {}  # (id(x), id(y)) -> (x, y, 1 + x², 1 + y²) for the last few grids seen
+
+
+def _one_plus_squares(x: np.ndarray, y: np.ndarray):
+    """1 + x² and 1 + y² for the grid (x, y), computed once per grid.
+
+    An entry holds x and y themselves (so their ids cannot be reused while it lives) and is
+    used only for those very arrays (``is``): a new camera or field tiling (new grid arrays)
+    computes its own. The grids are never written to. At most 4 grids are kept.
+    """
+    key = (id(x), id(y))
+    hit = _SQUARES.get(key)
+    if hit is None or hit[0] is not x or hit[1] is not y:
+        if len(_SQUARES) >= 4:
+            _SQUARES.clear()
+        hit = _SQUARES[key] = (x, y, 1 + x * x, 1 + y * y)
+    return hit[2], hit[3]
 
 
 def turn(r: np.ndarray, x, y):

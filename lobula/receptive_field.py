@@ -17,6 +17,7 @@ import numpy as np
 from scipy import sparse
 
 from .camera import PinholeCamera, angles_to_normalised, normalised_to_angles
+from .epipole import derotate
 
 
 @dataclass
@@ -110,14 +111,101 @@ def tile_fields(camera: PinholeCamera, config: FieldConfig | None = None) -> Rec
 
 
 def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
-                valid: np.ndarray | None = None, pooling: str = "least-squares") -> tuple[np.ndarray, np.ndarray]:
+                valid: np.ndarray | None = None, pooling: str = "least-squares",
+                rotation=None) -> tuple[np.ndarray, np.ndarray]:
     """Matched-filter pooling of one flow field (2, H, W) in 1/s about the epipole.
 
     Returns r̄ (F,) and r²̄ (F,) in 1/s and 1/s². ``valid`` (H, W) bool excludes pixels
     (e.g. where flow is unknown); non-finite flow is excluded automatically. All fields
     are pooled by one sparse product of the (F, H·W) weights with three per-pixel maps.
+    rotation: the camera's angular velocity ω (3,) rad/s, whose rotational flow is
+    subtracted first (:func:`lobula.epipole.derotate`), only on the pixels pooled; the
+    result equals pooling ``derotate(flow, ω, fields.x, fields.y)``.
+
+    This runs on every frame pair, so the per-pixel maps are made only inside the
+    rectangle that holds every field's pixels (:func:`_pool_support`, ~80% of a 640×480
+    image) with few whole-map temporaries; pixels outside it have no weight, and the float32
+    maps and float64 sums are those of :func:`pool_fields_reference`, bit for bit.
     """
+    if pooling not in ("least-squares", "pixel-mean"):
+        raise ValueError(f"unknown pooling {pooling!r}; use 'least-squares' or 'pixel-mean'")
     flow = np.asarray(flow, dtype=np.float32)
+    rows, cols, weights, x, y = _pool_support(fields)
+    flow = flow[:, rows, cols]
+    if rotation is not None:
+        flow = derotate(flow, rotation, x, y)
+    dx = x - np.float32(epipole[0])
+    dy = y - np.float32(epipole[1])
+    num = flow[0] * dx
+    t = flow[1] * dy
+    num += t
+    den = np.multiply(dx, dx, out=dx)
+    den += np.multiply(dy, dy, out=dy)
+    bad = ~np.isfinite(num)
+    if valid is not None:
+        bad |= ~np.asarray(valid, bool)[rows, cols]
+    num[bad] = 0.0
+    den[bad] = 0.0
+    pos = den > 0
+    maps = np.empty((num.size, 3), np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if pooling == "least-squares":
+            sq = np.multiply(num, num, out=t)
+            sq /= den
+            sq[~pos] = 0.0
+        else:
+            # Per-pixel ratio r = num/den, averaged with unit weight: num -> r, den -> 1.
+            r_pix = np.divide(num, den, out=t)
+            r_pix[~pos] = 0.0
+            num, den, sq = r_pix, (~bad).astype(np.float32), r_pix * r_pix
+        maps[:, 0] = num.ravel()
+        maps[:, 1] = den.ravel()
+        maps[:, 2] = sq.ravel()
+        pooled = weights @ maps
+        r = pooled[:, 0] / pooled[:, 1]
+        r2 = pooled[:, 2] / pooled[:, 1]
+    return r, r2
+
+
+def _pool_support(fields: ReceptiveFields):
+    """(row slice, column slice, weights (F, pixels in the rectangle) float64 CSR, x, y) for
+    :func:`pool_fields`: the bounding rectangle of the fields' pixels and the weights
+    restricted to it (each row's entries in the same order, so its sums add the same terms in
+    the same order). Kept on the fields object, rebuilt whenever its weights, grid or camera
+    are replaced (a new tiling for a new camera is a new object anyway).
+    """
+    key = (id(fields.weights), id(fields.x), id(fields.y), id(fields.camera))
+    cached = getattr(fields, "_pool_cache", None)
+    if cached is not None and cached[0] == key and cached[1][0] is fields.weights:
+        return cached[2]
+    w = fields.weights.tocsr()
+    h, wd = fields.x.shape
+    pix = w.indices
+    if pix.size:
+        r0, r1 = int(pix.min() // wd), int(pix.max() // wd) + 1
+        cc = pix % wd
+        c0, c1 = int(cc.min()), int(cc.max()) + 1
+    else:
+        r0, r1, c0, c1 = 0, 1, 0, 1
+    cols = (pix // wd - r0) * (c1 - c0) + (pix % wd - c0)
+    sub = sparse.csr_matrix((w.data.astype(np.float64), cols, w.indptr.copy()),
+                            shape=(w.shape[0], (r1 - r0) * (c1 - c0)))
+    rows, cs = slice(r0, r1), slice(c0, c1)
+    support = (rows, cs, sub, np.ascontiguousarray(fields.x[rows, cs], np.float32),
+               np.ascontiguousarray(fields.y[rows, cs], np.float32))
+    # Holding the weights themselves keeps their id from being reused while cached.
+    fields._pool_cache = (key, (fields.weights, fields.x, fields.y, fields.camera), support)
+    return support
+
+
+def pool_fields_reference(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
+                          valid: np.ndarray | None = None, pooling: str = "least-squares", rotation=None):
+    """:func:`pool_fields` written plainly on the whole image (the definition it is tested against)."""
+    flow = np.asarray(flow, dtype=np.float32)
+    if rotation is not None:
+        from .epipole import rotational_flow
+
+        flow = flow - rotational_flow(rotation, fields.x, fields.y).astype(np.float32)
     dx = fields.x - np.float32(epipole[0])
     dy = fields.y - np.float32(epipole[1])
     num = flow[0] * dx + flow[1] * dy
@@ -131,7 +219,6 @@ def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
         if pooling == "least-squares":
             sq = np.where(den > 0, num * num / den, 0.0)
         elif pooling == "pixel-mean":
-            # Per-pixel ratio r = num/den, averaged with unit weight: num -> r, den -> 1.
             r_pix = np.where(den > 0, num / den, 0.0)
             num, den, sq = r_pix, ok.astype(np.float32), r_pix * r_pix
         else:

@@ -191,3 +191,55 @@ def test_material_derivative_gives_velocity_on_any_surface(surface):
     if surface == "corridor":  # most fields see the floor or a wall
         fixed, _ = _exact_field_velocity(cfg, times, flip=flip, material=False)
         assert np.median(np.abs(fixed)) > 2 * max(np.median(np.abs(err)), 0.01)
+
+
+def _rough_flow(shape, seed):
+    """Random flow (2, H, W) float32 1/s with a NaN patch, the kind of input the fast paths see."""
+    rng = np.random.default_rng(seed)
+    flow = (rng.normal(size=(2,) + shape) * 0.3).astype(np.float32)
+    flow[0, 10:14, 20:60] = np.nan
+    return flow
+
+
+def test_derotate_is_bit_identical_to_subtracting_rotational_flow():
+    # derotate's in-place float32 path with cached 1 + x², 1 + y² must equal the plain formula.
+    f = tile_fields(CAM)
+    flow = _rough_flow(f.x.shape, 0)
+    for omega in ([0.3, -0.5, 0.2], [0.0, 0.0, 0.0], [-1.1, 0.02, 0.7]):
+        got = derotate(flow, omega, f.x, f.y)
+        want = flow - rotational_flow(omega, f.x, f.y).astype(np.float32)
+        assert np.array_equal(got, want, equal_nan=True)
+    # A new grid (another camera) must not reuse the cached squares of the old one.
+    g = tile_fields(PinholeCamera().scaled(0.25))
+    small = _rough_flow(g.x.shape, 1)
+    got = derotate(small, [0.3, -0.5, 0.2], g.x, g.y)
+    assert np.array_equal(got, small - rotational_flow([0.3, -0.5, 0.2], g.x, g.y), equal_nan=True)
+    # float64 flow keeps the plain path (and its dtype).
+    f64 = flow.astype(np.float64)
+    assert derotate(f64, [0.1, 0.2, 0.3], f.x, f.y).dtype == np.float64
+
+
+@pytest.mark.parametrize("pooling", ["least-squares", "pixel-mean"])
+def test_pool_fields_equals_its_whole_image_reference(pooling):
+    from lobula.receptive_field import pool_fields_reference
+
+    f = tile_fields(CAM)
+    flow = _rough_flow(f.x.shape, 2)
+    valid = np.random.default_rng(3).random(f.x.shape) > 0.1
+    for v in (None, valid):
+        for e in ((0.0, 0.0), (0.05, -0.03), (f.x[100, 100], f.y[100, 100])):  # last: on a pixel
+            for w in (None, np.array([0.3, -0.5, 0.2])):
+                got = pool_fields(flow, f, e, valid=v, pooling=pooling, rotation=w)
+                want = pool_fields_reference(flow, f, e, valid=v, pooling=pooling, rotation=w)
+                for a, b in zip(got, want):
+                    assert np.array_equal(a, b, equal_nan=True)
+    # Derotating inside pool_fields is pooling the derotated flow.
+    w = np.array([-0.4, 0.7, 0.1])
+    for a, b in zip(pool_fields(flow, f, (0.02, 0.01), pooling=pooling, rotation=w),
+                    pool_fields(derotate(flow, w, f.x, f.y), f, (0.02, 0.01), pooling=pooling)):
+        assert np.array_equal(a, b, equal_nan=True)
+    # Replacing the tiling's weights (here: one field dropped to zero) must rebuild the cache.
+    f.weights = f.weights.multiply(np.arange(f.n_fields)[:, None] > 0).tocsr()
+    got = pool_fields(flow, f, (0.0, 0.0), pooling=pooling)
+    want = pool_fields_reference(flow, f, (0.0, 0.0), pooling=pooling)
+    assert np.isnan(got[0][0]) and np.array_equal(got[0], want[0], equal_nan=True)
