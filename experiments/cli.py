@@ -16,7 +16,7 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "scene": ("experiments.render", "render a synthetic track run (footage folder with exact truth)"),
     "suite": ("experiments.suite", "accuracy suite: scene families x seeds, all configurations, baselines"),
-    "velocity": ("experiments.velocity", "estimate forward velocity from footage"),
+    "velocity": ("experiments.velocity_command", "estimate forward velocity from footage"),
     "calibrate-emd": ("experiments.calibrate", "fit the EMD front end's per-field gains on a synthetic run"),
     "depth": ("experiments.depth", "dense forward depth from flow and v̂ (ratio, TV, parallax)"),
     "depth-suite": ("experiments.depth_suite", "depth on the suite's families x seeds, beside baselines"),

@@ -343,44 +343,6 @@ def run_eye_velocity(args) -> int:
     return 0
 
 
-#: `lobula velocity` options that carry over to eye footage (the rest must stay at their defaults)
-_VELOCITY_OPTIONS_ON_EYE = ("footage", "front_end", "out", "plot", "filter", "field_size", "tau", "accel_from_truth",
-                            "skip", "quiet", "func", "command")
-
-
-def run_from_velocity_args(args) -> int:
-    """`lobula velocity EYE_FOOTAGE --front-end emd …`: the eye's circuit, as `lobula eye-velocity`.
-
-    --filter, --field-size, --tau, --accel-from-truth, --skip and --plot mean what they mean for
-    `lobula eye-velocity` (so the two commands give the same numbers for the same options;
-    `lobula velocity`'s --filter defaults to zero-phase, eye-velocity's to causal). Every other
-    option of `lobula velocity` describes a camera front end and is refused, naming the fix.
-    """
-    import argparse
-
-    from experiments import velocity as _velocity
-
-    if args.front_end != "emd":
-        raise ValueError(f"{args.footage}: compound-eye footage holds ommatidial luminance, not camera frames, "
-                         f"so --front-end {args.front_end} cannot run on it; use --front-end emd (the eye's "
-                         f"photoreceptors, EMDs and LC fields)")
-    parser = argparse.ArgumentParser()
-    _velocity.add_parser(parser.add_subparsers(dest="command"))
-    defaults = vars(parser.parse_args(["velocity", "X", "--out", "Y"]))
-    given = [k for k, v in vars(args).items() if k not in _VELOCITY_OPTIONS_ON_EYE and k in defaults
-             and v != defaults[k]]
-    if given:
-        flags = ", ".join("--" + k.replace("_", "-") for k in sorted(given))
-        raise ValueError(f"{args.footage}: {flags} set(s) a camera front end and does not apply to compound-eye "
-                         f"footage (Δφ and Δρ are the footage's own, from eye.json: re-render with "
-                         f"`lobula scene OUT --eye fly --dphi …`); drop it, or see `lobula eye-velocity --help`")
-    ns = argparse.Namespace(footage=args.footage, out=args.out, plot=args.plot, rotation=None,
-                            field_size=args.field_size, tau=args.tau, filter=args.filter,
-                            accel_from_truth=args.accel_from_truth, skip=args.skip,
-                            readout=getattr(args, "readout", None), seed=None)
-    return run_eye_velocity(ns)
-
-
 def add_parser(subparsers):
     """Register `lobula eye-velocity` (see experiments.cli)."""
     v = subparsers.add_parser("eye-velocity", help="estimate forward velocity from compound-eye footage "

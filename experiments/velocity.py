@@ -472,10 +472,6 @@ def run_velocity(args) -> int:
     from .info import open_footage_from_args
     from .store import write_netcdf
 
-    from stimuli.eye import is_eye_footage
-    if is_eye_footage(args.footage):  # compound-eye footage: the eye's own circuit (issue 11; eye helper's module)
-        from .eye_velocity import run_from_velocity_args
-        return run_from_velocity_args(args)
     footage = open_footage_from_args(args)
     cfg = _velocity_config(args)
     flo_files = None
@@ -541,3 +537,4 @@ def add_parser(subparsers):
     from .info import add_footage_options
     add_footage_options(v)  # --stream, --clock, --skip-bad-frames, --clock-offset, --undistort (readers)
     v.set_defaults(func=run_velocity)
+    return v
