@@ -35,20 +35,21 @@ def rotational_flow(omega: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
     return np.stack([u, v])
 
 
-def derotate(flow: np.ndarray, omega: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def derotate(flow: np.ndarray, omega: np.ndarray, x: np.ndarray, y: np.ndarray,
+             squares: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Subtract the gyro-predicted rotational flow from flow (2, H, W), both in 1/s.
 
-    Runs every frame pair on the whole image, so for float32 flow and grid it is done in
-    place in one output with the ω-free terms 1 + x², 1 + y² kept from the last call
-    (:func:`_one_plus_squares`); the operations and their order are those of
-    :func:`rotational_flow`, so the result is bit-identical to ``flow − rotational_flow``.
+    Runs on every frame pair, so for float32 flow and grid it is done into one output with
+    few temporaries; ``squares`` = (1 + x², 1 + y²) lets a caller that keeps its grid (the
+    field pooling) compute those ω-free terms once. The operations and their order are
+    those of :func:`rotational_flow`, so the result is bit-identical to ``flow − rotational_flow``.
     """
     flow = np.asarray(flow)
     if not (flow.dtype == np.float32 and isinstance(x, np.ndarray) and isinstance(y, np.ndarray)
             and x.dtype == np.float32 and y.dtype == np.float32 and flow.shape[1:] == x.shape == y.shape):
         return flow - rotational_flow(omega, x, y).astype(flow.dtype)
     wx, wy, wz = (float(w) for w in omega)
-    opx2, opy2 = _one_plus_squares(x, y)
+    opx2, opy2 = squares if squares is not None else (1 + x * x, 1 + y * y)
     out = np.empty(flow.shape, np.float32)
     t = np.empty(x.shape, np.float32)
     u, v = out[0], out[1]
@@ -69,25 +70,6 @@ def derotate(flow: np.ndarray, omega: np.ndarray, x: np.ndarray, y: np.ndarray) 
     v -= t
     np.subtract(flow[1], v, out=v)
     return out
-
-
-_SQUARES: dict = {}  # (id(x), id(y)) -> (x, y, 1 + x², 1 + y²) for the last few grids seen
-
-
-def _one_plus_squares(x: np.ndarray, y: np.ndarray):
-    """1 + x² and 1 + y² for the grid (x, y), computed once per grid.
-
-    An entry holds x and y themselves (so their ids cannot be reused while it lives) and is
-    used only for those very arrays (``is``): a new camera or field tiling (new grid arrays)
-    computes its own. The grids are never written to. At most 4 grids are kept.
-    """
-    key = (id(x), id(y))
-    hit = _SQUARES.get(key)
-    if hit is None or hit[0] is not x or hit[1] is not y:
-        if len(_SQUARES) >= 4:
-            _SQUARES.clear()
-        hit = _SQUARES[key] = (x, y, 1 + x * x, 1 + y * y)
-    return hit[2], hit[3]
 
 
 def turn(r: np.ndarray, x, y):

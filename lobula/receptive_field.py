@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from scipy import sparse
 
-from .camera import PinholeCamera, angles_to_normalised, normalised_to_angles
+from .camera import PinholeCamera, normalised_to_angles
 from .epipole import derotate
 
 
@@ -130,10 +130,10 @@ def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
     if pooling not in ("least-squares", "pixel-mean"):
         raise ValueError(f"unknown pooling {pooling!r}; use 'least-squares' or 'pixel-mean'")
     flow = np.asarray(flow, dtype=np.float32)
-    rows, cols, weights, x, y = _pool_support(fields)
+    rows, cols, weights, x, y, squares = _pool_support(fields)
     flow = flow[:, rows, cols]
     if rotation is not None:
-        flow = derotate(flow, rotation, x, y)
+        flow = derotate(flow, rotation, x, y, squares)
     dx = x - np.float32(epipole[0])
     dy = y - np.float32(epipole[1])
     num = flow[0] * dx
@@ -168,8 +168,8 @@ def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
 
 
 def _pool_support(fields: ReceptiveFields):
-    """(row slice, column slice, weights (F, pixels in the rectangle) float64 CSR, x, y) for
-    :func:`pool_fields`: the bounding rectangle of the fields' pixels and the weights
+    """(row slice, column slice, weights (F, pixels in the rectangle) float64 CSR, x, y,
+    (1 + x², 1 + y²) for the derotation) for :func:`pool_fields`: the bounding rectangle of the fields' pixels and the weights
     restricted to it (each row's entries in the same order, so its sums add the same terms in
     the same order). Kept on the fields object, rebuilt whenever its weights, grid or camera
     are replaced (a new tiling for a new camera is a new object anyway).
@@ -191,8 +191,9 @@ def _pool_support(fields: ReceptiveFields):
     sub = sparse.csr_matrix((w.data.astype(np.float64), cols, w.indptr.copy()),
                             shape=(w.shape[0], (r1 - r0) * (c1 - c0)))
     rows, cs = slice(r0, r1), slice(c0, c1)
-    support = (rows, cs, sub, np.ascontiguousarray(fields.x[rows, cs], np.float32),
-               np.ascontiguousarray(fields.y[rows, cs], np.float32))
+    x = np.ascontiguousarray(fields.x[rows, cs], np.float32)
+    y = np.ascontiguousarray(fields.y[rows, cs], np.float32)
+    support = (rows, cs, sub, x, y, (1 + x * x, 1 + y * y))
     # Holding the weights themselves keeps their id from being reused while cached.
     fields._pool_cache = (key, (fields.weights, fields.x, fields.y, fields.camera), support)
     return support
