@@ -55,7 +55,10 @@ def test_neuron_on_the_emd_replay_is_close_to_the_arithmetic_readout(emd_replay)
     rm = lambda v: float(np.sqrt(np.nanmean((v - vt)[m] ** 2)))
     rate = readout_neuron(t, ds.r.values, ds.r2.values, ds.accel.values)
     spk = readout_neuron(t, ds.r.values, ds.r2.values, ds.accel.values, ReadoutNeuronConfig(spiking=True))
-    causal = readout(t, ds.r.values, ds.r2.values, ds.accel.values, ReadoutConfig(filter="causal"))
+    # The arithmetic model the neuron implements: the forward filter without vision's shared-error
+    # consider state (which brings the default causal readout here from 0.069 to 0.057 m/s).
+    causal = readout(t, ds.r.values, ds.r2.values, ds.accel.values,
+                     ReadoutConfig(filter="causal", shared_error_frac=0.0))
     print(f"\nEMD replay: neuron {rm(rate['v_hat']):.4f} (spiking {rm(spk['v_hat']):.4f}); arithmetic causal "
           f"{rm(causal.v_hat):.4f}, zero-phase {rm(ds.v_hat.values):.4f}")
     assert rate["observable"][m].mean() > 0.9
