@@ -543,15 +543,26 @@ def figure_eye(out_dir, seeds=(0, 1, 2), duration_s: float = 10.0, workdir=None,
                rotations=("none", "haltere", "wide-field")):
     """`lobula figures` entry: render (cached in ``workdir``) and score the eye beside causal DIS, then plot.
 
-    Writes ``out_dir/eye_rmse.png`` and its JSON; returns the path of the PNG.
+    With the rotation family, also the rotation world seen by a gaze-stabilised head
+    (:data:`experiments.eye_figures.GAZE_FAMILY`), under the same rotation handling: the two
+    rotation hypotheses (haltere, gaze) side by side. Writes ``out_dir/eye_rmse.png`` and its JSON;
+    returns the path of the PNG.
     """
     from pathlib import Path
 
     out_dir = Path(out_dir)
     workdir = Path(workdir) if workdir else out_dir / "eye_runs"
+    from experiments.eye_figures import GAZE_FAMILY, ensure_gaze_runs, eye_folder
+
     rows = eye_benchmark(workdir, families, seeds, duration_s, rotations=("haltere",))
-    runs = {f: dict(eye=[workdir / f"{f}-{s}-eye" for s in seeds],
-                    dis_rmse=[r["dis_rmse"] for r in rows if r["family"] == f]) for f in families}
+    fams = list(families)
+    if "rotation" in families:
+        # The second rotation hypothesis family: the fly's own route, a head stabilised on the halteres.
+        ensure_gaze_runs(workdir, seeds, duration_s)
+        fams.insert(fams.index("rotation") + 1, GAZE_FAMILY)
+    runs = {f: dict(eye=[eye_folder(workdir, f, s) for s in seeds],
+                    dis_rmse=[r["dis_rmse"] for r in rows if r["family"] == (f if f != GAZE_FAMILY else "rotation")])
+            for f in fams}
     png = out_dir / "eye_rmse.png"
     eye_figure(runs, png, field_sizes=field_sizes, rotations=rotations)
     return png
