@@ -65,6 +65,14 @@ class EyeVelocityConfig:
     0.49–0.74 (panels, rotation, corridor), hence 0.4 ≈ 1 − β at the low quartile.
     split_tau_s: time constant (s) of that running mean: 1 s, the readout's low-pass (1 Hz) makes
     errors that persist about that long.
+    rest_bound: whether the readout may take "no detectable expansion" as a bound on the speed
+    (:func:`lobula.readout.rest_measurement`, |v| ≤ d_max·(|r̄| + 2·SE)). That bound assumes the
+    fields measure r̄ = v/d at gain 1; the EMDs do not at low speed: on a dev corridor (seed 100)
+    the fields read 0.04–0.36 of the exact expansion while the fly moved at 0.05–0.35 m/s, so the
+    bound called slow flight rest and pulled v̂ toward 0 (causal RMSE 0.131 m/s with it, 0.054
+    without; panels seed 7 0.085 → 0.071; the other dev worlds, seeds 7, 8, 100, within 0.005).
+    False (default): the bound only where the image is frozen (depth bound 10⁶ m); elsewhere at rest v̂
+    rests on the accelerometer and says so in v_std.
     lead_offset_tau_s: the spiking decoder's haltere lead τ_d·a uses the accelerometer less the
     offset the readout's v̂ implies (:func:`readout_offset`, running mean over this time constant, s);
     0: the raw accelerometer. Measured on the dev worlds (seeds 7, 8, 100): where the start's offset
@@ -82,6 +90,7 @@ class EyeVelocityConfig:
     split_tau_s: float = 1.0
     emd_gain_error: float = 0.4
     lead_offset_tau_s: float = 1.0
+    rest_bound: bool = False
 
     def __post_init__(self):
         if self.uncertainty not in ("halves", "posterior"):
@@ -110,7 +119,7 @@ class EyeVelocityConfig:
                     accel_from_truth=self.accel_from_truth, readout_kind=self.readout_kind,
                     neuron=self.neuron.to_dict(), settle_s=self.settle_time(), uncertainty=self.uncertainty,
                     split_tau_s=self.split_tau_s, emd_gain_error=self.emd_gain_error,
-                    lead_offset_tau_s=self.lead_offset_tau_s)
+                    lead_offset_tau_s=self.lead_offset_tau_s, rest_bound=self.rest_bound)
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), sort_keys=True)
@@ -143,6 +152,10 @@ def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
     from experiments.velocity import START_ACCEL_PRIOR_M_S2, TRUTH_ACCEL_OFFSET_M_S2
 
     rcfg = cfg.readout
+    if not cfg.rest_bound:
+        # The EMDs cannot tell slow flight from rest (see EyeVelocityConfig.rest_bound): a depth bound of
+        # 10⁶ m leaves the rest bound only where no field sees any motion at all (a frozen image).
+        rcfg = replace(rcfg, rest_depth_max_m=1e6)
     if cfg.accel_from_truth:
         return replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2)), None, None
     causal = rcfg.filter == "causal"

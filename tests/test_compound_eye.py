@@ -254,7 +254,9 @@ def test_eye_velocity_beats_the_zero_estimator(eye_footage):
     keep = (ds.time.values >= ds.time.values[0] + 1.0) & ds.observable.values
     v_true, v_hat = ds.v_true.values[keep], ds.v_hat.values[keep]
     zero = float(np.sqrt(np.mean(v_true ** 2)))
-    assert sc["observable_fraction"] > 0.8
+    # Measured 0.788: without a rest bound (EyeVelocityConfig.rest_bound) the slow start, 1–2 s, is
+    # unobservable rather than pulled toward 0 (0.996 with the bound, at RMSE 0.070 against 0.083).
+    assert sc["observable_fraction"] > 0.75
     # Measured: 0.240 against 0.319 for v̂ = 0 (Δφ = 8°, 6 s, a causal start from rest). A modest margin.
     assert sc["rmse_m_s"] < 0.9 * zero, (sc, zero)
     # It follows the trajectory's shape, if loosely (measured r = 0.59: v̂ lags and reads low at the
@@ -549,3 +551,34 @@ def test_decomposition_levels_fall_from_exact_motion_to_the_emds(eye_footage):
     exact, emd, zero = d["exact|true"][0], d["emd|true"][0], d["zero"]
     assert exact < 0.5 * emd < 0.5 * zero, d
     assert d["ideal|true"][0] < emd, d
+
+
+def test_readout_offset_recovers_a_constant_accelerometer_offset_causally():
+    from experiments.eye_velocity import readout_offset
+
+    t = np.arange(0.0, 10.0, 0.02)
+    a_true = 0.8 * np.sin(2 * np.pi * 0.3 * t)
+    b = 0.45                                           # the accelerometer reads a_true + b
+    v_hat = np.concatenate([[0.0], np.cumsum(0.5 * (a_true[1:] + a_true[:-1]) * np.diff(t))])
+    v_hat = v_hat + 0.01 * np.sin(2 * np.pi * 2.0 * t)  # vision's small corrections average out
+    v_hat[:20] = np.nan                                # unobservable at first: the mean holds
+    est = readout_offset(t, v_hat, a_true + b, tau_s=1.0)
+    assert np.all(est[:21] == 0.0)
+    assert np.abs(est[t > 5.0] - b).max() < 0.05      # after a few time constants: b within 10 %
+    # Causal: changing later samples leaves earlier estimates unchanged.
+    a2 = a_true + b
+    a2[300:] += 5.0
+    assert np.array_equal(readout_offset(t, v_hat, a2, 1.0)[:300], est[:300])
+
+
+def test_eye_readout_has_no_rest_bound_unless_asked(eye_footage):
+    from dataclasses import replace
+
+    from experiments.eye_velocity import EyeVelocityConfig, readout_inputs
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(eye_footage)
+    t = fo.times[::10]
+    cfg = EyeVelocityConfig()
+    assert readout_inputs(fo, t, cfg)[0].rest_depth_max_m == 1e6
+    assert readout_inputs(fo, t, replace(cfg, rest_bound=True))[0].rest_depth_max_m == cfg.readout.rest_depth_max_m
