@@ -254,9 +254,7 @@ def test_eye_velocity_beats_the_zero_estimator(eye_footage):
     keep = (ds.time.values >= ds.time.values[0] + 1.0) & ds.observable.values
     v_true, v_hat = ds.v_true.values[keep], ds.v_hat.values[keep]
     zero = float(np.sqrt(np.mean(v_true ** 2)))
-    # Measured 0.788: without a rest bound (EyeVelocityConfig.rest_bound) the slow start, 1–2 s, is
-    # unobservable rather than pulled toward 0 (0.996 with the bound, at RMSE 0.070 against 0.083).
-    assert sc["observable_fraction"] > 0.75
+    assert sc["observable_fraction"] > 0.8
     # Measured: 0.240 against 0.319 for v̂ = 0 (Δφ = 8°, 6 s, a causal start from rest). A modest margin.
     assert sc["rmse_m_s"] < 0.9 * zero, (sc, zero)
     # It follows the trajectory's shape, if loosely (measured r = 0.59: v̂ lags and reads low at the
@@ -571,7 +569,7 @@ def test_readout_offset_recovers_a_constant_accelerometer_offset_causally():
     assert np.array_equal(readout_offset(t, v_hat, a2, 1.0)[:300], est[:300])
 
 
-def test_eye_readout_has_no_rest_bound_unless_asked(eye_footage):
+def test_eye_readout_rest_bound_is_an_option(eye_footage):
     from dataclasses import replace
 
     from experiments.eye_velocity import EyeVelocityConfig, readout_inputs
@@ -580,5 +578,5 @@ def test_eye_readout_has_no_rest_bound_unless_asked(eye_footage):
     fo = open_eye_footage(eye_footage)
     t = fo.times[::10]
     cfg = EyeVelocityConfig()
-    assert readout_inputs(fo, t, cfg)[0].rest_depth_max_m == 1e6
-    assert readout_inputs(fo, t, replace(cfg, rest_bound=True))[0].rest_depth_max_m == cfg.readout.rest_depth_max_m
+    assert readout_inputs(fo, t, cfg)[0].rest_depth_max_m == cfg.readout.rest_depth_max_m
+    assert readout_inputs(fo, t, replace(cfg, rest_bound=False))[0].rest_depth_max_m == 1e6
