@@ -81,3 +81,13 @@ def test_gaze_stabilised_footage_sees_a_turn_cancelled_by_the_head(tmp_path):
     # The haltere prediction the circuit gets is the retina's own rotation (body's plus neck's): about zero.
     ret = retinal_rotation(fo.times, np.tile(omega, (len(times), 1)), fo.head)
     assert np.abs(ret[2:]).max() < 0.01 * 0.4
+
+
+def test_scene_gaze_options_need_the_fly_eye(tmp_path, capsys):
+    from experiments.cli import main
+
+    assert main(["scene", str(tmp_path / "a"), "--gaze", "haltere", "--duration", "1"]) == 2
+    assert "--eye fly" in capsys.readouterr().err
+    assert main(["scene", str(tmp_path / "b"), "--eye", "fly", "--gaze-gain", "0.5", "--duration", "1"]) == 2
+    assert "--gaze haltere" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
