@@ -283,7 +283,7 @@ class Pair:
     """One flow pair of a depth run. flow: (2, H, W) measured normalised flow (1/s), None
     when the pair is not ranged; rotation: R₀₁ from the gyro (None without one); e: the
     heading seen at the first frame (normalised); v_hat / v_true (NaN when absent) and v,
-    the one the run uses."""
+    the one the run uses; v_std: v̂'s posterior std (m/s; NaN when the run has none)."""
 
     k: int
     i0: int
@@ -297,6 +297,7 @@ class Pair:
     ranged: bool
     rotation: np.ndarray | None = None
     flow: np.ndarray | None = None
+    v_std: float = float("nan")
 
     @property
     def dt(self) -> float:
@@ -489,6 +490,7 @@ def ranged_pairs(footage: Footage, velocity, run: DepthRunConfig, timings: dict 
     v_hat_all = velocity.v_hat.values.astype(float)
     if "observable" in velocity:
         v_hat_all = np.where(velocity.observable.values.astype(bool), v_hat_all, np.nan)
+    v_std_all = velocity.v_std.values.astype(float) if "v_std" in velocity else np.full(n_pairs, np.nan)
     attitude = footage_attitude(footage, vcfg)
     starts = list(range(0, n_pairs, int(run.every))) if starts is None else [int(k) for k in starts]
     if any(not 0 <= k < n_pairs for k in starts):
@@ -510,7 +512,8 @@ def ranged_pairs(footage: Footage, velocity, run: DepthRunConfig, timings: dict 
         v = v_true if run.velocity == "truth" else v_hat
         e = (float(e[0]), float(e[1]))
         ranged = bool(math.isfinite(v) and abs(v) >= run.min_speed_m_s and all(map(math.isfinite, e)))
-        pair = Pair(k, i0, i1, t0, t1, v_hat, v_true, v, e, ranged)
+        pair = Pair(k, i0, i1, t0, t1, v_hat, v_true, v, e, ranged,
+                    v_std=0.0 if run.velocity == "truth" else float(v_std_all[k]))
         if ranged:
             r0, tf = read.read_s, _time.perf_counter()
             a, b = image(i0), image(i1)
@@ -550,6 +553,11 @@ def _build_dataset(records: list[dict], labels, ring_lo, ring_hi, H: int, W: int
         v_used=("time", [r["v_used"] for r in records],
                 {"units": "m/s", "long_name": "forward velocity used (mean over the pair)"}),
         v_hat=("time", [r["v_hat"] for r in records], {"units": "m/s", "long_name": "v̂ of the pair"}),
+        # Depth is v times what the flow says of 1/d, so v's relative error scales every pixel
+        # alike: the map's scale is known to within v_std/|v| (1σ), whatever the solver's own error.
+        scale_rel_std=("time", [abs(r["v_std"] / r["v_used"]) if r["v_used"] else np.nan for r in records],
+                       {"units": "1", "long_name": "relative std of the map's scale, from the speed used "
+                        "(v_std/|v|; 0 with the true speed, NaN when the velocity run gives no std)"}),
         epipole_x=("time", [r["e"][0] for r in records],
                    {"units": "1", "long_name": "epipole seen at the pair's first frame, normalised x"}),
         epipole_y=("time", [r["e"][1] for r in records],
@@ -650,7 +658,7 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
         pairs = ranged_pairs(footage, velocity, run, timings)
         for p in tqdm(pairs, total=math.ceil(n_pairs / int(run.every)), desc=f"depth ({run.method})", unit="map",
                       disable=not progress, leave=False, mininterval=2):
-            rec = dict(frame=p.i0, t0=p.t0, t1=p.t1, v_used=p.v, v_hat=p.v_hat, v_true=p.v_true, e=p.e,
+            rec = dict(frame=p.i0, t0=p.t0, t1=p.t1, v_used=p.v, v_hat=p.v_hat, v_std=p.v_std, v_true=p.v_true, e=p.e,
                        ranged=p.ranged, solve_ms=float("nan"), iterations=-1, scores=None)
             if p.ranged:
                 gyro_used |= p.rotation is not None

@@ -326,16 +326,17 @@ def plot_maps(records: list[dict], path, max_range_m: float) -> Path:
 def run_depth_suite(args) -> int:
     """Handler of ``lobula depth-suite``: returns 0."""
     from .store import provenance, write_csv, write_netcdf, write_text
-    from .suite import FAMILIES
+    from .suite import FAMILIES, parse_seeds
 
     out = Path(args.out)
     families = list(FAMILIES) if args.families == "all" else [f.strip() for f in args.families.split(",") if f.strip()]
     bad = [f for f in families if f not in FAMILIES]
     if bad:
         raise ValueError(f"unknown families {', '.join(bad)}; choose from {', '.join(FAMILIES)} or 'all'")
-    if args.seeds < 1 or args.every < 1 or not args.duration > args.skip + 1.0 or not args.scale > 0:
-        raise ValueError("--seeds and --every must be ≥ 1, --duration > --skip + 1 s, --scale > 0")
-    seeds = list(range(args.seed_start, args.seed_start + args.seeds))
+    if args.every < 1 or not args.duration > args.skip + 1.0 or not args.scale > 0:
+        raise ValueError("--every must be ≥ 1, --duration > --skip + 1 s, --scale > 0")
+    seeds = parse_seeds(args.seeds)
+    seeds = list(range(seeds)) if isinstance(seeds, int) else seeds
     out.mkdir(parents=True, exist_ok=True)
     records = []
     for f in families:
@@ -348,7 +349,7 @@ def run_depth_suite(args) -> int:
             print(f"{f}-s{s}: TV median AbsRel {a['median_abs_rel']:.3f} (v̂, coverage {a['valid_fraction']:.2f}), "
                   f"{c['median_abs_rel']:.3f} (v̂ DIS medium), {b['median_abs_rel']:.3f} (true v); v̂ RMSE "
                   f"{r['v_hat_rmse']:.3f} / {r['v_hat_rmse_medium']:.3f} m/s [{r['seconds']:.0f} s]", flush=True)
-    summary = (f"{len(seeds)} seeds ({seeds[0]}..{seeds[-1]}), {args.duration:g} s (scored after {args.skip:g} s), "
+    summary = (f"{len(seeds)} seeds ({', '.join(map(str, seeds))}), {args.duration:g} s (scored after {args.skip:g} s), "
                f"scale {args.scale:g}, "
                f"depth every {args.every} frames, scored ≤ {args.max_range:g} m, {args.imu} IMU ({args.imu_mount})")
     run = DepthRunConfig(max_range_m=args.max_range, average_frames=args.average_frames)
@@ -374,8 +375,8 @@ def _add_options(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--out", required=True, help="output folder (scenes are kept there and reused)")
     p.add_argument("--families", default="all", help=f"comma-separated, or 'all': {', '.join(FAMILIES)}")
-    p.add_argument("--seeds", type=int, default=3, help="number of seeds per family")
-    p.add_argument("--seed-start", type=int, default=0, help="first seed (develop on ≥ 100, report 0, 1, 2)")
+    p.add_argument("--seeds", default="3", help="seeds per family: a count N (seeds 0..N-1, the reported ones) or a "
+                                                "comma-separated list (e.g. 100,101: development seeds)")
     p.add_argument("--duration", type=float, default=6.0, help="seconds per scene")
     p.add_argument("--skip", type=float, default=2.0,
                    help="pairs starting in the first SKIP seconds are not scored (the velocity readout locks on "

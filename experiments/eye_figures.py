@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ensure_runs", "rate_vs_spiking_numbers", "figure_eye_rate_vs_spiking", "dphi_fov_numbers",
+__all__ = ["ensure_runs", "ensure_gaze_runs", "eye_folder", "GAZE_FAMILY", "rate_vs_spiking_numbers", "figure_eye_rate_vs_spiking", "dphi_fov_numbers",
            "figure_eye_dphi_fov"]
 
 FAMILIES = ("panels", "rotation", "corridor")
@@ -53,19 +53,53 @@ def ensure_runs(workdir, families=FAMILIES, seeds=(0, 1, 2), duration_s: float =
     return dis
 
 
-def rate_vs_spiking_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), populations=(1, 3, 10, 30)) -> dict:
-    """RMSEs per family and seed: kalman (rates), spikes with N output pairs, readout neuron, DIS, zero."""
+#: the rotation world seen by a gaze-stabilised head (lobula.gaze), rendered as ``rotation-SEED-eye-gaze``
+GAZE_FAMILY = "rotation, gaze-stabilised head"
+
+
+def ensure_gaze_runs(workdir, seeds=(0, 1, 2), duration_s: float = 10.0, scale: float = 0.5,
+                     cast_every: int = 1) -> None:
+    """Render (if absent) the rotation family's eye footage with haltere-driven gaze stabilisation
+    (:class:`lobula.gaze.GazeConfig` defaults): the same world, trajectory and IMU as ``rotation-SEED-eye``."""
+    from experiments.suite import family_config
+    from lobula.compound_eye import CompoundEyeConfig
+    from lobula.gaze import GazeConfig
+    from stimuli.eye import make_eye_run
+
+    for seed in seeds:
+        out = Path(workdir) / f"rotation-{seed}-eye-gaze"
+        if not out.exists():
+            make_eye_run(out, family_config("rotation", seed, duration_s, scale), CompoundEyeConfig(), 500.0,
+                         progress=False, cast_every=cast_every, gaze=GazeConfig())
+
+
+def eye_folder(workdir, family: str, seed: int) -> Path:
+    """The eye-footage folder of a family (or :data:`GAZE_FAMILY`) and seed in the work folder."""
+    return Path(workdir) / (f"rotation-{seed}-eye-gaze" if family == GAZE_FAMILY else f"{family}-{seed}-eye")
+
+
+def rate_vs_spiking_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), populations=(1, 3, 10, 30),
+                            gaze: bool = True) -> dict:
+    """RMSEs per family and seed: kalman (rates), spikes with N output pairs, readout neuron, DIS, zero.
+
+    gaze: also the rotation world seen by a gaze-stabilised head (:data:`GAZE_FAMILY`; DIS and the
+    zero estimator as for the rotation world: the same world and trajectory)."""
     from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
     from experiments.velocity import score
     from lobula.readout_neuron import ReadoutNeuronConfig
     from stimuli.eye import open_eye_footage
 
     dis = ensure_runs(workdir, families, seeds)
+    fams = list(families)
+    if gaze and "rotation" in families:
+        ensure_gaze_runs(workdir, seeds)
+        fams.insert(fams.index("rotation") + 1, GAZE_FAMILY)
+        dis.update({(GAZE_FAMILY, s): dis[("rotation", s)] for s in seeds})
     res: dict = {}
-    for fam in families:
+    for fam in fams:
         rows = res.setdefault(fam, {})
         for seed in seeds:
-            fo = open_eye_footage(Path(workdir) / f"{fam}-{seed}-eye")
+            fo = open_eye_footage(eye_folder(workdir, fam, seed))
             t0 = time.perf_counter()
             ds = estimate_eye_velocity(fo, EyeVelocityConfig())
             rows.setdefault("rate (arithmetic readout)", []).append(score(ds)["rmse_m_s"])
@@ -98,7 +132,7 @@ def figure_eye_rate_vs_spiking(out_dir, seeds=(0, 1, 2), workdir=None) -> tuple[
     workdir = Path(workdir) if workdir else out_dir / "eye_runs"
     res = rate_vs_spiking_numbers(workdir, FAMILIES, tuple(seeds))
     keys = [k for k in next(iter(res.values())) if k not in ("zero estimator", "DIS on the D435i (causal)")]
-    fig, axes = plt.subplots(1, len(res), figsize=(4.6 * len(res), 4.6), sharey=True, squeeze=False)
+    fig, axes = plt.subplots(1, len(res), figsize=(4.3 * len(res), 4.6), sharey=True, squeeze=False)
     x = np.arange(len(keys))
     for ax, (fam, rows) in zip(axes[0], res.items()):
         vals = [np.array(rows[k]) for k in keys]

@@ -20,10 +20,16 @@ def add_eye_scene_options(parser) -> None:
                              "interpolate linearly to --rate-hz (default: half of --rate-hz from 200 Hz up, which halves the "
                              "rendering; see stimuli.eye.render_eye_interpolated for why the 10 ms photoreceptors "
                              "allow it; equal to --rate-hz casts every sample)")
+    parser.add_argument("--gaze", default="none", choices=["none", "haltere"],
+                        help="--eye fly: none: the eyes are fixed on the body; haltere: the head counter-rotates on the "
+                             "gyroscope's angular velocity (lobula.gaze: haltere-driven gaze stabilisation), and "
+                             "head.csv records the head angles")
+    parser.add_argument("--gaze-gain", type=float, default=0.8,
+                        help="--eye fly --gaze haltere: fraction of the body's angular velocity the neck cancels")
     parser.set_defaults(_eye_only_defaults={a.dest: a.default for a in parser._actions if a.dest in EYE_ONLY})
 
 
-EYE_ONLY = ("dphi", "drho", "rate_hz", "rays", "cast_rate_hz")  # options that mean nothing to the pinhole camera
+EYE_ONLY = ("dphi", "drho", "rate_hz", "rays", "cast_rate_hz", "gaze", "gaze_gain")  # options that mean nothing to the pinhole camera
 
 
 def refuse_eye_options_for_pinhole(args) -> None:
@@ -37,6 +43,7 @@ def refuse_eye_options_for_pinhole(args) -> None:
 def run_eye_scene(args, cfg) -> int:
     """`lobula scene OUT --eye fly`: the run configuration ``cfg`` rendered onto the compound eye."""
     from lobula.compound_eye import CompoundEye, CompoundEyeConfig
+    from lobula.gaze import GazeConfig
     from stimuli.eye import make_eye_run
 
     eye_cfg = CompoundEyeConfig(dphi_deg=args.dphi, drho_deg=args.drho, rings=args.rays)
@@ -47,8 +54,11 @@ def run_eye_scene(args, cfg) -> int:
             raise ValueError(f"--cast-rate-hz {args.cast_rate_hz:g} must divide --rate-hz {args.rate_hz:g} "
                              f"(e.g. {args.rate_hz / 2:g})")
         every = int(round(k))
+    if args.gaze == "none" and args.gaze_gain != 0.8:
+        raise ValueError("--gaze-gain applies to --gaze haltere; add it, or drop --gaze-gain")
+    gaze = GazeConfig(gain=args.gaze_gain) if args.gaze == "haltere" else None
     t0 = _time.perf_counter()
-    out = make_eye_run(args.out, cfg, eye_cfg, args.rate_hz, progress=not args.quiet, cast_every=every)
+    out = make_eye_run(args.out, cfg, eye_cfg, args.rate_hz, progress=not args.quiet, cast_every=every, gaze=gaze)
     print(f"wrote {out}: {CompoundEye(eye_cfg).summary()}, {int(round(args.duration * args.rate_hz))} samples at "
           f"{args.rate_hz:g} Hz (ray-cast at {args.rate_hz / every:g} Hz) in {_time.perf_counter() - t0:.1f} s")
     return 0

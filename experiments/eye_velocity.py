@@ -20,6 +20,7 @@ import numpy as np
 import xarray as xr
 
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
+from lobula.gaze import retinal_rotation
 from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
                             resample_to)
 from lobula.readout import ReadoutConfig, readout
@@ -28,6 +29,7 @@ from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron, spiking_o
 from .store import provenance
 
 __all__ = ["EyeVelocityConfig", "estimate_eye_velocity", "causal_gyro", "readout_inputs", "split_half_variance",
+           "readout_offset",
            "field_halves",
            "add_parser", "run_eye_velocity"]
 
@@ -63,6 +65,21 @@ class EyeVelocityConfig:
     0.49–0.74 (panels, rotation, corridor), hence 0.4 ≈ 1 − β at the low quartile.
     split_tau_s: time constant (s) of that running mean: 1 s, the readout's low-pass (1 Hz) makes
     errors that persist about that long.
+    rest_bound: whether the readout may take "no detectable expansion" as a bound on the speed
+    (:func:`lobula.readout.rest_measurement`, |v| ≤ d_max·(|r̄| + 2·SE)). That bound assumes the
+    fields measure r̄ = v/d at gain 1; the EMDs do not at low speed: on a dev corridor (seed 100)
+    the fields read 0.04–0.36 of the exact expansion while the fly moved at 0.05–0.35 m/s, so the
+    bound called slow flight rest and pulled v̂ toward 0 (causal RMSE 0.131 m/s with it, 0.054
+    without; panels seed 7 0.085 → 0.071; the other dev worlds, seeds 7, 8, 100, within 0.005).
+    But most of that gain is steps declared unobservable (corridor seed 100: 13 % of them), and
+    without the bound a readout on few fields can drift confidently: LC fields only in the D435i's
+    69°×42° on a corridor, seeds 7, 8: observable 0.67 / 0.70 of the steps, RMSE 0.088 → 0.039 and
+    0.078 → 0.108 m/s. So True (default): the bound as for the camera; False: the bound only where
+    the image is frozen (depth bound 10⁶ m), elsewhere at rest v̂ rests on the accelerometer.
+    lead_offset_tau_s: the spiking decoder's haltere lead τ_d·a uses the accelerometer less the
+    offset the readout's v̂ implies (:func:`readout_offset`, running mean over this time constant, s);
+    0: the raw accelerometer. Measured on the dev worlds (seeds 7, 8, 100): where the start's offset
+    is large (panels 7, 0.6 m/s²) spikes 0.134 → 0.098 m/s (rates 0.093); elsewhere within ±0.02.
     """
 
     circuit: EyeCircuitConfig = field(default_factory=EyeCircuitConfig)
@@ -75,10 +92,14 @@ class EyeVelocityConfig:
     uncertainty: str = "halves"
     split_tau_s: float = 1.0
     emd_gain_error: float = 0.4
+    lead_offset_tau_s: float = 1.0
+    rest_bound: bool = True
 
     def __post_init__(self):
         if self.uncertainty not in ("halves", "posterior"):
             raise ValueError(f"uncertainty must be 'halves' or 'posterior', got {self.uncertainty!r}")
+        if not self.lead_offset_tau_s >= 0:
+            raise ValueError(f"lead_offset_tau_s must be >= 0 seconds, got {self.lead_offset_tau_s}")
         if not self.split_tau_s > 0 or not self.emd_gain_error >= 0:
             raise ValueError(f"split_tau_s must be > 0 and emd_gain_error >= 0, got {self.split_tau_s}, "
                              f"{self.emd_gain_error}")
@@ -100,7 +121,8 @@ class EyeVelocityConfig:
         return dict(circuit=self.circuit.to_dict(), readout=self.readout.to_dict(), chunk=self.chunk,
                     accel_from_truth=self.accel_from_truth, readout_kind=self.readout_kind,
                     neuron=self.neuron.to_dict(), settle_s=self.settle_time(), uncertainty=self.uncertainty,
-                    split_tau_s=self.split_tau_s, emd_gain_error=self.emd_gain_error)
+                    split_tau_s=self.split_tau_s, emd_gain_error=self.emd_gain_error,
+                    lead_offset_tau_s=self.lead_offset_tau_s, rest_bound=self.rest_bound)
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), sort_keys=True)
@@ -133,6 +155,10 @@ def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
     from experiments.velocity import START_ACCEL_PRIOR_M_S2, TRUTH_ACCEL_OFFSET_M_S2
 
     rcfg = cfg.readout
+    if not cfg.rest_bound:
+        # The EMDs cannot tell slow flight from rest (see EyeVelocityConfig.rest_bound): a depth bound of
+        # 10⁶ m leaves the rest bound only where no field sees any motion at all (a frozen image).
+        rcfg = replace(rcfg, rest_depth_max_m=1e6)
     if cfg.accel_from_truth:
         return replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2)), None, None
     causal = rcfg.filter == "causal"
@@ -146,6 +172,31 @@ def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
         tau = None
     drift = np.interp(t, imu_t, gravity_drift_std(imu_t, fo.imu.gyro, causal=causal))
     return rcfg, tau, drift
+
+
+def readout_offset(t: np.ndarray, v_hat: np.ndarray, a: np.ndarray, tau_s: float) -> np.ndarray:
+    """The accelerometer offset b̂ (m/s², (n,)) the readout's own estimate implies, causally.
+
+    Between vision's corrections the readout's v̂ moves by a − b̂ (it integrates the accelerometer
+    less its offset estimate), and vision's corrections average out over time, so the running mean
+    (time constant ``tau_s``) of a − Δv̂/Δt tracks b̂. t (n,) s; v_hat (n,) m/s, NaN where unobservable
+    (those steps are skipped: the mean is held); a (n,) m/s². Step k uses steps ≤ k only; 0 until v̂
+    has two finite steps.
+    """
+    v = np.asarray(v_hat, dtype=float)
+    rate = np.full(len(v), np.nan)
+    rate[1:] = np.diff(v) / np.diff(t)
+    g = np.empty(len(v))
+    g[0] = 1.0
+    g[1:] = 1.0 - np.exp(-np.diff(t) / tau_s)
+    x = np.asarray(a, dtype=float) - rate
+    out = np.zeros(len(v))
+    m = 0.0
+    for k in range(len(v)):  # a loop over readout steps (a scalar recursion)
+        if np.isfinite(x[k]):
+            m += g[k] * (x[k] - m)
+        out[k] = m
+    return out
 
 
 def split_half_variance(t: np.ndarray, v_a: np.ndarray, v_b: np.ndarray, tau_s: float) -> np.ndarray:
@@ -193,6 +244,10 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     t_start = _time.perf_counter()
     circ = EyeCircuit(fo.eye, fo.rate_hz, cfg.circuit)
     gyro = causal_gyro(fo.imu, fo.times)
+    if getattr(fo, "head", None) is not None:
+        # Gaze stabilised: the retina turns with the head; the haltere's prediction adds the neck's
+        # own rotation (an efference copy: the head angles) to the body's, in the head's frame.
+        gyro = retinal_rotation(fo.times, gyro, fo.head)
     outs, t_read = [], 0.0
     pos = 0
     for ts, lum in fo.chunks(cfg.chunk):
@@ -250,7 +305,11 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         if cfg.readout_kind == "spikes":
             if cfg.readout.filter != "causal":
                 raise ValueError("spiking output neurons decode causally; use the causal readout filter")
-            enc = spiking_output(t, res.v_hat, a, replace(cfg.neuron, spiking=True))
+            # The decoder's lead τ_d·a takes the accelerometer less the offset the readout has found
+            # (its v̂ moves by a − b̂): the raw accelerometer's offset, up to 0.6 m/s² at the start of
+            # a dev world, would shift every decoded step by τ_d·b.
+            a_lead = a - readout_offset(t, res.v_hat, a, cfg.lead_offset_tau_s) if cfg.lead_offset_tau_s else a
+            enc = spiking_output(t, res.v_hat, a_lead, replace(cfg.neuron, spiking=True))
             v_hat = np.where(observable, enc["v_dec"], np.nan)
             v_std = np.sqrt(v_std ** 2 + enc["decode_std"] ** 2)
             std_name = std_name.replace("posterior std of v_hat", "posterior std of the readout", 1) + \
@@ -500,15 +559,26 @@ def figure_eye(out_dir, seeds=(0, 1, 2), duration_s: float = 10.0, workdir=None,
                rotations=("none", "haltere", "wide-field")):
     """`lobula figures` entry: render (cached in ``workdir``) and score the eye beside causal DIS, then plot.
 
-    Writes ``out_dir/eye_rmse.png`` and its JSON; returns the path of the PNG.
+    With the rotation family, also the rotation world seen by a gaze-stabilised head
+    (:data:`experiments.eye_figures.GAZE_FAMILY`), under the same rotation handling: the two
+    rotation hypotheses (haltere, gaze) side by side. Writes ``out_dir/eye_rmse.png`` and its JSON;
+    returns the path of the PNG.
     """
     from pathlib import Path
 
     out_dir = Path(out_dir)
     workdir = Path(workdir) if workdir else out_dir / "eye_runs"
+    from experiments.eye_figures import GAZE_FAMILY, ensure_gaze_runs, eye_folder
+
     rows = eye_benchmark(workdir, families, seeds, duration_s, rotations=("haltere",))
-    runs = {f: dict(eye=[workdir / f"{f}-{s}-eye" for s in seeds],
-                    dis_rmse=[r["dis_rmse"] for r in rows if r["family"] == f]) for f in families}
+    fams = list(families)
+    if "rotation" in families:
+        # The second rotation hypothesis family: the fly's own route, a head stabilised on the halteres.
+        ensure_gaze_runs(workdir, seeds, duration_s)
+        fams.insert(fams.index("rotation") + 1, GAZE_FAMILY)
+    runs = {f: dict(eye=[eye_folder(workdir, f, s) for s in seeds],
+                    dis_rmse=[r["dis_rmse"] for r in rows if r["family"] == (f if f != GAZE_FAMILY else "rotation")])
+            for f in fams}
     png = out_dir / "eye_rmse.png"
     eye_figure(runs, png, field_sizes=field_sizes, rotations=rotations)
     return png

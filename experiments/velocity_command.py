@@ -10,11 +10,26 @@ and the camera's module needs nothing of the eye.
 from __future__ import annotations
 
 
+#: `lobula velocity` options that only compound-eye footage takes (None: not given); the same as `lobula eye-velocity`'s
+EYE_ONLY_OPTIONS = ("rotation", "readout", "uncertainty", "seed")
+
+
 def add_parser(subparsers):
-    """Register `lobula velocity` (see experiments.cli): the options of :func:`experiments.velocity.add_parser`."""
+    """Register `lobula velocity` (see experiments.cli): the options of :func:`experiments.velocity.add_parser`,
+    and the compound-eye options of `lobula eye-velocity` (refused on camera footage)."""
     from .velocity import add_parser as add_velocity_parser
 
-    add_velocity_parser(subparsers).set_defaults(func=run)
+    p = add_velocity_parser(subparsers)
+    g = p.add_argument_group("compound-eye footage only (`lobula scene OUT --eye fly`; as `lobula eye-velocity`)")
+    g.add_argument("--rotation", choices=["none", "haltere", "wide-field", "both"],
+                   help="rotation handling of the eye's circuit (not given: haltere)")
+    g.add_argument("--readout", choices=["kalman", "spikes", "neuron", "neuron-rate"],
+                   help="the eye's readout (not given: kalman); spikes and neuron decode causally: add --filter causal")
+    g.add_argument("--uncertainty", choices=["halves", "posterior"],
+                   help="v_std of the kalman/spikes readouts (not given: halves; see `lobula eye-velocity --help`)")
+    g.add_argument("--seed", type=int, help="seed of the output neurons' spikes (--readout spikes or neuron; "
+                                            "not given: 0)")
+    p.set_defaults(func=run)
 
 
 def run(args) -> int:
@@ -22,19 +37,24 @@ def run(args) -> int:
 
     if is_eye_footage(args.footage):
         return run_on_eye_footage(args)
+    given = [f"--{k}" for k in EYE_ONLY_OPTIONS if getattr(args, k, None) is not None]
+    if given:
+        raise ValueError(f"{args.footage}: {', '.join(given)} set(s) the compound eye's circuit and readout and does "
+                         f"not apply to camera footage; drop it, or run on eye footage (`lobula scene OUT --eye fly`)")
     from .velocity import run_velocity
     return run_velocity(args)
 
 
 #: `lobula velocity` options that carry over to eye footage (the rest must stay at their defaults)
 _VELOCITY_OPTIONS_ON_EYE = ("footage", "front_end", "out", "plot", "filter", "field_size", "tau", "accel_from_truth",
-                            "skip", "quiet", "func", "command")
+                            "skip", "quiet", "func", "command") + EYE_ONLY_OPTIONS
 
 
 def run_on_eye_footage(args) -> int:
     """`lobula velocity EYE_FOOTAGE --front-end emd …`: the eye's circuit, as `lobula eye-velocity`.
 
-    --filter, --field-size, --tau, --accel-from-truth, --skip and --plot mean what they mean for
+    --filter, --field-size, --tau, --accel-from-truth, --skip, --plot and the eye-only --rotation,
+    --readout, --uncertainty and --seed mean what they mean for
     `lobula eye-velocity` (so the two commands give the same numbers for the same options;
     `lobula velocity`'s --filter defaults to zero-phase, eye-velocity's to causal). Every other
     option of `lobula velocity` describes a camera front end and is refused, naming the fix.
@@ -58,8 +78,12 @@ def run_on_eye_footage(args) -> int:
         raise ValueError(f"{args.footage}: {flags} set(s) a camera front end and does not apply to compound-eye "
                          f"footage (Δφ and Δρ are the footage's own, from eye.json: re-render with "
                          f"`lobula scene OUT --eye fly --dphi …`); drop it, or see `lobula eye-velocity --help`")
-    ns = argparse.Namespace(footage=args.footage, out=args.out, plot=args.plot, rotation=None,
+    ro = getattr(args, "readout", None)
+    if ro in ("spikes", "neuron", "neuron-rate") and args.filter == "zero-phase":
+        raise ValueError(f"--readout {ro} decodes causally; add --filter causal (`lobula velocity`'s --filter "
+                         f"defaults to zero-phase)")
+    ns = argparse.Namespace(footage=args.footage, out=args.out, plot=args.plot, rotation=getattr(args, "rotation", None),
                             field_size=args.field_size, tau=args.tau, filter=args.filter,
-                            accel_from_truth=args.accel_from_truth, skip=args.skip,
-                            readout=getattr(args, "readout", None), seed=None)
+                            accel_from_truth=args.accel_from_truth, skip=args.skip, readout=ro,
+                            uncertainty=getattr(args, "uncertainty", None), seed=getattr(args, "seed", None))
     return run_eye_velocity(ns)

@@ -14,9 +14,13 @@ Layout of an eye-footage folder (``lobula scene OUT --eye fly``)::
     imu.csv         time_s,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z (camera frame, as
                     in a footage folder).
     truth.csv       time_s,v_forward_m_s,a_forward_m_s2,position_m at the eye's samples.
+    head.csv        time_s,theta_x,theta_y,theta_z: only with gaze stabilisation (``--gaze haltere``): the
+                    head's rotation vector (rad) relative to the body (camera) frame at every sample,
+                    d_body = R(θ)·d_head (:mod:`lobula.gaze`); the ommatidial axes above are fixed in the
+                    head, imu.csv and truth.csv stay the body's.
     eye.json        {"kind": "compound-eye", "rate_hz", "n_samples", "eye": CompoundEyeConfig, "cast_every",
                      "cast_rate_hz" (the world was ray-cast at that rate and interpolated),
-                     "range_every", "rays_per_ommatidium"}.
+                     "range_every", "rays_per_ommatidium", "gaze": GazeConfig or null}.
     scene.json      the full configuration (scene, trajectory, IMU, eye) and provenance.
 
 Rendering: each ommatidium's luminance is the weighted sum of the scene's luminance
@@ -39,19 +43,24 @@ from typing import Callable, Iterator
 import numpy as np
 
 from lobula.compound_eye import CompoundEye, CompoundEyeConfig
+from lobula.gaze import GazeConfig, head_angles, head_rotation
 
 from .footage_core import IMU, FootageError, atomic_folder, check_times as _check_times, read_csv_columns as _read_csv
 
 __all__ = ["EyeFootage", "render_eye", "write_eye_footage", "open_eye_footage", "is_eye_footage"]
 
 OMMATIDIA_COLUMNS = ("index", "eye", "azimuth_deg", "elevation_deg", "x", "y", "z", "drho_deg")
+HEAD_COLUMNS = ("time_s", "theta_x", "theta_y", "theta_z")
 
 
-def render_eye(scene, eye: CompoundEye, times: np.ndarray, chunk: int = 250) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def render_eye(scene, eye: CompoundEye, times: np.ndarray, chunk: int = 250,
+               head: np.ndarray | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Yield (times (k,), luminance (k, n) float32) chunks of the eye's view of ``scene``.
 
     One ``scene.luminance`` call per sample time over all n × m acceptance rays; the
     rays are fixed in the eye (camera) frame, the scene moves the eye through the world.
+    head: (len(times), 3, 3) head-to-body rotations (:mod:`lobula.gaze`), or None: the rays are
+    fixed in the head, which turns on the body (camera) frame by R_k at sample k.
     """
     import inspect
 
@@ -66,12 +75,13 @@ def render_eye(scene, eye: CompoundEye, times: np.ndarray, chunk: int = 250) -> 
         ts = times[s:s + chunk]
         out = np.empty((len(ts), eye.n), dtype=np.float32)
         for i, t in enumerate(ts):  # the scene API takes one time; rays are vectorised
-            out[i] = np.asarray(scene.luminance(rays, float(t), **kw), dtype=np.float64) @ w
+            r = rays if head is None else rays @ head[s + i].T
+            out[i] = np.asarray(scene.luminance(r, float(t), **kw), dtype=np.float64) @ w
         yield ts, out
 
 
 def render_eye_interpolated(scene, eye: CompoundEye, times: np.ndarray, every: int = 1,
-                            chunk: int = 250) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                            chunk: int = 250, head: np.ndarray | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """As :func:`render_eye`, ray-casting only every ``every``-th sample (and the last) and filling
     the samples between by linear interpolation in time.
 
@@ -81,18 +91,19 @@ def render_eye_interpolated(scene, eye: CompoundEye, times: np.ndarray, every: i
     its images near multiples of 1/Δ, where the photoreceptor attenuates them by
     ≥ 1/Δ·2πτ (≥ 15× at 250 Hz). The acceptance function (Δρ = 5°) leaves little above
     λ ≈ 10°, i.e. 25 Hz per 250°/s of image speed. every = 1 casts every sample (exact).
+    head: (len(times), 3, 3) head-to-body rotations or None (see :func:`render_eye`).
     """
     times = np.asarray(times, dtype=float)
     every = int(every)
     if every < 1:
         raise ValueError(f"every must be a positive integer, got {every}")
     if every == 1:
-        yield from render_eye(scene, eye, times, chunk)
+        yield from render_eye(scene, eye, times, chunk, head)
         return
     cast_idx = np.unique(np.concatenate([np.arange(0, len(times), every), [len(times) - 1]]))
     prev_i, prev = None, None
     out_buf, t_buf = [], []
-    for ts, lum in render_eye(scene, eye, times[cast_idx], chunk):
+    for ts, lum in render_eye(scene, eye, times[cast_idx], chunk, None if head is None else head[cast_idx]):
         idx = cast_idx[np.searchsorted(times[cast_idx], ts)]
         for i, frame in zip(idx, lum):  # a loop over cast samples; ommatidia are vectorised
             if prev is None:
@@ -107,9 +118,11 @@ def render_eye_interpolated(scene, eye: CompoundEye, times: np.ndarray, every: i
         out_buf, t_buf = [], []
 
 
-def eye_range(scene, eye: CompoundEye, t: float) -> np.ndarray:
-    """Distance (m) along each ommatidial axis at time t, (n,) float32 (inf where nothing is hit)."""
-    return np.asarray(scene.cast_rays(eye.directions, float(t))[0], dtype=np.float32)
+def eye_range(scene, eye: CompoundEye, t: float, head: np.ndarray | None = None) -> np.ndarray:
+    """Distance (m) along each ommatidial axis at time t, (n,) float32 (inf where nothing is hit);
+    head: the (3, 3) head-to-body rotation then, or None."""
+    d = eye.directions if head is None else eye.directions @ np.asarray(head).T
+    return np.asarray(scene.cast_rays(d, float(t))[0], dtype=np.float32)
 
 
 def _write_csv(path: Path, header, rows) -> None:
@@ -121,8 +134,14 @@ def _write_csv(path: Path, header, rows) -> None:
 
 def write_eye_footage(folder: str | Path, scene, eye: CompoundEye, imu: dict, times: np.ndarray,
                       metadata: dict, range_every: int = 10, chunk: int = 250,
-                      progress: Callable[[int], None] | None = None, cast_every: int = 1) -> Path:
+                      progress: Callable[[int], None] | None = None, cast_every: int = 1,
+                      gaze: GazeConfig | None = None) -> Path:
     """Render ``scene`` onto ``eye`` at ``times`` (s) into an eye-footage folder, atomically.
+
+    gaze: haltere-driven gaze stabilisation (:mod:`lobula.gaze`): the head turns against the
+    gyroscope's angular velocity (the IMU's gyro, bias and noise included, latest sample at or
+    before each time), the rays are fixed in the head, and ``head.csv`` records the head angles.
+    None: the eyes are fixed on the body (camera) frame.
 
     cast_every: ray-cast every that many samples and interpolate linearly between
     (:func:`render_eye_interpolated`; 1 = every sample, exact).
@@ -136,6 +155,14 @@ def write_eye_footage(folder: str | Path, scene, eye: CompoundEye, imu: dict, ti
         raise ValueError("eye footage needs at least two strictly increasing sample times")
     rate = 1.0 / float(np.median(np.diff(times)))
     t_start = _time.perf_counter()
+    theta = head = None
+    if gaze is not None:
+        g_t, g_w = np.asarray(imu["time_s"], float), np.asarray(imu["gyro"], float)
+        if imu.get("imu_to_camera") is not None:
+            g_w = g_w @ np.asarray(imu["imu_to_camera"], dtype=float).T
+        k = np.clip(np.searchsorted(g_t, times, side="right") - 1, 0, len(g_t) - 1)
+        theta = head_angles(times, g_w[k], gaze)
+        head = head_rotation(theta)
     with atomic_folder(folder) as tmp:
         tab = eye.table()
         _write_csv(tmp / "ommatidia.csv", OMMATIDIA_COLUMNS,
@@ -146,17 +173,20 @@ def write_eye_footage(folder: str | Path, scene, eye: CompoundEye, imu: dict, ti
         rng = np.lib.format.open_memmap(tmp / "range.npy", mode="w+", dtype=np.float32,
                                         shape=(len(ridx), eye.n))
         pos = 0
-        for ts, block in render_eye_interpolated(scene, eye, times, cast_every, chunk):
+        for ts, block in render_eye_interpolated(scene, eye, times, cast_every, chunk, head):
             lum[pos:pos + len(ts)] = block
             pos += len(ts)
             if progress is not None:
                 progress(len(ts))
         for j, i in enumerate(ridx):
-            rng[j] = eye_range(scene, eye, times[i])
+            rng[j] = eye_range(scene, eye, times[i], None if head is None else head[i])
         lum.flush()
         rng.flush()
         del lum, rng
         _write_csv(tmp / "times.csv", ["sample", "time_s"], ((i, f"{t:.6f}") for i, t in enumerate(times)))
+        if theta is not None:
+            _write_csv(tmp / "head.csv", HEAD_COLUMNS,
+                       ((f"{t:.6f}", *(f"{x:.8f}" for x in th)) for t, th in zip(times, theta)))
         acc_cam, gyr_cam = np.asarray(imu["accel"]), np.asarray(imu["gyro"])
         if imu.get("imu_to_camera") is not None:  # contract 1: eye footage stores the camera frame
             r = np.asarray(imu["imu_to_camera"], dtype=float)
@@ -174,7 +204,7 @@ def write_eye_footage(folder: str | Path, scene, eye: CompoundEye, imu: dict, ti
         info = dict(kind="compound-eye", rate_hz=rate, n_samples=len(times), n_ommatidia=eye.n,
                     eye=eye.config.to_dict(), range_every=int(range_every),
                     rays_per_ommatidium=int(len(eye.ray_weights)), cast_every=int(cast_every),
-                    cast_rate_hz=rate / int(cast_every),
+                    cast_rate_hz=rate / int(cast_every), gaze=None if gaze is None else gaze.to_dict(),
                     render_s=round(_time.perf_counter() - t_start, 2))
         (tmp / "eye.json").write_text(json.dumps(info, indent=1))
         (tmp / "scene.json").write_text(json.dumps(metadata, indent=1, default=str))
@@ -186,7 +216,8 @@ class EyeFootage:
     """An eye-footage folder, opened lazily (luminance is memory-mapped).
 
     eye: the :class:`CompoundEye` rebuilt from eye.json (checked against ommatidia.csv);
-    times (T,) s; rate_hz; imu (camera frame) or None; truth dict or None.
+    times (T,) s; rate_hz; imu (camera frame) or None; truth dict or None; head (T, 3) the head's
+    rotation vector relative to the body (rad, head.csv) when the gaze was stabilised, else None.
     ``chunks(size)`` yields (times (k,), luminance (k, n) float32) in order.
     """
 
@@ -197,6 +228,7 @@ class EyeFootage:
     imu: IMU | None
     truth: dict | None
     info: dict
+    head: np.ndarray | None = None
     kind: str = "compound-eye"
     notes: list = field(default_factory=list)
 
@@ -260,15 +292,24 @@ def open_eye_footage(path: str | Path) -> EyeFootage:
     truth = None
     if (path / "truth.csv").exists():
         truth = _read_csv(path / "truth.csv", ("time_s", "v_forward_m_s"))
-    return EyeFootage(path, eye, tt, float(info.get("rate_hz", 1.0 / np.median(np.diff(tt)))), imu, truth, info)
+    head = None
+    if (path / "head.csv").exists():
+        h = _read_csv(path / "head.csv", HEAD_COLUMNS)
+        if len(h["time_s"]) != len(tt) or np.max(np.abs(h["time_s"] - tt)) > 1e-5:
+            raise FootageError(f"{path / 'head.csv'}: its times do not match times.csv; re-render the folder")
+        head = np.stack([h["theta_x"], h["theta_y"], h["theta_z"]], -1)
+    return EyeFootage(path, eye, tt, float(info.get("rate_hz", 1.0 / np.median(np.diff(tt)))), imu, truth, info,
+                      head)
 
 
 def make_eye_run(folder, cfg, eye_config: CompoundEyeConfig | None = None, rate_hz: float = 500.0,
-                 range_every: int = 10, progress: bool = True, cast_every: int = 1) -> Path:
+                 range_every: int = 10, progress: bool = True, cast_every: int = 1,
+                 gaze: GazeConfig | None = None) -> Path:
     """Render a track run (:class:`stimuli.track.TrackRunConfig`: the same world, trajectory and IMU
     as the pinhole footage of that configuration) onto the compound eye at ``rate_hz``.
 
     500 Hz default: the photoreceptor model's 2 ms step (τ = 10 ms is resolved five times over).
+    gaze: haltere-driven head stabilisation (:func:`write_eye_footage`), or None (head fixed on the body).
     """
     from tqdm.auto import tqdm
 
@@ -287,8 +328,9 @@ def make_eye_run(folder, cfg, eye_config: CompoundEyeConfig | None = None, rate_
     meta = dict(lobula_version=__version__, config=cfg.to_dict(), eye=eye.config.to_dict(), rate_hz=rate_hz,
                 accel_bias=imu["accel_bias"].tolist(), gyro_bias=imu["gyro_bias"].tolist(),
                 trajectory=scene.trajectory.source, world_camera=scene.camera.to_dict(),
-                note="the world is laid out for the pinhole camera named in world_camera (same seed, same world)")
+                note="the world is laid out for the pinhole camera named in world_camera (same seed, same world)",
+                gaze=None if gaze is None else gaze.to_dict())
     with tqdm(total=len(times), desc="rendering eye", unit="sample", disable=not progress, leave=False,
               mininterval=2) as bar:
         return write_eye_footage(folder, scene, eye, imu, times, meta, range_every, progress=bar.update,
-                                 cast_every=cast_every)
+                                 cast_every=cast_every, gaze=gaze)

@@ -40,3 +40,13 @@ def test_a_required_option_shows_no_default():
     body = text[text.index("options:"):]
     out = body[body.index("--out OUT"):body.index("--families")]
     assert "output folder" in out and "default" not in out.lower(), out
+
+
+def test_depth_suite_takes_the_suites_seed_list_and_refuses_a_bad_one(tmp_path, capsys):
+    """`--seeds` means the same on `lobula suite` and `lobula depth-suite`: a count or a list."""
+    from experiments.cli import main
+
+    out = tmp_path / "ds"
+    assert main(["depth-suite", "--out", str(out), "--seeds", "1,x"]) == 2
+    assert "--seeds must be a positive count or a comma-separated list" in capsys.readouterr().err
+    assert not out.exists()

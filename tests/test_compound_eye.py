@@ -386,6 +386,33 @@ def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, 
     assert main(["velocity", str(eye_footage), "--front-end", "emd", "--dphi", "3", "--out",
                  str(tmp_path / "y.nc")]) == 2
     assert "--dphi" in capsys.readouterr().err and not (tmp_path / "y.nc").exists()
+    # The eye's own options reach the eye's circuit and readout: the same numbers as `lobula eye-velocity`.
+    c, d = tmp_path / "v2.nc", tmp_path / "e2.nc"
+    opts = ["--rotation", "wide-field", "--readout", "spikes", "--seed", "3", "--uncertainty", "posterior"]
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--filter", "causal", "--accel-from-truth",
+                 "--out", str(c), "--quiet"] + opts) == 0
+    assert main(["eye-velocity", str(eye_footage), "--accel-from-truth", "--out", str(d)] + opts) == 0
+    with xr.open_dataset(c) as dc, xr.open_dataset(d) as dd, xr.open_dataset(a) as da:
+        assert dc.attrs["rotation"] == "wide-field" and "Poisson" in dc.attrs["readout"]
+        assert dc.v_std.attrs["long_name"].startswith("posterior std")
+        np.testing.assert_allclose(dc.v_hat.values, dd.v_hat.values, equal_nan=True)
+        np.testing.assert_allclose(dc.v_std.values, dd.v_std.values, equal_nan=True)
+        assert dc.sizes["field"] != da.sizes["field"]        # mirror sums: the options did something
+    capsys.readouterr()
+    # A causal-only readout with `lobula velocity`'s default zero-phase filter: refused, naming the fix.
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--readout", "spikes",
+                 "--out", str(tmp_path / "z.nc")]) == 2
+    assert "--filter causal" in capsys.readouterr().err
+
+
+def test_lobula_velocity_refuses_eye_options_on_camera_footage(tmp_path, capsys):
+    from experiments.cli import main
+
+    cam = tmp_path / "cam"
+    cam.mkdir()
+    assert main(["velocity", str(cam), "--rotation", "haltere", "--out", str(tmp_path / "x.nc")]) == 2
+    err = capsys.readouterr().err
+    assert "--rotation" in err and "camera footage" in err and not (tmp_path / "x.nc").exists()
 
 
 def test_spiking_readout_on_the_eye_is_causal_and_close_to_the_rate_readout(eye_footage):
@@ -522,3 +549,34 @@ def test_decomposition_levels_fall_from_exact_motion_to_the_emds(eye_footage):
     exact, emd, zero = d["exact|true"][0], d["emd|true"][0], d["zero"]
     assert exact < 0.5 * emd < 0.5 * zero, d
     assert d["ideal|true"][0] < emd, d
+
+
+def test_readout_offset_recovers_a_constant_accelerometer_offset_causally():
+    from experiments.eye_velocity import readout_offset
+
+    t = np.arange(0.0, 10.0, 0.02)
+    a_true = 0.8 * np.sin(2 * np.pi * 0.3 * t)
+    b = 0.45                                           # the accelerometer reads a_true + b
+    v_hat = np.concatenate([[0.0], np.cumsum(0.5 * (a_true[1:] + a_true[:-1]) * np.diff(t))])
+    v_hat = v_hat + 0.01 * np.sin(2 * np.pi * 2.0 * t)  # vision's small corrections average out
+    v_hat[:20] = np.nan                                # unobservable at first: the mean holds
+    est = readout_offset(t, v_hat, a_true + b, tau_s=1.0)
+    assert np.all(est[:21] == 0.0)
+    assert np.abs(est[t > 5.0] - b).max() < 0.05      # after a few time constants: b within 10 %
+    # Causal: changing later samples leaves earlier estimates unchanged.
+    a2 = a_true + b
+    a2[300:] += 5.0
+    assert np.array_equal(readout_offset(t, v_hat, a2, 1.0)[:300], est[:300])
+
+
+def test_eye_readout_rest_bound_is_an_option(eye_footage):
+    from dataclasses import replace
+
+    from experiments.eye_velocity import EyeVelocityConfig, readout_inputs
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(eye_footage)
+    t = fo.times[::10]
+    cfg = EyeVelocityConfig()
+    assert readout_inputs(fo, t, cfg)[0].rest_depth_max_m == cfg.readout.rest_depth_max_m
+    assert readout_inputs(fo, t, replace(cfg, rest_bound=False))[0].rest_depth_max_m == 1e6

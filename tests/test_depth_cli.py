@@ -192,6 +192,20 @@ def test_unobservable_and_resting_pairs_give_all_invalid_maps(synthetic, runs):
 
 
 # ----------------------------------------------------------------------------- output
+def test_map_scale_carries_the_speeds_relative_std(synthetic, runs):
+    """Depth is v times what the flow says of 1/d: each map's scale is known to v_std/|v̂|,
+    and exactly with the true speed."""
+    _, vel = synthetic
+    est, true = runs[("tv", "estimate")], runs[("tv", "truth")]
+    k = est.frame.values  # the pair index is its first frame
+    expect = np.abs(vel.v_std.values[k] / est.v_used.values)
+    ranged = est.ranged.values
+    assert ranged.sum() >= 3
+    np.testing.assert_allclose(est.scale_rel_std.values[ranged], expect[ranged], rtol=1e-12)
+    assert (true.scale_rel_std.values[true.ranged.values] == 0).all()
+    assert est.scale_rel_std.attrs["units"] == "1"
+
+
 def test_output_reopens_with_dims_units_config_and_version(synthetic, tmp_path):
     fo, vel = synthetic
     run = DepthRunConfig(method="parallax", every=20, batch=2)

@@ -1,0 +1,93 @@
+"""Haltere-driven gaze stabilisation: the neck reflex's analytic response, frames, and gaze-stabilised eye footage."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lobula.gaze import GazeConfig, head_angles, head_rotation, retinal_rotation
+from tests.test_compound_eye import Corridor
+
+
+def test_head_angles_follow_the_neck_reflex_analytically_and_causally():
+    cfg = GazeConfig(gain=0.8, tau_return_s=0.5, limit_deg=20.0)
+    t = np.arange(0.0, 3.0, 0.002)
+    w = np.zeros((len(t), 3))
+    w[:, 2] = 0.3                                      # a constant yaw turn, rad/s
+    th = head_angles(t, w, cfg)
+    # dθ/dt = −g·ω − θ/τ from θ(0) = 0: θ(t) = −g·ω·τ·(1 − e^{−t/τ}) (ω held from the previous sample).
+    want = -0.8 * 0.3 * 0.5 * (1.0 - np.exp(-t / 0.5))
+    assert np.allclose(th[:, 2], want, atol=1e-12)
+    assert np.all(th[:, :2] == 0.0)
+    # The neck's range stops the head.
+    big = head_angles(t, 10.0 * w, cfg)
+    assert np.isclose(np.abs(big[:, 2]).max(), math.radians(20.0)) and big[-1, 2] < 0
+    # Causal: a later change of ω leaves the earlier head angles as they were.
+    w2 = w.copy()
+    w2[700:, 2] = -1.0
+    assert np.array_equal(head_angles(t, w2, cfg)[:701], th[:701])
+    with pytest.raises(ValueError, match="gain"):
+        GazeConfig(gain=1.5)
+
+
+def test_head_rotation_is_the_rotation_vector_and_retinal_rotation_is_what_the_head_leaves():
+    rv = np.array([[0.0, 0.0, 0.0], [0.1, -0.2, 0.3], [1e-14, 0.0, 0.0]])
+    assert np.allclose(head_rotation(rv), Rotation.from_rotvec(rv).as_matrix(), atol=1e-12)
+    # A constant yaw turn: the retina turns at ω·(1 − g·e^{−t/τ}) (the head first cancels g of it, then returns).
+    cfg = GazeConfig(gain=0.8, tau_return_s=0.5)
+    t = np.arange(0.0, 2.0, 0.002)
+    w = np.tile([0.0, 0.0, 0.3], (len(t), 1))
+    ret = retinal_rotation(t, w, head_angles(t, w, cfg))
+    want = 0.3 * (1.0 - 0.8 * np.exp(-t / 0.5))
+    assert np.allclose(ret[5:, 2], want[5:], atol=2e-3)
+    assert np.abs(ret[:, :2]).max() < 1e-9
+    # Without the head moving, the retina turns with the body.
+    assert np.allclose(retinal_rotation(t, w, np.zeros_like(w)), w)
+
+
+def test_gaze_stabilised_footage_sees_a_turn_cancelled_by_the_head(tmp_path):
+    from stimuli.eye import open_eye_footage, render_eye, write_eye_footage
+
+    class Turning(Corridor):
+        pass
+
+    omega = np.array([0.0, 0.4, 0.0])                 # the body yaws at 0.4 rad/s
+    world = Turning(v=0.5, wavelength=0.3, rotation_rate=omega)
+    world.trajectory = type("T", (), {"acceleration": staticmethod(lambda t: np.zeros_like(t)),
+                                      "position": staticmethod(lambda t: 0.5 * np.asarray(t))})()
+    world.camera_velocity = lambda t: np.stack([0 * t, 0 * t, 0.5 + 0 * t], -1)
+    world.rotation = lambda t: np.broadcast_to(np.eye(3), np.shape(t) + (3, 3))
+    from lobula.compound_eye import CompoundEye, CompoundEyeConfig
+    eye = CompoundEye(CompoundEyeConfig(dphi_deg=10.0, rings=1))
+    times = np.arange(40) / 500.0
+    imu_t = np.arange(0.0, 0.1, 0.001)
+    imu = dict(time_s=imu_t, accel=np.zeros((len(imu_t), 3)), gyro=np.tile(omega, (len(imu_t), 1)))
+    # Unit gain and a neck that never returns: the head holds its orientation in the world.
+    gaze = GazeConfig(gain=1.0, tau_return_s=1e6, limit_deg=90.0)
+    fo = open_eye_footage(write_eye_footage(tmp_path / "gaze", world, eye, imu, times, {}, range_every=10,
+                                            gaze=gaze))
+    assert fo.head is not None and fo.head.shape == (40, 3) and fo.info["gaze"]["gain"] == 1.0
+    assert np.allclose(fo.head[:, 1], -0.4 * times, atol=1e-5)
+    still = Corridor(v=0.5, wavelength=0.3)           # the same world seen by an eye that does not turn
+    _, want = next(render_eye(still, eye, times, chunk=40))
+    _, body = next(render_eye(world, eye, times, chunk=40))
+    got = np.asarray(fo.luminance)
+    late = slice(20, 40)
+    # The turning body's eye sees the turn; the stabilised head's eye sees the still world's image.
+    assert np.abs(body[late] - want[late]).max() > 0.02
+    assert np.abs(got[late] - want[late]).max() < 0.1 * np.abs(body[late] - want[late]).max()
+    # The haltere prediction the circuit gets is the retina's own rotation (body's plus neck's): about zero.
+    ret = retinal_rotation(fo.times, np.tile(omega, (len(times), 1)), fo.head)
+    assert np.abs(ret[2:]).max() < 0.01 * 0.4
+
+
+def test_scene_gaze_options_need_the_fly_eye(tmp_path, capsys):
+    from experiments.cli import main
+
+    assert main(["scene", str(tmp_path / "a"), "--gaze", "haltere", "--duration", "1"]) == 2
+    assert "--eye fly" in capsys.readouterr().err
+    assert main(["scene", str(tmp_path / "b"), "--eye", "fly", "--gaze-gain", "0.5", "--duration", "1"]) == 2
+    assert "--gaze haltere" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
