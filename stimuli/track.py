@@ -24,7 +24,10 @@ from .imu import IMUConfig, synthesize_imu
 from .scene import SceneConfig, TrackScene
 from .trajectory import trajectory_from_function, trajectory_from_profile
 
-REAL_PROFILE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flivver_d435i" / "velocity.csv"
+# Resolved to the end: a checkout whose ../shared is a symlink names the same file, so the
+# suite's scene markers (which store this path) agree across checkouts and worktrees.
+REAL_PROFILE = (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flivver_d435i"
+                / "velocity.csv").resolve()
 
 
 def builtin_profile(t: np.ndarray) -> np.ndarray:
