@@ -515,7 +515,8 @@ def add_parser(subparsers):
     v.add_argument("--paper", action="store_true", help="the paper's configuration, as its text states it")
     v.add_argument("--filter", default="zero-phase", choices=["zero-phase", "causal"])
     v.add_argument("--gap", type=int, help="frames between the two images of a flow pair (default 6)")
-    v.add_argument("--field-size", type=float, help="receptive-field size (deg, default 5)")
+    v.add_argument("--field-size", type=float, help="receptive-field size (deg; default 5 on camera footage, "
+                   "the eye's LC field FWHM 30 on compound-eye footage)")
     v.add_argument("--dis-preset", choices=["ultrafast", "fast", "medium"])
     v.add_argument("--epipole", choices=["estimate", "principal"])
     v.add_argument("--accel-from-truth", action="store_true",
@@ -530,7 +531,8 @@ def add_parser(subparsers):
                    help="image size the .flo refers to")
     v.add_argument("--dphi", type=float, help="EMD front end: interommatidial angle (deg, default 0.75)")
     v.add_argument("--drho", type=float, help="EMD front end: acceptance angle (deg, default = Δφ)")
-    v.add_argument("--tau", type=float, help="EMD front end: delay time constant (s, default 0.010)")
+    v.add_argument("--tau", type=float, help="EMD front end: delay time constant (s; default 0.010 on "
+                   "camera footage, 0.035 on compound-eye footage)")
     v.add_argument("--emd-calibration", help="EMD front end: gains JSON from `lobula calibrate-emd` on another scene")
     v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
     v.add_argument("--quiet", action="store_true")
