@@ -121,9 +121,10 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
             # The heading and the gyro's bias are fitted jointly (lobula.epipole.HeadingBiasEstimator)
             # and the fields' attitude follows the bias learned so far (lobula.haltere.GyroAttitude);
             # the pre-warp, a thread ahead, keeps the plain attitude.
-            b, sb = gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal", with_std=True)
-            attitude = GyroAttitude(footage.imu.time_s, gyro, b[0])
-            est = HeadingBiasEstimator(x, y, b[0], sb[0], stride=est.stride, scale_std=GYRO_SCALE_PRIOR)
+            b_still, s_still = gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal",
+                                         with_std=True)
+            attitude = GyroAttitude(footage.imu.time_s, gyro, b_still[0])
+            est = HeadingBiasEstimator(x, y, b_still[0], s_still[0], stride=est.stride, scale_std=GYRO_SCALE_PRIOR)
         samples = threaded(_timed(flows, timings, "flow", minus=(waited, "decode")), name="flow")
         total = max(len(footage) - config.flow.gap, 0)
     else:
@@ -149,6 +150,9 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
                 sub = s.flow[:, ::est.stride, ::est.stride].reshape(2, -1)
                 pts = derotate_finite(est.x, est.y, sub, s.dt, q[2].T @ q[0], q[2].T @ q[1])
                 if isinstance(attitude, GyroAttitude):
+                    if config.readout.filter == "causal":  # the still-camera estimate so far, as it accrues
+                        k = min(int(np.searchsorted(footage.imu.time_s, s.t1)), len(b_still) - 1)
+                        est.set_bias_prior(b_still[k], s_still[k])
                     c_app, w_bar = attitude.applied_correction(s.t0, s.t1)
                     e = est.update(None, points=pts, attitude=q[2], applied_bias=c_app, rate=w_bar)
                     attitude.bias, attitude.scale = est.bias, est.scale

@@ -302,12 +302,25 @@ class HeadingBiasEstimator(EpipoleEstimator):
         self.ata = np.diag(np.concatenate(info))
         self.theta = np.concatenate([self.prior, b0, np.zeros(self.n_scale)])
         self.atb = self.ata @ self.theta
+        self._bias_prior = (self.ata[2:5, 2:5].diagonal().copy(), b0.copy())  # (information (3,), mean (3,))
         self.e = self.theta[:2].copy()
         self._scales: list = []  # each frame's robust residual scale (the rotation-only fit's)
 
     @property
     def bias(self) -> np.ndarray:
         return self.theta[2:5].copy()
+
+    def set_bias_prior(self, bias0, bias0_std) -> None:
+        """Replace the bias prior (e.g. by the still-camera estimate as it accrues online)."""
+        info, mean = self._bias_prior
+        new_info = 1.0 / np.broadcast_to(np.asarray(bias0_std, float), (3,)) ** 2
+        new_mean = np.broadcast_to(np.asarray(bias0, float), (3,)).copy()
+        idx = np.arange(2, 5)
+        self.ata[idx, idx] += new_info - info
+        self.atb[2:5] += new_info * new_mean - info * mean
+        self._bias_prior = (new_info, new_mean)
+        self.theta = np.linalg.solve(self.ata, self.atb)
+        self.e = self.theta[:2].copy()
 
     @property
     def scale(self) -> np.ndarray:
