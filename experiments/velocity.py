@@ -20,7 +20,7 @@ from tqdm.auto import tqdm
 
 from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
-from lobula.epipole import EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
+from lobula.epipole import HEADING_POINTS, EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
 from lobula.haltere import (GRAVITY_WINDOW_S, GYRO_SCALE_PRIOR, GyroAttitude, forward_acceleration, gravity_drift_std,
                             gravity_time_constant, gyro_bias, orientation_from_gyro, resample_to, vision_gyro_bias)
@@ -124,7 +124,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
             b_still, s_still = gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal",
                                          with_std=True)
             attitude = GyroAttitude(footage.imu.time_s, gyro, b_still[0])
-            est = HeadingBiasEstimator(x, y, b_still[0], s_still[0], stride=est.stride, scale_std=GYRO_SCALE_PRIOR)
+            est = HeadingBiasEstimator(x, y, b_still[0], s_still[0], scale_std=GYRO_SCALE_PRIOR,
+                                       stride=max(1, int(np.sqrt(cam.width * cam.height / HEADING_POINTS))))
         samples = threaded(_timed(flows, timings, "flow", minus=(waited, "decode")), name="flow")
         total = max(len(footage) - config.flow.gap, 0)
     else:

@@ -7,6 +7,10 @@ the epipole e = (Vx/Vz, Vy/Vz): ṗ = (Vz/d)(p − e). Each pixel then gives one
 equation in e, ṗ_y·e_x − ṗ_x·e_y = ṗ_y·x − ṗ_x·y, and the epipole is the robust
 least-squares solution pooled over pixels and frames. Real footage seldom moves along
 the optical axis, so r must be measured about this point, not the principal point.
+A gyro's bias and scale error leave a rotation in the derotated flow that a slow camera's
+heading fit mistakes for a shifted epipole; :class:`HeadingBiasEstimator` fits the heading,
+the bias and the scale error jointly (:func:`residual_rotation` fits the rotation alone,
+given the heading).
 """
 from __future__ import annotations
 
@@ -264,8 +268,14 @@ MAX_HEADING = 2.0
 MIN_EXPANSION_SNR = 1.0
 #: normalised (~3°): a frame places the heading only if the bias's remaining std moves it less.
 HEADING_TOL = 0.05
-#: independent points a frame's flow is worth (its errors are correlated over many pixels).
-FRAME_POINTS = 100
+#: independent points a frame's flow is worth: its errors are correlated over the whole view
+#: (DIS at large displacements, texture-poor regions), so thousands of pixels tell about as much
+#: as a handful. Development scenes (rotation and fast corridor, seeds 100–102): 100 let a fast
+#: corridor's first frames set a bias 2 mrad/s off that the still-camera estimate could not undo.
+FRAME_POINTS = 5
+#: points per frame the joint fit needs (a 14-parameter fit worth FRAME_POINTS independent ones):
+#: callers stride the image to about this many (the cost per pair grows with it).
+HEADING_POINTS = 2000
 
 
 class HeadingBiasEstimator(EpipoleEstimator):
@@ -360,6 +370,7 @@ class HeadingBiasEstimator(EpipoleEstimator):
         a = np.concatenate(cols, axis=1)
         rhs = l_ref[:, 2] + s0 * (c @ b_app)
         xr, yr = self._seen(R, x, y)
+        iters = min(iters, 2)
         # 1. The rotation alone, the heading held at the running estimate. Every frame says this
         #    much; a slow or still camera's flow says little else (its flow is mostly δω's).
         rot = slice(2, None)
@@ -408,11 +419,13 @@ class HeadingBiasEstimator(EpipoleEstimator):
 
     def _weights(self, res):
         """Cauchy weights of residuals (about this frame's robust scale), divided by the noise
-        variance: the median over the frames so far of their scales squared. Not this frame's
-        own: a slow frame's residuals are small because its flow is, and by its own scale its
-        few-pixel heading information would outweigh every fast frame's."""
+        variance: this frame's scale squared, but at least the median over the frames so far.
+        A slow frame's residuals are small because its flow is, and by its own scale its
+        few-pixel heading information would outweigh every fast frame's; a fast frame's flow
+        errs more (large displacements), and by the median alone its errors would pass for
+        rotation (the causal fast corridor's bias, before the still-camera estimate came in)."""
         scale = 1.4826 * np.median(np.abs(res)) + 1e-12
-        noise = np.median(self._scales + [scale]) if self._scales else scale
+        noise = max(scale, float(np.median(self._scales))) if self._scales else scale
         # Flow errors are correlated over many pixels: a frame counts as FRAME_POINTS independent ones.
         return 1.0 / (1.0 + (res / (2.385 * scale)) ** 2) / noise ** 2 * min(1.0, FRAME_POINTS / res.size)
 

@@ -12,6 +12,12 @@ constant offset (the start's acceleration) that the readout's offset state learn
 vision. What the gyro bias leaves (gravity ramping through the forward axis) is the
 readout's ramp state, not fitted here. Samples are then averaged over each flow interval and
 interpolated to the flow's time stamps.
+
+The gyro is integrated with the rate taken linear between samples (trapezoid plus coning,
+:func:`rotation_increments`). For the image (derotation, heading, fields) a turning camera's
+gyro bias and scale error are learned from the flow itself
+(:class:`lobula.epipole.HeadingBiasEstimator`) and :class:`GyroAttitude` integrates with
+them as they are learned.
 """
 from __future__ import annotations
 
