@@ -416,9 +416,9 @@ class GyroAttitude:
         """Orientations (k, 3, 3) at times t (k,) s."""
         t = np.clip(np.atleast_1d(np.asarray(t, float)), self.t[0], self.t[-1])
         hi = np.searchsorted(self.t, t, side="left")
-        self._integrate_to(int(hi.max()))
         k0 = np.clip(hi - 1, 0, len(self.t) - 2)
         k1 = k0 + 1
+        self._integrate_to(int(k1.max()))
         span = self.t[k1] - self.t[k0]
         frac = np.clip(np.where(span > 0, (t - self.t[k0]) / np.where(span > 0, span, 1.0), 0.0), 0.0, 1.0)
         q0, q1 = self._q[k0], self._q[k1]

@@ -249,3 +249,12 @@ def test_heading_and_gyro_bias_from_exact_flow_of_a_turning_camera():
     assert berr < 0.25
     assert joint_err < 0.5 * plain_err
     assert plain_err > 1.0
+
+
+def test_gyro_attitude_at_the_first_sample_is_the_identity():
+    """Asked first for a time at (or before) the first sample, nothing uninitialised is read."""
+    from lobula.haltere import GyroAttitude
+
+    t = np.arange(0.0, 1.0, 0.004)
+    att = GyroAttitude(t, np.tile([0.1, -0.2, 0.3], (t.size, 1)), np.zeros(3))
+    np.testing.assert_allclose(att(np.array([-1.0, 0.0])), np.broadcast_to(np.eye(3), (2, 3, 3)), atol=1e-12)
