@@ -7,6 +7,10 @@ the epipole e = (Vx/Vz, Vy/Vz): ṗ = (Vz/d)(p − e). Each pixel then gives one
 equation in e, ṗ_y·e_x − ṗ_x·e_y = ṗ_y·x − ṗ_x·y, and the epipole is the robust
 least-squares solution pooled over pixels and frames. Real footage seldom moves along
 the optical axis, so r must be measured about this point, not the principal point.
+A gyro's bias and scale error leave a rotation in the derotated flow that a slow camera's
+heading fit mistakes for a shifted epipole; :class:`HeadingBiasEstimator` fits the heading,
+the bias and the scale error jointly (:func:`residual_rotation` fits the rotation alone,
+given the heading).
 """
 from __future__ import annotations
 
@@ -210,3 +214,249 @@ class EpipoleEstimator:
         """Points (x, y) of the camera as the reference frame sees them (for the noise-bias terms)."""
         q = np.stack([x, y, np.ones_like(x)], -1) @ np.asarray(attitude, float).T
         return q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]
+
+
+def residual_rotation(x, y, flow, epipole, iters: int = 3):
+    """The rotation rate δω (3,) rad/s still in derotated flow, given the heading, and its variance (3,).
+
+    x, y: normalised coordinates of points (any shape); flow (2, ...) 1/s: their flow after
+    the gyro's derotation (e.g. :func:`derotate_finite`'s, in the pair's middle orientation);
+    epipole (2,): the heading seen in that orientation. What a rigid scene's translation
+    leaves is radial from the epipole, so the flow's component across the ray from it,
+    (ṗ − B(p)·δω) × (p − e), must vanish: with e given that is *linear* in δω (B the
+    rotational flow per unit rate, :func:`rotational_flow`) and needs no depth. Solved by
+    least squares on the perpendicular residuals (each equation divided by |p − e|), with
+    Cauchy weights against failed flow. The variance is the fit's σ²·(AᵀWA)⁻¹; flow errors
+    are correlated across pixels, so it is a lower bound (callers use the scatter of
+    successive fits instead, :class:`lobula.haltere.GyroAttitude`). NaN where too few points.
+    """
+    x, y = np.asarray(x, float).ravel(), np.asarray(y, float).ravel()
+    u, v = (np.asarray(c, float).ravel() for c in flow)
+    ok = np.isfinite(u) & np.isfinite(v) & np.isfinite(x) & np.isfinite(y)
+    x, y, u, v = x[ok], y[ok], u[ok], v[ok]
+    dx, dy = x - float(epipole[0]), y - float(epipole[1])
+    rho = np.hypot(dx, dy)
+    keep = rho > 1e-3  # at the epipole the perpendicular direction is undefined
+    if keep.sum() < 10:
+        return np.full(3, np.nan), np.full(3, np.nan)
+    x, y, u, v, dx, dy, rho = x[keep], y[keep], u[keep], v[keep], dx[keep], dy[keep], rho[keep]
+    # Rotational flow per unit rate about x, y, z at each point (as rotational_flow).
+    bu = np.stack([x * y, -(1 + x * x), y], -1)
+    bv = np.stack([1 + y * y, -x * y, -x], -1)
+    # (u − bu·δω)·dy − (v − bv·δω)·dx = 0  →  (bu·dy − bv·dx)·δω = u·dy − v·dx.
+    a = (bu * dy[:, None] - bv * dx[:, None]) / rho[:, None]
+    b = (u * dy - v * dx) / rho
+    w = np.ones_like(b)
+    sol = np.zeros(3)
+    for _ in range(iters):
+        aw = a * w[:, None]
+        ata = aw.T @ a
+        if np.linalg.cond(ata) > 1e10:
+            return np.full(3, np.nan), np.full(3, np.nan)
+        sol = np.linalg.solve(ata, aw.T @ b)
+        res = b - a @ sol
+        scale = 1.4826 * np.median(np.abs(res)) + 1e-12
+        w = 1.0 / (1.0 + (res / (2.385 * scale)) ** 2)
+    s2 = np.sum(w * res ** 2) / max(np.sum(w) - 3, 1.0)
+    return sol, s2 * np.diag(np.linalg.inv((a * w[:, None]).T @ a))
+
+
+#: normalised: a heading further than this from the optical axis (~63°) is no fit to a forward camera.
+MAX_HEADING = 2.0
+#: a frame's expansion must move the view (at its median distance from the centre) by at least
+#: this many times the flow's residual noise before it may place the heading.
+MIN_EXPANSION_SNR = 1.0
+#: normalised (~3°): a frame places the heading only if the bias's remaining std moves it less.
+HEADING_TOL = 0.05
+#: independent points a frame's flow is worth: its errors are correlated over the whole view
+#: (DIS at large displacements, texture-poor regions), so thousands of pixels tell about as much
+#: as a handful. Development scenes (rotation and fast corridor, seeds 100–102): 100 let a fast
+#: corridor's first frames set a bias 2 mrad/s off that the still-camera estimate could not undo.
+FRAME_POINTS = 5
+#: points per frame the joint fit needs (a 14-parameter fit worth FRAME_POINTS independent ones):
+#: callers stride the image to about this many (the cost per pair grows with it).
+HEADING_POINTS = 2000
+
+
+class HeadingBiasEstimator(EpipoleEstimator):
+    """The heading and the gyro's bias, jointly, from gyro-derotated flow of a turning camera.
+
+    A gyro bias b left in the derotation turns the flow by δω = b̂ − b (b̂ the bias removed).
+    Given the heading that is linear (:func:`residual_rotation`), but the heading is itself
+    fitted to the same flow, and a frontal scene confounds the two: at speed r = v/d a
+    residual rotation looks like an epipole shift of δω/r — degrees at walking speed, with
+    a BMI055's ±0.25 °/s. Fitted one after the other, each absorbs the other's error (the
+    bias settled at the wrong sign on a development scene). Fitted jointly over frames they
+    separate, because the heading stays put in a fixed reference while r changes: a slow
+    frame's flow is mostly the residual rotation (it pins b), a fast one's mostly radial (it
+    pins e). Each point gives, linearised about the running estimate e₀,
+    l_ref·(e_ref, 1) + s₀·C·(b̂ − b) = 0, with l the line through the point along its flow
+    turned into the reference (as :class:`EpipoleEstimator`), C = B_u·(y − e₀y) − B_v·(x − e₀x)
+    the rotational flow's component across the ray from e₀ and s₀ the homogeneous scale.
+    Each frame's equations (divided by its own residual scale, Cauchy-weighted about the
+    running solution, the flow-noise bias of the heading block removed as in the parent) are
+    added to normal equations in (e_ref, b) that start from the bias prior ``bias0`` ±
+    ``bias0_std`` (rad/s, e.g. :func:`lobula.haltere.gyro_bias`'s still-camera estimate).
+    ``update`` needs ``attitude`` and ``applied_bias`` (the b̂ the derotation removed);
+    ``bias`` is the current estimate (3,) rad/s and ``bias_std`` its formal std.
+    """
+
+    def __init__(self, x, y, bias0, bias0_std, prior=(0.0, 0.0), stride: int = 4, heading_std: float = 1.0,
+                 scale_std: float | None = None):
+        super().__init__(x, y, prior=prior, stride=stride)
+        b0 = np.broadcast_to(np.asarray(bias0, float), (3,))
+        info = [np.full(2, 1.0 / heading_std ** 2), 1.0 / np.broadcast_to(np.asarray(bias0_std, float), (3,)) ** 2]
+        self.n_scale = 0 if scale_std is None else 9
+        if self.n_scale:
+            info.append(np.full(9, 1.0 / scale_std ** 2))
+        self.ata = np.diag(np.concatenate(info))
+        self.theta = np.concatenate([self.prior, b0, np.zeros(self.n_scale)])
+        self.atb = self.ata @ self.theta
+        self._bias_prior = (self.ata[2:5, 2:5].diagonal().copy(), b0.copy())  # (information (3,), mean (3,))
+        self.e = self.theta[:2].copy()
+        self._scales: list = []  # each frame's robust residual scale (the rotation-only fit's)
+
+    @property
+    def bias(self) -> np.ndarray:
+        return self.theta[2:5].copy()
+
+    def set_bias_prior(self, bias0, bias0_std) -> None:
+        """Replace the bias prior (e.g. by the still-camera estimate as it accrues online)."""
+        info, mean = self._bias_prior
+        new_info = 1.0 / np.broadcast_to(np.asarray(bias0_std, float), (3,)) ** 2
+        new_mean = np.broadcast_to(np.asarray(bias0, float), (3,)).copy()
+        idx = np.arange(2, 5)
+        self.ata[idx, idx] += new_info - info
+        self.atb[2:5] += new_info * new_mean - info * mean
+        self._bias_prior = (new_info, new_mean)
+        self.theta = np.linalg.solve(self.ata, self.atb)
+        self.e = self.theta[:2].copy()
+
+    @property
+    def scale(self) -> np.ndarray:
+        """(3, 3) the gyro's scale-factor and misalignment error E (zeros unless fitted)."""
+        return self.theta[5:].reshape(3, 3).copy() if self.n_scale else np.zeros((3, 3))
+
+    @property
+    def bias_std(self) -> np.ndarray:
+        return np.sqrt(np.diag(np.linalg.inv(self.ata))[2:5])
+
+    def update(self, flow, points=None, attitude=None, applied_bias=None, rate=None, iters: int = 3) -> np.ndarray:
+        """Add one pair (points = (X, Y, flow (2, N)) in its middle orientation, derotated with
+        ``applied_bias`` (3,) rad/s removed from the gyro's mean reading ``rate`` (3,) over the pair
+        — bias plus E·rate where E is fitted, :meth:`lobula.haltere.GyroAttitude.applied_correction`)
+        and return the epipole seen from the camera."""
+        if points is None or attitude is None or applied_bias is None or (self.n_scale and rate is None):
+            raise ValueError("HeadingBiasEstimator.update needs points, attitude, applied_bias (and rate with E)")
+        x, y = np.asarray(points[0], float).ravel(), np.asarray(points[1], float).ravel()
+        u, v = (np.asarray(c, float).ravel() for c in points[2])
+        ok = np.isfinite(u) & np.isfinite(v) & np.isfinite(x) & np.isfinite(y)
+        x, y, u, v = x[ok], y[ok], u[ok], v[ok]
+        if x.size < 10:
+            return self._seen_epipole(attitude)
+        R = np.asarray(attitude, float)
+        b_app = np.asarray(applied_bias, float)
+        # Lines along the flow, turned into the reference.
+        l_ref = np.stack([-v, u, v * x - u * y], -1) @ R.T
+        h = R.T @ np.array([self.theta[0], self.theta[1], 1.0])
+        s0, e0 = h[2], h[:2] / h[2]  # the running heading seen in this orientation
+        bu = np.stack([x * y, -(1 + x * x), y], -1)
+        bv = np.stack([1 + y * y, -x * y, -x], -1)
+        c = bu * (y - e0[1])[:, None] - bv * (x - e0[0])[:, None]
+        cols = [-l_ref[:, :2], s0 * c]
+        if self.n_scale:
+            g = np.asarray(rate, float) - self.theta[2:5]  # E's regressor: the bias-free rate
+            cols.append(s0 * (c[:, :, None] * g[None, None, :]).reshape(-1, 9))
+        a = np.concatenate(cols, axis=1)
+        rhs = l_ref[:, 2] + s0 * (c @ b_app)
+        xr, yr = self._seen(R, x, y)
+        iters = min(iters, 2)
+        # 1. The rotation alone, the heading held at the running estimate. Every frame says this
+        #    much; a slow or still camera's flow says little else (its flow is mostly δω's).
+        rot = slice(2, None)
+        e_cur = self.theta[:2].copy()
+        ab, rhs_b = a[:, rot], rhs - a[:, :2] @ e_cur
+        prior_b = self.atb[rot] - self.ata[rot, :2] @ e_cur
+        theta_b = self.theta[rot].copy()
+        for _ in range(iters):
+            w = self._weights(ab @ theta_b - rhs_b)
+            aw = ab * w[:, None]
+            ata_b, atb_b = aw.T @ ab, aw.T @ rhs_b
+            theta_b = np.linalg.solve(self.ata[rot, rot] + ata_b, prior_b + atb_b)
+        self._scales.append(1.4826 * float(np.median(np.abs(ab @ theta_b - rhs_b))) + 1e-12)
+        # 2. Is what is left radial about the heading (translation), beyond the flow's noise?
+        joint = None
+        if self._radial(x, y, u, v, c, theta_b, b_app, rate, e0):
+            theta = np.concatenate([e_cur, theta_b])
+            for _ in range(iters):
+                res = a @ theta - rhs
+                w = self._weights(res)
+                aw = a * w[:, None]
+                ata, atb = aw.T @ a, aw.T @ rhs
+                # Flow noise in the heading's coefficients biases it toward the image centre (parent).
+                r2 = (xr - theta[0]) ** 2 + (yr - theta[1]) ** 2
+                s2 = np.sum(w * res ** 2) / max(np.sum(w * r2), 1e-20)
+                ata[:2, :2] -= s2 * np.sum(w) * np.eye(2)
+                atb[:2] -= s2 * np.array([np.sum(w * xr), np.sum(w * yr)])
+                if np.any(np.linalg.eigvalsh(ata[:2, :2]) <= 0):
+                    break
+                tot = self.ata + ata
+                theta = np.linalg.solve(tot, self.atb + atb)
+                if not (np.all(np.isfinite(theta)) and np.hypot(*theta[:2]) < MAX_HEADING):
+                    break
+            else:
+                joint = ata, atb
+        if joint is not None:
+            self.ata = self.ata + joint[0]
+            self.atb = self.atb + joint[1]
+            self.n_frames += 1
+        else:  # the rotation's equations only, given the heading
+            self.ata[rot, rot] += ata_b
+            self.atb[rot] += atb_b
+        self.theta = np.linalg.solve(self.ata, self.atb)
+        self.e = self.theta[:2].copy()
+        return self._seen_epipole(R)
+
+    def _weights(self, res):
+        """Cauchy weights of residuals (about this frame's robust scale), divided by the noise
+        variance: this frame's scale squared, but at least the median over the frames so far.
+        A slow frame's residuals are small because its flow is, and by its own scale its
+        few-pixel heading information would outweigh every fast frame's; a fast frame's flow
+        errs more (large displacements), and by the median alone its errors would pass for
+        rotation (the causal fast corridor's bias, before the still-camera estimate came in)."""
+        scale = 1.4826 * np.median(np.abs(res)) + 1e-12
+        noise = max(scale, float(np.median(self._scales))) if self._scales else scale
+        # Flow errors are correlated over many pixels: a frame counts as FRAME_POINTS independent ones.
+        return 1.0 / (1.0 + (res / (2.385 * scale)) ** 2) / noise ** 2 * min(1.0, FRAME_POINTS / res.size)
+
+    def _radial(self, x, y, u, v, c, theta_b, b_app, rate, e0, t_min: float = 3.0) -> bool:
+        """Whether the flow left after the fitted rotation shows translation: an expansion whose
+        flow across the view stands above the flow's noise, and radial about e0 beyond its spread
+        (the parent's test: Σ(radial² − across²) over t_min of its spread).
+
+        The expansion r comes from d = r·p + k fitted to the remaining flow (k = −r·e absorbs the
+        heading). A rotation left over has no such term (its divergence is odd across the view),
+        but with r ≈ 0 it fits a heading far off the axis as well as a rotation does — which is
+        how a slow camera's frames dragged the heading and the bias together the wrong way.
+        """
+        dw = b_app - theta_b[:3]
+        if self.n_scale:
+            dw = dw - theta_b[3:].reshape(3, 3) @ (np.asarray(rate, float) - theta_b[:3])
+        ru, rv = rotational_flow(dw, x, y)
+        du, dv = u - ru, v - rv
+        xc, yc = x - x.mean(), y - y.mean()
+        r = (np.sum(xc * du) + np.sum(yc * dv)) / max(np.sum(xc * xc + yc * yc), 1e-20)
+        res = np.concatenate([du - du.mean() - r * xc, dv - dv.mean() - r * yc])
+        noise = 1.4826 * np.median(np.abs(res)) + 1e-12
+        if abs(r) * np.median(np.hypot(xc, yc)) < MIN_EXPANSION_SNR * noise:
+            return False
+        # The bias still unknown shifts the heading by about its std / r: place it only where that is small.
+        if abs(r) * HEADING_TOL < np.linalg.norm(self.bias_std):
+            return False
+        dx, dy = x - e0[0], y - e0[1]
+        d = (dx * du + dy * dv) ** 2 - (dx * dv - dy * du) ** 2
+        return bool(np.sum(d) >= t_min * np.sqrt(np.sum(d ** 2)))
+
+    def _seen_epipole(self, attitude) -> np.ndarray:
+        h = np.asarray(attitude, float).T @ np.array([self.theta[0], self.theta[1], 1.0])
+        return h[:2] / h[2]
