@@ -10,6 +10,8 @@ _API = {
     "PinholeCamera": "camera", "angles_to_normalised": "camera", "normalised_to_angles": "camera",
     "VelocityConfig": "config",
     "EpipoleEstimator": "epipole", "derotate": "epipole", "rotational_flow": "epipole",
+    "HeadingBiasEstimator": "epipole", "residual_rotation": "epipole",
+    "GyroAttitude": "haltere", "rotation_increments": "haltere",
     "FlowConfig": "flow", "FlowSample": "flow", "StaggeredFlow": "flow", "pixel_to_angular": "flow",
     "forward_acceleration": "haltere", "resample_to": "haltere",
     "ReadoutConfig": "readout", "ReadoutResult": "readout", "readout": "readout",
