@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ensure_runs", "ensure_gaze_runs", "eye_folder", "GAZE_FAMILY", "rate_vs_spiking_numbers", "figure_eye_rate_vs_spiking", "dphi_fov_numbers",
+__all__ = ["figure_eye", "ensure_runs", "ensure_gaze_runs", "eye_folder", "GAZE_FAMILY", "rate_vs_spiking_numbers", "figure_eye_rate_vs_spiking", "dphi_fov_numbers",
            "figure_eye_dphi_fov"]
 
 FAMILIES = ("panels", "rotation", "corridor")
@@ -229,3 +229,33 @@ def figure_eye_dphi_fov(out_dir, seeds=(0, 1, 2), workdir=None, dphis=(8.0, 5.0)
     save_figure(fig, png, dpi=150)
     plt.close(fig)
     return png, res
+
+
+def figure_eye(out_dir, seeds=(0, 1, 2), duration_s: float = 10.0, workdir=None,
+               families=("panels", "rotation", "corridor"), field_sizes=(20.0, 30.0, 45.0),
+               rotations=("none", "haltere", "wide-field")):
+    """`lobula figures` entry: render (cached in ``workdir``) and score the eye beside causal DIS, then plot.
+
+    With the rotation family, also the rotation world seen by a gaze-stabilised head
+    (:data:`GAZE_FAMILY`), under the same rotation handling: the two
+    rotation hypotheses (haltere, gaze) side by side. Writes ``out_dir/eye_rmse.png`` and its JSON;
+    returns the path of the PNG.
+    """
+    from pathlib import Path
+
+    out_dir = Path(out_dir)
+    workdir = Path(workdir) if workdir else out_dir / "eye_runs"
+    from experiments.eye_velocity import eye_benchmark, eye_figure
+
+    rows = eye_benchmark(workdir, families, seeds, duration_s, rotations=("haltere",))
+    fams = list(families)
+    if "rotation" in families:
+        # The second rotation hypothesis family: the fly's own route, a head stabilised on the halteres.
+        ensure_gaze_runs(workdir, seeds, duration_s)
+        fams.insert(fams.index("rotation") + 1, GAZE_FAMILY)
+    runs = {f: dict(eye=[eye_folder(workdir, f, s) for s in seeds],
+                    dis_rmse=[r["dis_rmse"] for r in rows if r["family"] == (f if f != GAZE_FAMILY else "rotation")])
+            for f in fams}
+    png = out_dir / "eye_rmse.png"
+    eye_figure(runs, png, field_sizes=field_sizes, rotations=rotations)
+    return png

@@ -248,7 +248,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         # Gaze stabilised: the retina turns with the head; the haltere's prediction adds the neck's
         # own rotation (an efference copy: the head angles) to the body's, in the head's frame.
         gyro = retinal_rotation(fo.times, gyro, fo.head)
-    outs, t_read = [], 0.0
+    outs = []
     pos = 0
     for ts, lum in fo.chunks(cfg.chunk):
         outs.append(circ.process(lum, gyro[pos:pos + len(ts)]))
@@ -552,33 +552,3 @@ def eye_benchmark(workdir, families=("panels", "rotation", "corridor"), seeds=(0
             rows.append(row)
             print(json.dumps(row))
     return rows
-
-
-def figure_eye(out_dir, seeds=(0, 1, 2), duration_s: float = 10.0, workdir=None,
-               families=("panels", "rotation", "corridor"), field_sizes=(20.0, 30.0, 45.0),
-               rotations=("none", "haltere", "wide-field")):
-    """`lobula figures` entry: render (cached in ``workdir``) and score the eye beside causal DIS, then plot.
-
-    With the rotation family, also the rotation world seen by a gaze-stabilised head
-    (:data:`experiments.eye_figures.GAZE_FAMILY`), under the same rotation handling: the two
-    rotation hypotheses (haltere, gaze) side by side. Writes ``out_dir/eye_rmse.png`` and its JSON;
-    returns the path of the PNG.
-    """
-    from pathlib import Path
-
-    out_dir = Path(out_dir)
-    workdir = Path(workdir) if workdir else out_dir / "eye_runs"
-    from experiments.eye_figures import GAZE_FAMILY, ensure_gaze_runs, eye_folder
-
-    rows = eye_benchmark(workdir, families, seeds, duration_s, rotations=("haltere",))
-    fams = list(families)
-    if "rotation" in families:
-        # The second rotation hypothesis family: the fly's own route, a head stabilised on the halteres.
-        ensure_gaze_runs(workdir, seeds, duration_s)
-        fams.insert(fams.index("rotation") + 1, GAZE_FAMILY)
-    runs = {f: dict(eye=[eye_folder(workdir, f, s) for s in seeds],
-                    dis_rmse=[r["dis_rmse"] for r in rows if r["family"] == (f if f != GAZE_FAMILY else "rotation")])
-            for f in fams}
-    png = out_dir / "eye_rmse.png"
-    eye_figure(runs, png, field_sizes=field_sizes, rotations=rotations)
-    return png

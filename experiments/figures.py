@@ -18,7 +18,7 @@ seeded IMU, seeded spikes; OpenCV DIS is deterministic). Each figure NAME gets
 7. ``replay_velocity`` — the default pipeline (DIS, zero-phase) on the replay, with truth.
 8. ``eye_rmse`` (only with ``--only eye_rmse``) — the fly's compound eye against causal DIS on the
    panels, rotation and corridor worlds, against LC field size and rotation handling
-   (:func:`experiments.eye_velocity.figure_eye`).
+   (:func:`experiments.eye_figures.figure_eye`).
 9. ``eye_rate_vs_spiking`` (only by name) — the eye's causal RMSE with rate readout, spiking output
    neurons (1–30 pairs) and the shunting readout neuron, beside causal DIS, 3 worlds × 3 seeds
    (:mod:`experiments.eye_figures`; ~2 min on cached renders).
@@ -37,7 +37,7 @@ from lobula.version import command_line, provenance_attrs
 from lobula.config import VelocityConfig
 from lobula.readout import ReadoutConfig, readout
 from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron
-from stimuli.footage import Footage, open_footage
+from stimuli.footage import open_footage
 
 FIGURES = ("replay_emd_vs_dis", "rmse_vs_field_size", "rmse_vs_dphi", "rmse_vs_tau_contrast_noise",
            "error_vs_acceleration", "rate_vs_spiking", "replay_velocity")
@@ -258,7 +258,7 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
         _save_record("replay_velocity", out, records["replay_velocity"])
 
     if "eye_rmse" in which:
-        from experiments.eye_velocity import figure_eye
+        from experiments.eye_figures import figure_eye
 
         figure_eye(out, seeds=(seed, seed + 1, seed + 2), workdir=cache / "eye_runs")
         numbers = json.loads((out / "eye_rmse.json").read_text())
