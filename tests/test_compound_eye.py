@@ -54,6 +54,17 @@ class Corridor:
         return np.where(surf >= 0, lum, 0.5)
 
 
+def flying_straight(world: Corridor) -> Corridor:
+    """Give an analytic corridor what footage writers read of a trajectory: straight flight along +z
+    at world.v m/s, no acceleration, the body never turning in the world (its eye may: rotation_rate)."""
+    v = world.v
+    world.trajectory = type("T", (), {"acceleration": staticmethod(lambda t: np.zeros_like(t)),
+                                      "position": staticmethod(lambda t: v * np.asarray(t))})()
+    world.camera_velocity = lambda t: np.stack([0 * t, 0 * t, v + 0 * t], -1)
+    world.rotation = lambda t: np.broadcast_to(np.eye(3), np.shape(t) + (3, 3))
+    return world
+
+
 # ------------------------------------------------------------------ lattice
 
 def test_lattice_count_spacing_and_coverage():
@@ -161,11 +172,7 @@ def test_eye_footage_roundtrip(tmp_path):
     from stimuli.eye import open_eye_footage, write_eye_footage
     from stimuli.footage import FootageError
 
-    world = Corridor()
-    world.trajectory = type("T", (), {"acceleration": staticmethod(lambda t: np.zeros_like(t)),
-                                      "position": staticmethod(lambda t: 0.5 * np.asarray(t))})()
-    world.camera_velocity = lambda t: np.stack([0 * t, 0 * t, 0.5 + 0 * t], -1)
-    world.rotation = lambda t: np.broadcast_to(np.eye(3), np.shape(t) + (3, 3))
+    world = flying_straight(Corridor())
     eye = CompoundEye(CompoundEyeConfig(dphi_deg=10.0, rings=1))
     times = np.arange(20) / 500.0
     imu = dict(time_s=np.arange(5) / 250.0, accel=np.zeros((5, 3)), gyro=np.zeros((5, 3)))

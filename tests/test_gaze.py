@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lobula.gaze import GazeConfig, head_angles, head_rotation, retinal_rotation
-from tests.test_compound_eye import Corridor
+from tests.test_compound_eye import Corridor, flying_straight
 
 
 def test_head_angles_follow_the_neck_reflex_analytically_and_causally():
@@ -50,15 +50,8 @@ def test_head_rotation_is_the_rotation_vector_and_retinal_rotation_is_what_the_h
 def test_gaze_stabilised_footage_sees_a_turn_cancelled_by_the_head(tmp_path):
     from stimuli.eye import open_eye_footage, render_eye, write_eye_footage
 
-    class Turning(Corridor):
-        pass
-
     omega = np.array([0.0, 0.4, 0.0])                 # the body yaws at 0.4 rad/s
-    world = Turning(v=0.5, wavelength=0.3, rotation_rate=omega)
-    world.trajectory = type("T", (), {"acceleration": staticmethod(lambda t: np.zeros_like(t)),
-                                      "position": staticmethod(lambda t: 0.5 * np.asarray(t))})()
-    world.camera_velocity = lambda t: np.stack([0 * t, 0 * t, 0.5 + 0 * t], -1)
-    world.rotation = lambda t: np.broadcast_to(np.eye(3), np.shape(t) + (3, 3))
+    world = flying_straight(Corridor(v=0.5, wavelength=0.3, rotation_rate=omega))
     from lobula.compound_eye import CompoundEye, CompoundEyeConfig
     eye = CompoundEye(CompoundEyeConfig(dphi_deg=10.0, rings=1))
     times = np.arange(40) / 500.0
