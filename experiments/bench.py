@@ -98,31 +98,137 @@ def bench_emd(folder: Path, n_ommatidia: int = 5000) -> dict:
                 emd_front_end=n / front, end_to_end=n / wall)
 
 
-def bench_tv_depth(n_frames: int = 10, gamma: float = 1e-6) -> dict:
-    """ms per TV depth map at 320×240 (cold start, one torch thread) on exact flow plus DIS-like noise."""
+def _sync(device) -> None:
+    """Wait for the device's queued kernels, so a timer reads the work and not its launch."""
     import torch
 
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def check_device(device: str) -> None:
+    """Fail loudly (ValueError) when ``device`` is not a torch device this machine has."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"--device {device!r} is not a torch device ({exc})") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {device}: torch {torch.__version__} sees no CUDA device on this machine")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"--device {device}: only cpu and cuda devices are supported")
+
+
+def _tv_flows(scale: float, n_frames: int, seed: int = 0):
+    """Exact forward flow of a 0.4 m/s run plus DIS-like noise: (camera, [(flow (2, H, W) float32, epipole)])."""
     from lobula.camera import PinholeCamera
-    from lobula.depth import depth_tv
     from stimuli.scene import SceneConfig, TrackScene
     from stimuli.trajectory import trajectory_from_function
 
-    cam = PinholeCamera().scaled(0.5)
+    cam = PinholeCamera().scaled(scale)
     scene = TrackScene(cam, trajectory_from_function(lambda t: np.full_like(t, 0.4), 3.0), SceneConfig())
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n_frames):
+        t0 = 0.5 + 0.2 * k
+        flow = scene.flow(t0, t0 + 0.2) / 0.2 + rng.normal(0, 0.002, (2, cam.height, cam.width))
+        out.append((flow.astype(np.float32), scene.epipole(t0)))
+    return cam, out
+
+
+def bench_tv_depth(n_frames: int = 10, gamma: float = 1e-6, device: str = "cpu", scale: float = 0.5) -> dict:
+    """ms per TV depth map (cold start) on exact flow plus DIS-like noise, at ``scale`` × 640×480.
+
+    On the CPU it uses one torch thread (the velocity pipeline's setting); on a GPU the
+    flow is copied there before the clock starts and the clock waits for the kernels.
+    """
+    import torch
+
+    from lobula.depth import depth_tv
+
+    cam, flows = _tv_flows(scale, n_frames)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     ms = []
     try:
-        for k in range(n_frames):
-            t0 = 0.5 + 0.2 * k
-            flow = (scene.flow(t0, t0 + 0.2) / 0.2 + rng.normal(0, 0.002, (2, cam.height, cam.width))).astype(np.float32)
+        depth_tv(torch.from_numpy(flows[0][0]).to(device), cam, 0.4, flows[0][1], gamma=gamma)  # warm-up
+        for flow, epipole in flows:
+            f = torch.from_numpy(flow).to(device)
+            _sync(device)
             tic = time.perf_counter()
-            depth_tv(torch.from_numpy(flow), cam, 0.4, scene.epipole(t0), gamma=gamma)
+            depth_tv(f, cam, 0.4, epipole, gamma=gamma)
+            _sync(device)
             ms.append(1000 * (time.perf_counter() - tic))
     finally:
         torch.set_num_threads(threads)
-    return dict(median_ms=float(np.median(ms)), max_ms=float(np.max(ms)))
+    return dict(median_ms=float(np.median(ms)), max_ms=float(np.max(ms)), device=device,
+                size=f"{cam.width}x{cam.height}")
+
+
+def agreement_on_device(device: str, duration_s: float = 0.3) -> dict:
+    """Largest differences between CPU and ``device`` on the torch stages (same inputs).
+
+    circuit: LC rates of the 5,000-ommatidia eye's population (rate model, deterministic)
+    to three drifting gratings, relative to the largest rate; tv_depth: one 320×240 TV
+    depth map, relative to its median. Float32 rounding differs between devices, so these
+    are small but not zero.
+    """
+    import torch
+
+    from lobula.camera import PinholeCamera
+    from lobula.circuit import Circuit, CircuitConfig
+    from lobula.depth import depth_tv
+    from lobula.lattice import Lattice, LatticeConfig, dphi_for_count
+    from lobula.population import LCNeuronConfig, LCPopulationConfig
+    from stimuli.lattice_stimuli import GratingSource
+
+    dt = 1e-3
+    camera = PinholeCamera(frame_rate_hz=1.0 / dt).scaled(0.5)
+    lat = Lattice(camera, LatticeConfig(dphi_deg=dphi_for_count(camera, 5000)))
+    cfg = CircuitConfig(population=LCPopulationConfig(neurons=LCNeuronConfig(model="rate")), dt_s=dt)
+    rates = {}
+    for dev in ("cpu", device):
+        src = GratingSource(lat, kind="drum", temporal_freq_hz=[1.0, 4.0, 16.0], contrast=0.5, frame_rate_hz=1.0 / dt,
+                            device=dev)
+        rec = Circuit(lat, cfg, device=dev).run(src, int(round(duration_s / dt)), record=("lc.rate",), seed=0,
+                                                baseline=1.0)
+        rates[dev] = rec["lc.rate"].detach().to("cpu", torch.float64)
+    circuit = float((rates[device] - rates["cpu"]).abs().max() / rates["cpu"].abs().max())
+    cam, flows = _tv_flows(0.5, 1)
+    z = {dev: depth_tv(torch.from_numpy(flows[0][0]).to(dev), cam, 0.4, flows[0][1]).depth for dev in ("cpu", device)}
+    zc, zd = (torch.as_tensor(z[k]).detach().to("cpu", torch.float64) for k in ("cpu", device))
+    tv = float((zd - zc).abs().nanmedian() / zc.nanmedian())
+    return dict(circuit_max_rel=circuit, tv_depth_median_rel=tv)
+
+
+def run_device_bench(device: str) -> list[dict]:
+    """The torch stages on ``device`` beside the CPU: agreement, then timings (printed and returned).
+
+    The velocity pipeline's DIS flow and field pooling run in OpenCV/NumPy on the CPU and
+    have no device path; what a GPU can take is the EMD circuit (virtual electrophysiology)
+    and TV depth.
+    """
+    import torch
+
+    from experiments.ephys import bench_tuning_sweep
+
+    check_device(device)
+    name = torch.cuda.get_device_name(device) if torch.device(device).type == "cuda" else "CPU"
+    print(f"lobula bench --device {device} ({name}; torch {torch.__version__}, {os.cpu_count()} CPUs)")
+    agree = agreement_on_device(device)
+    print(f"agreement with the CPU: LC rates max |Δ| {agree['circuit_max_rel']:.2e} of the largest rate; "
+          f"TV depth median |Δ| {agree['tv_depth_median_rel']:.2e} of the median depth")
+    rows = [dict(agreement=True, **agree)]
+    print("ephys tuning sweep (20 TF x 5 contrasts x 10 trials, 2 s at 1 ms, 5,000-ommatidia eye + LC population):")
+    for dev, threads in (("cpu", 1), ("cpu", None), (device, None)):
+        rows.append(bench_tuning_sweep(device=dev, threads=threads))
+    for scale in (0.5, 1.0):
+        for dev in ("cpu", device):
+            tv = bench_tv_depth(device=dev, scale=scale)
+            print(f"TV depth at {tv['size']} on {dev}: median {tv['median_ms']:.1f} ms/map, max {tv['max_ms']:.1f} ms")
+            rows.append(tv)
+    return rows
 
 
 def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) -> list[dict]:
@@ -180,8 +286,10 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) 
 
 
 def _run(args) -> int:
-    from experiments.bench import run_bench
-
+    if args.device != "cpu":
+        check_device(args.device)
+        run_device_bench(args.device)
+        return 0
     run_bench(frames=args.frames, scales=args.scales, presets=args.presets)
     return 0
 
@@ -192,4 +300,8 @@ def add_parser(subparsers):
     b.add_argument("--frames", type=int, default=120, help="frames rendered per image size")
     b.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.5], help="image scales of the D435i camera")
     b.add_argument("--presets", nargs="+", default=["fast", "medium"], help="DIS presets to time")
+    b.add_argument("--device", default="cpu",
+                   help="cpu: the whole pipeline on this CPU. cuda (or cuda:N): only the torch stages (EMD circuit "
+                        "tuning sweep, TV depth), on that GPU beside this CPU, after checking they agree; "
+                        "--frames/--scales/--presets do not apply (DIS flow has no GPU path)")
     b.set_defaults(func=_run)

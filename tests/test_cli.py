@@ -50,3 +50,23 @@ def test_depth_suite_takes_the_suites_seed_list_and_refuses_a_bad_one(tmp_path, 
     assert main(["depth-suite", "--out", str(out), "--seeds", "1,x"]) == 2
     assert "--seeds must be a positive count or a comma-separated list" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("device, message", [("tpu", "is not a torch device"), ("cuda", "sees no CUDA device")])
+def test_bench_refuses_a_device_it_cannot_use(device, message, capsys):
+    """`lobula bench --device` names the device's problem instead of timing the CPU under a GPU's name."""
+    import torch
+
+    from experiments.cli import main
+
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    assert main(["bench", "--device", device]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_bench_device_agreement_is_exact_on_the_same_device():
+    """The CPU-vs-device check compares like with like: on the CPU against itself it reads zero."""
+    from experiments.bench import agreement_on_device
+
+    assert agreement_on_device("cpu", duration_s=0.02) == {"circuit_max_rel": 0.0, "tv_depth_median_rel": 0.0}
