@@ -658,7 +658,7 @@ def test_the_eye_pipeline_gates_its_fields_by_their_reliability(eye_footage):
     fo = open_eye_footage(eye_footage)
     ds = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True))
     rel, used, r = ds.reliability.values, ds.field_used.values, ds.r.values
-    np.testing.assert_array_equal(used, reliability_gate(rel, np.isfinite(r), 5.0, 8))
+    np.testing.assert_array_equal(used, reliability_gate(rel, np.isfinite(r), EyeVelocityConfig().reliability_min, 8))
     assert not used[~np.isfinite(r)].any()
     late = ds.time.values > ds.time.values[0] + 3.0
     assert 0.05 < used[late].mean() < 0.95                  # it does select, and it leaves fields in
