@@ -12,7 +12,7 @@ accelerometer and from truth, so the readout's own share shows too):
    perfect, linear detector.
 3. ``emd``    — the circuit itself (:class:`lobula.eye_circuit.EyeCircuit`, the configuration
    given): the correlators' velocity tuning and pattern noise, and the haltere's residue
-   under rotation.
+   under rotation; the fields the pipeline gates by reliability (``field_used``) left out.
 
 The exact motion uses the forward velocity of ``truth.csv`` only (the tracks translate along
 the body axis; the lateral velocity a turn adds in the camera frame changed the exact level by
@@ -120,7 +120,9 @@ def decompose(fo, config: EyeVelocityConfig | None = None, skip_s: float = 2.0) 
         for src, truth in (("true", True), ("imu", False)):
             out[f"{level}|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s)
     ds = estimate_eye_velocity(fo, replace(cfg, readout_kind="kalman"))
-    t, rho, r2 = ds.time.values, ds.r.values, ds.r2.values
+    # The fields the pipeline's readout was given (EyeVelocityConfig.reliability_min).
+    used = ds.field_used.values
+    t, rho, r2 = ds.time.values, np.where(used, ds.r.values, np.nan), np.where(used, ds.r2.values, np.nan)
     for src, truth in (("true", True), ("imu", False)):
         out[f"emd|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s)
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])

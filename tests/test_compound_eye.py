@@ -587,3 +587,82 @@ def test_eye_readout_rest_bound_is_an_option(eye_footage):
     cfg = EyeVelocityConfig()
     assert readout_inputs(fo, t, cfg)[0].rest_depth_max_m == cfg.readout.rest_depth_max_m
     assert readout_inputs(fo, t, replace(cfg, rest_bound=False))[0].rest_depth_max_m == 1e6
+
+
+def test_field_reliability_is_causal_and_tells_slow_expansion_from_fast_noise():
+    """A field whose output changes over seconds (the flight's expansion) reads a large slow-to-fast
+    power ratio, one carrying broadband noise a small one; step k depends on steps ≤ k only."""
+    from lobula.eye_circuit import field_reliability
+
+    t = np.arange(0.0, 10.0, 0.02)
+    rng = np.random.default_rng(3)
+    slow = 0.3 + 0.1 * np.sin(2 * np.pi * 0.2 * t) + 0.02 * rng.standard_normal(len(t))
+    noise = 0.02 + 0.3 * rng.standard_normal(len(t))
+    rho = np.stack([slow, noise, np.full(len(t), np.nan)], 1)
+    r = field_reliability(t, rho)
+    assert r.shape == rho.shape
+    assert np.all(r[-100:, 0] > 20) and np.all(r[-100:, 1] < 0.5), (r[-1],)
+    assert np.all(r[:, 2] == 0)                        # a silent field is never reliable
+    later = rho.copy()
+    later[300:] = 5.0 * rng.standard_normal(later[300:].shape)
+    np.testing.assert_array_equal(field_reliability(t, later)[:300], r[:300])
+
+
+def test_reliability_gate_keeps_reliable_fields_unless_too_few_are():
+    from experiments.eye_velocity import reliability_gate
+
+    rel = np.array([[10.0, 6.0, 1.0, 0.5], [10.0, 1.0, 1.0, 0.5], [10.0, 6.0, 9.0, 0.5]])
+    fin = np.array([[True, True, True, True], [True, True, True, False], [True, True, False, True]])
+    used = reliability_gate(rel, fin, 5.0, 2)
+    np.testing.assert_array_equal(used, [[1, 1, 0, 0], [1, 1, 1, 0], [1, 1, 0, 0]])   # step 1: too few → all finite
+    np.testing.assert_array_equal(reliability_gate(rel, fin, 0.0, 2), fin)
+
+
+def test_fields_drowned_in_a_common_fast_noise_do_not_reach_the_readout():
+    """Most fields drowned in one fast noise (as a turn drowns, alike, the fields that see nothing near):
+    the readout's median takes the noise for expansion; gated by each field's reliability it reads the
+    clean fields only and keeps its accuracy. Analytic fields: ρ_f = v/D_f at fixed depths (ṙ = a/D)."""
+    from experiments.eye_velocity import reliability_gate
+    from lobula.eye_circuit import field_reliability
+    from lobula.readout import ReadoutConfig, readout
+
+    t = np.arange(0.0, 10.0, 0.02)
+    v = 0.5 + 0.3 * np.sin(2 * np.pi * 0.15 * t)
+    a = 0.3 * 2 * np.pi * 0.15 * np.cos(2 * np.pi * 0.15 * t)
+    rho = v[:, None] / np.linspace(1.0, 3.0, 40)
+    r2 = np.zeros_like(rho)
+    rho[:25] = np.nan                                         # the circuit's silent start-up
+    bad = np.arange(40) % 5 != 0                              # four fields in five
+    noisy = rho.copy()
+    noisy[:, bad] += 0.5 * np.random.default_rng(0).standard_normal(len(t))[:, None]
+    cfg = ReadoutConfig(filter="causal", min_valid_fraction=0.1, bias_prior_m_s2=0.01)
+
+    def rmse(r):
+        res = readout(t, r, np.where(np.isfinite(r), r2, np.nan), a, cfg)
+        k = (t > 3.0) & res.observable
+        assert k.sum() > 0.9 * (t > 3.0).sum()
+        return float(np.sqrt(np.mean((res.v_hat[k] - v[k]) ** 2)))
+
+    used = reliability_gate(field_reliability(t, noisy), np.isfinite(noisy), 5.0, 4)
+    assert used[t > 1.0][:, bad].mean() < 0.01 and used[t > 1.0][:, ~bad].mean() > 0.99
+    clean, gated, ungated = rmse(rho), rmse(np.where(used, noisy, np.nan)), rmse(noisy)
+    # Measured: clean 0.007, gated 0.006, ungated 0.39 m/s.
+    assert gated < 0.02 and clean < 0.02, (clean, gated)
+    assert ungated > 10 * gated, (ungated, gated)
+
+
+def test_the_eye_pipeline_gates_its_fields_by_their_reliability(eye_footage):
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity, reliability_gate
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(eye_footage)
+    ds = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True))
+    rel, used, r = ds.reliability.values, ds.field_used.values, ds.r.values
+    np.testing.assert_array_equal(used, reliability_gate(rel, np.isfinite(r), EyeVelocityConfig().reliability_min, 8))
+    assert not used[~np.isfinite(r)].any()
+    late = ds.time.values > ds.time.values[0] + 3.0
+    assert 0.05 < used[late].mean() < 0.95                  # it does select, and it leaves fields in
+    off = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True, reliability_min=0.0))
+    np.testing.assert_array_equal(off.field_used.values, np.isfinite(r))
+    with pytest.raises(ValueError, match="reliability_min"):
+        EyeVelocityConfig(reliability_min=-1.0)
