@@ -39,7 +39,17 @@ poor; the ratio and parallax maps report nothing where the translational flow a 
 scene point would make is below ``snr_min``·σ (:func:`lobula.depth_motion.translational_snr`:
 σ_d/d ≈ 1/SNR, so SNR 3 is a depth good to about ⅓). What is not known is not guessed:
 a pair whose speed is NaN (unobservable) or below ``min_speed_m_s`` gives an all-invalid
-map and is not solved.
+map and is not solved; so does a pair whose speed is known only to a relative std
+v_std/|v̂| above ``max_scale_rel_std`` (0.2): every pixel shares that scale error, so the
+map's metric scale is not known (``metric`` False) — NaN, not confidently wrong.
+
+**Which v̂.** ``lobula depth`` is offline (it reads the footage twice: the velocity pass,
+then the ranging), so it uses the velocity pipeline's default zero-phase v̂ (the RTS
+smoother): depth inherits v̂'s relative error one to one, and the smoother's error is the
+smaller (in the README's velocity suite, causal RMSE is 0.7–3.0× the zero-phase one per
+family, 2.6× on ``rotation`` and 3.0× on ``dim``, the two families where depth's scale is
+worst). An online user
+can pass a causal run with ``--velocity-run``; its larger v_std then masks more maps.
 """
 from __future__ import annotations
 
@@ -643,7 +653,9 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
 
     Output: dims ``time``, ``y``, ``x`` and ``ring``: ``depth`` (m, float32, NaN invalid),
     ``valid``, per time ``v_used``, ``v_hat``, ``v_true`` (with truth), ``epipole_x/y``
-    (seen at the first frame), ``ranged``, ``solve_ms``/``iterations`` (TV); with exact
+    (seen at the first frame), ``ranged``, ``metric`` (the speed's v_std/|v| ≤
+    ``run.max_scale_rel_std``: else the map's scale is unknown and the map all NaN),
+    ``scale_rel_std``, ``solve_ms``/``iterations`` (TV); with exact
     depth, per time and ring the :mod:`experiments.depth_score` scores and counts, and
     the same pooled over the ranged, scored maps (``pooled_*``, dim ``ring``).
     Attributes: units, the whole configuration (depth run, solvers, velocity pipeline) as
@@ -671,6 +683,9 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
         vcfg = velocity_config or VelocityConfig()
         flow_config(vcfg)                        # reject emd/flo before the long pass
         velocity = estimate_velocity(footage, vcfg, progress=progress)
+    if run.velocity == "estimate" and "v_std" not in velocity and math.isfinite(run.max_scale_rel_std):
+        raise FootageError(f"the velocity run ({velocity.attrs.get('footage', '?')}) has no v_std, so no map's "
+                           "metric scale can be judged; re-run `lobula velocity`, or pass --max-scale-rel-std inf")
     vcfg = VelocityConfig.from_json(velocity.attrs["config"])
     dcfg = run.depth
     labels, ring_lo, ring_hi = ring_edges(dcfg)

@@ -230,6 +230,9 @@ def test_maps_whose_scale_the_speed_cannot_fix_are_unobservable(synthetic, runs)
     np.testing.assert_array_equal(out.valid.values[keep], ref.valid.values[keep])
     np.testing.assert_allclose(out.depth.values[keep], ref.depth.values[keep], rtol=1e-6)
     assert "metric depth on" in format_scores(out)
+    # A velocity run without v_std cannot judge the scale: a one-line error, unless the bound is off.
+    with pytest.raises(FootageError, match="no v_std"):
+        estimate_depth(fo, run=run, velocity=doubtful.drop_vars("v_std"), progress=False)
     # The true speed has std 0: metric wherever it ranges.
     true = runs[("ratio", "truth")]
     assert true.metric.values[true.ranged.values].all() and float(true.attrs["max_scale_rel_std"]) == 0.2
