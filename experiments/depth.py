@@ -135,6 +135,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     d.add_argument("--max-range", type=float, default=run0.max_range_m,
                    help="scores count pixels whose exact depth is within this range (m); sky and farther pixels "
                         "are counted, not scored")
+    d.add_argument("--max-scale-rel-std", type=float, default=run0.max_scale_rel_std,
+                   help="a map whose speed is known only to a relative std v_std/|v| above this has no known "
+                        "metric scale and is reported as unobservable (all NaN, metric=False); inf keeps every map")
     d.add_argument("--tv-start", default="cold", choices=["cold", "warm"],
                    help="TV: coarse-to-fine per map (faster) or warm start from the previous map")
     d.add_argument("--min-speed", type=float, default=run0.min_speed_m_s,
@@ -155,7 +158,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 #: options of the two-pass footage route that the single ``--flo`` pair has no use for
 _FOOTAGE_ROUTE_ONLY = ("every", "velocity", "velocity_run", "dis_preset", "accel_from_truth", "unweighted",
-                       "snr_min", "tv_start", "min_speed", "average_frames", "plot_time", "front_end")
+                       "snr_min", "tv_start", "min_speed", "max_scale_rel_std", "average_frames", "plot_time", "front_end")
 
 
 def run_depth(args) -> int:
@@ -209,7 +212,8 @@ def run_depth(args) -> int:
     run = DepthRunConfig(method=args.method, every=args.every, velocity=args.velocity, epipole=args.epipole,
                          min_speed_m_s=args.min_speed, tv_start=args.tv_start, device=args.device,
                          weighted=not args.unweighted, snr_min=args.snr_min, max_range_m=args.max_range,
-                         average_frames=args.average_frames, depth=dcfg)
+                         average_frames=args.average_frames, max_scale_rel_std=args.max_scale_rel_std,
+                         depth=dcfg)
     ds = estimate_depth(footage, velocity_config=vcfg, run=run, velocity=velocity, out=out,
                         progress=not args.quiet)
     print(f"wrote {out}: {ds.sizes['time']} maps of {ds.sizes['x']}x{ds.sizes['y']} "

@@ -123,8 +123,13 @@ def format_scores(ds: xr.Dataset) -> str:
     """The scores table and solver timing as text (what ``lobula depth`` prints)."""
     lines = []
     n, nr = ds.sizes["time"], int(ds.ranged.sum())
+    scale = ""
+    if "metric" in ds:
+        nm = int((~ds.metric.values.astype(bool)).sum())
+        scale = (f"; {nm} of them with the speed's relative std above {ds.attrs.get('max_scale_rel_std', '?')}: "
+                 f"scale unknown, reported as unobservable; metric depth on {nr}/{n} = {nr / max(n, 1):.0%} of maps")
     lines.append(f"method {ds.attrs.get('method')}: {n} maps ({nr} ranged, {n - nr} with unusable velocity: "
-                 f"all invalid), depth at each pair's first frame; v: {ds.attrs.get('velocity_source', '?')}")
+                 f"all invalid{scale}), depth at each pair's first frame; v: {ds.attrs.get('velocity_source', '?')}")
     sc = pooled_scores(ds)
     if sc:
         a = sc["all"]

@@ -39,7 +39,17 @@ poor; the ratio and parallax maps report nothing where the translational flow a 
 scene point would make is below ``snr_min``·σ (:func:`lobula.depth_motion.translational_snr`:
 σ_d/d ≈ 1/SNR, so SNR 3 is a depth good to about ⅓). What is not known is not guessed:
 a pair whose speed is NaN (unobservable) or below ``min_speed_m_s`` gives an all-invalid
-map and is not solved.
+map and is not solved; so does a pair whose speed is known only to a relative std
+v_std/|v̂| above ``max_scale_rel_std`` (0.2): every pixel shares that scale error, so the
+map's metric scale is not known (``metric`` False) — NaN, not confidently wrong.
+
+**Which v̂.** ``lobula depth`` is offline (it reads the footage twice: the velocity pass,
+then the ranging), so it uses the velocity pipeline's default zero-phase v̂ (the RTS
+smoother): depth inherits v̂'s relative error one to one, and the smoother's error is the
+smaller (in the README's velocity suite, causal RMSE is 0.7–3.0× the zero-phase one per
+family, 2.6× on ``rotation`` and 3.0× on ``dim``, the two families where depth's scale is
+worst). An online user
+can pass a causal run with ``--velocity-run``; its larger v_std then masks more maps.
 """
 from __future__ import annotations
 
@@ -61,7 +71,7 @@ from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
 from lobula.haltere import orientation_from_gyro
 from stimuli.footage import Footage, FootageError, footage_provenance
 
-__all__ = ["METHODS", "FOOTAGE_GAMMA", "DepthRunConfig", "Pair", "estimate_depth", "attitude_track", "pair_rotation",
+__all__ = ["METHODS", "FOOTAGE_GAMMA", "DepthRunConfig", "Pair", "estimate_depth", "metric_scale", "attitude_track", "pair_rotation",
            "depth_at_first_frame", "ranged_pairs", "depth_flow_fn", "footage_attitude", "flow_config", "mean_truth_velocity", "torch_threads",
            "ring_edges"]
 
@@ -121,6 +131,17 @@ class DepthRunConfig:
     device: torch device of the TV solver ("cpu", "cuda"). threads: torch CPU threads
     while solving (1 by default: at 320×240 a second thread on a shared 2-core machine
     made solves 2× slower; 0 leaves torch's setting). batch: maps per Zarr append.
+    max_scale_rel_std: the largest relative std of the speed, v_std/|v| (the map's scale
+    uncertainty, 1σ), at which a map is still reported in metres. Depth is v times what the
+    flow says of 1/d, so a speed known to ±30 % gives every pixel of the map the same ±30 %:
+    such a map is *not metric*, and it is reported as unobservable (depth NaN, ``valid``
+    False, ``metric`` False) rather than confidently wrong, as v̂ itself is NaN where its
+    std exceeds 0.1 m/s. 0.2 (default): a scale good to 20 % at 1σ, i.e. a median scale
+    error of about 0.13 — the most a map can carry and still meet a median AbsRel of 0.2
+    with the TV fit's own error of about 0.05 beside it (issue 10's bound; this is a
+    statement of that bound, not a value fitted to scenes). ``math.inf`` disables it; the
+    true speed (``velocity="truth"``) has std 0 and is always metric. A NaN std (a velocity
+    run without one) counts as unknown scale, hence not metric, unless the bound is inf.
     depth: the solvers' settings. Its TV weight defaults here to γ = 1e-6, not
     DepthConfig's 1e-4 (tuned on white flow noise of 0.005–0.02 1/s): DIS flow on the
     synthetic track scenes has a robust noise level of 0.001–0.003 1/s, where γ = 1e-4
@@ -139,6 +160,7 @@ class DepthRunConfig:
     snr_min: float = 3.0
     noise_window_deg: float = 3.0
     max_range_m: float = 20.0
+    max_scale_rel_std: float = 0.2
     tv_start: str = "cold"
     device: str = "cpu"
     threads: int = 1
@@ -168,6 +190,9 @@ class DepthRunConfig:
             raise ValueError(f"noise_window_deg must be > 0 degrees, got {self.noise_window_deg}")
         if not self.max_range_m > 0:
             raise ValueError(f"max_range_m must be > 0 m, got {self.max_range_m}")
+        if not self.max_scale_rel_std > 0:
+            raise ValueError(f"max_scale_rel_std must be > 0 (a relative std; inf disables), got "
+                             f"{self.max_scale_rel_std}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -283,7 +308,9 @@ class Pair:
     """One flow pair of a depth run. flow: (2, H, W) measured normalised flow (1/s), None
     when the pair is not ranged; rotation: R₀₁ from the gyro (None without one); e: the
     heading seen at the first frame (normalised); v_hat / v_true (NaN when absent) and v,
-    the one the run uses; v_std: v̂'s posterior std (m/s; NaN when the run has none)."""
+    the one the run uses; v_std: v̂'s posterior std (m/s; NaN when the run has none);
+    metric: v_std/|v| within the run's ``max_scale_rel_std`` (:func:`metric_scale`); a pair
+    is ranged only when its speed is usable *and* metric."""
 
     k: int
     i0: int
@@ -298,10 +325,24 @@ class Pair:
     rotation: np.ndarray | None = None
     flow: np.ndarray | None = None
     v_std: float = float("nan")
+    metric: bool = True
 
     @property
     def dt(self) -> float:
         return self.t1 - self.t0
+
+
+def metric_scale(v: float, v_std: float, max_scale_rel_std: float) -> tuple[float, bool]:
+    """(scale_rel_std, metric) of a map ranged with speed v (m/s) known to v_std (m/s, 1σ).
+
+    scale_rel_std = v_std/|v|: every pixel's depth is v times what the flow says of 1/d,
+    so the whole map shares this relative std. metric: it is within ``max_scale_rel_std``
+    (always when that is inf; never when v is 0 or not finite, or v_std is NaN).
+    """
+    rel = abs(v_std / v) if (math.isfinite(v) and v != 0.0) else float("nan")
+    if math.isinf(max_scale_rel_std):
+        return rel, bool(math.isfinite(v) and v != 0.0)
+    return rel, bool(math.isfinite(rel) and rel <= max_scale_rel_std)
 
 
 def mean_truth_velocity(truth: dict, t0: float, t1: float) -> float:
@@ -511,9 +552,12 @@ def ranged_pairs(footage: Footage, velocity, run: DepthRunConfig, timings: dict 
         v_true = mean_truth_velocity(footage.truth, t0, t1) if footage.truth is not None else float("nan")
         v = v_true if run.velocity == "truth" else v_hat
         e = (float(e[0]), float(e[1]))
-        ranged = bool(math.isfinite(v) and abs(v) >= run.min_speed_m_s and all(map(math.isfinite, e)))
-        pair = Pair(k, i0, i1, t0, t1, v_hat, v_true, v, e, ranged,
-                    v_std=0.0 if run.velocity == "truth" else float(v_std_all[k]))
+        usable = bool(math.isfinite(v) and abs(v) >= run.min_speed_m_s and all(map(math.isfinite, e)))
+        v_std = 0.0 if run.velocity == "truth" else float(v_std_all[k])
+        _, metric = metric_scale(v, v_std, run.max_scale_rel_std)
+        # A map whose scale the speed cannot fix is unobservable, like a pair without a speed.
+        ranged = usable and metric
+        pair = Pair(k, i0, i1, t0, t1, v_hat, v_true, v, e, ranged, v_std=v_std, metric=metric)
         if ranged:
             r0, tf = read.read_s, _time.perf_counter()
             a, b = image(i0), image(i1)
@@ -563,7 +607,10 @@ def _build_dataset(records: list[dict], labels, ring_lo, ring_hi, H: int, W: int
         epipole_y=("time", [r["e"][1] for r in records],
                    {"units": "1", "long_name": "epipole seen at the pair's first frame, normalised y"}),
         ranged=("time", np.array([r["ranged"] for r in records], bool),
-                {"long_name": "velocity usable (finite, |v| ≥ min_speed_m_s): map solved"}),
+                {"long_name": "velocity usable (finite, |v| ≥ min_speed_m_s) and metric: map solved"}),
+        metric=("time", np.array([r["metric"] for r in records], bool),
+                {"long_name": "the map's scale is known: scale_rel_std ≤ max_scale_rel_std (else the map is "
+                 "unobservable: all NaN)"}),
         solve_ms=("time", [r["solve_ms"] for r in records],
                   {"units": "ms", "long_name": "depth solver time for this map (NaN: not solved)"}),
         iterations=("time", np.array([r["iterations"] for r in records], np.int32),
@@ -606,7 +653,9 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
 
     Output: dims ``time``, ``y``, ``x`` and ``ring``: ``depth`` (m, float32, NaN invalid),
     ``valid``, per time ``v_used``, ``v_hat``, ``v_true`` (with truth), ``epipole_x/y``
-    (seen at the first frame), ``ranged``, ``solve_ms``/``iterations`` (TV); with exact
+    (seen at the first frame), ``ranged``, ``metric`` (the speed's v_std/|v| ≤
+    ``run.max_scale_rel_std``: else the map's scale is unknown and the map all NaN),
+    ``scale_rel_std``, ``solve_ms``/``iterations`` (TV); with exact
     depth, per time and ring the :mod:`experiments.depth_score` scores and counts, and
     the same pooled over the ranged, scored maps (``pooled_*``, dim ``ring``).
     Attributes: units, the whole configuration (depth run, solvers, velocity pipeline) as
@@ -634,6 +683,9 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
         vcfg = velocity_config or VelocityConfig()
         flow_config(vcfg)                        # reject emd/flo before the long pass
         velocity = estimate_velocity(footage, vcfg, progress=progress)
+    if run.velocity == "estimate" and "v_std" not in velocity and math.isfinite(run.max_scale_rel_std):
+        raise FootageError(f"the velocity run ({velocity.attrs.get('footage', '?')}) has no v_std, so no map's "
+                           "metric scale can be judged; re-run `lobula velocity`, or pass --max-scale-rel-std inf")
     vcfg = VelocityConfig.from_json(velocity.attrs["config"])
     dcfg = run.depth
     labels, ring_lo, ring_hi = ring_edges(dcfg)
@@ -659,7 +711,7 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
         for p in tqdm(pairs, total=math.ceil(n_pairs / int(run.every)), desc=f"depth ({run.method})", unit="map",
                       disable=not progress, leave=False, mininterval=2):
             rec = dict(frame=p.i0, t0=p.t0, t1=p.t1, v_used=p.v, v_hat=p.v_hat, v_std=p.v_std, v_true=p.v_true, e=p.e,
-                       ranged=p.ranged, solve_ms=float("nan"), iterations=-1, scores=None)
+                       ranged=p.ranged, metric=p.metric, solve_ms=float("nan"), iterations=-1, scores=None)
             if p.ranged:
                 gyro_used |= p.rotation is not None
                 init = _rescaled(prev_tv, p.v / prev_v) if (run.tv_start == "warm" and prev_tv is not None) else None
@@ -713,7 +765,7 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
             frames_averaged=(f"{2 * frames_averaged(run, footage_attitude(footage, vcfg)) + 1} (frames i-k..i+k "
                              "turned into frame i's orientation by the gyro, then averaged)"),
             depth_reference="first frame of each flow pair: d0 = v/z + v*dt (time = t0, frame = first index)",
-            max_range_m=run.max_range_m,
+            max_range_m=run.max_range_m, max_scale_rel_std=run.max_scale_rel_std,
             near_epipole=("tv: data weighted by the flow's relative precision 1/sigma^2, TV fills in"
                           if run.method == "tv" else
                           f"{run.method}: invalid where predicted translational flow < {run.snr_min:g} sigma"),

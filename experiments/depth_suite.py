@@ -3,8 +3,10 @@
 ``lobula depth-suite --out DIR`` renders each (family, seed) scene with
 the suite's own generator (:func:`experiments.suite.family_config`: the realistic IMU
 mounted rotated, every family's geometry, texture, rotation and profile from the seed),
-short (6 s, 160×120 by default; pairs of the first 2 s, while the velocity readout
-locks on, are not scored) with exact depth every ``--every`` frames; runs the
+short (6 s at 160×120 by default; ``lobula suite`` renders 10 s at 320×240, where v̂ and so
+the depth's scale are better, at about 7× the cost: ``--duration 10 --scale 0.5``; pairs of
+the first 2 s, while the velocity readout locks on, are not scored) with exact depth
+every ``--every`` frames (5); runs the
 velocity pipeline once; then for every flow pair whose first frame has exact depth it
 computes the depth pass's flow once and ranges it with every method, for two speed
 sources:
@@ -27,11 +29,22 @@ a pair the method cannot range (v̂ unobservable or slow) counts as zero coverag
 Metrics pooled over a scene's maps: median and mean AbsRel, δ<1.25, RMSE(log),
 coverage; then mean ± sd over seeds.
 
-Measured with the defaults (seeds 0–2, commit f3d6c47; TV median AbsRel, mean over
-seeds): with the exact speed 0.035–0.14 on every family (``dim`` the worst), against
-0.27–0.38 for the oracle constant; with v̂ of the default pipeline 0.06–0.16 on seven
-families, 0.26 on ``rotation`` and 0.32 on ``dim``, where v̂ itself errs most: depth
-inherits v̂'s relative error one to one.
+**Honest scale.** Depth is v times what the flow says of 1/d, so a map inherits v̂'s
+relative error one to one, whatever the solver does. As ``lobula depth`` reports them, maps
+whose speed has v_std/|v| above ``--max-scale-rel-std`` (0.2) have no known metric scale
+and are unobservable: the headline ``median_abs_rel`` is over the maps with a known scale,
+``metric_fraction`` says how many those are (never hidden: the table prints it beside),
+``median_abs_rel_all`` is the same error over every map the speed could range (nothing
+masked for scale) and ``si_median_abs_rel`` the scale-invariant error (each map scaled by
+median(d/d̂) first: the geometry's error alone). ``METRIC_DOC`` defines each metric.
+
+Measured with the defaults (seeds 0–2, cached scenes, TV median AbsRel mean over seeds,
+maps of known scale): with v̂ 0.06–0.11 on seven families, 0.193 on ``rotation`` (seed 1:
+0.337) and 0.194 on ``dim`` (seed 2: 0.228), with 70 % and 56 % of the maps metric (60 % on
+``offaxis``, 94–100 % elsewhere); unmasked 0.262 and 0.325 there; scale-invariant 0.03–0.13
+on every family; exact speed 0.035–0.141. 100–300 s a scene on the shared, loaded 2-core
+machine (about 25 s unloaded); ``--workers N`` runs N scenes at once (processes),
+``--device cuda`` solves TV on a GPU.
 
 Outputs in DIR: ``depth_suite.nc`` (family × seed × source × estimator × metric; "method" would clash with
 xarray's ``sel`` keyword),
@@ -59,7 +72,22 @@ from .store import seed_summary
 SOURCES = ("estimate", "estimate_medium", "truth")
 METHODS = ("ratio", "tv", "parallax", "constant", "tv exact flow")
 METRICS = ("median_abs_rel", "abs_rel", "delta_1_25", "rmse_log", "valid_fraction", "sky_far_fraction",
-           "n_maps")
+           "n_maps", "metric_fraction", "median_abs_rel_all", "valid_fraction_all", "si_median_abs_rel")
+#: what each metric is (the NetCDF's ``metric_description`` and the module doc)
+METRIC_DOC = dict(
+    median_abs_rel="median |d̂−d|/d over the scored pixels of the maps with a known metric scale (speed's "
+                   "v_std/|v| ≤ max_scale_rel_std): what `lobula depth` reports; the others are unobservable",
+    abs_rel="mean |d̂−d|/d, the same pixels", delta_1_25="fraction within 1.25×, the same pixels",
+    rmse_log="RMS of ln d̂ − ln d, the same pixels",
+    valid_fraction="coverage: scored pixels with a metric estimate / scored pixels of every moving pair "
+                   "(unobservable maps count as uncovered)",
+    sky_far_fraction="pixels without a surface or beyond --max-range (not scored)", n_maps="maps scored",
+    metric_fraction="fraction of the moving scored pairs whose map has a known metric scale",
+    median_abs_rel_all="median AbsRel over every map the speed could range, scale known or not (nothing masked "
+                       "for scale)",
+    valid_fraction_all="coverage of that unmasked set",
+    si_median_abs_rel="scale-invariant median AbsRel: each map multiplied by median(d/d̂) over its scored pixels "
+                      "first (the geometry's error without the scale's), every map the speed could range")
 MOVING_M_S = 0.03
 
 
@@ -81,17 +109,38 @@ def _scene(out: Path, family: str, seed: int, duration_s: float, scale: float, e
     return folder, cfg
 
 
+def _scale_free(d: np.ndarray, true: np.ndarray, ok: np.ndarray, max_range_m: float) -> np.ndarray:
+    """d times median(true/d) over the pixels it is scored on (the scale-invariant map); NaN map if none."""
+    from lobula.depth import scorable
+
+    m = ok & scorable(true, max_range_m)[0] & np.isfinite(d) & (d > 0)
+    if not m.any():
+        return np.full(d.shape, np.nan)
+    return d * float(np.median(true[m] / d[m]))
+
+
 def range_scene(footage, velocity, scene, run: DepthRunConfig, depth_every: int,
-                keep_map: int | None = None, skip_s: float = 0.0, v_medium=None) -> tuple[dict, dict]:
+                keep_map: int | None = None, skip_s: float = 0.0, v_medium=None,
+                v_std_medium=None) -> tuple[dict, dict]:
     """Every source × method on the pairs of a footage that have exact depth.
 
     scene: the stimuli TrackScene the footage was rendered from (for the exact flow);
     depth_every: frames between its exact depth maps; skip_s: pairs starting earlier are
-    not scored (the velocity readout's lock-on). v_medium: v̂ per pair (observable, else
-    NaN) of the velocity run with DIS "medium", for the source ``estimate_medium``.
-    Returns ({(source, method): pooled ring scores}, {"frame": ..., maps} of the pair
-    nearest ``keep_map``-th scored pair for the figure).
+    not scored (the velocity readout's lock-on). v_medium, v_std_medium: v̂ per pair
+    (observable, else NaN) of the velocity run with DIS "medium" and its std, for the source
+    ``estimate_medium``.
+
+    Each source × method pools three ways: "metric" — as ``lobula depth`` reports, a map
+    whose speed has v_std/|v| above ``run.max_scale_rel_std`` is unobservable (no pixel
+    covered; :func:`experiments.depth_stream.metric_scale`); "all" — every map the speed can
+    range, scale known or not; "si" — the same maps, each scaled by median(d/d̂) first
+    (scale-invariant). The constant oracle and the true speed are always metric.
+    Returns ({(source, method): {"metric"|"all"|"si": (pooled ring scores, n_maps),
+    "n_pairs": moving scored pairs, "n_metric": of them metric}}, the sample maps of the
+    ``keep_map``-th scored pair for the figure).
     """
+    from .depth_stream import metric_scale
+
     from lobula.depth import angle_from_epipole
 
     cam = footage.camera
@@ -100,7 +149,10 @@ def range_scene(footage, velocity, scene, run: DepthRunConfig, depth_every: int,
     n_pairs = len(footage) - gap
     starts = list(range(0, n_pairs, depth_every))
     every_run = replace(run, velocity="truth", min_speed_m_s=0.0)    # flow for every pair; speeds chosen below
-    pooled = {(s, m): PooledScores(labels, run.max_range_m) for s in SOURCES for m in METHODS}
+    pooled = {(s, m, w): PooledScores(labels, run.max_range_m) for s in SOURCES for m in METHODS
+              for w in ("metric", "all", "si")}
+    n_metric = {s: 0 for s in SOURCES}
+    v_std_all = velocity.v_std.values.astype(float)
     sample = {}
     n_scored = 0
     for p in ranged_pairs(footage, velocity, every_run, starts=starts):
@@ -112,7 +164,11 @@ def range_scene(footage, velocity, scene, run: DepthRunConfig, depth_every: int,
         for s in SOURCES:
             v = {"estimate": p.v_hat, "truth": p.v_true,
                  "estimate_medium": float(v_medium[p.k]) if v_medium is not None else float("nan")}[s]
+            v_std = {"estimate": float(v_std_all[p.k]), "truth": 0.0,
+                     "estimate_medium": float(v_std_medium[p.k]) if v_std_medium is not None else float("nan")}[s]
             usable = math.isfinite(v) and abs(v) >= run.min_speed_m_s
+            metric = usable and metric_scale(v, v_std, run.max_scale_rel_std)[1]
+            n_metric[s] += int(metric)
             e_used = p.e
             for m in METHODS:
                 if not usable:
@@ -133,9 +189,18 @@ def range_scene(footage, velocity, scene, run: DepthRunConfig, depth_every: int,
                     if s in ("estimate", "truth") and m == "tv" and keep_map is not None and n_scored == keep_map:
                         sample.update(frame=p.i0, t0=p.t0, v_true=p.v_true, true=true)
                         sample[s] = dict(v=v, depth=d, valid=ok)
-                pooled[(s, m)].add(d, true, ok, ring_masks(angle_from_epipole(cam, e_used), labels, lo, hi))
+                rings = ring_masks(angle_from_epipole(cam, e_used), labels, lo, hi)
+                pooled[(s, m, "all")].add(d, true, ok, rings)
+                pooled[(s, m, "si")].add(_scale_free(d, true, ok, run.max_range_m), true, ok, rings)
+                known = metric or m == "constant"
+                pooled[(s, m, "metric")].add(d, true, ok & known, rings)
         n_scored += 1
-    return {k: (acc.result(), acc.n_maps) for k, acc in pooled.items()}, sample
+    out = {}
+    for s in SOURCES:
+        for m in METHODS:
+            out[(s, m)] = {w: (pooled[(s, m, w)].result(), pooled[(s, m, w)].n_maps) for w in ("metric", "all", "si")}
+            out[(s, m)].update(n_pairs=n_scored, n_metric=n_scored if m == "constant" else n_metric[s])
+    return out, sample
 
 
 def run_one(out: Path, family: str, seed: int, args) -> dict:
@@ -158,10 +223,10 @@ def run_one(out: Path, family: str, seed: int, args) -> dict:
     vmed = estimate_velocity(footage, mcfg, progress=False)
     v_medium = np.where(vmed.observable.values.astype(bool), vmed.v_hat.values, np.nan)
     scene, _ = build_track(cfg)
-    run = DepthRunConfig(max_range_m=args.max_range, average_frames=args.average_frames)
+    run = _run_config(args)
     with torch_threads(1):
         scores, sample = range_scene(footage, velocity, scene, run, cfg.depth_every, keep_map=args.sample_map,
-                                     skip_s=args.skip, v_medium=v_medium)
+                                     skip_s=args.skip, v_medium=v_medium, v_std_medium=vmed.v_std.values)
     frame = None
     if sample:
         _, _, frame = next(footage.frames(sample["frame"], sample["frame"] + 1))
@@ -174,11 +239,20 @@ def run_one(out: Path, family: str, seed: int, args) -> dict:
                 v_hat_rmse_medium=rmse(vmed), seconds=_time.perf_counter() - t0)
 
 
-def _metric_values(res: dict, n_maps: int) -> list[float]:
-    a = res["all"]
+def _run_config(args) -> DepthRunConfig:
+    return DepthRunConfig(max_range_m=args.max_range, average_frames=args.average_frames,
+                          max_scale_rel_std=args.max_scale_rel_std, device=args.device)
+
+
+def _metric_values(res: dict) -> list[float]:
+    """The METRICS of one scene's (source, method) entry of :func:`range_scene`."""
+    (met, n_maps), (al, _), (si, _) = res["metric"], res["all"], res["si"]
+    a = met["all"]
     total = a["n_true"] + a["n_sky"] + a["n_far"]
+    frac = res["n_metric"] / res["n_pairs"] if res["n_pairs"] else float("nan")
     return [a["median_abs_rel"], a["abs_rel"], a["delta_1_25"], a["rmse_log"], a["valid_fraction"],
-            (a["n_sky"] + a["n_far"]) / total if total else float("nan"), float(n_maps)]
+            (a["n_sky"] + a["n_far"]) / total if total else float("nan"), float(n_maps), frac,
+            al["all"]["median_abs_rel"], al["all"]["valid_fraction"], si["all"]["median_abs_rel"]]
 
 
 def _per_scene(records, families, seeds, key) -> np.ndarray:
@@ -193,8 +267,8 @@ def collect(records: list[dict], families, seeds, attrs: dict):
     arr = np.full((len(families), len(seeds), len(SOURCES), len(METHODS), len(METRICS)), np.nan)
     for r in records:
         i, j = families.index(r["family"]), seeds.index(r["seed"])
-        for (s, m), (res, n) in r["scores"].items():
-            arr[i, j, SOURCES.index(s), METHODS.index(m)] = _metric_values(res, n)
+        for (s, m), res in r["scores"].items():
+            arr[i, j, SOURCES.index(s), METHODS.index(m)] = _metric_values(res)
     ds = xr.Dataset(
         dict(score=(("family", "seed", "source", "estimator", "metric"), arr,
                     {"long_name": "depth scores pooled over each scene's maps (ring 'all')"}),
@@ -203,7 +277,8 @@ def collect(records: list[dict], families, seeds, attrs: dict):
              v_hat_rmse_medium=(("family", "seed"), _per_scene(records, families, seeds, "v_hat_rmse_medium"),
                                 {"units": "m/s", "long_name": "RMSE of v̂ (DIS medium) after the skip"})),
         coords=dict(family=list(families), seed=list(seeds), source=list(SOURCES), estimator=list(METHODS),
-                    metric=list(METRICS)))
+                    metric=list(METRICS),
+                    metric_description=("metric", [METRIC_DOC[k] for k in METRICS])))
     ds.attrs.update(attrs)
     return ds
 
@@ -220,18 +295,27 @@ def table_rows(ds) -> list[dict]:
     return rows
 
 
-def format_table(rows, source: str) -> str:
-    """A Markdown table of one speed source: family × method, median AbsRel mean ± sd, coverage."""
+def format_table(rows, source: str, max_scale_rel_std: float | None = None) -> str:
+    """A Markdown table of one speed source: family × method, median AbsRel mean ± sd, coverage,
+    and for TV the metric-depth fraction, the unmasked and the scale-invariant median AbsRel."""
     fams = list(dict.fromkeys(r["family"] for r in rows))
-    head = "| family | " + " | ".join(f"{m}" for m in METHODS) + " | TV δ<1.25 | TV RMSE(log) | TV coverage |"
-    lines = [f"median AbsRel (mean ± sd over seeds), speed: {source}", "", head,
-             "|" + "---|" * (len(METHODS) + 4)]
+    head = ("| family | " + " | ".join(f"{m}" for m in METHODS) + " | TV δ<1.25 | TV RMSE(log) | TV coverage "
+            "| metric maps | TV, every map (unmasked) | TV scale-invariant |")
+    bound = "" if max_scale_rel_std is None else f" ≤ {max_scale_rel_std:g}"
+    lines = [f"median AbsRel (mean ± sd over seeds), speed: {source}; maps with a known scale (v_std/|v|{bound}), "
+             "the others unobservable", "", head, "|" + "---|" * (len(METHODS) + 7)]
+
+    def ms(r, k):
+        # A seed without a metric map has no error to average: say how many seeds the mean is over.
+        short = f" (n={r[k + '_n']})" if r[k + "_n"] < r["n_maps_n"] else ""
+        return f"{r[k + '_mean']:.3f} ± {r[k + '_sd']:.3f}{short}"
     for f in fams:
         by = {r["method"]: r for r in rows if r["family"] == f and r["source"] == source}
-        cells = [f"{by[m]['median_abs_rel_mean']:.3f} ± {by[m]['median_abs_rel_sd']:.3f}" for m in METHODS]
+        cells = [ms(by[m], "median_abs_rel") for m in METHODS]
         tv = by["tv"]
         lines.append(f"| {f} | " + " | ".join(cells) + f" | {tv['delta_1_25_mean']:.2f} | {tv['rmse_log_mean']:.3f} "
-                     f"| {100 * tv['valid_fraction_mean']:.0f}% |")
+                     f"| {100 * tv['valid_fraction_mean']:.0f}% | {100 * tv['metric_fraction_mean']:.0f}% "
+                     f"| {ms(tv, 'median_abs_rel_all')} | {ms(tv, 'si_median_abs_rel')} |")
     return "\n".join(lines)
 
 
@@ -249,15 +333,32 @@ def plot_suite(ds, path) -> Path:
     colours = dict(zip(METHODS, ["tab:blue", "tab:red", "tab:green", "0.6", "tab:purple"]))
     w = 0.8 / len(METHODS)
     x = np.arange(len(fams))
+    import warnings
+
+    def seed_mean_sd(v):
+        with warnings.catch_warnings():          # a family with no metric map on any seed: NaN, no bar
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(v, 1)
+            sd = np.nanstd(v, 1, ddof=1) if v.shape[1] > 1 else np.zeros_like(mean)
+        return mean, sd
+
     for ax, s in zip(axes, SOURCES):
         for j, m in enumerate(METHODS):
             v = ds.score.sel(source=s, estimator=m, metric="median_abs_rel").values
             cov = ds.score.sel(source=s, estimator=m, metric="valid_fraction").values
-            mean = np.nanmean(v, 1)
-            sd = np.nanstd(v, 1, ddof=1) if v.shape[1] > 1 else np.zeros_like(mean)
-            ax.bar(x + (j - (len(METHODS) - 1) / 2) * w, mean, w, yerr=sd, color=colours[m], label=m, capsize=2)
+            mean, sd = seed_mean_sd(v)
+            xj = x + (j - (len(METHODS) - 1) / 2) * w
+            ax.bar(xj, mean, w, yerr=sd, color=colours[m], label=m, capsize=2)
+            if m == "tv":
+                # Beside the bar (metric maps only): every map unmasked (—) and scale-invariant (×).
+                un = seed_mean_sd(ds.score.sel(source=s, estimator=m, metric="median_abs_rel_all").values)[0]
+                si = seed_mean_sd(ds.score.sel(source=s, estimator=m, metric="si_median_abs_rel").values)[0]
+                ax.scatter(xj, un, marker="_", s=120, color="k", zorder=3,
+                           label="tv, every map (unmasked)" if s == SOURCES[0] else None)
+                ax.scatter(xj, si, marker="x", s=18, color="k", zorder=3,
+                           label="tv, scale-invariant" if s == SOURCES[0] else None)
             if m in ("ratio", "tv"):
-                for xi, (mi, ci) in enumerate(zip(mean, np.nanmean(cov, 1))):
+                for xi, (mi, ci) in enumerate(zip(mean, seed_mean_sd(cov)[0])):
                     if np.isfinite(mi):
                         ax.text(xi + (j - (len(METHODS) - 1) / 2) * w, mi + 0.01, f"{100 * ci:.0f}%",
                                 ha="center", va="bottom", fontsize=5.5, rotation=90)
@@ -271,8 +372,9 @@ def plot_suite(ds, path) -> Path:
         rm = {"estimate": "v_hat_rmse", "estimate_medium": "v_hat_rmse_medium"}.get(s)
         extra = ("; v̂ RMSE per family: " + ", ".join(f"{float(x):.2f}" for x in ds[rm].mean("seed").values)
                  if rm else "")
-        ax.set_title(f"speed: {what} (numbers over bars: coverage of ratio / TV; dashed: 0.2){extra}", fontsize=8)
-    axes[0].legend(ncol=5, fontsize=8, loc="upper left")
+        ax.set_title(f"speed: {what}{extra}\nbars: maps with a known scale; over bars: coverage of ratio / TV "
+                     f"(unobservable maps uncovered); dashed: 0.2", fontsize=8)
+    axes[0].legend(ncol=4, fontsize=7, loc="upper left")
     axes[-1].set_xticks(x, fams)
     fig.suptitle(f"lobula depth on the suite's families: {ds.attrs.get('scene_summary', '')}", fontsize=10)
     save_figure(fig, path, dpi=150)
@@ -323,6 +425,18 @@ def plot_maps(records: list[dict], path, max_range_m: float) -> Path:
     return Path(path)
 
 
+def _print_scene(r: dict) -> None:
+    tv = r["scores"][("estimate", "tv")]
+    a, a_all, a_si = (tv[w][0]["all"] for w in ("metric", "all", "si"))
+    b = r["scores"][("truth", "tv")]["metric"][0]["all"]
+    c = r["scores"][("estimate_medium", "tv")]["metric"][0]["all"]
+    print(f"{r['family']}-s{r['seed']}: TV median AbsRel {a['median_abs_rel']:.3f} (v̂, metric maps "
+          f"{tv['n_metric']}/{tv['n_pairs']}, coverage {a['valid_fraction']:.2f}; every map "
+          f"{a_all['median_abs_rel']:.3f}, scale-invariant {a_si['median_abs_rel']:.3f}), "
+          f"{c['median_abs_rel']:.3f} (v̂ DIS medium), {b['median_abs_rel']:.3f} (true v); v̂ RMSE "
+          f"{r['v_hat_rmse']:.3f} / {r['v_hat_rmse_medium']:.3f} m/s [{r['seconds']:.0f} s]", flush=True)
+
+
 def run_depth_suite(args) -> int:
     """Handler of ``lobula depth-suite``: returns 0."""
     from .store import provenance, write_csv, write_netcdf, write_text
@@ -337,22 +451,31 @@ def run_depth_suite(args) -> int:
         raise ValueError("--every must be ≥ 1, --duration > --skip + 1 s, --scale > 0")
     seeds = parse_seeds(args.seeds)
     seeds = list(range(seeds)) if isinstance(seeds, int) else seeds
+    if args.workers < 1:
+        raise ValueError(f"--workers must be ≥ 1, got {args.workers}")
     out.mkdir(parents=True, exist_ok=True)
     records = []
-    for f in families:
-        for s in seeds:
-            r = run_one(out, f, s, args)
+    jobs = [(f, s) for f in families for s in seeds]
+    pool = None
+    if args.workers > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        # spawn, not fork: a worker may start CUDA (--device cuda), which a forked child cannot.
+        pool = ProcessPoolExecutor(max_workers=args.workers, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        done = (pool.map(run_one, [out] * len(jobs), *zip(*jobs), [args] * len(jobs)) if pool is not None
+                else (run_one(out, f, s, args) for f, s in jobs))
+        for r in done:                               # in job order, whatever order the workers finish in
             records.append(r)
-            a = r["scores"][("estimate", "tv")][0]["all"]
-            b = r["scores"][("truth", "tv")][0]["all"]
-            c = r["scores"][("estimate_medium", "tv")][0]["all"]
-            print(f"{f}-s{s}: TV median AbsRel {a['median_abs_rel']:.3f} (v̂, coverage {a['valid_fraction']:.2f}), "
-                  f"{c['median_abs_rel']:.3f} (v̂ DIS medium), {b['median_abs_rel']:.3f} (true v); v̂ RMSE "
-                  f"{r['v_hat_rmse']:.3f} / {r['v_hat_rmse_medium']:.3f} m/s [{r['seconds']:.0f} s]", flush=True)
+            _print_scene(r)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
     summary = (f"{len(seeds)} seeds ({', '.join(map(str, seeds))}), {args.duration:g} s (scored after {args.skip:g} s), "
                f"scale {args.scale:g}, "
                f"depth every {args.every} frames, scored ≤ {args.max_range:g} m, {args.imu} IMU ({args.imu_mount})")
-    run = DepthRunConfig(max_range_m=args.max_range, average_frames=args.average_frames)
+    run = _run_config(args)
     attrs = provenance(json.dumps(dict(depth_run=run.to_dict(), args=vars(args)), sort_keys=True, default=str),
                        scene_summary=summary, sources="estimate: v̂ of the velocity pipeline; truth: exact mean "
                        "forward velocity over each pair", baselines="constant: median of the exact depth over the "
@@ -361,7 +484,7 @@ def run_depth_suite(args) -> int:
     write_netcdf(ds, out / "depth_suite.nc")
     rows = table_rows(ds)
     write_csv(rows, out / "depth_suite_table.csv")
-    text = "\n\n".join(format_table(rows, s) for s in SOURCES)
+    text = "\n\n".join(format_table(rows, s, args.max_scale_rel_std) for s in SOURCES)
     write_text(out / "depth_suite_table.md", text + "\n")
     print(text)
     plot_suite(ds, out / "depth_suite.png")
@@ -377,18 +500,25 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--families", default="all", help=f"comma-separated, or 'all': {', '.join(FAMILIES)}")
     p.add_argument("--seeds", default="3", help="seeds per family: a count N (seeds 0..N-1, the reported ones) or a "
                                                 "comma-separated list (e.g. 100,101: development seeds)")
-    p.add_argument("--duration", type=float, default=6.0, help="seconds per scene")
+    p.add_argument("--duration", type=float, default=6.0,
+                   help="seconds per scene (the velocity suite renders 10 s at --scale 0.5)")
     p.add_argument("--skip", type=float, default=2.0,
                    help="pairs starting in the first SKIP seconds are not scored (the velocity readout locks on "
                         "then; the velocity suite skips the same)")
-    p.add_argument("--scale", type=float, default=0.25, help="camera scale of the D435i's 640x480 (0.25: 160x120)")
+    p.add_argument("--scale", type=float, default=0.25,
+                   help="camera scale of the D435i's 640x480 (0.25: 160x120; 0.5: 320x240, the velocity suite's)")
     p.add_argument("--every", type=int, default=5, help="exact depth (and a scored map) every N frames")
     p.add_argument("--max-range", type=float, default=DepthRunConfig().max_range_m,
                    help="score pixels whose exact depth is within this range (m)")
+    p.add_argument("--max-scale-rel-std", type=float, default=DepthRunConfig().max_scale_rel_std,
+                   help="maps whose speed has v_std/|v| above this have no known metric scale: unobservable, as "
+                        "`lobula depth` reports them (the table also gives every map unmasked and scale-invariant)")
     p.add_argument("--filter", default="zero-phase", choices=["zero-phase", "causal"], help="velocity readout filter")
     p.add_argument("--average-frames", type=int, default=None, metavar="K",
                    help="depth flow: each image the mean of frames i-K..i+K turned into frame i's orientation by "
                         "the gyro (default: 2 with a gyroscope, 0 without)")
+    p.add_argument("--workers", type=int, default=1, help="scenes run in parallel (processes, one torch thread each)")
+    p.add_argument("--device", default="cpu", help="torch device of the TV solver (cpu, cuda)")
     p.add_argument("--imu", default="realistic", choices=["ideal", "realistic"], help="synthetic IMU model")
     p.add_argument("--imu-mount", default="rotated", choices=["camera", "rotated"], help="IMU mounting")
     p.add_argument("--sample-map", type=int, default=6, help="which scored pair of each family's first seed "

@@ -191,6 +191,53 @@ def test_unobservable_and_resting_pairs_give_all_invalid_maps(synthetic, runs):
     np.testing.assert_array_equal(out.valid.values[keep], ds.valid.values[keep])
 
 
+def test_metric_scale_is_the_speeds_relative_std_against_the_bound():
+    from experiments.depth_stream import metric_scale
+
+    assert metric_scale(1.0, 0.1, 0.2) == (pytest.approx(0.1), True)
+    assert metric_scale(-0.5, 0.2, 0.2) == (pytest.approx(0.4), False)     # sign of v does not matter
+    assert metric_scale(0.5, 0.1, 0.2)[1]                                  # exactly at the bound: metric
+    assert not metric_scale(0.5, float("nan"), 0.2)[1]                     # no std: scale unknown
+    assert metric_scale(0.5, float("nan"), math.inf)[1]                    # bound disabled
+    assert not metric_scale(0.0, 0.01, math.inf)[1] and not metric_scale(float("nan"), 0.0, 0.2)[1]
+    with pytest.raises(ValueError, match="max_scale_rel_std"):
+        DepthRunConfig(max_scale_rel_std=0.0)
+
+
+def test_maps_whose_scale_the_speed_cannot_fix_are_unobservable(synthetic, runs):
+    """A map is v times what the flow says of 1/d: where v̂'s relative std exceeds the bound the
+    map's metric scale is unknown, and it is reported as unobservable (NaN, metric False), not
+    confidently wrong; every other map is unchanged, and the true speed is always metric."""
+    fo, vel = synthetic
+    t = vel.time.values
+    wide = (t > 3.6) & (t < 4.6)
+    doubtful = vel.copy(deep=True)
+    doubtful["v_std"] = xr.DataArray(np.where(wide, 0.5, 0.05) * np.abs(vel.v_hat.values), dims="time")
+    run = DepthRunConfig(method="ratio", every=10)
+    out = estimate_depth(fo, run=run, velocity=doubtful, progress=False)
+    # The bound disabled: every moving map is reported, as before the bound existed.
+    ref = estimate_depth(fo, run=DepthRunConfig(method="ratio", every=10, max_scale_rel_std=math.inf),
+                         velocity=doubtful, progress=False)
+    moving = np.isfinite(out.v_hat.values) & (np.abs(out.v_hat.values) >= run.min_speed_m_s)
+    hit = wide[out.frame.values] & moving
+    assert hit.sum() >= 2 and (moving & ~hit).sum() >= 3
+    np.testing.assert_allclose(out.scale_rel_std.values[hit], 0.5, rtol=1e-9)
+    assert not out.metric.values[hit].any() and not out.ranged.values[hit].any()
+    assert np.isnan(out.depth.values[hit]).all() and not out.valid.values[hit].any()
+    assert ref.metric.values[moving].all() and ref.valid.values[hit].mean() > 0.5
+    keep = moving & ~hit
+    assert out.metric.values[keep].all()
+    np.testing.assert_array_equal(out.valid.values[keep], ref.valid.values[keep])
+    np.testing.assert_allclose(out.depth.values[keep], ref.depth.values[keep], rtol=1e-6)
+    assert "metric depth on" in format_scores(out)
+    # A velocity run without v_std cannot judge the scale: a one-line error, unless the bound is off.
+    with pytest.raises(FootageError, match="no v_std"):
+        estimate_depth(fo, run=run, velocity=doubtful.drop_vars("v_std"), progress=False)
+    # The true speed has std 0: metric wherever it ranges.
+    true = runs[("ratio", "truth")]
+    assert true.metric.values[true.ranged.values].all() and float(true.attrs["max_scale_rel_std"]) == 0.2
+
+
 # ----------------------------------------------------------------------------- output
 def test_map_scale_carries_the_speeds_relative_std(synthetic, runs):
     """Depth is v times what the flow says of 1/d: each map's scale is known to v_std/|v̂|,
@@ -311,7 +358,51 @@ def test_depth_suite_scores_against_its_baselines_and_the_table_is_the_netcdf(tm
         v = float(med.sel(source=r["source"], estimator=r["method"]))
         assert float(r["median_abs_rel_mean"]) == pytest.approx(v) and r["median_abs_rel_n"] == "1"
     assert "git_commit" in ds.attrs and "depth_run" in ds.attrs["config"]
+    # Honest scale: the fraction of maps with a known metric scale beside the masked error, the
+    # unmasked and the scale-invariant errors beside both; the true speed is always metric.
+    sc = ds.score.sel(family="panels", seed=0)
+    for src in ("truth", "estimate", "estimate_medium"):
+        assert float(sc.sel(source=src, estimator="constant", metric="metric_fraction")) == 1.0
+    assert float(sc.sel(source="truth", estimator="tv", metric="metric_fraction")) == 1.0
+    for m in ("tv", "ratio"):
+        tv = sc.sel(source="truth", estimator=m)
+        assert float(tv.sel(metric="median_abs_rel")) == float(tv.sel(metric="median_abs_rel_all"))
+    assert float(sc.sel(source="truth", estimator="tv exact flow", metric="si_median_abs_rel")) < 0.01
+    est = sc.sel(source="estimate", estimator="tv")
+    assert 0.0 <= float(est.sel(metric="metric_fraction")) <= 1.0
+    assert float(est.sel(metric="valid_fraction")) <= float(est.sel(metric="valid_fraction_all")) + 1e-12
+    table = (out / "depth_suite_table.md").read_text()
+    assert "metric maps" in table and "scale-invariant" in table
+    # A bound no speed meets: no v̂ map is metric, none covered, no masked error; the unmasked and
+    # scale-invariant errors are those of the same maps as before (here run in a worker process).
+    assert cli.main([*argv, "--max-scale-rel-std", "1e-9", "--workers", "2"]) == 0
+    strict = xr.load_dataset(out / "depth_suite.nc").score.sel(family="panels", seed=0)
+    for src in ("estimate", "estimate_medium"):
+        e = strict.sel(source=src, estimator="tv")
+        assert float(e.sel(metric="metric_fraction")) == 0.0 and float(e.sel(metric="valid_fraction")) == 0.0
+        assert np.isnan(float(e.sel(metric="median_abs_rel")))
+        for k in ("median_abs_rel_all", "si_median_abs_rel"):
+            assert float(e.sel(metric=k)) == pytest.approx(float(sc.sel(source=src, estimator="tv", metric=k)))
+    assert float(strict.sel(source="truth", estimator="tv", metric="metric_fraction")) == 1.0
     assert cli.main([*argv[:-2], "--every", "0"]) == 2  # bad option: one-line error
+
+
+def test_scale_free_map_removes_exactly_the_scale():
+    """The scale-invariant score's map: d̂·median(d/d̂) over the scored pixels is the truth again
+    when d̂ is the truth times any factor; sky and beyond-range pixels do not set the factor."""
+    from experiments.depth_suite import _scale_free
+
+    rng = np.random.default_rng(0)
+    true = rng.uniform(0.5, 10.0, (12, 16))
+    true[0, :] = np.inf                                          # sky
+    true[1, :3] = 50.0                                           # beyond range
+    pred = 1.37 * true
+    pred[1, :3] = 1.0                                            # far pixels wildly off: ignored
+    ok = np.ones(true.shape, bool)
+    out = _scale_free(pred, true, ok, max_range_m=20.0)
+    inside = np.isfinite(true) & (true <= 20.0)
+    np.testing.assert_allclose(out[inside], true[inside], rtol=1e-12)
+    assert np.isnan(_scale_free(pred, true, np.zeros_like(ok), 20.0)).all()
 
 
 # ----------------------------------------------------------------------------- real data
@@ -333,10 +424,16 @@ def test_real_frames_give_depths_in_the_scene_range(d435i, capsys):
     vel = estimate_velocity(fo, progress=False)
     meds = {}
     for v, m in (("estimate", "ratio"), ("truth", "tv")):
-        ds = estimate_depth(fo, run=DepthRunConfig(method=m, every=12, velocity=v), velocity=vel, progress=False)
-        assert ds.ranged.all() and "has_true_depth" in ds and not ds.has_true_depth.any()
+        run = DepthRunConfig(method=m, every=12, velocity=v)
+        ds = estimate_depth(fo, run=run, velocity=vel, progress=False)
+        assert "has_true_depth" in ds and not ds.has_true_depth.any()
+        # Every map is ranged but where v̂'s relative std leaves its scale unknown (the first, at the
+        # clip's start: unobservable, all NaN); the true speed ranges them all.
+        assert (ds.ranged | (ds.scale_rel_std > run.max_scale_rel_std)).all() and ds.ranged.sum() >= 2
+        assert ds.ranged.all() or v == "estimate"
         meds[(v, m)] = float(np.median(ds.depth.values[ds.valid.values]))
-        assert ds.valid.mean() > (0.6 if m == "ratio" else 0.85)    # ratio: SNR-masked near the epipole
+        r = ds.ranged.values
+        assert ds.valid.values[r].mean() > (0.6 if m == "ratio" else 0.85)    # ratio: SNR-masked near the epipole
     with capsys.disabled():
         print("\nD435i frames 705–740 median depth (m): "
               + ", ".join(f"{m} with {v} v {d:.3f}" for (v, m), d in meds.items()))
