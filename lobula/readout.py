@@ -25,8 +25,8 @@ Two readouts share this arithmetic:
   error that all fields share and that persists for seconds is a Schmidt–Kalman consider
   state (accounted for, never estimated), so the forward filter cannot average it into a
   confident, wrong offset; offline the smoother estimates it. The acceleration's own noise
-  grows while the camera turns (``accel_turn_noise``), and every error of a low-passed term
-  counts once per correlation time of the low-pass, not once per frame.
+  grows while the camera turns (``accel_turn_noise``), and offline every error of a low-passed
+  term counts once per correlation time of the low-pass, not once per frame.
   v̂ is NaN (``observable`` False) wherever the posterior standard deviation exceeds
   ``max_std_m_s``: the readout says when it does not know.
 """
@@ -57,7 +57,7 @@ class ReadoutConfig:
         less the truth's derivative, its slow part (offset, ramp: states) removed, averages over 1 s
         to 0.001-0.009 m/s² on the families that do not turn, so 0.01 (was 0.05, which made the
         posterior 2-3x wider than the errors and the estimate worse: dev zero-phase RMSE 0.018 ->
-        0.009 m/s, causal 0.033 -> 0.020 with the other changes of that commit).
+        0.009 m/s, causal 0.033 -> 0.026 with the other changes of that commit).
     accel_turn_noise: more of it while the camera turns, per rad/s of |ω| (m/s²/√Hz per rad/s):
         on the rotation family's dev seeds that 1 s average is 0.08-0.12 × the rms |ω| (one seed
         0.02), so 0.1. Used where readout() is given turn_rate.
@@ -427,10 +427,14 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             # κ's error multiplies the v it was measured at, v(t − D) (H above), so it counts with
             # E[v(t − D)²] (errors in variables: a noisy κ ≈ 0 must not pin v while v is unknown).
             vd, pd = H @ x - shift, H @ P @ H
-            # Those floors, like the fields' spread (σ_κ holds it already), are errors of low-passed
-            # signals, correlated over corr_frames frames: counted once per frame they would add up
-            # to a confidence the data do not hold (dev seeds 100-103: causal RMSE 0.026 -> 0.020 m/s).
-            R = ((vd ** 2 + pd) * skap ** 2 + corr_frames * ((kap * cfg.meas_floor_m_s) ** 2
+            # Offline, those floors, like the fields' spread (σ_κ holds it already), are errors of
+            # low-passed signals, correlated over corr_frames frames, and counted once per frame they
+            # would add up over the whole record to a confidence the data do not hold. Online the
+            # filter has only the past, and so counted they slow it down more than they help: on the
+            # dev seeds causal RMSE 0.026 -> 0.020 m/s, but a real still EuRoC sequence read 0.013 m/s
+            # of motion (bound 0.01) and a 3 s librealsense recording was observable on 44 % only.
+            cf = corr_frames if smooth else 1.0
+            R = ((vd ** 2 + pd) * skap ** 2 + cf * ((kap * cfg.meas_floor_m_s) ** 2
                  + (cfg.meas_floor_m_s * skap) ** 2 + cfg.accel_min_m_s2 ** 2 + (kap * e_lp) ** 2))
             hph, nu = h @ P @ h, zk - h @ x
             if shared:
@@ -569,7 +573,9 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
         # image's expansion crosses zero while the camera accelerates (v through 0, or far
         # surfaces filling the fields), the bound holds only that well (dev seeds: ground
         # 102, a backdrop 50-200 m away, 0.039 -> 0.004 m/s). Online r̄ is the newest frame's.
-        sr = np.hypot(sr, sigma_t * np.abs(terms[3]))
+        # |a| less what the accelerometer's offset (2 prior std) could make of a still camera
+        # (a real still EuRoC sequence's offset otherwise lifts the bound off: 0.043 m/s of "motion").
+        sr = np.hypot(sr, sigma_t * np.maximum(np.abs(terms[3]) - 2.0 * cfg.bias_prior_m_s2, 0.0))
         zr = np.where(sr <= 0.5 * cfg.max_std_m_s, zr, np.nan)
     # κ needs no accelerometer, so a field is judged by one (its implied depth a/(ṙ̄ − r²̄)
     # physical) only where |a| is beyond what the accelerometer's offset (prior std) could
