@@ -327,6 +327,15 @@ def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig
     return resample_to(times, imu.time_s, a, dt), "accelerometer (gravity and bias removed)"
 
 
+def turn_rate_at(footage: Footage, times: np.ndarray, accel_source: str, config: VelocityConfig) -> np.ndarray | None:
+    """|ω| (rad/s, (n,)): the gyro's rate magnitude averaged over each frame interval, or None
+    where the acceleration does not come from an IMU with a gyro (then nothing turns it)."""
+    if not accel_source.startswith("accelerometer") or footage.imu is None or footage.imu.gyro is None:
+        return None
+    dt = float(np.median(np.diff(footage.times)))
+    return resample_to(times, footage.imu.time_s, np.linalg.norm(footage.imu.gyro, axis=1), dt)
+
+
 def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, progress: bool = True,
                       flo_files: list[Path] | None = None, flo_units: FloUnits | None = None) -> xr.Dataset:
     """Estimate forward velocity over a footage; returns the velocity Dataset (see module doc)."""
@@ -359,7 +368,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                               gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=rcfg.filter == "causal",
                                                 bias_std=None if vb is None else vb[1], accel=footage.imu.accel))
         res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material, gravity_tau=tau,
-                      drift_std=drift)
+                      drift_std=drift, turn_rate=turn_rate_at(footage, rates.t, accel_source, config))
     else:
         res = None
     rates.timings["readout"] = _time.perf_counter() - t0
