@@ -157,14 +157,26 @@ class ReadoutResult:
     info: dict = field(default_factory=dict)
 
 
-def _fill_nan(x: np.ndarray) -> np.ndarray:
-    """Linearly interpolate NaNs along axis 0 (edges held), so filters can run through gaps."""
+def _fill_nan(x: np.ndarray, causal: bool = False) -> np.ndarray:
+    """Bridge NaNs along axis 0 so filters can run through gaps.
+
+    Offline, a gap is interpolated linearly (edges held). causal: a gap holds the last value
+    before it (a leading gap the first value, which no output before that value reads once
+    NaNs are restored): interpolating toward the value after a gap would let the online
+    filter's output before the gap see that later value.
+    """
     x = np.array(x, dtype=float)
     flat = x.reshape(len(x), -1)
     idx = np.arange(len(x))
     for j in np.flatnonzero(~np.isfinite(flat).all(0)):  # loop over affected columns only
         ok = np.isfinite(flat[:, j])
-        flat[:, j] = np.interp(idx, idx[ok], flat[ok, j]) if ok.any() else 0.0
+        if not ok.any():
+            flat[:, j] = 0.0
+        elif causal:
+            last = np.maximum.accumulate(np.where(ok, idx, -1))
+            flat[:, j] = flat[np.where(last >= 0, last, np.argmax(ok)), j]
+        else:
+            flat[:, j] = np.interp(idx, idx[ok], flat[ok, j])
     return flat.reshape(x.shape)
 
 
@@ -172,7 +184,7 @@ def butterworth(x: np.ndarray, wn: float, order: int, zero_phase: bool) -> np.nd
     """Butterworth low-pass along axis 0 (wn: fraction of Nyquist); NaNs bridged, then restored."""
     sos = signal.butter(order, min(wn, 0.99), output="sos")
     nan = ~np.isfinite(x)
-    xf = _fill_nan(x)
+    xf = _fill_nan(x, causal=not zero_phase)
     if zero_phase:
         y = signal.sosfiltfilt(sos, xf, axis=0, padlen=min(len(xf) - 1, 3 * (2 * len(sos) + 1)))
     else:
@@ -183,7 +195,8 @@ def butterworth(x: np.ndarray, wn: float, order: int, zero_phase: bool) -> np.nd
     return y
 
 
-def gaussian_lowpass(x: np.ndarray, cutoff_hz: float, dt: float, truncate: float = 2.5) -> tuple[np.ndarray, int]:
+def gaussian_lowpass(x: np.ndarray, cutoff_hz: float, dt: float, truncate: float = 2.5,
+                     causal: bool = False) -> tuple[np.ndarray, int]:
     """Linear-phase (symmetric Gaussian FIR) low-pass along axis 0, centred; NaNs bridged, then restored.
 
     The Gaussian's gain is ½ at ``cutoff_hz``, as for the zero-phase (forward–backward)
@@ -191,14 +204,15 @@ def gaussian_lowpass(x: np.ndarray, cutoff_hz: float, dt: float, truncate: float
     (frames): the value at k needs data up to k + M, so lagged by M it is causal, and every
     frequency is delayed by the same M frames. (A causal IIR delays each frequency by a
     different amount, so ratios of filtered signals such as (ṙ̄ − r²̄)/r̄ are biased.)
-    Edges are padded with the edge values.
+    Edges are padded with the edge values. causal: NaN gaps hold their last value (see
+    :func:`_fill_nan`), so the output lagged by M reads nothing after its own time.
     """
     sigma = np.sqrt(np.log(2.0) / 2.0) / (np.pi * cutoff_hz) / dt  # frames
     m = max(1, int(np.ceil(truncate * sigma)))
     k = np.exp(-0.5 * (np.arange(-m, m + 1) / sigma) ** 2)
     k /= k.sum()
     nan = ~np.isfinite(x)
-    xf = _fill_nan(x)
+    xf = _fill_nan(x, causal)
     pad = np.concatenate([np.repeat(xf[:1], m, 0), xf, np.repeat(xf[-1:], m, 0)])
     flat = pad.reshape(len(pad), -1)
     y = np.stack([np.convolve(flat[:, j], k, mode="valid") for j in range(flat.shape[1])], 1)  # per field, not pixel
@@ -526,7 +540,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     else:
         # Online: the same centred (linear-phase) computation as offline, known `lag` frames
         # later — every term delayed alike, so the ratios the readout takes stay unbiased.
-        lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt)[0]
+        lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, causal=True)[0]
         lag = gaussian_lowpass(np.zeros(3), cfg.cutoff_hz, dt)[1] + h
     rf = lp(r)
     if material is None:

@@ -250,3 +250,31 @@ def test_a_small_accelerometer_reading_is_not_taken_for_a_small_offset():
     assert m.sum() >= 0.95 * (t >= 2.0).sum()
     rmse = float(np.sqrt(np.mean((res.v_hat[m] - v(t)[m]) ** 2)))
     assert rmse <= bound, rmse  # the zero estimator: 0.42 m/s
+
+
+@pytest.mark.parametrize("lowpass", ["gaussian", "butterworth"])
+def test_online_lowpass_reads_nothing_after_a_gap_it_bridges(lowpass):
+    """Online, a NaN gap is held, not interpolated toward the value after it: changing what
+    comes after the gap must leave every earlier output unchanged (the old interpolation moved
+    them by up to the change's size times the kernel's weight on the gap)."""
+    from lobula.readout import gaussian_lowpass
+
+    dt, n = 1 / 30, 120
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(n, 3))
+    x[40:60, 1] = np.nan                                          # one field silent for 0.67 s
+    later = x.copy()
+    later[60:, 1] += 5.0                                          # only what follows the gap differs
+
+    def online(s):
+        if lowpass == "gaussian":
+            y, m = gaussian_lowpass(s, 1.0, dt, causal=True)
+            return np.concatenate([np.full((m, 3), np.nan), y[:-m]])  # lagged by m: what is known at k
+        return butterworth(s, 0.1, 2, zero_phase=False)
+
+    a, b = online(x), online(later)
+    assert np.array_equal(a[:60], b[:60], equal_nan=True)
+    assert not np.allclose(a[60:, 1], b[60:, 1], equal_nan=True)  # the change does arrive once it has happened
+    y0, _ = gaussian_lowpass(x, 1.0, dt)                          # offline bridges by interpolation
+    y1, _ = gaussian_lowpass(later, 1.0, dt)
+    assert not np.allclose(y0[30:40, 1], y1[30:40, 1])
