@@ -311,10 +311,14 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
             raise FootageError(f"{fo.path / 'truth.csv'}: no a_forward_m_s2 column for accel_from_truth")
         a = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
         a_source = "ground truth (a_forward_m_s2 of truth.csv; no accelerometer)"
+        turn = None
     else:
         a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=cfg.readout.filter == "causal")
         a = resample_to(t, fo.imu.time_s, a_imu, dt)
         a_source = "accelerometer (causal gravity and bias removal)"
+        # The body's turn rate (the haltere's |ω|): gravity leaks into a through attitude error
+        # while turning, which the readout counts as extra acceleration noise, as the camera's does.
+        turn = resample_to(t, fo.imu.time_s, np.linalg.norm(fo.imu.gyro, axis=1), dt)
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
     t1 = _time.perf_counter()
     if cfg.readout_kind == "neuron":
@@ -326,14 +330,15 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         method = "readout neuron (" + ("Poisson spikes, causal decoding" if cfg.neuron.spiking else "rate") + ")"
         filt = "causal" if not cfg.neuron.spiking or cfg.neuron.decode == "causal" else "centred spike window"
     else:
-        res = readout(t, rho_in, r2_in, a, rcfg, gravity_tau=tau, drift_std=drift)
+        res = readout(t, rho_in, r2_in, a, rcfg, gravity_tau=tau, drift_std=drift, turn_rate=turn)
         v_hat, observable, r_dot, v_field, v_std = res.v_hat, res.observable, res.r_dot, res.v_field, res.v_std
         std_name, method, filt = "posterior std of v_hat", cfg.readout.method, cfg.readout.filter
         if cfg.uncertainty == "halves":
             extra = (cfg.emd_gain_error * np.nan_to_num(res.v_hat)) ** 2
             for a_half, b_half in field_halves(circ.fields, rho.shape[1]):
                 # Each half through the same readout alone: their disagreement is an error the posterior misses.
-                halves = [readout(t, rho_in[:, h], r2_in[:, h], a, rcfg, gravity_tau=tau, drift_std=drift).v_hat
+                halves = [readout(t, rho_in[:, h], r2_in[:, h], a, rcfg, gravity_tau=tau, drift_std=drift,
+                                   turn_rate=turn).v_hat
                           for h in (a_half, b_half)]
                 extra = extra + np.nan_to_num(split_half_variance(t, *halves, cfg.split_tau_s))
             v_std = np.sqrt(v_std ** 2 + extra)

@@ -666,3 +666,31 @@ def test_the_eye_pipeline_gates_its_fields_by_their_reliability(eye_footage):
     np.testing.assert_array_equal(off.field_used.values, np.isfinite(r))
     with pytest.raises(ValueError, match="reliability_min"):
         EyeVelocityConfig(reliability_min=-1.0)
+
+
+def test_eye_readout_is_told_the_bodys_turn_rate(eye_footage, monkeypatch):
+    """As the camera's readout is: gravity leaks into the accelerometer's forward axis through
+    attitude error while the body turns, so the readout widens its acceleration noise by the
+    haltere's |ω| (ReadoutConfig.accel_turn_noise). With the true acceleration nothing leaks."""
+    import experiments.eye_velocity as ev
+    from lobula.haltere import resample_to
+    from stimuli.eye import open_eye_footage
+
+    seen = []
+    real = ev.readout
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("turn_rate"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ev, "readout", spy)
+    fo = open_eye_footage(eye_footage)
+    ds = ev.estimate_eye_velocity(fo, ev.EyeVelocityConfig(uncertainty="posterior"))
+    t = ds.time.values
+    want = resample_to(t, fo.imu.time_s, np.linalg.norm(fo.imu.gyro, axis=1), float(np.median(np.diff(t))))
+    assert len(seen) == 1 and seen[0] is not None
+    np.testing.assert_allclose(seen[0], want)
+    assert np.all(seen[0] > 0)                                        # the gyro's noise alone is never zero
+    seen.clear()
+    ev.estimate_eye_velocity(fo, ev.EyeVelocityConfig(uncertainty="posterior", accel_from_truth=True))
+    assert seen == [None]
