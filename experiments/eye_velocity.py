@@ -22,7 +22,7 @@ import xarray as xr
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig, field_reliability
 from lobula.gaze import retinal_rotation
 from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
-                            resample_to)
+                            resample_to, turn_rate)
 from lobula.readout import ReadoutConfig, readout
 from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron, spiking_output
 
@@ -316,9 +316,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=cfg.readout.filter == "causal")
         a = resample_to(t, fo.imu.time_s, a_imu, dt)
         a_source = "accelerometer (causal gravity and bias removal)"
-        # The body's turn rate (the haltere's |ω|): gravity leaks into a through attitude error
-        # while turning, which the readout counts as extra acceleration noise, as the camera's does.
-        turn = resample_to(t, fo.imu.time_s, np.linalg.norm(fo.imu.gyro, axis=1), dt)
+        turn = turn_rate(t, fo.imu.time_s, fo.imu.gyro, dt)  # told to the readout, as the camera's is
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
     t1 = _time.perf_counter()
     if cfg.readout_kind == "neuron":

@@ -23,7 +23,8 @@ from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import HEADING_POINTS, EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
 from lobula.haltere import (GRAVITY_WINDOW_S, GyroAttitude, forward_acceleration, gravity_drift_std,
-                            gravity_time_constant, gyro_bias, orientation_from_gyro, resample_to, vision_gyro_bias)
+                            gravity_time_constant, gyro_bias, orientation_from_gyro, resample_to, turn_rate,
+                            vision_gyro_bias)
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
@@ -332,8 +333,7 @@ def turn_rate_at(footage: Footage, times: np.ndarray, accel_source: str, config:
     where the acceleration does not come from an IMU with a gyro (then nothing turns it)."""
     if not accel_source.startswith("accelerometer") or footage.imu is None or footage.imu.gyro is None:
         return None
-    dt = float(np.median(np.diff(footage.times)))
-    return resample_to(times, footage.imu.time_s, np.linalg.norm(footage.imu.gyro, axis=1), dt)
+    return turn_rate(times, footage.imu.time_s, footage.imu.gyro, float(np.median(np.diff(footage.times))))
 
 
 def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, progress: bool = True,

@@ -354,6 +354,15 @@ def vision_gyro_bias(t_meas: np.ndarray, residual: np.ndarray, time_s: np.ndarra
     return bias, np.sqrt(var)
 
 
+def turn_rate(times: np.ndarray, sample_t: np.ndarray, gyro: np.ndarray, window_s: float) -> np.ndarray:
+    """The body's turn rate |ω| (rad/s, (n,)) at ``times``: the gyro's (haltere's) rate magnitude,
+    gyro (m, 3) rad/s sampled at ``sample_t`` (m,) s, averaged over ``window_s`` about each time
+    (:func:`resample_to`). The readout widens its acceleration noise by it
+    (``ReadoutConfig.accel_turn_noise``): gravity leaks into the accelerometer through attitude
+    error while turning."""
+    return resample_to(times, sample_t, np.linalg.norm(gyro, axis=1), window_s)
+
+
 def resample_to(times: np.ndarray, sample_t: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:
     """Mean of ``values`` over [t − window/2, t + window/2] for each t in ``times``.
 

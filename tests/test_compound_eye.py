@@ -687,7 +687,7 @@ def test_eye_readout_is_told_the_bodys_turn_rate(eye_footage, monkeypatch):
     fo = open_eye_footage(eye_footage)
     ds = ev.estimate_eye_velocity(fo, ev.EyeVelocityConfig(uncertainty="posterior"))
     t = ds.time.values
-    want = resample_to(t, fo.imu.time_s, np.linalg.norm(fo.imu.gyro, axis=1), float(np.median(np.diff(t))))
+    want = resample_to(t, fo.imu.time_s, np.linalg.norm(fo.imu.gyro, axis=1), float(np.median(np.diff(t))))  # |ω| over each step
     assert len(seen) == 1 and seen[0] is not None
     np.testing.assert_allclose(seen[0], want)
     assert np.all(seen[0] > 0)                                        # the gyro's noise alone is never zero
