@@ -100,6 +100,7 @@ import torch
 from .compound_eye import CompoundEye
 from .emd import EMDArray, EMDConfig
 from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lowpass_scan
+from .readout import hold_gaps
 
 __all__ = ["EyeFieldConfig", "EyeCircuitConfig", "EyeFields", "EyeCircuit", "eye_fields", "field_reliability"]
 
@@ -614,11 +615,8 @@ def field_reliability(t: np.ndarray, rho: np.ndarray, slow_hz: float = 0.5, fast
     # Each field's channels start at its first output (the circuit's start-up is silent, NaN): its value
     # held before that, its last value held through silent steps, so no start-up step reads as fast power.
     ok = np.isfinite(rho)
-    idx = np.where(ok, np.arange(len(rho))[:, None], 0)
-    np.maximum.accumulate(idx, axis=0, out=idx)
     first = np.argmax(ok, axis=0)
-    idx = np.where(np.arange(len(rho))[:, None] < first, first, idx)
-    x = np.nan_to_num(np.take_along_axis(rho, idx, axis=0))
+    x = np.nan_to_num(hold_gaps(rho))
     live = np.arange(len(rho))[:, None] >= np.where(ok.any(0), first, len(rho))
     lp = lambda y, fc: _first_order(y - y[:1], 1.0 - math.exp(-2.0 * math.pi * fc * dt)) + y[:1]  # noqa: E731
     slow = lp(x, slow_hz)

@@ -157,6 +157,18 @@ class ReadoutResult:
     info: dict = field(default_factory=dict)
 
 
+def hold_gaps(x: np.ndarray) -> np.ndarray:
+    """x (n, ...) with each NaN replaced by the last finite value before it along axis 0 (a
+    leading gap by the first finite value; an all-NaN column stays NaN): what a causal stage
+    knows through a silent stretch, never a value from after it."""
+    x = np.array(x, dtype=float)
+    ok = np.isfinite(x)
+    idx = np.arange(len(x)).reshape((-1,) + (1,) * (x.ndim - 1))
+    last = np.maximum.accumulate(np.where(ok, idx, -1), axis=0)
+    last = np.where(last >= 0, last, np.argmax(ok, axis=0))
+    return np.take_along_axis(x, last, axis=0)
+
+
 def _fill_nan(x: np.ndarray, causal: bool = False) -> np.ndarray:
     """Bridge NaNs along axis 0 so filters can run through gaps.
 
@@ -173,8 +185,7 @@ def _fill_nan(x: np.ndarray, causal: bool = False) -> np.ndarray:
         if not ok.any():
             flat[:, j] = 0.0
         elif causal:
-            last = np.maximum.accumulate(np.where(ok, idx, -1))
-            flat[:, j] = flat[np.where(last >= 0, last, np.argmax(ok)), j]
+            flat[:, j] = hold_gaps(flat[:, j])
         else:
             flat[:, j] = np.interp(idx, idx[ok], flat[ok, j])
     return flat.reshape(x.shape)
