@@ -474,8 +474,16 @@ def apply_velocity_options(cfg, args):
         cfg.flow.gap = args.gap
     if opt("field_size"):
         cfg.fields.size_deg = args.field_size
+    for name in ("dis_preset", "dis_grid_px"):
+        if opt(name) is not None and cfg.front_end != "dis":
+            raise ValueError(f"--{name.replace('_', '-')} sets the DIS flow, but the front end is "
+                             f"{cfg.front_end}; drop it or use --front-end dis")
     if opt("dis_preset"):
         cfg.flow.dis_preset = args.dis_preset
+    if opt("dis_grid_px") is not None:
+        if args.dis_grid_px < 0:
+            raise ValueError(f"--dis-grid-px must be ≥ 0 (0: the preset's finest level), got {args.dis_grid_px}")
+        cfg.flow.dis_grid_px = args.dis_grid_px
     if opt("epipole"):
         cfg.epipole = args.epipole
     if opt("accel_from_truth"):
@@ -549,6 +557,9 @@ def add_parser(subparsers):
     v.add_argument("--field-size", type=float, help="receptive-field size (deg; default 5 on camera footage, "
                    "the eye's LC field FWHM 30 on compound-eye footage)")
     v.add_argument("--dis-preset", choices=["ultrafast", "fast", "medium"])
+    v.add_argument("--dis-grid-px", type=int, help="DIS refines its flow on a grid at least this many pixels wide "
+                   "(its preset's finest level, made finer on small images; lobula.flow.FlowConfig.dis_grid_px; "
+                   "default 160; 0: the preset's level at every image size)")
     v.add_argument("--epipole", choices=["estimate", "principal"])
     v.add_argument("--accel-from-truth", action="store_true",
                    help="forward acceleration from truth.csv instead of imu.csv")

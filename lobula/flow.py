@@ -33,6 +33,17 @@ class FlowConfig:
     pair's second image into the first image's orientation before the flow, so the flow
     method sees only the translation's (and the gyro error's) small displacements, then
     compose the warp back: the flow returned is still the raw image flow (:func:`prewarp_flow`).
+    dis_grid_px: DIS refines its flow down to a finest pyramid level that its preset fixes as a
+    power of two below the image (``fast``: 1/4, so 160×120 at 640×480 but 80×60 at 320×240).
+    The level is taken finer while it would be narrower than this many pixels, so the flow's
+    angular resolution does not fall with the image size (0: the preset's level at every size).
+    On the 80×60 grid the growth of r as a surface nears is smoothed away: vision's a/v erred by
+    −0.3·r̄·v per frame (r̄·v ≈ v²/d; development corridor and fast scenes, seed 102, 320×240),
+    on a 160-px grid by −0.1·r̄·v, as the same scenes give at 640×480 with the preset unchanged
+    (exact flow: 0.0). Over the 36 development scenes (9 families × seeds 100–103, with the
+    readout of the same commit) zero-phase RMSE 0.0091 → 0.0073 m/s, causal 0.0203 → 0.0149.
+    Cost: unchanged at 640×480 (160 px is the preset's own grid there); at 320×240 DIS ``fast``
+    takes 4.5 against 1.3 ms a pair (one thread).
     """
 
     method: str = "dis"
@@ -40,6 +51,7 @@ class FlowConfig:
     dis_preset: str = "fast"
     threads: int = 0
     prewarp: bool = True
+    dis_grid_px: int = 160
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -53,8 +65,12 @@ def make_flow_fn(config: FlowConfig):
         if config.dis_preset not in DIS_PRESETS:
             raise ValueError(f"unknown DIS preset {config.dis_preset!r}; choose from {sorted(DIS_PRESETS)}")
         dis = cv2.DISOpticalFlow_create(DIS_PRESETS[config.dis_preset])
+        preset_finest, width = dis.getFinestScale(), [None]
 
         def fn(a, b):
+            if a.shape[1] != width[0]:
+                width[0] = a.shape[1]
+                dis.setFinestScale(dis_finest_scale(preset_finest, width[0], config.dis_grid_px))
             f = dis.calc(_u8(a), _u8(b), None)
             return f.transpose(2, 0, 1)
     elif config.method == "farneback":
@@ -65,6 +81,15 @@ def make_flow_fn(config: FlowConfig):
     else:
         raise ValueError(f"unknown flow method {config.method!r}; use 'dis' or 'farneback'")
     return fn
+
+
+def dis_finest_scale(preset_finest: int, width_px: int, grid_px: int) -> int:
+    """DIS's finest pyramid level (0: full resolution) for an image width_px wide: the preset's,
+    or finer while the level would be narrower than grid_px pixels (grid_px ≤ 0: the preset's)."""
+    s = int(preset_finest)
+    while grid_px > 0 and s > 0 and (width_px >> s) < grid_px:
+        s -= 1
+    return s
 
 
 def _u8(img: np.ndarray) -> np.ndarray:

@@ -252,6 +252,22 @@ def test_a_small_accelerometer_reading_is_not_taken_for_a_small_offset():
     assert rmse <= bound, rmse  # the zero estimator: 0.42 m/s
 
 
+def test_accelerometer_steady_marks_a_start_causally_and_ignores_an_offset():
+    """A still camera's accelerometer reads a constant (any offset); a change says it accelerates.
+    Online the test sees nothing before a change happens and holds for a window after it."""
+    from lobula.readout import accelerometer_steady
+
+    dt = 1 / 30
+    a = np.full(120, 0.4)                               # an offset of 0.4 m/s², still
+    a[60:] += np.minimum(np.arange(60) * 0.02, 0.3)     # a gentle start: 0.6 m/s³
+    a += np.random.default_rng(0).normal(0.0, 0.006, a.size)  # the synthetic IMU's noise at 30 Hz
+    on = accelerometer_steady(a, dt, 0.05, causal=True)
+    off = accelerometer_steady(a, dt, 0.05)
+    assert on[:60].all()                                # nothing ahead is read
+    assert not on[66:100].any()                         # from 0.2 s into the start, for the window after it
+    assert not off[50:85].any() and off[:45].all()      # offline the window is centred
+
+
 @pytest.mark.parametrize("lowpass", ["gaussian", "butterworth"])
 def test_online_lowpass_reads_nothing_after_a_gap_it_bridges(lowpass):
     """Online, a NaN gap is held, not interpolated toward the value after it: changing what
