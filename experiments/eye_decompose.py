@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
-from lobula.haltere import forward_acceleration, resample_to
+from lobula.haltere import forward_acceleration, resample_to, turn_rate
 from lobula.photoreceptor import lowpass_scan
 from lobula.readout import readout
 
@@ -98,13 +98,17 @@ def readout_rmse(fo, t, rho, r2, accel_from_truth: bool, cfg: EyeVelocityConfig 
     rho, r2 = rho.copy(), r2.copy()
     cold = (t - t[0]) < cfg.settle_time()
     rho[cold], r2[cold] = np.nan, np.nan
+    dt = float(np.median(np.diff(t)))
     if accel_from_truth:
         a = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
+        turn = None
     else:
         a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=cfg.readout.filter == "causal")
-        a = resample_to(t, fo.imu.time_s, a_imu, float(np.median(np.diff(t))))
+        a = resample_to(t, fo.imu.time_s, a_imu, dt)
+        # As estimate_eye_velocity does: the readout is told the gyro's turn rate (accelerometer noise under turns).
+        turn = turn_rate(t, fo.imu.time_s, fo.imu.gyro, dt)
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
-    res = readout(t, rho, r2, a, rcfg, gravity_tau=tau, drift_std=drift)
+    res = readout(t, rho, r2, a, rcfg, gravity_tau=tau, drift_std=drift, turn_rate=turn)
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     k = (t >= t[0] + skip_s) & np.isfinite(res.v_hat)
     err = res.v_hat[k] - vt[k]
