@@ -558,6 +558,29 @@ def test_decomposition_levels_fall_from_exact_motion_to_the_emds(eye_footage):
     exact, emd, zero = d["exact|true"][0], d["emd|true"][0], d["zero"]
     assert exact < 0.5 * emd < 0.5 * zero, d
     assert d["ideal|true"][0] < emd, d
+    # Exact motion times each field's slow EMD gain γ_f(t): the gain drift alone already costs (a
+    # constant γ would not: κ is blind to it).
+    assert exact < d["gain|true"][0] < zero, d
+
+
+def test_slow_gain_fields_scale_the_exact_fields_by_the_emds_gain():
+    """Known answer: EMD fields at a constant gain 0.7 of the exact ones give 0.7·ρ and the r²-term of
+    0.7·ρ and 0.7·g (r2_eff = ρ²cos θ − ρ sin θ·g); exact stamps other than the EMD's are interpolated."""
+    from experiments.eye_decompose import slow_gain_fields
+
+    t = np.arange(0.0, 6.0, 0.02)
+    theta = np.array([0.5, 1.2, 2.0])
+    rho = 0.3 + 0.1 * np.sin(2 * np.pi * 0.2 * t)[:, None] * np.array([1.0, 0.5, 2.0])
+    g = 0.05 * np.cos(2 * np.pi * 0.3 * t)[:, None] * np.ones(3)
+    r2 = rho ** 2 * np.cos(theta) - rho * np.sin(theta) * g
+    te = t + 0.01                                   # exact fields stamped 10 ms later
+    rho_e = 0.3 + 0.1 * np.sin(2 * np.pi * 0.2 * te)[:, None] * np.array([1.0, 0.5, 2.0])
+    g_e = 0.05 * np.cos(2 * np.pi * 0.3 * te)[:, None] * np.ones(3)
+    r2_e = rho_e ** 2 * np.cos(theta) - rho_e * np.sin(theta) * g_e
+    rg, r2g = slow_gain_fields(te, rho_e, r2_e, t, 0.7 * rho, theta)
+    k = t >= 1.0                                     # past the low-pass's start
+    np.testing.assert_allclose(rg[k], 0.7 * rho[k], rtol=2e-3)
+    np.testing.assert_allclose(r2g[k], 0.49 * r2[k], rtol=5e-3, atol=1e-4)
 
 
 def test_readout_offset_recovers_a_constant_accelerometer_offset_causally():
