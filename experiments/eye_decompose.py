@@ -10,7 +10,13 @@ accelerometer and from truth, so the readout's own share shows too):
 2. ``ideal``  — the same exact motion, but weighted as the circuit weights its pairs (each pair
    by its own contrast pool, from the rendered luminance): texture-dependent pooling, still a
    perfect, linear detector.
-3. ``emd``    — the circuit itself (:class:`lobula.eye_circuit.EyeCircuit`, the configuration
+3. ``gain``   — the exact fields of level 1, each times its EMD field's slow gain γ_f(t) (a 1 Hz
+   causal low-pass of the circuit's ρ_f over the exact ρ_f, clipped to [−3, 5]): what the
+   correlators' gain drift alone costs. A constant gain per field costs nothing (κ = (ṙ − r²)/r
+   is blind to it, up to the r²-term), but γ_f changes as texture flows through the field, and
+   ṙ/r then carries γ̇/γ. Measured on the dev panels worlds (seeds 100–103): the κ error this
+   level leaves (0.042–0.052 m/s² in a = κ·v) is most of the EMD fields' (0.053–0.068).
+4. ``emd``    — the circuit itself (:class:`lobula.eye_circuit.EyeCircuit`, the configuration
    given): the correlators' velocity tuning and pattern noise, and the haltere's residue
    under rotation; the fields the pipeline gates by reliability (``field_used``) left out.
 
@@ -29,13 +35,14 @@ import numpy as np
 import torch
 
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
-from lobula.haltere import forward_acceleration, resample_to
+from lobula.haltere import forward_acceleration, resample_to, turn_rate
 from lobula.photoreceptor import lowpass_scan
 from lobula.readout import readout
 
 from .eye_velocity import EyeVelocityConfig, estimate_eye_velocity, readout_inputs
 
-__all__ = ["exact_pair_motion", "IdealDetectorCircuit", "ideal_fields", "readout_rmse", "decompose"]
+__all__ = ["exact_pair_motion", "IdealDetectorCircuit", "ideal_fields", "slow_gain_fields", "readout_rmse",
+           "decompose"]
 
 
 def exact_pair_motion(fo) -> np.ndarray:
@@ -91,6 +98,27 @@ def ideal_fields(fo, uniform: bool, config: EyeCircuitConfig | None = None, chun
     return t, np.concatenate([o["rho"] for o in outs]), np.concatenate([o["r2_eff"] for o in outs])
 
 
+def slow_gain_fields(t_exact, rho_exact, grad_exact_r2, t, rho_emd, theta, cutoff_hz: float = 1.0):
+    """Exact fields times each field's slow EMD gain: (ρ, r2_eff) at the EMD's times t (K,).
+
+    t_exact (K',), rho_exact (K', F): the exact fields (:func:`ideal_fields`, uniform), r2 likewise
+    (``grad_exact_r2``); rho_emd (K, F): the circuit's; theta (F,) rad: the fields' angles from the
+    body axis. γ_f(t) = causal Gaussian low-pass (``cutoff_hz``, the readout's) of ρ_emd/ρ_exact,
+    clipped to [−3, 5] (silent or near-zero steps read 1). r2_eff = γ²ρ²cos θ − γρ sin θ·γg, g the exact
+    gradient recovered from the exact r2_eff."""
+    from lobula.readout import gaussian_lowpass
+
+    interp = lambda x: np.stack([np.interp(t, t_exact, x[:, f]) for f in range(x.shape[1])], 1)  # noqa: E731
+    re, r2e = interp(rho_exact), interp(grad_exact_r2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g_exact = np.where(np.abs(re) > 1e-9, (re ** 2 * np.cos(theta) - r2e) / (re * np.sin(theta)), 0.0)
+        ratio = np.clip(np.nan_to_num(rho_emd / re, nan=1.0, posinf=1.0, neginf=1.0), -3.0, 5.0)
+    dt = float(np.median(np.diff(t)))
+    gam = np.stack([gaussian_lowpass(ratio[:, f], cutoff_hz, dt, causal=True)[0] for f in range(ratio.shape[1])], 1)
+    rho = gam * re
+    return rho, rho ** 2 * np.cos(theta) - rho * np.sin(theta) * gam * g_exact
+
+
 def readout_rmse(fo, t, rho, r2, accel_from_truth: bool, cfg: EyeVelocityConfig | None = None,
                  skip_s: float = 2.0) -> tuple[float, float]:
     """The eye pipeline's readout (settle time, acceleration, readout inputs) on given fields: (RMSE, ±2σ coverage)."""
@@ -98,13 +126,17 @@ def readout_rmse(fo, t, rho, r2, accel_from_truth: bool, cfg: EyeVelocityConfig 
     rho, r2 = rho.copy(), r2.copy()
     cold = (t - t[0]) < cfg.settle_time()
     rho[cold], r2[cold] = np.nan, np.nan
+    dt = float(np.median(np.diff(t)))
     if accel_from_truth:
         a = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
+        turn = None
     else:
         a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=cfg.readout.filter == "causal")
-        a = resample_to(t, fo.imu.time_s, a_imu, float(np.median(np.diff(t))))
+        a = resample_to(t, fo.imu.time_s, a_imu, dt)
+        # As estimate_eye_velocity does: the readout is told the gyro's turn rate (accelerometer noise under turns).
+        turn = turn_rate(t, fo.imu.time_s, fo.imu.gyro, dt)
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
-    res = readout(t, rho, r2, a, rcfg, gravity_tau=tau, drift_std=drift)
+    res = readout(t, rho, r2, a, rcfg, gravity_tau=tau, drift_std=drift, turn_rate=turn)
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     k = (t >= t[0] + skip_s) & np.isfinite(res.v_hat)
     err = res.v_hat[k] - vt[k]
@@ -115,11 +147,20 @@ def decompose(fo, config: EyeVelocityConfig | None = None, skip_s: float = 2.0) 
     """RMSE (m/s) and ±2σ coverage of the readout at each level, with accelerometer ("imu") and true acceleration."""
     cfg = config or EyeVelocityConfig()
     out = {}
+    exact = None
     for level, uniform in (("exact", True), ("ideal", False)):
         t, rho, r2 = ideal_fields(fo, uniform, cfg.circuit)
+        exact = exact or (t, rho, r2)
         for src, truth in (("true", True), ("imu", False)):
             out[f"{level}|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s)
     ds = estimate_eye_velocity(fo, replace(cfg, readout_kind="kalman"))
+    if cfg.circuit.rotation not in ("wide-field", "both"):   # field by field (not mirror sums)
+        theta = EyeCircuit(fo.eye, fo.rate_hz, cfg.circuit).fields.theta
+        rho_g, r2_g = slow_gain_fields(*exact, ds.time.values, ds.r.values, theta)
+        used = ds.field_used.values
+        for src, truth in (("true", True), ("imu", False)):
+            out[f"gain|{src}"] = readout_rmse(fo, ds.time.values, np.where(used, rho_g, np.nan),
+                                              np.where(used, r2_g, np.nan), truth, cfg, skip_s)
     # The fields the pipeline's readout was given (EyeVelocityConfig.reliability_min).
     used = ds.field_used.values
     t, rho, r2 = ds.time.values, np.where(used, ds.r.values, np.nan), np.where(used, ds.r2.values, np.nan)
