@@ -369,9 +369,9 @@ def rest_measurement(r, cfg: ReadoutConfig):
 
 def accelerometer_steady(a: np.ndarray, dt: float, change_max: float, window_s: float = 1.0,
                          causal: bool = False) -> np.ndarray:
-    """Where the forward acceleration a (n,) m/s² stayed within ``change_max`` (m/s²) of a straight
-    line over ``window_s`` (causal: the window ending at each frame; else centred), each reading
-    first averaged over 5 frames, (n,) bool.
+    """Where the forward acceleration a (n,) m/s² stayed within ``change_max`` (m/s², or 5× the
+    reading's own vibration where that is more) of a straight line over ``window_s`` (causal: the
+    window ending at each frame; else centred), each reading first averaged over 5 frames, (n,) bool.
 
     A still camera's accelerometer reads its offset, gravity's residue — a constant, or a ramp while
     an uncorrected gyro bias turns gravity into the forward axis (a real still EuRoC sequence: 0.17
@@ -392,8 +392,8 @@ def accelerometer_steady(a: np.ndarray, dt: float, change_max: float, window_s: 
     # online, the 5 s around the frame offline. (EuRoC V1_01's still start: at 3× its last 0.8 s,
     # a −0.1 → −0.29 m/s² step — rotors spinning up or the take-off beginning; the copy has no
     # ground truth to tell — lost the rest bound, and v̂ drifted to an RMS of 0.011 m/s.)
-    hf = uniform_filter1d((a - sm) ** 2, max(3, int(round(5.0 / dt))), mode="nearest",
-                          origin=(max(3, int(round(5.0 / dt))) - 1) // 2 if causal else 0)
+    k = max(3, int(round(5.0 / dt)))
+    hf = uniform_filter1d((a - sm) ** 2, k, mode="nearest", origin=(k - 1) // 2 if causal else 0)
     change_max = np.maximum(change_max, 5.0 * np.sqrt(hf))
     # Window j covers frames j .. j + w − 1; causal frame k takes the window ending at k, offline the
     # one centred on it (both clipped at the record's ends).
