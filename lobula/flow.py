@@ -65,12 +65,10 @@ def make_flow_fn(config: FlowConfig):
         if config.dis_preset not in DIS_PRESETS:
             raise ValueError(f"unknown DIS preset {config.dis_preset!r}; choose from {sorted(DIS_PRESETS)}")
         dis = cv2.DISOpticalFlow_create(DIS_PRESETS[config.dis_preset])
-        preset_finest, width = dis.getFinestScale(), [None]
+        preset_finest = dis.getFinestScale()
 
         def fn(a, b):
-            if a.shape[1] != width[0]:
-                width[0] = a.shape[1]
-                dis.setFinestScale(dis_finest_scale(preset_finest, width[0], config.dis_grid_px))
+            dis.setFinestScale(dis_finest_scale(preset_finest, a.shape[1], config.dis_grid_px))
             f = dis.calc(_u8(a), _u8(b), None)
             return f.transpose(2, 0, 1)
     elif config.method == "farneback":

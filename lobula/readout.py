@@ -189,15 +189,15 @@ def _fill_nan(x: np.ndarray, causal: bool = False) -> np.ndarray:
     """
     x = np.array(x, dtype=float)
     flat = x.reshape(len(x), -1)
+    bad = np.flatnonzero(~np.isfinite(flat).all(0))  # only the affected columns
+    if causal:
+        held = hold_gaps(flat[:, bad])
+        flat[:, bad] = np.where(np.isfinite(held), held, 0.0)  # a column with no value at all: 0
+        return flat.reshape(x.shape)
     idx = np.arange(len(x))
-    for j in np.flatnonzero(~np.isfinite(flat).all(0)):  # loop over affected columns only
+    for j in bad:
         ok = np.isfinite(flat[:, j])
-        if not ok.any():
-            flat[:, j] = 0.0
-        elif causal:
-            flat[:, j] = hold_gaps(flat[:, j])
-        else:
-            flat[:, j] = np.interp(idx, idx[ok], flat[ok, j])
+        flat[:, j] = np.interp(idx, idx[ok], flat[ok, j]) if ok.any() else 0.0
     return flat.reshape(x.shape)
 
 
