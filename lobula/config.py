@@ -23,8 +23,10 @@ class VelocityConfig:
     derotate: subtract gyro-predicted rotational flow when a gyroscope is present.
     gyro_bias_from_vision: with a gyroscope, estimate its bias from the rotation the
     derotated flow still shows (lobula.haltere.vision_gyro_bias) for the attitude that
-    removes gravity and for the readout's gravity-drift std; else (the default) only where
-    the camera is still. Off by default: on frontal scenes a pitch/yaw bias is nearly
+    removes gravity and for the readout's gravity-drift std; else (the default) the heading and
+    bias fit's estimate (lobula.epipole.HeadingBiasEstimator, its std scaled by
+    lobula.haltere.HEADING_BIAS_STD_SCALE) fused with the still-camera one
+    (lobula.haltere.fused_gyro_bias). Off by default: on frontal scenes a pitch/yaw bias is nearly
     confounded with an epipole shift, and on 2 of 7 development scenes one axis's estimate
     stayed near 0 with a std that claimed otherwise.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or

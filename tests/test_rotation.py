@@ -1,6 +1,7 @@
 """Issue 10's rotation: flow under fast turns (gyro pre-warp) and what the gyro leaves to vision."""
 import cv2
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from lobula.camera import PinholeCamera
@@ -83,16 +84,21 @@ def test_vision_gyro_bias_without_measurements_is_the_prior():
     np.testing.assert_allclose(s, 2e-3)
 
 
-def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path):
+@pytest.mark.parametrize("from_residual", [True, False])
+def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path, from_residual):
     """The rotation family's scene (realistic IMU on a rotated mount, dev seed 9, not a suite
     seed) for 4 s, with the gyro bias walking 5× faster than the BMI055 figure so that it
     drifts through the record. The camera never stops turning, so the still-camera estimate
-    (lobula.haltere.gyro_bias) has nothing and leaves the whole bias; the flow's residual
-    rotation must recover it to within half of that, with a std that covers its error."""
+    (lobula.haltere.gyro_bias) has nothing and leaves the whole bias; the flow must recover it to
+    within half of that, with a std that covers its error — from its residual rotation
+    (``gyro_bias_from_vision``) or, by default, from the heading and bias fit fused with the
+    still-camera estimate. Gravity removed through that attitude then ramps less through the
+    forward acceleration than through the still-camera one (without the fused bias, the default
+    had no ``gyro_bias`` and ramped at the whole bias)."""
     from dataclasses import replace
 
     from experiments import suite
-    from experiments.velocity import estimate_velocity
+    from experiments.velocity import estimate_velocity, forward_accel_at
     from lobula.config import VelocityConfig
     from lobula.haltere import gyro_bias
     from stimuli.footage import open_footage
@@ -106,7 +112,7 @@ def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path)
     truth_imu = imu["gyro_bias_t"] @ imu["imu_to_camera"].T  # camera frame
     assert np.abs(gyro_bias(fo.imu.time_s, fo.imu.gyro)).max() == 0.0  # never still: nothing from the gyro alone
     for filt in ("zero-phase", "causal"):
-        vc = VelocityConfig(gyro_bias_from_vision=True)
+        vc = VelocityConfig(gyro_bias_from_vision=from_residual)
         vc.readout.filter = filt
         ds = estimate_velocity(fo, vc, progress=False)
         t = ds.time.values
@@ -116,9 +122,15 @@ def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path)
         rms = np.sqrt(np.mean(err ** 2))
         still_only = np.sqrt(np.mean(truth[late] ** 2))
         cover = np.mean(np.abs(err) <= 2 * ds.gyro_bias_std.values[late])
-        print(f"\n{filt}: bias error rms {1e3 * rms:.2f} mrad/s (still-only {1e3 * still_only:.2f}), ±2σ {cover:.2f}")
+        # The acceleration's error, its slow part: the offset the readout learns, and the ramp.
+        a_true = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
+        a_still, _ = forward_accel_at(fo, t, vc, bias=None)
+        ramp = lambda a: abs(np.polyfit(t, a - a_true, 1)[0])  # noqa: E731  m/s² per s
+        print(f"\n{filt}: bias error rms {1e3 * rms:.2f} mrad/s (still-only {1e3 * still_only:.2f}), ±2σ {cover:.2f}; "
+              f"acceleration ramp {ramp(ds.accel.values):.3f} m/s²/s (still-only {ramp(a_still):.3f})")
         assert rms < 0.5 * still_only
         assert cover >= 0.8
+        assert ramp(ds.accel.values) < 0.5 * ramp(a_still)
 
 
 def test_gyro_bias_from_vision_option_reaches_the_config():
@@ -258,3 +270,22 @@ def test_gyro_attitude_at_the_first_sample_is_the_identity():
     t = np.arange(0.0, 1.0, 0.004)
     att = GyroAttitude(t, np.tile([0.1, -0.2, 0.3], (t.size, 1)), np.zeros(3))
     np.testing.assert_allclose(att(np.array([-1.0, 0.0])), np.broadcast_to(np.eye(3), (2, 3, 3)), atol=1e-12)
+
+
+def test_fused_gyro_bias_weighs_by_inverse_variance_and_uses_only_what_is_known():
+    from lobula.haltere import fused_gyro_bias
+
+    t = np.linspace(0.0, 2.0, 21)
+    still_b, still_s = np.zeros((21, 3)), np.full(21, 2e-3)
+    t_est = np.array([0.5, 1.5])
+    est_b = np.array([[1e-3, 0, 0], [2e-3, 0, 0]])
+    est_s = np.full((2, 3), 1e-4)           # ×2 below: 2e-4, a hundredth of the still variance
+    b, s = fused_gyro_bias(t, still_b, still_s, t_est, est_b, est_s, causal=True, est_std_scale=2.0)
+    w = (1 / 2e-4 ** 2) / (1 / 2e-4 ** 2 + 1 / 2e-3 ** 2)
+    np.testing.assert_allclose(b[t < 0.5], 0.0)              # nothing from the flow yet
+    np.testing.assert_allclose(s[t < 0.5], 2e-3)
+    np.testing.assert_allclose(b[(t >= 0.5) & (t < 1.5), 0], w * 1e-3)
+    np.testing.assert_allclose(b[t >= 1.5, 0], w * 2e-3)     # the newest estimate known by then
+    np.testing.assert_allclose(s[t >= 0.5], 1 / np.sqrt(1 / 2e-4 ** 2 + 1 / 2e-3 ** 2))
+    b_off, _ = fused_gyro_bias(t, still_b, still_s, t_est, est_b, est_s, causal=False, est_std_scale=2.0)
+    np.testing.assert_allclose(b_off[:, 0], w * 2e-3)         # offline: the last, whole-record estimate
