@@ -239,19 +239,17 @@ def gyro_bias_track(footage: Footage, rates: FieldRates, causal: bool):
     0.015 / 0.042 / 0.033 / 0.039; the other 32 scenes within ±0.002; all 36 zero-phase 0.0073 →
     0.0063, causal 0.0149 → 0.0144.
     """
-    if footage.imu is None or footage.imu.gyro is None:
+    if (footage.imu is None or footage.imu.gyro is None
+            or (rates.gyro_residual is None and rates.heading_bias is None)):
         return None
-    tb, gyro = footage.imu.time_s, footage.imu.gyro
+    tb = footage.imu.time_s
+    b_still, s_still = gyro_bias(tb, footage.imu.gyro, causal, with_std=True)
     if rates.gyro_residual is not None:
-        b_still, s_still = gyro_bias(tb, gyro, causal, with_std=True)
         t_m, res, rate = rates.gyro_residual
         return (*vision_gyro_bias(t_m, res, tb, b_still[0], s_still[0], causal, rate=rate),
                 "the flow's residual rotation (camera frame)")
-    if rates.heading_bias is not None:
-        b_still, s_still = gyro_bias(tb, gyro, causal, with_std=True)
-        return (*fused_gyro_bias(tb, b_still, s_still, *rates.heading_bias, causal),
-                "the heading and bias fit fused with the still-camera estimate (camera frame)")
-    return None
+    return (*fused_gyro_bias(tb, b_still, s_still, *rates.heading_bias, causal),
+            "the heading and bias fit fused with the still-camera estimate (camera frame)")
 
 
 def _attitude_track(time_s: np.ndarray, gyro: np.ndarray, causal: bool):
