@@ -268,6 +268,56 @@ def test_accelerometer_steady_marks_a_start_causally_and_ignores_an_offset():
     assert not off[50:85].any() and off[:45].all()      # offline the window is centred
 
 
+def test_accelerometer_level_reads_the_vibration_not_the_flight():
+    """The bar a still reading may stray by is 5× its own white-noise level behind the 5-frame
+    average (5·√0.8·σ), read from second differences: a flight's own jerk (1 m/s² at 0.5 Hz, 3.1
+    m/s³) leaves it at change_max, where what the average leaves out (≈ 2 frames × jerk) would
+    raise it to ~0.7 m/s² and call an accelerating camera steady."""
+    from lobula.readout import accelerometer_level
+
+    dt = 1 / 30
+    t = np.arange(0, 20, dt)
+    rng = np.random.default_rng(4)
+    flight = np.sin(2 * np.pi * 0.5 * t)
+    for causal in (True, False):
+        sm, tol = accelerometer_level(flight + rng.normal(0, 0.006, t.size), dt, 0.05, causal=causal)
+        assert np.all(tol == 0.05)
+        _, tol = accelerometer_level(flight + rng.normal(0, 0.1, t.size), dt, 0.05, causal=causal)
+        assert np.allclose(np.median(tol), 5 * np.sqrt(0.8) * 0.1, rtol=0.1), np.median(tol)
+    # online the average trails the reading (no look-ahead): a step shows only once it has happened
+    step = np.where(t >= 10, 1.0, 0.0)
+    sm, _ = accelerometer_level(step, dt, 0.05, causal=True)
+    assert np.all(sm[t < 10] == 0.0) and sm[np.searchsorted(t, 10) + 4] == 1.0
+
+
+def test_online_rest_bound_waits_for_a_camera_that_does_not_accelerate():
+    """Most fields see a backdrop 60-150 m away, so "no expansion" holds at 5 m depth whenever the
+    camera is slower than ~0.5 m/s; it swings through v = 0 at 0.94 m/s² (v = 0.6·sin(2πt/4)).
+    The bound then says v = 0 ± 0.02 m/s for whole stretches it is not: online it counts only
+    where the accelerometer less its learned offset could be a camera that does not accelerate
+    (before: RMSE 0.29 m/s, truth inside ±2σ on 4 % of frames; now 0.010, 100 %)."""
+    from lobula.readout import MaterialRates, rest_measurement
+
+    t = np.arange(0, 12, 1 / 30)
+    w = 2 * np.pi / 4
+    v = lambda x: 0.6 * np.sin(w * x)
+    a = lambda x: 0.6 * w * np.cos(w * x)
+    r, r2, acc = analytic_rates(v, a, t, np.concatenate([np.linspace(3, 6, 10), np.linspace(60, 150, 30)]))
+    rng = np.random.default_rng(0)
+    r = r + rng.normal(0, 0.01, r.shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_dot = acc[:, None] / (v(t)[:, None] / r) + r2
+    zr, _ = rest_measurement(r, ReadoutConfig())
+    assert (np.isfinite(zr) & (np.abs(v(t)) > 0.1)).sum() > 100   # the bound is wrong on those frames
+    acc = acc + 0.1 + rng.normal(0, 0.01, t.shape)
+    res = readout(t, r, r2, acc, ReadoutConfig(filter="causal"), material=MaterialRates(r, r2, r_dot))
+    m = (t >= 2.0) & res.observable
+    assert m.mean() >= 0.7                               # unobservable while v is near 0 only
+    e = res.v_hat[m] - v(t)[m]
+    assert np.sqrt(np.mean(e ** 2)) < 0.02               # the zero estimator: 0.42 m/s
+    assert np.mean(np.abs(e) <= 2 * res.v_std[m]) > 0.9
+
+
 @pytest.mark.parametrize("lowpass", ["gaussian", "butterworth"])
 def test_online_lowpass_reads_nothing_after_a_gap_it_bridges(lowpass):
     """Online, a NaN gap is held, not interpolated toward the value after it: changing what
