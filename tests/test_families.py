@@ -34,7 +34,7 @@ def family_run(tmp_path_factory):
 @pytest.mark.parametrize("family", [
     "panels", "corridor",
     "rotation",  # 0.068 m/s against zero 0.314 and the truth's mean 0.138 (bound 0.069: the weakest family)
-    "ground", "fast", "offaxis", "dim", "rest", "moving"])
+    "ground", "fast", "offaxis", "dim", "rest", "moving", "mixed"])
 def test_family_beats_the_baselines(family_run, family):
     fo = family_run(family)
     cfg = VelocityConfig()
