@@ -568,13 +568,14 @@ class TrackScene:
         """Exact displacement (normalised coordinates) of each pixel of frame t0 by time t1, (2, H, W).
 
         Divide by (t1 - t0) for flow in 1/s. Occlusions are ignored (a point keeps
-        its identity even if hidden at t1).
+        its identity even if hidden at t1). NaN where no surface is hit (the ground world's sky).
         """
         x, y = self.camera.normalised_grid()
         lam = self._cast(x, y, t0)[0]
-        p_world = self.position(t0) + (np.stack([x, y, np.ones_like(x)], -1) @ self.rotation(t0).T) * lam[..., None]
-        pc = (p_world - self.position(t1)) @ self.rotation(t1)
-        return np.stack([pc[..., 0] / pc[..., 2] - x, pc[..., 1] / pc[..., 2] - y])
+        with np.errstate(invalid="ignore"):  # sky: an infinite depth has no scene point to follow
+            p_world = self.position(t0) + (np.stack([x, y, np.ones_like(x)], -1) @ self.rotation(t0).T) * lam[..., None]
+            pc = (p_world - self.position(t1)) @ self.rotation(t1)
+            return np.stack([pc[..., 0] / pc[..., 2] - x, pc[..., 1] / pc[..., 2] - y])
 
     def r_exact(self, t: float) -> np.ndarray:
         """r = v_forward / d at each pixel (1/s), (H, W)."""
