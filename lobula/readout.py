@@ -469,7 +469,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     rest_accel: (a_s, tol), each (n,) m/s² (:func:`accelerometer_level`), when the
     ``measurements`` are rest bounds (v ≈ 0): the forward filter uses one only where the camera's
     reading less the offset it has learned could be a camera that does not accelerate,
-    |a_s − b̂| ≤ tol + 2σ_b. A camera that accelerates passes through v = 0 for an instant, and a
+    |a_s − b̂| ≤ tol + 2σ_b (kalman_readout gives it online only). A camera that accelerates passes through v = 0 for an instant, and a
     bound resting on an assumed depth is then wrong by however far the fields' depths exceed it
     (unseen worlds: a ground plane with a far backdrop, the camera reversing at 1.4 m/s², read
     v = 0 ± 0.02 at −0.14 m/s; causal RMSE 0.074 → 0.057 m/s, and a corridor 0.047 → 0.015).
@@ -517,7 +517,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             z, sd = m[0], m[1]
             Hm = H if len(m) < 3 else np.array([1.0, m[2], 0.0, -0.5 * m[2] ** 2])
             if np.isfinite(z[k]) and np.isfinite(sd[k]):
-                if (rest_accel is not None and not smooth
+                if (rest_accel is not None
                         and abs(rest_accel[0][k] - x[1]) > rest_accel[1][k] + 2.0 * np.sqrt(P[1, 1])):
                     continue
                 x, P = _update(x, P, Hm, z[k] - Hm @ x, sd[k] ** 2, consider)
@@ -719,7 +719,8 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     v, v_std = kalman_velocity(t, a, [(zr, sr, 0.0)], cfg, smooth=zp, gravity_tau=gravity_tau,
                                ratio=(kap, skap, terms[3], shift, e_lp), drift_std=drift_std, delay=delay,
                                corr_frames=n_corr, turn_rate=turn_rate,
-                               rest_accel=accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True))
+                               rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2,
+                                                                              causal=True))
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
                          info=dict(measurement_delay_s=delay))
