@@ -440,6 +440,11 @@ def apply_eye_options(cfg: EyeVelocityConfig, args) -> EyeVelocityConfig:
         cfg.neuron = replace(cfg.neuron, spiking=ro != "neuron-rate", seed=int(getattr(args, "seed", None) or 0))
         if ro in ("kalman", "neuron-rate") and getattr(args, "seed", None) is not None:
             raise ValueError(f"--seed seeds output spikes; --readout {ro} has none (use --readout spikes or neuron)")
+    if getattr(args, "accel_scale_error", None) is not None:
+        if cfg.readout_kind == "neuron":
+            raise ValueError(f"--accel-scale-error widens the kalman readout's posterior std; --readout {ro} "
+                             f"reports the spike decoding's noise only: drop one of them")
+        cfg.readout = replace(cfg.readout, accel_scale_error=args.accel_scale_error)  # validated there
     if cfg.readout_kind != "kalman" and getattr(args, "filter", None) == "zero-phase":
         raise ValueError(f"--readout {ro} is causal; --filter zero-phase applies to --readout kalman")
     return cfg
@@ -483,6 +488,9 @@ def add_parser(subparsers):
     v.add_argument("--filter", default="causal", choices=["causal", "zero-phase"], help="readout filter kind")
     v.add_argument("--accel-from-truth", action="store_true",
                    help="forward acceleration from truth.csv instead of the accelerometer")
+    v.add_argument("--accel-scale-error", type=float, metavar="FRACTION",
+                   help="the accelerometer's scale-factor error (1σ fraction) the kalman/spikes readouts add to "
+                        "v_std as FRACTION·|v̂| (lobula.readout.ReadoutConfig.accel_scale_error; default 0.01)")
     v.add_argument("--readout", default="kalman", choices=["kalman", "spikes", "neuron", "neuron-rate"],
                    help="kalman: the arithmetic readout (lobula.readout, rates); spikes: its v̂ carried by 10 "
                         "push-pull Poisson output neuron pairs, decoded causally; neuron: the shunting readout "

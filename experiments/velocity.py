@@ -514,6 +514,11 @@ def apply_velocity_options(cfg, args):
         cfg.accel_from_truth = True
     if opt("gyro_bias_from_vision"):
         cfg.gyro_bias_from_vision = True
+    if opt("accel_scale_error") is not None:
+        cfg.readout = replace(cfg.readout, accel_scale_error=args.accel_scale_error)  # validated there
+        if cfg.readout.method != "kalman":
+            raise ValueError("--accel-scale-error widens the kalman readout's posterior std; the paper's "
+                             "median readout (--paper) states none: drop one of them")
     e = cfg.emd
     if opt("dphi") or opt("drho"):
         e.lattice = replace(e.lattice, dphi_deg=opt("dphi") or e.lattice.dphi_deg,
@@ -590,6 +595,10 @@ def add_parser(subparsers):
     v.add_argument("--gyro-bias-from-vision", action="store_true",
                    help="estimate the gyro bias from the flow's residual rotation (lobula.haltere.vision_gyro_bias) "
                         "for gravity removal and the drift std; writes gyro_bias, gyro_bias_std")
+    v.add_argument("--accel-scale-error", type=float, metavar="FRACTION",
+                   help="the accelerometer's scale-factor error (1σ fraction), added to v_std as FRACTION·|v̂| "
+                        "(vision cannot see it; lobula.readout.ReadoutConfig.accel_scale_error; default 0.01, "
+                        "a consumer MEMS sensitivity tolerance: set it from your IMU's calibration)")
     v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo)")
     v.add_argument("--flo-units", default="rad/s", choices=["rad/s", "px"], help="units of the .flo values")
     v.add_argument("--flo-gap", type=float, default=0.2, help="time between the .flo frame pair (s)")

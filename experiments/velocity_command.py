@@ -47,13 +47,13 @@ def run(args) -> int:
 
 #: `lobula velocity` options that carry over to eye footage (the rest must stay at their defaults)
 _VELOCITY_OPTIONS_ON_EYE = ("footage", "front_end", "out", "plot", "filter", "field_size", "tau", "accel_from_truth",
-                            "skip", "quiet", "func", "command") + EYE_ONLY_OPTIONS
+                            "accel_scale_error", "skip", "quiet", "func", "command") + EYE_ONLY_OPTIONS
 
 
 def run_on_eye_footage(args) -> int:
     """`lobula velocity EYE_FOOTAGE --front-end emd …`: the eye's circuit, as `lobula eye-velocity`.
 
-    --filter, --field-size, --tau, --accel-from-truth, --skip, --plot and the eye-only --rotation,
+    --filter, --field-size, --tau, --accel-from-truth, --accel-scale-error, --skip, --plot and the eye-only --rotation,
     --readout, --uncertainty and --seed mean what they mean for
     `lobula eye-velocity` (so the two commands give the same numbers for the same options;
     `lobula velocity`'s --filter defaults to zero-phase, eye-velocity's to causal). Every other
@@ -84,6 +84,7 @@ def run_on_eye_footage(args) -> int:
                          f"defaults to zero-phase)")
     ns = argparse.Namespace(footage=args.footage, out=args.out, plot=args.plot, rotation=getattr(args, "rotation", None),
                             field_size=args.field_size, tau=args.tau, filter=args.filter,
-                            accel_from_truth=args.accel_from_truth, skip=args.skip, readout=ro,
+                            accel_from_truth=args.accel_from_truth, accel_scale_error=args.accel_scale_error,
+                            skip=args.skip, readout=ro,
                             uncertainty=getattr(args, "uncertainty", None), seed=getattr(args, "seed", None))
     return run_eye_velocity(ns)

@@ -86,6 +86,14 @@ class ReadoutConfig:
         the panels, fast and corridor families but widens the corridor's band past 99.5 % coverage
         on the 6 s scene of tests/test_families.py and doubles the ground family's seed-1 error, so
         it is not on by default.
+    accel_scale_error: the accelerometer's scale-factor error (fraction, 1σ). Vision measures only
+        κ = a/v, so v̂ = a/κ takes the accelerometer's scale whole, and nothing the camera sees can
+        correct it (the scale ambiguity of monocular vision is what the accelerometer resolves): it
+        is added to the posterior std as accel_scale_error·|v̂|. 0.01: the sensitivity tolerance of a
+        consumer MEMS accelerometer such as the D435i's BMI055, and what the realistic synthetic
+        IMU draws per axis (stimuli.imu.IMUConfig.realistic); set it from a calibration where one
+        exists. Found on unseen footage (a corridor at 2.5 m/s, its accelerometer 1.25 % low):
+        v̂ 2 % slow while its band claimed 1 %, zero-phase ±2σ 74 % → 85 %; not fitted.
     max_std_m_s: posterior std above which v̂ is reported as unobservable (NaN).
     shared_error_frac / shared_error_s: vision's a_m = κ·v + b also carries an error
         all fields share that persists for seconds (fast family, dev seeds: +0.07–0.11 m/s² for
@@ -129,6 +137,7 @@ class ReadoutConfig:
     meas_floor_m_s: float = 0.02
     kappa_rel_error: float = 0.25
     adapt_s: float = 0.0
+    accel_scale_error: float = 0.01
     max_std_m_s: float = 0.1
     shared_error_frac: float = 0.5
     shared_error_s: float = 3.0
@@ -144,6 +153,8 @@ class ReadoutConfig:
             raise ValueError(f"unknown readout method {self.method!r}; use 'kalman' or 'median'")
         if self.filter not in ("zero-phase", "causal"):
             raise ValueError(f"unknown filter kind {self.filter!r}; use 'zero-phase' or 'causal'")
+        if not 0.0 <= self.accel_scale_error < 1.0:
+            raise ValueError(f"accel_scale_error is a fraction in [0, 1), got {self.accel_scale_error}")
 
     @classmethod
     def paper(cls, filter: str = "zero-phase") -> "ReadoutConfig":
@@ -721,6 +732,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
                                corr_frames=n_corr, turn_rate=turn_rate,
                                rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2,
                                                                               causal=True))
+    v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
                          info=dict(measurement_delay_s=delay))

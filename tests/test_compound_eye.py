@@ -408,6 +408,19 @@ def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, 
         np.testing.assert_allclose(dc.v_std.values, dd.v_std.values, equal_nan=True)
         assert dc.sizes["field"] != da.sizes["field"]        # mirror sums: the options did something
     capsys.readouterr()
+    # The accelerometer's scale error reaches the eye's readout from either command; the readout neuron,
+    # which states no posterior, refuses it.
+    import argparse
+
+    from experiments.eye_velocity import EyeVelocityConfig, apply_eye_options
+    cfg = apply_eye_options(EyeVelocityConfig(), argparse.Namespace(accel_scale_error=0.03))
+    assert cfg.readout.accel_scale_error == 0.03 and cfg.readout.kappa_rel_error == 0.5  # the eye's own kept
+    assert main(["eye-velocity", str(eye_footage), "--readout", "neuron", "--accel-scale-error", "0.02",
+                 "--out", str(tmp_path / "n.nc")]) == 2
+    assert "--accel-scale-error" in capsys.readouterr().err and not (tmp_path / "n.nc").exists()
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--filter", "causal", "--readout", "neuron",
+                 "--accel-scale-error", "0.02", "--out", str(tmp_path / "n.nc")]) == 2
+    assert "--accel-scale-error" in capsys.readouterr().err
     # A causal-only readout with `lobula velocity`'s default zero-phase filter: refused, naming the fix.
     assert main(["velocity", str(eye_footage), "--front-end", "emd", "--readout", "spikes",
                  "--out", str(tmp_path / "z.nc")]) == 2

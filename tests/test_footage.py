@@ -112,6 +112,27 @@ def test_small_run_works(small_run, tmp_path, capsys):
     assert ds.attrs["filter"] == "zero-phase"
 
 
+def test_accel_scale_error_option_widens_the_band_by_its_share(small_run, tmp_path, capsys):
+    """--accel-scale-error adds FRACTION·|v̂| to v_std in quadrature and moves nothing else; refused where no
+    posterior std is stated (--paper) and out of range."""
+    out = {}
+    for frac in ("0", "0.1"):
+        assert run_cli(small_run, tmp_path / f"s{frac}.nc", capsys, "--accel-scale-error", frac)[0] == 0
+        with xr.open_dataset(tmp_path / f"s{frac}.nc") as ds:
+            out[frac] = ds.load()
+            assert VelocityConfig.from_json(ds.attrs["config"]).readout.accel_scale_error == float(frac)
+    a, b = out["0"], out["0.1"]
+    both = a.observable.values & b.observable.values
+    assert both.sum() > 10
+    np.testing.assert_allclose(b.v_hat.values[both], a.v_hat.values[both])
+    np.testing.assert_allclose(b.v_std.values[both] ** 2,
+                               a.v_std.values[both] ** 2 + (0.1 * a.v_hat.values[both]) ** 2, rtol=1e-6)
+    code, err = run_cli(small_run, tmp_path / "p.nc", capsys, "--paper", "--accel-scale-error", "0.02")
+    assert code == 2 and "--paper" in err and not (tmp_path / "p.nc").exists()
+    code, err = run_cli(small_run, tmp_path / "n.nc", capsys, "--accel-scale-error", "-1")
+    assert code == 2 and "accel_scale_error" in err and not (tmp_path / "n.nc").exists()
+
+
 @pytest.mark.parametrize("damage, needle", [
     ("no_imu", "imu.csv"),
     ("missing_frame", "frames.csv"),

@@ -347,3 +347,24 @@ def test_online_lowpass_reads_nothing_after_a_gap_it_bridges(lowpass):
     y0, _ = gaussian_lowpass(x, 1.0, dt)                          # offline bridges by interpolation
     y1, _ = gaussian_lowpass(later, 1.0, dt)
     assert not np.allclose(y0[30:40, 1], y1[30:40, 1])
+
+
+def test_the_accelerometer_scale_error_is_in_the_band():
+    """Vision measures a/v: an accelerometer reading 4 % low makes v̂ 4 % low, which no estimator can see
+    from the images, so the band must hold it (accel_scale_error·|v̂|); without that term the band of a
+    fast flight (2 m/s) misses the truth."""
+    v = lambda t: 1.2 + 0.8 * np.sin(2 * np.pi * t / 5)
+    a = lambda t: 0.8 * 2 * np.pi / 5 * np.cos(2 * np.pi * t / 5)
+    t = np.arange(0, 15, 1 / 30)
+    r, r2, acc = analytic_rates(v, a, t, np.linspace(25.0, 40.0, 24))
+    fast = (t > 2) & (v(t) > 1.5)
+    for filt in ("zero-phase", "causal"):
+        cover = {}
+        for err in (0.0, 0.04):
+            res = readout(t, r, r2, 0.96 * acc, ReadoutConfig(filter=filt, accel_scale_error=err))
+            ratio = np.nanmedian(res.v_hat[fast] / v(t)[fast])
+            assert abs(ratio - 0.96) < 0.006  # the accelerometer's scale, whole
+            cover[err] = np.mean(np.abs(res.v_hat - v(t))[fast] <= 2 * res.v_std[fast])
+        assert cover[0.04] >= 0.9 > 0.6 > cover[0.0], (filt, cover)
+    with pytest.raises(ValueError, match="accel_scale_error"):
+        ReadoutConfig(accel_scale_error=-0.01)
