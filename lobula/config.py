@@ -56,8 +56,9 @@ class VelocityConfig:
     @classmethod
     def paper(cls, front_end: str = "dis", filter: str = "zero-phase") -> "VelocityConfig":
         """The FLIVVER paper's text: 6-frame pairs stamped at their first frame, epipole at the
-        principal point, per-pixel v/d averaged in 5° fields, the paper's median readout."""
-        return cls(front_end=front_end, flow=FlowConfig(gap=6, prewarp=False),
+        principal point, per-pixel v/d averaged in 5° fields, the paper's median readout; each pair's
+        flow in one step (no gyro pre-warp, no chaining through the frames between)."""
+        return cls(front_end=front_end, flow=FlowConfig(gap=6, prewarp=False, chain_fraction=0.0),
                    fields=FieldConfig(size_deg=5.0, pooling="pixel-mean", gap_correction=False, material=False),
                    readout=ReadoutConfig.paper(filter), epipole="principal", timestamps="start")
 
