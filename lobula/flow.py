@@ -319,15 +319,15 @@ class StaggeredFlow:
                 reach = cfg.chain_fraction * a.shape[1]  # px a single step may move
                 steps = min(cfg.gap, int(np.ceil(last_far / reach))) if reach > 0 else 1
                 check = reach > 0 and cfg.gap > 1 and steps < 2 and count % cfg.chain_check == 0
-                turn = None if self.rotation is None or reach <= 0 else \
-                    rotation_warp(self.camera, self.rotation(t0, t1))
+                r01 = None if self.rotation is None else self.rotation(t0, t1)  # once per pair
+                turn = None if r01 is None or reach <= 0 else rotation_warp(self.camera, r01)
                 px = None
                 if steps > 1 or check:
                     px = chained_flow(self._pair, [(t, im) for _, t, im in buf], max(steps, 2))
                     if check and far_displacement(px, turn) <= reach:
                         px = None  # a check that found the image slow: one step is the better flow there
                 if px is None:
-                    px = self._pair(t0, a, t1, b)
+                    px = self._fn(a, b) if r01 is None else prewarp_flow(self._fn, a, b, self.camera, r01)
                 if reach > 0:
                     last_far = far_displacement(px, turn)
                 count += 1
