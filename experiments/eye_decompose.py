@@ -1,7 +1,8 @@
 """Where the fly eye loses velocity accuracy: the same readout fed ever less ideal LC inputs.
 
 Levels (each a velocity Dataset's RMSE after ``skip_s``, with the acceleration from the
-accelerometer and from truth, so the readout's own share shows too):
+accelerometer, from truth, and from truth with an offset the readout must learn as it would an
+accelerometer's (``|offset``), so the readout's own share shows too):
 
 1. ``exact``  — each LC field's fit to the exact translational image motion of every pair,
    ρ_p·m_p with ρ_p = v/D_p (D_p the rendered range along the pair, ``range.npy``), all pairs
@@ -120,8 +121,13 @@ def slow_gain_fields(t_exact, rho_exact, grad_exact_r2, t, rho_emd, theta, cutof
 
 
 def readout_rmse(fo, t, rho, r2, accel_from_truth: bool, cfg: EyeVelocityConfig | None = None,
-                 skip_s: float = 2.0) -> tuple[float, float]:
-    """The eye pipeline's readout (settle time, acceleration, readout inputs) on given fields: (RMSE, ±2σ coverage)."""
+                 skip_s: float = 2.0, learn_offset: bool = False) -> tuple[float, float]:
+    """The eye pipeline's readout (settle time, acceleration, readout inputs) on given fields: (RMSE, ±2σ coverage).
+
+    learn_offset (with accel_from_truth): the true acceleration, but the readout not told so — it
+    learns an accelerometer offset (prior std ``ReadoutConfig.bias_prior_m_s2``, 0.1 m/s²) that is
+    in truth zero, so what the fields' κ errors make of an offset shows on its own.
+    """
     cfg = replace(cfg or EyeVelocityConfig(), accel_from_truth=accel_from_truth)
     rho, r2 = rho.copy(), r2.copy()
     cold = (t - t[0]) < cfg.settle_time()
@@ -136,6 +142,8 @@ def readout_rmse(fo, t, rho, r2, accel_from_truth: bool, cfg: EyeVelocityConfig 
         # As estimate_eye_velocity does: the readout is told the gyro's turn rate (accelerometer noise under turns).
         turn = turn_rate(t, fo.imu.time_s, fo.imu.gyro, dt)
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
+    if accel_from_truth and learn_offset:
+        rcfg = replace(rcfg, bias_prior_m_s2=cfg.readout.bias_prior_m_s2)
     res = readout(t, rho, r2, a, rcfg, gravity_tau=tau, drift_std=drift, turn_rate=turn)
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     k = (t >= t[0] + skip_s) & np.isfinite(res.v_hat)
@@ -143,29 +151,35 @@ def readout_rmse(fo, t, rho, r2, accel_from_truth: bool, cfg: EyeVelocityConfig 
     return float(np.sqrt(np.mean(err ** 2))), float(np.mean(np.abs(err) <= 2 * res.v_std[k]))
 
 
+#: the acceleration each level is read out with: (label, from truth, offset learned)
+SOURCES = (("true", True, False), ("offset", True, True), ("imu", False, False))
+
+
 def decompose(fo, config: EyeVelocityConfig | None = None, skip_s: float = 2.0) -> dict:
-    """RMSE (m/s) and ±2σ coverage of the readout at each level, with accelerometer ("imu") and true acceleration."""
+    """RMSE (m/s) and ±2σ coverage of the readout at each level, with the accelerometer ("imu"), the true
+    acceleration ("true") and the true acceleration with an offset learned as for an accelerometer
+    ("offset", :func:`readout_rmse`'s learn_offset)."""
     cfg = config or EyeVelocityConfig()
     out = {}
     exact = None
     for level, uniform in (("exact", True), ("ideal", False)):
         t, rho, r2 = ideal_fields(fo, uniform, cfg.circuit)
         exact = exact or (t, rho, r2)
-        for src, truth in (("true", True), ("imu", False)):
-            out[f"{level}|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s)
+        for src, truth, learn in SOURCES:
+            out[f"{level}|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s, learn)
     ds = estimate_eye_velocity(fo, replace(cfg, readout_kind="kalman"))
     if cfg.circuit.rotation not in ("wide-field", "both"):   # field by field (not mirror sums)
         theta = EyeCircuit(fo.eye, fo.rate_hz, cfg.circuit).fields.theta
         rho_g, r2_g = slow_gain_fields(*exact, ds.time.values, ds.r.values, theta)
         used = ds.field_used.values
-        for src, truth in (("true", True), ("imu", False)):
+        for src, truth, learn in SOURCES:
             out[f"gain|{src}"] = readout_rmse(fo, ds.time.values, np.where(used, rho_g, np.nan),
-                                              np.where(used, r2_g, np.nan), truth, cfg, skip_s)
+                                              np.where(used, r2_g, np.nan), truth, cfg, skip_s, learn)
     # The fields the pipeline's readout was given (EyeVelocityConfig.reliability_min).
     used = ds.field_used.values
     t, rho, r2 = ds.time.values, np.where(used, ds.r.values, np.nan), np.where(used, ds.r2.values, np.nan)
-    for src, truth in (("true", True), ("imu", False)):
-        out[f"emd|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s)
+    for src, truth, learn in SOURCES:
+        out[f"emd|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s, learn)
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     out["zero"] = float(np.sqrt(np.mean(vt[t >= t[0] + skip_s] ** 2)))
     return out

@@ -574,6 +574,13 @@ def test_decomposition_levels_fall_from_exact_motion_to_the_emds(eye_footage):
     # Exact motion times each field's slow EMD gain γ_f(t): the gain drift alone already costs (a
     # constant γ would not: κ is blind to it).
     assert exact < d["gain|true"][0] < zero, d
+    # The true acceleration with an offset to learn (as from an accelerometer's): the exact fields pin
+    # it, the fields' slow gain drift is taken for one (measured here: exact 0.0012 -> 0.0019, gain
+    # 0.014 -> 0.026 m/s; development worlds, seeds 100-103: gain 0.018 / 0.051 / 0.010 -> 0.046 /
+    # 0.104 / 0.029 on panels / rotation / corridor).
+    assert {k.split("|")[1] for k in d if "|" in k} == {"true", "offset", "imu"}, d
+    assert d["exact|offset"][0] < 0.2 * d["gain|offset"][0], d
+    assert d["gain|offset"][0] > 1.3 * d["gain|true"][0], d
 
 
 def test_slow_gain_fields_scale_the_exact_fields_by_the_emds_gain():
