@@ -26,10 +26,14 @@ def add_eye_scene_options(parser) -> None:
                              "head.csv records the head angles")
     parser.add_argument("--gaze-gain", type=float, default=0.8,
                         help="--eye fly --gaze haltere: fraction of the body's angular velocity the neck cancels")
+    parser.add_argument("--gaze-return", type=float, default=0.5, metavar="S",
+                        help="--eye fly --gaze haltere: time constant (s) with which the head relaxes back to the "
+                             "body axis (lobula.gaze.GazeConfig.tau_return_s; with --gaze-gain 1 and a long return, "
+                             "an ideal neck reflex)")
     parser.set_defaults(_eye_only_defaults={a.dest: a.default for a in parser._actions if a.dest in EYE_ONLY})
 
 
-EYE_ONLY = ("dphi", "drho", "rate_hz", "rays", "cast_rate_hz", "gaze", "gaze_gain")  # options that mean nothing to the pinhole camera
+EYE_ONLY = ("dphi", "drho", "rate_hz", "rays", "cast_rate_hz", "gaze", "gaze_gain", "gaze_return")  # options that mean nothing to the pinhole camera
 
 
 def refuse_eye_options_for_pinhole(args) -> None:
@@ -54,9 +58,11 @@ def run_eye_scene(args, cfg) -> int:
             raise ValueError(f"--cast-rate-hz {args.cast_rate_hz:g} must divide --rate-hz {args.rate_hz:g} "
                              f"(e.g. {args.rate_hz / 2:g})")
         every = int(round(k))
-    if args.gaze == "none" and args.gaze_gain != 0.8:
-        raise ValueError("--gaze-gain applies to --gaze haltere; add it, or drop --gaze-gain")
-    gaze = GazeConfig(gain=args.gaze_gain) if args.gaze == "haltere" else None
+    for opt, default in (("gaze_gain", 0.8), ("gaze_return", 0.5)):
+        if args.gaze == "none" and getattr(args, opt) != default:
+            flag = "--" + opt.replace("_", "-")
+            raise ValueError(f"{flag} applies to --gaze haltere; add it, or drop {flag}")
+    gaze = GazeConfig(gain=args.gaze_gain, tau_return_s=args.gaze_return) if args.gaze == "haltere" else None
     t0 = _time.perf_counter()
     out = make_eye_run(args.out, cfg, eye_cfg, args.rate_hz, progress=not args.quiet, cast_every=every, gaze=gaze)
     print(f"wrote {out}: {CompoundEye(eye_cfg).summary()}, {int(round(args.duration * args.rate_hz))} samples at "

@@ -83,4 +83,25 @@ def test_scene_gaze_options_need_the_fly_eye(tmp_path, capsys):
     assert "--eye fly" in capsys.readouterr().err
     assert main(["scene", str(tmp_path / "b"), "--eye", "fly", "--gaze-gain", "0.5", "--duration", "1"]) == 2
     assert "--gaze haltere" in capsys.readouterr().err
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    assert main(["scene", str(tmp_path / "c"), "--eye", "fly", "--gaze-return", "5", "--duration", "1"]) == 2
+    assert "--gaze-return applies to --gaze haltere" in capsys.readouterr().err
+    assert main(["scene", str(tmp_path / "d"), "--gaze-return", "5", "--duration", "1"]) == 2
+    assert "--eye fly" in capsys.readouterr().err
+    assert not any((tmp_path / k).exists() for k in "abcd")
+
+
+def test_scene_gaze_return_reaches_the_footage(tmp_path):
+    """--gaze-gain 1 --gaze-return 5: the neck's configuration in eye.json, and a head that returns slowly
+    holds more of the body's turn than the default 0.5 s return does."""
+    from experiments.cli import main
+    from stimuli.eye import open_eye_footage
+
+    heads = {}
+    for name, ret in (("slow", "5"), ("default", "0.5")):
+        args = ["scene", str(tmp_path / name), "--eye", "fly", "--gaze", "haltere", "--gaze-gain", "1",
+                "--gaze-return", ret, "--rotation", "4", "--duration", "1", "--rate-hz", "100", "--quiet"]
+        assert main(args) == 0
+        fo = open_eye_footage(tmp_path / name)
+        assert fo.info["gaze"]["gain"] == 1.0 and fo.info["gaze"]["tau_return_s"] == float(ret)
+        heads[name] = np.abs(fo.head).max()
+    assert heads["slow"] > 1.2 * heads["default"] > 0, heads
