@@ -6,6 +6,7 @@ says exactly how it was made; :meth:`VelocityConfig.from_json` rebuilds the run.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 
 from .emd_decoding import EMDFrontEndConfig
@@ -29,6 +30,11 @@ class VelocityConfig:
     (lobula.haltere.fused_gyro_bias). Off by default: on frontal scenes a pitch/yaw bias is nearly
     confounded with an epipole shift, and on 2 of 7 development scenes one axis's estimate
     stayed near 0 with a std that claimed otherwise.
+    gyro_scale_prior: prior std of the gyro's scale-factor and axis-misalignment error E (a 3×3
+    matrix, the rate read is (I + E)·ω + b), fitted with the heading and the bias from the flow
+    (lobula.epipole.HeadingBiasEstimator) and applied to the fields' attitude
+    (lobula.haltere.GyroAttitude); 0: not fitted. A residual rotation E·ω grows with the turn
+    rate: a MEMS gyro's 1 % scale error at 2 rad/s leaves 0.02 rad/s, ten times its bias.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
@@ -43,6 +49,7 @@ class VelocityConfig:
     epipole: str = "estimate"
     derotate: bool = True
     gyro_bias_from_vision: bool = False
+    gyro_scale_prior: float = 0.02
     timestamps: str = "mid"
     accel_from_truth: bool = False
     emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)
@@ -52,6 +59,8 @@ class VelocityConfig:
             raise ValueError(f"epipole must be 'estimate' or 'principal', got {self.epipole!r}")
         if self.timestamps not in ("mid", "start"):
             raise ValueError(f"timestamps must be 'mid' or 'start', got {self.timestamps!r}")
+        if not (self.gyro_scale_prior >= 0 and math.isfinite(self.gyro_scale_prior)):
+            raise ValueError(f"gyro_scale_prior must be a finite std >= 0, got {self.gyro_scale_prior}")
 
     @classmethod
     def paper(cls, front_end: str = "dis", filter: str = "zero-phase") -> "VelocityConfig":
