@@ -126,10 +126,10 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
             # The heading and the gyro's bias are fitted jointly (lobula.epipole.HeadingBiasEstimator)
             # and the fields' attitude follows the bias and the scale error E learned so far
             # (lobula.haltere.GyroAttitude); the pre-warp, a thread ahead, keeps the plain attitude.
-            # E (VelocityConfig.gyro_scale_prior): on the suite's rotation family (±5°, to 1.5 Hz) it
-            # changes little, but a camera turning ±10° at up to 2 Hz with a realistic IMU read v̂
-            # 40-60 % slow without it (zero-phase RMSE 0.106 m/s, zero estimator 0.20, ideal IMU
-            # 0.012) and 0.013 with it.
+            # E (VelocityConfig.gyro_scale_prior): the suite's rotation family (±5°, to 1.5 Hz, seeds
+            # 0-2) 0.016 / 0.039 -> 0.011 / 0.018 m/s zero-phase / causal; a camera turning ±10° at up
+            # to 2 Hz with a realistic IMU read v̂ 40-60 % slow without it (zero-phase 0.106 m/s, zero
+            # estimator 0.20, ideal IMU 0.012) and 0.013 with it.
             b_still, s_still = gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal",
                                          with_std=True)
             attitude = GyroAttitude(footage.imu.time_s, gyro, b_still[0])
