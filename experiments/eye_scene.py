@@ -58,8 +58,8 @@ def run_eye_scene(args, cfg) -> int:
             raise ValueError(f"--cast-rate-hz {args.cast_rate_hz:g} must divide --rate-hz {args.rate_hz:g} "
                              f"(e.g. {args.rate_hz / 2:g})")
         every = int(round(k))
-    for opt, default in (("gaze_gain", 0.8), ("gaze_return", 0.5)):
-        if args.gaze == "none" and getattr(args, opt) != default:
+    for opt in ("gaze_gain", "gaze_return"):
+        if args.gaze == "none" and getattr(args, opt) != args._eye_only_defaults[opt]:
             flag = "--" + opt.replace("_", "-")
             raise ValueError(f"{flag} applies to --gaze haltere; add it, or drop {flag}")
     gaze = GazeConfig(gain=args.gaze_gain, tau_return_s=args.gaze_return) if args.gaze == "haltere" else None
