@@ -79,3 +79,60 @@ def test_posterior_std_is_calibrated_on_a_family_it_was_not_fitted_on(family_run
     assert m.sum() >= 0.8 * (t >= t[0] + SKIP_S).sum()
     assert 0.85 <= cover <= 0.995
     assert np.median(sd[m]) <= 0.1 * np.sqrt(np.mean(vt[m] ** 2))  # a band that says something
+
+
+# ------------------------------------------------------------- known failures beyond the suite
+# Found on footage the suite does not make (160×120, 8 s, one seed each; issue 10, open). Strict:
+# the day either passes, the marker must go.
+def _small_run(tmp_path, family, seed, **imu):
+    from dataclasses import replace
+
+    cfg = suite.family_config(family, seed, 8.0, 0.25)
+    cfg = replace(cfg, imu=replace(cfg.imu, **imu), depth_every=1000)
+    make_track_run(tmp_path / "run", cfg, progress=False)
+    return open_footage(tmp_path / "run")
+
+
+def _scores(fo, filt, skip_s=2.0):
+    cfg = VelocityConfig()
+    cfg.readout.filter = filt
+    ds = estimate_velocity(fo, cfg, progress=False)
+    t, v, vt, sd = ds.time.values, ds.v_hat.values, ds.v_true.values, ds.v_std.values
+    m = t >= t[0] + skip_s
+    ok = m & np.isfinite(v)
+    return dict(rmse=float(np.sqrt(np.mean((v - vt)[ok] ** 2))), zero=float(np.sqrt(np.mean(vt[m] ** 2))),
+                cover=float(np.mean(np.abs(v - vt)[ok] <= 2 * sd[ok])), observable=float(ok.sum() / m.sum()))
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "offline 0.067 m/s, ±2σ 79 %, online 0.021: the offline gravity reference (the record's mean specific "
+    "force) takes in the run's mean acceleration Δv/T (here −0.11 m/s²), and under a nearly constant "
+    "acceleration vision's κ = a/v cannot tell that offset from v (issue 10, open)"))
+def test_offline_is_not_worse_than_online_under_a_nearly_constant_acceleration(tmp_path):
+    """The rotation family's seed 10 decelerates almost uniformly from 0.29 to −0.6 m/s. Then
+    κ(t) = a/v = 1/(t − t₀) whatever a is, so an accelerometer offset δb and a velocity error
+    δv₀ = −δb·v₀/a leave every κ unchanged: the offset is unobservable, and a posterior that
+    claims it is known (±0.016 m/s², error 0.045) is confidently wrong. The smoother has every
+    frame the filter has and more: it must do at least as well and keep its band honest."""
+    fo = _small_run(tmp_path, "rotation", 10)
+    zp, causal = _scores(fo, "zero-phase"), _scores(fo, "causal")
+    print(f"\nzero-phase {zp}\ncausal {causal}")
+    assert zp["rmse"] <= causal["rmse"]
+    assert zp["cover"] >= 0.85
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "online 0.25 m/s (zero estimator 0.32), ±2σ 54 %; offline 0.013: a gyro bias 5-7× the 0.2°/s prior "
+    "(lobula.haltere.GYRO_BIAS_PRIOR) is learned within ~3 s, but the attitude integrated meanwhile "
+    "leaks gravity into the forward axis as a ramp 7× the readout's allowance, frozen after as an offset "
+    "of ~0.4 m/s² that the filter mislearns (issue 10, open)"))
+def test_online_holds_with_a_gyro_bias_of_a_data_sheet_size(tmp_path):
+    """A consumer MEMS gyro's uncompensated zero-rate offset is of the order of 1°/s (the suite's
+    realistic IMU draws 0.25°/s; the real EuRoC start's reads 1.7 / 0.2 / 4.7°/s). The rotation
+    family's seed 100 with a 1°/s bias draw: the online filter must still track and keep its band."""
+    fo = _small_run(tmp_path, "rotation", 100, gyro_bias_std=np.radians(1.0))
+    causal = _scores(fo, "causal")
+    print(f"\ncausal {causal}")
+    assert causal["observable"] >= 0.8
+    assert causal["rmse"] <= 0.35 * causal["zero"]
+    assert causal["cover"] >= 0.85
