@@ -83,7 +83,7 @@ def test_posterior_std_is_calibrated_on_a_family_it_was_not_fitted_on(family_run
 
 # ------------------------------------------------------------- known failures beyond the suite
 # Found on footage the suite does not make (160×120, 8 s, one seed each; issue 10, open). Strict:
-# the day either passes, the marker must go.
+# the day one passes, its marker must go.
 def _small_run(tmp_path, family, seed, **imu):
     from dataclasses import replace
 
@@ -112,7 +112,7 @@ def test_offline_is_not_worse_than_online_under_a_nearly_constant_acceleration(t
     """The rotation family's seed 10 decelerates almost uniformly from 0.29 to −0.6 m/s. Then
     κ(t) = a/v = 1/(t − t₀) whatever a is, so an accelerometer offset δb and a velocity error
     δv₀ = −δb·v₀/a leave every κ unchanged: the offset is unobservable, and a posterior that
-    claims it is known (±0.016 m/s², error 0.045) is confidently wrong. The smoother has every
+    claims it is known (±0.016 m/s², error 0.044) is confidently wrong. The smoother has every
     frame the filter has and more: it must do at least as well and keep its band honest."""
     fo = _small_run(tmp_path, "rotation", 10)
     zp, causal = _scores(fo, "zero-phase"), _scores(fo, "causal")
