@@ -22,8 +22,8 @@ from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import HEADING_POINTS, EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
-from lobula.haltere import (GRAVITY_WINDOW_S, GyroAttitude, forward_acceleration, fused_gyro_bias,
-                            gravity_drift_std, gravity_time_constant, gyro_bias, orientation_from_gyro,
+from lobula.haltere import (GRAVITY_WINDOW_S, GyroAttitude, attitude_leak, forward_acceleration, fused_gyro_bias,
+                            gravity_drift_std, gravity_time_constant, gyro_bias, leak_walk, orientation_from_gyro,
                             resample_to, turn_rate, vision_gyro_bias)
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
@@ -386,15 +386,22 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
         rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, START_ACCEL_PRIOR_M_S2)))
     if len(rates.t) >= 3:
         tau = gravity_tau(footage, rates.t, config)
-        drift = None
+        drift = walk = None
         if accel_source.startswith("accelerometer") and footage.imu.gyro is not None and config.derotate:
             # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.haltere):
             # a state of the readout's filter, offline and online alike.
             drift = np.interp(rates.t, footage.imu.time_s,
                               gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=rcfg.filter == "causal",
                                                 bias_std=None if vb is None else vb[1], accel=footage.imu.accel))
+            if rcfg.filter == "causal":
+                # Online the attitude took each sample's bias estimate; where that estimate moves, the
+                # gravity it let in moves the offset the filter had learned (lobula.haltere.leak_walk).
+                tb = footage.imu.time_s
+                used = vb[0] if vb is not None else gyro_bias(tb, footage.imu.gyro, causal=True)
+                walk = leak_walk(rates.t, tb, attitude_leak(tb, used, footage.imu.accel))
         res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material, gravity_tau=tau,
-                      drift_std=drift, turn_rate=turn_rate_at(footage, rates.t, accel_source, config))
+                      drift_std=drift, turn_rate=turn_rate_at(footage, rates.t, accel_source, config),
+                      offset_walk=walk)
     else:
         res = None
     rates.timings["readout"] = _time.perf_counter() - t0

@@ -450,7 +450,7 @@ def accelerometer_steady(a: np.ndarray, dt: float, change_max: float, window_s: 
 
 def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravity_tau=None,
                     ratio=None, drift_std=None, delay: float = 0.0, full: bool = False,
-                    corr_frames: float = 1.0, turn_rate=None, rest_accel=None):
+                    corr_frames: float = 1.0, turn_rate=None, rest_accel=None, offset_walk=None):
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
@@ -476,6 +476,10 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     drift_std (n,) m/s²/s: how fast the offset may ramp — gravity seen through an attitude
     integrated with an uncertain gyro bias σ_b drifts at up to |g|·σ_b — as a fourth state
     ḃ whose std is held within drift_std at each frame (None: no ramp).
+
+    offset_walk (n,) m/s²/√s: more random walk of the offset at each frame, beyond bias_walk —
+    online, as fast as the attitude's gravity leak moved while the gyro-bias estimate moved
+    (lobula.haltere.leak_walk): the offset learned before is then no longer known (None: none).
 
     rest_accel: (a_s, tol), each (n,) m/s² (:func:`accelerometer_level`), when the
     ``measurements`` are rest bounds (v ≈ 0): the forward filter uses one only where the camera's
@@ -515,7 +519,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             ub = -u / gravity_tau[k] if gravity_tau is not None else 0.0
             x = F @ x + np.array([u, ub, 0.0, 0.0])
             q_a = _accel_density2(cfg, None if turn_rate is None else 0.5 * (turn_rate[k] + turn_rate[k - 1]))
-            P = F @ P @ F.T + np.diag([q_a * dt, cfg.bias_walk ** 2 * dt, q_c, 0.0])
+            q_b = cfg.bias_walk ** 2 + (offset_walk[k] ** 2 if offset_walk is not None else 0.0)
+            P = F @ P @ F.T + np.diag([q_a * dt, q_b * dt, q_c, 0.0])
             if drift_std is not None and P[3, 3] > drift_std[k] ** 2:
                 # The gyro bias got better known (still samples): the ramp is bounded anew.
                 f = drift_std[k] / np.sqrt(P[3, 3])
@@ -636,7 +641,7 @@ def _lag(x: np.ndarray, h: int) -> np.ndarray:
 
 
 def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
-                   gravity_tau=None, drift_std=None, turn_rate=None) -> ReadoutResult:
+                   gravity_tau=None, drift_std=None, turn_rate=None, offset_walk=None) -> ReadoutResult:
     """The project's readout (see module docstring).
 
     Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
@@ -729,7 +734,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     e_lp = (0.5 * sigma_t ** 2 * np.abs(np.gradient(_fill_nan(terms[3]), dt)) if zp else np.zeros(len(t)))
     v, v_std = kalman_velocity(t, a, [(zr, sr, 0.0)], cfg, smooth=zp, gravity_tau=gravity_tau,
                                ratio=(kap, skap, terms[3], shift, e_lp), drift_std=drift_std, delay=delay,
-                               corr_frames=n_corr, turn_rate=turn_rate,
+                               corr_frames=n_corr, turn_rate=turn_rate, offset_walk=offset_walk,
                                rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2,
                                                                               causal=True))
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
@@ -740,7 +745,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
 
 def readout(t, r, r2, a, config: ReadoutConfig | None = None,
             material: MaterialRates | None = None, gravity_tau=None, drift_std=None,
-            turn_rate=None) -> ReadoutResult:
+            turn_rate=None, offset_walk=None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
     t (n,) s, uniformly spaced; r, r2 (n, F) in 1/s and 1/s²; a (n,) forward
@@ -749,7 +754,9 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
     gravity_tau (n,) s: the online gravity estimate's time constant at each frame
     (lobula.haltere.gravity_time_constant; None offline), and drift_std (n,) m/s²/s, how
     fast the accelerometer's offset may ramp (see :func:`kalman_velocity`); turn_rate (n,) rad/s:
-    the gyro's |ω| at those times (the acceleration errs more while turning; None: not turning).
+    the gyro's |ω| at those times (the acceleration errs more while turning; None: not turning);
+    offset_walk (n,) m/s²/√s: how fast the accelerometer's offset may wander at those times beyond
+    ReadoutConfig.bias_walk (lobula.haltere.leak_walk online; None: no more).
     """
     cfg = config or ReadoutConfig()
     t, r, r2, a = (np.asarray(x, dtype=float) for x in (t, r, r2, a))
@@ -757,7 +764,11 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
         raise ValueError(f"need at least 3 flow frames for a readout, got {len(t)}")
     if not np.all(np.isfinite(a)):
         raise ValueError("acceleration has NaN or inf at flow times")
+    if offset_walk is not None:
+        offset_walk = np.asarray(offset_walk, dtype=float)
+        if offset_walk.shape != t.shape or not np.all(np.isfinite(offset_walk) & (offset_walk >= 0)):
+            raise ValueError(f"offset_walk must be finite, ≥ 0 and shaped like t {t.shape}, got {offset_walk.shape}")
     if cfg.method == "kalman":
         return kalman_readout(t, r, r2, a, cfg, material, gravity_tau, drift_std,
-                              None if turn_rate is None else np.asarray(turn_rate, dtype=float))
+                              None if turn_rate is None else np.asarray(turn_rate, dtype=float), offset_walk)
     return paper_readout(t, r, r2, a, cfg)

@@ -109,18 +109,29 @@ def test_offline_is_not_worse_than_online_under_a_nearly_constant_acceleration(t
     assert zp["cover"] >= 0.85
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "online 0.25 m/s (zero estimator 0.32), ±2σ 54 %; offline 0.013: a gyro bias 5-7× the 0.2°/s prior "
-    "(lobula.haltere.GYRO_BIAS_PRIOR) is learned within ~3 s, but the attitude integrated meanwhile "
-    "leaks gravity into the forward axis as a ramp 7× the readout's allowance, frozen after as an offset "
-    "of ~0.4 m/s² that the filter mislearns (issue 10, open)"))
-def test_online_holds_with_a_gyro_bias_of_a_data_sheet_size(tmp_path):
-    """A consumer MEMS gyro's uncompensated zero-rate offset is of the order of 1°/s (the suite's
-    realistic IMU draws 0.25°/s; the real EuRoC start's reads 1.7 / 0.2 / 4.7°/s). The rotation
-    family's seed 100 with a 1°/s bias draw: the online filter must still track and keep its band."""
-    fo = _small_run(tmp_path, "rotation", 100, gyro_bias_std=np.radians(1.0))
-    causal = _scores(fo, "causal")
+@pytest.fixture(scope="module")
+def big_gyro_bias_run(tmp_path_factory):
+    """The rotation family's seed 100 with a 1°/s gyro-bias draw — a consumer MEMS gyro's uncompensated
+    zero-rate offset (the suite's realistic IMU draws 0.25°/s; the real EuRoC start reads 1.7 / 0.2 /
+    4.7°/s), 5–7× the heading fit's 0.2°/s prior (lobula.haltere.GYRO_BIAS_PRIOR)."""
+    return _small_run(tmp_path_factory.mktemp("bias"), "rotation", 100, gyro_bias_std=np.radians(1.0))
+
+
+def test_online_is_honest_with_a_gyro_bias_of_a_data_sheet_size(big_gyro_bias_run):
+    """The bias is learned within ~3 s, but the attitude integrated meanwhile has let ~0.4 m/s² of
+    gravity into the forward axis. The readout is told the offset moved (lobula.haltere.leak_walk)
+    and re-learns it: 0.025 m/s, ±2σ 100 %, observable 64 %. Without that: 0.25 m/s against the
+    zero estimator's 0.32, ±2σ 54 % — confidently wrong."""
+    causal = _scores(big_gyro_bias_run, "causal")
     print(f"\ncausal {causal}")
-    assert causal["observable"] >= 0.8
-    assert causal["rmse"] <= 0.35 * causal["zero"]
     assert causal["cover"] >= 0.85
+    assert causal["rmse"] <= 0.35 * causal["zero"]
+    assert causal["observable"] >= 0.5
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "observable 64 % online (RMSE 0.025 m/s, ±2σ 100 %): after the bias estimate moves, the offset it "
+    "let in must be learned again from vision, and meanwhile v̂ is rightly NaN; learning the bias "
+    "before the leak grows needs a bias prior that a 5σ draw cannot break (issue 10, open)"))
+def test_online_stays_observable_with_a_gyro_bias_of_a_data_sheet_size(big_gyro_bias_run):
+    assert _scores(big_gyro_bias_run, "causal")["observable"] >= 0.8

@@ -291,6 +291,31 @@ def test_fused_gyro_bias_weighs_by_inverse_variance_and_uses_only_what_is_known(
     np.testing.assert_allclose(b_off[:, 0], w * 2e-3)         # offline: the last, whole-record estimate
 
 
+def test_attitude_leak_is_the_gravity_an_earlier_bias_estimate_let_in():
+    """A still camera whose gyro reads a 1°/s bias about x; the online estimate is 0 until 2 s, then
+    right. The attitude integrated meanwhile turned 2° that never happened, so the forward axis
+    keeps |g|·sin 2° of gravity after 2 s: attitude_leak says so from the estimates alone, and
+    leak_walk lets the offset move by that much within the second after the estimate moved."""
+    from lobula.haltere import G, attitude_leak, leak_walk, orientation_from_gyro
+
+    t = np.arange(0.0, 5.0, 1 / 400)
+    delta = np.radians(1.0)
+    gyro = np.tile([delta, 0.0, 0.0], (len(t), 1))
+    track = np.where((t >= 2.0)[:, None], gyro, 0.0)
+    f = np.tile([0.0, -G, 0.0], (len(t), 1))               # specific force of a still camera, y down
+    rot = orientation_from_gyro(t, gyro, causal=True, bias=track)
+    forward_error = f[:, 2] - np.einsum("nji,j->ni", rot, f[0])[:, 2]  # what forward_acceleration keeps of g
+    leak = attitude_leak(t, track, f)
+    after = t > 2.01
+    np.testing.assert_allclose(leak[after], forward_error[after], rtol=0.01)
+    assert abs(leak[after].mean()) == pytest.approx(G * np.sin(2 * delta), rel=0.01)
+    np.testing.assert_allclose(leak[t < 2.0], 0.0, atol=1e-12)   # the estimate had not moved yet
+    walk = leak_walk(np.array([1.0, 2.5, 2.9, 3.5]), t, leak)
+    np.testing.assert_allclose(walk, [0.0, abs(leak[-1]), abs(leak[-1]), 0.0], atol=1e-3)
+    yaw = attitude_leak(t, np.where((t >= 2.0)[:, None], [0.0, delta, 0.0], 0.0), f)
+    np.testing.assert_allclose(yaw, 0.0, atol=1e-12)         # a turn about gravity lets none in
+
+
 def test_gyro_scale_error_is_fitted_on_a_camera_turning_fast(tmp_path):
     """A camera turning ±10°/±8°/±6° at 0.5–2 Hz (twice the suite's rotation family; up to ~2 rad/s)
     with a realistic IMU whose gyro has 2 % scale-factor and 1 % misalignment errors: E·ω is then a
