@@ -245,10 +245,16 @@ def gravity_drift_std(time_s: np.ndarray, gyro: np.ndarray, causal: bool = True,
     b = np.asarray(bias_std, float)
     if accel is None:
         return G * b.max(axis=-1)
+    g = gravity_direction(accel, causal)
+    return G * np.sqrt(b[:, 0] ** 2 * g[:, 1] ** 2 + b[:, 1] ** 2 * g[:, 0] ** 2)
+
+
+def gravity_direction(accel: np.ndarray, causal: bool = True) -> np.ndarray:
+    """Unit vectors (n, 3) along the specific force's mean, accel (n, 3): expanding (causal) or the whole
+    record's — the direction gravity takes in the camera, near enough for its leak through small angles."""
     f = np.asarray(accel, float)
     g = np.cumsum(f, 0) / np.arange(1, len(f) + 1)[:, None] if causal else np.broadcast_to(f.mean(0), f.shape)
-    g = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-9)
-    return G * np.sqrt(b[:, 0] ** 2 * g[:, 1] ** 2 + b[:, 1] ** 2 * g[:, 0] ** 2)
+    return g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-9)
 
 
 def attitude_leak(time_s: np.ndarray, bias: np.ndarray, accel: np.ndarray) -> np.ndarray:
@@ -265,9 +271,7 @@ def attitude_leak(time_s: np.ndarray, bias: np.ndarray, accel: np.ndarray) -> np
     """
     t = np.asarray(time_s, float)
     b = np.asarray(bias, float)
-    f = np.asarray(accel, float)
-    g = np.cumsum(f, 0) / np.arange(1, len(f) + 1)[:, None]
-    g = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-9)
+    g = gravity_direction(accel, causal=True)
     turned = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (b[1:] + b[:-1]) * np.diff(t)[:, None], 0)])
     eps = b * (t - t[0])[:, None] - turned
     return G * (eps[:, 0] * g[:, 1] - eps[:, 1] * g[:, 0])
