@@ -148,13 +148,12 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
                leave=False, mininterval=2)
     for s in samples:
         t1 = _time.perf_counter()
-        flow, q, omega = s.flow, (None, None, None), None
+        flow, q = s.flow, (None, None, None)
         if attitude is not None:
-            q = attitude(np.array([s.t0, s.t1, s.t_mid]))  # camera → reference at t0, t1, middle
-            # The first-order derotation serves the fixed-pixel rates (outputs r, r2; done inside
-            # pool_fields, on the pixels it pools); the epipole and the material fields
-            # derotate exactly (finite rotation over the gap).
-            omega = Rotation.from_matrix(q[0].T @ q[1]).as_rotvec() / s.dt
+            # camera → reference at t0, t1, middle: the fixed-pixel rates (inside pool_fields, on
+            # the pixels it pools), the epipole and the material fields all derotate exactly
+            # (finite rotation over the gap) into the middle orientation.
+            q = attitude(np.array([s.t0, s.t1, s.t_mid]))
         if config.epipole == "estimate":
             if attitude is not None:
                 sub = s.flow[:, ::est.stride, ::est.stride].reshape(2, -1)
@@ -173,7 +172,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
                 e = est.update(flow)
         else:
             e = np.zeros(2)
-        r, r2 = pool_fields(flow, fields, e, pooling=config.fields.pooling, rotation=omega)
+        r, r2 = pool_fields(flow, fields, e, pooling=config.fields.pooling,
+                            turns=None if q[0] is None else (q[2].T @ q[0], q[2].T @ q[1], s.dt))
         if config.fields.gap_correction:
             r, r2 = gap_correction(r, r2, s.dt)
         if material is not None:
