@@ -17,7 +17,7 @@ import numpy as np
 from scipy import sparse
 
 from .camera import PinholeCamera, normalised_to_angles
-from .epipole import derotate
+from .epipole import derotate, derotate_finite
 
 
 @dataclass
@@ -205,29 +205,17 @@ def _pool_support(fields: ReceptiveFields):
 
 
 def _turn_pair(x: np.ndarray, y: np.ndarray, flow: np.ndarray, r_m0: np.ndarray, r_m1: np.ndarray, dt_s: float):
-    """Exact derotation of fixed pixels' flow (float32, like the grid): (X, Y, translational flow).
+    """Exact derotation of fixed pixels' flow: (X, Y, translational flow), float32 like the grid.
 
-    Pixel (x, y) of the first frame and its match x + flow·dt in the second are both turned into
-    the camera orientation at the pair's middle (r_m0, r_m1 (3, 3), as in
-    :func:`lobula.epipole.derotate_finite`); the flow left is their difference over dt, at the
-    turned pixel (X, Y). The first-order :func:`lobula.epipole.derotate` leaves the rotation's
-    second-order term ≈ ω²·dt·x(1 + x²), which is radial and positive whichever way the camera
-    turns: an expansion of ~ω²·dt (a still camera turning at 45°/s over a 0.2 s pair read
-    r̄ ≈ +0.1 1/s, the image of 0.3 m/s at 3 m).
+    :func:`lobula.epipole.derotate_finite` with float32 rotations (so the arithmetic stays float32):
+    pixel (x, y) of the first frame and its match x + flow·dt are turned into the orientation at the
+    pair's middle, and the flow left is at the turned pixel (X, Y). The first-order
+    :func:`lobula.epipole.derotate` leaves the rotation's second-order term ≈ ω²·dt·x(1 + x²), radial
+    and positive whichever way the camera turns: an expansion of ~ω²·dt (a still camera turning at
+    45°/s over a 0.2 s pair read r̄ ≈ +0.1 1/s, the image of 0.3 m/s at 3 m).
     """
-    def turn(r, u, v):
-        r = [[float(c) for c in row] for row in np.asarray(r, float)]  # float32 arithmetic throughout
-        w = r[2][0] * u + r[2][1] * v + r[2][2]
-        return (r[0][0] * u + r[0][1] * v + r[0][2]) / w, (r[1][0] * u + r[1][1] * v + r[1][2]) / w
-
-    dt = np.float32(dt_s)
-    x0, y0 = turn(r_m0, x, y)
-    x1, y1 = turn(r_m1, x + flow[0] * dt, y + flow[1] * dt)
-    x1 -= x0
-    x1 /= dt
-    y1 -= y0
-    y1 /= dt
-    return x0, y0, np.stack([x1, y1])
+    f32 = lambda r: np.asarray(r, np.float32)  # noqa: E731
+    return derotate_finite(x, y, flow, float(np.float32(dt_s)), f32(r_m0), f32(r_m1))
 
 
 def pool_fields_reference(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
