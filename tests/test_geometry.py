@@ -317,8 +317,8 @@ def test_epipole_far_off_the_optical_axis_is_found(heading_deg):
 def test_joint_heading_fit_finds_a_slow_camera_panning_to_the_side():
     """The joint heading-and-bias fit (the pipeline's, with a gyro) at a slow expansion, r = 0.05 1/s,
     where the gyro bias's prior (0.2°/s) could shift the heading by ~7°: that bound once kept it from
-    placing any heading, so a camera panning 25° to the side kept the principal point (in the
-    suite's ground world turning ±25°, causal v̂ then read a forward run as a retreat: RMSE 0.83 m/s,
+    placing any heading, so a camera panning 25° to the side kept the principal point (on a ground
+    plane turning ±25°, beyond the suite, causal v̂ then read a forward run as a retreat: RMSE 0.83 m/s,
     ±2σ 11 %). A frame whose own heading lies beyond 3× that shift from the running one now counts."""
     joint_err = _heading_fits(25.0, 0.05)[1]
     assert joint_err < 7.0
@@ -329,5 +329,3 @@ def test_joint_heading_fit_finds_a_slow_camera_panning_to_the_side():
     "own heading as well found 30-50° but made development rotation seed 101 worse (causal 0.011 -> 0.016 m/s)"))
 def test_joint_heading_fit_finds_a_fast_camera_moving_to_the_side():
     assert _heading_fits(35.0, 0.3)[1] < 3.0
-
-
