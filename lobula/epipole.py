@@ -198,16 +198,17 @@ class EpipoleEstimator:
         # σ² taken from them (below) overcorrects: from the principal point a heading 20° off the
         # axis came out at 75°, one 30° off made the system indefinite and the frame was dropped,
         # so such a heading was never found. Plain steps first, while they move the heading far.
+        neq = normal_equations(e)
         for _ in range(WARMUP_ITERS):
-            ata, atb, _, _ = normal_equations(e)
-            if not _well_posed(ata):
+            if not _well_posed(neq[0]):
                 return None
-            step = np.linalg.solve(ata, atb)
+            step = np.linalg.solve(neq[0], neq[1])
             if np.hypot(*(step - e)) < WARMUP_STEP:
-                break
+                break  # near already: the corrected steps start from these equations
             e = step
-        for _ in range(iters):
-            ata, atb, w, res = normal_equations(e)
+            neq = normal_equations(e)
+        for k in range(iters):
+            ata, atb, w, res = neq if k == 0 else normal_equations(e)
             # Flow noise (std σ) sits in both sides of the equations and biases the fit
             # toward the image centre by σ²·Σw·I and σ²·Σw·p; remove that, with σ²
             # estimated from the residuals, whose variance is σ²|p − e|².
