@@ -22,8 +22,8 @@ from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import HEADING_POINTS, EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
-from lobula.haltere import (GRAVITY_WINDOW_S, GyroAttitude, attitude_leak, forward_acceleration, fused_gyro_bias,
-                            gravity_drift_std, gravity_time_constant, gyro_bias, leak_walk, orientation_from_gyro,
+from lobula.haltere import (GRAVITY_WINDOW_S, GyroAttitude, attitude_leak, forward_acceleration, forward_axis,
+                            fused_gyro_bias, gravity_drift_std, transport_rate, gravity_time_constant, gyro_bias, leak_walk, orientation_from_gyro,
                             resample_to, turn_rate, vision_gyro_bias)
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
@@ -373,17 +373,28 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     fields = rates.fields
     t0 = _time.perf_counter()
     rcfg = config.readout
+    axis, gravity_error = None, 0.0
     if not accel_source.startswith("accelerometer"):
         # A derivative of the true velocity has noise but no accelerometer offset to learn.
         rcfg = replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2))
-    elif rcfg.filter == "zero-phase":
-        # Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which
-        # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
-        span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
-        rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, rcfg.v_prior_m_s / max(span, 1.0))))
     else:
-        # Online, the gravity reference is set at the start and holds the acceleration there.
-        rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, START_ACCEL_PRIOR_M_S2)))
+        if rcfg.filter == "zero-phase":
+            # Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which
+            # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
+            span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
+            gravity_error = rcfg.v_prior_m_s / max(span, 1.0)
+        else:
+            # Online, the gravity reference is set at the start and holds the acceleration there.
+            gravity_error = START_ACCEL_PRIOR_M_S2
+        if footage.imu.gyro is not None and config.derotate:
+            # That error is a vector in the frame gravity was taken in; its forward share turns with the
+            # camera, so the readout tracks it there beside the accelerometer's own offset.
+            axis = forward_axis(footage.imu.time_s, footage.imu.gyro, causal=rcfg.filter == "causal",
+                                bias=None if vb is None else vb[0])
+            axis = np.stack([np.interp(rates.t, footage.imu.time_s, axis[:, j]) for j in range(3)], -1)
+            axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        else:
+            rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, gravity_error)))
     if len(rates.t) >= 3:
         tau = gravity_tau(footage, rates.t, config)
         drift = walk = None
@@ -399,9 +410,14 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                 tb = footage.imu.time_s
                 used = vb[0] if vb is not None else gyro_bias(tb, footage.imu.gyro, causal=True)
                 walk = leak_walk(rates.t, tb, attitude_leak(tb, used, footage.imu.accel))
+        lam = None
+        if accel_source.startswith("accelerometer") and footage.imu.gyro is not None and config.derotate:
+            lam = transport_rate(rates.t, footage.imu.time_s, footage.imu.gyro, None if vb is None else vb[0],
+                                 rates.epipole, float(np.median(np.diff(footage.times))),
+                                 causal=rcfg.filter == "causal")
         res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material, gravity_tau=tau,
                       drift_std=drift, turn_rate=turn_rate_at(footage, rates.t, accel_source, config),
-                      offset_walk=walk)
+                      offset_walk=walk, offset_axis=axis, offset_axis_prior=gravity_error, transport=lam)
     else:
         res = None
     rates.timings["readout"] = _time.perf_counter() - t0

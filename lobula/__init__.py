@@ -13,7 +13,7 @@ _API = {
     "HeadingBiasEstimator": "epipole", "residual_rotation": "epipole",
     "GyroAttitude": "haltere", "rotation_increments": "haltere",
     "FlowConfig": "flow", "FlowSample": "flow", "StaggeredFlow": "flow", "pixel_to_angular": "flow",
-    "forward_acceleration": "haltere", "resample_to": "haltere", "turn_rate": "haltere",
+    "forward_acceleration": "haltere", "forward_axis": "haltere", "transport_rate": "haltere", "resample_to": "haltere", "turn_rate": "haltere",
     "fused_gyro_bias": "haltere", "attitude_leak": "haltere", "leak_walk": "haltere",
     "ReadoutConfig": "readout", "ReadoutResult": "readout", "readout": "readout",
     "FieldConfig": "receptive_field", "ReceptiveFields": "receptive_field", "gap_correction": "receptive_field",

@@ -229,6 +229,34 @@ def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray
     return (accel + g_cam)[:, 2]
 
 
+def forward_axis(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False,
+                 bias: np.ndarray | None = None) -> np.ndarray:
+    """The optical axis (n, 3), unit vectors in the first sample's frame: the frame in which
+    :func:`forward_acceleration` takes gravity (same ``gyro``, ``causal`` and ``bias``).
+
+    That gravity's error is a vector fixed in that frame (the platform's acceleration that the
+    gravity reference averaged in), so its share of the forward acceleration is axis(t)·δ, which
+    changes as the camera turns; the readout tracks δ (lobula.readout.kalman_velocity's offset_axis).
+    """
+    return orientation_from_gyro(time_s, gyro, causal, bias)[:, :, 2]
+
+
+def transport_rate(times: np.ndarray, time_s: np.ndarray, gyro: np.ndarray, bias: np.ndarray | None,
+                   heading: np.ndarray, window_s: float, causal: bool = False) -> np.ndarray:
+    """λ = ω_x·e_y − ω_y·e_x (1/s, (n,)) at ``times``: how fast the velocity along the optical axis
+    changes, per m/s of it, beyond the forward acceleration, in a camera that turns.
+
+    In the camera's (turning) frame dv/dt = a − ω × v, and with the heading e = (v_x, v_y)/v_z the
+    forward part of ω × v is λ·v_z. gyro (m, 3) rad/s in the camera frame at ``time_s`` (m,), bias
+    (m, 3) rad/s removed where given (else the still-camera estimate, causal or not), averaged over ``window_s``
+    about each time (:func:`resample_to`); heading (n, 2) normalised (the epipole), NaN read as 0.
+    """
+    w = gyro - (gyro_bias(time_s, gyro, causal) if bias is None else np.asarray(bias, float))
+    wx, wy = (resample_to(times, time_s, w[:, j], window_s) for j in (0, 1))
+    e = np.nan_to_num(np.asarray(heading, float))
+    return wx * e[:, 1] - wy * e[:, 0]
+
+
 def gravity_drift_std(time_s: np.ndarray, gyro: np.ndarray, causal: bool = True,
                       bias_std: np.ndarray | None = None, accel: np.ndarray | None = None) -> np.ndarray:
     """How fast (m/s²/s, (n,)) gravity may drift through the forward axis: |g|·σ_b.

@@ -450,7 +450,8 @@ def accelerometer_steady(a: np.ndarray, dt: float, change_max: float, window_s: 
 
 def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravity_tau=None,
                     ratio=None, drift_std=None, delay: float = 0.0, full: bool = False,
-                    corr_frames: float = 1.0, turn_rate=None, rest_accel=None, offset_walk=None):
+                    corr_frames: float = 1.0, turn_rate=None, rest_accel=None, offset_walk=None,
+                    offset_axis=None, offset_axis_prior: float = 0.0, transport=None):
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
@@ -489,27 +490,63 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     (unseen worlds: a ground plane with a far backdrop, the camera reversing at 1.4 m/s², read
     v = 0 ± 0.02 at −0.14 m/s; causal RMSE 0.074 → 0.057 m/s, and a corridor 0.047 → 0.015).
     Offline the bound is widened by the low-pass's smear σ_t·|a| instead (see kalman_readout).
+
+    offset_axis (n, 3): the optical axis in the frame gravity was taken in (the first sample's,
+    lobula.haltere.forward_axis), when the error of that gravity is a vector fixed there — the
+    platform's acceleration that the gravity reference averaged in — rather than an offset of
+    the accelerometer's own forward axis. Its forward part is then c(t)·δ, which changes as the
+    camera turns (a camera panning 25° turns a 1 m/s² start offset's forward part by 0.4 m/s²,
+    which a random walk of b cannot follow: ±2σ held 63 % of frames online). δ (3 more states,
+    prior std ``offset_axis_prior`` m/s² per axis) sits beside b, which keeps the accelerometer's
+    own offset (prior bias_prior_m_s2); the gravity reference's drift input (gravity_tau) moves
+    δ along c. None: the whole offset is b.
+
+    transport (n,) 1/s: λ = ω_x·e_y − ω_y·e_x, the gyro's rate ω (rad/s, camera frame) with the
+    heading e = (v_x, v_y)/v_z (the epipole, normalised). v is the velocity along the optical axis, and
+    in a turning frame dv/dt = a − ω × v, whose forward part is a − λ·v: a camera panning at 0.5 rad/s
+    while it moves 25° off its axis sees its forward speed change at 0.23·v beyond what the
+    accelerometer's forward axis says. None: 0 (a camera that does not turn, or moves along its axis).
     """
     n = len(t)
+    nd = 0 if offset_axis is None else 3
+    N = 4 + nd
     sv, sb = cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2
     sd0 = float(drift_std[0]) ** 2 if drift_std is not None else 0.0
-    x = np.zeros(4)
-    # States: v, the offset b, vision's shared error c (online a consider state, offline estimated), the ramp ḃ.
-    P = np.diag([sv, sb, 0.0, sd0])
+    x = np.zeros(N)
+    # States: v, the offset b, vision's shared error c (online a consider state, offline estimated), the
+    # ramp ḃ, and with offset_axis the start frame's gravity error δ (3).
+    P = np.diag([sv, sb, 0.0, sd0] + list(np.broadcast_to(np.asarray(offset_axis_prior, float) ** 2, (nd,))))
     shared = cfg.shared_error_frac > 0
     consider = shared and not smooth
     tc = cfg.shared_error_s
     innov_ms, innov_w = 0.0, 0.0  # running mean square of the κ innovations (time constant tc)
-    xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, 4)), np.zeros((n, 4, 4)), np.zeros((n, 4)),
-                                    np.zeros((n, 4, 4)), np.zeros((n, 4, 4)))
+    xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, N)), np.zeros((n, N, N)), np.zeros((n, N)),
+                                    np.zeros((n, N, N)), np.zeros((n, N, N)))
     D = float(delay)
-    H = np.array([1.0, D, 0.0, -0.5 * D * D])  # v(t − D) + shift, in the state at t
+    c_at, c_mean = _axis_terms(t, offset_axis)
+    lam = np.zeros(n) if transport is None else np.asarray(transport, float)
+    cum_lam = np.concatenate([[0.0], np.cumsum(0.5 * (lam[1:] + lam[:-1]) * np.diff(t))])
+
+    def v_row(k, d):
+        """Row giving v(t_k − d) + ∫a over the last d from the state at t_k (v(t − d) = v − ∫(a − offset − λv),
+        v taken constant over d in the λ term)."""
+        lam_d = cum_lam[k] - np.interp(t[k] - d, t, cum_lam)
+        return np.concatenate([[1.0 + lam_d, d, 0.0, -0.5 * d * d], d * c_mean(k, d)])
+
+    def offset_row(k):
+        """Row giving the acceleration's whole offset at t_k."""
+        return np.concatenate([[0.0, 1.0, 0.0, 0.0], c_at(k, 0.0)])
+
     nis_sum, nis_w, r_scale = 0.0, 0.0, 1.0
-    for k in range(n):  # a loop over time steps; the state is 4-dimensional
+    for k in range(n):  # a loop over time steps; the state has 4 or 7 dimensions
         if k > 0:
             dt = t[k] - t[k - 1]
-            F = np.eye(4)
+            F = np.eye(N)
             F[0, 1], F[1, 3] = -dt, dt
+            F[0, 0] = np.exp(-0.5 * (lam[k] + lam[k - 1]) * dt)
+            c_mid = c_mean(k, dt)
+            if nd:
+                F[0, 4:] = -dt * c_mid
             q_c = 0.0
             if shared:
                 phi = np.exp(-dt / tc)
@@ -517,10 +554,10 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                 q_c = (cfg.shared_error_frac ** 2 * innov_ms / innov_w if innov_w > 0 else 0.0) * (1.0 - phi ** 2)
             u = 0.5 * (a[k] + a[k - 1]) * dt
             ub = -u / gravity_tau[k] if gravity_tau is not None else 0.0
-            x = F @ x + np.array([u, ub, 0.0, 0.0])
+            x = F @ x + (np.concatenate([[u, 0.0, 0.0, 0.0], ub * c_mid]) if nd else np.array([u, ub, 0.0, 0.0]))
             q_a = _accel_density2(cfg, None if turn_rate is None else 0.5 * (turn_rate[k] + turn_rate[k - 1]))
             q_b = cfg.bias_walk ** 2 + (offset_walk[k] ** 2 if offset_walk is not None else 0.0)
-            P = F @ P @ F.T + np.diag([q_a * dt, q_b * dt, q_c, 0.0])
+            P = F @ P @ F.T + np.diag([q_a * dt, q_b * dt, q_c, 0.0] + [0.0] * nd)
             if drift_std is not None and P[3, 3] > drift_std[k] ** 2:
                 # The gyro bias got better known (still samples): the ramp is bounded anew.
                 f = drift_std[k] / np.sqrt(P[3, 3])
@@ -529,12 +566,14 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                 P[:, 3] *= f
             Fs[k] = F
         xs_pred[k], Ps_pred[k] = x, P
+        H = v_row(k, D)  # v(t − D) + shift, in the state at t
         for m in measurements:
             z, sd = m[0], m[1]
-            Hm = H if len(m) < 3 else np.array([1.0, m[2], 0.0, -0.5 * m[2] ** 2])
+            Hm = H if len(m) < 3 else v_row(k, m[2])
             if np.isfinite(z[k]) and np.isfinite(sd[k]):
+                o = offset_row(k)
                 if (rest_accel is not None
-                        and abs(rest_accel[0][k] - x[1]) > rest_accel[1][k] + 2.0 * np.sqrt(P[1, 1])):
+                        and abs(rest_accel[0][k] - o @ x) > rest_accel[1][k] + 2.0 * np.sqrt(o @ P @ o)):
                     continue
                 x, P = _update(x, P, Hm, z[k] - Hm @ x, sd[k] ** 2, consider)
         if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
@@ -542,17 +581,18 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             e_lp = ratio[4][k] if len(ratio) > 4 else 0.0  # the pairing's error in v (m/s), see kalman_readout
             # Where no acceleration is seen (|a_m| below accel_min) the frame carries no depth
             # information (as for v_f): it then speaks for the offset b alone, not for v through a
-            # noisy κ ≈ 0. Online, a small a_m alone does not make it so: a_m holds b (the online
-            # gravity reference's, up to ~1 m/s²), so a_m ≈ 0 may be a true −b that κ̂ sees;
-            # asking a_m alone pulled b̂ toward 0 there. Online the frame counts as informative
-            # when vision sees an acceleration too (|κ̂·v̂| ≥ accel_min). Offline the rule would
-            # help as well (dev seeds: dim 0.043 → 0.010 m/s) but makes the corridor's band of
-            # tests/test_families.py cover 100 % (errors 0.027 → 0.026 m/s, σ unchanged): not used.
+            # noisy κ ≈ 0. A small a_m alone does not make it so: a_m holds the offset (online the
+            # gravity reference's, up to ~1 m/s²; offline the record's mean acceleration), so a_m ≈ 0
+            # may be a true −b that κ̂ sees; asking a_m alone pulled b̂ toward 0 there (offline, exact
+            # rates with a constant 0.3 m/s² offset: 0.034 m/s RMSE, 0.0002 with this rule; the
+            # development seeds' zero-phase 0.0054 → 0.0052). So the frame counts as informative
+            # when vision sees an acceleration too (|κ̂·v̂| ≥ accel_min, v̂ the forward pass's).
             informative = abs(am) >= cfg.accel_min_m_s2
-            if not smooth and not informative:
+            if not informative:
                 informative = abs(kap * (H @ x - shift)) >= cfg.accel_min_m_s2
             kv = kap if informative else 0.0
-            h = np.array([kv, 1.0 + kv * D, 1.0 if shared else 0.0, -D - 0.5 * kv * D * D])
+            # a_m = κ·(v(t − D) + shift) + the offset one latency ago, b − ḃ·D (+ c(t − D)·δ)
+            h = kv * H + np.concatenate([[0.0, 1.0, 1.0 if shared else 0.0, -D], c_at(k, D)])
             zk = am + (kap * shift if informative else 0.0)
             # The fields' spread (v·σ_κ, floored at meas_floor as a velocity measurement would
             # be) and the filtered accelerometer's noise floor (accel_min_m_s2); its offset and
@@ -592,9 +632,33 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             C = Ps[k] @ Fs[k + 1].T @ np.linalg.pinv(Ps_pred[k + 1])
             xs[k] = xs[k] + C @ (xs[k + 1] - xs_pred[k + 1])
             Ps[k] = Ps[k] + C @ (Ps[k + 1] - Ps_pred[k + 1]) @ C.T
-    if full:  # the whole posterior: means (n, 4) and covariances (n, 4, 4) of (v, b, ·, ḃ)
+    if full:  # the whole posterior: means (n, N) and covariances (n, N, N) of (v, b, ·, ḃ[, δ])
         return xs, Ps
     return xs[:, 0], np.sqrt(np.maximum(Ps[:, 0, 0], 0.0))
+
+
+def _axis_terms(t, axis):
+    """For the start frame's gravity error δ (kalman_velocity's offset_axis (n, 3) or None): functions
+    of (k, d) giving the axis c at t_k − d and its mean over [t_k − d, t_k] (3,) — c·δ is the forward
+    offset then, and its integral over the latency what ∫a bridging that latency holds of it — or
+    empty rows where there is no axis."""
+    if axis is None:
+        empty = np.zeros(0)
+        return (lambda k, d: empty), (lambda k, d: empty)
+    c = np.asarray(axis, float)
+    cum = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (c[1:] + c[:-1]) * np.diff(t)[:, None], 0)])
+    at = lambda tq, y: np.array([np.interp(tq, t, y[:, j]) for j in range(3)])  # held at the record's start
+
+    def c_at(k, d):
+        return c[k] if d == 0 else at(t[k] - d, c)
+
+    def c_mean(k, d):
+        if d <= 0:
+            return c[k]
+        t0 = max(t[k] - d, t[0])
+        return (cum[k] - at(t0, cum)) / d + (d - (t[k] - t0)) / d * c[0]  # before the start: c held at c[0]
+
+    return c_at, c_mean
 
 
 def _accel_density2(cfg: ReadoutConfig, turn_rate: float | None) -> float:
@@ -641,7 +705,8 @@ def _lag(x: np.ndarray, h: int) -> np.ndarray:
 
 
 def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
-                   gravity_tau=None, drift_std=None, turn_rate=None, offset_walk=None) -> ReadoutResult:
+                   gravity_tau=None, drift_std=None, turn_rate=None, offset_walk=None,
+                   offset_axis=None, offset_axis_prior: float = 0.0, transport=None) -> ReadoutResult:
     """The project's readout (see module docstring).
 
     Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
@@ -706,6 +771,9 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     # RMSE); the accelerometer says when the camera is at least not starting or stopping.
     zr = np.where(accelerometer_steady(a, dt, cfg.rest_accel_change_m_s2, causal=not zp), zr, np.nan)
     sigma_t = np.sqrt(np.log(2.0) / 2.0) / (np.pi * cfg.cutoff_hz)  # the low-pass's Gaussian width (s)
+    # The prior std of the acceleration's whole forward offset: the accelerometer's own, and the
+    # start frame's gravity error where the filter tracks it apart (offset_axis).
+    offset_prior = float(np.hypot(cfg.bias_prior_m_s2, np.max(offset_axis_prior) if offset_axis is not None else 0.0))
     if zp:
         # Offline r̄ is low-passed over ~σ_t either side, in which v moves by ~σ_t·|a|: where the
         # image's expansion crosses zero while the camera accelerates (v through 0, or far
@@ -713,14 +781,14 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
         # 102, a backdrop 50-200 m away, 0.039 -> 0.004 m/s). Online r̄ is the newest frame's.
         # |a| less what the accelerometer's offset (2 prior std) could make of a still camera
         # (a real still EuRoC sequence's offset otherwise lifts the bound off: 0.043 m/s of "motion").
-        sr = np.hypot(sr, sigma_t * np.maximum(np.abs(terms[3]) - 2.0 * cfg.bias_prior_m_s2, 0.0))
+        sr = np.hypot(sr, sigma_t * np.maximum(np.abs(terms[3]) - 2.0 * offset_prior, 0.0))
         zr = np.where(sr <= 0.5 * cfg.max_std_m_s, zr, np.nan)
     # κ needs no accelerometer, so a field is judged by one (its implied depth a/(ṙ̄ − r²̄)
     # physical) only where |a| is beyond what the accelerometer's offset (prior std) could
     # make of nothing: an offset (the online gravity reference's, up to the start's
     # acceleration) would otherwise make every field look unphysical exactly when κ ≈ 0
     # is what pins it down. Elsewhere κ ≈ 0 ties the offset down.
-    judge = np.abs(terms[3]) >= cfg.accel_min_m_s2 + 2.0 * cfg.bias_prior_m_s2
+    judge = np.abs(terms[3]) >= cfg.accel_min_m_s2 + 2.0 * offset_prior
     keep = np.isfinite(v_f) | ~judge[:, None]
     kap, skap = ratio_measurement(*terms[:3], cfg, keep=keep)
     n_corr = max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt))
@@ -735,6 +803,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     v, v_std = kalman_velocity(t, a, [(zr, sr, 0.0)], cfg, smooth=zp, gravity_tau=gravity_tau,
                                ratio=(kap, skap, terms[3], shift, e_lp), drift_std=drift_std, delay=delay,
                                corr_frames=n_corr, turn_rate=turn_rate, offset_walk=offset_walk,
+                               offset_axis=offset_axis, offset_axis_prior=offset_axis_prior, transport=transport,
                                rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2,
                                                                               causal=True))
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
@@ -745,7 +814,8 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
 
 def readout(t, r, r2, a, config: ReadoutConfig | None = None,
             material: MaterialRates | None = None, gravity_tau=None, drift_std=None,
-            turn_rate=None, offset_walk=None) -> ReadoutResult:
+            turn_rate=None, offset_walk=None, offset_axis=None, offset_axis_prior: float = 0.0,
+            transport=None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
     t (n,) s, uniformly spaced; r, r2 (n, F) in 1/s and 1/s²; a (n,) forward
@@ -756,7 +826,12 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
     fast the accelerometer's offset may ramp (see :func:`kalman_velocity`); turn_rate (n,) rad/s:
     the gyro's |ω| at those times (the acceleration errs more while turning; None: not turning);
     offset_walk (n,) m/s²/√s: how fast the accelerometer's offset may wander at those times beyond
-    ReadoutConfig.bias_walk (lobula.haltere.leak_walk online; None: no more).
+    ReadoutConfig.bias_walk (lobula.haltere.leak_walk online; None: no more); offset_axis (n, 3): the
+    optical axis in the frame where gravity was removed (lobula.haltere.forward_axis), whose gravity
+    error δ (prior std offset_axis_prior m/s² per axis) the filter then tracks beside the accelerometer's
+    own offset (:func:`kalman_velocity`; kalman readout only); transport (n,) 1/s: λ = ω_x·e_y − ω_y·e_x,
+    how fast a turning camera's forward speed changes per m/s beyond its forward acceleration
+    (lobula.haltere.transport_rate; None: 0).
     """
     cfg = config or ReadoutConfig()
     t, r, r2, a = (np.asarray(x, dtype=float) for x in (t, r, r2, a))
@@ -768,7 +843,18 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
         offset_walk = np.asarray(offset_walk, dtype=float)
         if offset_walk.shape != t.shape or not np.all(np.isfinite(offset_walk) & (offset_walk >= 0)):
             raise ValueError(f"offset_walk must be finite, ≥ 0 and shaped like t {t.shape}, got {offset_walk.shape}")
+    if offset_axis is not None:
+        offset_axis = np.asarray(offset_axis, dtype=float)
+        if offset_axis.shape != (len(t), 3) or not np.all(np.isfinite(offset_axis)):
+            raise ValueError(f"offset_axis must be finite and shaped (n, 3) = ({len(t)}, 3), got {offset_axis.shape}")
+        if not np.all(np.isfinite(offset_axis_prior) & (np.asarray(offset_axis_prior) >= 0)):
+            raise ValueError(f"offset_axis_prior must be finite and ≥ 0, got {offset_axis_prior}")
+    if transport is not None:
+        transport = np.asarray(transport, dtype=float)
+        if transport.shape != t.shape or not np.all(np.isfinite(transport)):
+            raise ValueError(f"transport must be finite and shaped like t {t.shape}, got {transport.shape}")
     if cfg.method == "kalman":
         return kalman_readout(t, r, r2, a, cfg, material, gravity_tau, drift_std,
-                              None if turn_rate is None else np.asarray(turn_rate, dtype=float), offset_walk)
+                              None if turn_rate is None else np.asarray(turn_rate, dtype=float), offset_walk,
+                              offset_axis, offset_axis_prior, transport)
     return paper_readout(t, r, r2, a, cfg)
