@@ -188,7 +188,11 @@ def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
     with time constant τ(t) (:func:`lobula.haltere.gravity_time_constant`), so the offset
     moves as ḃ = −a/τ; gravity seen through a gyro-integrated attitude ramps at up to
     |g|·σ_b (:func:`lobula.haltere.gravity_drift_std`). Offline, gravity is a windowed
-    mean that holds Δv/T. Acceleration from truth has no offset to learn.
+    mean that holds Δv/T. Acceleration from truth has no offset to learn. Unlike the camera's
+    pipeline, the gravity reference's error is held here as one forward offset, not as a vector
+    whose forward share turns with the body (lobula.readout.kalman_velocity's offset_axis), and the
+    transport term is left out (the eye's heading is taken along its body axis, where λ = 0): the
+    eye's worlds turn by a few degrees; not measured with them.
     Returns (ReadoutConfig, gravity_tau (n,) or None, drift_std (n,) or None).
     """
     from experiments.velocity import START_ACCEL_PRIOR_M_S2, TRUTH_ACCEL_OFFSET_M_S2
