@@ -23,8 +23,8 @@ from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import HEADING_POINTS, EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
 from lobula.haltere import (GRAVITY_WINDOW_S, GyroAttitude, attitude_leak, forward_acceleration, forward_axis,
-                            fused_gyro_bias, gravity_drift_std, transport_rate, gravity_time_constant, gyro_bias, leak_walk, orientation_from_gyro,
-                            resample_to, turn_rate, vision_gyro_bias)
+                            fused_gyro_bias, gravity_drift_std, gravity_time_constant, gyro_bias, leak_walk,
+                            orientation_from_gyro, resample_to, transport_rate, turn_rate, vision_gyro_bias)
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
@@ -397,8 +397,12 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
             rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, gravity_error)))
     if len(rates.t) >= 3:
         tau = gravity_tau(footage, rates.t, config)
-        drift = walk = None
+        drift = walk = lam = None
         if accel_source.startswith("accelerometer") and footage.imu.gyro is not None and config.derotate:
+            # A turning camera's forward speed changes by −λ·v beyond its forward acceleration.
+            lam = transport_rate(rates.t, footage.imu.time_s, footage.imu.gyro, None if vb is None else vb[0],
+                                 rates.epipole, float(np.median(np.diff(footage.times))),
+                                 causal=rcfg.filter == "causal")
             # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.haltere):
             # a state of the readout's filter, offline and online alike.
             drift = np.interp(rates.t, footage.imu.time_s,
@@ -410,11 +414,6 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                 tb = footage.imu.time_s
                 used = vb[0] if vb is not None else gyro_bias(tb, footage.imu.gyro, causal=True)
                 walk = leak_walk(rates.t, tb, attitude_leak(tb, used, footage.imu.accel))
-        lam = None
-        if accel_source.startswith("accelerometer") and footage.imu.gyro is not None and config.derotate:
-            lam = transport_rate(rates.t, footage.imu.time_s, footage.imu.gyro, None if vb is None else vb[0],
-                                 rates.epipole, float(np.median(np.diff(footage.times))),
-                                 causal=rcfg.filter == "causal")
         res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material, gravity_tau=tau,
                       drift_std=drift, turn_rate=turn_rate_at(footage, rates.t, accel_source, config),
                       offset_walk=walk, offset_axis=axis, offset_axis_prior=gravity_error, transport=lam)

@@ -451,7 +451,7 @@ def accelerometer_steady(a: np.ndarray, dt: float, change_max: float, window_s: 
 def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravity_tau=None,
                     ratio=None, drift_std=None, delay: float = 0.0, full: bool = False,
                     corr_frames: float = 1.0, turn_rate=None, rest_accel=None, offset_walk=None,
-                    offset_axis=None, offset_axis_prior: float = 0.0, transport=None):
+                    offset_axis=None, offset_axis_prior=0.0, transport=None):
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
@@ -497,9 +497,9 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     the accelerometer's own forward axis. Its forward part is then c(t)·δ, which changes as the
     camera turns (a camera panning 25° turns a 1 m/s² start offset's forward part by 0.4 m/s²,
     which a random walk of b cannot follow: ±2σ held 63 % of frames online). δ (3 more states,
-    prior std ``offset_axis_prior`` m/s² per axis) sits beside b, which keeps the accelerometer's
-    own offset (prior bias_prior_m_s2); the gravity reference's drift input (gravity_tau) moves
-    δ along c. None: the whole offset is b.
+    prior std ``offset_axis_prior`` m/s², one for all axes or (3,) per axis) sits beside b, which
+    keeps the accelerometer's own offset (prior bias_prior_m_s2); the gravity reference's drift
+    input (gravity_tau) moves δ along c. None: the whole offset is b.
 
     transport (n,) 1/s: λ = ω_x·e_y − ω_y·e_x, the gyro's rate ω (rad/s, camera frame) with the
     heading e = (v_x, v_y)/v_z (the epipole, normalised). v is the velocity along the optical axis, and
@@ -528,8 +528,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     cum_lam = np.concatenate([[0.0], np.cumsum(0.5 * (lam[1:] + lam[:-1]) * np.diff(t))])
 
     def v_row(k, d):
-        """Row giving v(t_k − d) + ∫a over the last d from the state at t_k (v(t − d) = v − ∫(a − offset − λv),
-        v taken constant over d in the λ term)."""
+        """Row giving v(t_k − d) + ∫a over the last d from the state at t_k:
+        v(t − d) = v − ∫(a − offset − λv), v taken constant over d in the λ term."""
         lam_d = cum_lam[k] - np.interp(t[k] - d, t, cum_lam)
         return np.concatenate([[1.0 + lam_d, d, 0.0, -0.5 * d * d], d * c_mean(k, d)])
 
@@ -706,7 +706,7 @@ def _lag(x: np.ndarray, h: int) -> np.ndarray:
 
 def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
                    gravity_tau=None, drift_std=None, turn_rate=None, offset_walk=None,
-                   offset_axis=None, offset_axis_prior: float = 0.0, transport=None) -> ReadoutResult:
+                   offset_axis=None, offset_axis_prior=0.0, transport=None) -> ReadoutResult:
     """The project's readout (see module docstring).
 
     Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
@@ -814,7 +814,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
 
 def readout(t, r, r2, a, config: ReadoutConfig | None = None,
             material: MaterialRates | None = None, gravity_tau=None, drift_std=None,
-            turn_rate=None, offset_walk=None, offset_axis=None, offset_axis_prior: float = 0.0,
+            turn_rate=None, offset_walk=None, offset_axis=None, offset_axis_prior=0.0,
             transport=None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
