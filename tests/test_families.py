@@ -12,7 +12,7 @@ from experiments import suite
 from experiments.velocity import estimate_velocity
 from lobula.config import VelocityConfig
 from stimuli.footage import open_footage
-from stimuli.track import make_track_run
+from stimuli.track import REAL_PROFILE, make_track_run
 
 DURATION_S, SCALE, SKIP_S = 6.0, 0.5, 1.5
 
@@ -92,10 +92,14 @@ def _small_run(tmp_path, family, seed, **imu):
     return open_footage(tmp_path / "run")
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "offline 0.067 m/s, ±2σ 79 %, online 0.021: the offline gravity reference (the record's mean specific "
-    "force) takes in the run's mean acceleration Δv/T (here −0.11 m/s²), and under a nearly constant "
-    "acceleration vision's κ = a/v cannot tell that offset from v (issue 10, open)"))
+# Strict only on the scene it was measured on: the rotation family draws a window of the real FLIVVER run
+# where ../shared holds it, and the built-in profile where it does not; on the latter (a clone with no
+# ../shared) it passes since the sixteenth session's offline informative-frame rule (zero-phase 0.004,
+# causal 0.081 m/s), on the former it still fails (0.018 against 0.016).
+@pytest.mark.xfail(strict=REAL_PROFILE.exists(), reason=(
+    "offline 0.018 m/s against online 0.016 (0.067 / 0.021 before the sixteenth session): the offline gravity "
+    "reference (the record's mean specific force) takes in the run's mean acceleration Δv/T (here −0.11 m/s²), "
+    "and under a nearly constant acceleration vision's κ = a/v cannot tell that offset from v (issue 10, open)"))
 def test_offline_is_not_worse_than_online_under_a_nearly_constant_acceleration(tmp_path):
     """The rotation family's seed 10 decelerates almost uniformly from 0.29 to −0.6 m/s. Then
     κ(t) = a/v = 1/(t − t₀) whatever a is, so an accelerometer offset δb and a velocity error
