@@ -330,11 +330,12 @@ def gravity_tau(footage: Footage, times: np.ndarray, config: VelocityConfig) -> 
 
 
 def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig,
-                     bias: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+                     bias: np.ndarray | None = None, orientation: np.ndarray | None = None) -> tuple[np.ndarray, str]:
     """Forward acceleration (m/s²) at ``times`` and a label saying where it came from.
 
     bias: gyro bias track (n_imu, 3) rad/s for the attitude that removes gravity
-    (:func:`gyro_bias_track`); None: the still-camera estimate."""
+    (:func:`gyro_bias_track`); None: the still-camera estimate. orientation: that attitude
+    (n_imu, 3, 3) where already integrated (:func:`lobula.haltere.orientation_from_gyro`)."""
     causal = config.readout.filter == "causal"
     if config.accel_from_truth or footage.imu is None:
         if not config.accel_from_truth and footage.kind != "d435i-sample":
@@ -349,7 +350,7 @@ def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig
         raise FootageError(f"{footage.path / 'imu.csv'}: covers {imu.time_s[0]:.2f}..{imu.time_s[-1]:.2f} s "
                            f"but frames need {times[0]:.2f}..{times[-1]:.2f} s; the time stamps do not match")
     a = forward_acceleration(imu.time_s, imu.accel, imu.gyro if config.derotate else None, causal=causal,
-                             bias=bias)
+                             bias=bias, orientation=orientation if config.derotate else None)
     dt = float(np.median(np.diff(footage.times)))
     return resample_to(times, imu.time_s, a, dt), "accelerometer (gravity and bias removed)"
 
@@ -368,8 +369,13 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     config = config or VelocityConfig()
     t_start = _time.perf_counter()
     rates = field_rates(footage, config, flo_files, flo_units, progress)
-    vb = gyro_bias_track(footage, rates, config.readout.filter == "causal")
-    a, accel_source = forward_accel_at(footage, rates.t, config, bias=None if vb is None else vb[0])
+    causal = config.readout.filter == "causal"
+    vb = gyro_bias_track(footage, rates, causal)
+    # The attitude that removes gravity, integrated once for the acceleration and the axis its error turns with.
+    imu = footage.imu if not config.accel_from_truth else None
+    rot = (orientation_from_gyro(imu.time_s, imu.gyro, causal, None if vb is None else vb[0])
+           if imu is not None and imu.gyro is not None and config.derotate else None)
+    a, accel_source = forward_accel_at(footage, rates.t, config, bias=None if vb is None else vb[0], orientation=rot)
     fields = rates.fields
     t0 = _time.perf_counter()
     rcfg = config.readout
@@ -390,7 +396,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
             # That error is a vector in the frame gravity was taken in; its forward share turns with the
             # camera, so the readout tracks it there beside the accelerometer's own offset.
             axis = forward_axis(footage.imu.time_s, footage.imu.gyro, causal=rcfg.filter == "causal",
-                                bias=None if vb is None else vb[0])
+                                bias=None if vb is None else vb[0], orientation=rot)
             axis = np.stack([np.interp(rates.t, footage.imu.time_s, axis[:, j]) for j in range(3)], -1)
             axis /= np.linalg.norm(axis, axis=1, keepdims=True)
         else:

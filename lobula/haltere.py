@@ -199,7 +199,7 @@ def local_linear(time_s: np.ndarray, values: np.ndarray, window_s: float, causal
 
 def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None,
                          causal: bool = False, window_s: float = GRAVITY_WINDOW_S,
-                         bias: np.ndarray | None = None) -> np.ndarray:
+                         bias: np.ndarray | None = None, orientation: np.ndarray | None = None) -> np.ndarray:
     """Gravity-free acceleration along the optical axis (m/s², (n,)) from specific force (n, 3).
 
     Raises ValueError for non-finite input. With ``gyro`` (n, 3) rad/s the gravity
@@ -215,11 +215,17 @@ def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray
     0.048 m/s RMSE with a fitted slope, 0.024 without). It is left for the readout's ramp
     state, where vision tells the two apart (:func:`gravity_drift_std`, offline and online).
     bias: the gyro bias track (n, 3) rad/s to stabilise with (:func:`orientation_from_gyro`).
+    orientation: those rotations (n, 3, 3) where already integrated from the same gyro, ``causal``
+    and ``bias`` (:func:`orientation_from_gyro`; e.g. shared with :func:`forward_axis`).
     """
     if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(time_s))):
         raise ValueError("accelerometer samples contain NaN or inf")
     n = len(time_s)
-    if gyro is not None:
+    if orientation is not None:
+        rot = np.asarray(orientation, float)
+        if rot.shape != (n, 3, 3):
+            raise ValueError(f"orientation must be shaped ({n}, 3, 3) like the samples, got {rot.shape}")
+    elif gyro is not None:
         rot = orientation_from_gyro(time_s, gyro, causal, bias)
     else:
         rot = np.broadcast_to(np.eye(3), (n, 3, 3))
@@ -230,15 +236,18 @@ def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray
 
 
 def forward_axis(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False,
-                 bias: np.ndarray | None = None) -> np.ndarray:
+                 bias: np.ndarray | None = None, orientation: np.ndarray | None = None) -> np.ndarray:
     """The optical axis (n, 3), unit vectors in the first sample's frame: the frame in which
     :func:`forward_acceleration` takes gravity (same ``gyro``, ``causal`` and ``bias``).
 
     That gravity's error is a vector fixed in that frame (the platform's acceleration that the
     gravity reference averaged in), so its share of the forward acceleration is axis(t)·δ, which
     changes as the camera turns; the readout tracks δ (lobula.readout.kalman_velocity's offset_axis).
+    orientation: :func:`orientation_from_gyro`'s rotations where already integrated (as for
+    :func:`forward_acceleration`); else integrated here.
     """
-    return orientation_from_gyro(time_s, gyro, causal, bias)[:, :, 2]
+    rot = orientation_from_gyro(time_s, gyro, causal, bias) if orientation is None else np.asarray(orientation, float)
+    return rot[:, :, 2]
 
 
 def transport_rate(times: np.ndarray, time_s: np.ndarray, gyro: np.ndarray, bias: np.ndarray | None,

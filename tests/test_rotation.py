@@ -346,3 +346,21 @@ def test_gyro_scale_error_is_fitted_on_a_camera_turning_fast(tmp_path):
     print(f"\nfitted {rmse[0.02]:.4f}, not fitted {rmse[0.0]:.4f}, zero {zero:.3f} m/s")
     assert rmse[0.02] < 0.5 * rmse[0.0], rmse
     assert rmse[0.02] < 0.2 * zero, (rmse, zero)
+
+
+def test_an_attitude_integrated_once_serves_the_acceleration_and_the_axis():
+    """forward_acceleration and forward_axis given orientation_from_gyro's rotations read exactly what
+    they integrate themselves (the pipeline integrates the gyro once for both); a wrong shape is refused."""
+    from lobula.haltere import forward_acceleration, forward_axis, orientation_from_gyro
+
+    t = np.arange(0, 4, 1 / 250)
+    rng = np.random.default_rng(3)
+    gyro = np.stack([0.3 * np.sin(2 * np.pi * 0.7 * t), 0.2 * np.cos(2 * np.pi * 0.4 * t), 0.1 * t / 4], -1)
+    accel = np.array([0.1, -9.7, 0.4]) + 0.02 * rng.normal(size=(len(t), 3))
+    for causal in (False, True):
+        rot = orientation_from_gyro(t, gyro, causal)
+        np.testing.assert_array_equal(forward_acceleration(t, accel, gyro, causal=causal, orientation=rot),
+                                      forward_acceleration(t, accel, gyro, causal=causal))
+        np.testing.assert_array_equal(forward_axis(t, gyro, causal, orientation=rot), forward_axis(t, gyro, causal))
+    with pytest.raises(ValueError, match="orientation"):
+        forward_acceleration(t, accel, gyro, orientation=rot[:-1])
