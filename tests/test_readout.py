@@ -469,12 +469,14 @@ def test_offline_a_frame_without_acceleration_is_asked_of_vision_too():
     assert obs > 0.8 and rmse <= 0.005, (rmse, obs)
 
 
-def test_a_frame_is_asked_of_vision_while_the_velocity_is_still_unknown():
+@pytest.mark.parametrize("kappa_rel_error", [ReadoutConfig().kappa_rel_error, 0.5])  # 0.5: the fly eye's
+def test_a_frame_is_asked_of_vision_while_the_velocity_is_still_unknown(kappa_rel_error):
     """Online, a camera receding slowly (0.1 → 0.16 m/s, then on to 0.6 m/s and back) with a 0.05 m/s²
     accelerometer offset. Early on v̂ is the prior's 0, so "does vision see an acceleration" must ask κ̂
     against v as the posterior has it (its RMS), not κ̂·v̂ ≈ 0: asked so, frames whose reading is ~0 held
     the offset at the reading, and v̂ sat near 0 with a tight band (truth inside ±2σ on 6 % of the first
-    2 s, RMSE 0.041 m/s after). With it: 100 % and 0.009 m/s."""
+    2 s, RMSE 0.041 m/s after). With it: 100 % and 0.009 m/s — also where κ's shared error is half of κ
+    (the eye's kappa_rel_error), which a test "κ̂ ≥ 2σ_κ" would have taken for a κ indistinct from 0."""
     from lobula.readout import MaterialRates
 
     def ramp(x, t0, t1, deriv=False):
@@ -490,11 +492,12 @@ def test_a_frame_is_asked_of_vision_while_the_velocity_is_still_unknown():
     for noise in (0.0, 0.2):  # relative error of each field's ṙ
         mat = _exact_material(v_t, a, t, np.linspace(0.8, 3.0, 40))
         r_dot = mat.r_dot + noise * np.random.default_rng(1).normal(0, 1, mat.r.shape) * np.abs(mat.r)
-        res = readout(t, mat.r, mat.r2, a + 0.05, ReadoutConfig(filter="causal"),
+        res = readout(t, mat.r, mat.r2, a + 0.05, ReadoutConfig(filter="causal", kappa_rel_error=kappa_rel_error),
                       material=MaterialRates(mat.r, mat.r2, r_dot))
         e = np.abs(res.v_hat - v_t)
         first = res.observable & (t < 2)
         assert first.sum() >= 0.4 * (t < 2).sum(), (noise, first.sum())
         assert np.mean(e[first] <= 2 * res.v_std[first]) >= 0.95, noise
         rmse, cover, obs = _score(res, v_t, t)
-        assert rmse <= 0.015 and cover >= 0.95 and obs >= 0.65, (noise, rmse, cover, obs)  # after 2 s of 6; zero estimator: 0.29
+        bound = 0.015 if kappa_rel_error < 0.5 else 0.025  # a κ claimed twice as noisy is trusted less
+        assert rmse <= bound and cover >= 0.95 and obs >= 0.65, (noise, rmse, cover, obs)  # after 2 s of 6; zero estimator: 0.29
