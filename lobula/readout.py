@@ -588,6 +588,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             # development seeds' zero-phase 0.0054 → 0.0052). So the frame counts as informative
             # when vision sees an acceleration too.
             informative = abs(am) >= cfg.accel_min_m_s2
+            # v one latency ago as the posterior has it: mean and variance (x, P are the prior here).
+            vd, pd = H @ x - shift, H @ P @ H
             if not informative:
                 # Vision sees an acceleration where κ̂·v would reach accel_min for v as the posterior has
                 # it — its RMS √(v̂² + σ_v²), not v̂ alone: while v is unknown (the prior's mean 0) κ̂·v̂ ≈ 0
@@ -597,7 +599,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                 # (kappa_rel_error), so that asks for a relative error under ½, not a κ apart from 0, and
                 # with the eye's 0.5 it held every such frame at the reading again (exact fields under
                 # rotation: 0.028 → 0.235 m/s).
-                informative = abs(kap) * np.sqrt((H @ x - shift) ** 2 + H @ P @ H) >= cfg.accel_min_m_s2
+                informative = abs(kap) * np.sqrt(vd ** 2 + pd) >= cfg.accel_min_m_s2
             kv = kap if informative else 0.0
             # a_m = κ·(v(t − D) + shift) + the offset one latency ago, b − ḃ·D (+ c(t − D)·δ)
             h = kv * H + np.concatenate([[0.0, 1.0, 1.0 if shared else 0.0, -D], c_at(k, D)])
@@ -606,8 +608,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             # be) and the filtered accelerometer's noise floor (accel_min_m_s2); its offset and
             # ramp are states, not noise.
             # κ's error multiplies the v it was measured at, v(t − D) (H above), so it counts with
-            # E[v(t − D)²] (errors in variables: a noisy κ ≈ 0 must not pin v while v is unknown).
-            vd, pd = H @ x - shift, H @ P @ H
+            # E[v(t − D)²] = vd² + pd (errors in variables: a noisy κ ≈ 0 must not pin v while v is unknown).
             # Offline, those floors, like the fields' spread (σ_κ holds it already), are errors of
             # low-passed signals, correlated over corr_frames frames, and counted once per frame they
             # would add up over the whole record to a confidence the data do not hold. Online the
