@@ -384,7 +384,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
         # A derivative of the true velocity has noise but no accelerometer offset to learn.
         rcfg = replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2))
     else:
-        if rcfg.filter == "zero-phase":
+        if not causal:
             # Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which
             # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
             span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
@@ -395,7 +395,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
         if footage.imu.gyro is not None and config.derotate:
             # That error is a vector in the frame gravity was taken in; its forward share turns with the
             # camera, so the readout tracks it there beside the accelerometer's own offset.
-            axis = forward_axis(footage.imu.time_s, footage.imu.gyro, causal=rcfg.filter == "causal",
+            axis = forward_axis(footage.imu.time_s, footage.imu.gyro, causal=causal,
                                 bias=None if vb is None else vb[0], orientation=rot)
             axis = np.stack([np.interp(rates.t, footage.imu.time_s, axis[:, j]) for j in range(3)], -1)
             axis /= np.linalg.norm(axis, axis=1, keepdims=True)
@@ -408,13 +408,13 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
             # A turning camera's forward speed changes by −λ·v beyond its forward acceleration.
             lam = transport_rate(rates.t, footage.imu.time_s, footage.imu.gyro, None if vb is None else vb[0],
                                  rates.epipole, float(np.median(np.diff(footage.times))),
-                                 causal=rcfg.filter == "causal")
+                                 causal=causal)
             # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.haltere):
             # a state of the readout's filter, offline and online alike.
             drift = np.interp(rates.t, footage.imu.time_s,
-                              gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=rcfg.filter == "causal",
+                              gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=causal,
                                                 bias_std=None if vb is None else vb[1], accel=footage.imu.accel))
-            if rcfg.filter == "causal":
+            if causal:
                 # Online the attitude took each sample's bias estimate; where that estimate moves, the
                 # gravity it let in moves the offset the filter had learned (lobula.haltere.leak_walk).
                 tb = footage.imu.time_s
