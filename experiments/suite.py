@@ -59,6 +59,8 @@ FAMILIES = {
 CONFIGURATIONS = {
     "lobula zero-phase": ("lobula", "zero-phase", {}),
     "lobula causal": ("lobula", "causal", {}),
+    "lobula fixed-lag 1s": ("lobula", "causal", {"readout.lag_s": 1.0}),
+    "lobula fixed-lag 2s": ("lobula", "causal", {"readout.lag_s": 2.0}),
     "paper zero-phase": ("paper", "zero-phase", {}),
     "paper causal": ("paper", "causal", {}),
     "r2=mean_squared zero-phase": ("lobula", "zero-phase", {"readout.r2_term": "mean_squared"}),

@@ -455,7 +455,9 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
         data["gyro_bias_std"] = (("time", "axis"), at_t(vb[1]), {"units": "rad/s"})
         coords["axis"] = ("axis", ["x", "y", "z"])
     ds = xr.Dataset(data, coords=coords)
-    ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=config.readout.filter,
+    lag = config.readout.lag_s if config.readout.filter == "causal" else 0.0
+    filt = config.readout.filter + (f", fixed lag {lag:g} s (each v_hat known {lag:g} s after its time)" if lag else "")
+    ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=filt,
                                readout=config.readout.method, acceleration_source=accel_source,
                                footage=str(footage.path), footage_kind=footage.kind,
                                notes="; ".join(footage.notes) or "none",
@@ -544,6 +546,8 @@ def apply_velocity_options(cfg, args):
         cfg.accel_from_truth = True
     if opt("gyro_bias_from_vision"):
         cfg.gyro_bias_from_vision = True
+    if opt("lag") is not None:
+        cfg.readout = replace(cfg.readout, lag_s=args.lag)  # validated there (causal kalman readout only)
     if opt("accel_scale_error") is not None:
         cfg.readout = replace(cfg.readout, accel_scale_error=args.accel_scale_error)  # validated there
         if cfg.readout.method != "kalman":
@@ -611,7 +615,12 @@ def add_parser(subparsers):
     v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
     v.add_argument("--plot", help="PNG of v̂ against truth")
     v.add_argument("--paper", action="store_true", help="the paper's configuration, as its text states it")
-    v.add_argument("--filter", default="zero-phase", choices=["zero-phase", "causal"])
+    v.add_argument("--filter", default="zero-phase", choices=["zero-phase", "causal"],
+                   help="readout filter: zero-phase (offline smoother, the whole record) or causal (online)")
+    v.add_argument("--lag", type=float, metavar="SECONDS",
+                   help="with --filter causal: a fixed-lag smoother; each v_hat also uses the next SECONDS of "
+                        "footage and is known that much later (lobula.readout.ReadoutConfig.lag_s; default 0: "
+                        "the forward filter)")
     v.add_argument("--gap", type=int, help="frames between the two images of a flow pair (default 6)")
     v.add_argument("--field-size", type=float, help="receptive-field size (deg; default 5 on camera footage, "
                    "the eye's LC field FWHM 30 on compound-eye footage)")

@@ -114,6 +114,13 @@ class ReadoutConfig:
     r2_term: "field" (the field's mean of r², the geometry) or "mean_squared" (r̄², the ablation).
     fusion: "kalman" (vision measurements fused with integrated acceleration) or "vision-only"
         (the per-frame robust median of v_f through the same low-pass, no acceleration integration).
+    lag_s: with filter "causal", a fixed-lag smoother (s; 0: the forward filter, the default). Every
+        input stays online (causal low-passes, the online gravity reference); each frame's v̂ also
+        takes the measurements up to lag_s after it, so it is known lag_s (plus the measurement
+        latency) after the moment it describes — a declared delay, as in fixed-lag smoothing for
+        odometry. Why: the forward filter can average vision's errors over the past only, and under
+        its own model a causal estimate stays ~2× the smoother's (development seeds); 0.5-1 s of
+        look-ahead buys most of that back (see docs/accuracy-history.md, eighteenth session).
     """
 
     method: str = "kalman"
@@ -143,8 +150,15 @@ class ReadoutConfig:
     shared_error_s: float = 3.0
     r2_term: str = "field"
     fusion: str = "kalman"
+    lag_s: float = 0.0
 
     def __post_init__(self):
+        if not (np.isfinite(self.lag_s) and self.lag_s >= 0):
+            raise ValueError(f"lag_s must be a finite number of seconds >= 0, got {self.lag_s}")
+        if self.lag_s > 0 and (self.filter != "causal" or self.method != "kalman" or self.fusion != "kalman"):
+            raise ValueError(f"lag_s (a fixed-lag smoother, {self.lag_s:g} s) needs the kalman readout's causal "
+                             f"filter with kalman fusion, got method {self.method!r}, filter {self.filter!r}, "
+                             f"fusion {self.fusion!r}; the zero-phase filter already sees the whole record")
         if self.r2_term not in ("field", "mean_squared"):
             raise ValueError(f"unknown r2_term {self.r2_term!r}; use 'field' or 'mean_squared'")
         if self.fusion not in ("kalman", "vision-only"):
@@ -451,7 +465,7 @@ def accelerometer_steady(a: np.ndarray, dt: float, change_max: float, window_s: 
 def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravity_tau=None,
                     ratio=None, drift_std=None, delay: float = 0.0, full: bool = False,
                     corr_frames: float = 1.0, turn_rate=None, rest_accel=None, offset_walk=None,
-                    offset_axis=None, offset_axis_prior=0.0, transport=None):
+                    offset_axis=None, offset_axis_prior=0.0, transport=None, lag: float = 0.0):
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
@@ -506,8 +520,16 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     in a turning frame dv/dt = a − ω × v, whose forward part is a − λ·v: a camera panning at 0.5 rad/s
     while it moves 25° off its axis sees its forward speed change at 0.23·v beyond what the
     accelerometer's forward axis says. None: 0 (a camera that does not turn, or moves along its axis).
+
+    lag (s, with smooth False): a fixed-lag smoother. Each frame's estimate also takes the
+    measurements up to ``lag`` after it (:func:`fixed_lag_smooth`), so it is known ``lag`` later. The
+    forward pass is then the smoother's (vision's shared error an estimated state, the floors
+    counted once per correlation time), as if the record ended ``lag`` after each frame. 0: the
+    forward filter.
     """
     n = len(t)
+    fixed_lag = lag > 0 and not smooth
+    smooth_pass = smooth or fixed_lag  # the smoother's forward pass (whole record or fixed lag)
     nd = 0 if offset_axis is None else 3
     N = 4 + nd
     sv, sb = cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2
@@ -517,7 +539,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     # ramp ḃ, and with offset_axis the start frame's gravity error δ (3).
     P = np.diag([sv, sb, 0.0, sd0] + list(np.broadcast_to(np.asarray(offset_axis_prior, float) ** 2, (nd,))))
     shared = cfg.shared_error_frac > 0
-    consider = shared and not smooth
+    consider = shared and not smooth_pass
     tc = cfg.shared_error_s
     innov_ms, innov_w = 0.0, 0.0  # running mean square of the κ innovations (time constant tc)
     xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, N)), np.zeros((n, N, N)), np.zeros((n, N)),
@@ -615,7 +637,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             # filter has only the past, and so counted they slow it down more than they help: on the
             # dev seeds causal RMSE 0.026 -> 0.020 m/s, but a real still EuRoC sequence read 0.013 m/s
             # of motion (bound 0.01) and a 3 s librealsense recording was observable on 44 % only.
-            cf = corr_frames if smooth else 1.0
+            cf = corr_frames if smooth_pass else 1.0
             R = ((vd ** 2 + pd) * skap ** 2 + cf * ((kap * cfg.meas_floor_m_s) ** 2
                  + (cfg.meas_floor_m_s * skap) ** 2 + cfg.accel_min_m_s2 ** 2 + (kap * e_lp) ** 2))
             hph, nu = h @ P @ h, zk - h @ x
@@ -623,7 +645,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                 w = np.exp(-(t[k] - t[k - 1]) / tc) if k > 0 else 0.0
                 innov_ms, innov_w = w * innov_ms + nu ** 2, w * innov_w + 1.0
             x, P = _update(x, P, h, nu, r_scale * R, consider)
-            if cfg.adapt_s > 0 and smooth:
+            if cfg.adapt_s > 0 and smooth_pass:
                 # Covariance matching: were R honest, E[ν²] = hPh + R/corr_frames (R holds the
                 # low-pass's correlation as a factor corr_frames). Innovations persistently larger
                 # say vision's κ is worse than its fields' spread and the shared error claim (a
@@ -641,9 +663,39 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             C = Ps[k] @ Fs[k + 1].T @ np.linalg.pinv(Ps_pred[k + 1])
             xs[k] = xs[k] + C @ (xs[k + 1] - xs_pred[k + 1])
             Ps[k] = Ps[k] + C @ (Ps[k + 1] - Ps_pred[k + 1]) @ C.T
+    elif fixed_lag:
+        xs, Ps = fixed_lag_smooth(t, xs, Ps, xs_pred, Ps_pred, Fs, lag)
     if full:  # the whole posterior: means (n, N) and covariances (n, N, N) of (v, b, ·, ḃ[, δ])
         return xs, Ps
     return xs[:, 0], np.sqrt(np.maximum(Ps[:, 0, 0], 0.0))
+
+
+def fixed_lag_smooth(t, xf, Pf, xp, Pp, F, lag: float):
+    """Fixed-lag Rauch–Tung–Striebel smoothing: each frame's state given the measurements up to ``lag`` s after it.
+
+    t (n,) s; xf, Pf (n, N), (n, N, N): the forward filter's posterior means and covariances;
+    xp, Pp: its predictions (before each frame's measurements); F (n, N, N): the transition
+    into each frame. Frame k's estimate is the RTS smoother's of the record cut at the last
+    frame e_k ≤ t_k + lag (the end of the record where that comes first), exactly: the
+    backward gains C_i = Pf_i F_{i+1}ᵀ Pp_{i+1}⁻¹ do not depend on where the record ends, so
+    they are computed once and every frame's backward pass runs at once, one step of depth at a
+    time (vectorised over frames; the loop runs over the lag's frames). Returns (xs, Ps).
+    """
+    n = len(t)
+    end = np.searchsorted(t, t + lag + 1e-9 * max(lag, 1.0), side="right") - 1   # e_k (n,)
+    C = np.zeros_like(Pf)
+    C[:-1] = Pf[:-1] @ np.swapaxes(F[1:], -1, -2) @ np.linalg.pinv(Pp[1:])
+    x, P = xf[end].copy(), Pf[end].copy()
+    k = np.arange(n)
+    for depth in range(int((end - k).max(initial=0)) - 1, -1, -1):
+        i = k + depth                      # step from frame i + 1 back to frame i, where i + 1 ≤ e_k
+        on = i < end
+        if not on.any():
+            continue
+        j, c = i[on], C[i[on]]
+        x[on] = xf[j] + np.einsum("kab,kb->ka", c, x[on] - xp[j + 1])
+        P[on] = Pf[j] + c @ (P[on] - Pp[j + 1]) @ np.swapaxes(c, -1, -2)
+    return x, P
 
 
 def _axis_terms(t, axis):
@@ -814,11 +866,12 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
                                corr_frames=n_corr, turn_rate=turn_rate, offset_walk=offset_walk,
                                offset_axis=offset_axis, offset_axis_prior=offset_axis_prior, transport=transport,
                                rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2,
-                                                                              causal=True))
+                                                                              causal=True),
+                               lag=0.0 if zp else cfg.lag_s)
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
-                         info=dict(measurement_delay_s=delay))
+                         info=dict(measurement_delay_s=delay, lag_s=0.0 if zp else cfg.lag_s))
 
 
 def readout(t, r, r2, a, config: ReadoutConfig | None = None,

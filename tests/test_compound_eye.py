@@ -395,6 +395,10 @@ def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, 
     assert main(["velocity", str(eye_footage), "--front-end", "emd", "--dphi", "3", "--out",
                  str(tmp_path / "y.nc")]) == 2
     assert "--dphi" in capsys.readouterr().err and not (tmp_path / "y.nc").exists()
+    # The fixed-lag smoother is the camera pipeline's: the eye's readout stays online.
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--filter", "causal", "--lag", "1", "--out",
+                 str(tmp_path / "y.nc")]) == 2
+    assert "--lag" in capsys.readouterr().err and not (tmp_path / "y.nc").exists()
     # The eye's own options reach the eye's circuit and readout: the same numbers as `lobula eye-velocity`.
     c, d = tmp_path / "v2.nc", tmp_path / "e2.nc"
     opts = ["--rotation", "wide-field", "--readout", "spikes", "--seed", "3", "--uncertainty", "posterior"]

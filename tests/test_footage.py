@@ -133,6 +133,23 @@ def test_accel_scale_error_option_widens_the_band_by_its_share(small_run, tmp_pa
     assert code == 2 and "accel_scale_error" in err and not (tmp_path / "n.nc").exists()
 
 
+def test_lag_option_smooths_with_look_ahead_online_and_is_refused_offline(small_run, tmp_path, capsys):
+    """--lag reaches the causal readout (stored in the configuration and the filter attribute) and changes
+    its estimate; with the default zero-phase filter, or negative, it is refused and nothing is written."""
+    out = {}
+    for lag in ("0", "0.5"):
+        assert run_cli(small_run, tmp_path / f"l{lag}.nc", capsys, "--filter", "causal", "--lag", lag)[0] == 0
+        with xr.open_dataset(tmp_path / f"l{lag}.nc") as ds:
+            out[lag] = ds.load()
+            assert VelocityConfig.from_json(ds.attrs["config"]).readout.lag_s == float(lag)
+    assert out["0"].attrs["filter"] == "causal" and "fixed lag 0.5 s" in out["0.5"].attrs["filter"]
+    both = out["0"].observable.values & out["0.5"].observable.values
+    assert both.sum() > 5 and not np.allclose(out["0"].v_std.values[both], out["0.5"].v_std.values[both])
+    for extra in (("--lag", "1"), ("--filter", "causal", "--lag", "-1")):
+        code, err = run_cli(small_run, tmp_path / "bad.nc", capsys, *extra)
+        assert code == 2 and "lag_s" in err and not (tmp_path / "bad.nc").exists()
+
+
 @pytest.mark.parametrize("damage, needle", [
     ("no_imu", "imu.csv"),
     ("missing_frame", "frames.csv"),

@@ -501,3 +501,58 @@ def test_a_frame_is_asked_of_vision_while_the_velocity_is_still_unknown(kappa_re
         rmse, cover, obs = _score(res, v_t, t)
         bound = 0.015 if kappa_rel_error < 0.5 else 0.025  # a κ claimed twice as noisy is trusted less
         assert rmse <= bound and cover >= 0.95 and obs >= 0.65, (noise, rmse, cover, obs)  # after 2 s of 6; zero estimator: 0.29
+
+
+def test_fixed_lag_is_the_smoother_of_the_record_cut_a_lag_after_each_frame():
+    """Known answer: frame k's fixed-lag estimate is the RTS smoother's on the record cut at the last
+    frame within ``lag`` after k (the end of the record where that comes first), mean and std alike."""
+    from lobula.readout import kalman_velocity
+
+    t = np.arange(0, 6, 1 / 30)
+    rng = np.random.default_rng(3)
+    v = 0.4 * np.sin(2 * np.pi * 0.3 * t)
+    a = np.gradient(v, t) + 0.05 + rng.normal(0, 0.03, t.shape)
+    z = np.where(rng.random(t.shape) < 0.7, v + rng.normal(0, 0.05, t.shape), np.nan)
+    cfg = ReadoutConfig(filter="causal")
+    meas = [(z, np.full(t.shape, 0.05))]
+    lag = 0.5
+    m, s = kalman_velocity(t, a, meas, cfg, smooth=False, lag=lag)
+    for k in (0, 40, 100, 170, len(t) - 10, len(t) - 1):
+        e = min(k + 15, len(t) - 1)  # 0.5 s at 30 frames/s
+        mk, sk = kalman_velocity(t[:e + 1], a[:e + 1], [(z[:e + 1], meas[0][1][:e + 1])], cfg, smooth=True)
+        assert m[k] == pytest.approx(mk[k], abs=1e-9) and s[k] == pytest.approx(sk[k], abs=1e-9), k
+    # and it is not the forward filter: the look-ahead narrows the band
+    f_m, f_s = kalman_velocity(t, a, meas, cfg, smooth=False)
+    assert np.median(s[30:-30] / f_s[30:-30]) < 0.9
+
+
+def test_a_fixed_lag_buys_back_what_the_forward_filter_cannot_see():
+    """Online inputs, the persistent shared error of vision (as above), noisy fields and an
+    accelerometer offset: look-ahead (ReadoutConfig.lag_s) lowers the error on the frames the forward
+    filter reads (0.0169 m/s; 1 s: 0.0132, 2 s: 0.0100; zero-phase 0.0055), reads more of them (92 →
+    100 % after 2 s) and keeps the truth inside ±2σ; the zero-phase filter, the paper's median readout
+    and a negative lag refuse it."""
+    t = np.arange(0, 20, 1 / 30)
+    v_fn, r, r2, a, r_dot, MaterialRates = _fast_exact_material(t)
+    rng = np.random.default_rng(0)
+    c = butterworth(rng.normal(0, 1, t.shape), 2 * (1 / 30) / 3.0, 1, True)
+    c *= 0.1 / c.std()
+    r_dot = r_dot + c[:, None] * r / v_fn(t)[:, None] + 0.2 * rng.normal(0, 1, r.shape) * np.abs(r)
+    acc = a + 0.05 + np.random.default_rng(10).normal(0, 0.02, t.shape)
+    res = {lag: readout(t, r, r2, acc, ReadoutConfig(filter="causal", lag_s=lag), material=MaterialRates(r, r2, r_dot))
+           for lag in (0.0, 1.0, 2.0)}
+    after = t >= 2
+    both = after & res[0.0].observable
+    rmse = {lag: float(np.sqrt(np.mean((x.v_hat - v_fn(t))[both] ** 2))) for lag, x in res.items()}
+    assert rmse[1.0] <= 0.85 * rmse[0.0] and rmse[2.0] <= 0.7 * rmse[0.0], rmse
+    for lag, x in res.items():
+        assert x.info["lag_s"] == lag
+        m = after & x.observable
+        assert m.sum() >= both.sum(), lag  # what the forward filter reads, and more
+        assert np.mean(np.abs(x.v_hat - v_fn(t))[m] <= 2 * x.v_std[m]) >= 0.9, lag
+    with pytest.raises(ValueError, match="lag_s"):
+        ReadoutConfig(filter="zero-phase", lag_s=1.0)
+    with pytest.raises(ValueError, match="lag_s"):
+        ReadoutConfig(filter="causal", lag_s=-0.5)
+    with pytest.raises(ValueError, match="lag_s"):
+        ReadoutConfig(method="median", filter="causal", lag_s=1.0)
