@@ -326,17 +326,19 @@ START_ACCEL_PRIOR_MOVING_M_S2 = 3.0
 
 
 def start_accel_prior(r: np.ndarray, min_fields: int = 3) -> float:
-    """Prior std (m/s²) of the start acceleration the online gravity reference takes in: wider where the camera
-    is seen moving at the start.
+    """Prior std (m/s²) of the start acceleration the online gravity reference takes in: wider where
+    the camera is seen moving at the start.
 
-    r (n, F) 1/s: the fields' expansion rates; the first frame with ``min_fields`` finite fields decides. Moving
-    means the fields' signed median r̄ stands clear of its standard error (|r̄| > 3·SE, as
-    :func:`lobula.readout.rest_measurement` judges "no detectable expansion"). Why: a camera already moving may be
-    braking or accelerating hard while the reference is set. The suite's fast family starts in motion at up to
-    2 m/s decelerating at 2–3.7 m/s² (seeds 0–2; development seeds −1.1 / −0.4 / +1.8), 2–3.7 prior σ of the 0.1 g
-    prior: a second-late (fixed-lag) estimate held the truth within ±2σ on 46 % of its first 2 s (22 % on one seed),
-    100 % online and 99 % a second late with this prior. A camera seen at rest keeps 0.1 g: a wider prior there cost a development ground
-    world (far backdrop, the rest bound) 0.015 → 0.023 m/s online.
+    r (n, F) 1/s: the fields' expansion rates; the first frame with ``min_fields`` finite fields
+    decides. Moving means the fields' signed median r̄ stands clear of its standard error
+    (|r̄| > 3·SE, as :func:`lobula.readout.rest_measurement` judges "no detectable expansion").
+    Why: a camera already moving may be braking or accelerating hard while the reference is set.
+    The suite's fast family starts in motion at up to 2 m/s decelerating at 2–3.7 m/s² (seeds
+    0–2; development seeds −1.1 / −0.4 / +1.8), 2–3.7σ of the 0.1 g prior: a second-late
+    (fixed-lag) estimate held the truth within ±2σ on 46 % of its first 2 s (22 % on one seed),
+    100 % online and 99 % a second late with this prior. A camera seen at rest keeps 0.1 g: a
+    wider prior there cost a development ground world (far backdrop, the rest bound) 0.015 →
+    0.023 m/s online.
     """
     from lobula.readout import median_and_error
 
