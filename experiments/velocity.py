@@ -340,7 +340,7 @@ def start_accel_prior(r: np.ndarray, min_fields: int = 3) -> float:
     wider prior there cost a development ground world (far backdrop, the rest bound) 0.015 →
     0.023 m/s online.
     """
-    from lobula.readout import median_and_error
+    from lobula.readout import NO_EXPANSION_SE, median_and_error
 
     n = np.isfinite(r).sum(1)
     first = np.flatnonzero(n >= min_fields)
@@ -348,7 +348,7 @@ def start_accel_prior(r: np.ndarray, min_fields: int = 3) -> float:
         return START_ACCEL_PRIOR_M_S2
     k = first[0]
     med, se = median_and_error(r[k:k + 1], n[k:k + 1])
-    return START_ACCEL_PRIOR_MOVING_M_S2 if abs(med[0]) > 3.0 * se[0] else START_ACCEL_PRIOR_M_S2
+    return START_ACCEL_PRIOR_MOVING_M_S2 if abs(med[0]) > NO_EXPANSION_SE * se[0] else START_ACCEL_PRIOR_M_S2
 
 
 def gravity_tau(footage: Footage, times: np.ndarray, config: VelocityConfig) -> np.ndarray | None:

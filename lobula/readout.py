@@ -370,6 +370,10 @@ def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
     return np.where(enough, kap, np.nan), np.where(enough, std, np.nan)
 
 
+#: the fields' signed median r̄ within this many standard errors of 0: no expansion detected (see rest_measurement)
+NO_EXPANSION_SE = 3.0
+
+
 def rest_measurement(r, cfg: ReadoutConfig):
     """v = r·d with 0 < d ≤ rest_depth_max: no detectable expansion bounds |v| (returns z = 0, std (n,)).
 
@@ -391,7 +395,7 @@ def rest_measurement(r, cfg: ReadoutConfig):
     # It is a bound, not a noisy sample: repeating a loose bound frame after frame must
     # not add up to confidence, so it only counts where it alone would be decisive.
     use = (np.isfinite(r_med) & (n >= max(3, cfg.min_valid_fraction * r.shape[1]))
-           & (np.abs(r_med) <= 3.0 * se) & (std <= 0.5 * cfg.max_std_m_s))
+           & (np.abs(r_med) <= NO_EXPANSION_SE * se) & (std <= 0.5 * cfg.max_std_m_s))
     return np.where(use, 0.0, np.nan), np.where(use, std, np.nan)
 
 
@@ -867,7 +871,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
                                offset_axis=offset_axis, offset_axis_prior=offset_axis_prior, transport=transport,
                                rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2,
                                                                               causal=True),
-                               lag=0.0 if zp else cfg.lag_s)
+                               lag=cfg.lag_s)  # the smoother (zero-phase) ignores it
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
