@@ -22,8 +22,9 @@ demo: setup
 	$(BIN)/lobula scene $(OUT)/track --start 0 --duration 30 --scale 0.5
 	$(BIN)/lobula velocity $(OUT)/track --front-end dis --out $(OUT)/run.nc --plot $(OUT)/run.png
 
+# Tests on parallel workers (pytest-xdist; at most 4, each builds its own fixtures): see tests/conftest.py.
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist loadgroup
 
 test-slow: setup
 	$(BIN)/python -m pytest -q -m slow

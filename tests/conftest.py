@@ -2,9 +2,14 @@
 
 Replays are rendered once per test session into a temporary folder; each is a full
 footage folder, read back through the same reader users use.
+
+`make test` runs the suite on pytest-xdist workers (``-n auto --dist loadgroup``): each test
+file is one group, so its module fixtures are built once, and every test that uses the 30 s
+replay joins one group, so it is rendered once (see :func:`pytest_collection_modifyitems`).
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +20,28 @@ from stimuli.scene import SceneConfig
 from stimuli.track import REAL_PROFILE, TrackRunConfig, make_track_run
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flivver_d435i"
+REPLAY_FIXTURES = {"make_replay", "replay_rates", "emd_replay"}
+
+
+def pytest_configure(config):
+    """On an xdist worker, the cores are shared among the workers: torch and OpenCV get their share of
+    threads, not each all of them (two workers on two cores would otherwise run four threads)."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if workers > 1:
+        import cv2
+        import torch
+
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        torch.set_num_threads(threads)
+        cv2.setNumThreads(threads)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Groups for ``--dist loadgroup``: the tests that use the session's 30 s replay run on one worker
+    (it is rendered once, ~2 min), every other test with the rest of its file (module fixtures once)."""
+    for item in items:
+        uses_replay = REPLAY_FIXTURES & set(getattr(item, "fixturenames", ()))
+        item.add_marker(pytest.mark.xdist_group("replay" if uses_replay else item.path.name))
 
 
 @pytest.fixture(scope="session")

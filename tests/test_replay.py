@@ -62,8 +62,12 @@ def test_replay_starting_in_motion(make_replay, replay_rates):
 
 @pytest.mark.parametrize("yaw, pitch", [(7.0, 2.0)])
 def test_off_axis_translation(make_replay, replay_rates, yaw, pitch):
-    """Camera translating 7° right and 2° down of its optical axis: the epipole is found, velocity holds."""
-    fo = open_footage(make_replay(0.0, 30.0, off_axis_yaw_deg=yaw, off_axis_pitch_deg=pitch))
+    """Camera translating 7° right and 2° down of its optical axis: the epipole is found, velocity holds.
+
+    The first 15 s of the replay (a start at rest, two speed peaks of 0.6 and −0.55 m/s), against the
+    on-axis replay's readout over the same 15 s."""
+    span = 15.0
+    fo = open_footage(make_replay(0.0, span, off_axis_yaw_deg=yaw, off_axis_pitch_deg=pitch))
     ds = estimate_velocity(fo, VelocityConfig(), progress=False)
     ex, ey = ds.epipole_x.values[-1], ds.epipole_y.values[-1]
     # True epipole: the track direction seen from the camera.
@@ -71,8 +75,11 @@ def test_off_axis_translation(make_replay, replay_rates, yaw, pitch):
     true_e = json.loads((fo.path / "scene.json").read_text())["epipole"]
     err_deg = np.degrees(np.abs(np.arctan([ex, ey]) - np.arctan(true_e)))
     rates, a, v_true = replay_rates
-    res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig(), material=rates.material)
-    on_axis, _ = rmse_after(rates.t, res.v_hat, v_true, res.observable)
+    k = rates.t <= rates.t[0] + span
+    m = rates.material
+    res = readout(rates.t[k], rates.r[k], rates.r2[k], a[k], ReadoutConfig(),
+                  material=type(m)(m.r[k], m.r2[k], m.r_dot[k]))
+    on_axis, _ = rmse_after(rates.t[k], res.v_hat, v_true[k], res.observable)
     sc = score(ds, 2.0)
     print(f"\noff-axis ({yaw}°, {pitch}°): epipole error {err_deg.round(3)}°, RMSE {sc['rmse_m_s']:.4f} "
           f"vs on-axis {on_axis:.4f}")
