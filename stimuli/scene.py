@@ -216,6 +216,46 @@ def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out.ravel()[:n].reshape(shape)
 
 
+NEAR_CLIP_M = 1e-9  # below every hit's forward depth: _intersect counts a hit only at λ > 1e-6
+
+
+def _grid_window(s: Surface, xs: np.ndarray, ys: np.ndarray, rot: np.ndarray, origin: np.ndarray):
+    """The block of an image grid's rays that can hit surface s: (row slice, column slice), or None
+    where none can.
+
+    xs (W,), ys (H,): the grid's normalised coordinates, ascending; rot (3, 3): camera-to-track
+    rotation; origin (3,): the camera centre (m). The rectangle is clipped to the half-space in front
+    of the camera (forward depth ≥ NEAR_CLIP_M, which every hit exceeds); what is left projects to the
+    convex hull of its vertices' images, so a ray outside their bounding box cannot reach it. The box
+    is widened by two rays a side, far beyond rounding; a surface that reaches behind the camera gets
+    a box open on that side (its clipped vertices project far out).
+    """
+    (a0, a1), (b0, b1) = s.bounds
+    corners = np.zeros((4, 3))
+    corners[:, s.axis] = s.offset
+    corners[:, s.in_plane[0]] = [a0, a0, a1, a1]
+    corners[:, s.in_plane[1]] = [b0, b1, b1, b0]  # in order around the rectangle
+    pc = (corners - origin) @ rot  # camera frame
+    if not np.all(np.isfinite(pc)):
+        return (Ellipsis,)
+    kept = []  # Sutherland–Hodgman against z ≥ NEAR_CLIP_M
+    for p, q in zip(pc, np.roll(pc, -1, axis=0)):
+        if p[2] >= NEAR_CLIP_M:
+            kept.append(p)
+        if (p[2] >= NEAR_CLIP_M) != (q[2] >= NEAR_CLIP_M):
+            kept.append(p + (NEAR_CLIP_M - p[2]) / (q[2] - p[2]) * (q - p))
+    if not kept:
+        return None
+    pc = np.array(kept)
+    px, py = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
+    c0, c1 = np.searchsorted(xs, px.min(), "left") - 2, np.searchsorted(xs, px.max(), "right") + 2
+    r0, r1 = np.searchsorted(ys, py.min(), "left") - 2, np.searchsorted(ys, py.max(), "right") + 2
+    c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, len(xs)), min(r1, len(ys))
+    if c0 >= c1 or r0 >= r1:
+        return None
+    return slice(r0, r1), slice(c0, c1)
+
+
 class TrackScene:
     """A rendered world plus camera motion along a :class:`~stimuli.trajectory.Trajectory`.
 
@@ -415,12 +455,15 @@ class TrackScene:
         return float(d[0] / d[2]), float(d[1] / d[2])
 
     # ---------------------------------------------------------------- ray casting
-    def _intersect(self, d_world: np.ndarray, origin: np.ndarray):
+    def _intersect(self, d_world: np.ndarray, origin: np.ndarray, grid=None):
         """Nearest surface hit along rays ``origin + λ·d_world`` (λ > 0), one loop over surfaces.
 
         d_world: (..., 3) ray directions in the track frame, any length. Returns λ
         (inf where nothing is hit), surface index (-1 where nothing is hit) and the two
         texture coordinates (m), each shaped like d_world[..., 0].
+        grid: for rays on an image grid, d_world (H, W, 3) with camera directions ∝ (xs[j], ys[i], 1):
+        (xs (W,), ys (H,), rotation (3, 3) camera-to-track). Each surface is then tested only on the
+        block of rays that can reach it (:meth:`_grid_window`); the result is the same to the bit.
         """
         shape = d_world.shape[:-1]
         best = np.full(shape, np.inf)
@@ -430,15 +473,19 @@ class TrackScene:
         c = origin
         with np.errstate(divide="ignore", invalid="ignore"):
             for i, s in enumerate(self.surfaces):
-                lam = (s.offset - c[s.axis]) / d_world[..., s.axis]
-                a = c[s.in_plane[0]] + lam * d_world[..., s.in_plane[0]]
-                b = c[s.in_plane[1]] + lam * d_world[..., s.in_plane[1]]
+                w = (Ellipsis,) if grid is None else _grid_window(s, *grid, origin)
+                if w is None:
+                    continue
+                d = d_world[w]
+                lam = (s.offset - c[s.axis]) / d[..., s.axis]
+                a = c[s.in_plane[0]] + lam * d[..., s.in_plane[0]]
+                b = c[s.in_plane[1]] + lam * d[..., s.in_plane[1]]
                 (a0, a1), (b0, b1) = s.bounds
-                hit = (lam > 1e-6) & (lam < best) & (a >= a0) & (a <= a1) & (b >= b0) & (b <= b1)
-                best = np.where(hit, lam, best)
-                idx = np.where(hit, i, idx)
-                tex_a = np.where(hit, a, tex_a)
-                tex_b = np.where(hit, b, tex_b)
+                hit = (lam > 1e-6) & (lam < best[w]) & (a >= a0) & (a <= a1) & (b >= b0) & (b <= b1)
+                best[w] = np.where(hit, lam, best[w])
+                idx[w] = np.where(hit, i, idx[w])
+                tex_a[w] = np.where(hit, a, tex_a[w])
+                tex_b[w] = np.where(hit, b, tex_b[w])
         return best, idx, tex_a, tex_b
 
     def cast_rays(self, directions_cam, t: float):
@@ -482,15 +529,19 @@ class TrackScene:
             # at grazing incidence than the long axis, less aliasing than the short one.
             return np.where(idx >= 0, rng_m * footprint_rad / np.sqrt(np.maximum(cos_inc, 1e-6)), 0.0)
 
-    def _cast(self, x, y, t):
-        """Nearest surface hit for normalised ray coordinates at time t.
+    def _cast(self, x, y, t, unit: bool = False):
+        """Nearest surface hit for the rays of an image grid at time t.
 
-        Returns forward depth (camera z, m), surface index and the two texture
-        coordinates (m), each shaped like x: the rays (x, y, 1) have unit forward
-        component, so the ray parameter λ is the forward depth.
+        x, y (H, W): normalised coordinates, a meshgrid (x constant down each column, y along each
+        row, both ascending). Returns forward depth (camera z, m), surface index and the two texture
+        coordinates (m), each (H, W): the rays (x, y, 1) have unit forward component, so the ray
+        parameter λ is the forward depth. unit: the rays are (x, y, 1) normalised instead (λ is then
+        the range, m), and they are returned too.
         """
-        d = np.stack([x, y, np.ones_like(x)], axis=-1)
-        return self.cast_rays(d, t)
+        d = ray_directions(x, y) if unit else np.stack([x, y, np.ones_like(x)], axis=-1)
+        rot = self.rotation(t)
+        hits = self._intersect(d @ rot.T, self.position(t), grid=(x[0], y[:, 0], rot))
+        return (*hits, d) if unit else hits
 
     def _shade(self, idx, tex_a, tex_b, footprint_m=None) -> np.ndarray:
         cfg = self.config
@@ -538,7 +589,9 @@ class TrackScene:
         ss = self.config.supersample
         x, y = self._rays
         if self.config.use_mipmap:
-            img = self.luminance(ray_directions(x, y), t, footprint_rad=1.0 / (self.camera.fx * ss))
+            # luminance() on the grid's unit rays, each surface tested only where it can be seen
+            rng_m, idx, a, b, d = self._cast(x, y, t, unit=True)
+            img = self._shade(idx, a, b, self._footprint_m(d, t, rng_m, idx, 1.0 / (self.camera.fx * ss)))
         else:
             _, idx, a, b = self._cast(x, y, t)
             img = self._shade(idx, a, b)

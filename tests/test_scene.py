@@ -150,3 +150,29 @@ def test_pinhole_frames_are_the_ray_luminance_averaged_over_sub_pixel_rays():
     flat = unit(np.random.default_rng(2).normal(size=(10000, 3)))
     l_flat = scene.luminance(flat, t)
     np.testing.assert_allclose(l_flat[:100], scene.luminance(flat[:100].reshape(10, 10, 3), t).ravel(), atol=1e-6)
+
+
+def test_culling_each_surface_to_its_image_block_changes_no_hit():
+    """The renderer tests each surface only on the block of rays its image can cover (clipped to the
+    half-space in front of the camera): every hit, depth and texture coordinate is the one every ray
+    tested against every surface gives, in a panels world turning on three axes and off its axis, in
+    a corridor whose walls reach behind the camera and on a ground plane with its sky."""
+    from stimuli.scene import _grid_window
+
+    worlds = [dict(world="panels", rotation3_amp_deg=(5.0, 3.0, 2.0), off_axis_yaw_deg=8.0),
+              dict(world="corridor"), dict(world="ground")]
+    culled = 0
+    for kw in worlds:
+        sc = constant_scene(v=1.0, duration=4.0, **kw)
+        x, y = sc._rays
+        for t in (0.0, 1.7, 3.9):
+            rot, pos = sc.rotation(t), sc.position(t)
+            d = np.stack([x, y, np.ones_like(x)], -1) @ rot.T
+            full = sc._intersect(d, pos)
+            fast = sc._intersect(d, pos, grid=(x[0], y[:, 0], rot))
+            for a, b in zip(full, fast):
+                assert np.array_equal(a, b)
+            for s in sc.surfaces:
+                w = _grid_window(s, x[0], y[:, 0], rot, pos)
+                culled += w is None or (w != (Ellipsis,) and x[w].size < x.size)
+    assert culled > 0  # the blocks are smaller than the image: the test compares two different computations
