@@ -220,8 +220,8 @@ NEAR_CLIP_M = 1e-9  # below every hit's forward depth: _intersect counts a hit o
 
 
 def _grid_window(s: Surface, xs: np.ndarray, ys: np.ndarray, rot: np.ndarray, origin: np.ndarray):
-    """The block of an image grid's rays that can hit surface s: (row slice, column slice), or None
-    where none can.
+    """The block of an image grid's rays that can hit surface s: (row slice, column slice); None where
+    none can; (Ellipsis,) (every ray) where a bound is infinite.
 
     xs (W,), ys (H,): the grid's normalised coordinates, ascending; rot (3, 3): camera-to-track
     rotation; origin (3,): the camera centre (m). The rectangle is clipped to the half-space in front
@@ -463,7 +463,7 @@ class TrackScene:
         texture coordinates (m), each shaped like d_world[..., 0].
         grid: for rays on an image grid, d_world (H, W, 3) with camera directions ∝ (xs[j], ys[i], 1):
         (xs (W,), ys (H,), rotation (3, 3) camera-to-track). Each surface is then tested only on the
-        block of rays that can reach it (:meth:`_grid_window`); the result is the same to the bit.
+        block of rays that can reach it (:func:`_grid_window`); the result is the same to the bit.
         """
         shape = d_world.shape[:-1]
         best = np.full(shape, np.inf)

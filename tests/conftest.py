@@ -38,7 +38,7 @@ def pytest_configure(config):
 
 def pytest_collection_modifyitems(config, items):
     """Groups for ``--dist loadgroup``: the tests that use the session's 30 s replay run on one worker
-    (it is rendered once, ~2 min), every other test with the rest of its file (module fixtures once)."""
+    (it is rendered once), every other test with the rest of its file (module fixtures once)."""
     for item in items:
         uses_replay = REPLAY_FIXTURES & set(getattr(item, "fixturenames", ()))
         item.add_marker(pytest.mark.xdist_group("replay" if uses_replay else item.path.name))

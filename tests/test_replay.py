@@ -10,7 +10,7 @@ import pytest
 
 from experiments.velocity import estimate_velocity, score
 from lobula.config import VelocityConfig
-from lobula.readout import ReadoutConfig, readout
+from lobula.readout import MaterialRates, ReadoutConfig, readout
 from stimuli.footage import open_footage
 
 
@@ -78,7 +78,7 @@ def test_off_axis_translation(make_replay, replay_rates, yaw, pitch):
     k = rates.t <= rates.t[0] + span
     m = rates.material
     res = readout(rates.t[k], rates.r[k], rates.r2[k], a[k], ReadoutConfig(),
-                  material=type(m)(m.r[k], m.r2[k], m.r_dot[k]))
+                  material=MaterialRates(m.r[k], m.r2[k], m.r_dot[k]))
     on_axis, _ = rmse_after(rates.t[k], res.v_hat, v_true[k], res.observable)
     sc = score(ds, 2.0)
     print(f"\noff-axis ({yaw}°, {pitch}°): epipole error {err_deg.round(3)}°, RMSE {sc['rmse_m_s']:.4f} "
