@@ -410,10 +410,28 @@ class HeadingBiasEstimator(EpipoleEstimator):
             ata_b, atb_b = aw.T @ ab, aw.T @ rhs_b
             theta_b = np.linalg.solve(self.ata[rot, rot] + ata_b, prior_b + atb_b)
         self._scales.append(1.4826 * float(np.median(np.abs(ab @ theta_b - rhs_b))) + 1e-12)
-        # 2. Is what is left radial about the heading (translation), beyond the flow's noise?
+        # 2. Is what is left radial about a heading of its own (translation), beyond the flow's noise?
         joint = None
-        if self._radial(x, y, u, v, c, theta_b, b_app, rate, e0):
+        own = self._radial(x, y, u, v, c, theta_b, b_app, rate, e0)
+        if own is not None:
             theta = np.concatenate([e_cur, theta_b])
+            if np.hypot(*(own - e0)) > HEADING_TOL:
+                # This frame's own heading lies far from the running one (a heading 30° off the axis
+                # against the principal point, the prior): about that start the residuals hold the
+                # model's error, and the noise correction below, taken from them, overcorrects until
+                # the system is indefinite — every such frame was refused and the heading stayed at
+                # the prior for the whole record. Plain steps from the frame's own heading first, as
+                # the parent's warm-up does.
+                h_ref = R @ np.array([own[0], own[1], 1.0])
+                theta[:2] = h_ref[:2] / h_ref[2]
+                for _ in range(WARMUP_ITERS):
+                    w = self._weights(a @ theta - rhs)
+                    aw = a * w[:, None]
+                    step = np.linalg.solve(self.ata + aw.T @ a, self.atb + aw.T @ rhs)
+                    moved = np.hypot(*(step[:2] - theta[:2]))
+                    theta = step
+                    if not np.all(np.isfinite(theta)) or moved < WARMUP_STEP:
+                        break
             for _ in range(iters):
                 res = a @ theta - rhs
                 w = self._weights(res)
@@ -455,10 +473,11 @@ class HeadingBiasEstimator(EpipoleEstimator):
         # Flow errors are correlated over many pixels: a frame counts as FRAME_POINTS independent ones.
         return 1.0 / (1.0 + (res / (2.385 * scale)) ** 2) / noise ** 2 * min(1.0, FRAME_POINTS / res.size)
 
-    def _radial(self, x, y, u, v, c, theta_b, b_app, rate, e0, t_min: float = 3.0) -> bool:
-        """Whether the flow left after the fitted rotation shows translation: an expansion whose
-        flow across the view stands above the flow's noise, and radial about e0 beyond its spread
-        (the parent's test: Σ(radial² − across²) over t_min of its spread).
+    def _radial(self, x, y, u, v, c, theta_b, b_app, rate, e0, t_min: float = 3.0) -> np.ndarray | None:
+        """This frame's own heading (2,) where the flow left after the fitted rotation shows
+        translation — an expansion whose flow across the view stands above the flow's noise, and
+        radial about that heading beyond its spread (the parent's test: Σ(radial² − across²) over
+        t_min of its spread) — else None.
 
         The expansion r comes from d = r·p + k fitted to the remaining flow (k = −r·e absorbs the
         heading). A rotation left over has no such term (its divergence is odd across the view),
@@ -475,7 +494,7 @@ class HeadingBiasEstimator(EpipoleEstimator):
         res = np.concatenate([du - du.mean() - r * xc, dv - dv.mean() - r * yc])
         noise = 1.4826 * np.median(np.abs(res)) + 1e-12
         if abs(r) * np.median(np.hypot(xc, yc)) < MIN_EXPANSION_SNR * noise:
-            return False
+            return None
         # The bias still unknown shifts the heading by about its std / r: place it only where that is
         # small (~3°), or where this frame's own heading (−k/r from the fit above) lies farther from
         # the running one than 3× that shift (a camera panning 25° to the side otherwise kept the
@@ -485,10 +504,13 @@ class HeadingBiasEstimator(EpipoleEstimator):
         shift = np.linalg.norm(self.bias_std) / abs(r)
         own = np.array([x.mean() - du.mean() / r, y.mean() - dv.mean() / r])
         if shift > HEADING_TOL and np.hypot(*(own - e0)) < 3.0 * shift:
-            return False
-        dx, dy = x - e0[0], y - e0[1]
+            return None
+        # Radial about the frame's own heading, not the running one: about a running heading far off
+        # (the prior, before any frame placed it) a translation's flow is not radial, and the test
+        # would refuse the very frames that could move it.
+        dx, dy = x - own[0], y - own[1]
         d = (dx * du + dy * dv) ** 2 - (dx * dv - dy * du) ** 2
-        return bool(np.sum(d) >= t_min * np.sqrt(np.sum(d ** 2)))
+        return own if np.sum(d) >= t_min * np.sqrt(np.sum(d ** 2)) else None
 
     def _seen_epipole(self, attitude) -> np.ndarray:
         h = np.asarray(attitude, float).T @ np.array([self.theta[0], self.theta[1], 1.0])
