@@ -428,9 +428,10 @@ class HeadingBiasEstimator(EpipoleEstimator):
                     w = self._weights(a @ theta - rhs)
                     aw = a * w[:, None]
                     step = np.linalg.solve(self.ata + aw.T @ a, self.atb + aw.T @ rhs)
-                    moved = np.hypot(*(step[:2] - theta[:2]))
-                    theta = step
-                    if not np.all(np.isfinite(theta)) or moved < WARMUP_STEP:
+                    if not np.all(np.isfinite(step)):
+                        break  # keep the last finite start; the corrected steps below judge it
+                    moved, theta = np.hypot(*(step[:2] - theta[:2])), step
+                    if moved < WARMUP_STEP:
                         break
             for _ in range(iters):
                 res = a @ theta - rhs
