@@ -246,8 +246,9 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) 
     print(f"lobula bench: {frames} frames per run, OpenCV threads {cv2.getNumThreads()}, "
           f"torch threads {torch.get_num_threads()}, {os.cpu_count()} CPUs, load average "
           f"{os.getloadavg()[0]:.1f}.\nStage figures are frames/s of that stage alone; end-to-end is "
-          f"estimate_velocity in this process (decode included), CPU ms/frame its CPU time over all threads; command is `lobula velocity` as its own "
-          f"process, frames/s after its start-up, which is given apart")
+          f"estimate_velocity in this process (decode included), CPU ms/frame its CPU time over all "
+          f"threads; command is `lobula velocity` as its own process, frames/s after its start-up, which is "
+          f"given apart")
     header = (f"{'size':>9} {'DIS':>7} {'read':>8} {'flow':>8} {'fields':>8} {'readout':>9} {'end-to-end':>11} "
               f"{'CPU ms/frame':>12} {'command':>8} {'start-up s':>10} {'RSS MiB':>8}")
     with tempfile.TemporaryDirectory() as tmp:
@@ -265,8 +266,8 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) 
                 if len(rows) == 1:
                     print(header)
                 print(f"{r['size']:>9} {preset:>7} {r['read']:8.0f} {r['flow']:8.1f} {r['fields']:8.0f} "
-                      f"{r['readout']:9.0f} {r['end_to_end']:11.1f} {r['cpu_ms_per_frame']:12.1f} {r['command_fps']:8.1f} {r['startup_s']:10.2f} "
-                      f"{r['rss_mb']:8.0f}")
+                      f"{r['readout']:9.0f} {r['end_to_end']:11.1f} {r['cpu_ms_per_frame']:12.1f} "
+                      f"{r['command_fps']:8.1f} {r['startup_s']:10.2f} {r['rss_mb']:8.0f}")
             if scale == 0.5:
                 e = bench_emd(folder)
                 print(f"EMD front end, {e['n_ommatidia']} ommatidia (Δφ {e['dphi_deg']:.2f}°) on {r['size']}: "
