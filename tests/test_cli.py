@@ -70,3 +70,32 @@ def test_bench_device_agreement_is_exact_on_the_same_device():
     from experiments.bench import agreement_on_device
 
     assert agreement_on_device("cpu", duration_s=0.02) == {"circuit_max_rel": 0.0, "tv_depth_median_rel": 0.0}
+
+
+_FAULTS = """
+import resource, sys
+import numpy as np
+if sys.argv[1] == "keep":
+    from experiments.cli import keep_freed_blocks
+    assert keep_freed_blocks()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(20):  # a frame pair's maps (2.4 MB each, a 640x480 flow component): held together, then freed
+    maps = [np.ones(600_000, np.float32) for _ in range(6)]
+    del maps
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def test_the_command_line_keeps_freed_blocks_for_the_next_frame_pair():
+    # glibc returns freed blocks of megabytes to the system and faults fresh pages in for the
+    # next ones; `lobula` (experiments.cli.main) sets its allocator to keep them.
+    import platform
+    import subprocess
+    import sys
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("mallopt is glibc's; elsewhere keep_freed_blocks changes nothing")
+    faults = {mode: int(subprocess.run([sys.executable, "-c", _FAULTS, mode], capture_output=True, text=True,
+                                       check=True).stdout) for mode in ("default", "keep")}
+    assert faults["default"] > 20 * 6 * 586 // 2     # most pairs fault their 586-page maps in again
+    assert faults["keep"] < faults["default"] / 5
