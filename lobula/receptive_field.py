@@ -125,10 +125,12 @@ def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
     (:func:`_turn_pair`, as :func:`lobula.epipole.derotate_finite` does for the epipole),
     in the orientation at the pair's middle, where the epipole is.
 
-    This runs on every frame pair, so the per-pixel maps are made only inside the
-    rectangle that holds every field's pixels (:func:`_pool_support`, ~80% of a 640×480
-    image) with few whole-map temporaries; pixels outside it have no weight, and the float32
-    maps and float64 sums are those of :func:`pool_fields_reference`, bit for bit.
+    Fields pool the pixels on every :func:`pool_stride`-th row and column (1 up to ~80,000
+    pixels: all of a 320×240 image; 2 at 640×480). This runs on every frame pair, so the
+    per-pixel maps are made only inside the rectangle that holds every field's pixels
+    (:func:`_pool_support`, ~80% of a 640×480 image) with few whole-map temporaries; pixels
+    outside it have no weight, and the float32 maps and float64 sums are those of
+    :func:`pool_fields_reference`, bit for bit.
     """
     if pooling not in ("least-squares", "pixel-mean"):
         raise ValueError(f"unknown pooling {pooling!r}; use 'least-squares' or 'pixel-mean'")
@@ -172,11 +174,24 @@ def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
     return r, r2
 
 
+#: pixels the fixed-pixel pooling reads at most, about (a 320×240 image's 76,800): DIS's flow is
+#: smooth over its patches (8 px), so a larger image's neighbouring pixels repeat each other's
+#: flow, and reading them all cost a 640×480 pair ~6 of its ~28 ms CPU (the readout's r̄, r²̄ and
+#: ṙ̄ come from the material fields, which work on ~20,000 pixel blocks whatever the image).
+POOL_PIXELS = 80_000
+
+
+def pool_stride(height: int, width: int) -> int:
+    """Every how many rows and columns :func:`pool_fields` reads: 1 up to ~:data:`POOL_PIXELS` pixels
+    (320×240 and smaller read every pixel), 2 at 640×480 and 752×480, 3 at 1280×720."""
+    return max(1, int(round(np.sqrt(height * width / POOL_PIXELS))))
+
+
 def _pool_support(fields: ReceptiveFields):
     """(row slice, column slice, weights (F, pixels in the rectangle) float64 CSR, x, y,
-    (1 + x², 1 + y²) for the derotation) for :func:`pool_fields`: the bounding rectangle of the fields' pixels and the weights
-    restricted to it (each row's entries in the same order, so its sums add the same terms in
-    the same order). Kept on the fields object, rebuilt whenever its weights, grid or camera
+    (1 + x², 1 + y²) for the derotation) for :func:`pool_fields`: the bounding rectangle of the fields' pixels
+    on the pooling grid (every :func:`pool_stride`-th row and column) and the weights restricted to it
+    (each row's entries in the same order, so its sums add the same terms in the same order). Kept on the fields object, rebuilt whenever its weights, grid or camera
     are replaced (a new tiling for a new camera is a new object anyway).
     """
     key = (id(fields.weights), id(fields.x), id(fields.y), id(fields.camera))
@@ -185,17 +200,20 @@ def _pool_support(fields: ReceptiveFields):
         return cached[2]
     w = fields.weights.tocsr()
     h, wd = fields.x.shape
-    pix = w.indices
-    if pix.size:
-        r0, r1 = int(pix.min() // wd), int(pix.max() // wd) + 1
-        cc = pix % wd
-        c0, c1 = int(cc.min()), int(cc.max()) + 1
+    s = pool_stride(h, wd)
+    prow, pcol = w.indices // wd, w.indices % wd
+    on = (prow % s == 0) & (pcol % s == 0)  # the pixels pooled (all where s = 1)
+    if np.any(on):
+        r0, r1 = int(prow[on].min()), int(prow[on].max()) + 1
+        c0, c1 = int(pcol[on].min()), int(pcol[on].max()) + 1
     else:
         r0, r1, c0, c1 = 0, 1, 0, 1
-    cols = (pix // wd - r0) * (c1 - c0) + (pix % wd - c0)
-    sub = sparse.csr_matrix((w.data.astype(np.float64), cols, w.indptr.copy()),
-                            shape=(w.shape[0], (r1 - r0) * (c1 - c0)))
-    rows, cs = slice(r0, r1), slice(c0, c1)
+    nr, nc = len(range(r0, r1, s)), len(range(c0, c1, s))
+    cols = (prow[on] - r0) // s * nc + (pcol[on] - c0) // s
+    field = np.repeat(np.arange(w.shape[0]), np.diff(w.indptr))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(field[on], minlength=w.shape[0]))])
+    sub = sparse.csr_matrix((w.data[on].astype(np.float64), cols, indptr), shape=(w.shape[0], nr * nc))
+    rows, cs = slice(r0, r1, s), slice(c0, c1, s)
     x = np.ascontiguousarray(fields.x[rows, cs], np.float32)
     y = np.ascontiguousarray(fields.y[rows, cs], np.float32)
     support = (rows, cs, sub, x, y, (1 + x * x, 1 + y * y))
@@ -237,6 +255,11 @@ def pool_fields_reference(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.
     ok = np.isfinite(num)
     if valid is not None:
         ok &= valid
+    stride = pool_stride(*x.shape)
+    if stride > 1:  # only the pixels on the pooling grid
+        grid = np.zeros(x.shape, bool)
+        grid[::stride, ::stride] = True
+        ok &= grid
     num = np.where(ok, num, 0.0)
     den = np.where(ok, den, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -249,6 +249,26 @@ def test_pool_fields_equals_its_whole_image_reference(pooling):
     assert np.isnan(got[0][0]) and np.array_equal(got[0], want[0], equal_nan=True)
 
 
+def test_pool_fields_reads_every_other_pixel_of_a_640x480_image():
+    from lobula.receptive_field import pool_fields_reference, pool_stride
+
+    assert [pool_stride(*hw) for hw in ((240, 320), (480, 640), (480, 752), (720, 1280))] == [1, 2, 2, 3]
+    f = tile_fields(PinholeCamera())                                 # 640×480: stride 2
+    flow = _rough_flow(f.x.shape, 5)
+    valid = np.random.default_rng(6).random(f.x.shape) > 0.1
+    turns = (_rot([0.05, -0.08, 0.02]), _rot([-0.05, 0.08, -0.02]), 0.2)
+    for kw in ({}, dict(valid=valid), dict(rotation=np.array([0.3, -0.5, 0.2])), dict(turns=turns)):
+        for a, b in zip(pool_fields(flow, f, (0.05, -0.03), **kw), pool_fields_reference(flow, f, (0.05, -0.03), **kw)):
+            assert np.array_equal(a, b, equal_nan=True)
+    # The pixels off the grid are not read: NaN there changes nothing, NaN on it does.
+    off = flow.copy()
+    off[:, 1::2, :] = np.nan
+    assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(pool_fields(off, f), pool_fields(flow, f)))
+    on = flow.copy()
+    on[:, ::2, ::2] = np.nan
+    assert np.all(np.isnan(pool_fields(on, f)[0]))
+
+
 def _rot(rotvec):
     from scipy.spatial.transform import Rotation
 
