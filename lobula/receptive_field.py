@@ -176,7 +176,7 @@ def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
 
 #: pixels the fixed-pixel pooling reads at most, about (a 320×240 image's 76,800): DIS's flow is
 #: smooth over its patches (8 px), so a larger image's neighbouring pixels repeat each other's
-#: flow, and reading them all cost a 640×480 pair ~6 of its ~28 ms CPU (the readout's r̄, r²̄ and
+#: flow, and reading them all cost a 640×480 pair ~6.7 of its ~34 ms CPU (the readout's r̄, r²̄ and
 #: ṙ̄ come from the material fields, which work on ~20,000 pixel blocks whatever the image).
 POOL_PIXELS = 80_000
 
