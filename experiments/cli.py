@@ -74,7 +74,7 @@ def keep_freed_blocks() -> bool:
     default glibc serves blocks above an adaptive threshold with fresh pages and unmaps them when
     freed, so every pair faults its pages in again: in a turning 640×480 run, 0.1-0.5 million page
     faults and 1-2 ms per pair in the flow composition alone, in some runs and not others. With the
-    thresholds fixed the same run faults ~25,000 times whatever the run. Process-wide, so only the
+    thresholds fixed the same run faults 20,000-25,000 times whatever the run. Process-wide, so only the
     command line sets it; returns False where the C library is not glibc (nothing is changed).
     """
     import ctypes
