@@ -174,10 +174,10 @@ def pool_fields(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
     return r, r2
 
 
-#: pixels the fixed-pixel pooling reads at most, about (a 320×240 image's 76,800): DIS's flow is
-#: smooth over its patches (8 px), so a larger image's neighbouring pixels repeat each other's
-#: flow, and reading them all cost a 640×480 pair ~6.7 of its ~34 ms CPU (the readout's r̄, r²̄ and
-#: ṙ̄ come from the material fields, which work on ~20,000 pixel blocks whatever the image).
+#: about how many pixels the fixed-pixel pooling reads at most (a 320×240 image has 76,800): DIS's
+#: flow is smooth over its patches (8 px), so a larger image's neighbouring pixels repeat each
+#: other's flow, and reading them all cost a 640×480 pair ~6.7 of its ~34 ms CPU (the readout's r̄,
+#: r²̄ and ṙ̄ come from the material fields, which work on ~20,000 pixel blocks whatever the image).
 POOL_PIXELS = 80_000
 
 
@@ -189,10 +189,11 @@ def pool_stride(height: int, width: int) -> int:
 
 def _pool_support(fields: ReceptiveFields):
     """(row slice, column slice, weights (F, pixels in the rectangle) float64 CSR, x, y,
-    (1 + x², 1 + y²) for the derotation) for :func:`pool_fields`: the bounding rectangle of the fields' pixels
-    on the pooling grid (every :func:`pool_stride`-th row and column) and the weights restricted to it
-    (each row's entries in the same order, so its sums add the same terms in the same order). Kept on the fields object, rebuilt whenever its weights, grid or camera
-    are replaced (a new tiling for a new camera is a new object anyway).
+    (1 + x², 1 + y²) for the derotation) for :func:`pool_fields`: the bounding rectangle of the fields'
+    pixels on the pooling grid (every :func:`pool_stride`-th row and column) and the weights restricted
+    to it (each row's entries in the same order, so its sums add the same terms in the same order).
+    Kept on the fields object, rebuilt whenever its weights, grid or camera are replaced (a new
+    tiling for a new camera is a new object anyway).
     """
     key = (id(fields.weights), id(fields.x), id(fields.y), id(fields.camera))
     cached = getattr(fields, "_pool_cache", None)
