@@ -49,4 +49,7 @@ def test_committed_figures_are_reproduced(tmp_path, real_profile):
         committed = json.loads((COMMITTED / f"{name}.json").read_text())["results"]
         fresh = json.loads(json.dumps(recs[name]["results"], default=lambda o: o.tolist() if hasattr(o, "tolist")
                                       else str(o)))
-        np.testing.assert_allclose(_numbers(fresh), _numbers(committed), rtol=1e-3, atol=1e-6, err_msg=name)
+        # rtol 3e-3: the same code gives the EMD Δφ sweep's 2° point as 0.014794 on the machine that made the
+        # figure and 0.014768 on another (0.18 %, floating point on another CPU); a code change that moves a
+        # figure's numbers moves them by more (the replay's DIS RMSE 0.00513 -> 0.00520 was caught here).
+        np.testing.assert_allclose(_numbers(fresh), _numbers(committed), rtol=3e-3, atol=1e-6, err_msg=name)
