@@ -8,6 +8,11 @@ import pytest
 from experiments.figures import FIGURES, run_figures
 
 COMMITTED = Path(__file__).resolve().parents[1] / "figures"
+#: Figures whose numbers another CPU moves at the same code (the EMD circuit's floating point): 0.18 % (Δφ sweep,
+#: 2° point) and 0.45 % (contrast × τ sweep) between the machine that made them and another; every other figure
+#: matched to the digit. A code change that moves a figure moves it by more (the replay's DIS RMSE 0.00513 ->
+#: 0.00520 was caught here at the default 0.1 %).
+RTOL = {"rmse_vs_dphi": 1e-2, "rmse_vs_tau_contrast_noise": 1e-2}
 
 
 def test_figures_are_deterministic(tmp_path, real_profile):
@@ -49,7 +54,5 @@ def test_committed_figures_are_reproduced(tmp_path, real_profile):
         committed = json.loads((COMMITTED / f"{name}.json").read_text())["results"]
         fresh = json.loads(json.dumps(recs[name]["results"], default=lambda o: o.tolist() if hasattr(o, "tolist")
                                       else str(o)))
-        # rtol 3e-3: the same code gives the EMD Δφ sweep's 2° point as 0.014794 on the machine that made the
-        # figure and 0.014768 on another (0.18 %, floating point on another CPU); a code change that moves a
-        # figure's numbers moves them by more (the replay's DIS RMSE 0.00513 -> 0.00520 was caught here).
-        np.testing.assert_allclose(_numbers(fresh), _numbers(committed), rtol=3e-3, atol=1e-6, err_msg=name)
+        np.testing.assert_allclose(_numbers(fresh), _numbers(committed), rtol=RTOL.get(name, 1e-3), atol=1e-6,
+                                   err_msg=name)
