@@ -17,7 +17,7 @@ _API = {
     "fused_gyro_bias": "haltere", "attitude_leak": "haltere", "leak_walk": "haltere",
     "ReadoutConfig": "readout", "ReadoutResult": "readout", "readout": "readout",
     "FieldConfig": "receptive_field", "ReceptiveFields": "receptive_field", "gap_correction": "receptive_field",
-    "pool_fields": "receptive_field", "tile_fields": "receptive_field",
+    "pool_fields": "receptive_field", "pool_stride": "receptive_field", "tile_fields": "receptive_field",
     "DepthConfig": "depth", "DepthResult": "depth", "depth_metrics": "depth", "depth_parallax": "depth",
     "depth_ratio": "depth", "depth_tv": "depth", "scorable": "depth", "error_stats": "depth",
     "flow_noise": "depth_motion", "precision_weights": "depth_motion", "translational_snr": "depth_motion",
