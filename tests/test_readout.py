@@ -171,7 +171,7 @@ def test_kappa_is_paired_with_the_low_passed_velocity(filt, bound):
     with v(t − delay) itself (the old online model) leaves 0.014 m/s causal here, 0.007 with the
     pairing, 0.005 with vision's shared error as a consider state (which leaves v̂ NaN over
     2.0–3.4 s, while the start's large innovations keep that error's std large: 82 % observable);
-    zero-phase 0.00025 with the same pairing (0.0036 when it paired κ with v(t) and carried the
+    zero-phase 0.0002 with the same pairing (0.0036 when it paired κ with v(t) and carried the
     mismatch as noise)."""
     from lobula.readout import MaterialRates
 
