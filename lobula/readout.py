@@ -604,7 +604,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                 x, P = _update(x, P, Hm, z[k] - Hm @ x, sd[k] ** 2, consider)
         if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
             kap, skap, am, shift = (q[k] for q in ratio[:4])
-            e_lp = ratio[4][k] if len(ratio) > 4 else 0.0  # the front end's own smoothing (m/s), see kalman_readout
+            e_lp = ratio[4][k] if len(ratio) > 4 else 0.0  # the rates' timing error (m/s), see kalman_readout
             # Where no acceleration is seen (|a_m| below accel_min) the frame carries no depth
             # information (as for v_f): it then speaks for the offset b alone, not for v through a
             # noisy κ ≈ 0. A small a_m alone does not make it so: a_m holds the offset (online the
@@ -862,13 +862,14 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     # What the fields' spread cannot show: an error all fields share (the flow's, a residual
     # rotation's), taken as a fraction of κ itself.
     skap = np.hypot(skap, cfg.kappa_rel_error * np.abs(kap))
-    # The pairing above is exact for the readout's own low-pass; the front end smooths in time too (the
-    # flow's 0.2 s pair, the EMD's photoreceptor and delay filters and LC pathways), and that smoothing
-    # is not modelled: it leaves κ·σ_f²·v̈/2 in a_m (σ_f its width, v̈ = ȧ) wherever v bends. Offline it
-    # is carried as noise sized like the readout's own low-pass (σ_t), which before the exact pairing
-    # stood for the whole mismatch. Without it the EMD front end read a development scene (moving, seed
-    # 100) at 0.043 m/s with ±2σ 58 %, 0.035 and 80 % with it; DIS alike (0.0046 / 0.0045 m/s on the
-    # development seeds). Online the forward filter counts every floor once per frame and goes without.
+    # The pairing above is exact for rates stamped at the right time. A front end whose rates are a
+    # frame or two off (the EMD's latency is taken out only as its low-frequency group delay) pairs κ
+    # with the wrong moment, an error in a_m that grows where the acceleration changes: offline it is
+    # carried as noise κ·σ_t²·|ȧ|/2, sized like the readout's own low-pass (σ_t), which before the exact
+    # pairing stood for the whole mismatch. Exact rates 2 frames late: ±2σ 97 % with it, 72 % without
+    # (3 frames early: 100 / 46 %); the EMD front end on a development scene (moving, seed 100) 0.035 m/s
+    # with ±2σ 80 %, 0.043 and 58 % without; DIS alike (development seeds 0.0045 / 0.0046 m/s). Online
+    # it changed nothing (development seeds causal 0.0119 / 0.0120): the forward filter goes without.
     e_lp = (0.5 * sigma_t ** 2 * np.abs(np.gradient(_fill_nan(terms[3]), dt)) if zp else np.zeros(len(t)))
     v, v_std = kalman_velocity(t, a, [(zr, sr, 0.0)], cfg, smooth=zp, gravity_tau=gravity_tau,
                                ratio=(kap, skap, terms[3], shift, e_lp), drift_std=drift_std, delay=delay,

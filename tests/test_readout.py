@@ -192,6 +192,32 @@ def test_kappa_is_paired_with_the_low_passed_velocity(filt, bound):
     assert rmse <= 0.02 * np.sqrt(np.mean(v_fn(t)[m] ** 2))  # the zero estimator (0.71 m/s): ≥ 50× worse
 
 
+@pytest.mark.parametrize("frames", [2, -3])
+def test_rates_a_few_frames_off_keep_the_offline_band_honest(frames):
+    """Exact material rates stamped ``frames`` frames late (negative: early), as a front end whose latency is
+    taken out only roughly gives them: κ is paired with the wrong moment, most where the acceleration
+    changes. The smoother carries that as noise (κ·σ_t²·|ȧ|/2), so its band still holds the truth: 97 % and
+    100 % here, 72 % and 46 % without the term."""
+    t = np.arange(0, 10, 1 / 30)
+    v_fn, r, r2, a, r_dot, MaterialRates = _fast_exact_material(t)
+
+    def stamped(x):
+        y = np.roll(x, frames, axis=0)
+        if frames > 0:
+            y[:frames] = x[0]
+        else:
+            y[frames:] = x[-1]
+        return y
+
+    res = readout(t, stamped(r), stamped(r2), a, ReadoutConfig(),
+                  material=MaterialRates(stamped(r), stamped(r2), stamped(r_dot)))
+    ok = (t >= 2.0) & res.observable
+    err = res.v_hat[ok] - v_fn(t)[ok]
+    assert ok.sum() >= 0.9 * (t >= 2.0).sum()
+    assert np.mean(np.abs(err) <= 2 * res.v_std[ok]) >= 0.9
+    assert np.sqrt(np.mean(err ** 2)) <= 0.05 * np.sqrt(np.mean(v_fn(t)[ok] ** 2))  # the zero estimator: 20× worse
+
+
 def _fast_exact_material(t):
     """Exact material rates for a camera moving from the first frame, |a| up to 2 m/s² (depths 6–15 m)."""
     from lobula.readout import MaterialRates
