@@ -823,7 +823,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     # 0.014 → 0.007 m/s). Offline (delay 0, the zero-phase low-pass) the same pairing is as exact,
     # shift = cum − lp(cum); pairing κ with v(t) and carrying the mismatch as noise instead read the
     # suite's 20 development scenes (seeds 100-101) at 0.0052 m/s zero-phase RMSE, 0.0045 with it
-    # (the worst 0.0094 → 0.0092; exact rates 0.0036 → 0.0003).
+    # (the worst 0.0094 → 0.0092; exact rates 0.0036 → 0.0002).
     shift = cum - _lag(lp(cum), lag)
     # Bridge the measurement's latency with ∫a (the haltere's fast path).
     z = z + shift

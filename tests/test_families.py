@@ -12,7 +12,7 @@ from experiments import suite
 from experiments.velocity import estimate_velocity
 from lobula.config import VelocityConfig
 from stimuli.footage import open_footage
-from stimuli.track import REAL_PROFILE, make_track_run
+from stimuli.track import make_track_run
 
 DURATION_S, SCALE, SKIP_S = 6.0, 0.5, 1.5
 
