@@ -67,8 +67,10 @@ sine of phase step Δϕ between neighbours by (Δϕ/2)·cot(Δϕ/2) (0 at the Ny
 and with Δρ = Δφ a 1/f world puts much contrast near it; the 7-column average passes
 λ = 2Δφ at −1/7 and λ = 6Δφ at 0.78, which raises the decoded gain toward 1 — but
 measured on a panels world it also lowered the fields' correlation with the exact v/D
-(0.83 → 0.65) and raised the velocity RMSE, so it stays off. (The readout
-v = a·ρ/(ρ̇ − r²) is blind to a constant gain on ρ, not to one that varies.)
+(0.83 → 0.65) and raised the velocity RMSE, so it stays off. (A gain γ on ρ does not cancel
+in the readout v = a·ρ/(ρ̇ − r²): r² is made from ρ too, at γ², so κ = (ρ̇ − r²)/ρ errs by
+(1 − γ)·r²/ρ, and a gain that varies adds γ̇/γ. Measured on the camera's EMD front end, whose
+r̄ reads 0.45–0.65 of DIS's: dividing its rates by that gain moved a replay's RMSE 0.0111 → 0.0107 m/s.)
 
 Rotation, two hypotheses (``rotation``):
 
