@@ -47,6 +47,8 @@ class FieldRates:
     heading_bias: (t (m,) s, bias (m, 3) rad/s, std (m, 3) rad/s): the gyro bias the heading and
     bias fit (lobula.epipole.HeadingBiasEstimator) holds after each pair, known at the pair's
     second frame t; or None (no gyro, no estimated epipole).
+    known: (n,) s, when each row's frames are all in (its pair's second frame), or None where the
+    front end does not say (flo, emd).
     """
 
     t: np.ndarray
@@ -58,6 +60,7 @@ class FieldRates:
     material: MaterialRates | None = None
     gyro_residual: tuple | None = None
     heading_bias: tuple | None = None
+    known: np.ndarray | None = None
 
 
 def flo_samples(footage: Footage, flo_files: list[Path], units: FloUnits):
@@ -143,7 +146,7 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     stagger = max(2, config.readout.stagger + config.readout.stagger % 2)
     material = (MaterialFields(fields, stagger, gap_correction=config.fields.gap_correction)
                 if config.fields.material and config.front_end in ("dis", "farneback") else None)
-    ts, rs, r2s, es, ms, gres, hb = [], [], [], [], [], [], []
+    ts, rs, r2s, es, ms, gres, hb, known = [], [], [], [], [], [], [], []
     bar = tqdm(total=total, desc=f"{config.front_end} flow → fields", unit="frame", disable=not progress,
                leave=False, mininterval=2)
     for s in samples:
@@ -184,6 +187,7 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
             gres.append(_residual_rate(footage, s, qp[0].T @ qp[1], e, b0))
         timings["fields"] += _time.perf_counter() - t1
         ts.append(s.t_mid if config.timestamps == "mid" else s.t0)
+        known.append(s.t1)
         rs.append(r)
         r2s.append(r2)
         es.append(e)
@@ -195,7 +199,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.array(es), timings, fields,
                       _material_rates(ms, len(ts), fields.n_fields, stagger) if material is not None else None,
                       tuple(np.array([g[i] for g in gres]) for i in range(3)) if gres else None,
-                      tuple(np.array([h[i] for h in hb]) for i in range(3)) if hb else None)
+                      tuple(np.array([h[i] for h in hb]) for i in range(3)) if hb else None,
+                      np.array(known) if config.front_end in ("dis", "farneback") else None)
 
 
 #: pixels per pair for the residual-rotation fit: a 3-parameter fit (with a 2-parameter
@@ -485,8 +490,17 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
         coords["axis"] = ("axis", ["x", "y", "z"])
     ds = xr.Dataset(data, coords=coords)
     lag = config.readout.lag_s if config.readout.filter == "causal" else 0.0
-    filt = config.readout.filter + (f", fixed lag {lag:g} s (each v_hat known {lag:g} s after its time)" if lag else "")
-    ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=filt,
+    online = {}
+    if config.readout.filter == "causal" and rates.known is not None and res is not None:
+        # When each v̂ is known after the time it is stamped with: its pair's second frame (half the
+        # flow gap after the pair's middle) plus any declared look-ahead. The vision measurements speak
+        # of the moment measurement_delay_s before that stamp, bridged by the integrated accelerometer.
+        online = dict(output_latency_s=round(float(np.median(rates.known - rates.t)) + lag, 4),
+                      measurement_delay_s=round(float(res.info["measurement_delay_s"]), 4))
+    filt = config.readout.filter + (f", fixed lag {lag:g} s" if lag else "")
+    if online:
+        filt += f" (each v_hat known {online['output_latency_s']:g} s after its time)"
+    ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=filt, **online,
                                readout=config.readout.method, acceleration_source=accel_source,
                                footage=str(footage.path), footage_kind=footage.kind,
                                notes="; ".join(footage.notes) or "none",

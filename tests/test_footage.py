@@ -109,7 +109,7 @@ def test_small_run_works(small_run, tmp_path, capsys):
     assert {"azimuth_deg", "elevation_deg", "size_deg"} <= set(ds.coords)
     cfg = VelocityConfig.from_json(ds.attrs["config"])
     assert cfg.front_end == "dis" and ds.attrs["lobula_version"]
-    assert ds.attrs["filter"] == "zero-phase"
+    assert ds.attrs["filter"] == "zero-phase" and "output_latency_s" not in ds.attrs  # offline: the whole record
 
 
 def test_accel_scale_error_option_widens_the_band_by_its_share(small_run, tmp_path, capsys):
@@ -135,14 +135,20 @@ def test_accel_scale_error_option_widens_the_band_by_its_share(small_run, tmp_pa
 
 def test_lag_option_smooths_with_look_ahead_online_and_is_refused_offline(small_run, tmp_path, capsys):
     """--lag reaches the causal readout (stored in the configuration and the filter attribute) and changes
-    its estimate; with the default zero-phase filter, or negative, it is refused and nothing is written."""
+    its estimate; with the default zero-phase filter, or negative, it is refused and nothing is written.
+    The output says when each v̂ is known: its pair's second frame, half the 6-frame gap (0.1 s at 30
+    frames/s) after the pair's middle it is stamped with, plus the lag; and how late its vision
+    measurements are (11 frames, the online low-pass cut at 1.5σ plus half the material stagger)."""
     out = {}
     for lag in ("0", "0.5"):
         assert run_cli(small_run, tmp_path / f"l{lag}.nc", capsys, "--filter", "causal", "--lag", lag)[0] == 0
         with xr.open_dataset(tmp_path / f"l{lag}.nc") as ds:
             out[lag] = ds.load()
             assert VelocityConfig.from_json(ds.attrs["config"]).readout.lag_s == float(lag)
-    assert out["0"].attrs["filter"] == "causal" and "fixed lag 0.5 s" in out["0.5"].attrs["filter"]
+            assert ds.attrs["output_latency_s"] == pytest.approx(0.1 + float(lag), abs=1e-3)
+            assert ds.attrs["measurement_delay_s"] == pytest.approx(11 / 30, abs=1e-3)
+    assert out["0"].attrs["filter"] == "causal (each v_hat known 0.1 s after its time)"
+    assert "fixed lag 0.5 s (each v_hat known 0.6 s after its time)" in out["0.5"].attrs["filter"]
     both = out["0"].observable.values & out["0.5"].observable.values
     assert both.sum() > 5 and not np.allclose(out["0"].v_std.values[both], out["0.5"].v_std.values[both])
     for extra in (("--lag", "1"), ("--filter", "causal", "--lag", "-1")):
