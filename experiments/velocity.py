@@ -495,8 +495,9 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
         # When each v̂ is known after the time it is stamped with: its pair's second frame (half the
         # flow gap after the pair's middle) plus any declared look-ahead. The vision measurements speak
         # of the moment measurement_delay_s before that stamp, bridged by the integrated accelerometer.
-        online = dict(output_latency_s=round(float(np.median(rates.known - rates.t)) + lag, 4),
-                      measurement_delay_s=round(float(res.info["measurement_delay_s"]), 4))
+        online = dict(output_latency_s=round(float(np.median(rates.known - rates.t)) + lag, 4))
+        if "measurement_delay_s" in res.info:  # the kalman readout's (the paper's has no bridge)
+            online["measurement_delay_s"] = round(float(res.info["measurement_delay_s"]), 4)
     filt = config.readout.filter + (f", fixed lag {lag:g} s" if lag else "")
     if online:
         filt += f" (each v_hat known {online['output_latency_s']:g} s after its time)"

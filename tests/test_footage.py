@@ -149,6 +149,10 @@ def test_lag_option_smooths_with_look_ahead_online_and_is_refused_offline(small_
             assert ds.attrs["measurement_delay_s"] == pytest.approx(11 / 30, abs=1e-3)
     assert out["0"].attrs["filter"] == "causal (each v_hat known 0.1 s after its time)"
     assert "fixed lag 0.5 s (each v_hat known 0.6 s after its time)" in out["0.5"].attrs["filter"]
+    # the paper's causal readout stamps a pair at its first frame: known a whole gap later, no bridge to declare
+    assert run_cli(small_run, tmp_path / "paper.nc", capsys, "--paper", "--filter", "causal")[0] == 0
+    with xr.open_dataset(tmp_path / "paper.nc") as ds:
+        assert ds.attrs["output_latency_s"] == pytest.approx(0.2, abs=1e-3) and "measurement_delay_s" not in ds.attrs
     both = out["0"].observable.values & out["0.5"].observable.values
     assert both.sum() > 5 and not np.allclose(out["0"].v_std.values[both], out["0.5"].v_std.values[both])
     for extra in (("--lag", "1"), ("--filter", "causal", "--lag", "-1")):
