@@ -118,12 +118,17 @@ class EyeVelocityConfig:
     0.051 / 0.246 / 0.041 at 1.5σ, spikes 0.065 / 0.257 / 0.064 and 0.061 / 0.252 / 0.069, while the
     coarse 6 s test scene (`tests/test_compound_eye.py`) reads 0.269 m/s at 1.5σ against 0.142 (zero
     estimator 0.319); 3.5σ / 4.5σ are worse everywhere (rates 0.061 / 0.267 / 0.045, 0.065 / 0.280 / 0.047).
+    Nor does it read the reversals (``ReadoutConfig.reversal``, on for the camera since the twenty-fifth
+    session): the EMD's r̄ is stamped only to within its group delay, and on the same development eye
+    worlds they were no clear gain — rates panels / rotation / corridor 0.057 / 0.253 / 0.044 m/s without,
+    0.056 / 0.254 / 0.048 with (the corridor observable on 83 → 90 % of the frames), spikes 0.065 / 0.257 /
+    0.064 and 0.064 / 0.259 / 0.068, the rotation worlds' ±2σ 62 → 60 %.
     """
 
     circuit: EyeCircuitConfig = field(default_factory=EyeCircuitConfig)
     readout: ReadoutConfig = field(default_factory=lambda: ReadoutConfig(filter="causal", min_valid_fraction=0.1,
                                                                         kappa_rel_error=0.5, shared_error_frac=0.8,
-                                                                        online_window_sigma=2.5))
+                                                                        online_window_sigma=2.5, reversal=False))
     chunk: int = 500
     accel_from_truth: bool = False
     readout_kind: str = "kalman"
