@@ -432,6 +432,8 @@ def rest_measurement(r, cfg: ReadoutConfig):
 
 #: s: the longest stretch without a clear expansion sign across which a reversal is read (see reversal_measurement)
 REVERSAL_MAX_GAP_S = 1.0
+#: a reversal whose innovation exceeds this many of its standard deviations is taken for a front-end fault (kalman_velocity)
+REVERSAL_GATE = 4.0
 
 
 def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.0):
@@ -604,7 +606,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     reversal: (shift, time_std, delay, accel), each (n,), NaN but where v is seen to have passed
     through 0 (:func:`reversal_measurement`): v(t − delay) = 0, measured with std time_std·(|accel − b̂|
     + 2σ_b) — the acceleration as the posterior has it, its offset b̂ (σ_b) included — floored at
-    meas_floor_m_s (None: none).
+    meas_floor_m_s, and left out where its innovation exceeds REVERSAL_GATE of its standard deviations: a
+    posterior sure that v was far from 0 then takes the sign change for the front end's fault (None: none).
 
     lag (s, with smooth False): a fixed-lag smoother. Each frame's estimate also takes the
     measurements up to ``lag`` after it (:func:`fixed_lag_smooth`), so it is known ``lag`` later. The
@@ -677,7 +680,11 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
         if reversal is not None and np.isfinite(reversal[0][k]):
             o, Hr = offset_row(k), v_row(k, reversal[2][k])
             s_rev = max(reversal[1][k] * (abs(reversal[3][k] - o @ x) + 2.0 * np.sqrt(o @ P @ o)), cfg.meas_floor_m_s)
-            x, P = _update(x, P, Hr, reversal[0][k] - Hr @ x, s_rev ** 2, consider)
+            nu = reversal[0][k] - Hr @ x
+            # A reversal the posterior cannot have missed (v at t* confidently far from 0) is the front end's
+            # fault — an expansion read with the wrong sign for a moment — not a reversal: it is left out.
+            if nu ** 2 <= REVERSAL_GATE ** 2 * (Hr @ P @ Hr + s_rev ** 2):
+                x, P = _update(x, P, Hr, nu, s_rev ** 2, consider)
         for m in measurements:
             z, sd = m[0], m[1]
             Hm = H if len(m) < 3 else v_row(k, m[2])

@@ -705,3 +705,30 @@ def test_velocity_from_the_reversals_alone(filt, bound):
         rmse, cover, obs = _score(res[True], v_t, t)
         assert rmse <= bound and rmse <= 0.1 * np.sqrt(np.mean(v_t[t >= 2] ** 2)), (seed, rmse)
         assert cover >= 0.9 and obs >= 0.6, (seed, cover, obs)
+
+
+def test_a_sign_fault_of_the_front_end_is_not_taken_for_a_reversal(monkeypatch):
+    """A camera moving forward at 0.3-0.7 m/s whose fields' expansion is read with the wrong sign for 0.3 s (a
+    front-end fault: two clear sign changes, found as reversals). The online filter, sure that v was ~0.5 m/s
+    there (σ ≈ 0.03), leaves both out (innovations 12-13σ, gate 4σ): as on the clean rates. Taken in, they pull
+    v̂ to 0 and hold it there confidently: RMSE 0.29 m/s, ±2σ 48 %."""
+    import lobula.readout as lr
+    from lobula.readout import MaterialRates, reversal_measurement
+
+    t = np.arange(0, 10, 1 / 30)
+    v_t = 0.5 + 0.2 * np.sin(2 * np.pi * 0.15 * t)
+    a_t = np.gradient(v_t, t)
+    rng = np.random.default_rng(0)
+    mat = _exact_material(v_t, a_t, t, np.linspace(5, 14, 40))
+    material = MaterialRates(mat.r, mat.r2, mat.r_dot + 0.2 * rng.normal(0, 1, mat.r.shape) * np.abs(mat.r))
+    r = mat.r + rng.normal(0, 0.01, mat.r.shape)
+    r_fault = np.where(((t > 6.0) & (t < 6.3))[:, None], -r, r)
+    acc = a_t + 0.05 + rng.normal(0, 0.02, t.shape)
+    assert np.isfinite(reversal_measurement(t, r_fault, acc)[0]).sum() == 2
+    cfg = ReadoutConfig(filter="causal")
+    clean = _score(readout(t, r, mat.r2, acc, cfg, material=material), v_t, t)
+    fault = _score(readout(t, r_fault, mat.r2, acc, cfg, material=material), v_t, t)
+    assert fault[0] <= 1.1 * clean[0] + 0.002 and fault[1] >= 0.95, (clean, fault)
+    monkeypatch.setattr(lr, "REVERSAL_GATE", np.inf)
+    ungated = _score(readout(t, r_fault, mat.r2, acc, cfg, material=material), v_t, t)
+    assert ungated[0] > 0.1 and ungated[1] < 0.7, ungated   # what the gate keeps out
