@@ -432,8 +432,10 @@ def rest_measurement(r, cfg: ReadoutConfig):
 
 #: s: the longest stretch without a clear expansion sign across which a reversal is read (see reversal_measurement)
 REVERSAL_MAX_GAP_S = 1.0
-#: a reversal whose innovation exceeds this many of its standard deviations is taken for a front-end fault (kalman_velocity)
-REVERSAL_GATE = 4.0
+#: a reversal or rest bound whose innovation exceeds this many of its standard deviations is taken for the front
+#: end's fault, not a fact about v (kalman_velocity): an expansion read with the wrong sign for a moment gives two
+#: false reversals and, low-passed offline, frames of "no expansion" (tests/test_readout.py)
+OUTLIER_GATE = 4.0
 
 
 def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.0):
@@ -552,7 +554,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
     absent, each of v one ``delay`` ago, or (z, std, own_delay) for a measurement with its own
-    latency (s; 0: of v now). Returns posterior mean and std of v, (n,) each.
+    latency (s; 0: of v now); one the posterior is sure it cannot be (innovation > OUTLIER_GATE σ) is left
+    out. Returns posterior mean and std of v, (n,) each.
 
     gravity_tau (n,) s: when a's gravity was estimated online by an average of time constant
     τ (lobula.haltere.online_gravity), that average also takes in the platform's own
@@ -606,7 +609,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     reversal: (shift, time_std, delay, accel), each (n,), NaN but where v is seen to have passed
     through 0 (:func:`reversal_measurement`): v(t − delay) = 0, measured with std time_std·(|accel − b̂|
     + 2σ_b) — the acceleration as the posterior has it, its offset b̂ (σ_b) included — floored at
-    meas_floor_m_s, and left out where its innovation exceeds REVERSAL_GATE of its standard deviations: a
+    meas_floor_m_s, and left out where its innovation exceeds OUTLIER_GATE of its standard deviations: a
     posterior sure that v was far from 0 then takes the sign change for the front end's fault (None: none).
 
     lag (s, with smooth False): a fixed-lag smoother. Each frame's estimate also takes the
@@ -683,7 +686,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             nu = reversal[0][k] - Hr @ x
             # A reversal the posterior cannot have missed (v at t* confidently far from 0) is the front end's
             # fault — an expansion read with the wrong sign for a moment — not a reversal: it is left out.
-            if nu ** 2 <= REVERSAL_GATE ** 2 * (Hr @ P @ Hr + s_rev ** 2):
+            if nu ** 2 <= OUTLIER_GATE ** 2 * (Hr @ P @ Hr + s_rev ** 2):
                 x, P = _update(x, P, Hr, nu, s_rev ** 2, consider)
         for m in measurements:
             z, sd = m[0], m[1]
@@ -693,7 +696,10 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                 if (rest_accel is not None
                         and abs(rest_accel[0][k] - o @ x) > rest_accel[1][k] + 2.0 * np.sqrt(o @ P @ o)):
                     continue
-                x, P = _update(x, P, Hm, z[k] - Hm @ x, sd[k] ** 2, consider)
+                nu_m = z[k] - Hm @ x
+                if nu_m ** 2 > OUTLIER_GATE ** 2 * (Hm @ P @ Hm + sd[k] ** 2):
+                    continue  # a rest bound the posterior is sure of missing: the front end's fault (OUTLIER_GATE)
+                x, P = _update(x, P, Hm, nu_m, sd[k] ** 2, consider)
         if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
             kap, skap, am, shift = (q[k] for q in ratio[:4])
             e_lp = ratio[4][k] if len(ratio) > 4 else 0.0  # the rates' timing error (m/s), see kalman_readout
