@@ -226,6 +226,11 @@ class ReadoutResult:
     info: dict = field(default_factory=dict)
 
 
+def _integral(x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """∫x dt from t[0] to each t (trapezoid rule), (n,)."""
+    return np.concatenate([[0.0], np.cumsum(0.5 * (x[1:] + x[:-1]) * np.diff(t))])
+
+
 def hold_gaps(x: np.ndarray) -> np.ndarray:
     """x (n, ...) with each NaN replaced by the last finite value before it along axis 0 (a
     leading gap by the first finite value; an all-NaN column stays NaN): what a causal stage
@@ -469,12 +474,13 @@ def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.
     keep = t[j] - t[i] <= REVERSAL_MAX_GAP_S
     i, j = i[keep], j[keep]
     t_star = t[i] + (t[j] - t[i]) * np.abs(r_med[i]) / (np.abs(r_med[i]) + np.abs(r_med[j]))
-    cum = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))])
+    cum = _integral(a, t)
     out = tuple(np.full(len(t), np.nan) for _ in range(4))
     out[0][j] = cum[j] - np.interp(t_star, t, cum)
     out[1][j] = np.hypot((t[j] - t[i]) / np.sqrt(12.0), stamp_error_s)
     out[2][j] = t[j] - t_star
-    out[3][j] = [np.mean(a[a0:b0 + 1]) for a0, b0 in zip(i, j)]  # a loop over reversals, a handful per record
+    a_sum = np.concatenate([[0.0], np.cumsum(a)])
+    out[3][j] = (a_sum[j + 1] - a_sum[i]) / (j - i + 1)  # the mean reading over frames i..j
     return out
 
 
@@ -638,7 +644,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     D = float(delay)
     c_at, c_mean = _axis_terms(t, offset_axis)
     lam = np.zeros(n) if transport is None else np.asarray(transport, float)
-    cum_lam = np.concatenate([[0.0], np.cumsum(0.5 * (lam[1:] + lam[:-1]) * np.diff(t))])
+    cum_lam = _integral(lam, t)
 
     def v_row(k, d):
         """Row giving v(t_k − d) + ∫a over the last d from the state at t_k:
@@ -683,11 +689,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
         if reversal is not None and np.isfinite(reversal[0][k]):
             o, Hr = offset_row(k), v_row(k, reversal[2][k])
             s_rev = max(reversal[1][k] * (abs(reversal[3][k] - o @ x) + 2.0 * np.sqrt(o @ P @ o)), cfg.meas_floor_m_s)
-            nu = reversal[0][k] - Hr @ x
-            # A reversal the posterior cannot have missed (v at t* confidently far from 0) is the front end's
-            # fault — an expansion read with the wrong sign for a moment — not a reversal: it is left out.
-            if nu ** 2 <= OUTLIER_GATE ** 2 * (Hr @ P @ Hr + s_rev ** 2):
-                x, P = _update(x, P, Hr, nu, s_rev ** 2, consider)
+            # gated: a posterior sure that v was far from 0 takes the sign change for a front-end fault
+            x, P = _gated_update(x, P, Hr, reversal[0][k] - Hr @ x, s_rev ** 2, consider)
         for m in measurements:
             z, sd = m[0], m[1]
             Hm = H if len(m) < 3 else v_row(k, m[2])
@@ -696,10 +699,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                 if (rest_accel is not None
                         and abs(rest_accel[0][k] - o @ x) > rest_accel[1][k] + 2.0 * np.sqrt(o @ P @ o)):
                     continue
-                nu_m = z[k] - Hm @ x
-                if nu_m ** 2 > OUTLIER_GATE ** 2 * (Hm @ P @ Hm + sd[k] ** 2):
-                    continue  # a rest bound the posterior is sure of missing: the front end's fault (OUTLIER_GATE)
-                x, P = _update(x, P, Hm, nu_m, sd[k] ** 2, consider)
+                x, P = _gated_update(x, P, Hm, z[k] - Hm @ x, sd[k] ** 2, consider)
         if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
             kap, skap, am, shift = (q[k] for q in ratio[:4])
             e_lp = ratio[4][k] if len(ratio) > 4 else 0.0  # the rates' timing error (m/s), see kalman_readout
@@ -848,6 +848,14 @@ def _update(x, P, h, nu, r, consider: bool):
     return x + K * nu, A @ P @ A.T + np.outer(K, K) * r
 
 
+def _gated_update(x, P, h, nu, r, consider: bool):
+    """:func:`_update`, unless the innovation exceeds OUTLIER_GATE of its standard deviations: a measurement
+    the posterior is sure it cannot be is the front end's fault, not a fact about v, and is left out."""
+    if nu ** 2 > OUTLIER_GATE ** 2 * (h @ P @ h + r):
+        return x, P
+    return _update(x, P, h, nu, r, consider)
+
+
 @dataclass
 class MaterialRates:
     """Field rates taken along the image content (the material derivative), time-major (n, F).
@@ -911,7 +919,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
         obs = np.isfinite(z) & (s <= cfg.max_std_m_s)
         return ReadoutResult(np.where(obs, z, np.nan), obs, np.where(obs, s, np.nan), v_f, r_dot, z, s, a,
                              info=dict(measurement_delay_s=delay))
-    cum = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))])
+    cum = _integral(a, t)
     # What the measurements speak of. κ = lp(a/d)/lp(v/d) is a ratio of low-passed signals, so
     # κ·lp(v) = lp(a) (exactly, for a depth constant over the filter's span): the velocity it
     # multiplies is the low-passed lp(v) at t − delay, not v itself. The accelerometer's integral
@@ -977,8 +985,8 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
                                rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2,
                                                                               causal=True),
                                lag=cfg.lag_s,  # the smoother (zero-phase) ignores it
-                               reversal=reversal_measurement(t, r, a, int(np.ceil(cfg.min_valid_fraction * r.shape[1])), cfg.stamp_error_s)
-                               if cfg.reversal else None)
+                               reversal=(reversal_measurement(t, r, a, int(np.ceil(cfg.min_valid_fraction * r.shape[1])),
+                                                              cfg.stamp_error_s) if cfg.reversal else None))
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
