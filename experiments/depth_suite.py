@@ -499,7 +499,7 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output folder (scenes are kept there and reused)")
     p.add_argument("--families", default="all", help=f"comma-separated, or 'all': {', '.join(FAMILIES)}")
     p.add_argument("--seeds", default="3", help="seeds per family: a count N (seeds 0..N-1, the reported ones) or a "
-                                                "comma-separated list (e.g. 100,101: development seeds)")
+                                                "comma-separated list (e.g. 100,101: development seeds; 7, for seed 7 alone)")
     p.add_argument("--duration", type=float, default=6.0,
                    help="seconds per scene (the velocity suite renders 10 s at --scale 0.5)")
     p.add_argument("--skip", type=float, default=2.0,

@@ -551,14 +551,15 @@ def plot_suite(ds, path):
 
 
 def parse_seeds(text: str) -> int | list[int]:
-    """``--seeds``: "3" means seeds 0, 1, 2; "100,101" means exactly those seeds."""
+    """``--seeds``: "3" means seeds 0, 1, 2; "100,101" means exactly those seeds; "7," seed 7 alone."""
     try:
         if "," not in text:
             n = int(text)
             if n < 1:
                 raise ValueError
             return n
-        return [int(t) for t in text.split(",")]
+        # one trailing comma makes a list of one seed ("7," is seed 7, "7" is seeds 0..6)
+        return [int(t) for t in (text[:-1] if text.endswith(",") else text).split(",")]
     except ValueError:
         raise ValueError(f"--seeds must be a positive count or a comma-separated list of seeds, got {text!r}") from None
 
@@ -593,7 +594,7 @@ def add_parser(subparsers):
                    .replace("%", "%%"))
     s.add_argument("--seeds", default="3",
                    help="seeds per family: a count N (seeds 0..N-1) or a comma-separated list (e.g. 100,101 "
-                        "for development seeds that the reported 0..N-1 never see)")
+                        "for development seeds that the reported 0..N-1 never see; 7, for seed 7 alone)")
     s.add_argument("--duration", type=float, default=10.0, help="seconds per scene")
     s.add_argument("--scale", type=float, default=0.5,
                    help="image scale of the D435i camera (0.5 = 320x240; at 0.25 = 160x120 DIS resolves "

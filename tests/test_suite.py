@@ -125,7 +125,8 @@ def test_help_shows_every_option_with_its_default(command, capsys):
 def test_seeds_are_a_count_or_an_explicit_list(tmp_path, capsys):
     assert suite.parse_seeds("3") == 3
     assert suite.parse_seeds("100,101") == [100, 101]
-    for bad in ("0", "-2", "a", "1,,2"):
+    assert suite.parse_seeds("7,") == [7]  # one seed alone; "7" is a count
+    for bad in ("0", "-2", "a", "1,,2", ",", "7,,"):
         with pytest.raises(ValueError, match="--seeds"):
             suite.parse_seeds(bad)
     with pytest.raises(ValueError, match="distinct"):
