@@ -406,6 +406,16 @@ def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
     return np.where(enough, kap, np.nan), np.where(enough, std, np.nan)
 
 
+def signed_expansion(r: np.ndarray):
+    """The fields' signed median expansion r̄ per frame, its standard error and the fields counted.
+
+    r (n, F) 1/s with NaN where a field has none. Returns (n,) each: what the rest bound and the
+    reversals judge "expansion detected" on (|r̄| > NO_EXPANSION_SE·SE)."""
+    n = np.isfinite(r).sum(1)
+    r_med, se = median_and_error(r, n)
+    return r_med, se, n
+
+
 #: the fields' signed median r̄ within this many standard errors of 0: no expansion detected (see rest_measurement)
 NO_EXPANSION_SE = 3.0
 
@@ -425,8 +435,7 @@ def rest_measurement(r, cfg: ReadoutConfig):
     is ~0.02 1/s per field, which at 5 m is 0.1 m/s.) Where expansion is detected the camera
     moves, and a bound resting on an assumed depth would only pull v̂ toward 0: not used.
     """
-    n = np.isfinite(r).sum(1)
-    r_med, se = median_and_error(r, n)
+    r_med, se, n = signed_expansion(r)
     std = np.maximum(0.5 * cfg.rest_depth_max_m * (np.abs(r_med) + 2.0 * se), cfg.meas_floor_m_s)
     # It is a bound, not a noisy sample: repeating a loose bound frame after frame must
     # not add up to confidence, so it only counts where it alone would be decisive.
@@ -465,8 +474,7 @@ def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.
     integrated reading from t* to t_j (m/s: the measurement of v(t_j − delay) + ∫a, as the
     filter's rows take it), t*'s std (s), t_j − t* (s) and the mean reading over [t_i, t_j] (m/s²).
     """
-    n = np.isfinite(r).sum(1)
-    r_med, se = median_and_error(r, n)
+    r_med, se, n = signed_expansion(r)
     clear = np.isfinite(r_med) & (n >= max(3, min_fields)) & (np.abs(r_med) > NO_EXPANSION_SE * se)
     idx = np.flatnonzero(clear)
     flip = np.flatnonzero(np.sign(r_med[idx[1:]]) != np.sign(r_med[idx[:-1]]))
@@ -656,6 +664,12 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
         """Row giving the acceleration's whole offset at t_k."""
         return np.concatenate([[0.0, 1.0, 0.0, 0.0], c_at(k, 0.0)])
 
+    def accel_reach(k, reading, n_sigma):
+        """|reading − b̂| + n_sigma·σ_b: the acceleration a reading stands for, as the posterior (x, P, read
+        when called) has the whole offset at t_k; n_sigma 2 its most, −2 its least."""
+        o = offset_row(k)
+        return abs(reading - o @ x) + n_sigma * np.sqrt(o @ P @ o)
+
     nis_sum, nis_w, r_scale = 0.0, 0.0, 1.0
     for k in range(n):  # a loop over time steps; the state has 4 or 7 dimensions
         if k > 0:
@@ -687,17 +701,15 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
         xs_pred[k], Ps_pred[k] = x, P
         H = v_row(k, D)  # v(t − D) + shift, in the state at t
         if reversal is not None and np.isfinite(reversal[0][k]):
-            o, Hr = offset_row(k), v_row(k, reversal[2][k])
-            s_rev = max(reversal[1][k] * (abs(reversal[3][k] - o @ x) + 2.0 * np.sqrt(o @ P @ o)), cfg.meas_floor_m_s)
+            Hr = v_row(k, reversal[2][k])
+            s_rev = max(reversal[1][k] * accel_reach(k, reversal[3][k], 2.0), cfg.meas_floor_m_s)
             # gated: a posterior sure that v was far from 0 takes the sign change for a front-end fault
             x, P = _gated_update(x, P, Hr, reversal[0][k] - Hr @ x, s_rev ** 2, consider)
         for m in measurements:
             z, sd = m[0], m[1]
             Hm = H if len(m) < 3 else v_row(k, m[2])
             if np.isfinite(z[k]) and np.isfinite(sd[k]):
-                o = offset_row(k)
-                if (rest_accel is not None
-                        and abs(rest_accel[0][k] - o @ x) > rest_accel[1][k] + 2.0 * np.sqrt(o @ P @ o)):
+                if rest_accel is not None and accel_reach(k, rest_accel[0][k], -2.0) > rest_accel[1][k]:
                     continue
                 x, P = _gated_update(x, P, Hm, z[k] - Hm @ x, sd[k] ** 2, consider)
         if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
