@@ -48,7 +48,7 @@ class EyeVelocityConfig:
     causally when ``neuron.spiking``; v_std is then the spike decoding's Poisson noise only,
     and ``observable`` the neuron's confidence).
     settle_s: LC output the readout ignores at the start while the circuit's filters leave their
-    resting state (None: :meth:`settle_time`'s default, 0.59 s for the default circuit).
+    resting state (None: :meth:`settle_time`'s default, 0.09 s for the default circuit).
     uncertainty: what ``v_std`` states for the "kalman" and "spikes" readouts. "posterior": the
     readout's posterior std alone (the old behaviour; it covered the truth within ±2σ in only
     20–70 % of steps on the dev worlds, seeds 7 and 8). "halves" (default): that std combined
@@ -60,9 +60,13 @@ class EyeVelocityConfig:
     proportional to image speed but grows as ρ^β (a correlator's velocity tuning: Egelhaaf &
     Reichardt 1987; Borst & Egelhaaf 1989), and the readout's (ρ̇ − r²)/ρ of a power law is
     β·a/v, so v̂ is off by a factor ~1/β that no spread across fields can show. β measured on the
-    dev worlds (seeds 7, 8; log–log slope of each field's ρ̂ against the exact v/D from the rendered
-    range) with the default per-pair pool: medians 0.78–0.88, lower quartiles over the fields
-    0.49–0.74 (panels, rotation, corridor), hence 0.4 ≈ 1 − β at the low quartile.
+    dev worlds (log–log slope of each field's ρ̂ against the exact v/D from the rendered range, the
+    fields used after 2 s): with the 0.25 s temporal high-pass medians 0.78–0.88, lower quartiles
+    0.49–0.74 (seeds 7, 8; 0.4 until the twenty-seventh session); with the surround (the default,
+    :mod:`lobula.eye_circuit`) medians 1.03–1.10, lower quartiles 0.95–1.04 (panels and corridor,
+    seeds 100, 103), hence 0.05 ≈ 1 − β at the lowest lower quartile. Then the posterior and the
+    halves' disagreement cover the truth within ±2σ on 100 % of the steps after 2 s on the dev panels
+    and corridor worlds (seeds 100–105; the posterior alone 91–100 %), 61–84 % on the rotating ones.
     split_tau_s: time constant (s) of that running mean: 1 s, the readout's low-pass (1 Hz) makes
     errors that persist about that long.
     rest_bound: whether the readout may take "no detectable expansion" as a bound on the speed
@@ -136,7 +140,7 @@ class EyeVelocityConfig:
     settle_s: float | None = None
     uncertainty: str = "halves"
     split_tau_s: float = 1.0
-    emd_gain_error: float = 0.4
+    emd_gain_error: float = 0.05
     lead_offset_tau_s: float = 1.0
     rest_bound: bool = False
     reliability_min: float = 10.0
@@ -327,7 +331,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     t = np.concatenate([o["t"] for o in outs]) + float(fo.times[0])   # the circuit counts from sample 0
     rho = np.concatenate([o["rho"] for o in outs])
     r2 = np.concatenate([o["r2_eff"] for o in outs])
-    # The circuit starts at rest (the EMD delay lines and the photoreceptors' high-pass set to
+    # The circuit starts at rest (the EMD delay lines and the photoreceptors' filters set to
     # the first sample, as if nothing had moved), so the LC outputs climb to their moving level
     # over the first few time constants: a ṙ that is the circuit's, not the world's (measured on
     # a dev panels world: a κ·v of +1.5 m/s² against a true −0.7 at the start, which the readout

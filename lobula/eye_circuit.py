@@ -8,8 +8,9 @@ along the field's direction) and the convective-corrected r²-term the readout n
 Stages
 ------
 1. **Photoreceptors** (:mod:`lobula.photoreceptor`): low-pass τ = 10 ms
-   (light-adapted Drosophila R1–6, Juusola & Hardie 2001) and an LMC-like high-pass of
-   0.25 s that removes the mean.
+   (light-adapted Drosophila R1–6, Juusola & Hardie 2001), then the LMCs' **lateral
+   inhibition**, x' = x − mean of the six neighbouring columns, which removes the mean
+   luminance in space (see "Lateral inhibition" below).
 2. **EMDs** (:mod:`lobula.emd`, the project's one correlator) along every neighbour pair
    of the spherical lattice, delay τ = 35 ms (temporal-frequency optimum 1/(2πτ) ≈ 4.5 Hz,
    as blowfly HS cells: Hausen 1982; Borst & Egelhaaf 1989, TINS 12:297).
@@ -59,6 +60,28 @@ the fly is normalised by its own recent local contrast (Drews et al. 2020, Curr 
 Matulis et al. 2020, Curr Biol 30:222); the field's synaptic drive Σ w·c·m·R (``lc.input``)
 keeps the correlator's temporal-frequency tuning either way.
 
+**Lateral inhibition** (``surround``, default 1). The correlator needs its inputs' mean
+removed: with a mean luminance L in both arms, R gains a term L·(HP(x_B) − HP(x_A)) that is
+linear in the pattern, zero on average and large wherever contrast is low. The usual model
+removes it in time with an LMC-like high-pass (0.25 s: Eichner et al. 2011), but a temporal
+high-pass of a moving pattern subtracts a trailing, blurred copy of it that moves with the
+*past* speed: after every change of speed, and most after a reversal, the pairs' decoded speed
+carries a transient of the high-pass's time constant, the same in every field (on dev panels
+worlds the fields' slow gains correlated at 0.54–0.66 across fields, the common part 40 % of
+their variance, not explained by speed or timing). That drift is what the readout took for an
+accelerometer offset ("offset learned" in docs/fly-eye.md). LMCs also have an antagonistic
+surround (Srinivasan, Laughlin & Dubs 1982, Proc R Soc B 216:427; Freifeld et al. 2013,
+Neuron 79:111 for L2), and subtracting the neighbours' mean removes the mean luminance in
+space, with no memory: the photoreceptor stage then needs no temporal high-pass. Measured on
+development eye worlds (seeds 100–105, 10 s, rates, causal, accelerometer; before → now):
+panels 0.081 → 0.033 m/s, corridor 0.045 → 0.013, rotation (100–102) 0.252 → 0.181; with the
+true acceleration and an offset to learn, panels 0.063 → 0.030, corridor 0.060 → 0.010 — the
+offset is no longer mislearned. Tried: no high-pass and no surround (panels 0.17: the mean
+leaks in as above), a 1 s high-pass (panels 0.08–0.30 on seeds 100–102, mean 0.18), the surround with the
+0.25 s high-pass kept (panels 0.082, corridor 0.044), a Gaussian surround of σ = 2Δφ instead of
+the six neighbours (panels / corridor 0.030 / 0.014 against 0.033 / 0.013: within the seeds'
+spread, for a denser filter).
+
 **Columnar pooling** (a hypothesis, off by default). Before the EMDs each column's
 signal may be averaged with its six neighbours' (``column_pool``), as the T4/T5 input neurons pool over several columns
 (Tm3's receptive field spans ~2–3 columns: Takemura et al. 2013, Nature 500:175; Behnia
@@ -104,7 +127,8 @@ from .emd import EMDArray, EMDConfig
 from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lowpass_scan
 from .readout import hold_gaps
 
-__all__ = ["EyeFieldConfig", "EyeCircuitConfig", "EyeFields", "EyeCircuit", "eye_fields", "field_reliability"]
+__all__ = ["EyeFieldConfig", "EyeCircuitConfig", "EyeFields", "EyeCircuit", "eye_fields", "field_reliability",
+           "lattice_filter"]
 
 ROTATION_MODES = ("none", "haltere", "wide-field", "both")
 
@@ -160,19 +184,24 @@ class EyeCircuitConfig:
     module docstring. column_pool: weight α of the six neighbouring
     columns in each EMD input, x' = (1 − α)·x + α·mean(neighbours) (0: none, the default;
     6/7: a uniform 7-column average) — see "Columnar pooling" in the module docstring.
+    surround: weight s of the LMC's lateral inhibition, x' = x − s·mean(neighbours) after the
+    photoreceptors (and any columnar pooling): 1 (default) removes the mean luminance in space,
+    so the photoreceptor stage needs no temporal high-pass (its ``tau_hp_s`` is None); 0: none
+    (the circuit before the twenty-seventh session: tau_hp_s 0.25 s, no surround) — see
+    "Lateral inhibition" in the module docstring.
     calibration: gain on ρ (1 = none).
     latency_s: stamp shift; None = τ_photoreceptor + τ_EMD + half a block (+ τ_EMD more for the
     "pair" normaliser, whose per-pair decoding low-passes once more).
     """
 
-    photoreceptor: PhotoreceptorConfig = field(default_factory=lambda: PhotoreceptorConfig(tau_s=0.010,
-                                                                                            tau_hp_s=0.25))
+    photoreceptor: PhotoreceptorConfig = field(default_factory=lambda: PhotoreceptorConfig(tau_s=0.010))
     emd: EMDConfig = field(default_factory=lambda: EMDConfig(tau_s=0.035))
     fields: EyeFieldConfig = field(default_factory=EyeFieldConfig)
     rotation: str = "haltere"
     normaliser: str = "pair"
     r2_term: str = "convective"
     column_pool: float = 0.0
+    surround: float = 1.0
     rotation_gain: str = "adaptive"
     readout_rate_hz: float = 50.0
     calibration: float = 1.0
@@ -189,6 +218,8 @@ class EyeCircuitConfig:
             raise ValueError(f"rotation_gain must be 'adaptive' or 'fixed', got {self.rotation_gain!r}")
         if not (0.0 <= self.column_pool <= 1.0):
             raise ValueError(f"column_pool must lie in [0, 1], got {self.column_pool}")
+        if not (0.0 <= self.surround <= 1.0):
+            raise ValueError(f"surround must lie in [0, 1], got {self.surround}")
         if not self.readout_rate_hz > 0:
             raise ValueError(f"readout_rate_hz must be positive, got {self.readout_rate_hz}")
 
@@ -196,13 +227,14 @@ class EyeCircuitConfig:
         return dict(photoreceptor=self.photoreceptor.to_dict(), emd=self.emd.to_dict(),
                     fields=self.fields.to_dict(), rotation=self.rotation, normaliser=self.normaliser,
                     r2_term=self.r2_term,
-                    column_pool=self.column_pool, rotation_gain=self.rotation_gain,
+                    column_pool=self.column_pool, surround=self.surround, rotation_gain=self.rotation_gain,
                     readout_rate_hz=self.readout_rate_hz,
                     calibration=self.calibration, latency_s=self.latency_s)
 
     @classmethod
     def from_dict(cls, d: dict) -> "EyeCircuitConfig":
         d = dict(d)
+        d.setdefault("surround", 0.0)   # configurations written before the surround existed had none
         f = dict(d.pop("fields", {}))
         for k in ("azimuth_deg", "elevation_deg"):
             if k in f:
@@ -261,19 +293,28 @@ def eye_fields(eye: CompoundEye, config: EyeFieldConfig) -> EyeFields:
     return EyeFields(cen, f_eye, dirs, theta, w, mirror, float(config.size_deg))
 
 
-def _column_pool(eye: CompoundEye, alpha: float):
-    """Sparse (n, n) float32 matrix x' = (1 − α)x + α·mean over the lattice neighbours; None if α = 0."""
-    if alpha == 0.0:
+def lattice_filter(eye: CompoundEye, column_pool: float = 0.0, surround: float = 0.0):
+    """Sparse (n, n) float32 matrix of the columns' spatial filtering before the EMDs; None if neither is on.
+
+    x' = (I − s·N)·((1 − α)·I + α·N)·x, N the mean over each ommatidium's lattice neighbours
+    (six inside an eye, fewer at its rim): first columnar pooling of weight α (``column_pool``),
+    then lateral inhibition of weight s (``surround``). An ommatidium with no neighbour passes unchanged.
+    """
+    if column_pool == 0.0 and surround == 0.0:
         return None
+    import scipy.sparse as sp
+
     n = eye.n
     a = np.concatenate([eye.pairs_a, eye.pairs_b])
     b = np.concatenate([eye.pairs_b, eye.pairs_a])
     deg = np.bincount(a, minlength=n).astype(float)
-    rows = np.concatenate([np.arange(n), a])
-    cols = np.concatenate([np.arange(n), b])
-    vals = np.concatenate([np.where(deg > 0, 1.0 - alpha, 1.0), alpha / np.maximum(deg[a], 1.0)])
-    idx = torch.as_tensor(np.stack([rows, cols]))
-    return torch.sparse_coo_tensor(idx, torch.as_tensor(vals, dtype=torch.float32), (n, n)).coalesce()
+    N = sp.csr_matrix((1.0 / deg[a], (a, b)), shape=(n, n))
+    lone = sp.diags((deg == 0).astype(float))      # no neighbour: its pooled value is its own
+    I = sp.identity(n, format="csr")
+    M = ((I - surround * N) @ ((1.0 - column_pool) * I + column_pool * (N + lone))).tocoo()
+    idx = torch.as_tensor(np.stack([M.row, M.col]).astype(np.int64))
+    return torch.sparse_coo_tensor(idx, torch.as_tensor(M.data, dtype=torch.float32), (n, n),
+                                   check_invariants=True).coalesce()
 
 
 class EyeCircuit:
@@ -329,7 +370,7 @@ class EyeCircuit:
         self._num = torch.as_tensor(num.T, dtype=torch.float32)                  # (P, 2F)
         self._den = torch.as_tensor(np.concatenate(den + rot, 0).T, dtype=torch.float32)  # (P, 9F)
         self._pair_state = None
-        self._pool = _column_pool(eye, cfg.column_pool)
+        self._pool = lattice_filter(eye, cfg.column_pool, cfg.surround)
         self._a = torch.as_tensor(eye.pairs_a)
         self._b = torch.as_tensor(eye.pairs_b)
         self._gyro_state: torch.Tensor | None = None

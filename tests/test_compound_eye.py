@@ -5,11 +5,17 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from scipy.spatial import cKDTree
 
 from lobula.compound_eye import CompoundEye, CompoundEyeConfig, acceptance_rule, expected_count
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig, EyeFieldConfig
 from lobula.lattice import acceptance_attenuation
+from lobula.photoreceptor import PhotoreceptorConfig
+
+#: the circuit with the mean luminance removed in time (an LMC-like 0.25 s high-pass), not in space
+#: (the default lateral inhibition): the decoding's known answers on textures that are not sines
+TEMPORAL_MEAN = dict(surround=0.0, photoreceptor=PhotoreceptorConfig(tau_s=0.010, tau_hp_s=0.25))
 
 
 class Corridor:
@@ -208,9 +214,11 @@ def _run_circuit(world, eye, cfg, seconds=1.0, rate=500.0):
     return circ, t, rho
 
 
-def test_emd_on_the_sphere_signs_translation():
+@pytest.mark.parametrize("mean_removal", ["space", "time"])
+def test_emd_on_the_sphere_signs_translation(mean_removal):
     eye = CompoundEye(CompoundEyeConfig(dphi_deg=6.0, rings=1))
-    cfg = EyeCircuitConfig(fields=EyeFieldConfig(size_deg=40.0), rotation="none")
+    extra = TEMPORAL_MEAN if mean_removal == "time" else {}
+    cfg = EyeCircuitConfig(fields=EyeFieldConfig(size_deg=40.0), rotation="none", **extra)
     # A texture the lattice resolves (λ ≥ 0.8 m on walls 1 m away: ≥ 7Δφ) so that the
     # gradient-ratio decoding is unbiased (finer textures are underestimated by ~(Δϕ/2)·cot(Δϕ/2)).
     for v in (0.4, -0.4):
@@ -221,8 +229,62 @@ def test_emd_on_the_sphere_signs_translation():
         # Magnitude: per field, ρ_f = v/D at the field's centre (range D), within 35 % for most fields.
         D = world.cast_rays(circ.fields.directions, 0.0)[0]
         ratio = np.median(late, 0) / (v / D)
-        assert 0.8 < np.median(ratio) < 1.15, ratio
-        assert np.mean(np.abs(ratio - 1) < 0.35) > 0.8, ratio
+        if mean_removal == "time":
+            assert 0.8 < np.median(ratio) < 1.15, ratio
+            assert np.mean(np.abs(ratio - 1) < 0.35) > 0.8, ratio
+        else:
+            # The surround whitens the perspective-chirped plaid (more of its contrast near the lattice's
+            # Nyquist limit, where the decoding reads low): measured 0.64 of v/D, a gain the fields share
+            # and κ = (ṙ − r²)/r is blind to.
+            g = np.median(ratio)
+            assert 0.5 < g < 1.0, ratio
+            assert np.mean(np.abs(ratio / g - 1) < 0.35) > 0.8, ratio
+
+
+def _rings(eye, phase_of_t, lam_deg=20.0, contrast=0.5):
+    """Luminance (T, n) of rings about the body axis whose phase (rad of θ) at each step is ``phase_of_t`` (T,)."""
+    theta = np.arccos(np.clip(eye.directions[:, 2], -1.0, 1.0))
+    arg = 2 * np.pi * (theta[None] - np.asarray(phase_of_t)[:, None]) / math.radians(lam_deg)
+    return (1.0 + contrast * np.sin(arg)).astype(np.float32)
+
+
+def test_lateral_inhibition_removes_the_mean_in_space_without_a_memory():
+    """The LMCs' surround (x − the neighbours' mean) in place of a temporal high-pass.
+
+    (1) A full-field flash leaves nothing after it: the mean is removed in space, at once.
+    (2) A sine is only scaled by it, which the decoding's pool divides out: field 19 reads rings of
+    λ = 20° within 5 % of the high-passed circuit (measured 0.97, 0.95 at 0.5, 2 rad/s).
+    (3) After a reversal of the rings (1 rad/s out, then in) the high-passed circuit's decoded speed
+    carries the high-pass's memory, a trailing copy of the pattern moving the old way (measured: 12 %
+    low over the first 0.3 s, then 5 % high); the surround has no memory (measured within 2 %)."""
+    from lobula.eye_circuit import lattice_filter
+
+    eye = CompoundEye(CompoundEyeConfig())
+    M = lattice_filter(eye, surround=1.0)
+    flash = torch.as_tensor(np.r_[np.full(10, 0.2), np.full(10, 3.0)][:, None] * np.ones(eye.n), dtype=torch.float32)
+    np.testing.assert_allclose(torch.sparse.mm(M, flash.t()).t().numpy(), 0.0, atol=1e-5)
+    assert lattice_filter(eye) is None
+
+    old = EyeCircuitConfig(rotation="none", **TEMPORAL_MEAN)
+    new = EyeCircuitConfig(rotation="none")
+    n = 750
+    t = np.arange(n) / 500.0
+    for speed in (0.5, 2.0):
+        lum = _rings(eye, speed * t)
+        r = [EyeCircuit(eye, 500.0, c).process(lum, np.zeros((n, 3)))["rho"][-5:, 19].mean() for c in (old, new)]
+        assert abs(r[1] / r[0] - 1.0) < 0.05, (speed, r)
+    n = 1500
+    t = np.arange(n) / 500.0
+    lum = _rings(eye, np.where(t < 1.5, t, 3.0 - t))
+    for cfg, tolerance in ((new, 0.05), (old, None)):
+        out = EyeCircuit(eye, 500.0, cfg).process(lum, np.zeros((n, 3)))
+        tt, r = out["t"], out["rho"][:, 19]
+        steady = r[(tt > 1.0) & (tt < 1.45)].mean()
+        after = [-r[(tt > a) & (tt < a + 0.2)].mean() / steady for a in (1.6, 1.8, 2.0, 2.2)]
+        if tolerance is None:
+            assert min(after) < 0.92, after
+        else:
+            assert max(abs(x - 1.0) for x in after) < tolerance, after
 
 
 # ------------------------------------------------------------------ end to end
@@ -261,14 +323,29 @@ def test_eye_velocity_beats_the_zero_estimator(eye_footage):
     keep = (ds.time.values >= ds.time.values[0] + 1.0) & ds.observable.values
     v_true, v_hat = ds.v_true.values[keep], ds.v_hat.values[keep]
     zero = float(np.sqrt(np.mean(v_true ** 2)))
-    # Measured: observable 0.784 of the steps (the readout declares the rest unobservable: no rest
-    # bound, the eye's κ noise; EyeVelocityConfig), RMSE 0.032 against 0.357 for v̂ = 0 (Δφ = 8°, 6 s,
-    # a causal start from rest). Modest margins.
-    assert sc["observable_fraction"] > 0.7
-    assert sc["rmse_m_s"] < 0.5 * zero, (sc, zero)
-    # It follows the trajectory's shape, if loosely (measured r = 0.59: v̂ lags and reads low at the
-    # peaks); a sign error or a stalled estimate gives r ≤ 0.
-    assert np.corrcoef(v_hat, v_true)[0, 1] > 0.4
+    # Measured: observable 1.0 of the steps, RMSE 0.005 against 0.318 for v̂ = 0 (Δφ = 8°, 6 s, a causal
+    # start from rest); with the mean removed in time instead of space, observable 0.79, RMSE 0.032.
+    assert sc["observable_fraction"] > 0.9
+    assert sc["rmse_m_s"] < 0.05 * zero, (sc, zero)
+    # It follows the trajectory's shape (measured r = 1.00); a sign error or a stalled estimate gives r ≤ 0.
+    assert np.corrcoef(v_hat, v_true)[0, 1] > 0.95
+
+
+def test_lateral_inhibition_beats_the_temporal_high_pass_with_the_accelerometer(eye_footage):
+    """The surround in place of the 0.25 s high-pass, end to end from the accelerometer (no truth).
+
+    The high-pass's memory drifts every field's gain after each change of speed, and the readout
+    learns that drift as an accelerometer offset. Measured here (Δφ = 8°, 6 s from rest, causal, after
+    1 s): high-pass 0.149 m/s, observable 0.53; surround 0.013 m/s, observable 0.99; v̂ = 0 0.32."""
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
+    from experiments.velocity import score
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(eye_footage)
+    sc = {name: score(estimate_eye_velocity(fo, EyeVelocityConfig(circuit=EyeCircuitConfig(**extra))), skip_s=1.0)
+          for name, extra in (("space", {}), ("time", TEMPORAL_MEAN))}
+    assert sc["space"]["rmse_m_s"] < 0.3 * sc["time"]["rmse_m_s"], sc
+    assert sc["space"]["observable_fraction"] > sc["time"]["observable_fraction"] + 0.2, sc
 
 
 def test_eye_readout_is_told_what_the_camera_readout_is_told(eye_footage):
@@ -294,37 +371,55 @@ def test_eye_readout_is_told_what_the_camera_readout_is_told(eye_footage):
     assert readout_inputs(fo, t, replace(cfg, accel_from_truth=True))[0].bias_prior_m_s2 <= 0.01
     ds = estimate_eye_velocity(fo, cfg)
     settle = cfg.settle_time()
-    assert settle == pytest.approx(2 * (0.010 + 0.035 + 0.25))
+    assert settle == pytest.approx(2 * (0.010 + 0.035))                # no temporal high-pass to settle
     cold = ds.time.values < ds.time.values[0] + settle
     assert np.isnan(ds.r.values[cold]).all() and np.isfinite(ds.r.values[~cold]).mean() > 0.9
-    # From the accelerometer (no truth): measured 0.142 m/s against 0.319 for v̂ = 0.
+    # From the accelerometer (no truth): measured 0.013 m/s against 0.32 for v̂ = 0.
     sc = score(ds, skip_s=1.0)
     keep = ds.time.values >= ds.time.values[0] + 1.0
-    assert sc["rmse_m_s"] < 0.6 * float(np.sqrt(np.mean(ds.v_true.values[keep] ** 2))), sc
+    assert sc["rmse_m_s"] < 0.1 * float(np.sqrt(np.mean(ds.v_true.values[keep] ** 2))), sc
 
 
-def test_rotation_hypotheses_remove_a_turn():
+@pytest.mark.parametrize("mean_removal", ["space", "time"])
+def test_rotation_hypotheses_remove_a_turn(mean_removal):
     """A yaw turn during translation biases left and right fields in opposite directions.
 
-    Measured (median relative error of ρ_f): none 0.63, haltere 0.11, wide-field 0.46. The
+    Measured (median relative error of ρ_f over 0.5–1 s, each field's decoding gain on the same
+    corridor without the turn divided out), none / haltere / wide-field: mean removed in time (the
+    0.25 s high-pass) 0.78 / 0.18 / 0.72; in space (the surround, default) 0.77 / 0.33 / 0.13. The
     wide-field sum cancels the turn only in proportion to the two eyes' contrast balance:
-    Σ R ≈ c[(G_L + G_R)·translation + (G_L − G_R)·rotation], so unequal textures leave a residue.
+    Σ R ≈ c[(G_L + G_R)·translation + (G_L − G_R)·rotation], so unequal textures leave a residue, and
+    the surround evens the two sides' contrast. The haltere predicts the turn's image motion at unit
+    gain; where the decoding reads low (the surround on this texture, 0.64) that over-subtracts until
+    the field's adaptive gain has learned it (seconds; the test lasts one).
     """
     eye = CompoundEye(CompoundEyeConfig(dphi_deg=6.0, rings=1))
     world = Corridor(v=0.4, wavelength=0.8, rotation_rate=(0.0, 0.25, 0.0))   # yaw 0.25 rad/s
+    still_world = Corridor(v=0.4, wavelength=0.8)
+    extra = TEMPORAL_MEAN if mean_removal == "time" else {}
     errors = {}
     for mode in ("none", "haltere", "wide-field"):
-        cfg = EyeCircuitConfig(fields=EyeFieldConfig(size_deg=40.0), rotation=mode)
+        cfg = EyeCircuitConfig(fields=EyeFieldConfig(size_deg=40.0), rotation=mode, **extra)
         circ, t, rho = _run_circuit(world, eye, cfg, seconds=1.0)
         late = t > 0.5
-        D = np.array([world.cast_rays(circ.fields.directions, tt)[0] for tt in t[late]])
-        exact = 0.4 / D
-        if mode == "wide-field":  # mirror fields share one output: compare with their mean
-            right = np.flatnonzero(circ.fields.eye == 0)
-            exact = 0.5 * (exact[:, right] + exact[:, circ.fields.mirror[right]])
-        errors[mode] = float(np.median(np.abs(rho[late] - exact) / np.abs(exact)))
-    assert errors["haltere"] < 0.3 * errors["none"], errors
-    assert errors["wide-field"] < 0.85 * errors["none"], errors
+
+        def exact_of(w):
+            D = np.array([w.cast_rays(circ.fields.directions, tt)[0] for tt in t[late]])
+            exact = 0.4 / D
+            if mode == "wide-field":  # mirror fields share one output: compare with their mean
+                right = np.flatnonzero(circ.fields.eye == 0)
+                exact = 0.5 * (exact[:, right] + exact[:, circ.fields.mirror[right]])
+            return exact
+
+        gain = np.median(_run_circuit(still_world, eye, cfg, seconds=1.0)[2][late] / exact_of(still_world), 0)
+        exact = exact_of(world)
+        errors[mode] = float(np.median(np.abs(rho[late] / gain - exact) / np.abs(exact)))
+    if mean_removal == "time":
+        assert errors["haltere"] < 0.3 * errors["none"], errors
+        assert errors["wide-field"] < 0.95 * errors["none"], errors
+    else:
+        assert errors["haltere"] < 0.5 * errors["none"], errors
+        assert errors["wide-field"] < 0.3 * errors["none"], errors
 
 
 class YawingCorridor(Corridor):
@@ -485,7 +580,8 @@ def _ring_speed_field(normaliser: str, speed_of, n_steps: int = 750) -> float:
     theta = np.arccos(np.clip(eye.directions[:, 2], -1.0, 1.0))
     t = np.arange(n_steps)[:, None] / 500.0
     lum = (1.0 + 0.5 * np.sin(2 * np.pi * (theta[None] - speed_of[None] * t) / math.radians(20.0))).astype(np.float32)
-    circ = EyeCircuit(eye, 500.0, EyeCircuitConfig(rotation="none", normaliser=normaliser))
+    # The mean removed in time: the surround would mix the two speeds across the field's centre line.
+    circ = EyeCircuit(eye, 500.0, EyeCircuitConfig(rotation="none", normaliser=normaliser, **TEMPORAL_MEAN))
     return float(np.nanmean(circ.process(lum, np.zeros((n_steps, 3)))["rho"][-5:, 19]))
 
 
@@ -540,31 +636,35 @@ def test_field_halves_split_left_right_and_upper_lower():
     assert len(halves) == 1 and len(halves[0][0]) == f.n_fields // 2
 
 
-def test_stated_std_covers_more_of_the_truth_than_the_posterior_alone(eye_footage):
-    """v_std with the halves' disagreement and the EMD gain error must cover the truth within ±2σ
-    more often than the readout's posterior std alone (the old statement), and never be smaller.
-    Measured on this coarse eye (Δφ = 8°, 6 s from rest, accelerometer): 0.57 → 0.75 (on the
-    Δφ = 5° dev worlds 0.67–0.71 → 0.83–1.0 off rotation; the rotating worlds stay under)."""
+def test_stated_std_adds_the_halves_disagreement_and_the_shared_gain_error(eye_footage):
+    """v_std ("halves") is the readout's posterior std with the halves' disagreement and the EMD gain
+    error every field shares (emd_gain_error·|v̂|) added in quadrature: never smaller than the posterior
+    alone, at least the gain term above it, the same v̂, and covering the truth. Measured on this coarse
+    eye (Δφ = 8°, 6 s from rest, accelerometer): ±2σ 1.00 / 1.00 (posterior / halves), RMSE 0.013 m/s
+    against a median posterior std of 0.018 (with the 0.25 s high-pass instead of the surround the
+    posterior alone covered 0.44 and the halves 1.0: its gain drift was what the halves had to state)."""
     from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
     from stimuli.eye import open_eye_footage
 
     fo = open_eye_footage(eye_footage)
     cov = {}
     for unc in ("posterior", "halves"):
-        ds = estimate_eye_velocity(fo, EyeVelocityConfig(uncertainty=unc))
+        cfg = EyeVelocityConfig(uncertainty=unc)
+        ds = estimate_eye_velocity(fo, cfg)
         k = (ds.time.values >= ds.time.values[0] + 1.0) & np.isfinite(ds.v_hat.values)
         err = np.abs(ds.v_hat.values[k] - ds.v_true.values[k])
         cov[unc] = (float(np.mean(err <= 2 * ds.v_std.values[k])), ds.v_std.values[k], ds.v_hat.values[k])
     np.testing.assert_array_equal(cov["halves"][2], cov["posterior"][2])   # the same v̂
-    assert np.all(cov["halves"][1] >= cov["posterior"][1] - 1e-12)
-    assert cov["halves"][0] >= 0.7 and cov["halves"][0] > cov["posterior"][0] + 0.1, \
-        (cov["posterior"][0], cov["halves"][0])
+    post, halves, v_hat = cov["posterior"][1], cov["halves"][1], cov["halves"][2]
+    assert np.all(halves ** 2 >= post ** 2 + (cfg.emd_gain_error * v_hat) ** 2 - 1e-9)
+    assert np.mean(halves > post * (1 + 1e-6)) > 0.9                       # the halves do disagree
+    assert cov["halves"][0] >= 0.9 and cov["posterior"][0] >= 0.8, (cov["posterior"][0], cov["halves"][0])
 
 
 def test_decomposition_levels_fall_from_exact_motion_to_the_emds(eye_footage):
     """The readout fed exact image motion (perfect detectors) must beat the readout fed the EMDs, and
     both must beat the zero estimator; the exact level's RMSE is the eye's geometric floor.
-    Measured (true acceleration, after 1 s): exact 0.006, ideal 0.024, EMDs 0.075, zero 0.319 m/s."""
+    Measured (true acceleration, after 1 s): exact 0.0010, ideal 0.0035, EMDs 0.0050, zero 0.318 m/s."""
     from experiments.eye_decompose import decompose, exact_pair_motion
     from stimuli.eye import open_eye_footage
 
@@ -575,16 +675,15 @@ def test_decomposition_levels_fall_from_exact_motion_to_the_emds(eye_footage):
     exact, emd, zero = d["exact|true"][0], d["emd|true"][0], d["zero"]
     assert exact < 0.5 * emd < 0.5 * zero, d
     assert d["ideal|true"][0] < emd, d
-    # Exact motion times each field's slow EMD gain γ_f(t): the gain drift alone already costs (a
-    # constant γ would not: κ is blind to it).
-    assert exact < d["gain|true"][0] < zero, d
+    # Exact motion times each field's slow EMD gain γ_f(t), on the fields the pipeline uses: a valid
+    # readout (measured 0.00002 m/s: with the surround the gain hardly drifts; with the 0.25 s
+    # high-pass it did, 0.014, and the offset it made the readout learn cost 0.026).
+    assert d["gain|true"][0] < 0.1 * zero, d
     # The true acceleration with an offset to learn (as from an accelerometer's): the exact fields pin
-    # it, the fields' slow gain drift is taken for one (measured here: exact 0.0012 -> 0.0019, gain
-    # 0.014 -> 0.026 m/s; development worlds, seeds 100-103: gain 0.018 / 0.051 / 0.010 -> 0.046 /
-    # 0.104 / 0.029 on panels / rotation / corridor).
+    # it (measured 0.0010 -> 0.0012), and so do the EMDs now (0.0050 -> 0.0095 m/s).
     assert {k.split("|")[1] for k in d if "|" in k} == {"true", "offset", "imu"}, d
-    assert d["exact|offset"][0] < 0.2 * d["gain|offset"][0], d
-    assert d["gain|offset"][0] > 1.3 * d["gain|true"][0], d
+    assert d["exact|offset"][0] < 1.5 * d["exact|true"][0] + 0.001, d
+    assert d["emd|offset"][0] < 3.0 * d["emd|true"][0], d
 
 
 def test_slow_gain_fields_scale_the_exact_fields_by_the_emds_gain():

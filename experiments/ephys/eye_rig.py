@@ -54,7 +54,7 @@ __all__ = ["EyeEphysConfig", "EyeRig", "EYE_RECORDS", "eye_tf_tuning", "eye_rf_m
 
 #: what the eye rig records: (units, long_name)
 EYE_VARIABLES = {
-    "photoreceptor.v": ("1", "photoreceptor output (LMC-like high-passed luminance)"),
+    "photoreceptor.v": ("1", "photoreceptor output less the neighbouring columns' mean (the LMCs' lateral inhibition)"),
     "emd.response": ("1", "EMD opponent (Hassenstein-Reichardt) response along a neighbour pair"),
     "lc.input": ("1", "LC matched-filter input: sum over the field's EMD pairs of w*c*m*R (before the pool)"),
     "lc.pool": ("1", "LC contrast pool: sum over the field's EMD pairs of w*c^2*m^2*G (the divisive normaliser)"),
