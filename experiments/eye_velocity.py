@@ -438,12 +438,19 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     return ds
 
 
+#: `--mean-removal`: (EyeCircuitConfig.surround, the photoreceptors' tau_hp_s)
+MEAN_REMOVAL = {"space": (1.0, None), "time": (0.0, 0.25)}
+
+
 def apply_eye_options(cfg: EyeVelocityConfig, args) -> EyeVelocityConfig:
     """The command-line options of `lobula eye-velocity` (None: unchanged)."""
     from dataclasses import replace
     c = cfg.circuit
     if getattr(args, "rotation", None):
         c.rotation = args.rotation
+    if getattr(args, "mean_removal", None):
+        surround, photoreceptor = MEAN_REMOVAL[args.mean_removal]
+        c.surround, c.photoreceptor = surround, replace(c.photoreceptor, tau_hp_s=photoreceptor)
     if getattr(args, "field_size", None):
         c.fields = replace(c.fields, size_deg=args.field_size)
     if getattr(args, "tau", None):
@@ -503,6 +510,11 @@ def add_parser(subparsers):
     v.add_argument("--plot", help="PNG of v̂ against truth")
     v.add_argument("--rotation", default="haltere", choices=["none", "haltere", "wide-field", "both"],
                    help="rotation handling: gyro-driven (haltere) subtraction, left+right wide-field sums, both, none")
+    v.add_argument("--mean-removal", default="space", choices=sorted(MEAN_REMOVAL),
+                   help="how the columns remove the mean luminance before the EMDs: space = the LMCs' lateral "
+                        "inhibition, x − the six neighbours' mean (EyeCircuitConfig.surround 1, no temporal "
+                        "high-pass); time = an LMC-like 0.25 s temporal high-pass, no surround (the circuit "
+                        "before the surround: its memory drifts the fields' gains after each change of speed)")
     v.add_argument("--field-size", type=float, default=30.0, help="LC field FWHM (deg)")
     v.add_argument("--tau", type=float, default=0.035, help="EMD delay time constant (s)")
     v.add_argument("--filter", default="causal", choices=["causal", "zero-phase"], help="readout filter kind")

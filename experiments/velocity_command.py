@@ -11,7 +11,7 @@ from __future__ import annotations
 
 
 #: `lobula velocity` options that only compound-eye footage takes (None: not given); the same as `lobula eye-velocity`'s
-EYE_ONLY_OPTIONS = ("rotation", "readout", "uncertainty", "seed")
+EYE_ONLY_OPTIONS = ("rotation", "mean_removal", "readout", "uncertainty", "seed")
 
 
 def add_parser(subparsers):
@@ -23,6 +23,9 @@ def add_parser(subparsers):
     g = p.add_argument_group("compound-eye footage only (`lobula scene OUT --eye fly`; as `lobula eye-velocity`)")
     g.add_argument("--rotation", choices=["none", "haltere", "wide-field", "both"],
                    help="rotation handling of the eye's circuit (not given: haltere)")
+    g.add_argument("--mean-removal", choices=["space", "time"],
+                   help="how the eye's columns remove the mean luminance (not given: space; see "
+                        "`lobula eye-velocity --help`)")
     g.add_argument("--readout", choices=["kalman", "spikes", "neuron", "neuron-rate"],
                    help="the eye's readout (not given: kalman); spikes and neuron decode causally: add --filter causal")
     g.add_argument("--uncertainty", choices=["halves", "posterior"],
@@ -37,7 +40,7 @@ def run(args) -> int:
 
     if is_eye_footage(args.footage):
         return run_on_eye_footage(args)
-    given = [f"--{k}" for k in EYE_ONLY_OPTIONS if getattr(args, k, None) is not None]
+    given = [f"--{k.replace('_', '-')}" for k in EYE_ONLY_OPTIONS if getattr(args, k, None) is not None]
     if given:
         raise ValueError(f"{args.footage}: {', '.join(given)} set(s) the compound eye's circuit and readout and does "
                          f"not apply to camera footage; drop it, or run on eye footage (`lobula scene OUT --eye fly`)")
@@ -54,7 +57,7 @@ def run_on_eye_footage(args) -> int:
     """`lobula velocity EYE_FOOTAGE --front-end emd …`: the eye's circuit, as `lobula eye-velocity`.
 
     --filter, --field-size, --tau, --accel-from-truth, --accel-scale-error, --skip, --plot and the eye-only --rotation,
-    --readout, --uncertainty and --seed mean what they mean for
+    --mean-removal, --readout, --uncertainty and --seed mean what they mean for
     `lobula eye-velocity` (so the two commands give the same numbers for the same options;
     `lobula velocity`'s --filter defaults to zero-phase, eye-velocity's to causal). Every other
     option of `lobula velocity` describes a camera front end and is refused, naming the fix.
@@ -87,6 +90,7 @@ def run_on_eye_footage(args) -> int:
         raise ValueError(f"--readout {ro} decodes causally; add --filter causal (`lobula velocity`'s --filter "
                          f"defaults to zero-phase)")
     ns = argparse.Namespace(footage=args.footage, out=args.out, plot=args.plot, rotation=getattr(args, "rotation", None),
+                            mean_removal=getattr(args, "mean_removal", None),
                             field_size=args.field_size, tau=args.tau, filter=args.filter,
                             accel_from_truth=args.accel_from_truth, accel_scale_error=args.accel_scale_error,
                             skip=args.skip, readout=ro,

@@ -1,6 +1,7 @@
 """The compound eye: lattice count, spacing and coverage; Gaussian acceptance; eye footage; the eye circuit."""
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -496,12 +497,15 @@ def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, 
     assert "--lag" in capsys.readouterr().err and not (tmp_path / "y.nc").exists()
     # The eye's own options reach the eye's circuit and readout: the same numbers as `lobula eye-velocity`.
     c, d = tmp_path / "v2.nc", tmp_path / "e2.nc"
-    opts = ["--rotation", "wide-field", "--readout", "spikes", "--seed", "3", "--uncertainty", "posterior"]
+    opts = ["--rotation", "wide-field", "--readout", "spikes", "--seed", "3", "--uncertainty", "posterior",
+            "--mean-removal", "time"]
     assert main(["velocity", str(eye_footage), "--front-end", "emd", "--filter", "causal", "--accel-from-truth",
                  "--out", str(c), "--quiet"] + opts) == 0
     assert main(["eye-velocity", str(eye_footage), "--accel-from-truth", "--out", str(d)] + opts) == 0
     with xr.open_dataset(c) as dc, xr.open_dataset(d) as dd, xr.open_dataset(a) as da:
         assert dc.attrs["rotation"] == "wide-field" and "Poisson" in dc.attrs["readout"]
+        circuit = json.loads(dc.attrs["config"])["circuit"]
+        assert circuit["surround"] == 0.0 and circuit["photoreceptor"]["tau_hp_s"] == 0.25   # --mean-removal time
         assert dc.v_std.attrs["long_name"].startswith("posterior std")
         np.testing.assert_allclose(dc.v_hat.values, dd.v_hat.values, equal_nan=True)
         np.testing.assert_allclose(dc.v_std.values, dd.v_std.values, equal_nan=True)
@@ -534,6 +538,8 @@ def test_lobula_velocity_refuses_eye_options_on_camera_footage(tmp_path, capsys)
     assert main(["velocity", str(cam), "--rotation", "haltere", "--out", str(tmp_path / "x.nc")]) == 2
     err = capsys.readouterr().err
     assert "--rotation" in err and "camera footage" in err and not (tmp_path / "x.nc").exists()
+    assert main(["velocity", str(cam), "--mean-removal", "time", "--out", str(tmp_path / "x.nc")]) == 2
+    assert "--mean-removal" in capsys.readouterr().err and not (tmp_path / "x.nc").exists()
 
 
 def test_spiking_readout_on_the_eye_is_causal_and_close_to_the_rate_readout(eye_footage):
