@@ -23,6 +23,7 @@ from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig, field_reliability
 from lobula.gaze import retinal_rotation
 from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
                             resample_to, turn_rate)
+from lobula.photoreceptor import MEAN_REMOVAL
 from lobula.readout import ReadoutConfig, readout
 from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron, spiking_output
 
@@ -436,10 +437,6 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
                                timings_s=json.dumps({k: round(float(v), 4) for k, v in timings.items()}),
                                wall_s=round(_time.perf_counter() - t_start, 3)))
     return ds
-
-
-#: `--mean-removal`: (EyeCircuitConfig.surround, the photoreceptors' tau_hp_s)
-MEAN_REMOVAL = {"space": (1.0, None), "time": (0.0, 0.25)}
 
 
 def apply_eye_options(cfg: EyeVelocityConfig, args) -> EyeVelocityConfig:

@@ -603,6 +603,13 @@ def apply_velocity_options(cfg, args):
                             drho_deg=opt("drho") or e.lattice.drho_deg)
     if opt("tau"):
         e.emd = replace(e.emd, tau_s=args.tau)
+    if opt("mean_removal"):
+        if cfg.front_end != "emd":
+            raise ValueError(f"--mean-removal sets the EMD front end's columns, but the front end is {cfg.front_end}; "
+                             f"drop it or use --front-end emd")
+        from lobula.photoreceptor import MEAN_REMOVAL
+        e.surround, tau_hp = MEAN_REMOVAL[args.mean_removal]
+        e.photoreceptor = replace(e.photoreceptor, tau_hp_s=tau_hp)
     if opt("emd_calibration"):
         from experiments.calibrate import read_calibration
         e.calibration, e.latency_s = read_calibration(args.emd_calibration)
@@ -691,6 +698,11 @@ def add_parser(subparsers):
     v.add_argument("--drho", type=float, help="EMD front end: acceptance angle (deg, default = Δφ)")
     v.add_argument("--tau", type=float, help="EMD front end: delay time constant (s; default 0.010 on "
                    "camera footage, 0.035 on compound-eye footage)")
+    v.add_argument("--mean-removal", choices=["space", "time"],
+                   help="EMD front end: how the columns remove the mean luminance before the EMDs — space: the "
+                        "LMCs' lateral inhibition (x − the lattice neighbours' mean), no temporal high-pass; time: "
+                        "an LMC-like 0.25 s temporal high-pass (lobula.photoreceptor.MEAN_REMOVAL; not given: time "
+                        "on camera footage, space on compound-eye footage)")
     v.add_argument("--emd-calibration", help="EMD front end: gains JSON from `lobula calibrate-emd` on another scene")
     v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
     v.add_argument("--quiet", action="store_true")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 
 #: `lobula velocity` options that only compound-eye footage takes (None: not given); the same as `lobula eye-velocity`'s
-EYE_ONLY_OPTIONS = ("rotation", "mean_removal", "readout", "uncertainty", "seed")
+EYE_ONLY_OPTIONS = ("rotation", "readout", "uncertainty", "seed")
 
 
 def add_parser(subparsers):
@@ -23,9 +23,6 @@ def add_parser(subparsers):
     g = p.add_argument_group("compound-eye footage only (`lobula scene OUT --eye fly`; as `lobula eye-velocity`)")
     g.add_argument("--rotation", choices=["none", "haltere", "wide-field", "both"],
                    help="rotation handling of the eye's circuit (not given: haltere)")
-    g.add_argument("--mean-removal", choices=["space", "time"],
-                   help="how the eye's columns remove the mean luminance (not given: space; see "
-                        "`lobula eye-velocity --help`)")
     g.add_argument("--readout", choices=["kalman", "spikes", "neuron", "neuron-rate"],
                    help="the eye's readout (not given: kalman); spikes and neuron decode causally: add --filter causal")
     g.add_argument("--uncertainty", choices=["halves", "posterior"],
@@ -50,14 +47,14 @@ def run(args) -> int:
 
 #: `lobula velocity` options that carry over to eye footage (the rest must stay at their defaults)
 _VELOCITY_OPTIONS_ON_EYE = ("footage", "front_end", "out", "plot", "filter", "field_size", "tau", "accel_from_truth",
-                            "accel_scale_error", "skip", "quiet", "func", "command") + EYE_ONLY_OPTIONS
+                            "accel_scale_error", "mean_removal", "skip", "quiet", "func", "command") + EYE_ONLY_OPTIONS
 
 
 def run_on_eye_footage(args) -> int:
     """`lobula velocity EYE_FOOTAGE --front-end emd …`: the eye's circuit, as `lobula eye-velocity`.
 
-    --filter, --field-size, --tau, --accel-from-truth, --accel-scale-error, --skip, --plot and the eye-only --rotation,
-    --mean-removal, --readout, --uncertainty and --seed mean what they mean for
+    --filter, --field-size, --tau, --mean-removal, --accel-from-truth, --accel-scale-error, --skip, --plot and the
+    eye-only --rotation, --readout, --uncertainty and --seed mean what they mean for
     `lobula eye-velocity` (so the two commands give the same numbers for the same options;
     `lobula velocity`'s --filter defaults to zero-phase, eye-velocity's to causal). Every other
     option of `lobula velocity` describes a camera front end and is refused, naming the fix.

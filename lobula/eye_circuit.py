@@ -124,11 +124,10 @@ import torch
 
 from .compound_eye import CompoundEye
 from .emd import EMDArray, EMDConfig
-from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lowpass_scan
+from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lattice_filter, lowpass_scan
 from .readout import hold_gaps
 
-__all__ = ["EyeFieldConfig", "EyeCircuitConfig", "EyeFields", "EyeCircuit", "eye_fields", "field_reliability",
-           "lattice_filter"]
+__all__ = ["EyeFieldConfig", "EyeCircuitConfig", "EyeFields", "EyeCircuit", "eye_fields", "field_reliability"]
 
 ROTATION_MODES = ("none", "haltere", "wide-field", "both")
 
@@ -291,30 +290,6 @@ def eye_fields(eye: CompoundEye, config: EyeFieldConfig) -> EyeFields:
     w *= (ang <= 1.5 * fwhm) & (f_eye[:, None] == eye.eye[eye.pairs_a][None, :])
     theta = _angle(dirs, np.array([0.0, 0.0, 1.0]))
     return EyeFields(cen, f_eye, dirs, theta, w, mirror, float(config.size_deg))
-
-
-def lattice_filter(eye: CompoundEye, column_pool: float = 0.0, surround: float = 0.0):
-    """Sparse (n, n) float32 matrix of the columns' spatial filtering before the EMDs; None if neither is on.
-
-    x' = (I − s·N)·((1 − α)·I + α·N)·x, N the mean over each ommatidium's lattice neighbours
-    (six inside an eye, fewer at its rim): first columnar pooling of weight α (``column_pool``),
-    then lateral inhibition of weight s (``surround``). An ommatidium with no neighbour passes unchanged.
-    """
-    if column_pool == 0.0 and surround == 0.0:
-        return None
-    import scipy.sparse as sp
-
-    n = eye.n
-    a = np.concatenate([eye.pairs_a, eye.pairs_b])
-    b = np.concatenate([eye.pairs_b, eye.pairs_a])
-    deg = np.bincount(a, minlength=n).astype(float)
-    N = sp.csr_matrix((1.0 / deg[a], (a, b)), shape=(n, n))
-    lone = sp.diags((deg == 0).astype(float))      # no neighbour: its pooled value is its own
-    I = sp.identity(n, format="csr")
-    M = ((I - surround * N) @ ((1.0 - column_pool) * I + column_pool * (N + lone))).tocoo()
-    idx = torch.as_tensor(np.stack([M.row, M.col]).astype(np.int64))
-    return torch.sparse_coo_tensor(idx, torch.as_tensor(M.data, dtype=torch.float32), (n, n),
-                                   check_invariants=True).coalesce()
 
 
 class EyeCircuit:

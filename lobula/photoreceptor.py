@@ -11,6 +11,10 @@ The chain, per ommatidium, each stage optional except the first:
 4. **Contrast gain control**: divide by the running RMS of the signal (a low-pass of its
    square with ``tau_gain_s``), so the output's amplitude no longer scales with contrast.
 
+Across columns, :func:`lattice_filter` gives the LMCs' lateral inhibition (x − the neighbours'
+mean), which removes the mean in space instead of in time (:mod:`lobula.eye_circuit`, "Lateral
+inhibition"), and the columnar-pooling hypothesis.
+
 Every low-pass is the exact discrete-time solution of ``τ dy/dt = x − y`` for an input
 held constant over each step (zero-order hold, as a frame-by-frame pipeline delivers
 it, and as :mod:`lobula.neurons` assumes): ``y += (1 − exp(−dt/τ))·(x − y)``. Units:
@@ -36,7 +40,7 @@ from torch import Tensor
 __all__ = [
     "PhotoreceptorConfig", "PhotoreceptorState", "Photoreceptors",
     "photoreceptor_init", "photoreceptor_step", "photoreceptor_run",
-    "photoreceptor_frequency_response", "lowpass_scan",
+    "photoreceptor_frequency_response", "lowpass_scan", "lattice_filter", "MEAN_REMOVAL",
 ]
 
 
@@ -214,3 +218,36 @@ class Photoreceptors:
     def run(self, x) -> Tensor:
         y, self.state = photoreceptor_run(self.config, self.dt, x, self.state)
         return y
+
+
+def lattice_filter(lattice, column_pool: float = 0.0, surround: float = 0.0):
+    """Sparse (n, n) float32 matrix of the columns' spatial filtering before the EMDs; None if neither is on.
+
+    lattice: anything with ``n`` ommatidia and neighbour pairs ``pairs_a``, ``pairs_b`` (a
+    :class:`lobula.compound_eye.CompoundEye`, a pinhole :class:`lobula.lattice.Lattice`).
+
+    x' = (I − s·N)·((1 − α)·I + α·N)·x, N the mean over each ommatidium's lattice neighbours
+    (six inside an eye, fewer at its rim): first columnar pooling of weight α (``column_pool``),
+    then lateral inhibition of weight s (``surround``). An ommatidium with no neighbour passes unchanged.
+    """
+    if column_pool == 0.0 and surround == 0.0:
+        return None
+    import scipy.sparse as sp
+
+    n = int(lattice.n)
+    a = np.concatenate([lattice.pairs_a, lattice.pairs_b])
+    b = np.concatenate([lattice.pairs_b, lattice.pairs_a])
+    deg = np.bincount(a, minlength=n).astype(float)
+    N = sp.csr_matrix((1.0 / deg[a], (a, b)), shape=(n, n))
+    lone = sp.diags((deg == 0).astype(float))      # no neighbour: its pooled value is its own
+    I = sp.identity(n, format="csr")
+    M = ((I - surround * N) @ ((1.0 - column_pool) * I + column_pool * (N + lone))).tocoo()
+    idx = torch.as_tensor(np.stack([M.row, M.col]).astype(np.int64))
+    return torch.sparse_coo_tensor(idx, torch.as_tensor(M.data, dtype=torch.float32), (n, n),
+                                   check_invariants=True).coalesce()
+
+
+#: the two ways the columns may remove the mean luminance before the EMDs (``--mean-removal``):
+#: name → (lateral-inhibition weight for :func:`lattice_filter`, the LMC high-pass ``tau_hp_s``).
+#: "space": the surround, no temporal high-pass; "time": a 0.25 s high-pass, no surround.
+MEAN_REMOVAL = {"space": (1.0, None), "time": (0.0, 0.25)}

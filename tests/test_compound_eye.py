@@ -538,8 +538,17 @@ def test_lobula_velocity_refuses_eye_options_on_camera_footage(tmp_path, capsys)
     assert main(["velocity", str(cam), "--rotation", "haltere", "--out", str(tmp_path / "x.nc")]) == 2
     err = capsys.readouterr().err
     assert "--rotation" in err and "camera footage" in err and not (tmp_path / "x.nc").exists()
-    assert main(["velocity", str(cam), "--mean-removal", "time", "--out", str(tmp_path / "x.nc")]) == 2
-    assert "--mean-removal" in capsys.readouterr().err and not (tmp_path / "x.nc").exists()
+
+    # --mean-removal is the EMD front end's, the camera's as the eye's; refused with another front end.
+    import argparse
+
+    from experiments.velocity import apply_velocity_options
+    from lobula.config import VelocityConfig
+    cfg = apply_velocity_options(VelocityConfig(front_end="emd"), argparse.Namespace(mean_removal="space"))
+    assert cfg.emd.surround == 1.0 and cfg.emd.photoreceptor.tau_hp_s is None
+    assert VelocityConfig(front_end="emd").emd.surround == 0.0                  # the camera's default: in time
+    with pytest.raises(ValueError, match="--mean-removal"):
+        apply_velocity_options(VelocityConfig(front_end="dis"), argparse.Namespace(mean_removal="space"))
 
 
 def test_spiking_readout_on_the_eye_is_causal_and_close_to_the_rate_readout(eye_footage):

@@ -20,9 +20,16 @@ def constant_run(tmp_path_factory):
     return open_footage(make_track_run(tmp_path_factory.mktemp("emd") / "c", cfg, progress=False))
 
 
-def test_gradient_ratio_decoding_tracks_exact_expansion_rate(constant_run):
-    """Peripheral fields (where image motion is resolved) decode r = v/d to within tens of percent."""
+@pytest.mark.parametrize("surround", [0.0, 1.0])
+def test_gradient_ratio_decoding_tracks_exact_expansion_rate(constant_run, surround):
+    """Peripheral fields (where image motion is resolved) decode r = v/d to within tens of percent,
+    with the mean removed in time (the default 0.25 s high-pass) or in space (the LMC surround,
+    ``EMDFrontEndConfig.surround``, no high-pass)."""
+    from lobula.photoreceptor import PhotoreceptorConfig
+
     cfg = VelocityConfig(front_end="emd")
+    if surround:
+        cfg.emd.surround, cfg.emd.photoreceptor = surround, PhotoreceptorConfig(tau_s=0.010)
     idx, r_exact = exact_field_rates(constant_run, cfg)
     fields = tile_fields(constant_run.camera, cfg.fields)
     r_emd = np.array([r for _, r, _ in EMDFrontEnd(constant_run.camera, fields, cfg.emd).run(constant_run.frames())])
@@ -32,7 +39,10 @@ def test_gradient_ratio_decoding_tracks_exact_expansion_rate(constant_run):
     ratio = np.median(e / x)
     corr = np.corrcoef(e.ravel(), x.ravel())[0, 1]
     print(f"\nEMD/exact r (fields > 12° out): median ratio {ratio:.3f}, correlation {corr:.3f}")
-    assert 0.6 < ratio < 1.4
+    # Measured 0.73 (high-pass) and 0.48 (surround: it whitens the image, moving contrast toward the
+    # lattice's Nyquist limit, where the gradient ratio reads low — a gain κ = (ṙ − r²)/r is blind to
+    # up to the r²-term); correlations 0.96 and 0.93.
+    assert (0.6 < ratio < 1.4) if surround == 0 else (0.3 < ratio < 0.8)
     assert corr > 0.5
     assert np.all(np.sign(np.median(e, 0)) > 0)  # expansion everywhere
 
