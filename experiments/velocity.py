@@ -701,8 +701,8 @@ def add_parser(subparsers):
     v.add_argument("--mean-removal", choices=["space", "time"],
                    help="EMD front end: how the columns remove the mean luminance before the EMDs — space: the "
                         "LMCs' lateral inhibition (x − the lattice neighbours' mean), no temporal high-pass; time: "
-                        "an LMC-like 0.25 s temporal high-pass (lobula.photoreceptor.MEAN_REMOVAL; not given: time "
-                        "on camera footage, space on compound-eye footage)")
+                        "an LMC-like 0.25 s temporal high-pass, the front end before the surround "
+                        "(lobula.photoreceptor.MEAN_REMOVAL; not given: space)")
     v.add_argument("--emd-calibration", help="EMD front end: gains JSON from `lobula calibrate-emd` on another scene")
     v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
     v.add_argument("--quiet", action="store_true")

@@ -54,15 +54,15 @@ class EMDFrontEndConfig:
 
     lattice: ommatidia (default Δφ = 0.75°, Δρ = Δφ: a ~5,000-ommatidia eye on the
     D435i's field of view, enough for 5° fields; the fly's 4.6° needs ≥ 20° fields).
-    photoreceptor: low-pass 10 ms and an LMC-like high-pass 0.25 s (removes the mean).
+    photoreceptor: low-pass 10 ms (no temporal high-pass: the surround removes the mean).
     surround: weight s of the LMCs' lateral inhibition, x − s·(the lattice neighbours' mean),
-    after the photoreceptors (:func:`lobula.photoreceptor.lattice_filter`; 0: none, the default
-    here). With s = 1 the mean is removed in space and the high-pass can go (photoreceptor
-    ``tau_hp_s=None``), as the compound eye's circuit does by default: the high-pass's memory
-    drifts the decoded gain after every change of speed. Measured on development suite worlds
-    (10 s, 320×240, realistic IMU, causal; seeds 100, 101): panels 0.081 / 0.070 → 0.044 / 0.035,
-    corridor 0.090 / 0.084 → 0.011 / 0.014 m/s. Not yet the default: the replay figures, the
-    ephys rig and their tests were made with the high-pass.
+    after the photoreceptors (:func:`lobula.photoreceptor.lattice_filter`): 1 (default) removes
+    the mean luminance in space, with no memory, as the compound eye's circuit does; 0 with
+    ``tau_hp_s=0.25`` is the front end until the twenty-seventh session, whose temporal high-pass
+    drifts the decoded gain after every change of speed (its memory is a trailing copy of the
+    pattern moving at the past speed). Measured on development suite worlds (10 s, 320×240,
+    realistic IMU, causal; seeds 100, 101), high-pass → surround: panels 0.081 / 0.070 → 0.044 /
+    0.035, corridor 0.090 / 0.084 → 0.011 / 0.014 m/s.
     emd: delay τ (s); 10 ms keeps the replay's image motion in the EMD's near-linear range.
     decoding: "gradient-ratio". calibration: gain on r̄, one number or one per field
     (1 = none; fitted on another scene by :func:`fit_calibration`, then held fixed).
@@ -73,9 +73,9 @@ class EMDFrontEndConfig:
     """
 
     lattice: LatticeConfig = field(default_factory=lambda: LatticeConfig(dphi_deg=0.75))
-    photoreceptor: PhotoreceptorConfig = field(default_factory=lambda: PhotoreceptorConfig(tau_s=0.010, tau_hp_s=0.25))
+    photoreceptor: PhotoreceptorConfig = field(default_factory=lambda: PhotoreceptorConfig(tau_s=0.010))
     emd: EMDConfig = field(default_factory=lambda: EMDConfig(tau_s=0.010))
-    surround: float = 0.0
+    surround: float = 1.0
     decoding: str = "gradient-ratio"
     calibration: float | list = 1.0
     latency_s: float | None = None
@@ -93,6 +93,7 @@ class EMDFrontEndConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "EMDFrontEndConfig":
         d = dict(d)
+        d.setdefault("surround", 0.0)   # configurations written before the surround existed had none
         return cls(lattice=LatticeConfig(**d.pop("lattice", {})),
                    photoreceptor=PhotoreceptorConfig(**d.pop("photoreceptor", {})),
                    emd=EMDConfig(**d.pop("emd", {})), **d)

@@ -546,7 +546,7 @@ def test_lobula_velocity_refuses_eye_options_on_camera_footage(tmp_path, capsys)
     from lobula.config import VelocityConfig
     cfg = apply_velocity_options(VelocityConfig(front_end="emd"), argparse.Namespace(mean_removal="space"))
     assert cfg.emd.surround == 1.0 and cfg.emd.photoreceptor.tau_hp_s is None
-    assert VelocityConfig(front_end="emd").emd.surround == 0.0                  # the camera's default: in time
+    assert VelocityConfig(front_end="emd").emd.surround == 1.0                  # the camera's default too
     with pytest.raises(ValueError, match="--mean-removal"):
         apply_velocity_options(VelocityConfig(front_end="dis"), argparse.Namespace(mean_removal="space"))
 

@@ -23,13 +23,13 @@ def constant_run(tmp_path_factory):
 @pytest.mark.parametrize("surround", [0.0, 1.0])
 def test_gradient_ratio_decoding_tracks_exact_expansion_rate(constant_run, surround):
     """Peripheral fields (where image motion is resolved) decode r = v/d to within tens of percent,
-    with the mean removed in time (the default 0.25 s high-pass) or in space (the LMC surround,
-    ``EMDFrontEndConfig.surround``, no high-pass)."""
+    with the mean removed in time (a 0.25 s high-pass) or in space (the LMC surround,
+    ``EMDFrontEndConfig.surround``, the default, no high-pass)."""
     from lobula.photoreceptor import PhotoreceptorConfig
 
     cfg = VelocityConfig(front_end="emd")
-    if surround:
-        cfg.emd.surround, cfg.emd.photoreceptor = surround, PhotoreceptorConfig(tau_s=0.010)
+    cfg.emd.surround = surround
+    cfg.emd.photoreceptor = PhotoreceptorConfig(tau_s=0.010, tau_hp_s=None if surround else 0.25)
     idx, r_exact = exact_field_rates(constant_run, cfg)
     fields = tile_fields(constant_run.camera, cfg.fields)
     r_emd = np.array([r for _, r, _ in EMDFrontEnd(constant_run.camera, fields, cfg.emd).run(constant_run.frames())])
