@@ -23,7 +23,7 @@ from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig, field_reliability
 from lobula.gaze import retinal_rotation
 from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
                             resample_to, turn_rate)
-from lobula.photoreceptor import MEAN_REMOVAL
+from lobula.photoreceptor import MEAN_REMOVAL, mean_removal
 from lobula.readout import ReadoutConfig, readout
 from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron, spiking_output
 
@@ -446,8 +446,7 @@ def apply_eye_options(cfg: EyeVelocityConfig, args) -> EyeVelocityConfig:
     if getattr(args, "rotation", None):
         c.rotation = args.rotation
     if getattr(args, "mean_removal", None):
-        surround, photoreceptor = MEAN_REMOVAL[args.mean_removal]
-        c.surround, c.photoreceptor = surround, replace(c.photoreceptor, tau_hp_s=photoreceptor)
+        c.surround, c.photoreceptor = mean_removal(args.mean_removal, c.photoreceptor)
     if getattr(args, "field_size", None):
         c.fields = replace(c.fields, size_deg=args.field_size)
     if getattr(args, "tau", None):

@@ -22,6 +22,7 @@ from lobula.config import VelocityConfig
 from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import HEADING_POINTS, EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
+from lobula.photoreceptor import MEAN_REMOVAL, mean_removal
 from lobula.haltere import (GRAVITY_WINDOW_S, GyroAttitude, attitude_leak, forward_acceleration, forward_axis,
                             fused_gyro_bias, gravity_drift_std, gravity_time_constant, gyro_bias, leak_walk,
                             orientation_from_gyro, resample_to, transport_rate, turn_rate, vision_gyro_bias)
@@ -607,9 +608,7 @@ def apply_velocity_options(cfg, args):
         if cfg.front_end != "emd":
             raise ValueError(f"--mean-removal sets the EMD front end's columns, but the front end is {cfg.front_end}; "
                              f"drop it or use --front-end emd")
-        from lobula.photoreceptor import MEAN_REMOVAL
-        e.surround, tau_hp = MEAN_REMOVAL[args.mean_removal]
-        e.photoreceptor = replace(e.photoreceptor, tau_hp_s=tau_hp)
+        e.surround, e.photoreceptor = mean_removal(args.mean_removal, e.photoreceptor)
     if opt("emd_calibration"):
         from experiments.calibrate import read_calibration
         e.calibration, e.latency_s = read_calibration(args.emd_calibration)
@@ -698,7 +697,7 @@ def add_parser(subparsers):
     v.add_argument("--drho", type=float, help="EMD front end: acceptance angle (deg, default = Δφ)")
     v.add_argument("--tau", type=float, help="EMD front end: delay time constant (s; default 0.010 on "
                    "camera footage, 0.035 on compound-eye footage)")
-    v.add_argument("--mean-removal", choices=["space", "time"],
+    v.add_argument("--mean-removal", choices=sorted(MEAN_REMOVAL),
                    help="EMD front end: how the columns remove the mean luminance before the EMDs — space: the "
                         "LMCs' lateral inhibition (x − the lattice neighbours' mean), no temporal high-pass; time: "
                         "an LMC-like 0.25 s temporal high-pass, the front end before the surround "

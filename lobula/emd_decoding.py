@@ -44,7 +44,7 @@ from .camera import PinholeCamera, normalised_to_angles
 from .emd import EMDArray, EMDConfig
 from .lattice import Lattice, LatticeConfig
 from .lc_geometry import expansion_templates
-from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lattice_filter
+from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lattice_filter, spatial_filter
 from .receptive_field import ReceptiveFields
 
 
@@ -164,8 +164,7 @@ class EMDFrontEnd:
         x = self.lattice.sample(torch.as_tensor(frames, device=self.device) / 255.0)  # (T, n)
         t1 = _time.perf_counter()
         y = self.photoreceptors.run(x)
-        if self._surround is not None:
-            y = torch.sparse.mm(self._surround, y.t().float()).t().to(y.dtype)
+        y = spatial_filter(self._surround, y)
         t2 = _time.perf_counter()
         R = self.emds.run(y)  # (T, P)
         t3 = _time.perf_counter()

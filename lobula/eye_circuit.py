@@ -124,7 +124,7 @@ import torch
 
 from .compound_eye import CompoundEye
 from .emd import EMDArray, EMDConfig
-from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lattice_filter, lowpass_scan
+from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lattice_filter, lowpass_scan, spatial_filter
 from .readout import hold_gaps
 
 __all__ = ["EyeFieldConfig", "EyeCircuitConfig", "EyeFields", "EyeCircuit", "eye_fields", "field_reliability"]
@@ -427,9 +427,7 @@ class EyeCircuit:
         import time as _time
         t0 = _time.perf_counter()
         y = self.photoreceptors.run(lum)
-        if self._pool is not None:
-            flat = y.reshape(-1, y.shape[-1])
-            y = torch.sparse.mm(self._pool, flat.t()).t().reshape(y.shape)
+        y = spatial_filter(self._pool, y)
         t1 = _time.perf_counter()
         R = self.emds.run(y)                                                    # (..., T, P)
         t2 = _time.perf_counter()

@@ -30,7 +30,7 @@ and ommatidia.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -40,7 +40,8 @@ from torch import Tensor
 __all__ = [
     "PhotoreceptorConfig", "PhotoreceptorState", "Photoreceptors",
     "photoreceptor_init", "photoreceptor_step", "photoreceptor_run",
-    "photoreceptor_frequency_response", "lowpass_scan", "lattice_filter", "MEAN_REMOVAL",
+    "photoreceptor_frequency_response", "lowpass_scan", "lattice_filter", "spatial_filter", "MEAN_REMOVAL",
+    "mean_removal",
 ]
 
 
@@ -247,7 +248,22 @@ def lattice_filter(lattice, column_pool: float = 0.0, surround: float = 0.0):
                                    check_invariants=True).coalesce()
 
 
+def spatial_filter(M, y: Tensor) -> Tensor:
+    """:func:`lattice_filter`'s matrix M applied to every frame of y (..., n); y unchanged when M is None."""
+    if M is None:
+        return y
+    flat = y.reshape(-1, y.shape[-1])
+    return torch.sparse.mm(M, flat.t().float()).t().to(y.dtype).reshape(y.shape)
+
+
 #: the two ways the columns may remove the mean luminance before the EMDs (``--mean-removal``):
 #: name → (lateral-inhibition weight for :func:`lattice_filter`, the LMC high-pass ``tau_hp_s``).
 #: "space": the surround, no temporal high-pass; "time": a 0.25 s high-pass, no surround.
 MEAN_REMOVAL = {"space": (1.0, None), "time": (0.0, 0.25)}
+
+
+def mean_removal(name: str, photoreceptor: PhotoreceptorConfig) -> tuple[float, PhotoreceptorConfig]:
+    """(surround weight, photoreceptor configuration) of the :data:`MEAN_REMOVAL` named, the rest of
+    ``photoreceptor`` kept: what ``--mean-removal`` sets on either EMD front end."""
+    surround, tau_hp = MEAN_REMOVAL[name]
+    return surround, replace(photoreceptor, tau_hp_s=tau_hp)

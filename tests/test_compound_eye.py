@@ -12,11 +12,11 @@ from scipy.spatial import cKDTree
 from lobula.compound_eye import CompoundEye, CompoundEyeConfig, acceptance_rule, expected_count
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig, EyeFieldConfig
 from lobula.lattice import acceptance_attenuation
-from lobula.photoreceptor import PhotoreceptorConfig
+from lobula.photoreceptor import PhotoreceptorConfig, mean_removal
 
 #: the circuit with the mean luminance removed in time (an LMC-like 0.25 s high-pass), not in space
 #: (the default lateral inhibition): the decoding's known answers on textures that are not sines
-TEMPORAL_MEAN = dict(surround=0.0, photoreceptor=PhotoreceptorConfig(tau_s=0.010, tau_hp_s=0.25))
+TEMPORAL_MEAN = dict(zip(("surround", "photoreceptor"), mean_removal("time", PhotoreceptorConfig(tau_s=0.010))))
 
 
 class Corridor:

@@ -25,11 +25,10 @@ def test_gradient_ratio_decoding_tracks_exact_expansion_rate(constant_run, surro
     """Peripheral fields (where image motion is resolved) decode r = v/d to within tens of percent,
     with the mean removed in time (a 0.25 s high-pass) or in space (the LMC surround,
     ``EMDFrontEndConfig.surround``, the default, no high-pass)."""
-    from lobula.photoreceptor import PhotoreceptorConfig
+    from lobula.photoreceptor import mean_removal
 
     cfg = VelocityConfig(front_end="emd")
-    cfg.emd.surround = surround
-    cfg.emd.photoreceptor = PhotoreceptorConfig(tau_s=0.010, tau_hp_s=None if surround else 0.25)
+    cfg.emd.surround, cfg.emd.photoreceptor = mean_removal("space" if surround else "time", cfg.emd.photoreceptor)
     idx, r_exact = exact_field_rates(constant_run, cfg)
     fields = tile_fields(constant_run.camera, cfg.fields)
     r_emd = np.array([r for _, r, _ in EMDFrontEnd(constant_run.camera, fields, cfg.emd).run(constant_run.frames())])
