@@ -37,7 +37,7 @@ import torch
 
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
 from lobula.haltere import forward_acceleration, resample_to, turn_rate
-from lobula.photoreceptor import lowpass_scan
+from lobula.photoreceptor import lowpass_scan, spatial_filter
 from lobula.readout import readout
 
 from .eye_velocity import EyeVelocityConfig, estimate_eye_velocity, readout_inputs
@@ -82,7 +82,8 @@ class IdealDetectorCircuit(EyeCircuit):
         if self.uniform:
             G = torch.ones_like(mot)
         else:
-            y = self.photoreceptors.run(lum)
+            # The pairs see what the EMDs see: the photoreceptors after the circuit's spatial filter (the surround).
+            y = spatial_filter(self._pool, self.photoreceptors.run(lum))
             dy = y[..., self._b] - y[..., self._a]
             lp = lowpass_scan(dy, math.exp(-self.dt / self.config.emd.tau_s), self._lp_state)
             self._lp_state = lp[..., -1, :].clone()

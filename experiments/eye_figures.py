@@ -2,8 +2,9 @@
 
 ``eye_rate_vs_spiking`` — on the worlds' families (panels, rotation, corridor; seeds 0–2, 10 s):
 the causal velocity RMSE of the eye's circuit read out by (i) the arithmetic readout's rates,
-(ii) the same v̂ carried by N push–pull Poisson output-neuron pairs (N = 1, 3, 10, 30) and
-decoded causally, (iii) the shunting readout neuron (rates and spikes), beside causal DIS on the
+(ii) the same v̂ carried by N push–pull output-neuron pairs — Poisson (N = 1, 3, 10, 30) or leaky
+integrate-and-fire (N = 1, 10; the eye's default) — and decoded causally, (iii) the shunting
+readout neuron (rates and LIF spikes), beside causal DIS on the
 D435i camera (same world and trajectory) and the zero estimator. Renders are cached in the
 work folder (:func:`experiments.eye_velocity.eye_benchmark`'s layout: ``FAMILY-SEED-eye`` and
 ``FAMILY-SEED-cam``); rendering them is the cost (CPU-minutes per run), the figure itself takes
@@ -78,9 +79,14 @@ def eye_folder(workdir, family: str, seed: int) -> Path:
     return Path(workdir) / (f"rotation-{seed}-eye-gaze" if family == GAZE_FAMILY else f"{family}-{seed}-eye")
 
 
+#: Short names of the output neurons' spike models in the figure.
+SPIKE_LABEL = {"poisson": "Poisson", "lif": "LIF"}
+
+
 def rate_vs_spiking_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), populations=(1, 3, 10, 30),
-                            gaze: bool = True) -> dict:
-    """RMSEs per family and seed: kalman (rates), spikes with N output pairs, readout neuron, DIS, zero.
+                            gaze: bool = True, lif_populations=(1, 10)) -> dict:
+    """RMSEs per family and seed: kalman (rates), spikes with N Poisson (``populations``) and LIF
+    (``lif_populations``) output pairs, the readout neuron (rate; LIF spikes), DIS, zero.
 
     gaze: also the rotation world seen by a gaze-stabilised head (:data:`GAZE_FAMILY`; DIS and the
     zero estimator as for the rotation world: the same world and trajectory)."""
@@ -103,15 +109,16 @@ def rate_vs_spiking_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), populat
             t0 = time.perf_counter()
             ds = estimate_eye_velocity(fo, EyeVelocityConfig())
             rows.setdefault("rate (arithmetic readout)", []).append(score(ds)["rmse_m_s"])
-            for n in populations:
-                c = EyeVelocityConfig(readout_kind="spikes",
-                                      neuron=ReadoutNeuronConfig(spiking=True, population=n, seed=seed))
-                rows.setdefault(f"spikes, {n} pair{'s' if n > 1 else ''}", []).append(
-                    score(estimate_eye_velocity(fo, c))["rmse_m_s"])
+            for model, pops in (("poisson", populations), ("lif", lif_populations)):
+                for n in pops:
+                    c = EyeVelocityConfig(readout_kind="spikes", neuron=ReadoutNeuronConfig(
+                        spiking=True, population=n, seed=seed, spike_model=model))
+                    rows.setdefault(f"spikes ({SPIKE_LABEL[model]}), {n} pair{'s' if n > 1 else ''}", []).append(
+                        score(estimate_eye_velocity(fo, c))["rmse_m_s"])
             for spk in (False, True):
                 c = EyeVelocityConfig(readout_kind="neuron",
-                                      neuron=ReadoutNeuronConfig(spiking=spk, population=10, seed=seed))
-                rows.setdefault(f"readout neuron ({'spikes, 10 pairs' if spk else 'rate'})", []).append(
+                                      neuron=ReadoutNeuronConfig(spiking=spk, population=10, seed=seed, spike_model="lif"))
+                rows.setdefault(f"readout neuron ({'LIF spikes, 10 pairs' if spk else 'rate'})", []).append(
                     score(estimate_eye_velocity(fo, c))["rmse_m_s"])
             keep = ds.time.values >= ds.time.values[0] + 2.0
             rows.setdefault("zero estimator", []).append(float(np.sqrt(np.mean(ds.v_true.values[keep] ** 2))))
@@ -137,7 +144,8 @@ def figure_eye_rate_vs_spiking(out_dir, seeds=(0, 1, 2), workdir=None) -> tuple[
     for ax, (fam, rows) in zip(axes[0], res.items()):
         vals = [np.array(rows[k]) for k in keys]
         mean = np.array([v.mean() for v in vals])
-        col = ["tab:blue"] + ["tab:red"] * (len(keys) - 3) + ["tab:green", "tab:green"]
+        col = ["tab:blue" if k.startswith("rate") else "tab:green" if k.startswith("readout neuron")
+               else "tab:orange" if "LIF" in k else "tab:red" for k in keys]
         ax.bar(x, mean, color=col, alpha=0.55)
         for i, v in enumerate(vals):
             ax.plot(np.full(len(v), x[i]), v, "k.", ms=5)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 
 #: `lobula velocity` options that only compound-eye footage takes (None: not given); the same as `lobula eye-velocity`'s
-EYE_ONLY_OPTIONS = ("rotation", "readout", "uncertainty", "seed")
+EYE_ONLY_OPTIONS = ("rotation", "readout", "uncertainty", "seed", "spike_model", "membrane_noise")
 
 
 def add_parser(subparsers):
@@ -29,6 +29,10 @@ def add_parser(subparsers):
                    help="v_std of the kalman/spikes readouts (not given: halves; see `lobula eye-velocity --help`)")
     g.add_argument("--seed", type=int, help="seed of the output neurons' spikes (--readout spikes or neuron; "
                                             "not given: 0)")
+    g.add_argument("--spike-model", choices=["lif", "poisson"],
+                   help="how the output neurons spike (--readout spikes or neuron; not given: lif)")
+    g.add_argument("--membrane-noise", type=float, metavar="MV",
+                   help="the LIF output neurons' membrane noise SD in mV (not given: 1.0)")
     p.set_defaults(func=run)
 
 
@@ -54,7 +58,7 @@ def run_on_eye_footage(args) -> int:
     """`lobula velocity EYE_FOOTAGE --front-end emd …`: the eye's circuit, as `lobula eye-velocity`.
 
     --filter, --field-size, --tau, --mean-removal, --accel-from-truth, --accel-scale-error, --skip, --plot and the
-    eye-only --rotation, --readout, --uncertainty and --seed mean what they mean for
+    eye-only --rotation, --readout, --uncertainty, --seed, --spike-model and --membrane-noise mean what they mean for
     `lobula eye-velocity` (so the two commands give the same numbers for the same options;
     `lobula velocity`'s --filter defaults to zero-phase, eye-velocity's to causal). Every other
     option of `lobula velocity` describes a camera front end and is refused, naming the fix.
@@ -91,5 +95,7 @@ def run_on_eye_footage(args) -> int:
                             field_size=args.field_size, tau=args.tau, filter=args.filter,
                             accel_from_truth=args.accel_from_truth, accel_scale_error=args.accel_scale_error,
                             skip=args.skip, readout=ro,
-                            uncertainty=getattr(args, "uncertainty", None), seed=getattr(args, "seed", None))
+                            uncertainty=getattr(args, "uncertainty", None), seed=getattr(args, "seed", None),
+                            spike_model=getattr(args, "spike_model", None),
+                            membrane_noise=getattr(args, "membrane_noise", None))
     return run_eye_velocity(ns)

@@ -38,7 +38,8 @@ from torch import Tensor
 
 __all__ = [
     "RateNeuronConfig", "RateState", "RateNeuron", "naka_rushton", "rate_step",
-    "LIFConfig", "LIFState", "LIFNeuron", "lif_step", "lif_fi_curve",
+    "LIFConfig", "LIFState", "LIFNeuron", "lif_step", "lif_fi_curve", "lif_rate", "lif_isi_cv",
+    "lif_current_for_rate",
     "PoissonConfig", "PoissonState", "PoissonNeuron", "poisson_spikes",
     "make_generator",
 ]
@@ -332,6 +333,111 @@ def lif_fi_curve(current, config: LIFConfig | None = None):
     return float(f) if f.ndim == 0 and not isinstance(current, Tensor) else f
 
 
+def _white_sigma(c: LIFConfig) -> float:
+    """σ (V) of Brunel's (2000) τ dV/dt = −V + μ + σ√τ ξ for this config's white noise (0 without)."""
+    return c.R * c.noise_std if (c.noisy and c.noise == "white") else 0.0
+
+
+def _siegert_nodes(current, c: LIFConfig, nodes: int):
+    """Integration nodes u from y_r = (V_reset − μ)/σ to y_θ = (V_θ − μ)/σ, (m, nodes), for
+    the flattened ``current``; and which entries can fire at all (y_θ < 26: beyond, ν < 1e-290)."""
+    import numpy as np
+    sigma = _white_sigma(c)
+    mu = c.V_rest + c.R * np.ravel(np.asarray(current, dtype=float))
+    y_r, y_th = (c.V_reset - mu) / sigma, (c.V_threshold - mu) / sigma
+    # Dense near threshold, where the integrands vary on a scale of 1/(1 + 2|y_θ|) (they grow like
+    # e^{u²}; far below it they decay like 1/|u| and 1/|u|³), sparse toward reset: half the nodes
+    # evenly over the last 4 such scales, half cubically spaced over the rest.
+    near = np.minimum(4.0 / (1.0 + 2.0 * np.abs(y_th)), y_th - y_r)
+    s = np.linspace(0.0, 1.0, nodes // 2)
+    far = (y_th - near)[:, None] - (y_th - near - y_r)[:, None] * (s ** 3)[::-1]
+    x = np.concatenate([far[:, :-1], (y_th - near)[:, None] + near[:, None] * s], axis=1)
+    ok = y_th < 26.0
+    return np.where(ok[:, None], x, 0.0), ok
+
+
+def _check_white(c: LIFConfig, what: str) -> None:
+    if c.noisy and c.noise != "white":
+        raise ValueError(f"{what} is the white-noise diffusion approximation; this LIFConfig has noise={c.noise!r}")
+
+
+def lif_rate(current, config: LIFConfig | None = None, nodes: int = 600):
+    """Stationary firing rate (Hz) of an LIF neuron under a constant ``current`` (A, float or
+    array) plus its white noise — Siegert's first-passage formula (the diffusion approximation;
+    Brunel 2000, J. Comput. Neurosci. 8:183, eq. 21):
+    ``1/ν = t_ref + τ√π ∫_{y_r}^{y_θ} e^{u²}(1 + erf u) du`` with y = (V − μ)/σ, μ = V_rest + R·I
+    and σ = R·noise_std (:class:`LIFConfig`'s white-noise convention). Without noise it is
+    :func:`lif_fi_curve`; "ou" noise is not white and is refused. ``nodes``: trapezoid points.
+    """
+    import numpy as np
+    from scipy.special import erfcx
+    c = config or LIFConfig()
+    _check_white(c, "lif_rate")
+    I = np.asarray(current, dtype=float)
+    if _white_sigma(c) == 0:
+        return lif_fi_curve(I, c)
+    x, ok = _siegert_nodes(I, c, nodes)
+    # e^{u²}(1 + erf u) = erfcx(−u): stable for u < 0, where it decays like 1/(√π |u|).
+    mass = np.trapezoid(erfcx(-x), x, axis=1)
+    return np.where(ok, 1.0 / (c.t_ref + c.tau_m * np.sqrt(np.pi) * mass), 0.0).reshape(I.shape)
+
+
+def lif_isi_cv(current, config: LIFConfig | None = None, nodes: int = 600):
+    """Coefficient of variation of the interspike interval of an LIF neuron under a constant
+    ``current`` (A, float or array) plus its white noise (Brunel 2000, Appendix A):
+    ``CV² = 2π(ντ)² ∫_{y_r}^{y_θ} e^{x²} ∫_{−∞}^{x} e^{y²}(1 + erf y)² dy dx``, ν = :func:`lif_rate`.
+    A renewal train's spike count over a long window has Fano factor CV². 0 without noise;
+    1 where the neuron cannot fire. ``nodes``: trapezoid points of the outer integral.
+    """
+    import numpy as np
+    from scipy.special import erfcx
+    c = config or LIFConfig()
+    _check_white(c, "lif_isi_cv")
+    I = np.asarray(current, dtype=float)
+    if _white_sigma(c) == 0:
+        return np.where(lif_fi_curve(I, c) > 0, 0.0, 1.0)
+    x, ok = _siegert_nodes(I, c, nodes)
+    # Everything is scaled by e^{−Y}, Y = max(y_θ, 0)² (the integrands grow like e^{u²} up to y_θ),
+    # and e^{x²} is taken inside the inner integral, so nothing over- or underflows:
+    # CV² = 2π·outer_s / (t_ref/τ·e^{−Y} + √π·mass_s)².
+    Y = np.maximum(x[:, -1:], 0.0) ** 2
+    mass_s = np.trapezoid(erfcx(-x) * np.exp(-Y), x, axis=1)
+    # Inner integral ∫_{−∞}^{x} erfcx(−y)² e^{x²−y²} dy: for x < 0 it decays within ~1/(2|x|) below
+    # x, for x > 0 like e^{−y²} below 0; start where the integrand is < 1e-20 of its peak.
+    lo = np.where(x < 0, x - 24.0 / (1.0 + 2.0 * np.abs(x)), -7.0)
+    yy = x[:, :, None] - (x - lo)[:, :, None] * (np.linspace(0.0, 1.0, 200) ** 3)[::-1]
+    h = (erfcx(-yy) * np.exp(-Y[:, :, None])) ** 2 * np.exp(x[:, :, None] ** 2 - yy ** 2)
+    outer_s = np.trapezoid(np.trapezoid(h, yy, axis=2), x, axis=1)
+    den = c.t_ref / c.tau_m * np.exp(-Y[:, 0]) + np.sqrt(np.pi) * mass_s
+    cv = np.sqrt(np.maximum(2 * np.pi * outer_s / den ** 2, 0.0))
+    return np.where(ok, cv, 1.0).reshape(I.shape)
+
+
+def lif_current_for_rate(rate, config: LIFConfig | None = None, points: int = 800):
+    """The constant current (A) at which this LIF fires at ``rate`` (Hz, array) on average —
+    the inverse of :func:`lif_rate` (noise included), by interpolation on its curve.
+
+    Rates must lie in [ν(I = 0), 1/t_ref); ValueError otherwise. Without noise ν(0) = 0 and
+    rate 0 maps to the rheobase (the edge of firing).
+    """
+    import numpy as np
+    c = config or LIFConfig()
+    r = np.asarray(rate, dtype=float)
+    gap = c.V_threshold - c.V_rest
+    # Drives from rest to far above threshold, denser near it where the curve bends.
+    drive = np.concatenate([np.linspace(0.0, gap, points // 4),
+                            gap * (1 + np.geomspace(1e-4, 200.0, points - points // 4))])
+    nu = lif_rate(drive / c.R, c)
+    nu = np.maximum.accumulate(nu)
+    top = 1.0 / c.t_ref if c.t_ref > 0 else np.inf
+    if np.any(~np.isfinite(r)) or np.any(r < nu[0] - 1e-9) or np.any(r >= min(top, nu[-1])):
+        raise ValueError(f"rates must lie in [{nu[0]:.3g}, {min(top, nu[-1]):.3g}) Hz for this LIFConfig, "
+                         f"got {np.nanmin(r):.3g}–{np.nanmax(r):.3g}")
+    # The last drive of every flat stretch: rate 0 without noise maps to the rheobase.
+    keep = np.append(np.diff(nu) > 0, True)
+    return np.interp(r, nu[keep], drive[keep]) / c.R
+
+
 def _lif_segment(v0: Tensor, v_inf: Tensor, h: Tensor, c: LIFConfig, sd_inf: float,
                  generator: torch.Generator | None):
     """Free relaxation of V from ``v0`` toward ``v_inf`` for ``h`` seconds.
@@ -341,7 +447,11 @@ def _lif_segment(v0: Tensor, v_inf: Tensor, h: Tensor, c: LIFConfig, sd_inf: flo
     Without white noise V is monotone toward v_inf, so it crossed iff it ends at or
     above threshold, and the crossing time is exact: τ·ln((V_inf − V0)/(V_inf − V_th)).
     With white noise (sd_inf > 0) the end value carries the exact OU increment and the
-    crossing time is that of the exponential path from v0 to v_end.
+    crossing time is that of the exponential path from v0 to v_end. A path that starts and
+    ends below threshold may still have touched it in between: it did with the Brownian
+    bridge's probability exp(−2(V_th − V0)(V_th − V_end)/s²), s² the increment's variance
+    (the standard correction of discretely monitored barriers; it makes the spike count at
+    dt = 1 ms match Siegert's rate where dt ≪ tau_m), and such a spike is put mid-segment.
     """
     v_th = c.V_threshold
     decay = torch.exp(h * (-1.0 / c.tau_m))
@@ -359,6 +469,13 @@ def _lif_segment(v0: Tensor, v_inf: Tensor, h: Tensor, c: LIFConfig, sd_inf: flo
     at_start = v0 >= v_th                       # started at/above threshold: fires at once
     crossed = (v_end >= v_th) | at_start
     t_cross = torch.where(at_start, 0.0, t_cross)
+    if sd_inf > 0:
+        var = sd_inf ** 2 * -torch.expm1(h * (-2.0 / c.tau_m))
+        touched = torch.exp(-2.0 * (v_th - v0).clamp_min(0) * (v_th - v_end).clamp_min(0) / var)
+        u = torch.rand(v0.shape, generator=generator, device=v0.device, dtype=v0.dtype)
+        bridged = ~crossed & (u < touched)      # NaN where h = 0: never
+        crossed = crossed | bridged
+        t_cross = torch.where(bridged, 0.5 * h, t_cross)
     return v_end, crossed, t_cross
 
 
@@ -369,8 +486,8 @@ def lif_step(state: LIFState, current: Tensor, dt: float, config: LIFConfig,
     Between events the membrane relaxes exactly toward ``V_inf = V_rest + R·I``; a
     threshold crossing inside the step is found in closed form,
     ``t* = tau_m · ln((V_inf - V0)/(V_inf - V_th))`` (with white noise, the same formula
-    for the exponential path that ends at the noisy V; crossings that return below
-    threshold within a step are missed, an O(√dt) effect, so keep dt ≪ tau_m there).
+    for the exponential path that ends at the noisy V, and crossings that return below
+    threshold within the step drawn with the Brownian bridge's probability: keep dt ≪ tau_m).
     After a spike V sits at V_reset for t_ref, and the step reports the spike count and
     the exact time of the first spike. If t_ref < dt the refractory period can end
     inside the step; the neuron then

@@ -46,8 +46,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from .neurons import make_generator
+from .neurons import LIFConfig, LIFState, lif_current_for_rate, lif_isi_cv, lif_step, make_generator
 from .photoreceptor import lowpass_scan
+
+
+#: How the output neurons spike (:attr:`ReadoutNeuronConfig.spike_model`), and what they are called.
+SPIKE_MODELS = {"poisson": "Poisson", "lif": "leaky integrate-and-fire"}
 
 
 @dataclass
@@ -59,7 +63,18 @@ class ReadoutNeuronConfig:
     kappa_max: fastest visual correction rate (1/s); g_half: shunt conductance of half-maximal trust.
     disagreement_m_s: scale of the presynaptic inhibition of branches that disagree with the output.
     tau_confidence_s: memory of the confidence; confidence_min: below it v̂ is unobservable.
-    gain_hz_per_m_s: output rate per m/s; spiking: Poisson output instead of rates; window_s: rate-decoding window.
+    gain_hz_per_m_s: output rate per m/s; spiking: spiking output instead of rates; window_s: rate-decoding window.
+    spike_model: how the output neurons spike. "poisson": Poisson trains at r± (count variance =
+        mean, the cortical textbook case). "lif": leaky integrate-and-fire neurons
+        (:class:`lobula.neurons.LIFConfig`'s Dayan & Abbott defaults) with white membrane noise,
+        each driven by the current at which it fires at ``spontaneous_hz`` + r± on average
+        (:func:`lobula.neurons.lif_current_for_rate`, Siegert's formula): a driven neuron fires
+        regularly, as the fly's motion-sensitive H1 does — its spike count varies far less than
+        a Poisson count at high rates (de Ruyter van Steveninck et al. 1997, Science 275:1805).
+    membrane_noise_mv: the LIF output neurons' free-membrane noise SD (mV): 1 mV gives an ISI CV of
+        0.23 / 0.12 / 0.06 at 37 / 64 / 112 Hz (:func:`lobula.neurons.lif_isi_cv`).
+    spontaneous_hz: the LIF output neurons' rate at v̂ = 0 (both of a pair; the push–pull
+        difference cancels it): a noisy neuron cannot be held exactly at zero rate.
     spike_dt_s: the spike generator's step (s): each frame's rate is held over the frame and
         Poisson spikes are drawn every ``spike_dt_s`` (rounded to a whole number of steps per
         frame), so spike times resolve 1 ms rather than the 33 ms frame interval.
@@ -83,12 +98,21 @@ class ReadoutNeuronConfig:
     spike_dt_s: float = 0.001
     decode: str = "causal"
     population: int = 1
+    spike_model: str = "poisson"
+    membrane_noise_mv: float = 1.0
+    spontaneous_hz: float = 20.0
 
     def __post_init__(self):
         if self.decode not in ("causal", "centred"):
             raise ValueError(f"decode must be 'causal' or 'centred', got {self.decode!r}")
         if not (isinstance(self.population, (int, np.integer)) and self.population >= 1):
             raise ValueError(f"population must be a positive integer, got {self.population!r}")
+        if self.spike_model not in SPIKE_MODELS:
+            raise ValueError(f"spike_model must be one of {tuple(SPIKE_MODELS)}, got {self.spike_model!r}")
+        for name in ("membrane_noise_mv", "spontaneous_hz"):
+            x = getattr(self, name)
+            if not (np.isfinite(x) and x >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {x!r}")
         if not (self.spike_dt_s > 0 and np.isfinite(self.spike_dt_s)):
             raise ValueError(f"spike_dt_s must be a positive number of seconds, got {self.spike_dt_s!r}")
 
@@ -161,8 +185,50 @@ def _poisson_quantile(u: np.ndarray, lam: np.ndarray) -> np.ndarray:
     return np.where(lam > 0, poisson.ppf(u, np.maximum(lam, 1e-300)), 0.0)
 
 
+def output_lif(cfg: ReadoutNeuronConfig) -> LIFConfig:
+    """The LIF output neurons' parameters: Dayan & Abbott's defaults, white noise of
+    ``membrane_noise_mv`` free-membrane SD (R·σ_I/√2, :class:`lobula.neurons.LIFConfig`)."""
+    base = LIFConfig()
+    return LIFConfig(noise="white", noise_std=cfg.membrane_noise_mv * 1e-3 * np.sqrt(2.0) / base.R)
+
+
+def _lif_table(cfg: ReadoutNeuronConfig):
+    """Rates (Hz) from the spontaneous rate to 95 % of the refractory limit, the currents (A)
+    that give them and the ISI CV there: interpolated per step instead of solved per step."""
+    lif = output_lif(cfg)
+    rates = cfg.spontaneous_hz + np.geomspace(1e-3, 0.95 / lif.t_ref - cfg.spontaneous_hz, 96)
+    rates = np.concatenate([[cfg.spontaneous_hz], rates])
+    current = lif_current_for_rate(rates, lif)
+    return lif, rates, current, lif_isi_cv(current, lif)
+
+
+def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float, N: int,
+                cfg: ReadoutNeuronConfig, gen: torch.Generator):
+    """Pooled spike counts per generator step (trials, time·sub) of N + and N − LIF output
+    neurons firing at spontaneous_hz + rate± on average; and the Fano factors of their decoded
+    rate (trials, time) each. Rates above 95 % of 1/t_ref saturate there."""
+    lif, rates, current, cv = _lif_table(cfg)
+    top = float(rates[-1])
+    trials, n = rate_p.shape
+    drive = [np.interp(np.minimum(cfg.spontaneous_hz + r.numpy(), top), rates, current) for r in (rate_p, rate_m)]
+    # (trials, time, 2N): the first N neurons carry +, the last N carry −.
+    I = torch.as_tensor(np.concatenate([np.repeat(d[..., None], N, -1) for d in drive], -1))
+    # Membranes start at independent random points between reset and threshold, so the
+    # population does not begin in lock-step.
+    v0 = lif.V_reset + (lif.V_threshold - lif.V_reset) * torch.rand((trials, 2 * N), generator=gen, dtype=I.dtype)
+    z = torch.zeros_like(v0)
+    state = LIFState(v0, z, z, z, torch.full_like(v0, float("nan")))
+    counts = torch.empty(trials, n * sub, 2 * N, dtype=I.dtype)
+    h = dt / sub
+    for k in range(n * sub):  # the membranes evolve in time; trials and neurons are batched
+        state = lif_step(state, I[:, k // sub], h, lif, gen)
+        counts[:, k] = state.spikes
+    fano = [np.interp(np.minimum(cfg.spontaneous_hz + r.numpy(), top), rates, cv ** 2) for r in (rate_p, rate_m)]
+    return counts[..., :N].sum(-1), counts[..., N:].sum(-1), [torch.as_tensor(f) for f in fano]
+
+
 def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfig) -> dict:
-    """Push–pull Poisson output neurons for v (trials, time) m/s (NaN: silent), decoded back (see 5–6)."""
+    """Push–pull spiking output neurons for v (trials, time) m/s (NaN: silent), decoded back (see 5–6)."""
     gain = cfg.gain_hz_per_m_s
     v = torch.nan_to_num(v)
     rate_p, rate_m = gain * v.clamp_min(0), gain * (-v).clamp_min(0)
@@ -170,30 +236,40 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
     gen = make_generator(cfg.seed)
     sub = spike_steps_per_frame(dt, cfg)
     N = int(cfg.population)
-    hold = lambda r: r.float().repeat_interleave(sub, dim=1)  # noqa: E731  (trials, time·sub)
-    # N independent pairs at the same rate: their pooled count is Poisson with N times the rate.
-    # Each step's count is the Poisson quantile of its own uniform draw, so a step's spikes depend
-    # on its own rate only: changing later rates leaves earlier spikes unchanged (a causal simulation).
-    lam_p, lam_m = (hold(x * N).double() * (dt / sub) for x in (rate_p, rate_m))
-    u = torch.rand((2,) + tuple(lam_p.shape), generator=gen, dtype=torch.float64)
-    sp_fine = torch.as_tensor(_poisson_quantile(u[0].numpy(), lam_p.numpy()))
-    sm_fine = torch.as_tensor(_poisson_quantile(u[1].numpy(), lam_m.numpy()))
-    # Counts per frame (a sum of Poisson counts is Poisson) for the rate decoding.
+    if cfg.spike_model == "lif":
+        sp_fine, sm_fine, fano = _lif_counts(rate_p, rate_m, sub, dt, N, cfg, gen)
+        base = cfg.spontaneous_hz
+    else:
+        hold = lambda r: r.float().repeat_interleave(sub, dim=1)  # noqa: E731  (trials, time·sub)
+        # N independent pairs at the same rate: their pooled count is Poisson with N times the rate.
+        # Each step's count is the Poisson quantile of its own uniform draw, so a step's spikes depend
+        # on its own rate only: changing later rates leaves earlier spikes unchanged (a causal simulation).
+        lam_p, lam_m = (hold(x * N).double() * (dt / sub) for x in (rate_p, rate_m))
+        u = torch.rand((2,) + tuple(lam_p.shape), generator=gen, dtype=torch.float64)
+        sp_fine = torch.as_tensor(_poisson_quantile(u[0].numpy(), lam_p.numpy()))
+        sm_fine = torch.as_tensor(_poisson_quantile(u[1].numpy(), lam_m.numpy()))
+        fano, base = [torch.ones_like(rate_p)] * 2, 0.0
+    # Counts per frame for the rate decoding.
     sp, sm = (x.reshape(trials, n, sub).sum(-1) for x in (sp_fine, sm_fine))
+    r_p, r_m = rate_p + base, rate_m + base
     if cfg.decode == "causal":
         tau_d = 0.5 * cfg.window_s
         # Exponential synaptic filter of the pooled counts (rate per neuron), then the lead τ_d·a.
         syn = lambda s: _lowpass(s / (N * dt), tau_d, dt)  # noqa: E731
         v_dec = (syn(sp) - syn(sm)) / gain + tau_d * torch.nan_to_num(a)
-        # Poisson decoding noise of that filter: var = rate_total / (2 τ_d N) (Hz²).
-        std = torch.sqrt((rate_p + rate_m) / (2.0 * tau_d * N)) / gain
+        # Decoding noise of that filter: var = Σ± F·r / (2 τ_d N) (Hz²), F the count's Fano factor:
+        # 1 for Poisson; for a renewal train CV², plus the filter's ripple on a near-regular train
+        # (a sawtooth of height 1/τ_d: variance 1/(12 τ_d²) = r/(2τ_d) · 1/(6 r τ_d)), at most 1.
+        if cfg.spike_model == "lif":
+            fano = [torch.clamp(f + 1.0 / (6.0 * r * tau_d), max=1.0) for f, r in zip(fano, (r_p, r_m))]
+        std = torch.sqrt((fano[0] * r_p + fano[1] * r_m) / (2.0 * tau_d * N)) / gain
     else:
         w = max(1, int(round(cfg.window_s / dt)))
         kern = torch.ones(1, 1, w, dtype=sp.dtype) / (w * dt * N)
         # Centred boxcar rate estimate of each spike train (looks window_s/2 ahead), then push–pull decoding.
         smooth = lambda s: torch.nn.functional.conv1d(s[:, None], kern, padding=w // 2)[:, 0, :n]  # noqa: E731
         v_dec = (smooth(sp) - smooth(sm)) / gain
-        std = torch.sqrt((rate_p + rate_m) / (w * dt * N)) / gain
+        std = torch.sqrt((fano[0] * r_p + fano[1] * r_m) / (w * dt * N)) / gain
     return dict(v_dec=v_dec, decode_std=std, spikes_plus=sp_fine, spikes_minus=sm_fine)
 
 

@@ -10,7 +10,7 @@ import torch
 
 from lobula.neurons import (
     LIFConfig, LIFNeuron, PoissonConfig, PoissonNeuron, RateNeuron, RateNeuronConfig,
-    lif_fi_curve, make_generator, naka_rushton, poisson_spikes,
+    lif_current_for_rate, lif_fi_curve, lif_isi_cv, lif_rate, make_generator, naka_rushton, poisson_spikes,
 )
 
 
@@ -80,6 +80,56 @@ def test_lif_weak_white_noise_recovers_deterministic_rate():
         rec = LIFNeuron(cfg).run(torch.full((4, n_t, 2), 3e-9, dtype=torch.float64), dt, seed=0)
         rate = rec["spikes"].sum(0) / (n_t * dt)
         assert torch.all((rate - lif_fi_curve(3e-9, cfg)).abs() <= 1.0)
+
+
+def _noisy(sd_mv):
+    """A default LIF with white noise of free-membrane SD sd_mv (mV)."""
+    return LIFConfig(noise="white", noise_std=sd_mv * 1e-3 * math.sqrt(2) / LIFConfig().R)
+
+
+def test_siegert_rate_and_cv_limits():
+    # Vanishing noise: Siegert's rate is the deterministic f-I curve and the ISI CV goes to 0
+    # linearly in σ; far below threshold the neuron cannot fire (CV 1 by convention).
+    I = np.array([1.6e-9, 2e-9, 3e-9])
+    np.testing.assert_allclose(lif_rate(I, _noisy(1e-3)), lif_fi_curve(I), rtol=1e-4)
+    cv_small, cv_smaller = lif_isi_cv(I, _noisy(1e-2)), lif_isi_cv(I, _noisy(1e-3))
+    np.testing.assert_allclose(cv_small / cv_smaller, 10.0, rtol=0.02)
+    assert np.all(cv_small < 0.01)
+    # Far below threshold firing is a rare escape: a Poisson process (CV 1), at a vanishing rate.
+    assert lif_rate(0.0, _noisy(0.5)) < 1e-20 and lif_isi_cv(0.0, _noisy(0.5)) == pytest.approx(1.0, abs=0.01)
+    assert lif_isi_cv(0.0, _noisy(2.0)) == pytest.approx(1.0, abs=0.02)
+    # Noise raises the rate most near rheobase and leaves strong drive almost unchanged.
+    gain = lif_rate(I, _noisy(3.0)) / lif_fi_curve(I)
+    assert gain[0] > 1.3 and gain[-1] < 1.02
+    with pytest.raises(ValueError, match="white-noise"):
+        lif_rate(I, LIFConfig(noise="ou", noise_std=1e-10))
+
+
+def test_noisy_lif_simulation_matches_siegert_rate_and_cv_at_1ms():
+    # 1 ms steps against τ_m = 10 ms: without the Brownian-bridge crossings the count ran
+    # 20-30 % low in the noise-driven regime (1.3 nA, ν ≈ 7 Hz); with them within ~5 %.
+    cfg = _noisy(1.0)
+    I = np.array([1.3e-9, 1.6e-9, 3e-9])
+    nu, cv = lif_rate(I, cfg), lif_isi_cv(I, cfg)
+    dt, n_t, n = 1e-3, 3000, 300
+    rec = LIFNeuron(cfg).run(torch.tensor(I).repeat(n, n_t, 1), dt, seed=4, record=("spikes", "spike_offset"))
+    sp = rec["spikes"][500:]
+    rate = sp.sum(0).mean(0).numpy() / ((n_t - 500) * dt)
+    np.testing.assert_allclose(rate, nu, rtol=0.06)
+    # ISI CV on the suprathreshold drives (spike times exact to the step at 3 nA: at most one per step).
+    for j in (1, 2):
+        isi = np.concatenate([np.diff(k * dt + rec["spike_offset"][500:, i, j][k].numpy())
+                              for i in range(n) for k in [np.flatnonzero(sp[:, i, j].numpy())]])
+        assert np.std(isi) / np.mean(isi) == pytest.approx(cv[j], rel=0.15)
+
+
+def test_lif_current_for_rate_inverts_siegert():
+    cfg = _noisy(1.0)
+    rates = np.array([20.0, 60.0, 150.0, 400.0])
+    np.testing.assert_allclose(lif_rate(lif_current_for_rate(rates, cfg), cfg), rates, rtol=2e-3)
+    assert lif_current_for_rate(0.0, LIFConfig()) == pytest.approx(LIFConfig().rheobase)
+    with pytest.raises(ValueError, match="rates must lie"):
+        lif_current_for_rate(1.0 / cfg.t_ref, cfg)
 
 
 def test_lif_refractory_clamp():

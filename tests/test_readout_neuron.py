@@ -106,3 +106,30 @@ def test_spiking_output_decodes_causally_with_its_stated_noise():
     sel = t2 > 2
     bias = lambda o: float(np.mean(o["v_dec"][sel] - v2[sel]))  # noqa: E731
     assert bias(lagged) < -0.012 and abs(bias(ramp)) < 0.5 * abs(bias(lagged))
+
+
+def test_lif_output_neurons_decode_with_their_stated_sub_poisson_noise():
+    import pytest
+    from lobula.readout_neuron import spiking_output
+
+    t = np.arange(0, 12, 1 / 50)
+    v = np.where(t < 6, 0.5, -0.3)
+    a = np.zeros_like(t)
+    lif = spiking_output(t, v, a, ReadoutNeuronConfig(spiking=True, population=10, seed=1, spike_model="lif"))
+    poi = spiking_output(t, v, a, ReadoutNeuronConfig(spiking=True, population=10, seed=1))
+    for sel, val in (((t > 1) & (t < 6), 0.5), (t > 7, -0.3)):
+        err = lif["v_dec"][sel] - val
+        # Unbiased: the currents come from Siegert's rate with the membrane noise, and the
+        # spontaneous rate both neurons of a pair share cancels in the push-pull difference.
+        assert abs(err.mean()) < 0.01
+        assert 0.7 < err.std() / lif["decode_std"][sel].mean() < 1.4
+        # A driven LIF fires nearly regularly: its count noise is a fraction of a Poisson count's.
+        assert err.std() < 0.5 * (poi["v_dec"][sel] - val).std()
+    # Causal: changing the future leaves the past's spikes unchanged (same seed).
+    v2 = v.copy()
+    v2[t > 9] = 1.0
+    lif2 = spiking_output(t, v2, a, ReadoutNeuronConfig(spiking=True, population=10, seed=1, spike_model="lif"))
+    past = t < 9
+    np.testing.assert_array_equal(lif2["v_dec"][past], lif["v_dec"][past])
+    with pytest.raises(ValueError, match="spike_model"):
+        ReadoutNeuronConfig(spike_model="izhikevich")
