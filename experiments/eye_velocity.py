@@ -53,8 +53,10 @@ class EyeVelocityConfig:
     neuron fires nearly regularly (H1: de Ruyter van Steveninck et al. 1997), and Poisson trains
     — the earlier default, ``--spike-model poisson`` — made the output's count noise most of the
     spiking error (dev eye worlds, seeds 100–103, 10 pairs: panels 0.045 → 0.040, corridor
-    0.043 → 0.022 m/s, against the rates' 0.034 / 0.018; rotation unchanged at 0.19). A
-    configuration written before this field reads as Poisson.
+    0.043 → 0.022 m/s, against the rates' 0.034 / 0.018; rotation unchanged at 0.19). They are
+    driven by v̂ phase-advanced by the decoder's own filter (``lead="encoder"``), so the decoder
+    needs no accelerometer (the same worlds: panels 0.040 → 0.038, corridor 0.021 → 0.019).
+    Configurations written before these fields read as Poisson with the haltere lead.
     settle_s: LC output the readout ignores at the start while the circuit's filters leave their
     resting state (None: :meth:`settle_time`'s default, 0.09 s for the default circuit).
     uncertainty: what ``v_std`` states for the "kalman" and "spikes" readouts. "posterior": the
@@ -95,7 +97,7 @@ class EyeVelocityConfig:
     0.2328 / 0.2330 unchanged. So False (default): the bound only where the image is frozen
     (depth bound 10⁶ m), elsewhere at rest v̂ rests on the accelerometer and the readout says
     when it cannot tell (NaN); True: the bound as for the camera.
-    lead_offset_tau_s: the spiking decoder's haltere lead τ_d·a uses the accelerometer less the
+    lead_offset_tau_s: with ``neuron.lead="haltere"``, the spiking decoder's lead τ_d·a uses the accelerometer less the
     offset the readout's v̂ implies (:func:`readout_offset`, running mean over this time constant, s);
     0: the raw accelerometer. Measured on the dev worlds (seeds 7, 8, 100): where the start's offset
     is large (panels 7, 0.6 m/s²) spikes 0.134 → 0.098 m/s (rates 0.093); elsewhere within ±0.02.
@@ -145,7 +147,7 @@ class EyeVelocityConfig:
     accel_from_truth: bool = False
     readout_kind: str = "kalman"
     neuron: ReadoutNeuronConfig = field(default_factory=lambda: ReadoutNeuronConfig(spiking=True, population=10,
-                                                                                 spike_model="lif"))
+                                                                                 spike_model="lif", lead="encoder"))
     settle_s: float | None = None
     uncertainty: str = "halves"
     split_tau_s: float = 1.0
@@ -410,7 +412,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
                 f" and the {SPIKE_MODELS[cfg.neuron.spike_model]} count noise of the spike decoding"
             method = (f"{cfg.readout.method}, carried by {cfg.neuron.population} push-pull "
                       f"{SPIKE_MODELS[cfg.neuron.spike_model]} output neuron pairs "
-                      f"({cfg.neuron.gain_hz_per_m_s:g} Hz per m/s), causal decoding")
+                      f"({cfg.neuron.gain_hz_per_m_s:g} Hz per m/s), causal decoding, {cfg.neuron.lead} lead")
     t_readout = _time.perf_counter() - t1
     f = circ.fields
     keep = np.flatnonzero(f.eye == 0) if rho.shape[1] != f.n_fields else np.arange(f.n_fields)

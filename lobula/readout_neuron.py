@@ -75,6 +75,12 @@ class ReadoutNeuronConfig:
         0.23 / 0.12 / 0.06 at 37 / 64 / 112 Hz (:func:`lobula.neurons.lif_isi_cv`).
     spontaneous_hz: the LIF output neurons' rate at v̂ = 0 (both of a pair; the push–pull
         difference cancels it): a noisy neuron cannot be held exactly at zero rate.
+    lead: how the causal decoding's lag τ_d is made up. "haltere": the decoder adds τ_d·a
+        (first order: on a changing acceleration, or with an accelerometer error, it leaves an
+        error). "encoder": the output neurons are driven by v̂ phase-advanced by the decoder's
+        own filter, v̂_k + α/(1 − α)·(v̂_k − v̂_{k−1}), α = e^{−dt/τ_d} — a derivative component such
+        as spike-frequency adaptation gives a neuron's response — so the synaptic filter returns
+        v̂ itself, with no acceleration at the decoder.
     spike_dt_s: the spike generator's step (s): each frame's rate is held over the frame and
         Poisson spikes are drawn every ``spike_dt_s`` (rounded to a whole number of steps per
         frame), so spike times resolve 1 ms rather than the 33 ms frame interval.
@@ -101,12 +107,17 @@ class ReadoutNeuronConfig:
     spike_model: str = "poisson"
     membrane_noise_mv: float = 1.0
     spontaneous_hz: float = 20.0
+    lead: str = "haltere"
 
     def __post_init__(self):
         if self.decode not in ("causal", "centred"):
             raise ValueError(f"decode must be 'causal' or 'centred', got {self.decode!r}")
         if not (isinstance(self.population, (int, np.integer)) and self.population >= 1):
             raise ValueError(f"population must be a positive integer, got {self.population!r}")
+        if self.lead not in ("haltere", "encoder"):
+            raise ValueError(f"lead must be 'haltere' or 'encoder', got {self.lead!r}")
+        if self.lead == "encoder" and self.decode != "causal":
+            raise ValueError("lead='encoder' inverts the causal decoder's filter; it needs decode='causal'")
         if self.spike_model not in SPIKE_MODELS:
             raise ValueError(f"spike_model must be one of {tuple(SPIKE_MODELS)}, got {self.spike_model!r}")
         for name in ("membrane_noise_mv", "spontaneous_hz"):
@@ -227,9 +238,23 @@ def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float,
     return counts[..., :N].sum(-1), counts[..., N:].sum(-1), [torch.as_tensor(f) for f in fano]
 
 
+def phase_advance(v: torch.Tensor, tau: float, dt: float) -> torch.Tensor:
+    """v (trials, time) phase-advanced so that the causal low-pass of time constant ``tau`` (s)
+    returns it exactly: x_k = v_k + α/(1 − α)·(v_k − v_{k−1}), α = e^{−dt/τ} — the inverse of
+    y_k = α·y_{k−1} + (1 − α)·x_k. Causal (v_{k−1} and v_k only). Where v_{k−1} is NaN (the
+    estimate has just become available) the step adds nothing: a decoded value then rises from
+    its resting level with the filter's own τ."""
+    alpha = float(np.exp(-dt / tau))
+    prev = torch.cat([v[:, :1], v[:, :-1]], dim=1)
+    step = torch.where(torch.isfinite(prev), v - prev, torch.zeros_like(v))
+    return v + alpha / (1.0 - alpha) * step
+
+
 def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfig) -> dict:
     """Push–pull spiking output neurons for v (trials, time) m/s (NaN: silent), decoded back (see 5–6)."""
     gain = cfg.gain_hz_per_m_s
+    if cfg.lead == "encoder":
+        v = phase_advance(v, 0.5 * cfg.window_s, dt)
     v = torch.nan_to_num(v)
     rate_p, rate_m = gain * v.clamp_min(0), gain * (-v).clamp_min(0)
     trials, n = v.shape
@@ -256,7 +281,9 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
         tau_d = 0.5 * cfg.window_s
         # Exponential synaptic filter of the pooled counts (rate per neuron), then the lead τ_d·a.
         syn = lambda s: _lowpass(s / (N * dt), tau_d, dt)  # noqa: E731
-        v_dec = (syn(sp) - syn(sm)) / gain + tau_d * torch.nan_to_num(a)
+        v_dec = (syn(sp) - syn(sm)) / gain
+        if cfg.lead == "haltere":
+            v_dec = v_dec + tau_d * torch.nan_to_num(a)
         # Decoding noise of that filter: var = Σ± F·r / (2 τ_d N) (Hz²), F the count's Fano factor:
         # 1 for Poisson; for a renewal train CV², plus the filter's ripple on a near-regular train
         # (a sawtooth of height 1/τ_d: variance 1/(12 τ_d²) = r/(2τ_d) · 1/(6 r τ_d)), at most 1.

@@ -133,3 +133,23 @@ def test_lif_output_neurons_decode_with_their_stated_sub_poisson_noise():
     np.testing.assert_array_equal(lif2["v_dec"][past], lif["v_dec"][past])
     with pytest.raises(ValueError, match="spike_model"):
         ReadoutNeuronConfig(spike_model="izhikevich")
+
+
+def test_encoder_lead_makes_the_synaptic_filter_return_the_estimate_without_acceleration():
+    import torch
+
+    from lobula.readout_neuron import _lowpass, phase_advance, spiking_output
+
+    # Known answer: the phase advance is the exact inverse of the decoder's discrete low-pass.
+    t = np.arange(0, 10, 1 / 50)
+    v = 0.6 + 0.4 * np.sin(2 * np.pi * 0.4 * t)
+    x = phase_advance(torch.tensor(v)[None], 0.1, 1 / 50)
+    np.testing.assert_allclose(_lowpass(x, 0.1, 1 / 50)[0].numpy(), v, atol=1e-12)
+    # On a ramp, with no acceleration given: the haltere lead has nothing to add and lags by
+    # τ_d·slope (0.02 m/s); the encoder's lead does not lag.
+    ramp = 0.2 + 0.2 * t
+    cfg = dict(spiking=True, population=30, seed=2)
+    bias = lambda o: float(np.mean(o["v_dec"][t > 2] - ramp[t > 2]))  # noqa: E731
+    lagged = spiking_output(t, ramp, np.zeros_like(t), ReadoutNeuronConfig(**cfg))
+    led = spiking_output(t, ramp, np.zeros_like(t), ReadoutNeuronConfig(lead="encoder", **cfg))
+    assert bias(lagged) < -0.015 and abs(bias(led)) < 0.2 * abs(bias(lagged))
