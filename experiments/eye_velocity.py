@@ -52,11 +52,12 @@ class EyeVelocityConfig:
     integrate-and-fire neurons with 1 mV membrane noise (``spike_model="lif"``): a driven fly
     neuron fires nearly regularly (H1: de Ruyter van Steveninck et al. 1997), and Poisson trains
     — the earlier default, ``--spike-model poisson`` — made the output's count noise most of the
-    spiking error (dev eye worlds, seeds 100–103, 10 pairs: panels 0.045 → 0.040, corridor
-    0.043 → 0.022 m/s, against the rates' 0.034 / 0.018; rotation unchanged at 0.19). They are
-    driven by v̂ phase-advanced by the decoder's own filter (``lead="encoder"``), so the decoder
-    needs no accelerometer (the same worlds: panels 0.040 → 0.038, corridor 0.021 → 0.019).
-    Configurations written before these fields read as Poisson with the haltere lead.
+    spiking error. They are driven by v̂ phase-advanced by the decoder's own filter
+    (``lead="encoder"``), so the decoder needs no accelerometer and its lag is made up exactly,
+    lock-on included. Dev eye worlds (seeds 100–103, 10 pairs), Poisson with the haltere lead →
+    LIF with the encoder lead: panels 0.045 → 0.036, corridor 0.041 → 0.016 m/s, against the
+    rates' 0.035 / 0.015. Configurations written before these fields read as Poisson with the
+    haltere lead.
     settle_s: LC output the readout ignores at the start while the circuit's filters leave their
     resting state (None: :meth:`settle_time`'s default, 0.09 s for the default circuit).
     uncertainty: what ``v_std`` states for the "kalman" and "spikes" readouts. "posterior": the

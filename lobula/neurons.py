@@ -396,6 +396,9 @@ def lif_isi_cv(current, config: LIFConfig | None = None, nodes: int = 600):
     I = np.asarray(current, dtype=float)
     if _white_sigma(c) == 0:
         return np.where(lif_fi_curve(I, c) > 0, 0.0, 1.0)
+    if I.size > 16:   # the inner integral holds (entries, nodes, 200) values: bound its memory
+        flat = I.ravel()
+        return np.concatenate([lif_isi_cv(flat[i:i + 16], c, nodes) for i in range(0, flat.size, 16)]).reshape(I.shape)
     x, ok = _siegert_nodes(I, c, nodes)
     # Everything is scaled by e^{−Y}, Y = max(y_θ, 0)² (the integrands grow like e^{u²} up to y_θ),
     # and e^{x²} is taken inside the inner integral, so nothing over- or underflows:

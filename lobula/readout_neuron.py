@@ -42,6 +42,7 @@ circuit form, batched over trials in torch:
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from functools import lru_cache
 
 import numpy as np
 import torch
@@ -73,8 +74,11 @@ class ReadoutNeuronConfig:
         a Poisson count at high rates (de Ruyter van Steveninck et al. 1997, Science 275:1805).
     membrane_noise_mv: the LIF output neurons' free-membrane noise SD (mV): 1 mV gives an ISI CV of
         0.23 / 0.12 / 0.06 at 37 / 64 / 112 Hz (:func:`lobula.neurons.lif_isi_cv`).
-    spontaneous_hz: the LIF output neurons' rate at v̂ = 0 (both of a pair; the push–pull
-        difference cancels it): a noisy neuron cannot be held exactly at zero rate.
+    spontaneous_hz: the LIF output neurons' mean rate at v̂ = 0 (both of a pair; the push–pull
+        difference cancels it). 0 (default): the idle neuron of a pair is silent (no current:
+        15 mV below threshold, where 1 mV of noise fires it at ~1e-47 Hz). A spontaneous rate
+        adds that neuron's irregular firing to the decoding noise (20 Hz: 0.005 → 0.010 m/s for
+        10 pairs at 0.6 ± 0.5 m/s).
     lead: how the causal decoding's lag τ_d is made up. "haltere": the decoder adds τ_d·a
         (first order: on a changing acceleration, or with an accelerometer error, it leaves an
         error). "encoder": the output neurons are driven by v̂ phase-advanced by the decoder's
@@ -106,7 +110,7 @@ class ReadoutNeuronConfig:
     population: int = 1
     spike_model: str = "poisson"
     membrane_noise_mv: float = 1.0
-    spontaneous_hz: float = 20.0
+    spontaneous_hz: float = 0.0
     lead: str = "haltere"
 
     def __post_init__(self):
@@ -206,11 +210,23 @@ def output_lif(cfg: ReadoutNeuronConfig) -> LIFConfig:
 def _lif_table(cfg: ReadoutNeuronConfig):
     """Rates (Hz) from the spontaneous rate to 95 % of the refractory limit, the currents (A)
     that give them and the ISI CV there: interpolated per step instead of solved per step."""
-    lif = output_lif(cfg)
-    rates = cfg.spontaneous_hz + np.geomspace(1e-3, 0.95 / lif.t_ref - cfg.spontaneous_hz, 96)
-    rates = np.concatenate([[cfg.spontaneous_hz], rates])
+    return _lif_table_cached(cfg.membrane_noise_mv, cfg.spontaneous_hz)
+
+
+@lru_cache(maxsize=8)
+def _lif_table_cached(membrane_noise_mv: float, spontaneous_hz: float):
+    lif = output_lif(ReadoutNeuronConfig(membrane_noise_mv=membrane_noise_mv))
+    top = 0.95 / lif.t_ref
+    # Every 1 Hz over the range (the current's curve bends most at high rates: a coarse table
+    # there misplaces the rate by a few Hz, i.e. a bias of 0.01 m/s at 200 Hz per m/s), finer
+    # just above the spontaneous rate.
+    above = np.concatenate([np.geomspace(1e-3, 1.0, 12, endpoint=False), np.arange(1.0, top - spontaneous_hz, 1.0)])
+    rates = np.concatenate([[spontaneous_hz], spontaneous_hz + above])
     current = lif_current_for_rate(rates, lif)
-    return lif, rates, current, lif_isi_cv(current, lif)
+    # The CV changes slowly with the rate (it only sets the stated noise): computed at 48 rates.
+    coarse = np.unique(np.geomspace(1, len(rates), 48).astype(int) - 1)
+    cv = np.interp(rates, rates[coarse], lif_isi_cv(current[coarse], lif))
+    return lif, rates, current, cv
 
 
 def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float, N: int,
@@ -238,23 +254,30 @@ def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float,
     return counts[..., :N].sum(-1), counts[..., N:].sum(-1), [torch.as_tensor(f) for f in fano]
 
 
-def phase_advance(v: torch.Tensor, tau: float, dt: float) -> torch.Tensor:
-    """v (trials, time) phase-advanced so that the causal low-pass of time constant ``tau`` (s)
-    returns it exactly: x_k = v_k + α/(1 − α)·(v_k − v_{k−1}), α = e^{−dt/τ} — the inverse of
-    y_k = α·y_{k−1} + (1 − α)·x_k. Causal (v_{k−1} and v_k only). Where v_{k−1} is NaN (the
-    estimate has just become available) the step adds nothing: a decoded value then rises from
-    its resting level with the filter's own τ."""
+def phase_advance(v: torch.Tensor, tau: float, dt: float, limit: float = float("inf")) -> torch.Tensor:
+    """The drive x (trials, time) whose causal low-pass of time constant ``tau`` (s) returns v
+    (trials, time; NaN: the neurons silent, decoding 0): x_0 = v_0, x_k = (v_k − α·y_{k−1})/(1 − α),
+    α = e^{−dt/τ}, y the low-pass's own state — the inverse of y_k = α·y_{k−1} + (1 − α)·x_k,
+    i.e. x_k = v_k + α/(1 − α)·(v_k − v_{k−1}) while nothing saturates. |x| ≤ ``limit`` (the
+    output neurons' largest rate, in the units of v); a clipped step is made up in the next
+    ones, since y is the state the clipped drive leaves. Causal: x_k depends on v up to k."""
     alpha = float(np.exp(-dt / tau))
-    prev = torch.cat([v[:, :1], v[:, :-1]], dim=1)
-    step = torch.where(torch.isfinite(prev), v - prev, torch.zeros_like(v))
-    return v + alpha / (1.0 - alpha) * step
+    target = torch.nan_to_num(v)
+    x = torch.empty_like(target)
+    # The decoder's low-pass starts at its first input (:func:`_lowpass`), so x_0 = v_0.
+    x[:, 0] = y = target[:, 0].clamp(-limit, limit)
+    for k in range(1, target.shape[1]):  # the decoder's state evolves in time; trials are batched
+        x[:, k] = ((target[:, k] - alpha * y) / (1.0 - alpha)).clamp(-limit, limit)
+        y = alpha * y + (1.0 - alpha) * x[:, k]
+    return x
 
 
 def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfig) -> dict:
     """Push–pull spiking output neurons for v (trials, time) m/s (NaN: silent), decoded back (see 5–6)."""
     gain = cfg.gain_hz_per_m_s
     if cfg.lead == "encoder":
-        v = phase_advance(v, 0.5 * cfg.window_s, dt)
+        top = _lif_table(cfg)[1][-1] - cfg.spontaneous_hz if cfg.spike_model == "lif" else float("inf")
+        v = phase_advance(v, 0.5 * cfg.window_s, dt, top / gain)
     v = torch.nan_to_num(v)
     rate_p, rate_m = gain * v.clamp_min(0), gain * (-v).clamp_min(0)
     trials, n = v.shape

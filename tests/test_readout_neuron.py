@@ -119,8 +119,7 @@ def test_lif_output_neurons_decode_with_their_stated_sub_poisson_noise():
     poi = spiking_output(t, v, a, ReadoutNeuronConfig(spiking=True, population=10, seed=1))
     for sel, val in (((t > 1) & (t < 6), 0.5), (t > 7, -0.3)):
         err = lif["v_dec"][sel] - val
-        # Unbiased: the currents come from Siegert's rate with the membrane noise, and the
-        # spontaneous rate both neurons of a pair share cancels in the push-pull difference.
+        # Unbiased: the currents come from Siegert's rate with the membrane noise included.
         assert abs(err.mean()) < 0.01
         assert 0.7 < err.std() / lif["decode_std"][sel].mean() < 1.4
         # A driven LIF fires nearly regularly: its count noise is a fraction of a Poisson count's.
@@ -145,6 +144,14 @@ def test_encoder_lead_makes_the_synaptic_filter_return_the_estimate_without_acce
     v = 0.6 + 0.4 * np.sin(2 * np.pi * 0.4 * t)
     x = phase_advance(torch.tensor(v)[None], 0.1, 1 / 50)
     np.testing.assert_allclose(_lowpass(x, 0.1, 1 / 50)[0].numpy(), v, atol=1e-12)
+    # Lock-on (NaN: silent neurons, decoding 0, then 0.8 m/s): the jump is delivered at once, or,
+    # with the neurons' largest rate as a limit, made up over the next steps — not over τ_d's ramp.
+    lock = torch.tensor(np.where(t < 2, np.nan, 0.8))[None]
+    free = _lowpass(phase_advance(lock, 0.1, 1 / 50), 0.1, 1 / 50)[0].numpy()
+    np.testing.assert_allclose(free[t >= 2], 0.8, atol=1e-12)
+    x_lim = phase_advance(lock, 0.1, 1 / 50, limit=2.0)
+    capped = _lowpass(x_lim, 0.1, 1 / 50)[0].numpy()
+    assert x_lim.abs().max() <= 2.0 and abs(capped[np.searchsorted(t, 2.1)] - 0.8) < 0.01
     # On a ramp, with no acceleration given: the haltere lead has nothing to add and lags by
     # τ_d·slope (0.02 m/s); the encoder's lead does not lag.
     ramp = 0.2 + 0.2 * t
