@@ -2,8 +2,9 @@
 
 ``eye_rate_vs_spiking`` — on the worlds' families (panels, rotation, corridor; seeds 0–2, 10 s):
 the causal velocity RMSE of the eye's circuit read out by (i) the arithmetic readout's rates,
-(ii) the same v̂ carried by N push–pull output-neuron pairs — Poisson (N = 1, 3, 10, 30) or leaky
-integrate-and-fire (N = 1, 10; the eye's default) — and decoded causally, (iii) the shunting
+(ii) the same v̂ carried by the eye's N push–pull output-neuron pairs (encoder lead) — Poisson
+(N = 1, 3, 10, 30) or leaky integrate-and-fire (N = 1, 10; the eye's default) — and decoded
+causally, (iii) the shunting
 readout neuron (rates and LIF spikes), beside causal DIS on the
 D435i camera (same world and trajectory) and the zero estimator. Renders are cached in the
 work folder (:func:`experiments.eye_velocity.eye_benchmark`'s layout: ``FAMILY-SEED-eye`` and
@@ -13,6 +14,7 @@ work folder (:func:`experiments.eye_velocity.eye_benchmark`'s layout: ``FAMILY-S
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -92,7 +94,6 @@ def rate_vs_spiking_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), populat
     zero estimator as for the rotation world: the same world and trajectory)."""
     from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
     from experiments.velocity import score
-    from lobula.readout_neuron import ReadoutNeuronConfig
     from stimuli.eye import open_eye_footage
 
     dis = ensure_runs(workdir, families, seeds)
@@ -109,15 +110,16 @@ def rate_vs_spiking_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), populat
             t0 = time.perf_counter()
             ds = estimate_eye_velocity(fo, EyeVelocityConfig())
             rows.setdefault("rate (arithmetic readout)", []).append(score(ds)["rmse_m_s"])
+            # The eye's output neurons (encoder lead), their spike model and number varied.
+            neuron = EyeVelocityConfig().neuron
             for model, pops in (("poisson", populations), ("lif", lif_populations)):
                 for n in pops:
-                    c = EyeVelocityConfig(readout_kind="spikes", neuron=ReadoutNeuronConfig(
-                        spiking=True, population=n, seed=seed, spike_model=model))
+                    c = EyeVelocityConfig(readout_kind="spikes", neuron=replace(
+                        neuron, spiking=True, population=n, seed=seed, spike_model=model))
                     rows.setdefault(f"spikes ({SPIKE_LABEL[model]}), {n} pair{'s' if n > 1 else ''}", []).append(
                         score(estimate_eye_velocity(fo, c))["rmse_m_s"])
             for spk in (False, True):
-                c = EyeVelocityConfig(readout_kind="neuron",
-                                      neuron=ReadoutNeuronConfig(spiking=spk, population=10, seed=seed, spike_model="lif"))
+                c = EyeVelocityConfig(readout_kind="neuron", neuron=replace(neuron, spiking=spk, seed=seed))
                 rows.setdefault(f"readout neuron ({'LIF spikes, 10 pairs' if spk else 'rate'})", []).append(
                     score(estimate_eye_velocity(fo, c))["rmse_m_s"])
             keep = ds.time.values >= ds.time.values[0] + 2.0
