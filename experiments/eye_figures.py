@@ -4,9 +4,7 @@
 the causal velocity RMSE of the eye's circuit read out by (i) the arithmetic readout's rates,
 (ii) the same v̂ carried by the eye's N push–pull output-neuron pairs (encoder lead) — Poisson
 (N = 1, 3, 10, 30) or leaky integrate-and-fire (N = 1, 10; the eye's default) — and decoded
-causally, (iii) the shunting
-readout neuron (rates and LIF spikes), beside causal DIS on the
-D435i camera (same world and trajectory) and the zero estimator. Renders are cached in the
+causally, (iii) the shunting readout neuron (rates and LIF spikes), beside causal DIS on the D435i camera (same world and trajectory) and the zero estimator. Renders are cached in the
 work folder (:func:`experiments.eye_velocity.eye_benchmark`'s layout: ``FAMILY-SEED-eye`` and
 ``FAMILY-SEED-cam``); rendering them is the cost (CPU-minutes per run), the figure itself takes
 ~1 min on cached renders.

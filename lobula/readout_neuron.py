@@ -26,16 +26,19 @@ circuit form, batched over trials in torch:
    acceleration between informative moments and is pulled toward vision in
    proportion to the shunting conductance. Its confidence c (a low-pass of κ)
    says when v̂ is observable.
-5. **Output**: a push–pull pair of rate neurons r± = gain·[±v̂]₊ (Hz), or Poisson
-   spikes from them (each step's count the Poisson quantile of its own uniform draw), decoded back by
+5. **Output**: a push–pull pair of rate neurons r± = gain·[±v̂]₊ (Hz), or spikes from them —
+   Poisson (each step's count the Poisson quantile of its own uniform draw) or leaky
+   integrate-and-fire neurons with membrane noise (``spike_model="lif"``) — decoded back by
    (r₊ − r₋)/gain, so rate and spiking readouts are compared on the same input.
    ``population`` independent push–pull pairs share the rate (a small population of
    descending neurons read together); their spikes are pooled.
 6. **Decoding spikes, causally** (``decode="causal"``, the default): each spike train passes
    an exponential synaptic filter of time constant τ_d = window_s/2 (a postsynaptic
-   neuron's rate estimate: no look-ahead). It lags v̂ by τ_d, so the haltere's
-   acceleration adds the first-order lead τ_d·a (as in 3). Its Poisson noise is
-   ``decode_std`` = √((r₊ + r₋)/(2τ_d·population))/gain (m/s): the decoding's own
+   neuron's rate estimate: no look-ahead). It lags v̂ by τ_d: the haltere's acceleration adds
+   the first-order lead τ_d·a (as in 3; ``lead="haltere"``), or the output neurons are driven
+   by v̂ phase-advanced by that filter (``lead="encoder"``, :func:`phase_advance`), which it
+   then returns exactly. Its count noise is ``decode_std`` = √(Σ± F·r±/(2τ_d·population))/gain
+   (m/s; F = 1 for Poisson, the LIF's ISI CV² plus the filter's ripple): the decoding's own
    uncertainty, not the estimate's model error. ``decode="centred"`` is the earlier
    centred boxcar of window_s (it sees window_s/2 ahead: not causal; for comparison only).
 """
@@ -82,9 +85,10 @@ class ReadoutNeuronConfig:
     lead: how the causal decoding's lag τ_d is made up. "haltere": the decoder adds τ_d·a
         (first order: on a changing acceleration, or with an accelerometer error, it leaves an
         error). "encoder": the output neurons are driven by v̂ phase-advanced by the decoder's
-        own filter, v̂_k + α/(1 − α)·(v̂_k − v̂_{k−1}), α = e^{−dt/τ_d} — a derivative component such
-        as spike-frequency adaptation gives a neuron's response — so the synaptic filter returns
-        v̂ itself, with no acceleration at the decoder.
+        own filter (:func:`phase_advance`: v̂_k + α/(1 − α)·(v̂_k − v̂_{k−1}), α = e^{−dt/τ_d}, while
+        nothing saturates) — a derivative component such as spike-frequency adaptation gives a
+        neuron's response — so the synaptic filter returns v̂ itself, lock-on included, with no
+        acceleration at the decoder.
     spike_dt_s: the spike generator's step (s): each frame's rate is held over the frame and
         Poisson spikes are drawn every ``spike_dt_s`` (rounded to a whole number of steps per
         frame), so spike times resolve 1 ms rather than the 33 ms frame interval.
