@@ -204,22 +204,17 @@ def _poisson_quantile(u: np.ndarray, lam: np.ndarray) -> np.ndarray:
     return np.where(lam > 0, poisson.ppf(u, np.maximum(lam, 1e-300)), 0.0)
 
 
-def output_lif(cfg: ReadoutNeuronConfig) -> LIFConfig:
+def output_lif(membrane_noise_mv: float) -> LIFConfig:
     """The LIF output neurons' parameters: Dayan & Abbott's defaults, white noise of
     ``membrane_noise_mv`` free-membrane SD (R·σ_I/√2, :class:`lobula.neurons.LIFConfig`)."""
-    base = LIFConfig()
-    return LIFConfig(noise="white", noise_std=cfg.membrane_noise_mv * 1e-3 * np.sqrt(2.0) / base.R)
-
-
-def _lif_table(cfg: ReadoutNeuronConfig):
-    """Rates (Hz) from the spontaneous rate to 95 % of the refractory limit, the currents (A)
-    that give them and the ISI CV there: interpolated per step instead of solved per step."""
-    return _lif_table_cached(cfg.membrane_noise_mv, cfg.spontaneous_hz)
+    return LIFConfig(noise="white", noise_std=membrane_noise_mv * 1e-3 * np.sqrt(2.0) / LIFConfig().R)
 
 
 @lru_cache(maxsize=8)
-def _lif_table_cached(membrane_noise_mv: float, spontaneous_hz: float):
-    lif = output_lif(ReadoutNeuronConfig(membrane_noise_mv=membrane_noise_mv))
+def _lif_table(membrane_noise_mv: float, spontaneous_hz: float):
+    """Rates (Hz) from the spontaneous rate to 95 % of the refractory limit, the currents (A)
+    that give them and the ISI CV there: interpolated per step instead of solved per step."""
+    lif = output_lif(membrane_noise_mv)
     top = 0.95 / lif.t_ref
     # Every 1 Hz over the range (the current's curve bends most at high rates: a coarse table
     # there misplaces the rate by a few Hz, i.e. a bias of 0.01 m/s at 200 Hz per m/s), finer
@@ -238,10 +233,10 @@ def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float,
     """Pooled spike counts per generator step (trials, time·sub) of N + and N − LIF output
     neurons firing at spontaneous_hz + rate± on average; and the Fano factors of their decoded
     rate (trials, time) each. Rates above 95 % of 1/t_ref saturate there."""
-    lif, rates, current, cv = _lif_table(cfg)
-    top = float(rates[-1])
+    lif, rates, current, cv = _lif_table(cfg.membrane_noise_mv, cfg.spontaneous_hz)
     trials, n = rate_p.shape
-    drive = [np.interp(np.minimum(cfg.spontaneous_hz + r.numpy(), top), rates, current) for r in (rate_p, rate_m)]
+    target = [np.minimum(cfg.spontaneous_hz + r.numpy(), rates[-1]) for r in (rate_p, rate_m)]
+    drive = [np.interp(r, rates, current) for r in target]
     # (trials, time, 2N): the first N neurons carry +, the last N carry −.
     I = torch.as_tensor(np.concatenate([np.repeat(d[..., None], N, -1) for d in drive], -1))
     # Membranes start at independent random points between reset and threshold, so the
@@ -254,8 +249,8 @@ def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float,
     for k in range(n * sub):  # the membranes evolve in time; trials and neurons are batched
         state = lif_step(state, I[:, k // sub], h, lif, gen)
         counts[:, k] = state.spikes
-    fano = [np.interp(np.minimum(cfg.spontaneous_hz + r.numpy(), top), rates, cv ** 2) for r in (rate_p, rate_m)]
-    return counts[..., :N].sum(-1), counts[..., N:].sum(-1), [torch.as_tensor(f) for f in fano]
+    fano = [torch.as_tensor(np.interp(r, rates, cv ** 2)) for r in target]
+    return counts[..., :N].sum(-1), counts[..., N:].sum(-1), fano
 
 
 def phase_advance(v: torch.Tensor, tau: float, dt: float, limit: float = float("inf")) -> torch.Tensor:
@@ -280,7 +275,8 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
     """Push–pull spiking output neurons for v (trials, time) m/s (NaN: silent), decoded back (see 5–6)."""
     gain = cfg.gain_hz_per_m_s
     if cfg.lead == "encoder":
-        top = _lif_table(cfg)[1][-1] - cfg.spontaneous_hz if cfg.spike_model == "lif" else float("inf")
+        top = (_lif_table(cfg.membrane_noise_mv, cfg.spontaneous_hz)[1][-1] - cfg.spontaneous_hz
+               if cfg.spike_model == "lif" else float("inf"))
         v = phase_advance(v, 0.5 * cfg.window_s, dt, top / gain)
     v = torch.nan_to_num(v)
     rate_p, rate_m = gain * v.clamp_min(0), gain * (-v).clamp_min(0)
