@@ -234,8 +234,7 @@ def compare_front_ends(footage: Footage | str | Path, front_ends=DEFAULT_FRONT_E
             notes.append("flo skipped: no .flo files given (--flo FILE_OR_DIR)")
             say(notes[-1])
             continue
-        cfg = copy.deepcopy(base)
-        cfg.front_end = fe
+        cfg = base.for_front_end(fe)
         say(f"{fe}: estimating velocity on {len(footage)} frames")
         try:
             ds = estimate_velocity(footage, cfg, progress=progress,

@@ -402,6 +402,9 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                       flo_files: list[Path] | None = None, flo_units: FloUnits | None = None) -> xr.Dataset:
     """Estimate forward velocity over a footage; returns the velocity Dataset (see module doc)."""
     config = config or VelocityConfig()
+    if config.front_end == "emd" and config.epipole == "estimate":
+        raise ValueError("the EMD front end has no epipole estimate (its fields expand about the principal "
+                         "point); use epipole 'principal' (--epipole principal) or a flow front end")
     t_start = _time.perf_counter()
     rates = field_rates(footage, config, flo_files, flo_units, progress)
     causal = config.readout.filter == "causal"
@@ -502,7 +505,12 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     filt = config.readout.filter + (f", fixed lag {lag:g} s" if lag else "")
     if online:
         filt += f" (each v_hat known {online['output_latency_s']:g} s after its time)"
+    gyro = footage.imu is not None and footage.imu.gyro is not None
+    derotation = ("none: the EMD front end's responses are not derotated (the gyro serves the accelerometer's "
+                  "attitude only)" if config.front_end == "emd" else
+                  "exact finite rotation from the integrated gyro" if config.derotate and gyro else "none")
     ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=filt, **online,
+                               derotation=derotation, epipole=config.epipole,
                                readout=config.readout.method, acceleration_source=accel_source,
                                footage=str(footage.path), footage_kind=footage.kind,
                                notes="; ".join(footage.notes) or "none",

@@ -5,6 +5,7 @@ says exactly how it was made; :meth:`VelocityConfig.from_json` rebuilds the run.
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
@@ -38,8 +39,12 @@ class VelocityConfig:
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
-    emd: the EMD front end (lattice, photoreceptors, EMD, decoding) when front_end is "emd";
-    its epipole is the principal point (the EMD path does not estimate one yet).
+    emd: the EMD front end (lattice, photoreceptors, EMD, decoding) when front_end is "emd".
+    Its epipole is the principal point (the EMD path has no estimate: a configuration made for it
+    with the default "estimate" records "principal", what runs, and asking for "estimate" with it
+    fails in :func:`experiments.velocity.estimate_velocity`), and its responses are not derotated:
+    there ``derotate`` only gives the gyro to the accelerometer's attitude (gravity removal), the
+    readout's offset axis and transport term (the output's ``derotation`` attribute says so).
     """
 
     front_end: str = "dis"
@@ -55,6 +60,8 @@ class VelocityConfig:
     emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)
 
     def __post_init__(self):
+        if self.front_end == "emd" and self.epipole == "estimate":
+            self.epipole = "principal"   # what the EMD front end runs with (see the docstring)
         if self.epipole not in ("estimate", "principal"):
             raise ValueError(f"epipole must be 'estimate' or 'principal', got {self.epipole!r}")
         if self.timestamps not in ("mid", "start"):
@@ -70,6 +77,14 @@ class VelocityConfig:
         return cls(front_end=front_end, flow=FlowConfig(gap=6, prewarp=False, chain_fraction=0.0),
                    fields=FieldConfig(size_deg=5.0, pooling="pixel-mean", gap_correction=False, material=False),
                    readout=ReadoutConfig.paper(filter), epipole="principal", timestamps="start")
+
+    def for_front_end(self, front_end: str) -> "VelocityConfig":
+        """A deep copy that runs ``front_end``, its epipole set as a new configuration's would be."""
+        d = copy.deepcopy(self)
+        d.front_end = front_end
+        if front_end == "emd" and d.epipole == "estimate":
+            d.epipole = "principal"
+        return d
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -108,3 +108,22 @@ def test_emd_and_dis_field_rates_agree_on_real_frames(d435i):
     corr_mean = np.corrcoef(np.nanmean(re[late], 0), np.nanmean(d.r[late], 0))[0, 1]
     print(f"\nreal frames: EMD vs DIS r̄_f correlation {corr:.3f} (all), {corr_mean:.3f} (field means)")
     assert corr > 0.2 and corr_mean > 0.5
+
+
+def test_emd_front_end_records_what_it_runs(emd_replay, constant_run):
+    """The EMD path neither estimates an epipole nor derotates its responses: its configuration and
+    attributes say so (they said "estimate" and derotate = true until the twenty-ninth session), and
+    asking it for an epipole estimate fails instead of running without one."""
+    import json
+
+    assert VelocityConfig(front_end="emd").epipole == "principal"
+    assert VelocityConfig().epipole == "estimate"                       # the flow front ends estimate it
+    assert VelocityConfig().for_front_end("emd").epipole == "principal"
+    assert VelocityConfig(epipole="principal").for_front_end("dis").epipole == "principal"
+    assert json.loads(emd_replay.attrs["config"])["epipole"] == "principal"
+    assert emd_replay.attrs["epipole"] == "principal"
+    assert emd_replay.attrs["derotation"].startswith("none")
+    cfg = VelocityConfig(front_end="emd")
+    cfg.epipole = "estimate"                                            # as --epipole estimate sets it
+    with pytest.raises(ValueError, match="no epipole estimate"):
+        estimate_velocity(constant_run, cfg, progress=False)
