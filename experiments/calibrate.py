@@ -7,6 +7,7 @@ would give; the EMD's gradient-ratio r̄_f at the same frames is regressed onto 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +50,9 @@ def calibrate_emd(footage: Footage, config: VelocityConfig | None = None, per_fi
     config.emd.latency_s = 0.0
     idx, r_exact = exact_field_rates(footage, config)
     fields = tile_fields(footage.camera, config.fields)
-    front = EMDFrontEnd(footage.camera, fields, config.emd)
+    # The exact rates are the camera's own fields', so the front end reads the camera's own image
+    # (no stabilised gaze, whose fields would look elsewhere while the camera turns).
+    front = EMDFrontEnd(footage.camera, fields, replace(config.emd, gaze="none"))
     out = list(front.run(footage.frames()))
     t = np.array([o[0] for o in out])
     r_emd = np.array([o[1] for o in out])

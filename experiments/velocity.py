@@ -107,7 +107,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
           if attitude is not None and config.gyro_bias_from_vision else None)
 
     if config.front_end == "emd":
-        return _emd_field_rates(footage, config, fields, timings, progress)
+        return _emd_field_rates(footage, config, fields, timings, progress,
+                                None if attitude is None else attitude(footage.times))
     if config.front_end == "flo":
         if not flo_files:
             raise FootageError("--front-end flo needs --flo FILE_OR_DIR with *_<first>_to_<second>.flo files")
@@ -281,14 +282,15 @@ def _material_rates(items: list, n: int, n_fields: int, stagger: int) -> Materia
 
 
 def _emd_field_rates(footage: Footage, config: VelocityConfig, fields: ReceptiveFields, timings: dict,
-                     progress: bool) -> FieldRates:
-    """The EMD front end: lattice sampling, photoreceptors, EMDs, gradient-ratio fields."""
+                     progress: bool, orientation: np.ndarray | None = None) -> FieldRates:
+    """The EMD front end: (a gaze stabilised by the gyro's attitude ``orientation`` (N, 3, 3) at the
+    frames, when given), lattice sampling, photoreceptors, EMDs, gradient-ratio fields."""
     front = EMDFrontEnd(footage.camera, fields, config.emd)
     frames = _timed(footage.frames(), timings, "read")
     ts, rs, r2s = [], [], []
     with tqdm(total=len(footage), desc="emd → fields", unit="frame", disable=not progress, leave=False,
               mininterval=2) as bar:
-        for t, r, r2 in front.run(frames):
+        for t, r, r2 in front.run(frames, orientation):
             ts.append(t)
             rs.append(r)
             r2s.append(r2)
@@ -297,6 +299,7 @@ def _emd_field_rates(footage: Footage, config: VelocityConfig, fields: Receptive
     timings.pop("fields", None)
     timings.update(front.timings)
     timings["n_ommatidia"] = front.lattice.n
+    timings["n_saccades"] = front.saccades
     if len(ts) < 2:
         raise FootageError(f"{footage.path}: too few frames for the EMD front end ({len(ts)})")
     return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.zeros((len(ts), 2)), timings, fields)
@@ -506,9 +509,14 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     if online:
         filt += f" (each v_hat known {online['output_latency_s']:g} s after its time)"
     gyro = footage.imu is not None and footage.imu.gyro is not None
-    derotation = ("none: the EMD front end's responses are not derotated (the gyro serves the accelerometer's "
-                  "attitude only)" if config.front_end == "emd" else
-                  "exact finite rotation from the integrated gyro" if config.derotate and gyro else "none")
+    if config.front_end == "emd":
+        derotation = (f"gaze stabilised by the integrated gyro (fixations, saccades beyond "
+                      f"{config.emd.saccade_limit_deg:g} deg: {int(rates.timings.get('n_saccades', 0))})"
+                      if config.derotate and gyro and config.emd.gaze == "fixate" else
+                      "none: the EMD front end's image is not stabilised (the gyro serves the accelerometer's "
+                      "attitude only)")
+    else:
+        derotation = "exact finite rotation from the integrated gyro" if config.derotate and gyro else "none"
     ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=filt, **online,
                                derotation=derotation, epipole=config.epipole,
                                readout=config.readout.method, acceleration_source=accel_source,
@@ -617,6 +625,11 @@ def apply_velocity_options(cfg, args):
             raise ValueError(f"--mean-removal sets the EMD front end's columns, but the front end is {cfg.front_end}; "
                              f"drop it or use --front-end emd")
         e.surround, e.photoreceptor = mean_removal(args.mean_removal, e.photoreceptor)
+    if opt("emd_gaze"):
+        if cfg.front_end != "emd":
+            raise ValueError(f"--emd-gaze sets the EMD front end's gaze, but the front end is {cfg.front_end} (the flow "
+                             f"front ends derotate their flow exactly); drop it or use --front-end emd")
+        e.gaze = args.emd_gaze
     if opt("emd_calibration"):
         from experiments.calibrate import read_calibration
         e.calibration, e.latency_s = read_calibration(args.emd_calibration)
@@ -710,6 +723,10 @@ def add_parser(subparsers):
                         "LMCs' lateral inhibition (x − the lattice neighbours' mean), no temporal high-pass; time: "
                         "an LMC-like 0.25 s temporal high-pass, the front end before the surround "
                         "(lobula.photoreceptor.MEAN_REMOVAL; not given: space)")
+    v.add_argument("--emd-gaze", choices=["fixate", "none"],
+                   help="EMD front end on camera footage with a gyro: fixate — warp each frame into a gaze held fixed "
+                        "by the integrated gyro, with a saccade back to the camera once it has turned 12° away "
+                        "(lobula.gaze.fixation_reference); none — the camera's own image (not given: fixate)")
     v.add_argument("--emd-calibration", help="EMD front end: gains JSON from `lobula calibrate-emd` on another scene")
     v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
     v.add_argument("--quiet", action="store_true")

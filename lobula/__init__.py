@@ -23,7 +23,8 @@ _API = {
     "flow_noise": "depth_motion", "precision_weights": "depth_motion", "translational_snr": "depth_motion",
     "refine_motion": "depth_motion",
     "EMDFrontEnd": "emd_decoding", "EMDFrontEndConfig": "emd_decoding", "fit_calibration": "emd_decoding",
-    "pair_pooling_weights": "emd_decoding",
+    "pair_pooling_weights": "emd_decoding", "epipole_pooling_weights": "emd_decoding",
+    "pooled_at_epipole": "emd_decoding",
     "EMDArray": "emd", "EMDConfig": "emd", "emd_coefficients": "emd", "emd_init": "emd", "emd_run": "emd",
     "emd_sine_response": "emd", "emd_sine_response_discrete": "emd", "emd_step": "emd",
     "Lattice": "lattice", "LatticeConfig": "lattice", "acceptance_attenuation": "lattice",
@@ -43,6 +44,7 @@ _API = {
     "CompoundEye": "compound_eye", "CompoundEyeConfig": "compound_eye", "acceptance_rule": "compound_eye",
     "EyeCircuit": "eye_circuit", "EyeCircuitConfig": "eye_circuit", "EyeFieldConfig": "eye_circuit",
     "GazeConfig": "gaze", "head_angles": "gaze", "head_rotation": "gaze", "retinal_rotation": "gaze",
+    "fixation_reference": "gaze",
 }
 __all__ = ["__version__", "git_commit", *sorted(_API)]
 

@@ -42,9 +42,10 @@ class VelocityConfig:
     emd: the EMD front end (lattice, photoreceptors, EMD, decoding) when front_end is "emd".
     Its epipole is the principal point (the EMD path has no estimate: a configuration made for it
     with the default "estimate" records "principal", what runs, and asking for "estimate" with it
-    fails in :func:`experiments.velocity.estimate_velocity`), and its responses are not derotated:
-    there ``derotate`` only gives the gyro to the accelerometer's attitude (gravity removal), the
-    readout's offset axis and transport term (the output's ``derotation`` attribute says so).
+    fails in :func:`experiments.velocity.estimate_velocity`). There ``derotate`` stabilises the
+    frames' gaze by the integrated gyro before the lattice (``emd.gaze``: fixations and saccades,
+    :func:`lobula.gaze.fixation_reference`) rather than derotating flow, and gives the gyro to the
+    accelerometer's attitude as for the flow front ends (the output's ``derotation`` attribute says which).
     """
 
     front_end: str = "dis"

@@ -122,8 +122,69 @@ def test_emd_front_end_records_what_it_runs(emd_replay, constant_run):
     assert VelocityConfig(epipole="principal").for_front_end("dis").epipole == "principal"
     assert json.loads(emd_replay.attrs["config"])["epipole"] == "principal"
     assert emd_replay.attrs["epipole"] == "principal"
-    assert emd_replay.attrs["derotation"].startswith("none")
+    assert emd_replay.attrs["derotation"].startswith("gaze stabilised" if VelocityConfig().derotate else "none")
     cfg = VelocityConfig(front_end="emd")
     cfg.epipole = "estimate"                                            # as --epipole estimate sets it
     with pytest.raises(ValueError, match="no epipole estimate"):
         estimate_velocity(constant_run, cfg, progress=False)
+
+
+def test_pooled_sums_at_any_epipole_equal_the_fixed_epipole_weights(constant_run):
+    """The pooled numerator and denominator are linear and quadratic in the epipole, so nine sums per
+    field give :func:`pair_pooling_weights`' exactly, wherever the epipole moves."""
+    from lobula.emd_decoding import epipole_pooling_weights, pair_pooling_weights, pooled_at_epipole
+    from lobula.lattice import Lattice, LatticeConfig
+
+    cam = constant_run.camera
+    lat = Lattice(cam, LatticeConfig(dphi_deg=1.5))
+    fields = tile_fields(cam)
+    rng = np.random.default_rng(0)
+    R, G = rng.normal(size=(4, lat.n_pairs)), rng.uniform(size=(4, lat.n_pairs))
+    wn, wd = epipole_pooling_weights(lat, fields, 0.01)
+    e = np.array([[0.0, 0.0], [0.1, -0.05], [-0.2, 0.15], [0.03, 0.3]])
+    num, den = pooled_at_epipole(R @ wn, G @ wd, e)
+    for k in range(len(e)):
+        n, d = pair_pooling_weights(lat, fields, e[k], 0.01)
+        np.testing.assert_allclose(num[k], n @ R[k], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(den[k], d @ G[k], rtol=1e-9, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def turning_still_run(tmp_path_factory):
+    """A camera that only turns (3-axis, up to 5°, 0.5–1.5 Hz) in front of panels: every field's true r = 0."""
+    cfg = TrackRunConfig(constant_velocity_m_s=0.0, duration_s=3.0, scale=0.5,
+                         scene=SceneConfig(seed=11, rotation3_amp_deg=(5.0, 4.0, 3.0), rotation3_band_hz=(0.5, 1.5)))
+    return open_footage(make_track_run(tmp_path_factory.mktemp("turn") / "t", cfg, progress=False))
+
+
+def test_stabilised_gaze_removes_the_turns_aliased_expansion(turning_still_run):
+    """A still camera turning at up to ~45°/s moves its image up to 1.5° per frame, twice Δφ: the
+    unstabilised EMD fields read large spurious expansion; warped into the fixated gaze (the default
+    with a gyro) they read a fraction of it, and say which output it was."""
+    fo = turning_still_run
+    out = {}
+    for gaze in ("none", "fixate"):
+        cfg = VelocityConfig(front_end="emd")
+        cfg.emd.gaze = gaze
+        rates = field_rates(fo, cfg, progress=False)
+        out[gaze] = np.nanmedian(np.abs(rates.r[15:]))
+    print(f"\nturning still camera, median |r̄| (true 0): unstabilised {out['none']:.3f}, fixated {out['fixate']:.3f} 1/s")
+    assert out["fixate"] < 0.3 * out["none"]
+    ds = estimate_velocity(fo, VelocityConfig(front_end="emd"), progress=False)
+    assert ds.attrs["derotation"].startswith("gaze stabilised")
+    import json
+    from lobula.emd_decoding import EMDFrontEndConfig
+    old = json.loads(json.dumps(EMDFrontEndConfig().to_dict()))
+    old.pop("gaze")
+    assert EMDFrontEndConfig.from_dict(old).gaze == "none"     # configurations written before read as they ran
+
+
+def test_emd_gaze_option_sets_the_gaze_and_is_refused_elsewhere():
+    import argparse
+
+    from experiments.velocity import apply_velocity_options
+
+    cfg = apply_velocity_options(VelocityConfig(front_end="emd"), argparse.Namespace(emd_gaze="none"))
+    assert cfg.emd.gaze == "none" and VelocityConfig(front_end="emd").emd.gaze == "fixate"
+    with pytest.raises(ValueError, match="--emd-gaze"):
+        apply_velocity_options(VelocityConfig(front_end="dis"), argparse.Namespace(emd_gaze="fixate"))

@@ -105,3 +105,30 @@ def test_scene_gaze_return_reaches_the_footage(tmp_path):
         assert fo.info["gaze"]["gain"] == 1.0 and fo.info["gaze"]["tau_return_s"] == float(ret)
         heads[name] = np.abs(fo.head).max()
     assert heads["slow"] > 1.2 * heads["default"] > 0, heads
+
+
+def _yaw(angles_rad: np.ndarray) -> np.ndarray:
+    return Rotation.from_rotvec(np.outer(angles_rad, [0.0, 1.0, 0.0])).as_matrix()
+
+
+def test_fixation_holds_the_gaze_and_saccades_at_the_limit_causally():
+    from lobula.gaze import fixation_reference
+
+    t = np.arange(0.0, 2.0, 1.0 / 30.0)
+    # A wobble within the limit: one fixation, the gaze exactly the first frame's attitude.
+    wob = _yaw(np.radians(5.0) * np.sin(2 * np.pi * 1.0 * t))
+    ref, sac = fixation_reference(wob, 12.0)
+    assert not sac.any() and np.allclose(ref, wob[0])
+    # A steady 30°/s turn (1° per frame): a saccade onto the camera whenever it is more than 12.5° past the gaze.
+    turn = _yaw(np.radians(30.0) * t)
+    ref, sac = fixation_reference(turn, 12.5)
+    k = np.flatnonzero(sac)
+    assert list(k) == [13, 26, 39, 52] and np.allclose(ref[k], turn[k])
+    gap = np.degrees(np.linalg.norm(Rotation.from_matrix(np.swapaxes(ref, 1, 2) @ turn).as_rotvec(), axis=1))
+    assert gap.max() <= 12.5
+    # Causal: a different future leaves the past gaze as it was.
+    other = turn.copy()
+    other[30:] = _yaw(np.radians(-20.0) * t[30:])
+    assert np.array_equal(fixation_reference(other, 12.5)[0][:30], ref[:30])
+    with pytest.raises(ValueError, match="limit_deg"):
+        fixation_reference(turn, 0.0)
