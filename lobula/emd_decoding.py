@@ -207,6 +207,8 @@ class EMDFrontEnd:
         self.emds = EMDArray.from_lattice(self.lattice, cfg.emd, dt)
         self._fields = fields
         self._epipole = np.asarray(epipole, dtype=float).reshape(2)
+        self._num_e = self._den_e = None     # the moving-epipole weights, built when a gaze first needs them
+        self.saccades = 0
         num, den = pair_pooling_weights(self.lattice, fields, epipole, cfg.emd.tau_s)
         self._num = torch.from_numpy(num.toarray().T.astype(np.float32)).to(self.device)  # (P, F)
         self._den = torch.from_numpy(den.toarray().T.astype(np.float32)).to(self.device)
@@ -248,7 +250,7 @@ class EMDFrontEnd:
         G = (y[:, self._b] - y[:, self._a]) ** 2
         if gaze is None:
             num, den = R @ self._num, G @ self._den
-        else:   # the terms in float64: the epipole's sums cancel each other in part
+        else:   # the terms combined in float64: they cancel each other in part
             e = torch.as_tensor(gaze["epipole"][index], dtype=torch.float64, device=self.device)
             num, den = pooled_at_epipole((R @ self._num_e).double(), (G @ self._den_e).double(), e)
         r = (self._gain * num / den.clamp_min(1e-20)).double().cpu().numpy()
@@ -308,7 +310,7 @@ class EMDFrontEnd:
         """Stream frames; ``orientation`` (N, 3, 3), the camera's attitude at every footage frame index
         (camera → a fixed frame, from the integrated gyro), stabilises the gaze (``config.gaze``)."""
         g = None if orientation is None else self.gaze(orientation)
-        if g is not None and not hasattr(self, "_num_e"):
+        if g is not None and self._num_e is None:
             num, den = epipole_pooling_weights(self.lattice, self._fields, self.config.emd.tau_s)
             self._num_e = torch.from_numpy(num.astype(np.float32)).to(self.device)   # (P, 3F)
             self._den_e = torch.from_numpy(den.astype(np.float32)).to(self.device)   # (P, 6F)
