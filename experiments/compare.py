@@ -31,6 +31,7 @@ metrics are computed on the native stamps before that), ``stage_ms_per_frame`` o
 """
 from __future__ import annotations
 
+import argparse
 import copy
 import csv
 import io
@@ -442,7 +443,9 @@ def _config_from_args(args) -> VelocityConfig:
         cfg = VelocityConfig.paper("dis", args.filter or "zero-phase")
     else:
         cfg = VelocityConfig()
-    return apply_velocity_options(cfg, args)
+    if getattr(args, "emd_gaze", None):
+        cfg.emd.gaze = args.emd_gaze   # the EMD run's; the flow front ends derotate their flow exactly
+    return apply_velocity_options(cfg, argparse.Namespace(**{k: v for k, v in vars(args).items() if k != "emd_gaze"}))
 
 
 def _compare(args) -> int:
@@ -496,6 +499,9 @@ def add_parser(subparsers):
     c.add_argument("--drho", type=float, help="EMD: acceptance angle (deg)")
     c.add_argument("--tau", type=float, help="EMD: delay time constant (s)")
     c.add_argument("--emd-calibration", help="EMD: gains JSON from `lobula calibrate-emd` on another scene")
+    c.add_argument("--emd-gaze", choices=["fixate", "none"],
+                   help="EMD: with a gyro, a gaze fixated by the integrated gyro (saccades beyond 12°) or the "
+                        "camera's own image (not given: fixate)")
     c.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo)")
     c.add_argument("--flo-units", default="rad/s", choices=["rad/s", "px"])
     c.add_argument("--flo-gap", type=float, default=0.2, help="time between the .flo frame pair (s)")

@@ -112,3 +112,14 @@ def test_compare_on_real_d435i_frames(d435i, tmp_path):
     from experiments.store import write_netcdf
     write_netcdf(ds, path)
     assert xr.open_dataset(path).sizes["front_end"] == ds.sizes["front_end"]
+
+
+def test_compare_emd_gaze_option_reaches_the_emd_run():
+    from experiments.compare import _config_from_args
+
+    p = argparse.ArgumentParser(prog="lobula")
+    add_parser(p.add_subparsers(dest="command", required=True))
+    args = p.parse_args(["compare", "X", "--out", "Y", "--emd-gaze", "none"])
+    cfg = _config_from_args(args)
+    assert cfg.emd.gaze == "none" and cfg.for_front_end("emd").emd.gaze == "none"
+    assert _config_from_args(p.parse_args(["compare", "X", "--out", "Y"])).emd.gaze == "fixate"
