@@ -39,6 +39,8 @@ class VelocityConfig:
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
+    readout: None (the default) gives ``ReadoutConfig()`` for the flow front ends and
+    ``ReadoutConfig.emd()`` (κ's larger shared error) for "emd".
     emd: the EMD front end (lattice, photoreceptors, EMD, decoding) when front_end is "emd".
     Its epipole is the principal point (the EMD path has no estimate: a configuration made for it
     with the default "estimate" records "principal", what runs, and asking for "estimate" with it
@@ -51,7 +53,7 @@ class VelocityConfig:
     front_end: str = "dis"
     flow: FlowConfig = field(default_factory=FlowConfig)
     fields: FieldConfig = field(default_factory=FieldConfig)
-    readout: ReadoutConfig = field(default_factory=ReadoutConfig)
+    readout: ReadoutConfig | None = None
     epipole: str = "estimate"
     derotate: bool = True
     gyro_bias_from_vision: bool = False
@@ -61,6 +63,8 @@ class VelocityConfig:
     emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)
 
     def __post_init__(self):
+        if self.readout is None:   # EMD fields' κ errs more than flow's: ReadoutConfig.emd
+            self.readout = ReadoutConfig.emd() if self.front_end == "emd" else ReadoutConfig()
         if self.front_end == "emd" and self.epipole == "estimate":
             self.epipole = "principal"   # what the EMD front end runs with (see the docstring)
         if self.epipole not in ("estimate", "principal"):
@@ -85,6 +89,12 @@ class VelocityConfig:
         d.front_end = front_end
         if front_end == "emd" and d.epipole == "estimate":
             d.epipole = "principal"
+        flow_k = (ReadoutConfig.kappa_rel_error, ReadoutConfig.shared_error_frac)
+        now = (d.readout.kappa_rel_error, d.readout.shared_error_frac)
+        if front_end == "emd" and now == flow_k:      # the flow default's κ errors: the EMD default's
+            d.readout.kappa_rel_error, d.readout.shared_error_frac = ReadoutConfig.EMD_KAPPA_ERRORS
+        elif front_end != "emd" and now == ReadoutConfig.EMD_KAPPA_ERRORS:
+            d.readout.kappa_rel_error, d.readout.shared_error_frac = flow_k
         return d
 
     def to_dict(self) -> dict:
