@@ -141,9 +141,8 @@ class EyeVelocityConfig:
     """
 
     circuit: EyeCircuitConfig = field(default_factory=EyeCircuitConfig)
-    readout: ReadoutConfig = field(default_factory=lambda: ReadoutConfig(filter="causal", min_valid_fraction=0.1,
-                                                                        kappa_rel_error=0.5, shared_error_frac=0.8,
-                                                                        online_window_sigma=2.5, reversal=False))
+    readout: ReadoutConfig = field(default_factory=lambda: ReadoutConfig.emd(filter="causal", min_valid_fraction=0.1,
+                                                                            online_window_sigma=2.5, reversal=False))
     chunk: int = 500
     accel_from_truth: bool = False
     readout_kind: str = "kalman"

@@ -191,6 +191,8 @@ def _target_value(target: str, velocity, run):
 def apply_value(target: str, value, velocity, run):
     side, _, sub = target.partition(".")
     if side == "velocity":
+        if sub == "front_end":   # with the front end's own epipole and readout defaults, as `lobula compare` runs it
+            return velocity.for_front_end(value), run
         return set_path(velocity, sub, value), run
     return velocity, set_path(run, sub, value)
 

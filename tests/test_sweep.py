@@ -151,3 +151,18 @@ def test_cli_dry_run_and_list_params(tmp_path, capsys):
     assert _cli(["sweep", "--param", "front_end=dis,emd", "--param", "seed=0,1,2", "--out",
                  str(tmp_path / "s.zarr"), "--dry-run", "--builtin-profile"]) == 0
     assert "6 points (2 × 3)" in capsys.readouterr().out
+
+
+def test_sweeping_the_front_end_gives_each_its_own_defaults():
+    """front_end=emd in a sweep runs the EMD path as `VelocityConfig(front_end="emd")` does: the principal
+    point for its epipole and the EMD fields' κ errors (not DIS's)."""
+    from experiments.sweep_params import apply_value
+    from lobula.config import VelocityConfig
+    from stimuli.track import TrackRunConfig
+
+    vel, _ = apply_value("velocity.front_end", "emd", VelocityConfig(), TrackRunConfig())
+    want = VelocityConfig(front_end="emd")
+    assert (vel.epipole, vel.readout.kappa_rel_error, vel.readout.shared_error_frac) == \
+        (want.epipole, want.readout.kappa_rel_error, want.readout.shared_error_frac) == ("principal", 0.5, 0.8)
+    back, _ = apply_value("velocity.front_end", "dis", vel, TrackRunConfig())
+    assert back.readout.kappa_rel_error == VelocityConfig().readout.kappa_rel_error
