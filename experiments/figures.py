@@ -23,6 +23,9 @@ seeded IMU, seeded spikes; OpenCV DIS is deterministic). Each figure NAME gets
    neurons (1–30 pairs) and the shunting readout neuron, beside causal DIS, 3 worlds × 3 seeds
    (:mod:`experiments.eye_figures`; ~2 min on cached renders).
    ``eye_rmse_vs_dphi_fov`` (only by name) — the eye's RMSE against Δφ and field of view.
+10. ``emd_gaze`` (only by name) — the camera's EMD front end on its own image and with the fixating
+   gaze, beside DIS, on the suite's rotation, mixed and panels families × 3 seeds
+   (:mod:`experiments.gaze_figure`; ~10 min with the renders).
 """
 from __future__ import annotations
 
@@ -42,7 +45,7 @@ from stimuli.footage import open_footage
 FIGURES = ("replay_emd_vs_dis", "rmse_vs_field_size", "rmse_vs_dphi", "rmse_vs_tau_contrast_noise",
            "error_vs_acceleration", "rate_vs_spiking", "replay_velocity")
 #: made only when asked for by name (``--only eye_rmse``): it renders 9 fly-eye runs (CPU-minutes each)
-EXTRA_FIGURES = ("eye_rmse", "eye_rate_vs_spiking", "eye_rmse_vs_dphi_fov")
+EXTRA_FIGURES = ("eye_rmse", "eye_rate_vs_spiking", "eye_rmse_vs_dphi_fov", "emd_gaze")
 #: the fly-eye figures of experiments.eye_figures: name -> (function, what the record says it shows)
 EYE_FIGURES = {
     "eye_rate_vs_spiking": ("figure_eye_rate_vs_spiking", "causal fly-eye RMSE: rate readout, spiking output neurons "
@@ -276,6 +279,17 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
             records[name] = dict(base, what=what, results=numbers, seconds=round(time.perf_counter() - t0, 1))
             _save_record(name, out, records[name])
 
+    if "emd_gaze" in which:
+        from experiments.gaze_figure import figure_emd_gaze
+
+        t0 = time.perf_counter()
+        _, numbers = figure_emd_gaze(out, cache, seeds=(seed, seed + 1, seed + 2), progress=progress)
+        records["emd_gaze"] = dict(base, what="causal RMSE and ±2σ coverage of the camera's EMD front end on its own "
+                                   "image and with the fixating gaze, beside DIS (suite families rotation, mixed, "
+                                   "panels; 3 seeds, 10 s, 320×240)", results=numbers,
+                                   seconds=round(time.perf_counter() - t0, 1))
+        _save_record("emd_gaze", out, records["emd_gaze"])
+
     if "rmse_vs_tau_contrast_noise" in which:
         from experiments.contrast_figure import figure_contrast_noise
 
@@ -293,8 +307,8 @@ def add_parser(subparsers):
     f = subparsers.add_parser("figures", help="make the hypothesis figures (PNG + JSON with command and config)")
     f.add_argument("--out", default="figures", help="output folder (default figures/)")
     f.add_argument("--only", nargs="+", choices=FIGURES + EXTRA_FIGURES,
-                   help="make only these figures (default: all but eye_rmse, eye_rate_vs_spiking "
-                        "and eye_rmse_vs_dphi_fov, which render their own fly-eye worlds and are made only when named)")
+                   help="make only these figures (default: all but eye_rmse, eye_rate_vs_spiking, "
+                        "eye_rmse_vs_dphi_fov and emd_gaze, which render their own worlds and are made only when named)")
     f.add_argument("--start", type=float, default=5.0, help="replay window start in the real trajectory (s)")
     f.add_argument("--duration", type=float, default=25.0, help="replay duration (s)")
     f.add_argument("--seed", type=int, default=0, help="scene, IMU and spike seed")

@@ -56,3 +56,20 @@ def test_committed_figures_are_reproduced(tmp_path, real_profile):
                                       else str(o)))
         np.testing.assert_allclose(_numbers(fresh), _numbers(committed), rtol=RTOL.get(name, 1e-3), atol=1e-6,
                                    err_msg=name)
+
+
+def test_emd_gaze_figure_scores_and_draws(tmp_path):
+    """The EMD-gaze figure's coverage is the share of scored steps inside ±2σ, and it draws what it is given."""
+    import xarray as xr
+
+    from experiments.gaze_figure import CONFIGURATIONS, coverage, plot_emd_gaze
+
+    t = np.arange(0.0, 4.0, 0.5)
+    ds = xr.Dataset(dict(v_hat=("time", np.array([9, 9, 9, 9, 1.0, 1.1, 1.3, np.nan])),
+                         v_true=("time", np.ones(8)), v_std=("time", np.full(8, 0.1))), coords=dict(time=t))
+    assert coverage(ds) == pytest.approx(2 / 3)          # after 2 s: 1.0 and 1.1 inside, 1.3 outside, NaN not counted
+    numbers = {f: {k: dict(rmse=[0.1, 0.2, 0.05], coverage=[0.9, 1.0, 0.8]) for k in CONFIGURATIONS}
+               for f in ("rotation", "panels")}
+    traces = {k: (t, np.ones(8)) for k in list(CONFIGURATIONS) + ["truth"]}
+    png = plot_emd_gaze(numbers, traces, tmp_path / "g.png", "rotation seed 0")
+    assert png.stat().st_size > 10_000
