@@ -55,10 +55,13 @@ FAMILIES = {
               "motion, pixel noise 1-6 grey levels; every seed another combination"),
 }
 
-#: configuration name -> (base, filter, {config path: value}); base "lobula" or "paper"
+#: configuration name -> (base, filter, {config path: value}); base "lobula" (DIS), "emd" (the camera's EMD
+#: front end, with its own defaults: VelocityConfig(front_end="emd")) or "paper"
 CONFIGURATIONS = {
     "lobula zero-phase": ("lobula", "zero-phase", {}),
     "lobula causal": ("lobula", "causal", {}),
+    "emd zero-phase": ("emd", "zero-phase", {}),
+    "emd causal": ("emd", "causal", {}),
     "lobula fixed-lag 1s": ("lobula", "causal", {"readout.lag_s": 1.0}),
     "lobula fixed-lag 2s": ("lobula", "causal", {"readout.lag_s": 2.0}),
     "paper zero-phase": ("paper", "zero-phase", {}),
@@ -136,7 +139,8 @@ def velocity_config(name: str):
     from lobula.config import VelocityConfig
 
     base, filt, paths = CONFIGURATIONS[name]
-    cfg = VelocityConfig.paper("dis", filt) if base == "paper" else VelocityConfig()
+    cfg = (VelocityConfig.paper("dis", filt) if base == "paper" else
+           VelocityConfig(front_end="emd") if base == "emd" else VelocityConfig())
     cfg.readout.filter = filt
     for path, value in paths.items():
         obj = cfg

@@ -133,3 +133,13 @@ def test_seeds_are_a_count_or_an_explicit_list(tmp_path, capsys):
         suite.run_suite(["rest"], [5, 5], 3.0, 0.2, tmp_path / "s")
     assert main(["suite", "--out", str(tmp_path / "s"), "--seeds", "x"]) == 2
     assert "--seeds" in capsys.readouterr().err
+
+
+def test_suite_runs_the_emd_front_end_with_its_own_defaults():
+    from experiments.suite import velocity_config
+    from lobula.config import VelocityConfig
+
+    cfg, want = velocity_config("emd causal"), VelocityConfig(front_end="emd")
+    assert cfg.front_end == "emd" and cfg.readout.filter == "causal" and cfg.epipole == "principal"
+    assert (cfg.readout.kappa_rel_error, cfg.emd.gaze) == (want.readout.kappa_rel_error, want.emd.gaze)
+    assert velocity_config("lobula causal").front_end == "dis"
