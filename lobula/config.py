@@ -84,11 +84,11 @@ class VelocityConfig:
                    readout=ReadoutConfig.paper(filter), epipole="principal", timestamps="start")
 
     def for_front_end(self, front_end: str) -> "VelocityConfig":
-        """A deep copy that runs ``front_end``, its epipole set as a new configuration's would be."""
+        """A deep copy that runs ``front_end``, with its epipole and κ-error defaults where this one had the
+        other front end's (values set otherwise are kept)."""
         d = copy.deepcopy(self)
         d.front_end = front_end
-        if front_end == "emd" and d.epipole == "estimate":
-            d.epipole = "principal"
+        d.__post_init__()          # the front end's epipole, as a new configuration's, and validation
         flow_k = (ReadoutConfig.kappa_rel_error, ReadoutConfig.shared_error_frac)
         now = (d.readout.kappa_rel_error, d.readout.shared_error_frac)
         if front_end == "emd" and now == flow_k:      # the flow default's κ errors: the EMD default's
