@@ -8,6 +8,9 @@ Metrics, per window — after a skip (``--skip``) and over the first 2 s —:
 
 * ``rmse_m_s``, ``median_abs_error_m_s``: over frames where v̂ is observable (finite);
 * ``coverage_2sigma``: fraction of those frames with |v̂ − v| ≤ 2·v_std (NaN without a std);
+* ``z95``: the 95th percentile of |v̂ − v| / v_std over those frames — 1.96 for a calibrated Gaussian
+  band, below it where the band is too wide, above where too narrow (a coverage of 100 % cannot tell
+  a calibrated band from one ten times too wide; NaN without a std);
 * ``observable_fraction``: fraction of the window's frames with an observable v̂;
 * ``lock_on_s`` (whole run, the same in both windows): time from the first frame until the
   error stays within 0.05 m/s + 10 % of |v| for a full second (NaN: never).
@@ -37,7 +40,7 @@ from .store import seed_summary
 
 #: window name -> description
 WINDOWS = ("after_skip", "first_2s")
-METRICS = ("rmse_m_s", "median_abs_error_m_s", "coverage_2sigma", "observable_fraction", "lock_on_s")
+METRICS = ("rmse_m_s", "median_abs_error_m_s", "coverage_2sigma", "z95", "observable_fraction", "lock_on_s")
 
 #: family name -> what it is (the settings are in :func:`family_config`)
 FAMILIES = {
@@ -180,7 +183,7 @@ def lock_on_time(t: np.ndarray, err: np.ndarray, v_true: np.ndarray, hold_s: flo
 
 
 def window_metrics(t, v_hat, v_std, v_true, mask) -> dict:
-    """RMSE, median |e|, 2σ coverage and observable fraction over the frames in mask."""
+    """RMSE, median |e|, 2σ coverage, z95 (the 95th percentile of |e|/σ) and observable fraction over the frames in mask."""
     vh, vt = v_hat[mask], v_true[mask]
     obs = np.isfinite(vh)
     err = vh[obs] - vt[obs]
@@ -189,13 +192,16 @@ def window_metrics(t, v_hat, v_std, v_true, mask) -> dict:
         out.update(rmse_m_s=float(np.sqrt(np.mean(err ** 2))), median_abs_error_m_s=float(np.median(np.abs(err))))
     else:
         out.update(rmse_m_s=float("nan"), median_abs_error_m_s=float("nan"))
-    if v_std is None or not err.size:
-        out["coverage_2sigma"] = float("nan")
-    else:
+    out["coverage_2sigma"] = out["z95"] = float("nan")
+    if v_std is not None and err.size:
         sd = v_std[mask][obs]
         # An estimator that reports no uncertainty at all has no coverage (NaN), not 0.
-        out["coverage_2sigma"] = (float(np.mean(np.isfinite(sd) & (np.abs(err) <= 2 * sd)))
-                                  if np.isfinite(sd).any() else float("nan"))
+        if np.isfinite(sd).any():
+            out["coverage_2sigma"] = float(np.mean(np.isfinite(sd) & (np.abs(err) <= 2 * sd)))
+            # A frame without a std counts as an unbounded error, as it counts outside the band above.
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z = np.where(np.isfinite(sd) & (sd > 0), np.abs(err) / sd, np.inf)
+            out["z95"] = float(np.quantile(z, 0.95, method="inverted_cdf"))  # a sample: no inf − inf
     return out
 
 
@@ -491,8 +497,9 @@ def format_table(rows, window="after_skip") -> str:
             return f"{100 * mu:.0f}%"
         return f"{mu:.3f}" + (f" ± {sd:.3f}" if np.isfinite(sd) else "")
 
-    lines = ["| family | configuration | RMSE (m/s) | median abs e | 2σ coverage | observable | lock-on (s) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| family | configuration | RMSE (m/s) | median abs e | 2σ coverage | \\|e\\|/σ, 95th pct (1.96 calibrated) "
+             "| observable | lock-on (s) |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if r["window"] != window:
             continue
@@ -501,7 +508,7 @@ def format_table(rows, window="after_skip") -> str:
             f" ({r['lock_on_s_n']} of {r['observable_fraction_n']} seeds)"
             if r["lock_on_s_n"] != r["observable_fraction_n"] else "")
         lines.append(f"| {r['family']} | {r['configuration']} | {ms(r, 'rmse_m_s')} | "
-                     f"{ms(r, 'median_abs_error_m_s')} | {ms(r, 'coverage_2sigma', True)} | "
+                     f"{ms(r, 'median_abs_error_m_s')} | {ms(r, 'coverage_2sigma', True)} | {ms(r, 'z95')} | "
                      f"{ms(r, 'observable_fraction', True)} | {lock_s} |")
     return "\n".join(lines)
 

@@ -28,6 +28,29 @@ def test_lock_on_time_needs_a_second_of_tracking_while_moving():
     assert suite.lock_on_time(t, e2, v) == pytest.approx(3.6)
 
 
+def test_z95_tells_a_calibrated_band_from_one_too_wide_or_too_narrow():
+    # Errors that are exactly Gaussian quantiles of σ = 0.01 m/s: |e|/σ's 95th percentile is 1.96.
+    from scipy.stats import norm
+
+    n = 4000
+    err = 0.01 * norm.ppf((np.arange(n) + 0.5) / n)
+    t, v_true = np.arange(n) / 30.0, np.full(n, 0.5)
+    mask = np.ones(n, bool)
+    for scale, z95, cov in ((1.0, 1.96, 0.954), (5.0, 1.96 / 5, 1.0), (0.5, 2 * 1.96, 0.683)):
+        m = suite.window_metrics(t, v_true + err, np.full(n, 0.01 * scale), v_true, mask)
+        assert m["z95"] == pytest.approx(z95, rel=0.01)
+        assert m["coverage_2sigma"] == pytest.approx(cov, abs=0.01)
+    # Coverage is 100 % for the calibrated band's 2x and 5x widenings alike; z95 is not.
+    wide = [suite.window_metrics(t, v_true + err, np.full(n, 0.01 * k), v_true, mask) for k in (2.0, 5.0)]
+    assert wide[0]["coverage_2sigma"] == wide[1]["coverage_2sigma"] > 0.999
+    assert wide[0]["z95"] == pytest.approx(2.5 * wide[1]["z95"], rel=1e-9)
+    # A frame without a std is an unbounded error; no std at all: NaN.
+    sd = np.full(n, 0.01)
+    sd[: n // 10] = np.nan
+    assert suite.window_metrics(t, v_true + err, sd, v_true, mask)["z95"] == np.inf
+    assert np.isnan(suite.window_metrics(t, v_true + err, None, v_true, mask)["z95"])
+
+
 def test_a_configuration_path_the_estimator_lacks_fails_loudly(monkeypatch):
     monkeypatch.setitem(suite.CONFIGURATIONS, "bogus", ("lobula", "zero-phase", {"readout.no_such_field": 1}))
     with pytest.raises(ValueError, match="no field 'no_such_field'"):
