@@ -196,11 +196,13 @@ def window_metrics(t, v_hat, v_std, v_true, mask) -> dict:
     if v_std is not None and err.size:
         sd = v_std[mask][obs]
         # An estimator that reports no uncertainty at all has no coverage (NaN), not 0.
-        if np.isfinite(sd).any():
-            out["coverage_2sigma"] = float(np.mean(np.isfinite(sd) & (np.abs(err) <= 2 * sd)))
-            # A frame without a std counts as an unbounded error, as it counts outside the band above.
+        has = np.isfinite(sd)
+        if has.any():
+            # A frame without a std counts outside the band, and as an unbounded |e|/σ.
             with np.errstate(divide="ignore", invalid="ignore"):
-                z = np.where(np.isfinite(sd) & (sd > 0), np.abs(err) / sd, np.inf)
+                z = np.abs(err) / sd                       # σ = 0: inf, or 0 where the error is 0 too
+            z = np.where(has, np.nan_to_num(z, nan=0.0, posinf=np.inf), np.inf)
+            out["coverage_2sigma"] = float(np.mean(z <= 2))
             out["z95"] = float(np.quantile(z, 0.95, method="inverted_cdf"))  # a sample: no inf − inf
     return out
 
