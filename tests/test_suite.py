@@ -49,6 +49,12 @@ def test_z95_tells_a_calibrated_band_from_one_too_wide_or_too_narrow():
     sd[: n // 10] = np.nan
     assert suite.window_metrics(t, v_true + err, sd, v_true, mask)["z95"] == np.inf
     assert np.isnan(suite.window_metrics(t, v_true + err, None, v_true, mask)["z95"])
+    # The figure's target band: a band whose ±2σ holds 99 % / 85 % of Gaussian errors has z95 at its ends.
+    for lo_hi, cov in ((0, 0.99), (1, 0.85)):
+        scale = norm.ppf(0.5 + cov / 2) / 2.0   # the σ stated, per unit of the errors' own
+        m = suite.window_metrics(t, v_true + err, np.full(n, 0.01 * scale), v_true, mask)
+        assert m["coverage_2sigma"] == pytest.approx(cov, abs=0.005)
+        assert m["z95"] == pytest.approx(suite.Z95_TARGET[lo_hi], rel=0.01)
 
 
 def test_a_configuration_path_the_estimator_lacks_fails_loudly(monkeypatch):
