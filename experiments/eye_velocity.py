@@ -219,7 +219,11 @@ def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
     pipeline, the gravity reference's error is held here as one forward offset, not as a vector
     whose forward share turns with the body (lobula.readout.kalman_velocity's offset_axis), and the
     transport term is left out (the eye's heading is taken along its body axis, where λ = 0): the
-    eye's worlds turn by a few degrees; not measured with them.
+    eye's worlds turn by a few degrees. Measured (development rotation world, seed 100, rates): the
+    camera's vector offset (prior 1 m/s² per axis) 0.257 → 0.263 m/s, panels 0.038 → 0.038; with the
+    attitude's leak walk as well, the same. Nor is the gyro bias behind the gravity this attitude lets
+    in the eye's error under rotation: given the camera's flow-fitted bias track, rotation seeds 100 /
+    101 read 0.247 / 0.213 against 0.257 / 0.197 (docs/accuracy-history.md, thirty-first session).
     Returns (ReadoutConfig, gravity_tau (n,) or None, drift_std (n,) or None).
     """
     from experiments.velocity import START_ACCEL_PRIOR_M_S2, TRUTH_ACCEL_OFFSET_M_S2
