@@ -4,6 +4,10 @@ Each (family, seed) scene is rendered once (``lobula scene``'s generator, exact 
 realistic IMU by default) into ``OUT/scenes/``; every estimator configuration runs on it
 (:func:`experiments.velocity.estimate_velocity`), zero-phase and causal, and so do two
 baselines that need no vision: the zero estimator (v̂ = 0) and IMU-only dead reckoning.
+Named explicitly (not in "all": each renders the scene again, onto the eye, CPU-minutes per scene),
+the fly's compound eye (:data:`EYE_CONFIGURATIONS`): the same world, trajectory and IMU ray-cast onto
+two compound eyes at 500 Hz (``OUT/scenes/<scene>-eye``, :func:`stimuli.eye.make_eye_run`) and read
+by :func:`experiments.eye_velocity.estimate_eye_velocity`, causal, scored the same way.
 Metrics, per window — after a skip (``--skip``) and over the first 2 s —:
 
 * ``rmse_m_s``, ``median_abs_error_m_s``: over frames where v̂ is observable (finite);
@@ -77,6 +81,14 @@ CONFIGURATIONS = {
     "vision-only causal": ("lobula", "causal", {"readout.fusion": "vision-only"}),
 }
 BASELINES = ("zero", "imu dead reckoning")
+#: configuration name -> {EyeVelocityConfig path: value}: the fly's eye on the scene's world (causal; made only
+#: when named, like the baselines it is scored beside): spiking output (10 LIF pairs) or the readout's rates
+EYE_CONFIGURATIONS = {
+    "eye causal": {"readout_kind": "spikes"},
+    "eye rates causal": {"readout_kind": "kalman"},
+}
+#: Hz: the eye footage's rate (the photoreceptor model's 2 ms step, as `lobula scene --eye fly`)
+EYE_RATE_HZ = 500.0
 
 
 def family_seed(family: str, seed: int) -> int:
@@ -140,13 +152,23 @@ def family_config(family: str, seed: int, duration_s: float, scale: float, imu: 
 
 
 def velocity_config(name: str):
-    """The VelocityConfig of a configuration name; a config path the estimator lacks raises ValueError."""
+    """The VelocityConfig of a configuration name (an EyeVelocityConfig for :data:`EYE_CONFIGURATIONS`);
+    a config path the estimator lacks raises ValueError."""
     from lobula.config import VelocityConfig
 
+    if name in EYE_CONFIGURATIONS:
+        from .eye_velocity import EyeVelocityConfig
+
+        return _set_paths(EyeVelocityConfig(), EYE_CONFIGURATIONS[name], name)
     base, filt, paths = CONFIGURATIONS[name]
     cfg = (VelocityConfig.paper("dis", filt) if base == "paper" else
            VelocityConfig(front_end="emd") if base == "emd" else VelocityConfig())
     cfg.readout.filter = filt
+    return _set_paths(cfg, paths, name)
+
+
+def _set_paths(cfg, paths: dict, name: str):
+    """cfg with each dotted config path set (validated by the dataclasses' __post_init__)."""
     for path, value in paths.items():
         obj = cfg
         *parents, leaf = path.split(".")
@@ -313,13 +335,24 @@ def run_scene_job(job: SceneJob) -> dict:
                          f"run the suite with --imu-mount camera")
     tt, vt = footage.truth["time_s"], footage.truth["v_forward_m_s"]
     series, metrics, errors, wall = {}, {}, {}, {}
+    eye_render_s = 0.0
     for name in job.configurations:
         t1 = _time.perf_counter()
         if name in BASELINES:
             continue
         try:
             vc = velocity_config(name)
-            ds = estimate_velocity(footage, vc, progress=False)
+            if name in EYE_CONFIGURATIONS:
+                from stimuli.eye import open_eye_footage
+
+                from .eye_velocity import estimate_eye_velocity
+
+                t2 = _time.perf_counter()
+                eye_folder = ensure_eye_scene(out / "scenes", job.name, cfg)
+                eye_render_s += _time.perf_counter() - t2
+                ds = estimate_eye_velocity(open_eye_footage(eye_folder), vc)
+            else:
+                ds = estimate_velocity(footage, vc, progress=False)
         except ValueError as exc:
             errors[name] = str(exc)
             continue
@@ -327,8 +360,9 @@ def run_scene_job(job: SceneJob) -> dict:
         v_hat = np.where(ds.observable.values, ds.v_hat.values, np.nan)
         series[name] = (t, v_hat, ds.v_std.values)
         wall[name] = _time.perf_counter() - t1
-    # Baselines on the frame times the estimator used (or all frames if it ran none).
-    t_ref = next(iter(series.values()))[0] if series else footage.times
+    # Baselines on the frame times the camera's estimator used (or all frames if it ran none: the
+    # eye's own steps are 500 Hz, its series is interpolated onto these for the file).
+    t_ref = next((v[0] for k, v in series.items() if k not in EYE_CONFIGURATIONS), footage.times)
     v_true_ref = np.interp(t_ref, tt, vt)
     if "zero" in job.configurations:
         series["zero"] = (t_ref, np.zeros_like(t_ref), None)
@@ -349,13 +383,33 @@ def run_scene_job(job: SceneJob) -> dict:
                     attrs=dict(scene=job.name, config=json.dumps(cfg.to_dict(), default=str)))
     write_netcdf(ds, out / "series" / f"{job.name}.nc")
     res = dict(key=job.key(), family=job.family, seed=job.seed, scene_seed=cfg.scene.seed, metrics=metrics,
-               errors=errors, render_s=render_s, estimator_s=wall, scene_config=cfg.to_dict(),
+               errors=errors, render_s=render_s, eye_render_s=eye_render_s, estimator_s=wall,
+               scene_config=cfg.to_dict(),
                peak_speed_m_s=float(np.abs(vt).max()))
     res_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = res_path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(res, default=str))
     os.replace(tmp, res_path)
     return res
+
+
+def ensure_eye_scene(scenes: Path, name: str, cfg) -> Path:
+    """The scene's eye footage, ``scenes/<name>-eye`` (rendered unless already there with these settings):
+    the run configuration ``cfg`` (world, trajectory, IMU) ray-cast onto the default compound eyes at
+    :data:`EYE_RATE_HZ` (stimuli.eye.make_eye_run; the folder appears only when complete)."""
+    import shutil
+
+    from lobula.compound_eye import CompoundEyeConfig
+    from stimuli.eye import make_eye_run
+
+    folder, marker = scenes / f"{name}-eye", scenes / f"{name}-eye.json"
+    settings = json.loads(json.dumps(dict(run=cfg.to_dict(), eye=CompoundEyeConfig().to_dict(), rate_hz=EYE_RATE_HZ),
+                                     default=str))
+    if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == settings):
+        shutil.rmtree(folder, ignore_errors=True)
+        make_eye_run(folder, cfg, CompoundEyeConfig(), EYE_RATE_HZ, progress=False)
+        marker.write_text(json.dumps(settings))
+    return folder
 
 
 # ---------------------------------------------------------------------- the suite
@@ -369,9 +423,10 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise ValueError(f"seeds must be a count or distinct non-negative integers, got {seeds}")
     configurations = tuple(configurations or (*CONFIGURATIONS, *BASELINES))
-    bad = [c for c in configurations if c not in CONFIGURATIONS and c not in BASELINES]
+    known = [*CONFIGURATIONS, *BASELINES, *EYE_CONFIGURATIONS]
+    bad = [c for c in configurations if c not in known]
     if bad:
-        raise ValueError(f"unknown configuration(s) {bad}; choose from {list(CONFIGURATIONS) + list(BASELINES)}")
+        raise ValueError(f"unknown configuration(s) {bad}; choose from {known}")
     for f in families:
         if f not in FAMILIES:
             raise ValueError(f"unknown family {f!r}; choose from {', '.join(FAMILIES)}")
@@ -445,6 +500,27 @@ def plot_worlds(out: Path, families, seed: int = 0) -> Path | None:
     return out / "worlds.png"
 
 
+def _what_runs(name: str):
+    """A configuration's (base, filter, {config path: value}), or "baseline"."""
+    if name in CONFIGURATIONS:
+        return CONFIGURATIONS[name]
+    if name in EYE_CONFIGURATIONS:
+        return ("eye", "causal", EYE_CONFIGURATIONS[name])
+    return "baseline"
+
+
+def _eye_provenance(configurations) -> dict:
+    """The eye pipeline's whole configuration (its defaults, before each name's paths), where one ran."""
+    if not any(c in EYE_CONFIGURATIONS for c in configurations):
+        return {}
+    from lobula.compound_eye import CompoundEyeConfig
+
+    from .eye_velocity import EyeVelocityConfig
+
+    return dict(eye_config=EyeVelocityConfig().to_json(), compound_eye=json.dumps(CompoundEyeConfig().to_dict()),
+                eye_rate_hz=EYE_RATE_HZ)
+
+
 def collect(results, families, seeds, configurations, settings):
     """The suite Dataset: value (family, seed, configuration, window, metric), NaN where missing."""
     import xarray as xr
@@ -473,8 +549,8 @@ def collect(results, families, seeds, configurations, settings):
                     window=list(WINDOWS), metric=list(METRICS),
                     family_description=("family", [FAMILIES[f] for f in families])))
     ds.attrs.update(provenance(VelocityConfig().to_json(), suite=settings,
-                               configurations={c: CONFIGURATIONS.get(c, "baseline") for c in configurations},
-                               configuration_errors=errors or "none"))
+                               configurations={c: _what_runs(c) for c in configurations},
+                               configuration_errors=errors or "none", **_eye_provenance(configurations)))
     return ds
 
 
@@ -626,7 +702,9 @@ def add_parser(subparsers):
                    help="image scale of the D435i camera (0.5 = 320x240; at 0.25 = 160x120 DIS resolves "
                         "the corridor and fast turns poorly)")
     s.add_argument("--configurations", default="all",
-                   help="comma-separated, or all: " + ", ".join([*CONFIGURATIONS, *BASELINES]))
+                   help="comma-separated, or all: " + ", ".join([*CONFIGURATIONS, *BASELINES])
+                   + "; named only (the fly's eye on the same worlds, rendered again onto the eye, CPU-minutes "
+                   "per scene): " + ", ".join(EYE_CONFIGURATIONS))
     s.add_argument("--skip", type=float, default=2.0, help="seconds left out at the start for the after-skip window")
     s.add_argument("--imu", default="realistic", choices=["ideal", "realistic"], help="IMU error model")
     s.add_argument("--imu-mount", default="rotated", choices=["camera", "rotated"],

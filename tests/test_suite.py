@@ -172,3 +172,30 @@ def test_suite_runs_the_emd_front_end_with_its_own_defaults():
     assert cfg.front_end == "emd" and cfg.readout.filter == "causal" and cfg.epipole == "principal"
     assert (cfg.readout.kappa_rel_error, cfg.emd.gaze) == (want.readout.kappa_rel_error, want.emd.gaze)
     assert velocity_config("lobula causal").front_end == "dis"
+
+
+def test_suite_runs_the_fly_eye_on_the_same_world_and_keeps_it_out_of_all(tmp_path):
+    # The eye is named, never part of "all" (each scene is rendered again onto the eye).
+    assert not set(suite.EYE_CONFIGURATIONS) & set(suite.CONFIGURATIONS)
+    cfg = suite.velocity_config("eye causal")
+    assert (type(cfg).__name__, cfg.readout_kind, cfg.readout.filter) == ("EyeVelocityConfig", "spikes", "causal")
+    with pytest.raises(ValueError, match="unknown configuration"):
+        suite.run_suite(["rest"], [0], 3.0, 0.2, tmp_path / "bad", configurations=["eye zero-phase"])
+    out = tmp_path / "suite"
+    ds, _ = suite.run_suite(["rest"], [0], 2.5, 0.2, out, configurations=["eye rates causal", "zero"], skip_s=1.0,
+                            imu="ideal", progress=lambda *a: None)
+    eye = out / "scenes" / "rest-s0-eye"
+    assert (eye / "luminance.npy").exists() and (out / "scenes" / "rest-s0-eye.json").exists()
+    pick = lambda c, m: float(ds.value.sel(family="rest", seed=0, configuration=c, window="after_skip", metric=m))
+    # A known answer: the world moves (the zero estimator errs), the eye follows it far closer.
+    assert pick("zero", "rmse_m_s") > 0.05
+    assert pick("eye rates causal", "rmse_m_s") < 0.25 * pick("zero", "rmse_m_s")
+    assert np.isfinite(pick("eye rates causal", "z95")) and pick("eye rates causal", "observable_fraction") > 0.5
+    assert json.loads(ds.attrs["eye_config"])["readout"]["filter"] == "causal"
+    # The eye footage is rendered once: a second suite in the same folder reuses it.
+    mtime = (eye / "luminance.npy").stat().st_mtime
+    for f in (out / "results").glob("*.json"):
+        f.unlink()
+    suite.run_suite(["rest"], [0], 2.5, 0.2, out, configurations=["eye rates causal"], skip_s=1.0, imu="ideal",
+                    progress=lambda *a: None)
+    assert (eye / "luminance.npy").stat().st_mtime == mtime
