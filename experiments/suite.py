@@ -327,7 +327,7 @@ def run_scene_job(job: SceneJob) -> dict:
         import shutil
         shutil.rmtree(folder, ignore_errors=True)
         make_track_run(folder, cfg, progress=False)
-        marker.write_text(json.dumps(cfg.to_dict(), default=str))
+        _write_marker(marker, cfg.to_dict())
     render_s = _time.perf_counter() - t0
     footage = open_footage(folder)
     if cfg.imu.mount != "camera" and getattr(footage, "imu_to_camera", None) is None:
@@ -393,6 +393,13 @@ def run_scene_job(job: SceneJob) -> dict:
     return res
 
 
+def _write_marker(marker: Path, settings: dict) -> None:
+    """A rendered scene's settings, written atomically (a cut-off write must not read as a scene to reuse)."""
+    tmp = marker.with_name(f".{marker.name}.tmp")
+    tmp.write_text(json.dumps(settings, default=str))
+    os.replace(tmp, marker)
+
+
 def ensure_eye_scene(scenes: Path, name: str, cfg) -> Path:
     """The scene's eye footage, ``scenes/<name>-eye`` (rendered unless already there with these settings):
     the run configuration ``cfg`` (world, trajectory, IMU) ray-cast onto the default compound eyes at
@@ -408,7 +415,7 @@ def ensure_eye_scene(scenes: Path, name: str, cfg) -> Path:
     if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == settings):
         shutil.rmtree(folder, ignore_errors=True)
         make_eye_run(folder, cfg, CompoundEyeConfig(), EYE_RATE_HZ, progress=False)
-        marker.write_text(json.dumps(settings))
+        _write_marker(marker, settings)
     return folder
 
 
