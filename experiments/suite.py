@@ -320,14 +320,8 @@ def run_scene_job(job: SceneJob) -> dict:
             return res
     t0 = _time.perf_counter()
     cfg = family_config(job.family, job.seed, job.duration_s, job.scale, job.imu, job.imu_mount)
-    folder = out / "scenes" / job.name
-    marker = out / "scenes" / f"{job.name}.json"
-    settings = json.loads(json.dumps(cfg.to_dict(), default=str))  # as the marker stores it (tuples -> lists)
-    if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == settings):
-        import shutil
-        shutil.rmtree(folder, ignore_errors=True)
-        make_track_run(folder, cfg, progress=False)
-        _write_marker(marker, cfg.to_dict())
+    folder = ensure_rendered(out / "scenes" / job.name, cfg.to_dict(),
+                             lambda f: make_track_run(f, cfg, progress=False))
     render_s = _time.perf_counter() - t0
     footage = open_footage(folder)
     if cfg.imu.mount != "camera" and getattr(footage, "imu_to_camera", None) is None:
@@ -393,30 +387,33 @@ def run_scene_job(job: SceneJob) -> dict:
     return res
 
 
-def _write_marker(marker: Path, settings: dict) -> None:
-    """A rendered scene's settings, written atomically (a cut-off write must not read as a scene to reuse)."""
-    tmp = marker.with_name(f".{marker.name}.tmp")
-    tmp.write_text(json.dumps(settings, default=str))
-    os.replace(tmp, marker)
+def ensure_rendered(folder: Path, settings: dict, render) -> Path:
+    """``folder``, rendered by ``render(folder)`` unless it is already there with these ``settings``
+    (kept beside it in ``<folder>.json``, written atomically after the render: a cut-off run never
+    leaves a marker that reads as a scene to reuse)."""
+    import shutil
+
+    marker = folder.with_name(f"{folder.name}.json")
+    settings = json.loads(json.dumps(settings, default=str))  # as the marker stores it (tuples -> lists)
+    if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == settings):
+        shutil.rmtree(folder, ignore_errors=True)
+        render(folder)
+        tmp = marker.with_name(f".{marker.name}.tmp")
+        tmp.write_text(json.dumps(settings))
+        os.replace(tmp, marker)
+    return folder
 
 
 def ensure_eye_scene(scenes: Path, name: str, cfg) -> Path:
     """The scene's eye footage, ``scenes/<name>-eye`` (rendered unless already there with these settings):
     the run configuration ``cfg`` (world, trajectory, IMU) ray-cast onto the default compound eyes at
     :data:`EYE_RATE_HZ` (stimuli.eye.make_eye_run; the folder appears only when complete)."""
-    import shutil
-
     from lobula.compound_eye import CompoundEyeConfig
     from stimuli.eye import make_eye_run
 
-    folder, marker = scenes / f"{name}-eye", scenes / f"{name}-eye.json"
-    settings = json.loads(json.dumps(dict(run=cfg.to_dict(), eye=CompoundEyeConfig().to_dict(), rate_hz=EYE_RATE_HZ),
-                                     default=str))
-    if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == settings):
-        shutil.rmtree(folder, ignore_errors=True)
-        make_eye_run(folder, cfg, CompoundEyeConfig(), EYE_RATE_HZ, progress=False)
-        _write_marker(marker, settings)
-    return folder
+    eye = CompoundEyeConfig()
+    return ensure_rendered(scenes / f"{name}-eye", dict(run=cfg.to_dict(), eye=eye.to_dict(), rate_hz=EYE_RATE_HZ),
+                           lambda f: make_eye_run(f, cfg, eye, EYE_RATE_HZ, progress=False))
 
 
 # ---------------------------------------------------------------------- the suite
