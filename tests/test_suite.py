@@ -182,7 +182,8 @@ def test_suite_runs_the_fly_eye_on_the_same_world_and_keeps_it_out_of_all(tmp_pa
     with pytest.raises(ValueError, match="unknown configuration"):
         suite.run_suite(["rest"], [0], 3.0, 0.2, tmp_path / "bad", configurations=["eye zero-phase"])
     out = tmp_path / "suite"
-    ds, _ = suite.run_suite(["rest"], [0], 2.5, 0.2, out, configurations=["eye rates causal", "zero"], skip_s=1.0,
+    ds, _ = suite.run_suite(["rest"], [0], 2.5, 0.2, out, configurations=["eye rates causal", "eye rates zero-phase",
+                                                                          "zero"], skip_s=1.0,
                             imu="ideal", progress=lambda *a: None)
     eye = out / "scenes" / "rest-s0-eye"
     assert (eye / "luminance.npy").exists() and (out / "scenes" / "rest-s0-eye.json").exists()
@@ -191,6 +192,13 @@ def test_suite_runs_the_fly_eye_on_the_same_world_and_keeps_it_out_of_all(tmp_pa
     assert pick("zero", "rmse_m_s") > 0.05
     assert pick("eye rates causal", "rmse_m_s") < 0.25 * pick("zero", "rmse_m_s")
     assert np.isfinite(pick("eye rates causal", "z95")) and pick("eye rates causal", "observable_fraction") > 0.5
+    # The same rates offline: the readout's smoother, on the eye footage the causal run read (rendered once).
+    zp = suite.velocity_config("eye rates zero-phase")
+    assert (zp.readout_kind, zp.readout.filter) == ("kalman", "zero-phase")
+    assert pick("eye rates zero-phase", "rmse_m_s") < 0.25 * pick("zero", "rmse_m_s")
+    assert json.loads(ds.attrs["configurations"])["eye rates zero-phase"][:2] == ["eye", "zero-phase"]
+    series = xr.open_dataset(out / "series" / "rest-s0.nc")
+    assert not np.allclose(series["v_hat__eye_rates_zero-phase"], series["v_hat__eye_rates_causal"], equal_nan=True)
     assert json.loads(ds.attrs["eye_config"])["readout"]["filter"] == "causal"
     # The eye footage is rendered once: a second suite in the same folder reuses it.
     mtime = (eye / "luminance.npy").stat().st_mtime
