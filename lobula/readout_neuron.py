@@ -324,21 +324,26 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
 
 
 def spiking_output(t, v, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:
-    """Carry a velocity estimate v (time,) m/s on push–pull Poisson output neurons and decode it back.
+    """Carry a velocity estimate v (time,) m/s on push–pull spiking output neurons and decode it back.
 
     The output stage of :func:`readout_neuron` on its own (steps 5–6 of the module docstring),
-    for any readout's v̂ (NaN: the neurons fall silent). a (time,) m/s² gives the causal
-    decoder its lead. Returns numpy arrays: v_dec (m/s), decode_std (m/s, Poisson noise),
-    rate_plus / rate_minus (Hz), spikes_plus / spikes_minus (counts per generator step).
+    for any readout's v̂ (NaN: the neurons fall silent). v may also be (trials, time): the same
+    or different estimates on independent trials (the neurons' noise differs, one generator
+    seeded by ``config.seed``). a (time,) or (trials, time) m/s² gives the causal decoder its
+    lead. Returns numpy arrays shaped like v: v_dec (m/s), decode_std (m/s, count noise),
+    rate_plus / rate_minus (Hz); spikes_plus / spikes_minus (counts per generator step, the
+    population's pairs pooled; time·m samples, :func:`spike_steps_per_frame`).
     """
     cfg = config or ReadoutNeuronConfig(spiking=True)
-    as_t = lambda x: torch.as_tensor(np.array(x, dtype=np.float64))[None]  # noqa: E731
-    v_t, a_t = as_t(v), as_t(a)
+    v_t = torch.as_tensor(np.array(v, dtype=np.float64))
+    squeeze = v_t.dim() == 1
+    v_t = v_t[None] if squeeze else v_t
+    a_t = torch.as_tensor(np.array(a, dtype=np.float64)).expand_as(v_t)
     dt = float(np.median(np.diff(t)))
     out = _spikes(v_t, a_t, dt, cfg)
     vv = torch.nan_to_num(v_t)
     out.update(rate_plus=cfg.gain_hz_per_m_s * vv.clamp_min(0), rate_minus=cfg.gain_hz_per_m_s * (-vv).clamp_min(0))
-    return {k: x[0].numpy() for k, x in out.items()}
+    return {k: (x[0] if squeeze else x).numpy() for k, x in out.items()}
 
 
 def readout_neuron(t, r, r2, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:

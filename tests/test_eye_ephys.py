@@ -1,5 +1,6 @@
 """`lobula ephys … --eye fly`: the compound eye's velocity circuit recorded, against known answers."""
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -64,7 +65,8 @@ def test_eye_options_fail_naming_the_fix():
         run_protocol("tf-tuning", {"eye": "fly", "trials": 3})
     with pytest.raises(ValueError, match="readout neuron"):
         run_protocol("tf-tuning", {"eye": "fly", "record": ["lc.spikes"]})
-    with pytest.raises(ValueError, match="applies to tf-tuning, rf-map, looming"):
-        run_protocol("velocity-replay", {"eye": "fly"})
+    # velocity-replay on the eye replays eye footage (tests/test_eye_replay.py); camera footage is refused.
+    with pytest.raises(ValueError, match="not an eye-footage folder.*--eye fly"):
+        run_protocol("velocity-replay", {"eye": "fly", "footage": str(Path(__file__).parent)})
     with pytest.raises(ValueError, match=r"\[0, 80\)"):
         run_protocol("rf-map", {"eye": "fly", "fields": [80]})

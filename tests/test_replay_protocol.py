@@ -63,7 +63,7 @@ def test_every_replay_option_changes_the_recording(footage):
         "neuron_model": ("rate", lambda ds: ds.attrs["neuron_model"] == "rate" and "readout_spikes" not in ds),
     }
     documented = {k for k, ps in APPLIES.items() if "velocity-replay" in ps}
-    assert documented == set(checks) | {"footage", "duration"}
+    assert documented == set(checks) | {"footage", "duration", "eye"}  # --eye fly: tests/test_eye_replay.py
     for opt, (val, ok) in checks.items():
         extra = {"trials": 1} if opt == "neuron_model" else {}
         ds = run_protocol("velocity-replay", {"footage": str(footage), "seed": 7, **extra, opt: val})

@@ -30,7 +30,7 @@ APPLIES = {
     "spot_size": ("rf-map",), "spot_path": ("rf-map",), "spot_speed": ("rf-map",),
     "l_over_v": ("looming",), "max_size": ("looming",), "collision_time": ("looming",),
     "footage": ("velocity-replay",),
-    "eye": LC_RIG,
+    "eye": ALL,
 }
 
 S = argparse.SUPPRESS
@@ -66,7 +66,8 @@ def add_parser(subparsers):
                         "replay scene (default: 0)")
     g.add_argument("--neuron-model", choices=["rate", "lif", "poisson"], default=S,
                    help="[tf-tuning, looming, velocity-replay] LC units: rate (Naka-Rushton), poisson (spikes from rates), lif (integrate-and-fire) "
-                        "(default: rate; velocity-replay's readout neuron: poisson, or rate)")
+                        "(default: rate; velocity-replay's readout neuron: poisson, or rate; with --eye fly its "
+                        "output neurons: lif, or poisson, or rate)")
     g.add_argument("--tau", type=float, default=S,
                    help="EMD delay τ (s) (default: 0.035; velocity-replay's EMD front end: 0.01)")
     g.add_argument("--dphi", type=float, default=S,
@@ -74,11 +75,12 @@ def add_parser(subparsers):
     g.add_argument("--field-size", type=float, default=S,
                    help="LC receptive-field size (degree) (default: 10; velocity-replay's fields: 5)")
     g.add_argument("--eye", choices=["pinhole", "fly"], default=S,
-                   help="[tf-tuning, rf-map, looming] the eye recorded: pinhole (the lattice over the D435i's field "
+                   help="the eye recorded: pinhole (the lattice over the D435i's field "
                         "of view and its LC population) or fly (the two compound eyes and the very circuit "
                         "`lobula eye-velocity` estimates velocity with: Δφ 5°, 500 Hz, 30° LC matched filters; "
-                        "records photoreceptor.v, emd.response, lc.input, lc.pool, lc.r, lc.grad, lc.r2) "
-                        "(default: pinhole)")
+                        "tf-tuning, rf-map and looming record photoreceptor.v, emd.response, lc.input, lc.pool, lc.r, "
+                        "lc.grad, lc.r2; velocity-replay replays eye footage (--footage, from `lobula scene OUT --eye "
+                        "fly`) and records lc.r, lc.rdot and the spiking output neurons over trials) (default: pinhole)")
     g.add_argument("--device", default=S, help="[tf-tuning, rf-map, looming] torch device (default: cpu)")
     g.add_argument("--duration", type=float, default=S,
                    help="stimulus duration (s) [tf-tuning: 2; looming: 1; velocity-replay: 10, built-in run only]")
@@ -186,6 +188,8 @@ def rig_config(protocol: str, opts: dict):
 def run_protocol(protocol: str, opts: dict):
     """Run one protocol from a dict of given options (the command line's, or a test's); returns the Dataset."""
     check_applicable(protocol, opts)
+    if protocol == "velocity-replay" and opts.get("eye", "pinhole") == "fly":
+        return _eye_replay(opts)
     if protocol == "velocity-replay":
         from experiments.replay_protocol import velocity_replay
 
@@ -212,6 +216,26 @@ def run_protocol(protocol: str, opts: dict):
 
     run = {"tf-tuning": tf_tuning, "rf-map": rf_map, "looming": looming}[protocol]
     return run(rig_config(protocol, opts), record=opts.get("record"), **kw)
+
+
+def _eye_replay(opts: dict):
+    """``lobula ephys velocity-replay --eye fly``: the compound eye's circuit on eye footage (or a built-in run)."""
+    from experiments.replay_protocol import eye_velocity_replay
+
+    model = opts.get("neuron_model", "lif")
+    if "footage" in opts and "duration" in opts:
+        raise ValueError("--duration sets the built-in run's length; footage has its own (drop --duration)")
+    if "footage" in opts and "dphi" in opts:
+        raise ValueError("--dphi: eye footage keeps the Δφ it was rendered at; render it with `lobula scene OUT --eye "
+                         "fly --dphi …`, or drop --footage for the built-in run")
+    if model == "rate" and opts.get("trials", 1) != 1:
+        raise ValueError(f"--trials {opts['trials']}: the output neurons' rates are deterministic, so every trial "
+                         f"would be identical; use --trials 1, or --neuron-model lif or poisson")
+    return eye_velocity_replay(opts.get("footage"), trials=opts.get("trials", 1 if model == "rate" else 4),
+                               seed=opts.get("seed", 0), spike_model=None if model == "rate" else model,
+                               duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
+                               dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
+                               record=opts.get("record"))
 
 
 #: command-line option -> protocol keyword, per protocol (the same for the pinhole lattice and the fly eye)

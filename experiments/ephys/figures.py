@@ -341,19 +341,27 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
     ax_v = fig.add_subplot(gs[0, :])
     if "v_true" in rec:
         ax_v.plot(t, rec.v_true, "k--", lw=1.2, label="truth")
-    ax_v.plot(t, rec.arithmetic_v, color="tab:blue", lw=1.2, label="arithmetic readout (zero-phase)")
+    eye = rec.attrs.get("eye") == "fly"
+    if eye and "arithmetic_v_std" in rec:
+        m, e = rec.arithmetic_v.values, 2 * rec.arithmetic_v_std.values
+        ax_v.fill_between(t, m - e, m + e, color="tab:blue", alpha=0.15, lw=0, label="its ± 2σ (v_std)")
+    ax_v.plot(t, rec.arithmetic_v, color="tab:blue", lw=1.2,
+              label="readout (rates, causal)" if eye else "arithmetic readout (zero-phase)")
     if "readout_v" in rec:
         v = rec.readout_v.values
         k = v.shape[0]
         m = nanmean(v, 0)
         e = sem(v, 0) if k > 1 else None
-        ax_v.plot(t, m, color="m", lw=1.6, label=f"readout neuron (mean of {k} trial{'s' if k > 1 else ''})")
+        who = "output neurons, decoded" if eye else "readout neuron"
+        ax_v.plot(t, m, color="m", lw=1.6, label=f"{who} (mean of {k} trial{'s' if k > 1 else ''})")
         if e is not None:
             ax_v.fill_between(t, m - e, m + e, color="m", alpha=0.25, lw=0, label="± SEM across trials")
     sc = replay_scores(rec)
     if sc:
-        ax_v.set_title(f"velocity replay: RMSE neuron {sc['neuron_rmse_m_s']:.3f} m/s, arithmetic "
-                       f"{sc['arithmetic_rmse_m_s']:.3f} m/s (after 2 s)", fontsize=10)
+        ax_v.set_title(f"velocity replay{' on the compound eye' if eye else ''}: RMSE "
+                       f"{'output neurons' if eye else 'neuron'} {sc['neuron_rmse_m_s']:.3f} m/s, "
+                       f"{'readout' if eye else 'arithmetic'} {sc['arithmetic_rmse_m_s']:.3f} m/s (after 2 s)",
+                       fontsize=10)
     ax_v.set_ylabel("forward velocity (m/s)")
     ax_v.set_xlabel("time (s)")
     ax_v.legend(fontsize=8, loc="lower right", ncol=2, frameon=False)
@@ -364,6 +372,8 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
         st = rec.spike_time.values
         dts = float(rec.readout_spikes.attrs["dt_s"])
         k = rec.sizes["trial"]
+        # Counts pooled over a population of pairs: the PSTH is per neuron.
+        pool = int(json.loads(rec.readout_spikes.attrs.get("neuron_parameters", "{}")).get("population", 1))
         for j, name in enumerate(("plus", "minus")):
             s = rec.readout_spikes.sel(neuron=name).values
             tr, ti = np.nonzero(s > 0)
@@ -371,7 +381,7 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
             ax_r.vlines(st[ti] + dts / 2, row - 0.4, row + 0.4, color=cols[name], lw=0.5)
             b = max(1, int(round(0.1 / dts)))
             n = s.shape[1] // b * b
-            rate = s[:, :n].reshape(k, -1, b).sum(-1) / (b * dts)
+            rate = s[:, :n].reshape(k, -1, b).sum(-1) / (b * dts * pool)
             tb = st[:n].reshape(-1, b).mean(-1) + dts / 2
             mm = rate.mean(0)
             ax_p.plot(tb, mm, color=cols[name], lw=1.2, label=f"{name} neuron")
@@ -383,8 +393,9 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
         ax_r.set_yticklabels([str(i % (k + 1)) for i in ax_r.get_yticks()])
         ax_r.set_ylabel("trial (plus: lower block;\nminus: upper block)")
         ax_r.set_ylim(-0.6, 2 * k + 0.6)
-        ax_r.set_title(f"readout neurons' spikes ({dts * 1e3:.2f} ms steps): red plus, blue minus", fontsize=10)
-        ax_p.set_ylabel(f"firing rate (Hz, {b * dts * 1e3:.0f} ms bins)")
+        ax_r.set_title(f"{'output' if eye else 'readout'} neurons' spikes ({dts * 1e3:.2f} ms steps"
+                       f"{f', {pool} pooled' if pool > 1 else ''}): red +, blue −", fontsize=10)
+        ax_p.set_ylabel(f"rate{' per neuron' if pool > 1 else ''} (Hz; {b * dts * 1e3:.0f} ms bins)")
         ax_p.set_title(f"PSTH ± SEM across {k} trials", fontsize=10)
     elif "readout_rate" in rec:
         for name in ("plus", "minus"):
@@ -392,7 +403,7 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
         ax_p.set_ylabel("firing rate (Hz)")
         ax_p.set_title("readout neurons' rates (deterministic: one trial)", fontsize=10)
         ax_r.set_axis_off()
-    ax_p.legend(fontsize=8, loc="upper right", frameon=False)
+    ax_p.legend(fontsize=8, loc="upper left", frameon=False)
     for a in (ax_r, ax_p):
         a.set_xlabel("time (s)")
     ax_h = fig.add_subplot(gs[2, :])
@@ -402,7 +413,7 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
         im = ax_h.imshow(rec.lc_r.values[:, order].T, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim,
                          extent=(t[0], t[-1], len(order), 0), interpolation="nearest")
         ax_h.set_ylabel("LC field\n(by eccentricity)")
-        fig.colorbar(im, ax=ax_h, label="sustained pathway r (1/s)")
+        fig.colorbar(im, ax=ax_h, label="field's ρ = v/D (1/s)" if eye else "sustained pathway r (1/s)")
     ax_h.set_xlabel("time (s)")
     return save_png_and_pdf(fig, path)
 
@@ -446,7 +457,7 @@ def plot_recording(ds: xr.Dataset, path) -> list[Path]:
     if ds.attrs.get("eye") == "fly":
         if p == "tf-tuning":
             return plot_eye_tf_tuning(ds, path)
-        if p != "rf-map":
+        if p not in ("rf-map", "velocity-replay"):
             raise ValueError(f"no figure for {p} on the compound eye (--eye fly) yet; drop --plot")
     if p == "velocity-replay":
         return plot_velocity_replay(ds, path)
