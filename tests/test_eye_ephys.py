@@ -70,3 +70,22 @@ def test_eye_options_fail_naming_the_fix():
         run_protocol("velocity-replay", {"eye": "fly", "footage": str(Path(__file__).parent)})
     with pytest.raises(ValueError, match=r"\[0, 80\)"):
         run_protocol("rf-map", {"eye": "fly", "fields": [80]})
+
+
+def test_looming_expands_on_approach_contracts_on_recession_and_peaks_earlier_for_slower_discs(tmp_path):
+    from experiments.ephys.figures import plot_recording
+
+    ds = run_protocol("looming", {"eye": "fly", "l_over_v": [0.01, 0.02, 0.04, 0.08]})
+    reached = np.flatnonzero(ds.field_sees_disc.values)
+    assert 8 <= len(reached) <= 40                                          # the frontal fields, both eyes
+    peak = ds.lc_r_peak.isel(field=reached).median("field")
+    # The translation template reads a disc growing straight ahead as expansion, one shrinking as contraction.
+    assert (peak.sel(motion="approach") > 0.5).all() and (peak.sel(motion="recede") < -0.2).all()
+    # Known answer for a looming stimulus: the response peaks before collision, earlier in proportion to l/|v|
+    # (a fixed angular size is reached at t = −l/|v|/tan(θ/2)).
+    lv = ds.l_over_v_s.values
+    tp = ds.lc_input_time_of_peak_s.isel(field=reached).median("field").sel(motion="approach").values
+    assert np.all(tp < 0) and np.all(np.diff(tp) < 0)
+    slope, icpt = np.polyfit(lv, tp, 1)
+    assert slope < -0.5 and np.corrcoef(lv, tp)[0, 1] < -0.95
+    assert all(p.stat().st_size > 10_000 for p in plot_recording(ds, tmp_path / "loom.png"))

@@ -317,6 +317,12 @@ def summary(ds) -> list[str]:
                     r = ex.sel(l_over_v_s=lv, motion="recede")
                     lines.append(f"{v} ({ds[v].attrs.get('units', '')}), {int(np.isfinite(a).sum())} expansion units, "
                                  f"l/|v| = {lv:g} s: approach median {_med(a)}; recede median {_med(r)}")
+            if v.endswith("_time_of_peak_s") and "field" in ds[v].dims and "field_sees_disc" in ds.coords:
+                reached = ds[v].isel(field=np.flatnonzero(ds.field_sees_disc.values))
+                lines.append(f"{v} (s relative to collision), the {reached.sizes['field']} fields the disc reaches, "
+                             "approach, per l/|v|: " + "; ".join(
+                                 f"{lv:g} s: {_med(reached.sel(l_over_v_s=lv, motion='approach'))}"
+                                 for lv in ds.l_over_v_s.values))
             if v.endswith("_time_of_peak_s") and "neuron" in ds[v].dims:
                 ex = ds[v].isel(neuron=np.nonzero(ds.neuron_type.sel(neuron=ds[v].neuron).values == "expansion")[0])
                 lines.append(f"{v} (s relative to collision), expansion units, approach, per l/|v|: " + "; ".join(

@@ -495,6 +495,29 @@ def _eye_looming(cfg: EyeEphysConfig, *, l_over_v_s=(0.01, 0.02, 0.04, 0.08), du
     sizes = np.stack([np.atleast_2d(info["angular_size_deg"]), np.atleast_2d(info_r["angular_size_deg"])], 1)
     ds["angular_size_deg"] = (("l_over_v_s", "motion", "time"), sizes, {
         "units": "degree", "long_name": f"disc angular size (capped at {max_size_deg:g} degrees)"})
+    if "field" in ds.dims:
+        # The fields the disc reaches: centre within its largest radius plus the field's half-width.
+        f = rig.fields
+        n = ds.sizes["field"]
+        cen = np.radians(f.centres_deg[:n] if n == f.n_fields else f.centres_deg[f.eye == 0])[ds.field.values]
+        off = np.degrees(np.arccos(np.clip(np.cos(cen[:, 0]) * np.cos(cen[:, 1]), -1.0, 1.0)))
+        ds = ds.assign_coords(field_sees_disc=("field", off <= 0.5 * (max_size_deg + f.size_deg), {"units": "1",
+            "long_name": "the disc reaches the field (centre within half the disc's largest size plus half the "
+                         "field's FWHM of straight ahead)"}))
+    t = ds.time.values
+    for var in ("lc_input", "lc_r"):
+        if var not in ds:
+            continue
+        # Approach expands the image (ρ > 0 on the translation template), receding contracts it: each
+        # motion's peak is its own sign's extreme.
+        x = ds[var]
+        sign = xr.DataArray([1.0, -1.0], dims="motion", coords={"motion": ds.motion})
+        y = (x * sign).fillna(-np.inf)
+        what = x.attrs["long_name"]
+        ds[f"{var}_peak"] = (x.max("time").where(sign > 0, x.min("time"))).assign_attrs(
+            units=x.attrs["units"], long_name=f"peak {what} (approach: largest; recede: most negative)")
+        ds[f"{var}_time_of_peak_s"] = (t[y.argmax("time").values] * xr.ones_like(x.isel(time=0))).assign_attrs(
+            units="s", long_name=f"time of that peak of the {what}, relative to collision")
     ds.attrs["t_collision_s"] = tc
     return cf_describe(ds)
 

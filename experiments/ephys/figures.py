@@ -451,12 +451,67 @@ def plot_eye_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
     return save_png_and_pdf(fig, path)
 
 
+def plot_eye_looming(ds: xr.Dataset, path) -> list[Path]:
+    """looming on the compound eye: the LC fields the disc reaches — their expansion rate ρ and matched-filter
+    input, mean ± SEM over those fields, one colour per l/|v| (solid approach, dashed recede) — the disc's
+    angular size, and the approach's peak time (median over those fields) against l/|v| with its linear fit."""
+    plt = _plt()
+    lvs = ds.l_over_v_s.values
+    cols = _colours(len(lvs))
+    t = ds.time.values
+    sees = ds.field_sees_disc.values if "field_sees_disc" in ds.coords else np.ones(ds.sizes.get("field", 0), bool)
+    fig, ax = plt.subplots(1, 4, figsize=(19, 4.4))
+    panels = [(v, title) for v, title in (("lc_r", "LC expansion rate ρ"), ("lc_input", "LC matched-filter input"))
+              if v in ds]
+    for a, (v, title) in zip(ax[:2], panels):
+        for lv, col in zip(lvs, cols):
+            for mot, ls in (("approach", "-"), ("recede", "--")):
+                y = ds[v].sel(l_over_v_s=lv, motion=mot).values[:, sees]
+                m, e = nanmean(y, 1), sem(y, 1)
+                a.plot(t, m, ls, color=col, lw=1.3, label=f"l/|v| = {lv * 1e3:g} ms" if mot == "approach" else None)
+                a.fill_between(t, m - e, m + e, color=col, alpha=0.2, lw=0)
+        a.set_ylabel(f"{title} ({ds[v].attrs.get('units', '')})")
+        a.set_title(f"{title}, {int(sees.sum())} fields the disc reaches\n(mean ± SEM over fields)", fontsize=10)
+    ax[0].legend(fontsize=8, frameon=False, loc="upper left", title="solid approach, dashed recede",
+                 title_fontsize=8)
+    for lv, col in zip(lvs, cols):
+        for mot, ls in (("approach", "-"), ("recede", "--")):
+            ax[2].plot(t, ds.angular_size_deg.sel(l_over_v_s=lv, motion=mot), ls, color=col, lw=1.3)
+    ax[2].set_ylabel("disc angular size (degree)")
+    ax[2].set_title(f"stimulus (size cap {json.loads(ds.attrs['parameters'])['max_size_deg']:g}°)", fontsize=10)
+    for a in ax[:3]:
+        a.axvline(0.0, color="0.5", lw=0.8, ls=":")
+        a.set_xlabel("time relative to collision (s)")
+    for k, (v, title) in enumerate(panels):
+        pk = f"{v}_time_of_peak_s"
+        if pk not in ds:
+            continue
+        y = ds[pk].sel(motion="approach").transpose("l_over_v_s", "field").values[:, sees]
+        m = np.nanmedian(y, 1)
+        ax[3].plot(lvs * 1e3, m * 1e3, "o", color=f"C{k}", label=f"{title} (median over fields)")
+        if np.isfinite(m).sum() >= 2:
+            alpha, delta = np.polyfit(lvs, m, 1)
+            xx = np.linspace(0, lvs.max() * 1.05, 50)
+            ax[3].plot(xx * 1e3, (alpha * xx + delta) * 1e3, "--", color=f"C{k}", lw=1,
+                       label=f"fit: t_peak = {alpha:.2f}·l/|v| {'+' if delta >= 0 else '−'} {abs(delta) * 1e3:.0f} ms")
+    ax[3].set_xlabel("l/|v| (ms)")
+    ax[3].set_ylabel("approach: time of peak relative to collision (ms)")
+    ax[3].set_title("peak time against l/|v|", fontsize=10)
+    ax[3].legend(fontsize=7, frameon=False, loc="lower left")
+    fig.suptitle(f"Compound eye (Δφ = {ds.attrs.get('dphi_deg', '?')}°): a dark disc approaching or receding "
+                 "straight ahead, recorded on the velocity circuit's own LC fields", fontsize=10)
+    fig.tight_layout()
+    return save_png_and_pdf(fig, path)
+
+
 def plot_recording(ds: xr.Dataset, path) -> list[Path]:
     """The protocol's figure (from ds.attrs["protocol"]); PNG and PDF."""
     p = ds.attrs.get("protocol")
     if ds.attrs.get("eye") == "fly":
         if p == "tf-tuning":
             return plot_eye_tf_tuning(ds, path)
+        if p == "looming":
+            return plot_eye_looming(ds, path)
         if p not in ("rf-map", "velocity-replay"):
             raise ValueError(f"no figure for {p} on the compound eye (--eye fly) yet; drop --plot")
     if p == "velocity-replay":
