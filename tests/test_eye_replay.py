@@ -21,8 +21,14 @@ def eye_run(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def rec(eye_run):
-    return run_protocol("velocity-replay", {"eye": "fly", "footage": str(eye_run), "trials": 3, "seed": 5})
+def rec(eye_run, tmp_path_factory):
+    # Through the command line, as a user runs it; the stored file is what the tests read.
+    from experiments.cli import main
+
+    out = tmp_path_factory.mktemp("eye-replay-rec") / "rec.nc"
+    assert main(["ephys", "velocity-replay", "--eye", "fly", "--footage", str(eye_run), "--trials", "3",
+                 "--seed", "5", "--out", str(out)]) == 0
+    return xr.open_dataset(out).load()
 
 
 def test_eye_replay_records_the_eye_pipelines_own_numbers(eye_run, rec):
