@@ -124,13 +124,13 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
                             "long_name": "LC transient pathway: rate of change of r"})
     data["arithmetic_v"] = ("time", ds.v_hat.values, {"units": "m s-1",
                             "long_name": "arithmetic readout's forward velocity (zero-phase), for comparison"})
-    rec = _replay_dataset(ds, want, out, ncfg, spiking, data, "readout neuron's forward velocity (decoded; NaN where "
-                          "not confident)")
+    rec, spike_dt = _replay_dataset(ds, want, out, ncfg, spiking, data, "readout neuron's forward velocity (decoded; "
+                                    "NaN where not confident)")
     full = dict(velocity=json.loads(vcfg.to_json()), readout_neuron=ncfg.to_dict(), trials=trials, seed=seed,
                 footage=source, record=list(want))
     params = dict(footage=source, duration_s=duration_s if "built-in" in source else None, record=list(want))
     rec.attrs.update(recording_attrs(
-        "velocity-replay", full, params, footage=source, dt_s=float(rec.attrs.pop("spike_dt_s")),
+        "velocity-replay", full, params, footage=source, dt_s=spike_dt,
         frame_interval_s=dt, trials=trials, trials_requested=trials, trials_note="", seed=seed,
         emd_tau_s=vcfg.emd.emd.tau_s, neuron_model="poisson" if spiking else "rate",
         neuron_parameters=json.dumps(ncfg.to_dict(), sort_keys=True)))
@@ -138,12 +138,12 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
 
 
 def _replay_dataset(ds: xr.Dataset, want, out: dict, ncfg: ReadoutNeuronConfig, spiking: bool, data: dict,
-                    v_long_name: str) -> xr.Dataset:
+                    v_long_name: str) -> tuple[xr.Dataset, float]:
     """The recording both front ends share: the output neurons' decoded v (trial, time), rates (trial, time,
     neuron) and spike counts (trial, spike_time, neuron) as ``want`` names them, beside ``data`` (the front
     end's own variables), the acceleration and the truth, on the velocity Dataset ``ds``'s times and fields.
     ``out``: the output neurons' arrays (trials, ...) (:func:`lobula.readout_neuron.readout_neuron` or
-    :func:`lobula.readout_neuron.spiking_output`). The spike generator's step is left in attrs["spike_dt_s"]."""
+    :func:`lobula.readout_neuron.spiking_output`). Returns the Dataset and the spike generator's step (s)."""
     t = ds.time.values
     dt = float(np.median(np.diff(t)))
     trials = out["rate_plus"].shape[0]
@@ -176,9 +176,7 @@ def _replay_dataset(ds: xr.Dataset, want, out: dict, ncfg: ReadoutNeuronConfig, 
                                    "neuron_parameters": json.dumps(ncfg.to_dict(), sort_keys=True)})
     if "v_true" in ds:
         data["v_true"] = ("time", ds.v_true.values, {"units": "m s-1", "long_name": "true forward velocity"})
-    rec = xr.Dataset(data, coords=coords)
-    rec.attrs["spike_dt_s"] = spike_dt
-    return rec
+    return xr.Dataset(data, coords=coords), spike_dt
 
 
 def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4, seed: int = 0,
@@ -189,7 +187,7 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
 
     footage_path: an eye-footage folder; None renders a built-in synthetic run of ``duration_s``
     (frontal panels, scene seed ``seed``) onto the default eyes at 500 Hz (cast at 250 Hz, as
-    ``lobula scene --eye fly``; about 4 s of CPU per second of flight). spike_model: the output
+    ``lobula scene --eye fly``; about 5 s of CPU per second of flight with four trials). spike_model: the output
     neurons, "lif" (the eye's default) or "poisson", each trial with its own noise from ``seed``;
     None: their rates only (deterministic, one trial). tau_s: the EMD delay (s); field_size_deg:
     the LC fields' FWHM (degree); dphi_deg: the interommatidial angle of the built-in run (eye
@@ -256,16 +254,16 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
     data["arithmetic_v_std"] = ("time", ds.v_std.values, {"units": "m s-1", "long_name": ds.v_std.attrs["long_name"]})
     data["lc_used"] = (("time", "field"), ds.field_used.values.astype(np.int8),
                        {"units": "1", "long_name": ds.field_used.attrs["long_name"]})
-    rec = _replay_dataset(ds, want, out, ncfg, spiking,  data,
-                          f"output neurons' decoded forward velocity ({SPIKE_MODELS[ncfg.spike_model]}, causal; NaN "
-                          "where the readout is unobservable)" if spiking else
-                          "readout's forward velocity the output neurons' rates carry (no spikes)")
+    rec, spike_dt = _replay_dataset(ds, want, out, ncfg, spiking, data,
+                                    f"output neurons' decoded forward velocity ({SPIKE_MODELS[ncfg.spike_model]}, "
+                                    "causal; NaN where the readout is unobservable)" if spiking else
+                                    "readout's forward velocity the output neurons' rates carry (no spikes)")
     rec = rec.assign_coords(eye=("field", ds.eye.values, {"long_name": "eye of the LC field"}))
     full = dict(eye_velocity=json.loads(ecfg.to_json()), output_neurons=ncfg.to_dict(), trials=trials, seed=seed,
                 footage=source, record=list(want), eye=eye_summary)
     params = dict(footage=source, duration_s=duration_s if "built-in" in source else None, record=list(want))
     rec.attrs.update(recording_attrs(
-        "velocity-replay", full, params, eye="fly", footage=source, dt_s=float(rec.attrs.pop("spike_dt_s")),
+        "velocity-replay", full, params, eye="fly", footage=source, dt_s=spike_dt,
         frame_interval_s=dt, trials=trials, trials_requested=trials,
         trials_note="" if spiking else "the output neurons' rates are deterministic: one trial",
         seed=seed, emd_tau_s=ecfg.circuit.emd.tau_s, neuron_model=ncfg.spike_model if spiking else "rate",
