@@ -69,11 +69,12 @@ def add_parser(subparsers):
                         "(default: rate; velocity-replay's readout neuron: poisson, or rate; with --eye fly its "
                         "output neurons: lif, or poisson, or rate)")
     g.add_argument("--tau", type=float, default=S,
-                   help="EMD delay τ (s) (default: 0.035; velocity-replay's EMD front end: 0.01)")
+                   help="EMD delay τ (s) (default: 0.035; velocity-replay's EMD front end: 0.01; --eye fly: 0.035 "
+                        "everywhere)")
     g.add_argument("--dphi", type=float, default=S,
-                   help="interommatidial angle Δφ (degree) (default: 2; velocity-replay's front end: 0.75)")
+                   help="interommatidial angle Δφ (degree) (default: 2; velocity-replay's front end: 0.75; --eye fly: 5)")
     g.add_argument("--field-size", type=float, default=S,
-                   help="LC receptive-field size (degree) (default: 10; velocity-replay's fields: 5)")
+                   help="LC receptive-field size (degree) (default: 10; velocity-replay's fields: 5; --eye fly: 30)")
     g.add_argument("--eye", choices=["pinhole", "fly"], default=S,
                    help="the eye recorded: pinhole (the lattice over the D435i's field "
                         "of view and its LC population) or fly (the two compound eyes and the very circuit "
