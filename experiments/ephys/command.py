@@ -204,6 +204,7 @@ def run_protocol(protocol: str, opts: dict):
             raise ValueError(f"--trials {opts['trials']}: the rate readout is deterministic, so every trial would "
                              f"be identical; use --trials 1, or --neuron-model poisson")
         return velocity_replay(opts.get("footage"), trials=opts.get("trials", 4 if model == "poisson" else 1),
+                               progress=_interactive(),
                                seed=opts.get("seed", 0), spiking=model == "poisson",
                                duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
                                dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
@@ -217,6 +218,13 @@ def run_protocol(protocol: str, opts: dict):
 
     run = {"tf-tuning": tf_tuning, "rf-map": rf_map, "looming": looming}[protocol]
     return run(rig_config(protocol, opts), record=opts.get("record"), **kw)
+
+
+def _interactive() -> bool:
+    """Progress bars for the replays' rendering (a built-in run takes a minute) where a person watches stderr."""
+    import sys
+
+    return sys.stderr.isatty()
 
 
 def _eye_replay(opts: dict):
@@ -233,6 +241,7 @@ def _eye_replay(opts: dict):
         raise ValueError(f"--trials {opts['trials']}: the output neurons' rates are deterministic, so every trial "
                          f"would be identical; use --trials 1, or --neuron-model lif or poisson")
     return eye_velocity_replay(opts.get("footage"), trials=opts.get("trials", 1 if model == "rate" else 4),
+                               progress=_interactive(),
                                seed=opts.get("seed", 0), spike_model=None if model == "rate" else model,
                                duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
                                dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
