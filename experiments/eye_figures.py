@@ -5,19 +5,20 @@ the causal velocity RMSE of the eye's circuit read out by (i) the arithmetic rea
 (ii) the same v̂ carried by the eye's N push–pull output-neuron pairs (encoder lead) — Poisson
 (N = 1, 3, 10, 30) or leaky integrate-and-fire (N = 1, 10; the eye's default) — and decoded
 causally, (iii) the shunting readout neuron (rates and LIF spikes), beside causal DIS on the D435i camera (same world and trajectory) and the zero estimator. Renders are cached in the
-work folder (:func:`experiments.eye_velocity.eye_benchmark`'s layout: ``FAMILY-SEED-eye`` and
+work folder (:func:`eye_benchmark`'s layout: ``FAMILY-SEED-eye`` and
 ``FAMILY-SEED-cam``); rendering them is the cost (CPU-minutes per run), the figure itself takes
 ~1 min on cached renders.
 """
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["figure_eye", "ensure_runs", "ensure_gaze_runs", "eye_folder", "GAZE_FAMILY", "rate_vs_spiking_numbers", "figure_eye_rate_vs_spiking", "plot_eye_rate_vs_spiking", "dphi_fov_numbers",
+__all__ = ["eye_benchmark", "figure_eye", "ensure_runs", "ensure_gaze_runs", "eye_folder", "GAZE_FAMILY", "rate_vs_spiking_numbers", "figure_eye_rate_vs_spiking", "plot_eye_rate_vs_spiking", "dphi_fov_numbers",
            "figure_eye_dphi_fov"]
 
 FAMILIES = ("panels", "rotation", "corridor")
@@ -261,7 +262,7 @@ def figure_eye(out_dir, seeds=(0, 1, 2), duration_s: float = 10.0, workdir=None,
 
     out_dir = Path(out_dir)
     workdir = Path(workdir) if workdir else out_dir / "eye_runs"
-    from experiments.eye_velocity import eye_benchmark, eye_figure
+    from experiments.eye_velocity import eye_figure
 
     rows = eye_benchmark(workdir, families, seeds, duration_s, rotations=("haltere",))
     fams = list(families)
@@ -275,3 +276,55 @@ def figure_eye(out_dir, seeds=(0, 1, 2), duration_s: float = 10.0, workdir=None,
     png = out_dir / "eye_rmse.png"
     eye_figure(runs, png, field_sizes=field_sizes, rotations=rotations)
     return png
+
+
+# ---------------------------------------------------------------------- benchmark
+def eye_benchmark(workdir, families=("panels", "rotation", "corridor"), seeds=(0,), duration_s: float = 30.0,
+                  rate_hz: float = 500.0, eye_config=None, scale: float = 0.5,
+                  rotations=("haltere", "wide-field", "both", "none")) -> list[dict]:
+    """The fly eye against causal DIS on the D435i camera, same worlds and trajectories.
+
+    For each family (experiments.suite.family_config: the worlds' families) and seed, renders
+    (once, cached under ``workdir``) the eye footage and the pinhole footage of the same run
+    configuration, runs causal DIS (the project's default velocity pipeline, causal filter) and
+    the eye circuit under each rotation hypothesis, and returns one row per run with the RMSEs
+    (after 2 s), the zero estimator's, and the eye's render and circuit wall times.
+    """
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
+    from experiments.suite import family_config
+    from experiments.velocity import estimate_velocity, score
+    from lobula.compound_eye import CompoundEyeConfig
+    from lobula.config import VelocityConfig
+    from stimuli.eye import make_eye_run, open_eye_footage
+    from stimuli.footage import open_footage
+    from stimuli.track import make_track_run
+
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for fam in families:
+        for seed in seeds:
+            cfg = family_config(fam, seed, duration_s, scale)
+            eye_dir, cam_dir = workdir / f"{fam}-{seed}-eye", workdir / f"{fam}-{seed}-cam"
+            if not eye_dir.exists():
+                make_eye_run(eye_dir, cfg, eye_config or CompoundEyeConfig(), rate_hz, progress=False)
+            if not cam_dir.exists():
+                make_track_run(cam_dir, cfg, progress=False)
+            vc = VelocityConfig(front_end="dis")
+            vc.readout.filter = "causal"
+            dis = estimate_velocity(open_footage(cam_dir), vc, progress=False)
+            fo = open_eye_footage(eye_dir)
+            row = dict(family=fam, seed=seed, dis_rmse=score(dis)["rmse_m_s"],
+                       render_s=float(fo.info.get("render_s", float("nan"))), duration_s=duration_s)
+            for rot in rotations:
+                ec = EyeVelocityConfig()
+                ec.circuit.rotation = rot
+                ds = estimate_eye_velocity(fo, ec)
+                row[f"eye_{rot}_rmse"] = score(ds)["rmse_m_s"]
+                row[f"eye_{rot}_observable"] = score(ds)["observable_fraction"]
+                row["circuit_s"] = json.loads(ds.attrs["timings_s"])["circuit_total"]
+            keep = ds.time.values >= ds.time.values[0] + 2.0
+            row["zero_rmse"] = float(np.sqrt(np.mean(ds.v_true.values[keep] ** 2)))
+            rows.append(row)
+            print(json.dumps(row))
+    return rows
