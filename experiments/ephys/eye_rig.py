@@ -498,8 +498,8 @@ def _eye_looming(cfg: EyeEphysConfig, *, l_over_v_s=(0.01, 0.02, 0.04, 0.08), du
     if "field" in ds.dims:
         # The fields the disc reaches: centre within its largest radius plus the field's half-width.
         f = rig.fields
-        n = ds.sizes["field"]
-        cen = np.radians(f.centres_deg[:n] if n == f.n_fields else f.centres_deg[f.eye == 0])[ds.field.values]
+        # The recorded fields (a subset keeps their indices) among the circuit's outputs (mirror sums: right eye).
+        cen = np.radians(f.centres_deg if rig.n_outputs == f.n_fields else f.centres_deg[f.eye == 0])[ds.field.values]
         off = np.degrees(np.arccos(np.clip(np.cos(cen[:, 0]) * np.cos(cen[:, 1]), -1.0, 1.0)))
         ds = ds.assign_coords(field_sees_disc=("field", off <= 0.5 * (max_size_deg + f.size_deg), {"units": "1",
             "long_name": "the disc reaches the field (centre within half the disc's largest size plus half the "
