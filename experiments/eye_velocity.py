@@ -339,9 +339,14 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         gyro = retinal_rotation(fo.times, gyro, fo.head)
     outs = []
     pos = 0
-    for ts, lum in fo.chunks(cfg.chunk):
-        outs.append(circ.process(lum, gyro[pos:pos + len(ts)]))
-        pos += len(ts)
+    from tqdm.auto import tqdm
+
+    with tqdm(total=len(fo.times), desc="eye circuit", unit="sample", disable=not progress, leave=False,
+              mininterval=2) as bar:
+        for ts, lum in fo.chunks(cfg.chunk):
+            outs.append(circ.process(lum, gyro[pos:pos + len(ts)]))
+            pos += len(ts)
+            bar.update(len(ts))
     outs.append(circ.finish())
     t = np.concatenate([o["t"] for o in outs]) + float(fo.times[0])   # the circuit counts from sample 0
     rho = np.concatenate([o["rho"] for o in outs])
@@ -506,7 +511,7 @@ def run_eye_velocity(args) -> int:
 
     fo = open_eye_footage(args.footage)
     cfg = apply_eye_options(EyeVelocityConfig(), args)
-    ds = estimate_eye_velocity(fo, cfg)
+    ds = estimate_eye_velocity(fo, cfg, progress=not args.quiet)
     write_netcdf(ds, args.out)
     skip = min(args.skip, 0.25 * float(ds.time[-1] - ds.time[0]))
     sc = score(ds, skip)
@@ -559,6 +564,7 @@ def add_parser(subparsers):
                    help="v_std of the kalman/spikes readouts: halves = the posterior std with the field halves' "
                         "disagreement and the EMD gain error added; posterior = the readout's posterior std alone")
     v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
+    v.add_argument("--quiet", action="store_true", help="no progress bar (default: False)")
     v.set_defaults(func=run_eye_velocity)
 
 

@@ -97,5 +97,5 @@ def run_on_eye_footage(args) -> int:
                             skip=args.skip, readout=ro,
                             uncertainty=getattr(args, "uncertainty", None), seed=getattr(args, "seed", None),
                             spike_model=getattr(args, "spike_model", None),
-                            membrane_noise=getattr(args, "membrane_noise", None))
+                            membrane_noise=getattr(args, "membrane_noise", None), quiet=getattr(args, "quiet", False))
     return run_eye_velocity(ns)

@@ -115,6 +115,8 @@ def add_parser(subparsers):
                          "(default: 0.8 × duration)")
     v = e.add_argument_group("velocity-replay")
     v.add_argument("--footage", default=S, help="footage folder (default: render a built-in run of --duration)")
+    e.add_argument("--quiet", action="store_true",
+                   help="no progress bars (velocity-replay's rendering and circuit) (default: False)")
     e.set_defaults(func=main)
     return e
 
@@ -186,11 +188,12 @@ def rig_config(protocol: str, opts: dict):
 
 # =========================================================================== running
 
-def run_protocol(protocol: str, opts: dict):
-    """Run one protocol from a dict of given options (the command line's, or a test's); returns the Dataset."""
+def run_protocol(protocol: str, opts: dict, progress: bool = False):
+    """Run one protocol from a dict of given options (the command line's, or a test's); returns the Dataset.
+    progress: progress bars where a protocol runs long (velocity-replay's rendering and circuit)."""
     check_applicable(protocol, opts)
     if protocol == "velocity-replay" and opts.get("eye", "pinhole") == "fly":
-        return _eye_replay(opts)
+        return _eye_replay(opts, progress)
     if protocol == "velocity-replay":
         from experiments.replay_protocol import velocity_replay
 
@@ -204,7 +207,7 @@ def run_protocol(protocol: str, opts: dict):
             raise ValueError(f"--trials {opts['trials']}: the rate readout is deterministic, so every trial would "
                              f"be identical; use --trials 1, or --neuron-model poisson")
         return velocity_replay(opts.get("footage"), trials=opts.get("trials", 4 if model == "poisson" else 1),
-                               progress=_interactive(),
+                               progress=progress,
                                seed=opts.get("seed", 0), spiking=model == "poisson",
                                duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
                                dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
@@ -220,14 +223,7 @@ def run_protocol(protocol: str, opts: dict):
     return run(rig_config(protocol, opts), record=opts.get("record"), **kw)
 
 
-def _interactive() -> bool:
-    """Progress bars for the replays' rendering (a built-in run takes a minute) where a person watches stderr."""
-    import sys
-
-    return sys.stderr.isatty()
-
-
-def _eye_replay(opts: dict):
+def _eye_replay(opts: dict, progress: bool = False):
     """``lobula ephys velocity-replay --eye fly``: the compound eye's circuit on eye footage (or a built-in run)."""
     from experiments.replay_protocol import eye_velocity_replay
 
@@ -241,7 +237,7 @@ def _eye_replay(opts: dict):
         raise ValueError(f"--trials {opts['trials']}: the output neurons' rates are deterministic, so every trial "
                          f"would be identical; use --trials 1, or --neuron-model lif or poisson")
     return eye_velocity_replay(opts.get("footage"), trials=opts.get("trials", 1 if model == "rate" else 4),
-                               progress=_interactive(),
+                               progress=progress,
                                seed=opts.get("seed", 0), spike_model=None if model == "rate" else model,
                                duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
                                dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
@@ -364,7 +360,7 @@ def main(args) -> int:
     plot = getattr(args, "plot", None)
     if plot and Path(plot).suffix.lower() not in (".png", ".pdf"):
         raise ValueError(f"--plot {plot}: use a .png or .pdf file name (both are written)")
-    ds = run_protocol(args.protocol, opts)
+    ds = run_protocol(args.protocol, opts, progress=not args.quiet)
     for path in write_outputs(ds, outs):
         print(f"wrote {path} ({args.protocol})")
     for line in summary(ds):
