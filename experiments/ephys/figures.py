@@ -240,6 +240,32 @@ def plot_rf_map(ds: xr.Dataset, path) -> list[Path]:
 
 # =========================================================================== looming
 
+def _looming_stimulus(ax_size, time_axes, ds: xr.Dataset, cols) -> None:
+    """The disc's angular size per l/|v| (solid approach, dashed recede) on ``ax_size``; collision marked on
+    every axis of ``time_axes``, whose abscissa is time relative to collision."""
+    for lv, col in zip(ds.l_over_v_s.values, cols):
+        for mot, ls in (("approach", "-"), ("recede", "--")):
+            ax_size.plot(ds.time.values, ds.angular_size_deg.sel(l_over_v_s=lv, motion=mot), ls, color=col, lw=1.3)
+    ax_size.set_ylabel("disc angular size (degree)")
+    ax_size.set_title(f"stimulus (size cap {json.loads(ds.attrs['parameters'])['max_size_deg']:g}°)", fontsize=10)
+    for a in time_axes:
+        a.axvline(0.0, color="0.5", lw=0.8, ls=":")
+        a.set_xlabel("time relative to collision (s)")
+
+
+def _peak_time_fit(ax, lvs, t_peak, scale: float, color) -> bool:
+    """The linear fit t_peak = α·l/|v| + δ over the finite peak times (s), drawn on ``ax`` in units of
+    1/``scale`` s (1: s, 1e3: ms) with its equation as label; False where fewer than two are finite."""
+    ok = np.isfinite(t_peak)
+    if ok.sum() < 2:
+        return False
+    alpha, delta = np.polyfit(lvs[ok], t_peak[ok], 1)
+    xx = np.linspace(0, lvs.max() * 1.05, 50)
+    ax.plot(xx * scale, (alpha * xx + delta) * scale, "--", color=color, lw=1,
+            label=f"fit: t_peak = {alpha:.2f}·l/|v| {'+' if delta >= 0 else '−'} {abs(delta) * 1e3:.0f} ms")
+    return True
+
+
 def plot_looming(ds: xr.Dataset, path) -> list[Path]:
     """Expansion units' response (mean ± SEM over units; PSTH with spikes) and the disc's angular size
     against time relative to collision, one colour per l/|v| (solid approach, dashed recede), and the
@@ -252,7 +278,6 @@ def plot_looming(ds: xr.Dataset, path) -> list[Path]:
     ax = ax[0]
     lvs = ds.l_over_v_s.values
     cols = _colours(len(lvs))
-    t = ds.time.values
     if var:
         da = ds[var]
         if "neuron" in da.dims:
@@ -275,14 +300,7 @@ def plot_looming(ds: xr.Dataset, path) -> list[Path]:
         n_units = da.sizes.get("neuron", 1)
         ax[0].set_ylabel(ylab)
         ax[0].set_title(f"LC expansion units (n = {n_units}; mean ± SEM over units)", fontsize=10)
-    for lv, col in zip(lvs, cols):
-        for mot, ls in (("approach", "-"), ("recede", "--")):
-            ax[1].plot(t, ds.angular_size_deg.sel(l_over_v_s=lv, motion=mot), ls, color=col, lw=1.3)
-    ax[1].set_ylabel("disc angular size (degree)")
-    ax[1].set_title(f"stimulus (size cap {json.loads(ds.attrs['parameters'])['max_size_deg']:g}°)", fontsize=10)
-    for a in ax[:2]:
-        a.axvline(0.0, color="0.5", lw=0.8, ls=":")
-        a.set_xlabel("time relative to collision (s)")
+    _looming_stimulus(ax[1], ax[:2], ds, cols)
     peak = f"{var}_time_of_peak_s" if var else None
     if peak and peak in ds and "neuron" in ds[peak].dims:
         p = _units_of(ds, ds[peak], "expansion").sel(motion="approach")
@@ -290,12 +308,7 @@ def plot_looming(ds: xr.Dataset, path) -> list[Path]:
         m, e = nanmean(y, 1), sem(y, 1)
         for lv, mm, ee, col in zip(lvs, m, e, cols):
             ax[2].errorbar([lv], [mm], yerr=[ee] if np.isfinite(ee) else None, color=col, marker="o", capsize=3)
-        ok = np.isfinite(m)
-        if ok.sum() >= 2:
-            alpha, delta = np.polyfit(lvs[ok], m[ok], 1)
-            xx = np.linspace(0, lvs.max() * 1.05, 50)
-            ax[2].plot(xx, alpha * xx + delta, "k--", lw=1,
-                       label=f"fit: t_peak = {alpha:.2f}·l/|v| {'+' if delta >= 0 else '−'} {abs(delta) * 1e3:.0f} ms")
+        if _peak_time_fit(ax[2], lvs, m, 1.0, color="k"):
             ax[2].legend(fontsize=8, loc="lower left", frameon=False)
         ax[2].set_xlabel("l/|v| (s)")
         ax[2].set_ylabel("time of peak relative to collision (s)")
@@ -474,14 +487,7 @@ def plot_eye_looming(ds: xr.Dataset, path) -> list[Path]:
         a.set_title(f"{title}, {int(sees.sum())} fields the disc reaches\n(mean ± SEM over fields)", fontsize=10)
     ax[0].legend(fontsize=8, frameon=False, loc="upper left", title="solid approach, dashed recede",
                  title_fontsize=8)
-    for lv, col in zip(lvs, cols):
-        for mot, ls in (("approach", "-"), ("recede", "--")):
-            ax[2].plot(t, ds.angular_size_deg.sel(l_over_v_s=lv, motion=mot), ls, color=col, lw=1.3)
-    ax[2].set_ylabel("disc angular size (degree)")
-    ax[2].set_title(f"stimulus (size cap {json.loads(ds.attrs['parameters'])['max_size_deg']:g}°)", fontsize=10)
-    for a in ax[:3]:
-        a.axvline(0.0, color="0.5", lw=0.8, ls=":")
-        a.set_xlabel("time relative to collision (s)")
+    _looming_stimulus(ax[2], ax[:3], ds, cols)
     for k, (v, title) in enumerate(panels):
         pk = f"{v}_time_of_peak_s"
         if pk not in ds:
@@ -489,11 +495,7 @@ def plot_eye_looming(ds: xr.Dataset, path) -> list[Path]:
         y = ds[pk].sel(motion="approach").transpose("l_over_v_s", "field").values[:, sees]
         m = np.nanmedian(y, 1)
         ax[3].plot(lvs * 1e3, m * 1e3, "o", color=f"C{k}", label=f"{title} (median over fields)")
-        if np.isfinite(m).sum() >= 2:
-            alpha, delta = np.polyfit(lvs, m, 1)
-            xx = np.linspace(0, lvs.max() * 1.05, 50)
-            ax[3].plot(xx * 1e3, (alpha * xx + delta) * 1e3, "--", color=f"C{k}", lw=1,
-                       label=f"fit: t_peak = {alpha:.2f}·l/|v| {'+' if delta >= 0 else '−'} {abs(delta) * 1e3:.0f} ms")
+        _peak_time_fit(ax[3], lvs, m, 1e3, color=f"C{k}")
     ax[3].set_xlabel("l/|v| (ms)")
     ax[3].set_ylabel("approach: time of peak relative to collision (ms)")
     ax[3].set_title("peak time against l/|v|", fontsize=10)
