@@ -325,6 +325,8 @@ def field_halves(fields, n_outputs: int) -> list[tuple[np.ndarray, np.ndarray]]:
 
 def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress: bool = False) -> xr.Dataset:
     """Velocity Dataset from an :class:`stimuli.eye.EyeFootage` (see the module docstring)."""
+    from tqdm.auto import tqdm
+
     from stimuli.footage import FootageError
 
     cfg = config or EyeVelocityConfig()
@@ -339,8 +341,6 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         gyro = retinal_rotation(fo.times, gyro, fo.head)
     outs = []
     pos = 0
-    from tqdm.auto import tqdm
-
     with tqdm(total=len(fo.times), desc="eye circuit", unit="sample", disable=not progress, leave=False,
               mininterval=2) as bar:
         for ts, lum in fo.chunks(cfg.chunk):
