@@ -116,6 +116,7 @@ Python loops run over time only (inside the photoreceptor and EMD stages).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass, field
 
@@ -127,7 +128,8 @@ from .emd import EMDArray, EMDConfig
 from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lattice_filter, lowpass_scan, spatial_filter
 from .readout import hold_gaps
 
-__all__ = ["EyeFieldConfig", "EyeCircuitConfig", "EyeFields", "EyeCircuit", "eye_fields", "field_reliability"]
+__all__ = ["EyeFieldConfig", "EyeCircuitConfig", "EyeFields", "EyeCircuit", "eye_fields", "field_reliability",
+           "natural_scene_gain"]
 
 ROTATION_MODES = ("none", "haltere", "wide-field", "both")
 
@@ -188,6 +190,15 @@ class EyeCircuitConfig:
     so the photoreceptor stage needs no temporal high-pass (its ``tau_hp_s`` is None); 0: none
     (the circuit before the twenty-seventh session: tau_hp_s 0.25 s, no surround) — see
     "Lateral inhibition" in the module docstring.
+    rotation_gain: "adaptive" (default: each field learns the gain γ at which its EMDs report the turn
+    the haltere predicts, see :meth:`EyeCircuit._rotation_gain`) or "fixed" (the prediction subtracted at
+    unit gain). rotation_gain_prior: γ's prior mean, what the adaptive gain starts from before a field
+    has seen a turn (about a second) and is drawn toward while its evidence is weak; None (default):
+    :func:`natural_scene_gain`, the gain this eye's decoding has on natural scenes' 1/f² spectrum
+    after its optics and lattice filters (0.48 for the default eye with its surround; per-field fits
+    of ρ̂ on the subtracted rotation over 1–10 s on development rotation worlds 100 / 101 gave
+    α = γ − 1 = −0.48 to −0.56); 1: the unit gain, as before the thirty-third session (a unit-gain start
+    over-subtracts a turn by half, a residue ~10× the fields' own signal in their first second).
     calibration: gain on ρ (1 = none).
     latency_s: stamp shift; None = τ_photoreceptor + τ_EMD + half a block (+ τ_EMD more for the
     "pair" normaliser, whose per-pair decoding low-passes once more).
@@ -202,6 +213,7 @@ class EyeCircuitConfig:
     column_pool: float = 0.0
     surround: float = 1.0
     rotation_gain: str = "adaptive"
+    rotation_gain_prior: float | None = None
     readout_rate_hz: float = 50.0
     calibration: float = 1.0
     latency_s: float | None = None
@@ -215,6 +227,8 @@ class EyeCircuitConfig:
             raise ValueError(f"normaliser must be 'delayed', 'gradient' or 'pair', got {self.normaliser!r}")
         if self.rotation_gain not in ("adaptive", "fixed"):
             raise ValueError(f"rotation_gain must be 'adaptive' or 'fixed', got {self.rotation_gain!r}")
+        if self.rotation_gain_prior is not None and not (0.0 < self.rotation_gain_prior <= 1.5):
+            raise ValueError(f"rotation_gain_prior must lie in (0, 1.5] or be None, got {self.rotation_gain_prior}")
         if not (0.0 <= self.column_pool <= 1.0):
             raise ValueError(f"column_pool must lie in [0, 1], got {self.column_pool}")
         if not (0.0 <= self.surround <= 1.0):
@@ -227,13 +241,14 @@ class EyeCircuitConfig:
                     fields=self.fields.to_dict(), rotation=self.rotation, normaliser=self.normaliser,
                     r2_term=self.r2_term,
                     column_pool=self.column_pool, surround=self.surround, rotation_gain=self.rotation_gain,
-                    readout_rate_hz=self.readout_rate_hz,
+                    rotation_gain_prior=self.rotation_gain_prior, readout_rate_hz=self.readout_rate_hz,
                     calibration=self.calibration, latency_s=self.latency_s)
 
     @classmethod
     def from_dict(cls, d: dict) -> "EyeCircuitConfig":
         d = dict(d)
         d.setdefault("surround", 0.0)   # configurations written before the surround existed had none
+        d.setdefault("rotation_gain_prior", 1.0)   # nor the haltere gain's prior: theirs was the unit gain
         f = dict(d.pop("fields", {}))
         for k in ("azimuth_deg", "elevation_deg"):
             if k in f:
@@ -356,6 +371,9 @@ class EyeCircuit:
         self._n_steps = 0
         self._floor = None
         self._rot_state = None
+        self.gain_prior = (cfg.rotation_gain_prior if cfg.rotation_gain_prior is not None else
+                           natural_scene_gain(eye.config.dphi_deg, eye.config.acceptance_deg, cfg.surround,
+                                              cfg.column_pool))
         self.timings = dict(photoreceptor=0.0, emd=0.0, fields=0.0)
 
     @property
@@ -527,9 +545,11 @@ class EyeCircuit:
         independent of translation, so α is the regression of ρ̂ on q — over past readout
         steps only, both with their running means (time constant ``HP_STEPS``, learning starts
         once they have run that long; a constant turn is not told from translation) removed, with
-        forgetting (``MEMORY_STEPS``) and a prior α = 0 ± ``ALPHA_PRIOR_STD`` against ρ̂'s
-        own running variance as the noise (no rotation seen: no correction). α is held in [−1, 0.5]
-        (γ between 0 and 1.5) and the estimate at step k uses steps before k only.
+        forgetting (``MEMORY_STEPS``) and a prior α = α₀ ± ``ALPHA_PRIOR_STD`` (α₀ = ``gain_prior`` − 1,
+        the config's ``rotation_gain_prior`` or :func:`natural_scene_gain`) against ρ̂'s own running variance as the noise: the posterior
+        mean (Σ δρ·δq + α₀·s²/σ₀²) / (Σ δq² + s²/σ₀²), α₀ until the field has learned (no rotation
+        seen: the prior's gain). α is held in [−1, 0.5] (γ between 0 and 1.5) and the estimate at
+        step k uses steps before k only.
         """
         K, Fo = rho.shape[-2], rho.shape[-1]
         st = self._rot_state
@@ -538,11 +558,13 @@ class EyeCircuit:
             st = dict(mr=np.nan_to_num(rho[..., 0, :]), mq=q[..., 0, :].copy(), sxy=z.copy(), sxx=z.copy(),
                       vr=z.copy(), n=0)
         hp, mem = 1.0 / self.HP_STEPS, 1.0 / self.MEMORY_STEPS
+        a0, w0 = self.gain_prior - 1.0, 1.0 / self.ALPHA_PRIOR_STD ** 2
         alpha = np.empty_like(rho)
         for k in range(K):  # a loop over readout steps, vectorised over fields
+            den = st["sxx"] + st["vr"] * w0
             with np.errstate(invalid="ignore", divide="ignore"):
-                a = st["sxy"] / (st["sxx"] + st["vr"] / self.ALPHA_PRIOR_STD ** 2 + 1e-300)
-            alpha[..., k, :] = np.clip(np.nan_to_num(a), -1.0, 0.5)
+                a = np.where(den > 0, (st["sxy"] + a0 * st["vr"] * w0) / den, a0)
+            alpha[..., k, :] = np.clip(np.nan_to_num(a, nan=a0), -1.0, 0.5)
             r, qk = rho[..., k, :], q[..., k, :]
             ok = np.isfinite(r)
             dr, dq = np.where(ok, r - st["mr"], 0.0), np.where(ok, qk - st["mq"], 0.0)
@@ -596,6 +618,41 @@ class EyeCircuit:
         r2_eff = (rho ** 2 * np.cos(theta) - rho * np.sin(theta) * grad if mode == "convective"
                   else rho ** 2 * np.cos(theta) if mode == "point" else np.zeros_like(rho))
         return dict(t=t_end - self.latency_s, rho=rho, grad=grad, r2_eff=r2_eff, rot=q * self.config.calibration)
+
+
+@functools.lru_cache(maxsize=32)
+def natural_scene_gain(dphi_deg: float, drho_deg: float, surround: float = 1.0, column_pool: float = 0.0,
+                       spectrum_exponent: float = 2.0, n: int = 401, k_max: float = 12.0) -> float:
+    """The gain γ at which a pair's decoded speed reads image motion on a natural scene (dimensionless).
+
+    A pair's speed LP(R)/(c·LP(G)) reads a sine of phase step k between its two ommatidia at
+    (k/2)·cot(k/2) of its true speed (:mod:`lobula.emd_decoding`), and a texture's components add in
+    R and G with weights ∝ their power P(k⃗) times 1 − cos k∥, so γ = Σ P·(k∥/2)·sin k∥ / Σ P·(1 − cos k∥)
+    (k∥ the phase step along the pair; components beyond the Nyquist limit count with sin k∥'s sign,
+    as aliasing does). P: natural scenes' isotropic 1/f^``spectrum_exponent`` power spectrum (≈ 2:
+    Field 1987, J Opt Soc Am A 4:2379; van der Schaaf & van Hateren 1996, Vision Res 36:2759), times the
+    Gaussian acceptance's squared MTF (FWHM ``drho_deg``) and the squared transfer of the lattice
+    filters, ((1 − α) + α·N(k⃗))·(1 − s·N(k⃗)) with N the six-neighbour mean on the hexagonal lattice of
+    spacing ``dphi_deg`` (:func:`lobula.photoreceptor.lattice_filter`). Averaged over the lattice's
+    three pair orientations on an n × n grid of k⃗ up to ``k_max`` rad per Δφ.
+
+    The default eye (Δφ = Δρ = 5°, surround 1): 0.48 (1/f^1.5 … 1/f^2.5: 0.43 … 0.52); without the
+    surround 0.73. Measured on development rotation worlds 100 / 101 (per-field least-squares fits
+    over 1–10 s of ρ̂ on the exact v/D and the haltere's subtracted rotation): α = γ − 1 = −0.48 to −0.56.
+    """
+    k = np.linspace(-k_max, k_max, n)
+    kx, ky = np.meshgrid(k, k)
+    kk = np.maximum(np.hypot(kx, ky), 1e-9)
+    sigma = drho_deg / dphi_deg / (2.0 * math.sqrt(2.0 * math.log(2.0)))   # acceptance σ in units of Δφ
+    angles = np.arange(6) * np.pi / 3
+    ring = np.mean([np.cos(kx * np.cos(a) + ky * np.sin(a)) for a in angles], 0)
+    transfer = ((1.0 - column_pool) + column_pool * ring) * (1.0 - surround * ring)
+    power = kk ** -spectrum_exponent * np.exp(-(kk * sigma) ** 2) * transfer ** 2
+    gains = []
+    for a in angles[:3]:
+        kp = kx * np.cos(a) + ky * np.sin(a)
+        gains.append(float((power * 0.5 * kp * np.sin(kp)).sum() / (power * (1.0 - np.cos(kp))).sum()))
+    return float(np.mean(gains))
 
 
 def _first_order(x: np.ndarray, alpha: np.ndarray | float, axis: int = 0) -> np.ndarray:
