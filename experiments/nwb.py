@@ -42,7 +42,7 @@ __all__ = ["write_nwb", "read_nwb_spike_counts", "read_nwb_series", "epoch_layou
 
 GAP_S = 0.5
 _TIME_DIMS = ("time", "spike_time")
-_CHANNEL_DIMS = ("neuron", "field", "ommatidium", "pair")
+_CHANNEL_DIMS = ("neuron", "unit", "field", "ommatidium", "pair")
 _SPIKES = ("lc_spikes", "readout_spikes")
 
 
@@ -176,16 +176,19 @@ def write_nwb(ds: xr.Dataset, path: str | Path) -> Path:
         da = ds[var]
         tdim = next(d for d in _TIME_DIMS if d in da.dims)
         dt = float(da.attrs.get("dt_s", np.median(np.diff(ds[tdim].values))))
-        x = _condition_major(da, cdims, ["trial", tdim, "neuron"]).reshape(C, K, ds.sizes[tdim], -1)
+        ch = "neuron" if "neuron" in da.dims else "unit"   # LC units / the readout's output neurons
+        x = _condition_major(da, cdims, ["trial", tdim, ch]).reshape(C, K, ds.sizes[tdim], -1)
         times = _session_times(ds, lay, tdim) + (dt / 2 if tdim == "time" else dt / 2)
-        for j, n in enumerate(da.neuron.values):
+        for j, n in enumerate(da[ch].values):
             counts = x[..., j]
             if not np.isfinite(counts).all():
                 continue  # a unit this monitor did not record
             idx = np.nonzero(counts > 0)
             st = np.sort(np.repeat(times[idx], counts[idx].astype(int)))
             is_lc = "neuron_type" in ds.coords and var == "lc_spikes"
-            nwb.add_unit(spike_times=st, unit_type=str(ds.neuron_type.sel(neuron=n).values) if is_lc else str(n),
+            kind = (ds.neuron_type.sel(neuron=n).values if is_lc else
+                    ds.unit_neuron.sel(unit=n).values if "unit_neuron" in da.coords else n)
+            nwb.add_unit(spike_times=st, unit_type=str(kind),
                          source_variable=var,
                          field_index=int(ds.field_index.sel(neuron=n)) if is_lc else -1,
                          rf_azimuth_deg=float(ds.azimuth_deg.sel(neuron=n)) if is_lc else float("nan"),

@@ -6,8 +6,9 @@ Footage (a synthetic track run, or any footage folder) passes through the EMD fr
 the arithmetic readout runs on the same input for comparison. The recording is a
 self-describing Dataset (the attributes every ephys recording carries) with dims
 ``trial``, ``time`` (frames), ``neuron`` (the readout's push–pull pair), ``field`` (LC
-fields) and ``spike_time`` (the spike generator's 1 ms steps: readout spikes are counts
-per step, not per frame).
+fields), ``unit`` (every spiking output neuron: ``population`` pairs, each with its own train) and
+``spike_time`` (the spike generator's 1 ms steps: readout spikes are counts per step, not per
+frame).
 
 On the compound eye (``lobula ephys velocity-replay --eye fly``, :func:`eye_velocity_replay`)
 the footage is eye footage (``lobula scene OUT --eye fly``) and the circuit is
@@ -140,8 +141,9 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
 def _replay_dataset(ds: xr.Dataset, want, out: dict, ncfg: ReadoutNeuronConfig, spiking: bool, data: dict,
                     v_long_name: str) -> tuple[xr.Dataset, float]:
     """The recording both front ends share: the output neurons' decoded v (trial, time), rates (trial, time,
-    neuron) and spike counts (trial, spike_time, neuron) as ``want`` names them, beside ``data`` (the front
-    end's own variables), the acceleration and the truth, on the velocity Dataset ``ds``'s times and fields.
+    neuron) and every output neuron's spike counts (trial, spike_time, unit) as ``want`` names them, beside
+    ``data`` (the front end's own variables), the acceleration and the truth, on the velocity Dataset ``ds``'s
+    times and fields.
     ``out``: the output neurons' arrays (trials, ...) (:func:`lobula.readout_neuron.readout_neuron` or
     :func:`lobula.readout_neuron.spiking_output`). Returns the Dataset and the spike generator's step (s)."""
     t = ds.time.values
@@ -167,12 +169,17 @@ def _replay_dataset(ds: xr.Dataset, want, out: dict, ncfg: ReadoutNeuronConfig, 
     spike_dt = dt / sub
     if spiking and "readout.spikes" in want:
         st = t[0] + np.arange(len(t) * sub) * spike_dt
+        n = int(ncfg.population)
         coords["spike_time"] = ("spike_time", st, {"units": "s", "long_name": "start of the spike generator's step"})
-        data["readout_spikes"] = (("trial", "spike_time", "neuron"),
-                                  np.stack([out["spikes_plus"], out["spikes_minus"]], -1).astype(np.uint16),
-                                  {"units": "1", "long_name": "readout neurons' spike count per spike-generator step"
-                                   + (f" (pooled over the {ncfg.population} pairs)" if ncfg.population > 1 else ""),
-                                   "neuron_model": ncfg.spike_model, "dt_s": spike_dt,
+        # Every output neuron its own train (a unit an experimenter would isolate); the decoder reads
+        # the population of each sign pooled (sum over the units of one unit_neuron).
+        coords["unit"] = ("unit", [f"{sign} {i}" for sign in ("plus", "minus") for i in range(n)],
+                          {"long_name": "output neuron: its sign and its pair's index"})
+        coords["unit_neuron"] = ("unit", ["plus"] * n + ["minus"] * n,
+                                 {"long_name": "which of the push-pull pair the unit is (plus carries v > 0)"})
+        data["readout_spikes"] = (("trial", "spike_time", "unit"), out["spikes_units"],
+                                  {"units": "1", "long_name": "each output neuron's spike count per spike-generator "
+                                   "step", "neuron_model": ncfg.spike_model, "dt_s": spike_dt,
                                    "neuron_parameters": json.dumps(ncfg.to_dict(), sort_keys=True)})
     if "v_true" in ds:
         data["v_true"] = ("time", ds.v_true.values, {"units": "m s-1", "long_name": "true forward velocity"})

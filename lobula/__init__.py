@@ -43,6 +43,7 @@ _API = {
     "photoreceptor_step": "photoreceptor",
     "CompoundEye": "compound_eye", "CompoundEyeConfig": "compound_eye", "acceptance_rule": "compound_eye",
     "EyeCircuit": "eye_circuit", "EyeCircuitConfig": "eye_circuit", "EyeFieldConfig": "eye_circuit",
+    "natural_scene_gain": "eye_circuit",
     "GazeConfig": "gaze", "head_angles": "gaze", "head_rotation": "gaze", "retinal_rotation": "gaze",
     "fixation_reference": "gaze",
 }

@@ -546,10 +546,10 @@ class EyeCircuit:
         steps only, both with their running means (time constant ``HP_STEPS``, learning starts
         once they have run that long; a constant turn is not told from translation) removed, with
         forgetting (``MEMORY_STEPS``) and a prior α = α₀ ± ``ALPHA_PRIOR_STD`` (α₀ = ``gain_prior`` − 1,
-        the config's ``rotation_gain_prior`` or :func:`natural_scene_gain`) against ρ̂'s own running variance as the noise: the posterior
-        mean (Σ δρ·δq + α₀·s²/σ₀²) / (Σ δq² + s²/σ₀²), α₀ until the field has learned (no rotation
-        seen: the prior's gain). α is held in [−1, 0.5] (γ between 0 and 1.5) and the estimate at
-        step k uses steps before k only.
+        the config's ``rotation_gain_prior`` or :func:`natural_scene_gain`) against ρ̂'s own running
+        variance s² as the noise: the posterior mean (Σ δρ·δq + α₀·s²/σ₀²) / (Σ δq² + s²/σ₀²), α₀ until
+        the field has learned (no rotation seen: the prior's gain). α is held in [−1, 0.5] (γ between 0
+        and 1.5) and the estimate at step k uses steps before k only.
         """
         K, Fo = rho.shape[-2], rho.shape[-1]
         st = self._rot_state

@@ -231,8 +231,9 @@ def _lif_table(membrane_noise_mv: float, spontaneous_hz: float):
 def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float, N: int,
                 cfg: ReadoutNeuronConfig, gen: torch.Generator):
     """Pooled spike counts per generator step (trials, time·sub) of N + and N − LIF output
-    neurons firing at spontaneous_hz + rate± on average; and the Fano factors of their decoded
-    rate (trials, time) each. Rates above 95 % of 1/t_ref saturate there."""
+    neurons firing at spontaneous_hz + rate± on average; the Fano factors of their decoded
+    rate (trials, time) each; and every neuron's own counts (trials, time·sub, 2N: the N + neurons,
+    then the N −). Rates above 95 % of 1/t_ref saturate there."""
     lif, rates, current, cv = _lif_table(cfg.membrane_noise_mv, cfg.spontaneous_hz)
     trials, n = rate_p.shape
     target = [np.minimum(cfg.spontaneous_hz + r.numpy(), rates[-1]) for r in (rate_p, rate_m)]
@@ -250,7 +251,24 @@ def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float,
         state = lif_step(state, I[:, k // sub], h, lif, gen)
         counts[:, k] = state.spikes
     fano = [torch.as_tensor(np.interp(r, rates, cv ** 2)) for r in target]
-    return counts[..., :N].sum(-1), counts[..., N:].sum(-1), fano
+    return counts[..., :N].sum(-1), counts[..., N:].sum(-1), fano, counts
+
+
+def split_among_units(pooled: torch.Tensor, n_units: int, gen: torch.Generator) -> torch.Tensor:
+    """Each step's pooled count (trials, steps) dealt to ``n_units`` neurons at random, (trials, steps, n_units).
+
+    Every spike goes to one of the units with equal probability, independently: given their sum,
+    the counts of N independent Poisson neurons at one rate are exactly this multinomial, so the
+    units are independent Poisson trains at 1/N of the pooled rate and their sum is ``pooled``.
+    """
+    c = pooled.to(torch.int64).reshape(-1)
+    out = torch.zeros(c.numel() * n_units, dtype=torch.int64)
+    if n_units == 1:
+        return c.reshape(pooled.shape + (1,))
+    step = torch.repeat_interleave(torch.arange(c.numel()), c)
+    unit = torch.randint(n_units, (len(step),), generator=gen)
+    out.index_add_(0, step * n_units + unit, torch.ones_like(step))
+    return out.reshape(pooled.shape + (n_units,))
 
 
 def phase_advance(v: torch.Tensor, tau: float, dt: float, limit: float = float("inf")) -> torch.Tensor:
@@ -285,7 +303,7 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
     sub = spike_steps_per_frame(dt, cfg)
     N = int(cfg.population)
     if cfg.spike_model == "lif":
-        sp_fine, sm_fine, fano = _lif_counts(rate_p, rate_m, sub, dt, N, cfg, gen)
+        sp_fine, sm_fine, fano, units = _lif_counts(rate_p, rate_m, sub, dt, N, cfg, gen)
         base = cfg.spontaneous_hz
     else:
         hold = lambda r: r.float().repeat_interleave(sub, dim=1)  # noqa: E731  (trials, time·sub)
@@ -297,6 +315,10 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
         sp_fine = torch.as_tensor(_poisson_quantile(u[0].numpy(), lam_p.numpy()))
         sm_fine = torch.as_tensor(_poisson_quantile(u[1].numpy(), lam_m.numpy()))
         fano, base = [torch.ones_like(rate_p)] * 2, 0.0
+        # The pooled counts dealt to the N pairs' neurons with a generator of their own (the pooled
+        # trains, and so the decoding, are the same with or without it).
+        deal = make_generator(int(np.random.SeedSequence([cfg.seed, 1]).generate_state(1)[0]))
+        units = torch.cat([split_among_units(x, N, deal) for x in (sp_fine, sm_fine)], -1)
     # Counts per frame for the rate decoding.
     sp, sm = (x.reshape(trials, n, sub).sum(-1) for x in (sp_fine, sm_fine))
     r_p, r_m = rate_p + base, rate_m + base
@@ -320,7 +342,8 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
         smooth = lambda s: torch.nn.functional.conv1d(s[:, None], kern, padding=w // 2)[:, 0, :n]  # noqa: E731
         v_dec = (smooth(sp) - smooth(sm)) / gain
         std = torch.sqrt((fano[0] * r_p + fano[1] * r_m) / (w * dt * N)) / gain
-    return dict(v_dec=v_dec, decode_std=std, spikes_plus=sp_fine, spikes_minus=sm_fine)
+    return dict(v_dec=v_dec, decode_std=std, spikes_plus=sp_fine, spikes_minus=sm_fine,
+                spikes_units=units.to(torch.uint8))
 
 
 def spiking_output(t, v, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:
@@ -332,7 +355,9 @@ def spiking_output(t, v, a, config: ReadoutNeuronConfig | None = None) -> dict[s
     seeded by ``config.seed``). a (time,) or (trials, time) m/s² gives the causal decoder its
     lead. Returns numpy arrays shaped like v: v_dec (m/s), decode_std (m/s, count noise),
     rate_plus / rate_minus (Hz); spikes_plus / spikes_minus (counts per generator step, the
-    population's pairs pooled; time·m samples, :func:`spike_steps_per_frame`).
+    population's pairs pooled; time·m samples, :func:`spike_steps_per_frame`); spikes_units
+    (time·m, 2·population) uint8: every output neuron's own counts, the population's + neurons
+    then its − neurons (they sum to spikes_plus and spikes_minus).
     """
     cfg = config or ReadoutNeuronConfig(spiking=True)
     v_t = torch.as_tensor(np.array(v, dtype=np.float64))
@@ -354,7 +379,8 @@ def readout_neuron(t, r, r2, a, config: ReadoutNeuronConfig | None = None) -> di
     v_hat (m/s, NaN where not confident), observable, confidence, v_vis, g_shunt,
     rate_plus / rate_minus (Hz), and spikes_plus / spikes_minus when spiking: spike counts
     (trials, time·m) at the generator's step frame_dt/m (:func:`spike_steps_per_frame`),
-    sample k·m + j lying in [t_k + j·frame_dt/m, t_k + (j+1)·frame_dt/m).
+    sample k·m + j lying in [t_k + j·frame_dt/m, t_k + (j+1)·frame_dt/m), the population's pairs
+    pooled, and spikes_units (trials, time·m, 2·population): each output neuron's own counts.
     """
     cfg = config or ReadoutNeuronConfig()
     squeeze = np.ndim(r) == 2

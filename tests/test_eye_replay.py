@@ -48,15 +48,25 @@ def test_eye_replay_records_the_eye_pipelines_own_numbers(eye_run, rec):
 
 
 def test_eye_replay_trials_differ_in_spikes_and_follow_the_flight(rec):
-    spikes = rec.readout_spikes.values                                      # (trial, spike_time, neuron)
-    assert rec.readout_spikes.dims == ("trial", "spike_time", "neuron") and rec.sizes["trial"] == 3
+    spikes = rec.readout_spikes.values                                      # (trial, spike_time, unit)
+    assert rec.readout_spikes.dims == ("trial", "spike_time", "unit") and rec.sizes["trial"] == 3
     assert not np.array_equal(spikes[0], spikes[1])
+    # Every output neuron is its own unit: 10 pairs, 20 trains, each an LIF neuron's (its refractory period
+    # separates its spikes, 2 ms), while the population's pooled train, the decoder's input, has closer ones.
+    n_pairs = json.loads(rec.readout_spikes.attrs["neuron_parameters"])["population"]
+    assert rec.sizes["unit"] == 2 * n_pairs == 20 and list(rec.unit_neuron.values) == ["plus"] * 10 + ["minus"] * 10
+    dts = float(rec.readout_spikes.attrs["dt_s"])
+    from lobula.neurons import LIFConfig
+    gap = int(np.floor(LIFConfig().t_ref / dts))
+    for unit in np.moveaxis(spikes, -1, 0).reshape(-1, spikes.shape[1]):
+        assert unit.max() <= 1 and np.diff(np.flatnonzero(unit)).min(initial=gap + 1) > gap
+    pooled = spikes[..., :10].sum(-1)
+    assert pooled.max() > 1
     rates = rec.readout_rate.values
     np.testing.assert_array_equal(rates[0], rates[1])                       # one readout, three noisy carriers
     assert np.all(np.minimum(rates[..., 0], rates[..., 1]) == 0)            # push–pull
     # Spike counts per neuron follow the drive (200 Hz per m/s, LIF near-regular): over the recording, within 15 %.
-    n_pairs = json.loads(rec.readout_spikes.attrs["neuron_parameters"])["population"]
-    dur = rec.sizes["spike_time"] * float(rec.readout_spikes.attrs["dt_s"])
+    dur = rec.sizes["spike_time"] * dts
     driven = rates.sum(-1).mean()
     counted = spikes.sum(-1).sum(1).mean() / (dur * n_pairs)
     assert driven > 5 and counted == pytest.approx(driven, rel=0.15)
@@ -113,6 +123,6 @@ def test_eye_replay_writes_netcdf_nwb_and_a_figure(rec, tmp_path):
     nwb = write_nwb(back, tmp_path / "r.nwb")
     assert list(inspect_nwbfile(nwbfile_path=str(nwb), importance_threshold=Importance.CRITICAL)) == []
     counts = read_nwb_spike_counts(nwb, back, "readout_spikes")
-    np.testing.assert_array_equal(counts[0], back.readout_spikes.transpose("trial", "spike_time", "neuron").values)
+    np.testing.assert_array_equal(counts[0], back.readout_spikes.transpose("trial", "spike_time", "unit").values)
     paths = plot_recording(back, tmp_path / "r.png")
     assert (tmp_path / "r.png").stat().st_size > 10_000 and len(paths) == 2

@@ -112,3 +112,18 @@ def test_nwb_write_is_atomic(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         write_nwb(ds, tmp_path / "broken.nwb")
     assert [p.name for p in tmp_path.iterdir()] == ["ok.nwb"]
+
+
+def test_atomic_outputs_get_an_ordinary_files_mode(tmp_path):
+    """The temporary name is private while written (mkstemp: 0600), the finished output is not: it
+    gets the mode an ordinary open() would give it under the process's umask."""
+    import os
+
+    from experiments.store import write_text
+
+    old = os.umask(0o022)
+    try:
+        out = write_text(tmp_path / "note.txt", "x\n")
+    finally:
+        os.umask(old)
+    assert out.stat().st_mode & 0o777 == 0o644

@@ -1,5 +1,6 @@
 """The readout neuron (shunting division + haltere integration) against exact inputs and the arithmetic readout."""
 import numpy as np
+import pytest
 
 from lobula.readout import ReadoutConfig, readout
 from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron
@@ -160,3 +161,32 @@ def test_encoder_lead_makes_the_synaptic_filter_return_the_estimate_without_acce
     lagged = spiking_output(t, ramp, np.zeros_like(t), ReadoutNeuronConfig(**cfg))
     led = spiking_output(t, ramp, np.zeros_like(t), ReadoutNeuronConfig(lead="encoder", **cfg))
     assert bias(lagged) < -0.015 and abs(bias(led)) < 0.2 * abs(bias(lagged))
+
+
+@pytest.mark.parametrize("model", ["poisson", "lif"])
+def test_every_output_neuron_has_its_own_train_and_they_sum_to_the_decoded_population(model):
+    """spikes_units: each of the population's + and − neurons' own counts. They sum to the pooled counts the
+    decoder reads, and each neuron carries its share: Poisson units are the pooled count dealt at random
+    (multinomial: independent Poisson trains at 1/N of the rate, so unit counts scatter as Poisson counts do),
+    LIF units are the simulated neurons themselves (one spike per step at most, near-regular)."""
+    from lobula.readout_neuron import spiking_output
+
+    t = np.arange(0.0, 8.0, 0.02)
+    v = 0.4 + 0.2 * np.sin(t)
+    n = 10
+    cfg = ReadoutNeuronConfig(spiking=True, population=n, spike_model=model, seed=2)
+    out = spiking_output(t, np.stack([v, -v]), np.zeros_like(t), cfg)
+    units = out["spikes_units"]                                    # (trials, steps, 2N)
+    assert units.shape == out["spikes_plus"].shape + (2 * n,)
+    np.testing.assert_array_equal(units[..., :n].sum(-1), out["spikes_plus"])
+    np.testing.assert_array_equal(units[..., n:].sum(-1), out["spikes_minus"])
+    per_unit = units[0, :, :n].sum(0)                              # trial 0's + neurons, driven at 80 ± 40 Hz
+    expected = out["spikes_plus"][0].sum() / n
+    assert np.all(np.abs(per_unit - expected) < 5 * np.sqrt(expected)), (per_unit, expected)
+    spread = per_unit.std(ddof=1) / np.sqrt(expected)              # count SD over the Poisson SD
+    if model == "poisson":
+        assert 0.4 < spread < 1.8, spread
+    else:
+        assert units.max() <= 1 and spread < 0.4, spread           # regular LIF neurons: far under Poisson
+    again = spiking_output(t, np.stack([v, -v]), np.zeros_like(t), cfg)["spikes_units"]
+    np.testing.assert_array_equal(again, units)                    # seeded

@@ -15,8 +15,8 @@ def test_velocity_replay_records_the_circuit(tmp_path, capsys):
     assert main(["ephys", "velocity-replay", "--footage", str(run), "--trials", "3", "--seed", "7",
                  "--out", str(out), "--plot", str(tmp_path / "rec.png")]) == 0
     rec = xr.open_dataset(out)
-    assert rec.readout_spikes.dims == ("trial", "spike_time", "neuron") and rec.sizes["trial"] == 3
-    assert list(rec.neuron.values) == ["plus", "minus"]
+    assert rec.readout_spikes.dims == ("trial", "spike_time", "unit") and rec.sizes["trial"] == 3
+    assert list(rec.neuron.values) == ["plus", "minus"] and list(rec.unit_neuron.values) == ["plus", "minus"]
     assert {"azimuth_deg", "elevation_deg", "size_deg"} <= set(rec.coords)
     assert rec.attrs["lobula_version"] and "readout_neuron" in rec.attrs["config"]
     # Push–pull: never both neurons driven at once.
@@ -105,7 +105,7 @@ def test_replay_spikes_are_at_1_ms_and_nwb_round_trips(footage, tmp_path):
     assert ds.sizes["spike_time"] == ds.sizes["time"] * round(frame / 1e-3)
     # Counts per 1 ms step, summed per frame, are the frame-rate Poisson counts' statistics: mean rate ≈ rate.
     rate = ds.readout_rate.sel(neuron="plus").values.mean()
-    spk = ds.readout_spikes.sel(neuron="plus").values.sum(1).mean() / (ds.sizes["time"] * frame)
+    spk = ds.readout_spikes.sel(unit="plus 0").values.sum(1).mean() / (ds.sizes["time"] * frame)
     assert spk == pytest.approx(rate, rel=0.15)
     for name in ds.variables:
         assert "long_name" in ds[name].attrs, name
@@ -116,7 +116,7 @@ def test_replay_spikes_are_at_1_ms_and_nwb_round_trips(footage, tmp_path):
     lay = epoch_layout(back)
     assert lay["C"] == 1 and lay["K"] == 3
     counts = read_nwb_spike_counts(nwb, back, "readout_spikes")
-    np.testing.assert_array_equal(counts[0], back.readout_spikes.transpose("trial", "spike_time", "neuron").values)
+    np.testing.assert_array_equal(counts[0], back.readout_spikes.transpose("trial", "spike_time", "unit").values)
     data, ts, unit = read_nwb_series(nwb, "readout_rate")
     np.testing.assert_array_equal(data.reshape(3, back.sizes["time"], 2), back.readout_rate.values)
     assert unit == "Hz"

@@ -385,29 +385,32 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
         st = rec.spike_time.values
         dts = float(rec.readout_spikes.attrs["dt_s"])
         k = rec.sizes["trial"]
-        # Counts pooled over a population of pairs: the PSTH is per neuron.
-        pool = int(json.loads(rec.readout_spikes.attrs.get("neuron_parameters", "{}")).get("population", 1))
+        kind = rec.unit_neuron.values
+        pool = int((kind == "plus").sum())
+        b = max(1, int(round(0.1 / dts)))
+        # Raster: a population's units on trial 0 (one row per neuron), or a single pair over the trials.
+        rows = pool if pool > 1 else k
         for j, name in enumerate(("plus", "minus")):
-            s = rec.readout_spikes.sel(neuron=name).values
-            tr, ti = np.nonzero(s > 0)
-            row = tr + j * (k + 1)
+            s = rec.readout_spikes.isel(unit=np.flatnonzero(kind == name)).values      # (trial, step, unit)
+            shown = s[0].T if pool > 1 else s[..., 0]                                  # (row, step)
+            rr, ti = np.nonzero(shown > 0)
+            row = rr + j * (rows + 1)
             ax_r.vlines(st[ti] + dts / 2, row - 0.4, row + 0.4, color=cols[name], lw=0.5)
-            b = max(1, int(round(0.1 / dts)))
             n = s.shape[1] // b * b
-            rate = s[:, :n].reshape(k, -1, b).sum(-1) / (b * dts * pool)
+            rate = s[:, :n].sum(-1).reshape(k, -1, b).sum(-1) / (b * dts * pool)     # per neuron, per trial
             tb = st[:n].reshape(-1, b).mean(-1) + dts / 2
             mm = rate.mean(0)
-            ax_p.plot(tb, mm, color=cols[name], lw=1.2, label=f"{name} neuron")
+            ax_p.plot(tb, mm, color=cols[name], lw=1.2, label=f"{name} neuron{'s' if pool > 1 else ''}")
             if k > 1:
                 ee = rate.std(0, ddof=1) / np.sqrt(k)
                 ax_p.fill_between(tb, mm - ee, mm + ee, color=cols[name], alpha=0.3, lw=0)
-        ticks = [j * (k + 1) + i for j in range(2) for i in range(k)]
+        ticks = [j * (rows + 1) + i for j in range(2) for i in range(rows)]
         ax_r.set_yticks(ticks if len(ticks) <= 12 else ticks[::max(1, len(ticks) // 8)])
-        ax_r.set_yticklabels([str(i % (k + 1)) for i in ax_r.get_yticks()])
-        ax_r.set_ylabel("trial (plus: lower block;\nminus: upper block)")
-        ax_r.set_ylim(-0.6, 2 * k + 0.6)
+        ax_r.set_yticklabels([str(i % (rows + 1)) for i in ax_r.get_yticks()])
+        ax_r.set_ylabel(f"{'unit, trial 0' if pool > 1 else 'trial'} (plus: lower block;\nminus: upper block)")
+        ax_r.set_ylim(-0.6, 2 * rows + 0.6)
         ax_r.set_title(f"{'output' if eye else 'readout'} neurons' spikes ({dts * 1e3:.2f} ms steps"
-                       f"{f', {pool} pooled' if pool > 1 else ''}): red +, blue −", fontsize=10)
+                       f"{f', {pool} pairs' if pool > 1 else ''}): red +, blue −", fontsize=10)
         ax_p.set_ylabel(f"rate{' per neuron' if pool > 1 else ''} (Hz; {b * dts * 1e3:.0f} ms bins)")
         ax_p.set_title(f"PSTH ± SEM across {k} trials", fontsize=10)
     elif "readout_rate" in rec:
