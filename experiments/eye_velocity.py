@@ -467,6 +467,12 @@ def apply_eye_options(cfg: EyeVelocityConfig, args) -> EyeVelocityConfig:
     c = cfg.circuit
     if getattr(args, "rotation", None):
         c.rotation = args.rotation
+    gain = getattr(args, "haltere_gain", None)
+    if gain is not None:
+        if c.rotation not in ("haltere", "both"):
+            raise ValueError(f"--haltere-gain sets the prior of the gain the haltere's prediction is subtracted at; "
+                             f"--rotation {c.rotation} subtracts none (use --rotation haltere or both)")
+        c.rotation_gain_prior = None if gain == "natural" else parse_gain(gain)
     if getattr(args, "mean_removal", None):
         c.surround, c.photoreceptor = mean_removal(args.mean_removal, c.photoreceptor)
     if getattr(args, "field_size", None):
@@ -504,6 +510,17 @@ def apply_eye_options(cfg: EyeVelocityConfig, args) -> EyeVelocityConfig:
     return cfg
 
 
+def parse_gain(text: str) -> float:
+    """A ``--haltere-gain`` value: a number in (0, 1.5] (or "natural", handled by the caller)."""
+    try:
+        g = float(text)
+    except ValueError:
+        raise ValueError(f"--haltere-gain takes 'natural' or a number in (0, 1.5], got {text!r}") from None
+    if not 0.0 < g <= 1.5:
+        raise ValueError(f"--haltere-gain must lie in (0, 1.5] (1: the unit gain), got {g}")
+    return g
+
+
 def run_eye_velocity(args) -> int:
     from experiments.store import write_netcdf
     from experiments.velocity import plot_velocity, score
@@ -528,6 +545,13 @@ def run_eye_velocity(args) -> int:
     return 0
 
 
+HALTERE_GAIN_HELP = ("with --rotation haltere or both: the prior of the gain each LC field subtracts the haltere's "
+                     "predicted turn at, before it has learned its own (lobula.eye_circuit.EyeCircuitConfig."
+                     "rotation_gain_prior): natural = the gain the EMDs read natural scenes at (natural_scene_gain, "
+                     "0.48 at Δφ = Δρ = 5° with the surround), or a number, e.g. 1 for the unit gain (the circuit "
+                     "before the thirty-third session)")
+
+
 def add_parser(subparsers):
     """Register `lobula eye-velocity` (see experiments.cli)."""
     v = subparsers.add_parser("eye-velocity", help="estimate forward velocity from compound-eye footage "
@@ -537,6 +561,7 @@ def add_parser(subparsers):
     v.add_argument("--plot", help="PNG of v̂ against truth")
     v.add_argument("--rotation", default="haltere", choices=["none", "haltere", "wide-field", "both"],
                    help="rotation handling: gyro-driven (haltere) subtraction, left+right wide-field sums, both, none")
+    v.add_argument("--haltere-gain", metavar="natural|G", help=HALTERE_GAIN_HELP + " (default: natural)")
     v.add_argument("--mean-removal", default="space", choices=sorted(MEAN_REMOVAL),
                    help="how the columns remove the mean luminance before the EMDs: space = the LMCs' lateral "
                         "inhibition, x − the six neighbours' mean (EyeCircuitConfig.surround 1, no temporal "

@@ -11,18 +11,21 @@ from __future__ import annotations
 
 
 #: `lobula velocity` options that only compound-eye footage takes (None: not given); the same as `lobula eye-velocity`'s
-EYE_ONLY_OPTIONS = ("rotation", "readout", "uncertainty", "seed", "spike_model", "membrane_noise")
+EYE_ONLY_OPTIONS = ("rotation", "haltere_gain", "readout", "uncertainty", "seed", "spike_model", "membrane_noise")
 
 
 def add_parser(subparsers):
     """Register `lobula velocity` (see experiments.cli): the options of :func:`experiments.velocity.add_parser`,
     and the compound-eye options of `lobula eye-velocity` (refused on camera footage)."""
+    from .eye_velocity import HALTERE_GAIN_HELP
     from .velocity import add_parser as add_velocity_parser
 
     p = add_velocity_parser(subparsers)
     g = p.add_argument_group("compound-eye footage only (`lobula scene OUT --eye fly`; as `lobula eye-velocity`)")
     g.add_argument("--rotation", choices=["none", "haltere", "wide-field", "both"],
                    help="rotation handling of the eye's circuit (not given: haltere)")
+    g.add_argument("--haltere-gain", metavar="natural|G",
+                   help="(not given: natural) " + HALTERE_GAIN_HELP)
     g.add_argument("--readout", choices=["kalman", "spikes", "neuron", "neuron-rate"],
                    help="the eye's readout (not given: kalman); spikes and neuron decode causally: add --filter causal")
     g.add_argument("--uncertainty", choices=["halves", "posterior"],
@@ -58,8 +61,8 @@ def run_on_eye_footage(args) -> int:
     """`lobula velocity EYE_FOOTAGE --front-end emd …`: the eye's circuit, as `lobula eye-velocity`.
 
     --filter, --field-size, --tau, --mean-removal, --accel-from-truth, --accel-scale-error, --skip, --plot and the
-    eye-only --rotation, --readout, --uncertainty, --seed, --spike-model and --membrane-noise mean what they mean for
-    `lobula eye-velocity` (so the two commands give the same numbers for the same options;
+    eye-only --rotation, --haltere-gain, --readout, --uncertainty, --seed, --spike-model and --membrane-noise mean
+    what they mean for `lobula eye-velocity` (so the two commands give the same numbers for the same options;
     `lobula velocity`'s --filter defaults to zero-phase, eye-velocity's to causal). Every other
     option of `lobula velocity` describes a camera front end and is refused, naming the fix.
     """
@@ -91,6 +94,7 @@ def run_on_eye_footage(args) -> int:
         raise ValueError(f"--readout {ro} decodes causally; add --filter causal (`lobula velocity`'s --filter "
                          f"defaults to zero-phase)")
     ns = argparse.Namespace(footage=args.footage, out=args.out, plot=args.plot, rotation=getattr(args, "rotation", None),
+                            haltere_gain=getattr(args, "haltere_gain", None),
                             mean_removal=getattr(args, "mean_removal", None),
                             field_size=args.field_size, tau=args.tau, filter=args.filter,
                             accel_from_truth=args.accel_from_truth, accel_scale_error=args.accel_scale_error,

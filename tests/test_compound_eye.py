@@ -599,6 +599,36 @@ def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, 
     assert "--filter causal" in capsys.readouterr().err
 
 
+def test_haltere_gain_option_sets_the_circuits_prior_or_is_refused(eye_footage, tmp_path, capsys):
+    """--haltere-gain reaches the circuit in both commands (the configuration written, the fields changed:
+    the footage's gyro noise is subtracted at another gain), and is refused where no haltere prediction is
+    subtracted or the value is not a gain."""
+    import xarray as xr
+
+    from experiments.cli import main
+
+    runs = {}
+    for name, extra in (("natural", []), ("unit", ["--haltere-gain", "1"]), ("named", ["--haltere-gain", "natural"])):
+        runs[name] = tmp_path / f"{name}.nc"
+        assert main(["eye-velocity", str(eye_footage), "--accel-from-truth", "--out", str(runs[name])] + extra) == 0
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--filter", "causal", "--accel-from-truth",
+                 "--haltere-gain", "1", "--quiet", "--out", str(tmp_path / "v.nc")]) == 0
+    with xr.open_dataset(runs["natural"]) as a, xr.open_dataset(runs["unit"]) as b, \
+            xr.open_dataset(runs["named"]) as c, xr.open_dataset(tmp_path / "v.nc") as d:
+        assert json.loads(a.attrs["config"])["circuit"]["rotation_gain_prior"] is None
+        assert json.loads(b.attrs["config"])["circuit"]["rotation_gain_prior"] == 1.0
+        assert not np.array_equal(a.r.values, b.r.values, equal_nan=True)
+        np.testing.assert_array_equal(a.r.values, c.r.values)
+        np.testing.assert_array_equal(b.r.values, d.r.values)
+    capsys.readouterr()
+    for bad, msg in ((["--rotation", "wide-field", "--haltere-gain", "1"], "subtracts none"),
+                     (["--haltere-gain", "2"], "(0, 1.5]"), (["--haltere-gain", "strong"], "'natural' or a number")):
+        assert main(["eye-velocity", str(eye_footage), "--out", str(tmp_path / "x.nc")] + bad) == 2
+        assert msg in capsys.readouterr().err and not (tmp_path / "x.nc").exists()
+    assert main(["velocity", str(tmp_path), "--haltere-gain", "1", "--out", str(tmp_path / "x.nc")]) == 2
+    assert "--haltere-gain" in capsys.readouterr().err
+
+
 def test_lobula_velocity_refuses_eye_options_on_camera_footage(tmp_path, capsys):
     from experiments.cli import main
 
