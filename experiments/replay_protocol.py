@@ -177,7 +177,7 @@ def _replay_dataset(ds: xr.Dataset, want, out: dict, ncfg: ReadoutNeuronConfig, 
                           {"long_name": "output neuron: its sign and its pair's index"})
         coords["unit_neuron"] = ("unit", ["plus"] * n + ["minus"] * n,
                                  {"long_name": "which of the push-pull pair the unit is (plus carries v > 0)"})
-        data["readout_spikes"] = (("trial", "spike_time", "unit"), out["spikes_units"],
+        data["readout_spikes"] = (("trial", "spike_time", "unit"), out["spikes_units"].astype(np.uint16),
                                   {"units": "1", "long_name": "each output neuron's spike count per spike-generator "
                                    "step", "neuron_model": ncfg.spike_model, "dt_s": spike_dt,
                                    "neuron_parameters": json.dumps(ncfg.to_dict(), sort_keys=True)})

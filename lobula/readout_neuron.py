@@ -254,7 +254,7 @@ def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float,
     return counts[..., :N].sum(-1), counts[..., N:].sum(-1), fano, counts
 
 
-def split_among_units(pooled: torch.Tensor, n_units: int, gen: torch.Generator) -> torch.Tensor:
+def _deal_to_units(pooled: torch.Tensor, n_units: int, gen: torch.Generator) -> torch.Tensor:
     """Each step's pooled count (trials, steps) dealt to ``n_units`` neurons at random, (trials, steps, n_units).
 
     Every spike goes to one of the units with equal probability, independently: given their sum,
@@ -262,9 +262,9 @@ def split_among_units(pooled: torch.Tensor, n_units: int, gen: torch.Generator) 
     units are independent Poisson trains at 1/N of the pooled rate and their sum is ``pooled``.
     """
     c = pooled.to(torch.int64).reshape(-1)
-    out = torch.zeros(c.numel() * n_units, dtype=torch.int64)
     if n_units == 1:
         return c.reshape(pooled.shape + (1,))
+    out = torch.zeros(c.numel() * n_units, dtype=torch.int64)
     step = torch.repeat_interleave(torch.arange(c.numel()), c)
     unit = torch.randint(n_units, (len(step),), generator=gen)
     out.index_add_(0, step * n_units + unit, torch.ones_like(step))
@@ -318,7 +318,7 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
         # The pooled counts dealt to the N pairs' neurons with a generator of their own (the pooled
         # trains, and so the decoding, are the same with or without it).
         deal = make_generator(int(np.random.SeedSequence([cfg.seed, 1]).generate_state(1)[0]))
-        units = torch.cat([split_among_units(x, N, deal) for x in (sp_fine, sm_fine)], -1)
+        units = torch.cat([_deal_to_units(x, N, deal) for x in (sp_fine, sm_fine)], -1)
     # Counts per frame for the rate decoding.
     sp, sm = (x.reshape(trials, n, sub).sum(-1) for x in (sp_fine, sm_fine))
     r_p, r_m = rate_p + base, rate_m + base
@@ -343,7 +343,7 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
         v_dec = (smooth(sp) - smooth(sm)) / gain
         std = torch.sqrt((fano[0] * r_p + fano[1] * r_m) / (w * dt * N)) / gain
     return dict(v_dec=v_dec, decode_std=std, spikes_plus=sp_fine, spikes_minus=sm_fine,
-                spikes_units=units.to(torch.uint8))
+                spikes_units=units.to(torch.int32))
 
 
 def spiking_output(t, v, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:
@@ -356,7 +356,7 @@ def spiking_output(t, v, a, config: ReadoutNeuronConfig | None = None) -> dict[s
     lead. Returns numpy arrays shaped like v: v_dec (m/s), decode_std (m/s, count noise),
     rate_plus / rate_minus (Hz); spikes_plus / spikes_minus (counts per generator step, the
     population's pairs pooled; time·m samples, :func:`spike_steps_per_frame`); spikes_units
-    (time·m, 2·population) uint8: every output neuron's own counts, the population's + neurons
+    (time·m, 2·population): every output neuron's own counts, the population's + neurons
     then its − neurons (they sum to spikes_plus and spikes_minus).
     """
     cfg = config or ReadoutNeuronConfig(spiking=True)
