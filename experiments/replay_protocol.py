@@ -189,7 +189,8 @@ def _replay_dataset(ds: xr.Dataset, want, out: dict, ncfg: ReadoutNeuronConfig, 
 def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4, seed: int = 0,
                         spike_model: str | None = "lif", duration_s: float = 10.0, progress: bool = False,
                         tau_s: float | None = None, dphi_deg: float | None = None,
-                        field_size_deg: float | None = None, record=None) -> xr.Dataset:
+                        field_size_deg: float | None = None, rotation: str | None = None,
+                        haltere_gain: str | float | None = None, record=None) -> xr.Dataset:
     """Record the compound eye's velocity circuit while the fly replays eye footage (module docstring).
 
     footage_path: an eye-footage folder; None renders a built-in synthetic run of ``duration_s``
@@ -198,11 +199,15 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
     neurons, "lif" (the eye's default) or "poisson", each trial with its own noise from ``seed``;
     None: their rates only (deterministic, one trial). tau_s: the EMD delay (s); field_size_deg:
     the LC fields' FWHM (degree); dphi_deg: the interommatidial angle of the built-in run (eye
-    footage keeps the Δφ it was rendered at). record: names from :data:`REPLAY_RECORDS` but
-    readout.confidence (default: all of them).
+    footage keeps the Δφ it was rendered at). rotation, haltere_gain: the circuit's rotation handling and
+    the haltere gain's prior, as ``lobula eye-velocity --rotation / --haltere-gain`` take them (None:
+    haltere, natural). record: names from :data:`REPLAY_RECORDS` but readout.confidence (default: all
+    of them).
     """
     from experiments.ephys.rig import cf_describe, recording_attrs
-    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity, readout_offset
+    import argparse
+
+    from experiments.eye_velocity import EyeVelocityConfig, apply_eye_options, estimate_eye_velocity, readout_offset
     from lobula.compound_eye import CompoundEyeConfig
     from lobula.readout_neuron import SPIKE_MODELS, spiking_output
     from stimuli.eye import make_eye_run, open_eye_footage
@@ -225,6 +230,9 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
         ecfg.circuit.emd = replace(ecfg.circuit.emd, tau_s=float(tau_s))
     if field_size_deg is not None:
         ecfg.circuit.fields = replace(ecfg.circuit.fields, size_deg=float(field_size_deg))
+    ecfg = apply_eye_options(ecfg, argparse.Namespace(rotation=rotation, haltere_gain=None if haltere_gain is None
+                                                      else str(haltere_gain)))
+    ecfg.circuit.__post_init__()
     ecfg.__post_init__()
     with tempfile.TemporaryDirectory() as tmp:
         if footage_path is None:

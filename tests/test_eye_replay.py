@@ -95,6 +95,15 @@ def test_eye_replay_options_change_the_recording(eye_run, rec):
                                             "record": ["readout.v", "lc.r"]})
     assert rate.sizes["trial"] == 1 and "readout_spikes" not in rate and "lc_r_dot" not in rate
     np.testing.assert_array_equal(rate.readout_v.values[0], rec.arithmetic_v.values)
+    # The rotation hypotheses, recorded: mirror fields summed (one output per pair of fields), or the haltere's
+    # prediction subtracted from the unit gain (the fields' ρ differ: the footage's gyro noise is subtracted
+    # at another gain).
+    wide = run_protocol("velocity-replay", {"eye": "fly", "footage": f, "neuron_model": "rate", "rotation": "wide-field"})
+    circuit = json.loads(wide.attrs["config"])["eye_velocity"]["circuit"]
+    assert circuit["rotation"] == "wide-field" and wide.sizes["field"] == rec.sizes["field"] // 2
+    unit = run_protocol("velocity-replay", {"eye": "fly", "footage": f, "neuron_model": "rate", "haltere_gain": "1"})
+    assert json.loads(unit.attrs["config"])["eye_velocity"]["circuit"]["rotation_gain_prior"] == 1.0
+    assert not np.array_equal(unit.lc_r.values, rec.lc_r.values, equal_nan=True)
 
 
 @pytest.mark.parametrize("opts,fix", [
@@ -104,6 +113,9 @@ def test_eye_replay_options_change_the_recording(eye_run, rec):
     ({"neuron_model": "rate", "trials": 3}, r"use --trials 1, or --neuron-model lif or poisson"),
     ({"record": ["readout.spikes"], "neuron_model": "rate"}, r"--neuron-model lif or poisson"),
     ({"device": "cpu"}, r"--device does not apply to velocity-replay"),
+    ({"rotation": "none", "haltere_gain": "1"}, r"--rotation none subtracts none"),
+    ({"haltere_gain": "3"}, r"\(0, 1.5\]"),
+    ({"eye": "pinhole", "rotation": "haltere"}, r"add --eye fly"),
 ])
 def test_eye_replay_requests_that_cannot_work_fail_naming_the_fix(eye_run, opts, fix):
     with pytest.raises(ValueError, match=fix):

@@ -63,7 +63,8 @@ def test_every_replay_option_changes_the_recording(footage):
         "neuron_model": ("rate", lambda ds: ds.attrs["neuron_model"] == "rate" and "readout_spikes" not in ds),
     }
     documented = {k for k, ps in APPLIES.items() if "velocity-replay" in ps}
-    assert documented == set(checks) | {"footage", "duration", "eye"}  # --eye fly: tests/test_eye_replay.py
+    # --eye fly and the eye circuit's --rotation, --haltere-gain: tests/test_eye_replay.py (refused here, below)
+    assert documented == set(checks) | {"footage", "duration", "eye", "rotation", "haltere_gain"}
     for opt, (val, ok) in checks.items():
         extra = {"trials": 1} if opt == "neuron_model" else {}
         ds = run_protocol("velocity-replay", {"footage": str(footage), "seed": 7, **extra, opt: val})
@@ -87,6 +88,8 @@ def test_every_replay_option_changes_the_recording(footage):
     ({"neuron_model": "rate", "trials": 3}, r"use --trials 1, or --neuron-model poisson"),
     ({"tf": [3.0]}, r"--tf does not apply to velocity-replay"),
     ({"device": "cuda"}, r"--device does not apply to velocity-replay"),
+    ({"rotation": "wide-field"}, r"--rotation set\(s\) the compound eye's circuit.*add --eye fly"),
+    ({"haltere_gain": "1"}, r"--haltere-gain set\(s\) the compound eye's circuit.*add --eye fly"),
 ])
 def test_replay_requests_that_cannot_work_fail_naming_the_fix(footage, opts, fix):
     with pytest.raises(ValueError, match=fix):

@@ -29,7 +29,7 @@ APPLIES = {
     "fields": ("rf-map",), "directions": ("rf-map",), "spacing": ("rf-map",), "extent": ("rf-map",),
     "spot_size": ("rf-map",), "spot_path": ("rf-map",), "spot_speed": ("rf-map",),
     "l_over_v": ("looming",), "max_size": ("looming",), "collision_time": ("looming",),
-    "footage": ("velocity-replay",),
+    "footage": ("velocity-replay",), "rotation": ("velocity-replay",), "haltere_gain": ("velocity-replay",),
     "eye": ALL,
 }
 
@@ -115,6 +115,12 @@ def add_parser(subparsers):
                          "(default: 0.8 × duration)")
     v = e.add_argument_group("velocity-replay")
     v.add_argument("--footage", default=S, help="footage folder (default: render a built-in run of --duration)")
+    v.add_argument("--rotation", choices=["none", "haltere", "wide-field", "both"], default=S,
+                   help="with --eye fly: the eye circuit's rotation handling, as `lobula eye-velocity --rotation` "
+                        "(default: haltere)")
+    v.add_argument("--haltere-gain", metavar="natural|G", default=S,
+                   help="with --eye fly: the haltere gain's prior, as `lobula eye-velocity --haltere-gain` "
+                        "(default: natural)")
     e.add_argument("--quiet", action="store_true",
                    help="no progress bars (velocity-replay's rendering and circuit) (default: False)")
     e.set_defaults(func=main)
@@ -197,6 +203,10 @@ def run_protocol(protocol: str, opts: dict, progress: bool = False):
     if protocol == "velocity-replay":
         from experiments.replay_protocol import velocity_replay
 
+        eye_only = [f"--{k.replace('_', '-')}" for k in ("rotation", "haltere_gain") if k in opts]
+        if eye_only:
+            raise ValueError(f"{', '.join(eye_only)} set(s) the compound eye's circuit; the camera's EMD front end "
+                             f"has no haltere subtraction (add --eye fly)")
         model = opts.get("neuron_model", "poisson")
         if model == "lif":
             raise ValueError("velocity-replay's readout neuron is a rate or Poisson neuron; use --neuron-model "
@@ -241,6 +251,7 @@ def _eye_replay(opts: dict, progress: bool = False):
                                seed=opts.get("seed", 0), spike_model=None if model == "rate" else model,
                                duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
                                dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
+                               rotation=opts.get("rotation"), haltere_gain=opts.get("haltere_gain"),
                                record=opts.get("record"))
 
 
