@@ -640,6 +640,10 @@ def natural_scene_gain(dphi_deg: float, drho_deg: float, surround: float = 1.0, 
     surround 0.73. Measured on development rotation worlds 100 / 101 (per-field least-squares fits
     over 1–10 s of ρ̂ on the exact v/D and the haltere's subtracted rotation): α = γ − 1 = −0.48 to −0.56.
     """
+    if not (dphi_deg > 0 and drho_deg > 0 and math.isfinite(dphi_deg) and math.isfinite(drho_deg)):
+        raise ValueError(f"natural_scene_gain needs positive, finite Δφ and Δρ (degree), got {dphi_deg}, {drho_deg}")
+    if not (0.0 <= surround <= 1.0 and 0.0 <= column_pool <= 1.0):
+        raise ValueError(f"surround and column_pool must lie in [0, 1], got {surround}, {column_pool}")
     k = np.linspace(-k_max, k_max, n)
     kx, ky = np.meshgrid(k, k)
     kk = np.maximum(np.hypot(kx, ky), 1e-9)

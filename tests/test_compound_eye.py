@@ -505,6 +505,9 @@ def test_natural_scene_gain_is_the_decoded_gain_of_a_turn_on_natural_texture():
         assert abs(gain - predicted) < 0.06, (seed, gain, predicted)
     assert natural_scene_gain(5.0, 20.0, 0.0, 0.0) > 0.95
     assert 0.4 < predicted < 0.55 < natural_scene_gain(5.0, 5.0, 0.0, 0.0) < 0.8
+    for bad in ((0.0, 5.0), (5.0, float("nan")), (5.0, 5.0, 1.5)):
+        with pytest.raises(ValueError, match="natural_scene_gain needs|must lie in"):
+            natural_scene_gain(*bad)
 
 
 def test_the_haltere_gain_starts_from_its_prior():
