@@ -471,12 +471,11 @@ def test_haltere_gain_is_learned_where_the_emds_underestimate_motion():
     assert resid["adaptive"] < 0.5 * resid["fixed"], resid
 
 
-
 def test_natural_scene_gain_is_the_decoded_gain_of_a_turn_on_natural_texture():
     """The haltere gain's prior, predicted from the eye's optics, lattice filters and natural scenes'
     1/f² power spectrum, is the gain at which the default eye's LC fields read a turn of a seeded 1/f
     panorama (amplitude ∝ 1/f, as natural scenes: Field 1987). Measured: 0.443 / 0.459 / 0.468 against
-    the predicted 0.477 (three panoramas, 60°/s yaw). The fields' decoded turn is read without the
+    the predicted 0.477 (panoramas of seeds 0–2, 60°/s yaw; the test runs the first two). The fields' decoded turn is read without the
     haltere (gyro 0) and with it at unit gain (fixed): their difference is the unit-gain prediction q,
     and the regression of the first on q is γ. And the prediction's limits: → 1 for a spectrum far
     below the lattice's Nyquist limit (a wide acceptance, no surround); the surround, which whitens the
