@@ -351,6 +351,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     t = np.concatenate([o["t"] for o in outs]) + float(fo.times[0])   # the circuit counts from sample 0
     rho = np.concatenate([o["rho"] for o in outs])
     r2 = np.concatenate([o["r2_eff"] for o in outs])
+    haltere_gain = np.concatenate([o["haltere_gain"] for o in outs])
     # The circuit starts at rest (the EMD delay lines and the photoreceptors' filters set to
     # the first sample, as if nothing had moved), so the LC outputs climb to their moving level
     # over the first few time constants: a ṙ that is the circuit's, not the world's (measured on
@@ -434,6 +435,9 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         r2=(("time", "field"), r2, {"units": "1/s2",
                                     "long_name": "r-squared term with the convective correction (r2_eff)"}),
         r_dot=(("time", "field"), r_dot, {"units": "1/s2"}),
+        haltere_gain=(("time", "field"), haltere_gain,
+                      {"units": "1", "long_name": "gain at which the field subtracts the haltere's predicted turn "
+                                                  "(1 + the learned α; 1: fixed; NaN: no haltere subtraction)"}),
         reliability=(("time", "field"), reliability,
                      {"long_name": "field's causal slow-to-fast power ratio (lobula.eye_circuit.field_reliability)"}),
         field_used=(("time", "field"), used, {"long_name": "field output passed to the readout "

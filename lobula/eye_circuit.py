@@ -314,7 +314,8 @@ class EyeCircuit:
     ``finish()`` returns the last, partial block (if any). Each result is a dict of
     numpy arrays over readout steps: ``t`` (K,) stamped times, ``rho`` (K, F') 1/s,
     ``grad`` (K, F') 1/s per rad, ``r2_eff`` (K, F') 1/s², ``rot`` (K, F') 1/s (the rotation
-    the haltere subtracted, as ρ at the learned gain; 0 without haltere subtraction), with
+    the haltere subtracted, as ρ at the learned gain; 0 without haltere subtraction),
+    ``haltere_gain`` (K, F') the gain it was subtracted at (1 + α; 1 fixed; NaN without), with
     F' = F fields, or the mirror groups (F/2) under wide-field rotation cancelling.
     """
 
@@ -591,6 +592,8 @@ class EyeCircuit:
         b1, b2, A11, A12, A22 = parts[:5]
         cfg = self.config.fields
         q = np.zeros_like(b1)
+        # The gain each field subtracts the haltere's prediction at: 1 + α learned, 1 when fixed, NaN without.
+        gain = np.full_like(b1, 1.0 if self.config.rotation in ("haltere", "both") else np.nan)
         if A11.shape[-2]:
             # Semi-saturation floor: a running mean (over past blocks only) of each field's pool.
             floors = np.empty_like(A11)
@@ -612,12 +615,13 @@ class EyeCircuit:
                 qg = np.where(det > 0, (A11 * c2 - A12 * c1) / det, 0.0)
                 alpha = self._rotation_gain(rho, q)
                 rho, grad = rho - alpha * q, grad - alpha * qg
-                q = (1.0 + alpha) * q
+                q, gain = (1.0 + alpha) * q, 1.0 + alpha
             rho, grad = rho * self.config.calibration, grad * self.config.calibration
         mode = self.config.r2_term
         r2_eff = (rho ** 2 * np.cos(theta) - rho * np.sin(theta) * grad if mode == "convective"
                   else rho ** 2 * np.cos(theta) if mode == "point" else np.zeros_like(rho))
-        return dict(t=t_end - self.latency_s, rho=rho, grad=grad, r2_eff=r2_eff, rot=q * self.config.calibration)
+        return dict(t=t_end - self.latency_s, rho=rho, grad=grad, r2_eff=r2_eff, rot=q * self.config.calibration,
+                    haltere_gain=gain)
 
 
 @functools.lru_cache(maxsize=32)

@@ -619,10 +619,22 @@ def test_haltere_gain_option_sets_the_circuits_prior_or_is_refused(eye_footage, 
             xr.open_dataset(runs["named"]) as c, xr.open_dataset(tmp_path / "v.nc") as d:
         assert json.loads(a.attrs["config"])["circuit"]["rotation_gain_prior"] is None
         assert json.loads(b.attrs["config"])["circuit"]["rotation_gain_prior"] == 1.0
+        # The gain each field subtracts the turn at is recorded: the prior's until the field has learned.
+        from lobula.eye_circuit import natural_scene_gain
+        eye = json.loads(a.attrs["eye"])
+        first = a.haltere_gain.values[0]
+        np.testing.assert_allclose(first, natural_scene_gain(eye["dphi_deg"], eye["drho_deg"] or eye["dphi_deg"]))
+        np.testing.assert_allclose(b.haltere_gain.values[0], 1.0)
+        assert np.all((a.haltere_gain.values >= 0.0) & (a.haltere_gain.values <= 1.5))
         assert not np.array_equal(a.r.values, b.r.values, equal_nan=True)
         np.testing.assert_array_equal(a.r.values, c.r.values)
         np.testing.assert_array_equal(b.r.values, d.r.values)
     capsys.readouterr()
+    wide = tmp_path / "wide.nc"
+    assert main(["eye-velocity", str(eye_footage), "--accel-from-truth", "--rotation", "wide-field",
+                 "--out", str(wide)]) == 0
+    with xr.open_dataset(wide) as w:
+        assert np.isnan(w.haltere_gain.values).all()                 # nothing subtracted
     for bad, msg in ((["--rotation", "wide-field", "--haltere-gain", "1"], "subtracts none"),
                      (["--haltere-gain", "2"], "(0, 1.5]"), (["--haltere-gain", "strong"], "'natural' or a number")):
         assert main(["eye-velocity", str(eye_footage), "--out", str(tmp_path / "x.nc")] + bad) == 2
