@@ -204,9 +204,9 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
     haltere, natural). record: names from :data:`REPLAY_RECORDS` but readout.confidence (default: all
     of them).
     """
-    from experiments.ephys.rig import cf_describe, recording_attrs
     import argparse
 
+    from experiments.ephys.rig import cf_describe, recording_attrs
     from experiments.eye_velocity import EyeVelocityConfig, apply_eye_options, estimate_eye_velocity, readout_offset
     from lobula.compound_eye import CompoundEyeConfig
     from lobula.readout_neuron import SPIKE_MODELS, spiking_output

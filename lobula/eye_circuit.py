@@ -194,11 +194,9 @@ class EyeCircuitConfig:
     the haltere predicts, see :meth:`EyeCircuit._rotation_gain`) or "fixed" (the prediction subtracted at
     unit gain). rotation_gain_prior: γ's prior mean, what the adaptive gain starts from before a field
     has seen a turn (about a second) and is drawn toward while its evidence is weak; None (default):
-    :func:`natural_scene_gain`, the gain this eye's decoding has on natural scenes' 1/f² spectrum
-    after its optics and lattice filters (0.48 for the default eye with its surround; per-field fits
-    of ρ̂ on the subtracted rotation over 1–10 s on development rotation worlds 100 / 101 gave
-    α = γ − 1 = −0.48 to −0.56); 1: the unit gain, as before the thirty-third session (a unit-gain start
-    over-subtracts a turn by half, a residue ~10× the fields' own signal in their first second).
+    :func:`natural_scene_gain` for this eye and these lattice filters (0.48 for the default eye); 1: the
+    unit gain, as before the thirty-third session (it over-subtracts a turn by half, a residue ~10× the
+    fields' own signal in their first second: docs/fly-eye.md).
     calibration: gain on ρ (1 = none).
     latency_s: stamp shift; None = τ_photoreceptor + τ_EMD + half a block (+ τ_EMD more for the
     "pair" normaliser, whose per-pair decoding low-passes once more).
