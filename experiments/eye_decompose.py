@@ -1,8 +1,12 @@
 """Where the fly eye loses velocity accuracy: the same readout fed ever less ideal LC inputs.
 
-Levels (each a velocity Dataset's RMSE after ``skip_s``, with the acceleration from the
-accelerometer, from truth, and from truth with an offset the readout must learn as it would an
-accelerometer's (``|offset``), so the readout's own share shows too):
+Levels (each the readout's RMSE after ``skip_s``, ±2σ coverage and observable fraction — an RMSE
+is over the steps the readout calls observable, so one level can look better only by saying less —
+with the acceleration from the accelerometer (``|imu``), from truth (``|true``), from truth with an
+offset the readout must learn as it would an accelerometer's (``|offset``), so the readout's own share
+shows too, and, on synthetic footage, from the accelerometer with the attitude integrated at the
+gyroscope's true bias (``|gyro-bias``, :func:`true_gyro_bias`): what the bias the attitude cannot learn
+under a turn that never stops costs):
 
 1. ``exact``  — each LC field's fit to the exact translational image motion of every pair,
    ρ_p·m_p with ρ_p = v/D_p (D_p the rendered range along the pair, ``range.npy``), all pairs
@@ -42,8 +46,8 @@ from lobula.readout import readout
 
 from .eye_velocity import EyeVelocityConfig, estimate_eye_velocity, readout_inputs
 
-__all__ = ["exact_pair_motion", "IdealDetectorCircuit", "ideal_fields", "slow_gain_fields", "readout_rmse",
-           "decompose"]
+__all__ = ["exact_pair_motion", "IdealDetectorCircuit", "ideal_fields", "slow_gain_fields", "true_gyro_bias",
+           "readout_rmse", "decompose"]
 
 
 def exact_pair_motion(fo) -> np.ndarray:
@@ -121,66 +125,111 @@ def slow_gain_fields(t_exact, rho_exact, grad_exact_r2, t, rho_emd, theta, cutof
     return rho, rho ** 2 * np.cos(theta) - rho * np.sin(theta) * gam * g_exact
 
 
-def readout_rmse(fo, t, rho, r2, accel_from_truth: bool, cfg: EyeVelocityConfig | None = None,
-                 skip_s: float = 2.0, learn_offset: bool = False) -> tuple[float, float]:
-    """The eye pipeline's readout (settle time, acceleration, readout inputs) on given fields: (RMSE, ±2σ coverage).
+def true_gyro_bias(fo) -> np.ndarray:
+    """The gyroscope's true bias (rad/s, (n, 3), camera frame) at the samples of ``fo.imu``.
 
-    learn_offset (with accel_from_truth): the true acceleration, but the readout not told so — it
-    learns an accelerometer offset (prior std ``ReadoutConfig.bias_prior_m_s2``, 0.1 m/s²) that is
-    in truth zero, so what the fields' κ errors make of an offset shows on its own.
+    Synthetic footage only: its ``scene.json`` records the run configuration, whose seeded IMU
+    (:func:`stimuli.track.build_track`) draws the same bias walk again; the eye footage stores the gyro
+    in the camera frame, so the IMU-frame bias b reads there as R·b (R = imu_to_camera). Raises
+    ValueError where the footage has no run configuration (a real recording) or the regenerated
+    IMU's samples are not the footage's.
     """
-    cfg = replace(cfg or EyeVelocityConfig(), accel_from_truth=accel_from_truth)
+    from stimuli.track import build_track
+
+    from .sweep_params import run_config_from_dict
+
+    path = fo.path / "scene.json"
+    try:
+        cfg = run_config_from_dict(json.loads(path.read_text())["config"])
+    except (OSError, KeyError, TypeError, ValueError) as exc:  # SweepError is a ValueError
+        raise ValueError(f"{path}: no synthetic run configuration to regenerate the IMU from ({exc})") from None
+    imu = build_track(cfg)[1]
+    t = np.asarray(imu["time_s"], float)
+    if fo.imu is None or len(t) != len(fo.imu.time_s) or np.max(np.abs(t - fo.imu.time_s)) > 1e-6:
+        raise ValueError(f"{path}: the regenerated IMU's samples are not those of {fo.path / 'imu.csv'}")
+    return np.asarray(imu["gyro_bias_t"], float) @ np.asarray(imu["imu_to_camera"], float).T
+
+
+#: the accelerations a level is read out with (see the module docstring)
+SOURCES = ("true", "offset", "imu", "gyro-bias")
+
+
+def readout_rmse(fo, t, rho, r2, source: str, cfg: EyeVelocityConfig | None = None, skip_s: float = 2.0,
+                 gyro_bias: np.ndarray | None = None) -> tuple[float, float, float]:
+    """The eye pipeline's readout (settle time, acceleration, readout inputs) on given fields:
+    (RMSE m/s, ±2σ coverage, observable fraction) over the steps after ``skip_s``.
+
+    source (:data:`SOURCES`): "true", the true forward acceleration, the readout told so; "offset",
+    the same, but the readout not told so — it learns an accelerometer offset (prior std
+    ``ReadoutConfig.bias_prior_m_s2``, 0.1 m/s²) that is in truth zero, so what the fields' κ errors
+    make of an offset shows on its own; "imu", the accelerometer as the pipeline reads it; "gyro-bias",
+    the accelerometer with the attitude integrated at ``gyro_bias`` (n, 3) rad/s, the true bias
+    (:func:`true_gyro_bias`), the readout's noise model unchanged. RMSE and coverage are over the
+    observable steps only (NaN where there are none).
+    """
+    if source not in SOURCES:
+        raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
+    if (source == "gyro-bias") != (gyro_bias is not None):
+        raise ValueError("gyro_bias is given with, and only with, source 'gyro-bias'")
+    cfg = replace(cfg or EyeVelocityConfig(), accel_from_truth=source in ("true", "offset"))
     rho, r2 = rho.copy(), r2.copy()
     cold = (t - t[0]) < cfg.settle_time()
     rho[cold], r2[cold] = np.nan, np.nan
     dt = float(np.median(np.diff(t)))
-    if accel_from_truth:
+    if cfg.accel_from_truth:
         a = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
         turn = None
     else:
-        a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro, causal=cfg.readout.filter == "causal")
+        a_imu = forward_acceleration(fo.imu.time_s, fo.imu.accel, fo.imu.gyro,
+                                     causal=cfg.readout.filter == "causal", bias=gyro_bias)
         a = resample_to(t, fo.imu.time_s, a_imu, dt)
         # As estimate_eye_velocity does: the readout is told the gyro's turn rate (accelerometer noise under turns).
         turn = turn_rate(t, fo.imu.time_s, fo.imu.gyro, dt)
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
-    if accel_from_truth and learn_offset:
+    if source == "offset":
         rcfg = replace(rcfg, bias_prior_m_s2=cfg.readout.bias_prior_m_s2)
     res = readout(t, rho, r2, a, rcfg, gravity_tau=tau, drift_std=drift, turn_rate=turn)
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
-    k = (t >= t[0] + skip_s) & np.isfinite(res.v_hat)
+    late = t >= t[0] + skip_s
+    k = late & np.isfinite(res.v_hat)
+    if not k.any():
+        return float("nan"), float("nan"), 0.0
     err = res.v_hat[k] - vt[k]
-    return float(np.sqrt(np.mean(err ** 2))), float(np.mean(np.abs(err) <= 2 * res.v_std[k]))
-
-
-#: the acceleration each level is read out with: (label, from truth, offset learned)
-SOURCES = (("true", True, False), ("offset", True, True), ("imu", False, False))
+    return (float(np.sqrt(np.mean(err ** 2))), float(np.mean(np.abs(err) <= 2 * res.v_std[k])),
+            float(k.sum() / max(late.sum(), 1)))
 
 
 def decompose(fo, config: EyeVelocityConfig | None = None, skip_s: float = 2.0) -> dict:
-    """RMSE (m/s) and ±2σ coverage of the readout at each level, with the accelerometer ("imu"), the true
-    acceleration ("true") and the true acceleration with an offset learned as for an accelerometer
-    ("offset", :func:`readout_rmse`'s learn_offset)."""
+    """(RMSE m/s, ±2σ coverage, observable fraction) of the readout at each level and acceleration
+    source (:func:`readout_rmse`), keyed "level|source"; "gyro-bias" only where the footage's IMU can
+    be regenerated (:func:`true_gyro_bias`); "zero": the zero estimator's RMSE."""
     cfg = config or EyeVelocityConfig()
+    try:
+        bias = true_gyro_bias(fo)
+    except ValueError:
+        bias = None
+    sources = [s for s in SOURCES if s != "gyro-bias" or bias is not None]
+
+    def rows(level, t, rho, r2):
+        for src in sources:
+            out[f"{level}|{src}"] = readout_rmse(fo, t, rho, r2, src, cfg, skip_s,
+                                                 gyro_bias=bias if src == "gyro-bias" else None)
+
     out = {}
     exact = None
     for level, uniform in (("exact", True), ("ideal", False)):
         t, rho, r2 = ideal_fields(fo, uniform, cfg.circuit)
         exact = exact or (t, rho, r2)
-        for src, truth, learn in SOURCES:
-            out[f"{level}|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s, learn)
+        rows(level, t, rho, r2)
     ds = estimate_eye_velocity(fo, replace(cfg, readout_kind="kalman"))
+    used = ds.field_used.values
     if cfg.circuit.rotation not in ("wide-field", "both"):   # field by field (not mirror sums)
         theta = EyeCircuit(fo.eye, fo.rate_hz, cfg.circuit).fields.theta
         rho_g, r2_g = slow_gain_fields(*exact, ds.time.values, ds.r.values, theta)
-        used = ds.field_used.values
-        for src, truth, learn in SOURCES:
-            out[f"gain|{src}"] = readout_rmse(fo, ds.time.values, np.where(used, rho_g, np.nan),
-                                              np.where(used, r2_g, np.nan), truth, cfg, skip_s, learn)
+        rows("gain", ds.time.values, np.where(used, rho_g, np.nan), np.where(used, r2_g, np.nan))
     # The fields the pipeline's readout was given (EyeVelocityConfig.reliability_min).
-    used = ds.field_used.values
-    t, rho, r2 = ds.time.values, np.where(used, ds.r.values, np.nan), np.where(used, ds.r2.values, np.nan)
-    for src, truth, learn in SOURCES:
-        out[f"emd|{src}"] = readout_rmse(fo, t, rho, r2, truth, cfg, skip_s, learn)
+    t = ds.time.values
+    rows("emd", t, np.where(used, ds.r.values, np.nan), np.where(used, ds.r2.values, np.nan))
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     out["zero"] = float(np.sqrt(np.mean(vt[t >= t[0] + skip_s] ** 2)))
     return out

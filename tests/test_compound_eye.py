@@ -822,9 +822,43 @@ def test_decomposition_levels_fall_from_exact_motion_to_the_emds(eye_footage):
     assert d["gain|true"][0] < 0.1 * zero, d
     # The true acceleration with an offset to learn (as from an accelerometer's): the exact fields pin
     # it (measured 0.0010 -> 0.0012), and so do the EMDs now (0.0050 -> 0.0095 m/s).
+    # This footage records no run configuration, so there is no true gyro bias to read with.
     assert {k.split("|")[1] for k in d if "|" in k} == {"true", "offset", "imu"}, d
     assert d["exact|offset"][0] < 1.5 * d["exact|true"][0] + 0.001, d
     assert d["emd|offset"][0] < 3.0 * d["emd|true"][0], d
+    # Each level says over how much of the record its RMSE is: a level that calls few steps
+    # observable cannot pass for a better one. With the true acceleration the exact fields are
+    # observable throughout; the fractions are fractions.
+    assert all(0.0 <= v[2] <= 1.0 for k, v in d.items() if "|" in k), d
+    assert d["exact|true"][2] > 0.9, d
+
+
+def test_true_gyro_bias_is_the_bias_the_footages_gyro_carries(tmp_path, eye_footage):
+    """Known answer: eye footage rendered from a run configuration whose IMU is mounted rotated (the
+    eye footage stores the gyro in the camera frame) with a walking bias and no scale or axis errors
+    reads ω + R·b + noise; the regenerated bias leaves the footage's gyro minus the true rate at
+    the sensor's white noise (mean within 4 standard errors), where without it the mean is the bias.
+    Footage that records no run configuration has no true bias: ValueError."""
+    from experiments.eye_decompose import true_gyro_bias
+    from stimuli.eye import make_eye_run, open_eye_footage
+    from stimuli.imu import IMUConfig
+    from stimuli.scene import SceneConfig
+    from stimuli.track import TrackRunConfig, build_track
+
+    imu = IMUConfig(seed=3, mount="rotated", gyro_bias_std=np.radians(1.0), gyro_bias_walk=4e-5)
+    cfg = TrackRunConfig(duration_s=1.0, constant_velocity_m_s=0.3, scene=SceneConfig(seed=3), imu=imu)
+    path = make_eye_run(tmp_path / "eye", cfg, CompoundEyeConfig(dphi_deg=12.0, rings=1), rate_hz=50.0,
+                        progress=False)
+    fo = open_eye_footage(path)
+    b = true_gyro_bias(fo)
+    assert b.shape == fo.imu.gyro.shape
+    omega = build_track(cfg)[1]["gyro_true"]
+    res, raw = fo.imu.gyro - omega - b, fo.imu.gyro - omega
+    se = res.std(0) / np.sqrt(len(res))
+    assert np.all(np.abs(res.mean(0)) < 4 * se), (res.mean(0), se)
+    assert np.allclose(raw.mean(0), b.mean(0), atol=4 * se.max()) and np.abs(b.mean(0)).max() > 20 * se.max()
+    with pytest.raises(ValueError, match="no synthetic run configuration"):
+        true_gyro_bias(open_eye_footage(eye_footage))
 
 
 def test_slow_gain_fields_scale_the_exact_fields_by_the_emds_gain():
