@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import signal
+from scipy.special import log_ndtr
 
 
 @dataclass
@@ -138,6 +139,13 @@ class ReadoutConfig:
         the crossing it shows. One frame at 30 frames/s (0.033): with none the development seeds gain
         more (fast 0.0160, all 0.0101 causal) but rates stamped 2 frames late push the offline band
         below 90 % (tests/test_readout.py); two frames keep a third of the gain.
+    sign: use the sign of the image's expansion (:func:`expansion_sign`): where the fields' signed
+        median r̄ has been clearly of one sign (beyond NO_EXPANSION_SE standard errors) for SIGN_PERSIST_S,
+        v has that sign whatever the depths. A reported posterior (std ≤ max_std_m_s) whose mean has the other sign
+        is moved to it, and widened first where it was sure (:func:`_sign_update`). It needs no κ:
+        where vision's κ errs for seconds (an EMD front end whose gains drift as texture flows, fast
+        under rotation) the filter locks a wrong offset and carries v̂ through zero against what every
+        field sees. False (default): not used (the camera's DIS readout was not measured with it).
     lag_s: with filter "causal", a fixed-lag smoother (s; 0: the forward filter, the default). Every
         input stays online (causal low-passes, the online gravity reference); each frame's v̂ also
         takes the measurements up to lag_s after it, so it is known lag_s (plus the measurement
@@ -176,6 +184,7 @@ class ReadoutConfig:
     r2_term: str = "field"
     fusion: str = "kalman"
     reversal: bool = True
+    sign: bool = False
     stamp_error_s: float = 0.033
     lag_s: float = 0.0
 
@@ -436,6 +445,30 @@ def signed_expansion(r: np.ndarray):
 NO_EXPANSION_SE = 3.0
 
 
+#: s: how long the fields' expansion must have held one clear sign before it counts as v's (expansion_sign)
+SIGN_PERSIST_S = 0.5
+
+
+def expansion_sign(t: np.ndarray, r: np.ndarray, min_fields: int, persist_s: float = SIGN_PERSIST_S) -> np.ndarray:
+    """The sign of v (n,) that the fields' expansion shows: ±1 where their signed median r̄ (r (n, F) 1/s,
+    NaN where a field has none) has lain beyond NO_EXPANSION_SE standard errors of 0, with that sign and at
+    least ``min_fields`` fields, at every frame of the last ``persist_s`` seconds (t (n,) s; causal); NaN
+    elsewhere. Every field's r̄ = v/d has the sign of v whatever its depth d > 0; the persistence keeps a
+    moment's front-end fault (an expansion read with the wrong sign for 0.3 s, tests/test_readout.py) out."""
+    r_med, se, n = signed_expansion(r)
+    clear = np.isfinite(r_med) & (n >= max(3, min_fields)) & (np.abs(r_med) > NO_EXPANSION_SE * se)
+    sgn = np.where(clear, np.sign(r_med), 0.0)
+    t = np.asarray(t, float)
+    start = np.searchsorted(t, t - persist_s, side="left")
+    out = np.full(len(t), np.nan)
+    for s in (-1.0, 1.0):
+        # frames with this clear sign, counted: the window [start, k] must hold nothing else
+        c = np.concatenate([[0], np.cumsum(sgn == s)])
+        whole = (c[np.arange(1, len(t) + 1)] - c[start]) == (np.arange(len(t)) - start + 1)
+        out[whole & (t - t[0] >= persist_s)] = s
+    return out
+
+
 def rest_measurement(r, cfg: ReadoutConfig):
     """v = r·d with 0 < d ≤ rest_depth_max: no detectable expansion bounds |v| (returns z = 0, std (n,)).
 
@@ -579,7 +612,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                     ratio=None, drift_std=None, delay: float = 0.0, full: bool = False,
                     corr_frames: float = 1.0, turn_rate=None, rest_accel=None, offset_walk=None,
                     offset_axis=None, offset_axis_prior=0.0, transport=None, lag: float = 0.0,
-                    reversal=None):
+                    reversal=None, sign=None):
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     t (n,) s; a (n,) m/s²; measurements: list of (z (n,), std (n,)) of v with NaN where
@@ -641,6 +674,10 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     + 2σ_b) — the acceleration as the posterior has it, its offset b̂ (σ_b) included — floored at
     meas_floor_m_s, and left out where its innovation exceeds OUTLIER_GATE of its standard deviations: a
     posterior sure that v was far from 0 then takes the sign change for the front end's fault (None: none).
+
+    sign (n,): ±1 where v is known to have that sign (:func:`expansion_sign` of the newest fields online,
+    the zero-phase ones offline: no latency), NaN elsewhere: a posterior of v on the other side is moved
+    to it (:func:`_sign_update`; None: none).
 
     lag (s, with smooth False): a fixed-lag smoother. Each frame's estimate also takes the
     measurements up to ``lag`` after it (:func:`fixed_lag_smooth`), so it is known ``lag`` later. The
@@ -721,6 +758,8 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             s_rev = max(reversal[1][k] * accel_reach(k, reversal[3][k], 2.0), cfg.meas_floor_m_s)
             # gated: a posterior sure that v was far from 0 takes the sign change for a front-end fault
             x, P = _gated_update(x, P, Hr, reversal[0][k] - Hr @ x, s_rev ** 2, consider)
+        if sign is not None and np.isfinite(sign[k]):
+            x, P = _sign_update(x, P, v_row(k, 0.0), sign[k], cfg.max_std_m_s)
         for m in measurements:
             z, sd = m[0], m[1]
             Hm = H if len(m) < 3 else v_row(k, m[2])
@@ -884,6 +923,30 @@ def _gated_update(x, P, h, nu, r, consider: bool):
     return _update(x, P, h, nu, r, consider)
 
 
+def _sign_update(x, P, h, sgn: float, max_std: float):
+    """Move the posterior of y = h·x (v) to the side of zero ``sgn`` says, where it lies on the other.
+
+    Only a posterior confident enough to be reported (std ≤ ``max_std``) is judged, and only where its
+    mean has the wrong sign. Its variance is first widened until zero lies 1σ from the mean (a posterior
+    that was sure of the wrong sign is wrong, not the fields), then its mean moves to that Gaussian's mean
+    truncated to the allowed side, m + sgn·σ·φ(u)/Φ(u) with u = sgn·m/σ (Simon 2010, IET Control Theory
+    Appl 4:1303, "Kalman filtering with state constraints"), carried to the whole state by y's regression;
+    the covariance is kept (truncating it too, frame after frame, left the band at 45–67 % on development
+    eye worlds: the same constraint counted as new information each frame).
+    """
+    m, s2 = float(h @ x), float(h @ P @ h)
+    if not 0.0 < s2 <= max_std ** 2 or sgn * m >= 0.0:
+        return x, P
+    if sgn * m < -np.sqrt(s2):
+        P = P.copy()
+        P += np.outer(h, h) * (m * m - s2) / float(h @ h) ** 2
+        s2 = m * m
+    s = np.sqrt(s2)
+    u = sgn * m / s                          # in [−1, 0): how far onto the wrong side the mean lies, in σ
+    lam = float(np.exp(-0.5 * u * u - 0.5 * np.log(2.0 * np.pi) - log_ndtr(u)))   # inverse Mills ratio φ(u)/Φ(u)
+    return x + P @ h / s2 * (sgn * s * lam), P
+
+
 @dataclass
 class MaterialRates:
     """Field rates taken along the image content (the material derivative), time-major (n, F).
@@ -1014,7 +1077,9 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
                                                                               causal=True),
                                lag=cfg.lag_s,  # the smoother (zero-phase) ignores it
                                reversal=(reversal_measurement(t, r, a, int(np.ceil(cfg.min_valid_fraction * r.shape[1])),
-                                                              cfg.stamp_error_s) if cfg.reversal else None))
+                                                              cfg.stamp_error_s) if cfg.reversal else None),
+                               sign=(expansion_sign(t, rf if zp else r, int(np.ceil(cfg.min_valid_fraction * r.shape[1])))
+                                     if cfg.sign else None))
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,

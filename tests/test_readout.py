@@ -726,10 +726,10 @@ def test_a_sign_fault_of_the_front_end_is_not_taken_for_a_reversal(monkeypatch):
     r_fault = np.where(((t > 6.0) & (t < 6.3))[:, None], -r, r)
     acc = a_t + 0.05 + rng.normal(0, 0.02, t.shape)
     assert np.isfinite(reversal_measurement(t, r_fault, acc)[0]).sum() == 2
-    cfg = ReadoutConfig(filter="causal")
-    clean = _score(readout(t, r, mat.r2, acc, cfg, material=material), v_t, t)
-    fault = _score(readout(t, r_fault, mat.r2, acc, cfg, material=material), v_t, t)
-    assert fault[0] <= 1.1 * clean[0] + 0.002 and fault[1] >= 0.95, (clean, fault)
+    for cfg in (ReadoutConfig(filter="causal"), ReadoutConfig(filter="causal", sign=True)):
+        clean = _score(readout(t, r, mat.r2, acc, cfg, material=material), v_t, t)
+        fault = _score(readout(t, r_fault, mat.r2, acc, cfg, material=material), v_t, t)
+        assert fault[0] <= 1.1 * clean[0] + 0.002 and fault[1] >= 0.95, (cfg.sign, clean, fault)
     zp = ReadoutConfig()
     clean_zp = _score(readout(t, r, mat.r2, acc, zp, material=material), v_t, t)
     fault_zp = _score(readout(t, r_fault, mat.r2, acc, zp, material=material), v_t, t)
@@ -738,3 +738,77 @@ def test_a_sign_fault_of_the_front_end_is_not_taken_for_a_reversal(monkeypatch):
     assert _score(readout(t, r_fault, mat.r2, acc, zp, material=material), v_t, t)[0] > 0.1
     ungated = _score(readout(t, r_fault, mat.r2, acc, cfg, material=material), v_t, t)
     assert ungated[0] > 0.1 and ungated[1] < 0.7, ungated   # what the gate keeps out
+
+
+def test_expansion_sign_is_vs_sign_once_it_has_held():
+    """Known answer: a swinging camera (through 0 every 2 s) has fields whose r̄ = v/d all share v's sign.
+    expansion_sign returns v's sign wherever it returns one, on three quarters of the frames where
+    |v| > 0.15 m/s, only after the sign has held SIGN_PERSIST_S (none in the first 0.5 s), and not for an
+    expansion read with the wrong sign for 0.3 s (a front-end fault): those frames and the next 0.5 s say
+    nothing."""
+    from lobula.readout import SIGN_PERSIST_S, expansion_sign
+
+    t = np.arange(0, 10, 1 / 30)
+    v_t, r, _, _ = _reversing(t, np.random.default_rng(0))
+    s = expansion_sign(t, r, 3)
+    got = np.isfinite(s)
+    assert np.all(s[got] == np.sign(v_t[got])), "a returned sign is v's"
+    assert not got[t < SIGN_PERSIST_S].any()
+    assert got[np.abs(v_t) > 0.15].mean() > 0.7   # measured 0.76: each new sign waits SIGN_PERSIST_S
+    fault = (t > 6.0) & (t < 6.3)
+    s_fault = expansion_sign(t, np.where(fault[:, None], -r, r), 3)
+    after = (t > 6.0) & (t < 6.3 + SIGN_PERSIST_S)
+    assert not np.isfinite(s_fault[after]).any() and np.array_equal(s_fault[~after], s[~after], equal_nan=True)
+
+
+def test_sign_update_moves_a_posterior_on_the_wrong_side_of_zero():
+    """Known answer: v ~ N(−0.05, 0.03²) where the fields say v > 0 — sure of the wrong sign, so first widened
+    to σ = 0.05 (zero 1σ away), then moved to that Gaussian's mean truncated to v > 0:
+    −0.05 + 0.05·φ(−1)/Φ(−1) = 0.0263; a state correlated with v (ρ = 0.5) moves by its regression on v; the
+    covariance is kept but for the widening. A posterior on the right side, or too wide to be reported
+    (σ > max_std), is left as it is."""
+    from scipy.stats import norm
+
+    from lobula.readout import _sign_update
+
+    x = np.array([-0.05, 0.2])
+    P = np.array([[0.03 ** 2, 0.5 * 0.03 * 0.1], [0.5 * 0.03 * 0.1, 0.1 ** 2]])
+    h = np.array([1.0, 0.0])
+    x1, P1 = _sign_update(x, P, h, 1.0, max_std=0.1)
+    lam = norm.pdf(-1.0) / norm.cdf(-1.0)
+    np.testing.assert_allclose(x1[0], -0.05 + 0.05 * lam, rtol=1e-9)
+    np.testing.assert_allclose(x1[1], 0.2 + P[1, 0] / 0.05 ** 2 * (0.05 * lam), rtol=1e-9)
+    np.testing.assert_allclose(P1, P + np.diag([0.05 ** 2 - 0.03 ** 2, 0.0]))
+    for args in ((x, P, h, -1.0, 0.1), (x, P, h, 1.0, 0.02)):
+        xs, Ps = _sign_update(*args)
+        assert xs is x and Ps is P
+
+
+def test_the_sign_of_the_expansion_keeps_vhat_off_the_wrong_side():
+    """Fields whose gain drifts by ±50 % at 0.3 Hz (an EMD's as texture flows) and an accelerometer whose
+    offset ramps at 0.04 m/s²/s, which the readout is not told: κ cannot pin the offset, and v̂ is carried
+    through zero confidently (sign wrong by 2σ on 6–33 % of the frames where |v| > 0.1 m/s; seeds 0–3,
+    camera swinging through 0 every 3 s). With the expansion's sign, 0–5 % (a fifth of it on the mean), and
+    the RMSE falls by 0.09–0.68 m/s. The 0.3 s sign fault of the front end above is left out as before."""
+    t = np.arange(0, 12, 1 / 30)
+    w = 2 * np.pi / 6
+    v_t, a_t = 0.4 * np.sin(w * t + 0.3), 0.4 * w * np.cos(w * t + 0.3)
+    mat = _exact_material(v_t, a_t, t, np.linspace(3, 8, 30))
+    wrong_fraction = []
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        gain = (0.5 * (1 + 0.5 * np.sin(2 * np.pi * 0.3 * t + rng.uniform(0, 2 * np.pi))))[:, None] \
+            * (1 + 0.2 * rng.normal(0, 1, (1, 30)))
+        r = gain * mat.r + rng.normal(0, 0.005, mat.r.shape)
+        acc = a_t + 0.15 + 0.04 * t + rng.normal(0, 0.02, t.shape)
+        out = {}
+        for sign in (False, True):
+            res = readout(t, r, gain ** 2 * mat.r2, acc, ReadoutConfig.emd(filter="causal", reversal=False, sign=sign))
+            m = (t >= 2) & res.observable
+            wrong = (np.sign(res.v_hat[m]) != np.sign(v_t[m])) & (np.abs(v_t[m]) > 0.1) \
+                & (np.abs(res.v_hat[m]) > 2 * res.v_std[m])
+            out[sign] = _score(res, v_t, t)[0], float(wrong.mean())
+        assert out[True][1] <= 0.05 and out[True][1] <= out[False][1], (seed, out)
+        assert out[True][0] < out[False][0] - 0.05, (seed, out)
+        wrong_fraction.append((out[False][1], out[True][1]))
+    assert np.mean([w[1] for w in wrong_fraction]) <= 0.25 * np.mean([w[0] for w in wrong_fraction]), wrong_fraction
