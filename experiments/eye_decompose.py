@@ -209,13 +209,13 @@ def decompose(fo, config: EyeVelocityConfig | None = None, skip_s: float = 2.0) 
     except ValueError:
         bias = None
     sources = [s for s in SOURCES if s != "gyro-bias" or bias is not None]
+    out = {}
 
     def rows(level, t, rho, r2):
         for src in sources:
             out[f"{level}|{src}"] = readout_rmse(fo, t, rho, r2, src, cfg, skip_s,
                                                  gyro_bias=bias if src == "gyro-bias" else None)
 
-    out = {}
     exact = None
     for level, uniform in (("exact", True), ("ideal", False)):
         t, rho, r2 = ideal_fields(fo, uniform, cfg.circuit)

@@ -445,6 +445,14 @@ def signed_expansion(r: np.ndarray):
 NO_EXPANSION_SE = 3.0
 
 
+def clear_expansion(r: np.ndarray, min_fields: int):
+    """The fields' signed median r̄ (n,) and where it stands clear of zero (n,) bool: beyond
+    NO_EXPANSION_SE standard errors, with at least max(3, ``min_fields``) fields (r (n, F) 1/s, NaN where a
+    field has none) — "expansion detected", as the reversals and the expansion's sign judge it."""
+    r_med, se, n = signed_expansion(r)
+    return r_med, np.isfinite(r_med) & (n >= max(3, min_fields)) & (np.abs(r_med) > NO_EXPANSION_SE * se)
+
+
 #: s: how long the fields' expansion must have held one clear sign before it counts as v's (expansion_sign)
 SIGN_PERSIST_S = 0.5
 
@@ -455,8 +463,7 @@ def expansion_sign(t: np.ndarray, r: np.ndarray, min_fields: int, persist_s: flo
     least ``min_fields`` fields, at every frame of the last ``persist_s`` seconds (t (n,) s; causal); NaN
     elsewhere. Every field's r̄ = v/d has the sign of v whatever its depth d > 0; the persistence keeps a
     moment's front-end fault (an expansion read with the wrong sign for 0.3 s, tests/test_readout.py) out."""
-    r_med, se, n = signed_expansion(r)
-    clear = np.isfinite(r_med) & (n >= max(3, min_fields)) & (np.abs(r_med) > NO_EXPANSION_SE * se)
+    r_med, clear = clear_expansion(r, min_fields)
     sgn = np.where(clear, np.sign(r_med), 0.0)
     t = np.asarray(t, float)
     start = np.searchsorted(t, t - persist_s, side="left")
@@ -523,8 +530,7 @@ def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.
     integrated reading from t* to t_j (m/s: the measurement of v(t_j − delay) + ∫a, as the
     filter's rows take it), t*'s std (s), t_j − t* (s) and the mean reading over [t_i, t_j] (m/s²).
     """
-    r_med, se, n = signed_expansion(r)
-    clear = np.isfinite(r_med) & (n >= max(3, min_fields)) & (np.abs(r_med) > NO_EXPANSION_SE * se)
+    r_med, clear = clear_expansion(r, min_fields)
     idx = np.flatnonzero(clear)
     flip = np.flatnonzero(np.sign(r_med[idx[1:]]) != np.sign(r_med[idx[:-1]]))
     i, j = idx[flip], idx[flip + 1]
@@ -1069,6 +1075,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     # with ±2σ 80 %, 0.043 and 58 % without; DIS alike (development seeds 0.0045 / 0.0046 m/s). Online
     # it changed nothing (development seeds causal 0.0119 / 0.0120): the forward filter goes without.
     e_lp = (0.5 * sigma_t ** 2 * np.abs(np.gradient(_fill_nan(terms[3]), dt)) if zp else np.zeros(len(t)))
+    min_fields = int(np.ceil(cfg.min_valid_fraction * r.shape[1]))  # for the reversals and the sign
     v, v_std = kalman_velocity(t, a, [(zr, sr, 0.0)], cfg, smooth=zp, gravity_tau=gravity_tau,
                                ratio=(kap, skap, terms[3], shift, e_lp), drift_std=drift_std, delay=delay,
                                corr_frames=n_corr, turn_rate=turn_rate, offset_walk=offset_walk,
@@ -1076,11 +1083,9 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
                                rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2,
                                                                               causal=True),
                                lag=cfg.lag_s,  # the smoother (zero-phase) ignores it
-                               reversal=(reversal_measurement(t, r, a, int(np.ceil(cfg.min_valid_fraction * r.shape[1])),
-                                                              cfg.stamp_error_s) if cfg.reversal else None),
-                               sign=(expansion_sign(t, rf if zp else r,
-                                                    int(np.ceil(cfg.min_valid_fraction * r.shape[1])))
-                                     if cfg.sign else None))
+                               reversal=(reversal_measurement(t, r, a, min_fields, cfg.stamp_error_s)
+                                         if cfg.reversal else None),
+                               sign=expansion_sign(t, rf if zp else r, min_fields) if cfg.sign else None)
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     obs = v_std <= cfg.max_std_m_s
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
