@@ -556,6 +556,8 @@ def noise_panorama(lattice, n_frames: int = 1, *, exponent: float = 1.0, rms_con
         i0 = np.floor(u).astype(np.int64)
         j0 = np.floor(v).astype(np.int64)
         fu, fv = u - i0, (v - j0)[None, :]
+        # A float's modulo can round up to n_psi itself (e.g. −1e-17 % 288 == 288.0): wrap the index too.
+        i0 %= n_psi
         i1 = (i0 + 1) % n_psi
         val = ((1 - fu) * (1 - fv) * tex[j0, i0] + fu * (1 - fv) * tex[j0, i1]
                + (1 - fu) * fv * tex[j0 + 1, i0] + fu * fv * tex[j0 + 1, i1])

@@ -219,6 +219,20 @@ def test_random_stimuli_are_seeded(eye):
     assert 0.05 < float(p1[0].std()) < 0.5 and not torch.equal(p1[0], p1[2])
 
 
+def test_noise_panorama_wraps_the_drum_at_every_time():
+    """The rotating panorama samples its drum modulo 360° at any time and any ommatidium. A float's
+    modulo can round up to the drum's length itself (−1e-17 % 288 == 288.0): at 10°/s on the fly's
+    eye (seed 0, 500 Hz) that indexed past the texture. And one full turn later the image is the same."""
+    from experiments.ephys.eye_rig import EyeLattice
+    from lobula.compound_eye import CompoundEye
+
+    fly = EyeLattice(CompoundEye(), 500.0)
+    lum, _ = noise_panorama(fly, 750, yaw_speed_deg_s=10.0, seed=0, frame_rate_hz=500.0)
+    assert lum.shape == (750, fly.n) and bool(torch.isfinite(lum).all())
+    turned, _ = noise_panorama(fly, 1, yaw_speed_deg_s=10.0, seed=0, frame_rate_hz=500.0, t0_s=36.0)
+    torch.testing.assert_close(turned[0], lum[0], rtol=0, atol=1e-4)
+
+
 @pytest.mark.slow
 def test_compiled_kernel_matches_eager(eye):
     # torch.compile takes ~30 s cold on two cores: a slow test (pytest -m slow).
