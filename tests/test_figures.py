@@ -16,7 +16,8 @@ RTOL = {"rmse_vs_dphi": 1e-2, "rmse_vs_tau_contrast_noise": 1e-2}
 
 
 def test_figures_are_deterministic(tmp_path, real_profile):
-    which = ("error_vs_acceleration", "rmse_vs_field_size")
+    # One figure made twice: every figure's numbers against its committed record is the slow test below.
+    which = ("error_vs_acceleration",)
     a = run_figures(tmp_path / "a", which, start_s=5.0, duration_s=6.0, seed=3, quick=True, progress=False)
     b = run_figures(tmp_path / "b", which, start_s=5.0, duration_s=6.0, seed=3, quick=True, progress=False)
     for name in which:
