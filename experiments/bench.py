@@ -1,8 +1,8 @@
 """``lobula bench``: frames/s of each stage and end to end, and memory, on synthetic footage.
 
 Speed is measured here, never asserted in tests. Footage is rendered once per size into
-a temporary folder (not timed), then the velocity pipeline streams it as a user's run
-would: decode (read), dense flow (flow), derotation + epipole + field pooling (fields)
+a temporary folder (the renderer is timed apart, :func:`bench_render`), then the velocity
+pipeline streams it as a user's run would: decode (read), dense flow (flow), derotation + epipole + field pooling (fields)
 and the readout over the whole run (readout).
 """
 from __future__ import annotations
@@ -205,6 +205,23 @@ def agreement_on_device(device: str, duration_s: float = 0.3) -> dict:
     return dict(circuit_max_rel=circuit, tv_depth_median_rel=tv)
 
 
+def bench_render(scale: float, frames: int = 30) -> dict:
+    """Frames/s of the synthetic world's renderer (``lobula scene``'s frames, the default scene: 2×2
+    rays per pixel, mip-mapped textures, pixel noise), the frames alone (no depth, IMU or PNG)."""
+    from stimuli.scene import SceneConfig
+    from stimuli.track import TrackRunConfig, build_track
+
+    scene, _ = build_track(TrackRunConfig(profile=None, start_s=5.0, duration_s=frames / 30.0, scale=scale,
+                                          scene=SceneConfig()))
+    times = np.arange(frames) / 30.0
+    scene.render(0.0)  # first call: caches warm
+    t0 = time.perf_counter()
+    for k, t in enumerate(times):
+        scene.render(float(t), k)
+    wall = time.perf_counter() - t0
+    return dict(size=f"{scene.camera.width}x{scene.camera.height}", render_fps=frames / wall)
+
+
 def run_device_bench(device: str) -> list[dict]:
     """The torch stages on ``device`` beside the CPU: agreement, then timings (printed and returned).
 
@@ -269,6 +286,10 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) 
                 print(f"{r['size']:>9} {preset:>7} {r['read']:8.0f} {r['flow']:8.1f} {r['fields']:8.0f} "
                       f"{r['readout']:9.0f} {r['end_to_end']:11.1f} {r['cpu_ms_per_frame']:12.1f} "
                       f"{r['command_fps']:8.1f} {r['startup_s']:10.2f} {r['rss_mb']:8.0f}")
+            rr = bench_render(scale)
+            print(f"rendering the synthetic world at {rr['size']} (lobula scene's default scene, 2x2 rays a pixel): "
+                  f"{rr['render_fps']:.1f} frames/s")
+            rows.append(rr)
             if scale == 0.5:
                 e = bench_emd(folder)
                 print(f"EMD front end, {e['n_ommatidia']} ommatidia (Δφ {e['dphi_deg']:.2f}°) on {r['size']}: "
