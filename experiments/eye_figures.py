@@ -136,27 +136,49 @@ def figure_eye_rate_vs_spiking(out_dir, seeds=(0, 1, 2), workdir=None) -> tuple[
     return plot_eye_rate_vs_spiking(res, out_dir / "eye_rate_vs_spiking.png"), res
 
 
+NEVER_OBSERVABLE_Y = 0.005  # where a seed with no observable frame (RMSE NaN) is marked, m/s (log axis from 0.004)
+
+
 def plot_eye_rate_vs_spiking(res: dict, png) -> Path:
-    """Draw :func:`rate_vs_spiking_numbers`' RMSEs (one panel per family; log axis: the readout
-    neuron's erratic seeds sit two decades above the rest) to ``png``; returns its path."""
-    import matplotlib
-    matplotlib.use("Agg")
+    """Draw :func:`rate_vs_spiking_numbers`' RMSEs (:func:`draw_eye_rate_vs_spiking`) to ``png``; returns its path."""
     import matplotlib.pyplot as plt
 
     from experiments.store import save_figure
 
+    fig = draw_eye_rate_vs_spiking(res)
+    save_figure(fig, png, dpi=150)
+    plt.close(fig)
+    return Path(png)
+
+
+def draw_eye_rate_vs_spiking(res: dict):
+    """The figure of :func:`rate_vs_spiking_numbers`' RMSEs: one panel per family, a log axis (the
+    readout neuron's erratic seeds sit two decades above the rest)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     keys = [k for k in next(iter(res.values())) if k not in ("zero estimator", "DIS on the D435i (causal)")]
     fig, axes = plt.subplots(1, len(res), figsize=(4.3 * len(res), 4.6), sharey=True, squeeze=False)
     x = np.arange(len(keys))
+    any_missing = False
     for ax, (fam, rows) in zip(axes[0], res.items()):
-        vals = [np.array(rows[k]) for k in keys]
-        mean = np.array([v.mean() for v in vals])
+        vals = [np.array(rows[k], float) for k in keys]
+        # A seed whose estimate is never observable scores NaN: the bar is the mean of the others,
+        # and the missing seed is drawn as a cross on the axis, not dropped from sight.
+        mean = np.array([np.nanmean(v) if np.isfinite(v).any() else np.nan for v in vals])
         col = ["tab:blue" if k.startswith("rate") else "tab:green" if k.startswith("readout neuron")
                else "tab:orange" if "LIF" in k else "tab:red" for k in keys]
         ax.bar(x, mean, color=col, alpha=0.55)
         for i, v in enumerate(vals):
-            ax.plot(np.full(len(v), x[i]), v, "k.", ms=5)
-            ax.plot([x[i], x[i]], [v.min(), v.max()], "k-", lw=1)
+            ok = np.isfinite(v)
+            ax.plot(np.full(ok.sum(), x[i]), v[ok], "k.", ms=5)
+            if ok.any():
+                ax.plot([x[i], x[i]], [v[ok].min(), v[ok].max()], "k-", lw=1)
+            if not ok.all():
+                ax.plot(np.full((~ok).sum(), x[i]), np.full((~ok).sum(), NEVER_OBSERVABLE_Y), "kx", ms=6,
+                        label="seed never observable" if not any_missing else None)
+                any_missing = True
         d = np.array(rows["DIS on the D435i (causal)"])
         ax.axhspan(d.min(), d.max(), color="m", alpha=0.12, lw=0)
         ax.axhline(d.mean(), color="m", ls="--", label="DIS on the D435i, causal (mean; band: seeds)")
@@ -166,15 +188,15 @@ def plot_eye_rate_vs_spiking(res: dict, png) -> Path:
         ax.set_yscale("log")
         ax.set_ylim(0.004, 3.0)
         ax.grid(True, axis="y", which="both", alpha=0.25)
-        ax.set_title(f"{fam} ({len(vals[0])} seeds: bar mean, dots seeds)", fontsize=9)
+        ax.set_title(f"{fam} ({len(vals[0])} seeds)", fontsize=9)
     axes[0][0].set_ylabel("velocity RMSE after 2 s (m/s, log)")
-    axes[0][0].legend(fontsize=7, loc="upper left")
+    handles = {h.get_label(): h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]}
+    axes[0][0].legend(list(handles.values()), list(handles), fontsize=7, loc="upper left")
     fig.suptitle("Fly eye (Δφ = 5°, both eyes, 500 Hz), causal: rate readout against spiking output neurons "
-                 "(200 Hz per m/s, causal synaptic decoding)", fontsize=9)
+                 "(200 Hz per m/s, causal synaptic decoding). Bars: mean over the observable seeds; dots: seeds",
+                 fontsize=9)
     fig.tight_layout()
-    save_figure(fig, png, dpi=150)
-    plt.close(fig)
-    return Path(png)
+    return fig
 
 
 def dphi_fov_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), dphis=(8.0, 5.0), cast_every: int = 2) -> dict:

@@ -74,3 +74,21 @@ def test_emd_gaze_figure_scores_and_draws(tmp_path):
     traces = {k: (t, np.ones(8)) for k in list(CONFIGURATIONS) + ["truth"]}
     png = plot_emd_gaze(numbers, traces, tmp_path / "g.png", "rotation seed 0")
     assert png.stat().st_size > 10_000
+
+
+def test_eye_rate_vs_spiking_draws_the_observable_seeds_where_one_never_is():
+    """A seed that is never observable scores NaN: its configuration still gets a bar (the mean of the
+    other seeds) and the missing seed a cross, instead of no bar at all (the committed figure until
+    the thirty-sixth session)."""
+    import matplotlib.pyplot as plt
+
+    from experiments.eye_figures import NEVER_OBSERVABLE_Y, draw_eye_rate_vs_spiking
+
+    res = {"panels": {"rate (arithmetic readout)": [0.03, 0.05, 0.04], "readout neuron (rate)": [1.3, 0.04, np.nan],
+                      "zero estimator": [0.3, 0.3, 0.3], "DIS on the D435i (causal)": [0.01, 0.012, 0.011]}}
+    fig = draw_eye_rate_vs_spiking(res)
+    ax = fig.axes[0]
+    assert [b.get_height() for b in ax.containers[0]] == pytest.approx([0.04, 0.67])
+    crosses = [ln for ln in ax.lines if ln.get_marker() == "x"]
+    assert len(crosses) == 1 and list(crosses[0].get_xydata()[:, 1]) == [NEVER_OBSERVABLE_Y]
+    plt.close(fig)
