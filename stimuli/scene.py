@@ -381,7 +381,7 @@ class TrackScene:
         return np.concatenate(tiles, axis=0).astype(np.float32)
 
     MIP_LEVELS = 7
-    RENDER_BAND_SAMPLES = 32768  # rays cast and shaded together (a band of rows, ~128 kB per float64 array)
+    RENDER_BAND_SAMPLES = 32768  # rays cast and shaded together (a band of rows, 256 kB per float64 array)
 
     def _build_mipmap(self):
         """Texture pyramid: level k is each texture low-passed and decimated by 2**k.
