@@ -2,8 +2,8 @@
 
 Speed is measured here, never asserted in tests. Footage is rendered once per size into
 a temporary folder (the renderer is timed apart, :func:`bench_render`), then the velocity
-pipeline streams it as a user's run would: decode (read), dense flow (flow), derotation + epipole + field pooling (fields)
-and the readout over the whole run (readout).
+pipeline streams it as a user's run would: decode (read), dense flow (flow), derotation +
+epipole + field pooling (fields) and the readout over the whole run (readout).
 """
 from __future__ import annotations
 
@@ -206,8 +206,9 @@ def agreement_on_device(device: str, duration_s: float = 0.3) -> dict:
 
 
 def bench_render(scale: float, frames: int = 30) -> dict:
-    """Frames/s of the synthetic world's renderer (``lobula scene``'s frames, the default scene: 2×2
-    rays per pixel, mip-mapped textures, pixel noise), the frames alone (no depth, IMU or PNG)."""
+    """Frames/s of the synthetic world's renderer at the D435i camera scaled by ``scale``: ``lobula
+    scene``'s frames of its default scene (frontal panels, 2×2 rays a pixel), the frames alone (no
+    depth maps, IMU or PNG writing)."""
     from stimuli.scene import SceneConfig
     from stimuli.track import TrackRunConfig, build_track
 
