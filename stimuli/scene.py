@@ -299,13 +299,20 @@ class TrackScene:
                                               config.texture_wavelengths_m)
                          for _ in range(len(self.surfaces))]
         self._atlas = self._build_atlas()
+        self._texel_scale = np.array([s.texel_scale for s in self.surfaces])  # (surfaces,), gathered per ray
         if config.use_mipmap:
-            self._mip_atlas, self._mip_rows, self._mip_sizes = self._build_mipmap()
+            self._mip_atlas, rows, sizes = self._build_mipmap()
+            # Per-level tables, gathered per ray by index (level k, texture i at k·textures + i).
+            self._mip_rows = rows.astype(float).ravel()
+            self._mip_sizes = sizes.astype(float)
+            self._mip_scale = 2.0 ** np.arange(self.MIP_LEVELS)
         n = config.texture_size
         # Texture coordinates wrap on tiles of n >> k texels (mip level k), all powers of 2 when n is.
         self._mod = _mod_pow2 if n & (n - 1) == 0 else np.mod
         self._rays = self._sub_pixel_rays()
-        self._unit_rays = ray_directions(*self._rays)  # (H*ss, W*ss, 3): fixed in the camera, cast every frame
+        # (H*ss, W*ss, 3) each, fixed in the camera and cast every frame: (x, y, 1) and its unit vector
+        self._forward_rays = np.stack([*self._rays, np.ones_like(self._rays[0])], axis=-1)
+        self._unit_rays = ray_directions(*self._rays)
         self._rotation3 = self._draw_rotation3()
 
     # ---------------------------------------------------------------- layout
@@ -570,15 +577,15 @@ class TrackScene:
         _, *hits = next(self._cast_bands(x, y, t, unit, band_rows=len(y)))
         return tuple(hits) if unit is not None else tuple(hits[:4])
 
-    def _cast_bands(self, x, y, t, unit=None, band_rows: int = 1):
+    def _cast_bands(self, x, y, t, rays=None, band_rows: int = 1):
         """:meth:`_cast` a band of ``band_rows`` grid rows at a time: yields (rows, λ, surface, tex_a,
-        tex_b, d_world) per band, rows the band's slice of the grid. The surfaces' windows are found
-        once for the whole grid."""
+        tex_b, d_world) per band, rows the band's slice of the grid. rays: the grid's rays (H, W, 3) in the
+        camera (None: (x, y, 1)). The surfaces' windows are found once for the whole grid."""
         rot, origin = self.rotation(t), self.position(t)
         windows = [_grid_window(s, x[0], y[:, 0], rot, origin) for s in self.surfaces]
         for r0 in range(0, len(y), band_rows):
             rows = slice(r0, min(len(y), r0 + band_rows))
-            d = unit[rows] if unit is not None else np.stack([x[rows], y[rows], np.ones_like(x[rows])], axis=-1)
+            d = rays[rows] if rays is not None else np.stack([x[rows], y[rows], np.ones_like(x[rows])], axis=-1)
             d_world = d @ rot.T
             yield rows, *self._intersect(d_world, origin, [_band_window(w, rows) for w in windows]), d_world
 
@@ -588,8 +595,8 @@ class TrackScene:
         safe = np.maximum(idx, 0)
         if footprint_m is None or not cfg.use_mipmap:
             texel = cfg.texture_texel_m
-            if any(s.texel_scale != 1.0 for s in self.surfaces):
-                texel = texel * np.array([s.texel_scale for s in self.surfaces])[safe]
+            if np.any(self._texel_scale != 1.0):
+                texel = texel * self._texel_scale[safe]
             u = self._mod(tex_a / texel, float(n)) + 1.0
             v = self._mod(tex_b / texel, float(n)) + 1.0 + safe * (n + 2)
             tex = _bilinear(self._atlas, u, v)
@@ -609,23 +616,18 @@ class TrackScene:
         Beyond the coarsest level the texture's contrast falls as 1/footprint, which is
         how the standard deviation of 1/f texture averaged over a patch falls.
         """
-        texel = self.config.texture_texel_m * np.array([s.texel_scale for s in self.surfaces])[safe]
+        texel = self.config.texture_texel_m * self._texel_scale[safe]
         top = self.MIP_LEVELS - 1
         lev = np.log2(np.maximum(footprint_m / texel, 1.0))
         k0 = np.minimum(np.floor(lev).astype(int), top)
         frac = np.where(lev >= top, 0.0, lev - k0)
         out = np.zeros(np.shape(safe))
-        # Per-level tables gathered by index: a power of 2 or a tile size looked up costs a fraction
-        # of computing it per sample (the same numbers to the bit).
-        scale = (2.0 ** np.arange(self.MIP_LEVELS))
-        sizes = self._mip_sizes.astype(float)
-        rows = self._mip_rows.ravel().astype(float)
         for dk, wgt in ((0, 1.0 - frac), (1, frac)):
             k = np.minimum(k0 + dk, top)
-            m = sizes[k]
-            tx = texel * scale[k]
+            m = self._mip_sizes[k]
+            tx = texel * self._mip_scale[k]
             u = self._mod(tex_a / tx, m) + 1.0
-            v = self._mod(tex_b / tx, m) + 1.0 + rows[k * len(self.surfaces) + safe]
+            v = self._mod(tex_b / tx, m) + 1.0 + self._mip_rows[k * len(self.surfaces) + safe]
             out += wgt * _bilinear(self._mip_atlas, u, v)
         return out * np.minimum(1.0, 2.0 ** top / np.maximum(footprint_m / texel, 1e-12))
 
@@ -638,7 +640,8 @@ class TrackScene:
         # the chain of casting and shading (~2x faster than whole frames; the same numbers to the bit).
         band = ss * max(1, self.RENDER_BAND_SAMPLES // (ss * ss * w))
         mip = self.config.use_mipmap
-        for rows, rng_m, idx, a, b, d_world in self._cast_bands(x, y, t, self._unit_rays if mip else None, band):
+        rays = self._unit_rays if mip else self._forward_rays
+        for rows, rng_m, idx, a, b, d_world in self._cast_bands(x, y, t, rays, band):
             if mip:  # luminance() on the grid's unit rays
                 lum = self._shade(idx, a, b, self._footprint_m(d_world, rng_m, idx, 1.0 / (self.camera.fx * ss)))
             else:
