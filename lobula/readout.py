@@ -973,6 +973,39 @@ def _lag(x: np.ndarray, h: int) -> np.ndarray:
     return np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:-h]]) if h else x
 
 
+def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None):
+    """The kalman readout's low-passed inputs: (r̄, r²̄, ṙ̄, a) and how late they are.
+
+    t (n,) s, uniformly spaced; r, r2 (n, F) 1/s and 1/s²; a (n,) m/s²; material: the rates along the
+    content (then r̄, r²̄ and ṙ̄ are its own). Offline (``cfg.filter`` "zero-phase") a zero-phase
+    Butterworth, no latency; online the same centred (linear-phase) computation, known ``lag`` frames
+    later, every term delayed alike so the ratios the readout takes stay unbiased. Returns (terms, lag,
+    lp, rf): the four (n, F) or (n,) terms as of ``lag`` frames ago, lag (frames, including half the
+    stagger of ṙ̄'s difference), the low-pass used (a callable on (n, ...) arrays) and the low-passed
+    fixed-pixel r̄ as of now (not lagged).
+    """
+    dt = float(np.median(np.diff(t)))
+    stagger = max(2, cfg.stagger + cfg.stagger % 2)
+    if cfg.filter == "zero-phase":
+        wn = cfg.cutoff_hz / (0.5 / dt)
+        lp = lambda x: butterworth(x, wn, cfg.order, True)
+        lag = 0
+    else:
+        w = cfg.online_window_sigma
+        lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=w, causal=True)[0]
+        lag = gaussian_lowpass(np.zeros(3), cfg.cutoff_hz, dt, truncate=w)[1] + stagger // 2
+    rf = lp(r)
+    if material is None:
+        r2f = lp(r2) if cfg.r2_term == "field" else rf ** 2
+        terms = (rf, r2f, staggered_difference(rf, stagger, dt, centred=True), lp(a))
+    else:
+        m = material
+        rm = lp(m.r)
+        r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp(m.r2)
+        terms = (rm, r2m, lp(m.r_dot), lp(a))
+    return tuple(_lag(x, lag) for x in terms), lag, lp, rf
+
+
 def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
                    gravity_tau=None, drift_std=None, turn_rate=None, offset_walk=None,
                    offset_axis=None, offset_axis_prior=0.0, transport=None) -> ReadoutResult:
@@ -984,29 +1017,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     """
     zp = cfg.filter == "zero-phase"
     dt = float(np.median(np.diff(t)))
-    wn = cfg.cutoff_hz / (0.5 / dt)
-    stagger = max(2, cfg.stagger + cfg.stagger % 2)
-    h = stagger // 2
-    if zp:
-        lp = lambda x: butterworth(x, wn, cfg.order, True)
-        lag = 0
-    else:
-        # Online: the same centred (linear-phase) computation as offline, known `lag` frames
-        # later — every term delayed alike, so the ratios the readout takes stay unbiased.
-        w = cfg.online_window_sigma
-        lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=w, causal=True)[0]
-        lag = gaussian_lowpass(np.zeros(3), cfg.cutoff_hz, dt, truncate=w)[1] + h
-    rf = lp(r)
-    if material is None:
-        r2f = lp(r2) if cfg.r2_term == "field" else rf ** 2
-        r_dot = staggered_difference(rf, stagger, dt, centred=True)
-        terms = (rf, r2f, r_dot, lp(a))
-    else:
-        m = material
-        rm = lp(m.r)
-        r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp(m.r2)
-        terms = (rm, r2m, lp(m.r_dot), lp(a))
-    terms = tuple(_lag(x, lag) for x in terms)
+    terms, lag, lp, rf = readout_terms(t, r, r2, a, cfg, material)
     r_dot = terms[2]
     z, s, v_f = vision_measurement(*terms, cfg)
     delay = lag * dt

@@ -1094,3 +1094,17 @@ def test_eye_readout_is_told_the_bodys_turn_rate(eye_footage, monkeypatch):
     seen.clear()
     ev.estimate_eye_velocity(fo, ev.EyeVelocityConfig(uncertainty="posterior", accel_from_truth=True))
     assert seen == [None]
+
+
+def test_online_bound_measures_the_eyes_kappa_against_the_truth(eye_footage):
+    from experiments.online_bound import footage_kappa, kappa_noise
+
+    k = footage_kappa(eye_footage)
+    assert k["front_end"] == "compound eye"
+    err = k["kappa"] * k["v"] - k["a"]
+    ok = np.isfinite(err) & (np.abs(k["v"]) >= 0.1)
+    assert ok.sum() >= 50
+    # κ·v explains the acceleration: its error well under the acceleration itself (κ = 0 would equal it)
+    assert np.sqrt(np.mean(err[ok] ** 2)) < 0.4 * np.sqrt(np.mean(k["a"][ok] ** 2))  # 0.20 measured
+    n = kappa_noise(k["t"], k["kappa"], k["v"], k["a"])
+    assert n["n_frames"] == ok.sum() and 0.5 < n["gain"] < 1.5

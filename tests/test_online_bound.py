@@ -5,8 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from experiments.online_bound import (InformationModel, family_trajectory, filter_and_smoother, main,
-                                      online_offline, readout_latency_s)
+from experiments.online_bound import (InformationModel, family_trajectory, filter_and_smoother, kappa_noise, main,
+                                      online_offline, readout_latency_s, vision_kappa)
 
 T = np.arange(300) / 30.0
 
@@ -94,3 +94,58 @@ def test_command_line_writes_rows_and_provenance(tmp_path, capsys):
     assert "| rest |" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         main(["--models", "nonesuch"])
+
+
+def test_kappa_noise_recovers_a_known_white_error_and_scales_a_correlated_one():
+    rng = np.random.default_rng(3)
+    t = np.arange(3000) / 30.0
+    v = 0.6 + 0.4 * np.sin(0.7 * t)
+    a = 0.3 * np.cos(1.9 * t + 1.0)  # not v's derivative: the fit needs a² and v² to vary apart
+    # white errors in a_m = κ·v: 10 % of a and a 0.02 m/s² floor
+    err = 0.1 * a * rng.standard_normal(len(t)) + 0.02 * rng.standard_normal(len(t))
+    n = kappa_noise(t, (a + err) / v, v, a)
+    assert n["kappa_rel_error"] == pytest.approx(0.1, rel=0.15)
+    assert n["accel_floor"] == pytest.approx(0.02, rel=0.1)
+    assert n["kappa_abs_error"] < 0.02 and n["correlation_s"] < 2 / 30
+    assert n["gain"] == pytest.approx(1.0, abs=0.01)
+    # the same floor through a 10-frame moving average: 10× the variance per frame of white errors, as much
+    # information; and κ 5 % low reads as its gain
+    smooth = np.convolve(0.02 * rng.standard_normal(len(t) + 9), np.ones(10) / np.sqrt(10), "valid")
+    m = kappa_noise(t, 0.95 * a / v + smooth / v, v, a)
+    # (the correlation time, summed over the lags that pass 2/√n, is itself noisy: ±50 % at 3,000 frames)
+    assert m["correlation_s"] == pytest.approx(10 / 30, rel=0.5)
+    assert m["accel_floor"] == pytest.approx(0.02 * np.sqrt(10), rel=0.25)
+    assert m["gain"] == pytest.approx(0.95, abs=0.01)
+    with pytest.raises(ValueError, match="need 20"):
+        kappa_noise(t, np.full_like(t, np.nan), v, a)
+
+
+def test_vision_kappa_of_exact_fields_is_a_over_v():
+    from lobula.readout import ReadoutConfig
+
+    # fields at depths D0 (1–4 m) approached at v(t): r = v/D, ṙ = a/D + r², r²̄ = r²
+    t = np.arange(240) / 30.0
+    v = 0.5 + 0.2 * np.sin(0.8 * t)
+    a = 0.16 * np.cos(0.8 * t)
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / 30.0)])
+    depth = np.linspace(1.0, 4.0, 12)[None, :] + 3.0 - x[:, None]
+    r = v[:, None] / depth
+    kappa = vision_kappa(t, r, r ** 2, a, ReadoutConfig())
+    inner = (t > 1) & (t < 7) & (np.abs(a) > 0.05)
+    np.testing.assert_allclose(kappa[inner], (a / v)[inner], atol=0.02)
+
+
+def test_footage_mode_measures_the_cameras_kappa(tmp_path, capsys):
+    from stimuli.track import TrackRunConfig, make_track_run
+    from stimuli.scene import SceneConfig
+
+    cfg = TrackRunConfig(start_s=2.0, duration_s=4.0, scale=0.25, scene=SceneConfig(seed=3), depth_every=0)
+    folder = make_track_run(tmp_path / "panels", cfg, progress=False)
+    out = tmp_path / "kappa.json"
+    assert main(["--footage", str(folder), "--out", str(out)]) == 0
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["front_end"] == "dis" and row["n_frames"] >= 40
+    # DIS's κ on frontal panels: a_m = κ·v within a few hundredths of a m/s², its gain within 5 % of 1
+    assert row["rms_m_s2"] < 0.05 and abs(row["gain"] - 1) < 0.05
+    assert row["online"] > row["offline"] > 0
+    assert "| panels | dis |" in capsys.readouterr().out
