@@ -62,7 +62,8 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 __all__ = ["InformationModel", "NOISE_MODELS", "readout_latency_s", "filter_and_smoother", "online_offline",
-           "family_trajectory", "bound_table", "vision_kappa", "kappa_noise", "footage_kappa"]
+           "family_trajectory", "bound_table", "vision_kappa", "kappa_noise", "footage_kappa", "suite_ratios",
+           "plot_ratios"]
 
 
 @dataclass(frozen=True)
@@ -295,6 +296,63 @@ def bound_table(families, seeds, duration_s: float = 10.0, models=None, skip_s: 
     return rows
 
 
+def suite_ratios(path, families, seeds, skip_s: float, duration_s: float) -> dict:
+    """{(family, seed): causal / zero-phase RMSE after the skip} from a `lobula suite` suite.nc; refuses a file
+    that lacks a family, seed or configuration asked, or was run with another skip or duration."""
+    import xarray as xr
+
+    with xr.open_dataset(path) as ds:
+        settings = json.loads(ds.attrs.get("suite", "{}"))
+        for key, want in (("skip_s", skip_s), ("duration_s", duration_s)):
+            if key in settings and abs(float(settings[key]) - want) > 1e-9:
+                raise ValueError(f"{path}: the suite ran with {key} {settings[key]}, the bound with {want}")
+        have = {"family": set(map(str, ds.family.values)), "seed": set(int(x) for x in ds.seed.values),
+                "configuration": set(map(str, ds.configuration.values))}
+        for dim, want in (("family", set(families)), ("seed", set(seeds)),
+                          ("configuration", {"lobula causal", "lobula zero-phase"})):
+            if not want <= have[dim]:
+                raise ValueError(f"{path}: no {dim} {', '.join(map(str, sorted(want - have[dim])))}")
+        rmse = ds.value.sel(window="after_skip", metric="rmse_m_s")
+        ratio = rmse.sel(configuration="lobula causal") / rmse.sel(configuration="lobula zero-phase")
+        return {(f, s): float(ratio.sel(family=f, seed=s)) for f in families for s in seeds}
+
+
+def plot_ratios(rows, families, models, path):
+    """Online / offline RMSE per family: the model optimum's per seed (filled: vision as late as the causal readout;
+    open: on time), one colour per noise model, and the pipeline's where given; the targets 1.5 and 1.25."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .store import save_figure
+
+    fig, ax = plt.subplots(figsize=(max(8.0, 1.1 * len(families) + 3) + 3.5, 5))
+    x = np.arange(len(families))
+    offsets = np.linspace(-0.25, 0.25, len(models) + 1)
+    for j, m in enumerate(models):
+        sel = [r for r in rows if r["model"] == m]
+        xs = np.array([x[families.index(r["family"])] + offsets[j] for r in sel])
+        ax.scatter(xs, [r["online_ratio"] for r in sel], color=f"C{j}", s=22, label=f"optimum, {m} noise, κ late")
+        ax.scatter(xs, [r["filter_ratio"] for r in sel], facecolor="none", edgecolor=f"C{j}", s=22,
+                   label=f"optimum, {m} noise, κ on time")
+    pipe = [r for r in rows if r["model"] == models[0] and np.isfinite(r.get("pipeline_ratio", np.nan))]
+    if pipe:
+        ax.scatter([x[families.index(r["family"])] + offsets[-1] for r in pipe], [r["pipeline_ratio"] for r in pipe],
+                   marker="D", color="k", s=26, label="the pipeline (lobula causal / zero-phase)")
+    ax.axhline(1.5, color="r", lw=1, label="issue 10's target, 1.5")
+    ax.axhline(1.25, color="r", lw=1, ls="--", label="its stretch target, 1.25")
+    ax.axhline(1.0, color="0.6", lw=0.8)
+    ax.set_xticks(x, families)
+    ax.set_ylabel("online / offline RMSE after the skip")
+    ax.set_title("How close online can come to offline (one mark per seed)")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    out = save_figure(fig, path, dpi=120)
+    plt.close(fig)
+    return out
+
+
 def _summary(rows, key: str) -> str:
     r = np.array([x[key] for x in rows])
     return f"{np.median(r):.2f} ({r.min():.2f}–{r.max():.2f})"
@@ -315,9 +373,14 @@ def main(argv=None) -> int:
                         "compound eye, with truth.csv)")
     p.add_argument("--front-end", default="dis", choices=["dis", "emd"],
                    help="the camera footage's front end for --footage (the compound eye has its own circuit)")
+    p.add_argument("--suite", default=None, metavar="SUITE_NC",
+                   help="a `lobula suite` suite.nc with 'lobula causal' and 'lobula zero-phase' on the same families and "
+                        "seeds: the pipeline's causal / zero-phase ratio beside the optimum's")
+    p.add_argument("--plot", default=None, metavar="PNG", help="draw the ratios per family (atomically)")
     p.add_argument("--out", default=None, help="also write the rows and the models as JSON here (atomically)")
     args = p.parse_args(argv)
-    bound_only = [f"--{k.replace('_', '-')}" for k in ("families", "seeds", "duration", "skip", "models")
+    bound_only = [f"--{k.replace('_', '-')}" for k in ("families", "seeds", "duration", "skip", "models", "suite",
+                                                        "plot")
                   if getattr(args, k) != p.get_default(k)]
     if args.footage and bound_only:
         p.error(f"{', '.join(bound_only)} set the bound's families and models; --footage measures footage instead")
@@ -346,16 +409,26 @@ def main(argv=None) -> int:
     if unknown:
         p.error(f"unknown noise model(s) {', '.join(unknown)}; choose from {', '.join(NOISE_MODELS)}")
     models = {m: NOISE_MODELS[m] for m in names}
+    try:
+        pipeline = suite_ratios(args.suite, families, seeds, args.skip, args.duration) if args.suite else {}
+    except (ValueError, OSError) as e:
+        p.error(str(e))
     rows = bound_table(families, seeds, args.duration, models, args.skip)
+    for r in rows:
+        r["pipeline_ratio"] = pipeline.get((r["family"], r["seed"]), float("nan"))
     print(f"optimal online / offline RMSE after {args.skip:g} s, median (range) over seeds; "
           f"vision {readout_latency_s(1 / 30):.2f} s late online / on time:")
-    print("| family | " + " | ".join(f"{m} online | {m} on time" for m in names) + " |")
-    print("|---|" + "---|---|" * len(names))
+    print("| family | " + " | ".join(f"{m} online | {m} on time" for m in names) + (" | pipeline |" if pipeline else " |"))
+    print("|---|" + "---|---|" * len(names) + ("---|" if pipeline else ""))
     for fam in families + ["all"]:
         sel = [r for r in rows if fam in ("all", r["family"])]
         cells = [f"{_summary([r for r in sel if r['model'] == m], 'online_ratio')} | "
                  f"{_summary([r for r in sel if r['model'] == m], 'filter_ratio')}" for m in names]
+        if pipeline:
+            cells.append(_summary([r for r in sel if r["model"] == names[0]], "pipeline_ratio"))
         print(f"| {fam} | " + " | ".join(cells) + " |")
+    if args.plot:
+        print(f"wrote {plot_ratios(rows, families, names, args.plot)}")
     _write(args, rows, {m: asdict(models[m]) for m in names})
     return 0
 

@@ -149,3 +149,35 @@ def test_footage_mode_measures_the_cameras_kappa(tmp_path, capsys):
     assert row["rms_m_s2"] < 0.05 and abs(row["gain"] - 1) < 0.05
     assert row["online"] > row["offline"] > 0
     assert "| panels | dis |" in capsys.readouterr().out
+
+
+def _suite_nc(path, seeds=(7,), skip=2.0, duration=4.0):
+    import xarray as xr
+
+    confs = ["lobula zero-phase", "lobula causal", "zero"]
+    value = np.zeros((1, len(seeds), 3, 2, 1))
+    value[0, :, 0, 0, 0] = 0.004  # zero-phase RMSE after the skip
+    value[0, :, 1, 0, 0] = 0.010  # causal
+    ds = xr.Dataset(dict(value=(("family", "seed", "configuration", "window", "metric"), value)),
+                    coords=dict(family=["rest"], seed=list(seeds), configuration=confs,
+                                window=["after_skip", "first_2s"], metric=["rmse_m_s"]),
+                    attrs=dict(suite=json.dumps(dict(skip_s=skip, duration_s=duration))))
+    ds.to_netcdf(path, engine="h5netcdf")
+    return path
+
+
+def test_the_pipelines_ratio_comes_from_a_suite_file_that_matches(tmp_path, capsys):
+    from experiments.online_bound import suite_ratios
+
+    nc = _suite_nc(tmp_path / "suite.nc")
+    assert suite_ratios(nc, ["rest"], [7], 2.0, 4.0) == {("rest", 7): pytest.approx(2.5)}
+    png = tmp_path / "bound.png"
+    assert main(["--families", "rest", "--seeds", "7,", "--duration", "4", "--models", "measured",
+                 "--suite", str(nc), "--plot", str(png)]) == 0
+    assert png.stat().st_size > 10_000 and "| rest |" in capsys.readouterr().out
+    for bad, match in (((["rest"], [8], 2.0, 4.0), "no seed 8"), ((["rest"], [7], 1.0, 4.0), "skip_s"),
+                       ((["corridor"], [7], 2.0, 4.0), "no family corridor")):
+        with pytest.raises(ValueError, match=match):
+            suite_ratios(nc, *bad)
+    with pytest.raises(SystemExit):  # refused on the command line too, not a traceback
+        main(["--families", "rest", "--seeds", "8,", "--duration", "4", "--suite", str(nc)])
