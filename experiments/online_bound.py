@@ -207,11 +207,11 @@ def kappa_noise(t, kappa, v, a, frame_dt: float = 1 / 30, v_min: float = 0.1) ->
 
     t (n,) s; kappa (n,) 1/s vision's κ (:func:`vision_kappa`); v (n,) m/s and a (n,) m/s² the truth through
     the same low-pass. The error in the readout's a_m = κ·v + b is n = κ·v − a (m/s²), taken where
-    |v| ≥ v_min; its rms is ``rms_m_s2``. Less κ's gain (κ·v regressed on a), its variance is split as ε²·a² + s0²·v² + f² (non-negative least squares on n²), and each
-    part scaled by the errors' correlation time over ``frame_dt``: white errors, one per frame of the
-    model, that carry the same information. Returns the InformationModel fields kappa_rel_error (ε),
-    kappa_abs_error (s0, 1/s), accel_floor (f, m/s²), and correlation_s, rms_m_s2, n_frames and gain (below 1,
-    v̂ = a_m/κ reads that much high).
+    |v| ≥ v_min; its rms is ``rms_m_s2``. Less κ's gain (κ·v regressed on a), its variance is split as
+    ε²·a² + s0²·v² + f² (non-negative least squares on n²), and each part scaled by the errors' correlation
+    time over ``frame_dt``: white errors, one per frame of the model, that carry the same information.
+    Returns the InformationModel fields kappa_rel_error (ε), kappa_abs_error (s0, 1/s), accel_floor (f,
+    m/s²), and correlation_s, rms_m_s2, n_frames and gain (below 1, v̂ = a_m/κ reads that much high).
     """
     from scipy.optimize import nnls
 
@@ -235,9 +235,9 @@ def kappa_noise(t, kappa, v, a, frame_dt: float = 1 / 30, v_min: float = 0.1) ->
 
 def footage_kappa(path, front_end: str = "dis") -> dict:
     """κ measured on synthetic footage with truth: the camera's (``front_end`` "dis", the default, or "emd")
-    or the compound eye's (its circuit and gated fields; ``front_end`` is then ignored), offline. Returns t, kappa, and the truth's v and a through the
-    readout's own zero-phase low-pass, each (n,), with the readout configuration (``config``) and the
-    front end's name (``front_end``)."""
+    or the compound eye's (its circuit and gated fields; ``front_end`` is then ignored), offline. Returns t,
+    kappa, and the truth's v and a through the readout's own zero-phase low-pass, each (n,), with the readout
+    configuration (``config``) and the front end's name (``front_end``)."""
     from lobula.config import VelocityConfig
     from lobula.readout import butterworth
     from stimuli.eye import is_eye_footage, open_eye_footage
@@ -246,8 +246,11 @@ def footage_kappa(path, front_end: str = "dis") -> dict:
     from .eye_velocity import EyeVelocityConfig, estimate_eye_velocity
     from .velocity import field_rates
 
-    if is_eye_footage(path):
-        fo = open_eye_footage(path)
+    eye = is_eye_footage(path)
+    fo = open_eye_footage(path) if eye else open_footage(path)
+    if fo.truth is None or "a_forward_m_s2" not in fo.truth:
+        raise ValueError(f"{path}: needs truth.csv with v_forward_m_s and a_forward_m_s2")
+    if eye:
         cfg = EyeVelocityConfig()
         ds = estimate_eye_velocity(fo, cfg, progress=False)
         t = ds.time.values
@@ -255,12 +258,9 @@ def footage_kappa(path, front_end: str = "dis") -> dict:
         r2 = np.where(ds.field_used.values, ds.r2.values, np.nan)
         rcfg, material, front = cfg.readout, None, "compound eye"
     else:
-        fo = open_footage(path)
         vcfg = VelocityConfig(front_end=front_end)
         rates = field_rates(fo, vcfg, progress=False)
         t, r, r2, material, rcfg, front = rates.t, rates.r, rates.r2, rates.material, vcfg.readout, vcfg.front_end
-    if fo.truth is None or "a_forward_m_s2" not in fo.truth:
-        raise ValueError(f"{path}: needs truth.csv with v_forward_m_s and a_forward_m_s2")
     v = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     a = np.interp(t, fo.truth["time_s"], fo.truth["a_forward_m_s2"])
     dt = float(np.median(np.diff(t)))
@@ -364,7 +364,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.online_bound", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--families", default="all", help="comma-separated suite families, or all")
-    p.add_argument("--seeds", default="3", help="a count (seeds 0…N−1), or a comma-separated list (e.g. 100,101)")
+    p.add_argument("--seeds", default="3",
+                   help="a count (seeds 0…N−1), or a comma-separated list (100,101; one seed: 7,)")
     p.add_argument("--duration", type=float, default=10.0, help="scene length (s)")
     p.add_argument("--skip", type=float, default=2.0, help="seconds left out of the RMSE at the start")
     p.add_argument("--models", default=",".join(NOISE_MODELS), help="noise models (of NOISE_MODELS)")
@@ -374,8 +375,8 @@ def main(argv=None) -> int:
     p.add_argument("--front-end", default="dis", choices=["dis", "emd"],
                    help="the camera footage's front end for --footage (the compound eye has its own circuit)")
     p.add_argument("--suite", default=None, metavar="SUITE_NC",
-                   help="a `lobula suite` suite.nc with 'lobula causal' and 'lobula zero-phase' on the same families and "
-                        "seeds: the pipeline's causal / zero-phase ratio beside the optimum's")
+                   help="a `lobula suite` suite.nc with 'lobula causal' and 'lobula zero-phase' on the same "
+                        "families and seeds: the pipeline's causal / zero-phase ratio beside the optimum's")
     p.add_argument("--plot", default=None, metavar="PNG", help="draw the ratios per family (atomically)")
     p.add_argument("--out", default=None, help="also write the rows and the models as JSON here (atomically)")
     args = p.parse_args(argv)
@@ -387,9 +388,12 @@ def main(argv=None) -> int:
     if not args.footage and args.front_end != p.get_default("front_end"):
         p.error("--front-end applies to --footage only")
     if args.footage:
-        rows = footage_rows(args.footage, args.front_end)
-        print("vision's κ against the truth, offline: the error of a_m = κ·v (κ·v − a, where |v| ≥ 0.1 m/s), κ's gain, "
-              "the errors' correlation time, the per-frame equivalents the bound's model takes (at 30 frames/s), and "
+        try:
+            rows = footage_rows(args.footage, args.front_end)
+        except (ValueError, OSError) as e:  # unreadable footage, no truth: said, not a traceback
+            p.error(str(e))
+        print("vision's κ against the truth, offline: the error of a_m = κ·v (κ·v − a, where |v| ≥ 0.1 m/s), "
+              "κ's gain, the errors' correlation time, the per-frame equivalents the bound's model takes (at 30 frames/s), and "
               "the model's optimal online (vision as late as the front end's causal readout) and offline RMSE (m/s) "
               "after 2 s at that noise")
         print("| footage | front end | frames | rms κ·v − a (m/s²) | gain | correlation (s) | κ relative | "
@@ -418,7 +422,8 @@ def main(argv=None) -> int:
         r["pipeline_ratio"] = pipeline.get((r["family"], r["seed"]), float("nan"))
     print(f"optimal online / offline RMSE after {args.skip:g} s, median (range) over seeds; "
           f"vision {readout_latency_s(1 / 30):.2f} s late online / on time:")
-    print("| family | " + " | ".join(f"{m} online | {m} on time" for m in names) + (" | pipeline |" if pipeline else " |"))
+    print("| family | " + " | ".join(f"{m} online | {m} on time" for m in names)
+          + (" | pipeline |" if pipeline else " |"))
     print("|---|" + "---|---|" * len(names) + ("---|" if pipeline else ""))
     for fam in families + ["all"]:
         sel = [r for r in rows if fam in ("all", r["family"])]

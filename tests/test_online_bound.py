@@ -18,7 +18,8 @@ def test_latency_is_the_causal_readouts():
 
 def test_a_known_offset_and_a_deterministic_motion_measure_the_start_velocity_frame_by_frame():
     # With b known and no acceleration noise, v_k = v_0 + a·t_k is known up to v_0, and frame k measures v_0 with
-    # variance (floor·v_k/a)²: the filter's variance is 1/(1/prior + Σ_{j≤k} info_j), the smoother's the sum over all.
+    # variance (floor·v_k/a)²: the filter's variance is 1/(1/prior + Σ_{j≤k} info_j), the smoother's the sum
+    # over all.
     a = 0.3
     v = 0.2 + a * T
     m = InformationModel(kappa_rel_error=0.0, kappa_abs_error=0.0, accel_floor=0.02, accel_noise=0.0,
