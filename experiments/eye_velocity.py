@@ -434,11 +434,19 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
                       f"{SPIKE_MODELS[cfg.neuron.spike_model]} output neuron pairs "
                       f"({cfg.neuron.gain_hz_per_m_s:g} Hz per m/s), causal decoding, {cfg.neuron.lead} lead")
     t_readout = _time.perf_counter() - t1
+    if cfg.readout_kind == "neuron":
+        obs_definition = "the readout neuron's own confidence"
+    else:
+        # What v_std adds beyond the posterior does not gate: gating on it was tried and left the eye blind
+        # (docs/accuracy-history.md, twenty-first session), so the file says which std the flag is of.
+        obs_definition = f"the readout's posterior std ≤ {rcfg.max_std_m_s:g} m/s" + (
+            "; v_std adds the field halves' disagreement and the EMD gain error, so it may exceed that"
+            if cfg.uncertainty == "halves" else "")
     f = circ.fields
     keep = np.flatnonzero(f.eye == 0) if rho.shape[1] != f.n_fields else np.arange(f.n_fields)
     data = dict(
         v_hat=("time", v_hat, {"units": "m/s", "long_name": "estimated forward velocity"}),
-        observable=("time", observable, {"long_name": "velocity observable"}),
+        observable=("time", observable, {"long_name": "velocity observable", "definition": obs_definition}),
         v_std=("time", v_std, {"units": "m/s", "long_name": std_name}),
         accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": a_source}),
         r=(("time", "field"), rho, {"units": "1/s", "long_name": "LC field expansion rate v/D"}),
