@@ -100,14 +100,12 @@ NOISE_MODELS = {
 
 
 def readout_latency_s(dt: float, config=None) -> float:
-    """How late the causal readout's κ is (s), as :func:`lobula.readout.readout_terms` delays it: its
-    centred online low-pass's half-width plus half the stagger of ṙ's difference (11 frames at 30 frames/s
-    for the camera's readout)."""
-    from lobula.readout import ReadoutConfig, readout_terms
+    """How late the causal readout's κ is (s): :func:`lobula.readout.readout_lag` frames of ``dt`` (its centred
+    online low-pass's half-width plus half the stagger of ṙ's difference; 11 frames at 30 frames/s for the
+    camera's readout)."""
+    from lobula.readout import ReadoutConfig, readout_lag
 
-    cfg = replace(config or ReadoutConfig(), filter="causal")
-    t = np.arange(8) * dt
-    return readout_terms(t, np.ones((8, 1)), np.ones((8, 1)), np.zeros(8), cfg)[1] * dt
+    return readout_lag(replace(config or ReadoutConfig(), filter="causal"), dt) * dt
 
 
 def filter_and_smoother(t, v, a, model: InformationModel):
@@ -144,16 +142,17 @@ def filter_and_smoother(t, v, a, model: InformationModel):
         Ps[k] = Pf[k] + C @ (Ps[k + 1] - Pp[k + 1]) @ C.T
     lat = readout_latency_s(dt) if m.latency_s is None else float(m.latency_s)
     L = int(round(lat / dt))
-    # P(k | k − L) = F^L P_f(k − L) F^Lᵀ + Σ_{i<L} F^i Q F^iᵀ; before the first measurement arrives, the prior.
-    FL, QL = np.eye(2), np.zeros((2, 2))
-    for _ in range(L):
+    # P(k | k − L) = F^L P_f(k − L) F^Lᵀ + Σ_{i<L} F^i Q F^iᵀ; before the first measurement arrives, the prior
+    # predicted (its first L frames, which the same recursion gives).
+    FL, QL, P = np.eye(2), np.zeros((2, 2)), np.diag([m.v_prior ** 2, m.bias_prior ** 2])
+    Pl = np.empty_like(Pf)
+    for k in range(L):
+        if k < n:
+            Pl[k] = P
+        P = F @ P @ F.T + Q
         QL = F @ QL @ F.T + Q
         FL = F @ FL
-    Pl = np.empty_like(Pf)
     Pl[L:] = np.einsum("ij,njk,lk->nil", FL, Pf[:n - L], FL) + QL
-    P0 = np.diag([m.v_prior ** 2, m.bias_prior ** 2])
-    for k in range(min(L, n)):
-        Pl[k] = np.linalg.matrix_power(F, k) @ P0 @ np.linalg.matrix_power(F, k).T
     return Pf[:, 0, 0], Ps[:, 0, 0], Pl[:, 0, 0]
 
 
@@ -177,13 +176,11 @@ def vision_kappa(t, r, r2, a, config, material=None) -> np.ndarray:
     t (n,) s; r, r2 (n, F) the fields' rates (1/s, 1/s²); a (n,) m/s² (for that judgement only); config a
     ReadoutConfig; material: the rates along the content (:class:`lobula.readout.MaterialRates`) or None.
     """
-    from lobula.readout import ratio_measurement, readout_terms, vision_measurement
+    from lobula.readout import physical_kappa, readout_terms, vision_measurement
 
     cfg = replace(config, filter="zero-phase")
     terms = readout_terms(t, r, r2, a, cfg, material)[0]
-    v_f = vision_measurement(*terms, cfg)[2]
-    judge = np.abs(terms[3]) >= cfg.accel_min_m_s2 + 2.0 * cfg.bias_prior_m_s2
-    return ratio_measurement(*terms[:3], cfg, keep=np.isfinite(v_f) | ~judge[:, None])[0]
+    return physical_kappa(terms, vision_measurement(*terms, cfg)[2], cfg, cfg.bias_prior_m_s2)[0]
 
 
 def _correlation_time(x: np.ndarray, dt: float, max_s: float = 3.0) -> float:

@@ -973,6 +973,25 @@ def _lag(x: np.ndarray, h: int) -> np.ndarray:
     return np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:-h]]) if h else x
 
 
+def readout_lag(cfg: ReadoutConfig, dt: float) -> int:
+    """Frames by which the kalman readout's terms are late (:func:`readout_terms`): 0 offline; online the
+    centred low-pass's half-width plus half the stagger of ṙ̄'s difference (11 at 30 frames/s by default)."""
+    if cfg.filter == "zero-phase":
+        return 0
+    stagger = max(2, cfg.stagger + cfg.stagger % 2)
+    return gaussian_lowpass(np.zeros(3), cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma)[1] + stagger // 2
+
+
+def physical_kappa(terms, v_f, cfg: ReadoutConfig, offset_prior: float):
+    """κ and its standard error (:func:`ratio_measurement`) from the readout's terms, a field left out where its
+    implied depth is not physical (v_f NaN, :func:`vision_measurement`) — judged only where |a| is beyond what
+    the accelerometer's offset (prior std ``offset_prior``, m/s²) could make of nothing: an offset (the online
+    gravity reference's, up to the start's acceleration) would otherwise make every field look unphysical
+    exactly when κ ≈ 0 is what pins it down. Elsewhere κ ≈ 0 ties the offset down."""
+    judge = np.abs(terms[3]) >= cfg.accel_min_m_s2 + 2.0 * offset_prior
+    return ratio_measurement(*terms[:3], cfg, keep=np.isfinite(v_f) | ~judge[:, None])
+
+
 def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None):
     """The kalman readout's low-passed inputs: (r̄, r²̄, ṙ̄, a) and how late they are.
 
@@ -986,14 +1005,12 @@ def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     """
     dt = float(np.median(np.diff(t)))
     stagger = max(2, cfg.stagger + cfg.stagger % 2)
+    lag = readout_lag(cfg, dt)
     if cfg.filter == "zero-phase":
         wn = cfg.cutoff_hz / (0.5 / dt)
         lp = lambda x: butterworth(x, wn, cfg.order, True)
-        lag = 0
     else:
-        w = cfg.online_window_sigma
-        lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=w, causal=True)[0]
-        lag = gaussian_lowpass(np.zeros(3), cfg.cutoff_hz, dt, truncate=w)[1] + stagger // 2
+        lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma, causal=True)[0]
     rf = lp(r)
     if material is None:
         r2f = lp(r2) if cfg.r2_term == "field" else rf ** 2
@@ -1065,14 +1082,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
         # (a real still EuRoC sequence's offset otherwise lifts the bound off: 0.043 m/s of "motion").
         sr = np.hypot(sr, sigma_t * np.maximum(np.abs(terms[3]) - 2.0 * offset_prior, 0.0))
         zr = np.where(sr <= 0.5 * cfg.max_std_m_s, zr, np.nan)
-    # κ needs no accelerometer, so a field is judged by one (its implied depth a/(ṙ̄ − r²̄)
-    # physical) only where |a| is beyond what the accelerometer's offset (prior std) could
-    # make of nothing: an offset (the online gravity reference's, up to the start's
-    # acceleration) would otherwise make every field look unphysical exactly when κ ≈ 0
-    # is what pins it down. Elsewhere κ ≈ 0 ties the offset down.
-    judge = np.abs(terms[3]) >= cfg.accel_min_m_s2 + 2.0 * offset_prior
-    keep = np.isfinite(v_f) | ~judge[:, None]
-    kap, skap = ratio_measurement(*terms[:3], cfg, keep=keep)
+    kap, skap = physical_kappa(terms, v_f, cfg, offset_prior)
     n_corr = max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt))
     skap = skap * np.sqrt(n_corr)
     # What the fields' spread cannot show: an error all fields share (the flow's, a residual
