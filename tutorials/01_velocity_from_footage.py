@@ -16,8 +16,8 @@
 # per-field expansion rates and the provenance of the run.
 #
 # Each `lobula(...)` call below is exactly the shell command `lobula ...`; run them in a
-# terminal instead if you prefer. Open this file as a notebook with jupytext
-# (`pip install jupytext`, then open it in Jupyter) or run it as a script.
+# terminal instead if you prefer. Open this file as a notebook (`tutorials/README.md` says how)
+# or run it as a script; either way its outputs go to `tutorial_output/` of the folder it runs in.
 
 # %%
 import os
