@@ -6,17 +6,33 @@ OUT ?= out
 
 .PHONY: setup demo test test-slow bench clean
 
+# torch comes with the `bio` extra (the biological front end and TV depth; the tests need it). Its default
+# Linux build brings GBs of CUDA libraries, so its CPU build goes in first where pip is offered one: pip's
+# dry run says which build it would take (a CUDA build requires nvidia-* packages).
+TORCH := torch==2.13.0
+CPU_BUILD := import json, sys; m = json.load(open(sys.argv[1]))["install"][0]["metadata"]; \
+	sys.exit(any(r.startswith("nvidia-") for r in m.get("requires_dist") or []))
+
 $(BIN)/lobula: pyproject.toml
 	$(PY) -m venv $(VENV)
-	# The CPU build of torch first: an unpinned torch would pull GBs of CUDA wheels.
-	$(BIN)/pip install -q "torch==2.13.0" || $(BIN)/pip install -q "torch>=2.1,<3"
-	$(BIN)/pip install -q -e ".[test]"
+	@if $(BIN)/pip show -q torch 2>/dev/null; then :; \
+	elif $(BIN)/pip install -q --dry-run --ignore-installed --no-deps --only-binary :all: \
+			--report $(VENV)/torch-plan.json "$(TORCH)" && $(BIN)/python -c '$(CPU_BUILD)' $(VENV)/torch-plan.json; then \
+		echo "$(BIN)/pip install $(TORCH) (CPU build)"; $(BIN)/pip install -q --only-binary :all: "$(TORCH)"; \
+	else \
+		echo "make setup: pip is offered no CPU build of $(TORCH) here, so .[bio] brings torch with CUDA (GBs)." \
+			"For the CPU build instead: rm -rf $(VENV) && $(PY) -m venv $(VENV) &&" \
+			"$(BIN)/pip install torch --index-url https://download.pytorch.org/whl/cpu && make setup"; \
+	fi
+	$(BIN)/pip install -q -c constraints.txt -e ".[test,bio]"
 	touch $(BIN)/lobula
 
 setup: $(BIN)/lobula
 
-# The scene follows the real FLIVVER velocity profile when ../shared is beside the clone,
-# else its built-in profile: the demo runs anywhere.
+# The scene's velocity profile: the recorded FLIVVER run when ../shared/data/flivver_d435i/velocity.csv
+# is beside the clone; on a fresh clone without it, the built-in synthetic profile
+# (stimuli.track.builtin_profile: 3 s at rest, then forward and backward sweeps), so the demo runs
+# anywhere. `lobula scene` prints which ("profile: ..."); run.png plots the truth it was given.
 demo: setup
 	rm -rf $(OUT)/track
 	$(BIN)/lobula scene $(OUT)/track --start 0 --duration 30 --scale 0.5

@@ -103,7 +103,7 @@ def bench_emd(folder: Path, n_ommatidia: int = 5000) -> dict:
 
 def _sync(device) -> None:
     """Wait for the device's queued kernels, so a timer reads the work and not its launch."""
-    import torch
+    from lobula._optional import torch
 
     if torch.device(device).type == "cuda":
         torch.cuda.synchronize(device)
@@ -111,7 +111,7 @@ def _sync(device) -> None:
 
 def check_device(device: str) -> None:
     """Fail loudly (ValueError) when ``device`` is not a torch device this machine has."""
-    import torch
+    from lobula._optional import torch
 
     try:
         dev = torch.device(device)
@@ -146,8 +146,7 @@ def bench_tv_depth(n_frames: int = 10, gamma: float = 1e-6, device: str = "cpu",
     On the CPU it uses one torch thread (the velocity pipeline's setting); on a GPU the
     flow is copied there before the clock starts and the clock waits for the kernels.
     """
-    import torch
-
+    from lobula._optional import torch
     from lobula.depth import depth_tv
 
     cam, flows = _tv_flows(scale, n_frames)
@@ -177,8 +176,7 @@ def agreement_on_device(device: str, duration_s: float = 0.3) -> dict:
     depth map, relative to its median. Float32 rounding differs between devices, so these
     are small but not zero.
     """
-    import torch
-
+    from lobula._optional import torch
     from lobula.camera import PinholeCamera
     from lobula.circuit import Circuit, CircuitConfig
     from lobula.depth import depth_tv
@@ -230,7 +228,7 @@ def run_device_bench(device: str) -> list[dict]:
     have no device path; what a GPU can take is the EMD circuit (virtual electrophysiology)
     and TV depth.
     """
-    import torch
+    from lobula._optional import torch
 
     from experiments.ephys import bench_tuning_sweep
 
@@ -260,7 +258,7 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) 
     from stimuli.track import TrackRunConfig, make_track_run
 
     rows = []
-    import torch
+    from lobula._optional import torch
 
     print(f"lobula bench: {frames} frames per run, OpenCV threads {cv2.getNumThreads()}, "
           f"torch threads {torch.get_num_threads()}, {os.cpu_count()} CPUs, load average "
@@ -322,10 +320,13 @@ def _run(args) -> int:
 
 def add_parser(subparsers):
     """Register `lobula bench` (see experiments.cli)."""
+    from .parsers import COUNT, POSITIVE
+
     b = subparsers.add_parser("bench", help="frames/s per stage and end to end, peak memory")
-    b.add_argument("--frames", type=int, default=120, help="frames rendered per image size")
-    b.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.5], help="image scales of the D435i camera")
-    b.add_argument("--presets", nargs="+", default=["fast", "medium"], help="DIS presets to time")
+    b.add_argument("--frames", type=COUNT, default=120, help="frames rendered per image size")
+    b.add_argument("--scales", type=POSITIVE, nargs="+", default=[1.0, 0.5], help="image scales of the D435i camera")
+    b.add_argument("--presets", nargs="+", default=["fast", "medium"], choices=["ultrafast", "fast", "medium"],
+                   help="DIS presets to time")
     b.add_argument("--device", default="cpu",
                    help="cpu: the whole pipeline on this CPU. cuda (or cuda:N): only the torch stages (EMD circuit "
                         "tuning sweep, TV depth), on that GPU beside this CPU, after checking they agree; "

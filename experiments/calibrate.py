@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 
 from lobula.config import VelocityConfig
-from lobula.emd_decoding import EMDFrontEnd, fit_calibration
 from lobula.receptive_field import pool_fields, tile_fields
 from stimuli.footage import Footage, FootageError
 
@@ -45,6 +44,10 @@ def calibrate_emd(footage: Footage, config: VelocityConfig | None = None, per_fi
     rates (searched in 1/4-frame steps over 0–0.3 s); the gains are then fitted at it.
     Returns (gains, latency_s, number of frames with depth used).
     """
+    from lobula._optional import require_torch
+    from lobula.emd_decoding import EMDFrontEnd, fit_calibration
+
+    require_torch("the EMD front end")
     config = config or VelocityConfig(front_end="emd")
     config.emd.calibration = 1.0
     config.emd.latency_s = 0.0
@@ -105,9 +108,8 @@ def run_calibrate(args) -> int:
 
 
 def add_parser(subparsers):
-    """Register `lobula calibrate-emd` (see experiments.cli)."""
-    c = subparsers.add_parser("calibrate-emd", help="fit the EMD front end's per-field gains on a synthetic run")
-    c.add_argument("footage", help="a synthetic footage folder with depth/ and truth.csv (not a test scene)")
-    c.add_argument("--out", required=True, help="gains JSON for `lobula velocity --emd-calibration`")
-    c.add_argument("--single-gain", action="store_true", help="one gain for all fields")
-    c.set_defaults(func=run_calibrate)
+    """Register ``lobula calibrate-emd`` on an argparse subparsers object; returns the parser. The options are
+    :func:`experiments.parsers.add_calibrate_parser`'s, built without importing this module."""
+    from .parsers import add_calibrate_parser
+
+    return add_calibrate_parser(subparsers)

@@ -1,10 +1,14 @@
 """The ``lobula`` command line: one entry point, one subcommand per protocol.
 
-Each subcommand's options live beside the code that runs it, in an ``add_parser(subparsers)``
-function of the module named in :data:`COMMANDS`. That module is imported only when its
-subcommand runs, so ``lobula --help`` starts in a fraction of a second (no torch, no xarray).
-To add a subcommand, write ``add_parser`` (which calls ``set_defaults(func=...)``) in its
-module and add one line here.
+Each subcommand's parser is built by the ``add_parser``-style function named in
+:data:`COMMANDS`; only the subcommand named on the command line gets its full parser. Building
+it imports nothing heavy (no torch, OpenCV, xarray or SciPy): the options of the commands whose
+code needs those live in :mod:`experiments.parsers`, and a command's code is imported only when
+it runs. So ``lobula --help``, ``lobula COMMAND --help`` and a refused option or value answer in
+a fraction of a second. Numeric options are checked at parse time (:class:`experiments.parsers.Number`);
+a refused value is argparse's one-line error naming the option and the allowed range, exit status 2.
+To add a subcommand, write its parser function (which calls ``set_defaults(func=...)``) and add
+one line here.
 """
 from __future__ import annotations
 
@@ -12,48 +16,89 @@ import argparse
 import importlib
 import sys
 
-#: subcommand: (module with ``add_parser``, one-line help shown by ``lobula --help``)
+#: subcommand: ("module:function" that adds its parser to a subparsers object, one-line help shown by ``lobula --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "scene": ("experiments.render", "render a synthetic track run (footage folder with exact truth)"),
-    "suite": ("experiments.suite", "accuracy suite: scene families x seeds, all configurations, baselines"),
-    "velocity": ("experiments.velocity_command", "estimate forward velocity from footage"),
-    "calibrate-emd": ("experiments.calibrate", "fit the EMD front end's per-field gains on a synthetic run"),
-    "depth": ("experiments.depth", "dense forward depth from flow and v̂ (ratio, TV, parallax)"),
-    "depth-suite": ("experiments.depth_suite", "depth on the suite's families x seeds, beside baselines"),
-    "ephys": ("experiments.ephys", "virtual electrophysiology: record photoreceptor/EMD/LC/readout neurons"),
-    "compare": ("experiments.compare", "every front end on the same footage and readout, scored side by side"),
-    "sweep": ("experiments.sweep", "a grid over any configuration path, on Dask, into Zarr"),
-    "figures": ("experiments.figures", "regenerate the hypothesis figures with their JSON"),
-    "eye-velocity": ("experiments.eye_velocity", "velocity from compound-eye footage: photoreceptors, EMDs, LC fields, readout"),
-    "bench": ("experiments.bench", "frames/s per stage and end to end, peak memory"),
-    "info": ("experiments.info", "what a recording holds: streams, rates, intrinsics, IMU, dropped frames, truth"),
+    "scene": ("experiments.render:add_parser", "render a synthetic track run (footage folder with exact truth)"),
+    "suite": ("experiments.suite:add_parser", "accuracy suite: scene families x seeds, all configurations, baselines"),
+    "velocity": ("experiments.velocity_command:add_parser", "estimate forward velocity from footage"),
+    "calibrate-emd": ("experiments.parsers:add_calibrate_parser",
+                      "fit the EMD front end's per-field gains on a synthetic run"),
+    "depth": ("experiments.parsers:add_depth_parser", "dense forward depth from flow and v̂ (ratio, TV, parallax)"),
+    "depth-suite": ("experiments.parsers:add_depth_suite_parser",
+                    "depth on the suite's families x seeds, beside baselines"),
+    "ephys": ("experiments.ephys.command:add_parser",
+              "virtual electrophysiology: record photoreceptor/EMD/LC/readout neurons"),
+    "compare": ("experiments.parsers:add_compare_parser",
+                "every front end on the same footage and readout, scored side by side"),
+    "sweep": ("experiments.parsers:add_sweep_parser", "a grid over any configuration path, on Dask, into Zarr"),
+    "figures": ("experiments.parsers:add_figures_parser", "regenerate the hypothesis figures with their JSON"),
+    "eye-velocity": ("experiments.parsers:add_eye_velocity_parser",
+                     "velocity from compound-eye footage: photoreceptors, EMDs, LC fields, readout"),
+    "bench": ("experiments.bench:add_parser", "frames/s per stage and end to end, peak memory"),
+    "info": ("experiments.info:add_parser",
+             "what a recording holds: streams, rates, intrinsics, IMU, dropped frames, truth"),
 }
 
+#: ``lobula --help``'s description (plain text: argparse prints it as it is)
+DESCRIPTION = ("Forward velocity from video and an IMU through a model of the fly's lobula\n"
+               "(photoreceptors, EMDs, lobula-columnar fields, readout), and virtual\n"
+               "electrophysiology of its neurons. 'lobula COMMAND --help' lists the options\n"
+               "of a command.")
 
-class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """--help shows every option's default and keeps descriptions' line breaks.
 
-    An option whose help already explains its default (e.g. "default: colour, else
-    infrared" for a None that means something) is not given a second, literal one, and
-    a required option has none to show.
+def _shown(action: argparse.Action) -> str:
+    """An option's default as --help shows it: a flag is off; several values as they are typed."""
+    if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
+        return "off"
+    d = action.default
+    if isinstance(d, (list, tuple)):
+        return " ".join(map(str, d))
+    return str(d)
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """--help states each option's default exactly once, and keeps descriptions' line breaks.
+
+    The default is written as "(default: …)" at the end of the option's help: by this
+    formatter, from the option's default, unless the help text writes its own "(default: …)",
+    which an option whose default is decided later must (None: the configuration's value, or
+    one chosen from the data; argparse.SUPPRESS: an option the command must know was given).
+    None is never shown as a default. A required option, a positional and --help/--version
+    have none to show.
     """
 
     def _get_help_string(self, action):
         text = action.help or ""
-        if "default" in text.lower() or getattr(action, "required", False):
+        if ("(default: " in text or action.required or not action.option_strings
+                or action.default in (None, argparse.SUPPRESS)):
             return text
-        return super()._get_help_string(action)
+        return f"{text} (default: {_shown(action).replace('%', '%%')})"  # help texts are %-formatted
+
+
+class _Version(argparse.Action):
+    """``lobula --version``: the package version and the git commit it runs from (read only when asked)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from lobula.version import __version__, git_commit
+
+        print(f"lobula {__version__} (git commit {git_commit()})")
+        parser.exit()
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The parser; only the subcommand named in ``argv`` (if any) gets its full options built."""
     argv = sys.argv[1:] if argv is None else argv
     chosen = next((a for a in argv if not a.startswith("-")), None)
-    p = argparse.ArgumentParser(prog="lobula", description=__doc__.split("\n\n")[0], formatter_class=_Formatter)
+    p = argparse.ArgumentParser(prog="lobula", description=DESCRIPTION, formatter_class=_Formatter)
+    p.add_argument("--version", action=_Version, help="print the version and git commit, and exit")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, (module, help_) in COMMANDS.items():
+    for name, (target, help_) in COMMANDS.items():
         if name == chosen:
-            importlib.import_module(module).add_parser(sub)
+            module, function = target.split(":")
+            getattr(importlib.import_module(module), function)(sub)
         else:
             sub.add_parser(name, help=help_)
     for action in sub.choices.values():
@@ -91,18 +136,24 @@ def keep_freed_blocks() -> bool:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    keep_freed_blocks()
-    args = build_parser(argv).parse_args(argv)
+    try:
+        args = build_parser(argv).parse_args(argv)
+    except SystemExit as exc:
+        if exc.code == 2:  # refused: argparse has printed the usage and a one-line error naming the option
+            return 2
+        raise  # --help, --version: argparse's own exit
+    keep_freed_blocks()  # after parsing: --help and a refused option need no allocator (nor its library look-up)
     from lobula.version import set_command_line
 
     set_command_line(["lobula", *argv])
     if not hasattr(args, "func"):
         build_parser([args.command]).parse_args([args.command, "--help"])
+    from lobula._optional import MissingExtraError
     from stimuli.footage import FootageError
 
     try:
         return args.func(args)
-    except (FootageError, FileExistsError, FileNotFoundError, ValueError) as exc:
+    except (FootageError, FileExistsError, FileNotFoundError, ValueError, MissingExtraError) as exc:
         print(f"lobula {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into `head` and closed: not an error

@@ -13,12 +13,15 @@ differs, so fields, readout, filter and acceleration are shared) and scores each
   (:func:`experiments.velocity.score`), and the **observable fraction**.
 * **lock-on time**: the first time t (s after the footage's first frame) such that every
   estimate in [t, t + ``hold_s``] is observable and within ``tol_m_s`` of the truth
-  (defaults 0.1 m/s for 1 s); NaN when that never happens (e.g. footage shorter than
-  ``hold_s``).
+  (defaults 0.1 m/s for 1 s); never negative: an estimate stamped before the first frame
+  (the EMD's latency-corrected stamps) that starts such a window counts as 0; NaN when that
+  never happens (e.g. footage shorter than ``hold_s``).
 * **ms/frame of each stage** from the run's ``timings_s`` (read, flow, fields, readout for
   dense flow; read, sampling, photoreceptor, emd, fields, readout for the EMD), divided by
   the number of estimates the front end produced (flow pairs, or frames for the EMD), and
-  end to end from its ``wall_s``.
+  end to end from its ``wall_s``. Counts in ``timings_s`` (``n_saccades``, ``n_ommatidia``) are
+  not stages. Each stage is timed on its own; with untimed work and the flow front ends'
+  parallel threads (decode, flow, fields), the stages need not add up to the end-to-end time.
 
 The result is one ``xarray.Dataset``: dim ``front_end`` for the scalar metrics, ``(front_end,
 time)`` for ``v_hat``, ``observable``, ``v_std``, ``r_median`` and ``(front_end, time, field)``
@@ -86,7 +89,8 @@ def lock_on_time(t, v_hat, v_true, tol_m_s: float = LOCK_TOL_M_S, hold_s: float 
 
     A window [t_i, t_i + hold_s] counts when every estimate in it is finite and within
     ``tol_m_s`` and the estimates actually span ``hold_s`` (to half a sample interval).
-    Returns NaN when no such window exists.
+    Returns t_i − t_origin for the first such window, at least 0 (a window starting at an
+    estimate stamped before ``t_origin`` locks on at the origin), or NaN when none exists.
     """
     t = np.asarray(t, dtype=float)
     if t.size < 2:
@@ -103,7 +107,7 @@ def lock_on_time(t, v_hat, v_true, tol_m_s: float = LOCK_TOL_M_S, hold_s: float 
         if t[j - 1] - t[i] < hold_s - 0.5 * dt:
             continue  # the estimates do not span hold_s from here (end of footage, or a gap)
         if bad_before[j] - bad_before[i] == 0:
-            return float(t[i] - origin)
+            return max(float(t[i] - origin), 0.0)
     return float("nan")
 
 
@@ -152,13 +156,17 @@ def field_rate_error(ds: xr.Dataset, footage: Footage, exact, skip_s: float) -> 
 
 
 def stage_ms_per_frame(ds: xr.Dataset) -> dict:
-    """Milliseconds per estimate of each timed stage (from ``attrs['timings_s']``), in pipeline order."""
+    """Milliseconds per estimate of each timed stage (from ``attrs['timings_s']``), in pipeline order.
+
+    Entries named ``n_*`` in ``timings_s`` are counts (``n_saccades``, ``n_ommatidia``), not seconds:
+    they are left out.
+    """
     n = max(int(ds.sizes["time"]), 1)
     try:
         timings = json.loads(ds.attrs.get("timings_s", "{}"))
     except ValueError:
         timings = {}
-    stages = {k: float(v) for k, v in timings.items() if k not in ("n_ommatidia",) and isinstance(v, (int, float))}
+    stages = {k: float(v) for k, v in timings.items() if not k.startswith("n_") and isinstance(v, (int, float))}
     ordered = [k for k in STAGE_ORDER if k in stages] + sorted(k for k in stages if k not in STAGE_ORDER)
     return {k: 1000.0 * stages[k] / n for k in ordered}
 
@@ -266,9 +274,9 @@ def compare_front_ends(footage: Footage | str | Path, front_ends=DEFAULT_FRONT_E
                   {"units": "m/s", "long_name": "estimated forward velocity (on frame times)"}),
         "observable": (("front_end", "time"),
                        stack(lambda d: _on_grid(d.time.values, d.observable.values.astype(float), t_grid, 0.0)) >= 0.5,
-                       {"long_name": "velocity observable (nearest estimate)"}),
+                       {"units": "1", "long_name": "velocity observable (nearest estimate)"}),
         "v_std": (("front_end", "time"), stack(lambda d: _on_grid(d.time.values, d.v_std.values, t_grid)),
-                  {"units": "m/s"}),
+                  {"units": "m/s", "long_name": "posterior std of v_hat (on frame times)"}),
         "r_median": (("front_end", "time"), stack(lambda d: _on_grid(d.time.values, _median_r(d.r.values), t_grid)),
                      {"units": "1/s", "long_name": "median over fields of r_bar_f"}),
         "r": (("front_end", "time", "field"), stack(lambda d: _on_grid(d.time.values, d.r.values, t_grid)).astype(np.float32),
@@ -288,15 +296,19 @@ def compare_front_ends(footage: Footage | str | Path, front_ends=DEFAULT_FRONT_E
     if footage.truth is not None:
         data["v_true"] = ("time", np.interp(t_grid, footage.truth["time_s"], footage.truth["v_forward_m_s"]),
                           {"units": "m/s", "long_name": "ground-truth forward velocity"})
-    coords = dict(front_end=("front_end", np.array(names, dtype=object)),
-                  time=("time", t_grid, {"units": "s"}),
-                  stage=("stage", np.array(stage_names, dtype=object)),
-                  azimuth_deg=("field", first.azimuth_deg.values), elevation_deg=("field", first.elevation_deg.values),
-                  size_deg=("field", first.size_deg.values))
+    coords = dict(front_end=("front_end", np.array(names, dtype=object), {"long_name": "velocity front end"}),
+                  time=("time", t_grid, {"units": "s", "long_name": "frame time on the footage clock"}),
+                  stage=("stage", np.array(stage_names, dtype=object), {"long_name": "pipeline stage"}),
+                  azimuth_deg=("field", first.azimuth_deg.values,
+                               {"units": "degree", "long_name": "LC field centre azimuth"}),
+                  elevation_deg=("field", first.elevation_deg.values,
+                                 {"units": "degree", "long_name": "LC field centre elevation (positive down)"}),
+                  size_deg=("field", first.size_deg.values,
+                            {"units": "degree", "long_name": "LC field size (Gaussian FWHM, or box side)"}))
     if exact is not None:
         idx, r_x = exact
         data["r_exact"] = (("depth_time", "field"), r_x, {"units": "1/s", "long_name": "exact pooled rate from depth maps"})
-        coords["depth_time"] = ("depth_time", t_grid[idx], {"units": "s"})
+        coords["depth_time"] = ("depth_time", t_grid[idx], {"units": "s", "long_name": "time of a frame with exact depth"})
     out = xr.Dataset(data, coords=coords)
     out.attrs.update(provenance(
         base.to_json(), footage=str(footage.path), footage_kind=footage.kind,
@@ -334,19 +346,26 @@ def _fmt(v, digits=3):
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
+#: The table's columns: (metric, header with its unit, decimals).
+TABLE_COLUMNS = (("front_end", "front end", 0), ("rmse_m_s", "RMSE m/s", 4),
+                 ("median_abs_error_m_s", "median|e| m/s", 4), ("lock_on_s", "lock-on s", 2),
+                 ("observable_fraction", "observable fraction", 3), ("r_rel_error", "r̄ rel.err", 3),
+                 ("ms_per_frame", "end-to-end ms", 1))
+TIME_NOTE = ("ms: wall time per estimate. Each stage is timed on its own; with untimed work (set-up, hand-offs) "
+             "and the flow front ends' parallel threads, the stages need not add up to end-to-end.")
+
+
 def format_table(ds: xr.Dataset) -> str:
-    """A plain-text table of the comparison (one row per front end)."""
+    """A plain-text table of the comparison (one row per front end), and a line saying what its times are."""
     rows = comparison_rows(ds)
-    cols = [("front_end", "front end", 0), ("rmse_m_s", "RMSE m/s", 4), ("median_abs_error_m_s", "median|e| m/s", 4),
-            ("lock_on_s", "lock-on s", 2), ("observable_fraction", "observable", 3), ("r_rel_error", "r̄ rel.err", 3),
-            ("ms_per_frame", "ms/frame", 1)]
+    cols = TABLE_COLUMNS
     stages = [f"ms_{s}" for s in ds.stage.values]
     header = [c[1] for c in cols] + [s[3:] + " ms" for s in stages]
     body = [[_fmt(r.get(k), d) for k, _, d in cols] + [_fmt(r.get(s), 1) for s in stages] for r in rows]
     widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(header)]
     lines = ["  ".join(h.rjust(w) if i else h.ljust(w) for i, (h, w) in enumerate(zip(header, widths)))]
     lines += ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(b, widths))) for b in body]
-    return "\n".join(lines)
+    return "\n".join(lines + [TIME_NOTE])
 
 
 def write_csv(ds: xr.Dataset, path: str | Path) -> Path:
@@ -364,9 +383,18 @@ def write_csv(ds: xr.Dataset, path: str | Path) -> Path:
 COLOURS = {"emd": "tab:green", "dis": "tab:purple", "farneback": "tab:orange", "flo": "tab:blue"}
 
 
-def plot_comparison(ds: xr.Dataset, path: str | Path, title: str | None = None) -> Path:
-    """v̂ of every front end against truth (top), and bars of RMSE/median error, lock-on time and
-    ms/frame by stage (bottom). Written atomically."""
+def time_bars(ds: xr.Dataset) -> dict[str, np.ndarray]:
+    """The time panel's bars, (n_front_end,) ms each: ``"end to end"`` (the table's end-to-end column,
+    ``ms_per_frame``) and every stage (its ``<stage> ms`` column); NaN where a front end has no such stage."""
+    rows = comparison_rows(ds)
+    bars = {"end to end": np.array([r["ms_per_frame"] for r in rows], float)}
+    for s in ds.stage.values:
+        bars[str(s)] = np.array([r[f"ms_{s}"] for r in rows], float)
+    return bars
+
+
+def comparison_figure(ds: xr.Dataset, title: str | None = None):
+    """The comparison figure; returns the matplotlib Figure (see :func:`plot_comparison`)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -374,57 +402,75 @@ def plot_comparison(ds: xr.Dataset, path: str | Path, title: str | None = None) 
     names = [str(f) for f in ds.front_end.values]
     cols = [COLOURS.get(f, f"C{i}") for i, f in enumerate(names)]
     t = ds.time.values - ds.time.values[0]
-    fig = plt.figure(figsize=(10, 7))
-    gs = fig.add_gridspec(2, 3, height_ratios=[1.5, 1])
+    fig = plt.figure(figsize=(11, 9.5), layout="constrained")
+    gs = fig.add_gridspec(3, 2, height_ratios=[1.5, 1, 1])
     ax = fig.add_subplot(gs[0, :])
-    if "v_true" in ds:
-        ax.plot(t, ds.v_true, "k--", lw=1.4, label="truth")
     for i, fe in enumerate(names):
-        ax.plot(t, ds.v_hat.values[i], color=cols[i], lw=1.4,
-                label=f"{fe}: RMSE {_fmt(float(ds.rmse_m_s.values[i]))} m/s")
+        ax.plot(t, ds.v_hat.values[i], color=cols[i], lw=1.6,
+                label=f"{fe}: RMSE {_fmt(float(ds.rmse_m_s.values[i]), 4)} m/s")
+    if "v_true" in ds:
+        # Over the estimates, thin and dashed, so it stays visible where they agree with it.
+        ax.plot(t, ds.v_true, "k--", lw=1.2, label="truth", zorder=4)
     skip = float(ds.attrs.get("skip_s", 0.0))
     if skip > 0:
-        ax.axvspan(0, skip, color="0.92", lw=0, label=f"not scored (first {skip:.2g} s)")
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("forward velocity (m/s)")
-    ax.legend(fontsize=8, loc="best")
+        ax.axvspan(0, skip, color="0.92", lw=0, label=f"not scored (first {skip:.3g} s)")
+    ax.axhline(0, color="0.4", lw=0.8, zorder=1)
+    ax.set_xlabel("time since the first frame (s)")
+    ax.set_ylabel("forward velocity (m/s)\nbelow 0: moving backwards")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.set_title(title or f"front ends on {Path(ds.attrs.get('footage', '')).name} "
-                          f"({ds.attrs.get('readout')} readout, {ds.attrs.get('filter')})")
+                          f"({ds.attrs.get('readout')} readout, {ds.attrs.get('filter')} filter)")
     x = np.arange(len(names))
     b1 = fig.add_subplot(gs[1, 0])
-    b1.bar(x - 0.2, np.nan_to_num(ds.rmse_m_s.values), 0.4, color=cols, label="RMSE")
-    b1.bar(x + 0.2, np.nan_to_num(ds.median_abs_error_m_s.values), 0.4, color=cols, alpha=0.45, label="median |e|")
+    b1.bar(x - 0.2, np.nan_to_num(ds.rmse_m_s.values), 0.4, color=cols)
+    b1.bar(x + 0.2, np.nan_to_num(ds.median_abs_error_m_s.values), 0.4, color=cols, alpha=0.45)
     for i, v in enumerate(ds.rmse_m_s.values):
         if not np.isfinite(v):
             b1.text(x[i], 0, "n/a", ha="center", va="bottom", fontsize=8)
     b1.set_xticks(x, names)
-    b1.set_ylabel("m/s")
+    b1.set_ylabel("velocity error (m/s)")
     b1.set_title("RMSE (solid), median |error| (pale)", fontsize=9)
     b2 = fig.add_subplot(gs[1, 1])
     lock = ds.lock_on_s.values
     b2.bar(x, np.nan_to_num(lock), 0.6, color=cols)
     for i, v in enumerate(lock):
-        if not np.isfinite(v):
-            b2.text(x[i], 0, "never", ha="center", va="bottom", fontsize=8)
+        b2.text(x[i], np.nan_to_num(v), f"{v:.2f} s" if np.isfinite(v) else "never", ha="center", va="bottom",
+                fontsize=8)
     finite = lock[np.isfinite(lock)]
-    b2.set_ylim(0, 1.15 * max(float(finite.max()) if finite.size else 0.0, 1.0))
+    b2.set_ylim(0, 1.2 * max(float(finite.max()) if finite.size else 0.0, 1.0))
     b2.set_xticks(x, names)
-    b2.set_ylabel("s")
-    b2.set_title(f"lock-on (|e| < {ds.attrs.get('lock_tol_m_s', 0.1)} m/s for {ds.attrs.get('lock_hold_s', 1.0)} s)",
-                 fontsize=9)
-    b3 = fig.add_subplot(gs[1, 2])
-    bottom = np.zeros(len(names))
-    stage_cols = plt.get_cmap("Set3")
-    for j, s in enumerate(ds.stage.values):
-        h = np.nan_to_num(ds.stage_ms_per_frame.values[:, j])
-        b3.bar(x, h, 0.6, bottom=bottom, color=stage_cols(j % 12), edgecolor="0.3", lw=0.5, label=str(s))
-        bottom += h
-    b3.set_ylim(0, 1.45 * max(float(bottom.max()), 1e-3))
+    b2.set_ylabel("lock-on time (s)")
+    b2.set_title(f"lock-on: time from the first frame until |error| < {ds.attrs.get('lock_tol_m_s', LOCK_TOL_M_S):g} "
+                 f"m/s holds for {ds.attrs.get('lock_hold_s', LOCK_HOLD_S):g} s", fontsize=9)
+    b3 = fig.add_subplot(gs[2, :])
+    bars = time_bars(ds)
+    stage_cols = plt.get_cmap("Set2")
+    width = 0.85 / len(bars)
+    for j, (label, h) in enumerate(bars.items()):
+        xs = x - 0.425 + (j + 0.5) * width
+        colour = "0.25" if label == "end to end" else stage_cols(j % 8)
+        ok = np.isfinite(h)  # a stage the front end does not have: no bar
+        b3.bar(xs[ok], h[ok], width, color=colour, edgecolor="0.3", lw=0.5, label=label)
+        if label == "end to end":
+            for xi, v in zip(xs, h):
+                if np.isfinite(v):
+                    b3.text(xi, v, f"{v:.1f}", ha="center", va="bottom", fontsize=7)
+    top = max((float(np.nanmax(h)) for h in bars.values() if np.isfinite(h).any()), default=1.0)
+    b3.set_ylim(0, 1.12 * top)
     b3.set_xticks(x, names)
     b3.set_ylabel("ms per estimate")
-    b3.set_title("time per stage", fontsize=9)
-    b3.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
+    b3.set_title("wall time per estimate, end to end and each stage timed on its own (the table's ms columns); "
+                 "untimed work and parallel threads:\nthe stages need not add up to end to end", fontsize=9)
+    b3.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    return fig
+
+
+def plot_comparison(ds: xr.Dataset, path: str | Path, title: str | None = None) -> Path:
+    """v̂ of every front end against truth (top); bars of RMSE/median error and lock-on time (middle);
+    wall time per estimate, end to end and by stage, from the table's columns (bottom). Written atomically."""
+    import matplotlib.pyplot as plt
+
+    fig = comparison_figure(ds, title)
     save_figure(fig, path, dpi=120)
     plt.close(fig)
     return Path(path)
@@ -480,37 +526,8 @@ def _compare(args) -> int:
 
 
 def add_parser(subparsers):
-    """Register ``lobula compare`` on an argparse subparsers object; returns the parser."""
-    c = subparsers.add_parser("compare", help="every front end on the same footage and readout, scored side by side",
-                              description=__doc__.split("\n\n")[0])
-    c.add_argument("footage", help="footage folder (synthetic: r̄ is also scored against depth maps) or the D435i sample")
-    c.add_argument("--front-ends", default=",".join(DEFAULT_FRONT_ENDS),
-                   help="comma-separated: emd,dis,farneback,flo (flo only with --flo; default all)")
-    c.add_argument("--out", required=True, help="comparison NetCDF (written atomically)")
-    c.add_argument("--csv", help="the table as CSV")
-    c.add_argument("--plot", help="PNG: v̂ of each front end against truth, RMSE/lock-on/time bars")
-    c.add_argument("--config", help="VelocityConfig JSON to share between front ends (e.g. a run's attrs['config'])")
-    c.add_argument("--paper", action="store_true", help="the paper's configuration for every front end")
-    c.add_argument("--filter", choices=["zero-phase", "causal"])
-    c.add_argument("--gap", type=int, help="frames between the two images of a flow pair")
-    c.add_argument("--field-size", type=float, help="receptive-field size (deg)")
-    c.add_argument("--accel-from-truth", action="store_true", help="forward acceleration from truth.csv")
-    c.add_argument("--dphi", type=float, help="EMD: interommatidial angle (deg)")
-    c.add_argument("--drho", type=float, help="EMD: acceptance angle (deg)")
-    c.add_argument("--tau", type=float, help="EMD: delay time constant (s)")
-    c.add_argument("--emd-calibration", help="EMD: gains JSON from `lobula calibrate-emd` on another scene")
-    c.add_argument("--emd-gaze", choices=["fixate", "none"],
-                   help="EMD: with a gyro, a gaze fixated by the integrated gyro (saccades beyond 12°) or the "
-                        "camera's own image (not given: fixate)")
-    c.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo)")
-    c.add_argument("--flo-units", default="rad/s", choices=["rad/s", "px"])
-    c.add_argument("--flo-gap", type=float, default=0.2, help="time between the .flo frame pair (s)")
-    c.add_argument("--flo-size", type=int, nargs=2, default=[640, 448], metavar=("W", "H"))
-    c.add_argument("--skip", type=float, help="seconds ignored when scoring (default 2, at most a quarter of the footage)")
-    c.add_argument("--tol", type=float, default=LOCK_TOL_M_S, help="lock-on tolerance (m/s, default 0.1)")
-    c.add_argument("--hold", type=float, default=LOCK_HOLD_S, help="lock-on hold time (s, default 1)")
-    c.add_argument("--quiet", action="store_true")
-    from .info import add_footage_options
-    add_footage_options(c)  # the readers' options, as for lobula velocity
-    c.set_defaults(func=_compare)
-    return c
+    """Register ``lobula compare`` on an argparse subparsers object; returns the parser. The options are
+    :func:`experiments.parsers.add_compare_parser`'s, built without importing this module."""
+    from .parsers import add_compare_parser
+
+    return add_compare_parser(subparsers)

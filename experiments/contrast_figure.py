@@ -45,12 +45,12 @@ class NoisyContrastFootage:
 
 def _clean_replay(cache: Path, start_s: float, duration_s: float, seed: int) -> Path:
     from stimuli.scene import SceneConfig
-    from stimuli.track import REAL_PROFILE, TrackRunConfig, make_track_run
+    from stimuli.track import TrackRunConfig, make_track_run, recorded_profile
 
-    real = REAL_PROFILE.exists()
+    real = recorded_profile()
     folder = cache / f"replay_clean_{'real' if real else 'builtin'}_{start_s:g}_{duration_s:g}_seed{seed}"
     if not (folder / "frames.csv").exists():
-        cfg = TrackRunConfig(profile=str(REAL_PROFILE) if real else None, start_s=start_s, duration_s=duration_s,
+        cfg = TrackRunConfig(profile=str(real) if real else None, start_s=start_s, duration_s=duration_s,
                              scale=0.5, scene=SceneConfig(seed=seed, noise_grey=0.0))
         make_track_run(folder, cfg, progress=False)
     return folder

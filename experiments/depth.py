@@ -10,7 +10,6 @@ names so ``from experiments.depth import estimate_depth`` keeps working.
 """
 from __future__ import annotations
 
-import argparse
 import json
 from dataclasses import asdict
 from pathlib import Path
@@ -77,11 +76,14 @@ def depth_flo_pair(footage: Footage, flo_path: str | Path, units: FloUnits | Non
     ds = xr.Dataset(
         dict(depth=(("estimator", "y", "x"), np.stack([r.depth for r in res.values()]),
                     {"units": "m", "long_name": "forward depth at the pair's first frame (NaN: invalid)"}),
-             valid=(("estimator", "y", "x"), np.stack([r.valid for r in res.values()])),
+             valid=(("estimator", "y", "x"), np.stack([r.valid for r in res.values()]),
+                    {"units": "1", "long_name": "depth is an estimate"}),
              median_depth_m=("estimator", med, {"units": "m", "long_name": "median depth of valid pixels"}),
-             valid_fraction=("estimator", [float(r.valid.mean()) for r in res.values()], {"units": "1"})),
-        coords=dict(estimator=list(res), y=("y", np.arange(cam.height), {"units": "pixel"}),
-                    x=("x", np.arange(cam.width), {"units": "pixel"})))
+             valid_fraction=("estimator", [float(r.valid.mean()) for r in res.values()],
+                             {"units": "1", "long_name": "fraction of pixels with an estimate"})),
+        coords=dict(estimator=("estimator", list(res), {"long_name": "depth estimator"}),
+                    y=("y", np.arange(cam.height), {"units": "1", "long_name": "image row (pixel index, down)"}),
+                    x=("x", np.arange(cam.width), {"units": "1", "long_name": "image column (pixel index, right)"})))
     ds.attrs.update(provenance(json.dumps(dict(depth=cfg.to_dict(), flo_units=asdict(units), epipole=epipole),
                                           sort_keys=True, default=str),
                                flo=str(flo_path), first_frame=int(sample.index), t0=t0, t1=t1, v_m_s=v,
@@ -93,72 +95,12 @@ def depth_flo_pair(footage: Footage, flo_path: str | Path, units: FloUnits | Non
 
 
 # ----------------------------------------------------------------------------- command line
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """Register ``lobula depth`` on an argparse subparsers object; returns the subparser."""
-    d = subparsers.add_parser(
-        "depth", help="dense depth maps from footage (ratio, TV, plane+parallax), scored against exact depth",
-        description="Estimate v̂ with the velocity pipeline, then dense forward depth at the first frame of "
-                    "every N-th flow pair (exact finite derotation from the gyro, the gyro-stabilised heading as "
-                    "epipole); scores against depth/NNNNNN.npy when the footage has it. For scene families x "
-                    "seeds beside baselines: lobula depth-suite --help.")
-    run0 = DepthRunConfig()
-    d.add_argument("footage", help="footage folder, D435i sample, RealSense .bag/.db3, EuRoC folder or video file")
-    d.add_argument("--method", default="tv", choices=list(METHODS),
-                   help="ratio map v/r, TV-regularised fit, or plane+parallax (the same finite derotation "
-                        "through the plane-at-infinity homography)")
-    d.add_argument("--every", type=int, default=1, help="solve every N-th flow pair (10 matches the synthetic "
-                                                        "runs' depth/ maps)")
-    d.add_argument("--out", required=True, help="output .nc (NetCDF, written atomically) or .zarr (streamed)")
-    d.add_argument("--plot", help="PNG panel: frame, true depth, each method's depth")
-    d.add_argument("--plot-time", type=float, help="time (s) of the panel's pair (default: fastest scored pair)")
-    d.add_argument("--front-end", default="dis", choices=["dis", "farneback"],
-                   help="dense flow of both passes (with --velocity-run, that run's flow is reused)")
-    d.add_argument("--velocity", default="estimate", choices=["estimate", "truth"],
-                   help="speed for d = v/z: v̂ of the velocity pipeline, or the exact mean velocity over each pair "
-                        "from truth.csv (footage with ground truth only; the output's velocity_source says which)")
-    d.add_argument("--velocity-run", help="a velocity NetCDF of this footage (from `lobula velocity`) to reuse")
-    d.add_argument("--epipole", default="final", choices=["final", "running", "principal"],
-                   help="heading: the velocity pass's final or running gyro-stabilised estimate, or the principal point")
-    d.add_argument("--dis-preset", choices=["ultrafast", "fast", "medium"],
-                   help="velocity pass: DIS preset (default: the velocity pipeline's own, fast)")
-    d.add_argument("--accel-from-truth", action="store_true",
-                   help="velocity pass: forward acceleration from truth.csv instead of imu.csv")
-    d.add_argument("--average-frames", type=int, default=None, metavar="K",
-                   help="depth flow: each image the mean of frames i-K..i+K turned into frame i's orientation by "
-                        "the gyro; 0: single frames (default: 2 with a gyroscope, 0 without)")
-    d.add_argument("--gamma", type=float, default=FOOTAGE_GAMMA, help="TV weight (1/s x normalised length)")
-    d.add_argument("--unweighted", action="store_true",
-                   help="TV: uniform data term (the paper's) instead of weighting by the flow's precision 1/sigma^2")
-    d.add_argument("--snr-min", type=float, default=run0.snr_min,
-                   help="ratio/parallax: no depth where the predicted translational flow is below this many "
-                        "flow-noise sigma (near the epipole)")
-    d.add_argument("--max-range", type=float, default=run0.max_range_m,
-                   help="scores count pixels whose exact depth is within this range (m); sky and farther pixels "
-                        "are counted, not scored")
-    d.add_argument("--max-scale-rel-std", type=float, default=run0.max_scale_rel_std,
-                   help="a map whose speed is known only to a relative std v_std/|v| above this has no known "
-                        "metric scale and is reported as unobservable (all NaN, metric=False); inf keeps every map")
-    d.add_argument("--tv-start", default="cold", choices=["cold", "warm"],
-                   help="TV: coarse-to-fine per map (faster) or warm start from the previous map")
-    d.add_argument("--min-speed", type=float, default=run0.min_speed_m_s,
-                   help="pairs slower than this (m/s) are not ranged (all invalid)")
-    d.add_argument("--device", default="cpu", help="torch device for TV (cpu, cuda); on cpu it uses one thread")
-    d.add_argument("--flo", help="instead: depth from one precomputed .flo pair (*_<first>_to_<second>.flo), "
-                                 "v from the ground truth")
-    d.add_argument("--flo-units", default="rad/s", choices=["rad/s", "px"], help="units of the .flo values")
-    d.add_argument("--flo-gap", type=float, default=0.2, help="time between the .flo frame pair (s)")
-    d.add_argument("--flo-size", type=int, nargs=2, default=[640, 448], metavar=("W", "H"),
-                   help="image size the .flo refers to")
-    d.add_argument("--quiet", action="store_true", help="no progress bars")
-    from .info import add_footage_options
-    add_footage_options(d)  # --stream, --clock, --skip-bad-frames, --clock-offset, --undistort (readers)
-    d.set_defaults(func=run_depth, flo_ignores={k: d.get_default(k) for k in _FOOTAGE_ROUTE_ONLY})
-    return d
+def add_parser(subparsers):
+    """Register ``lobula depth`` on an argparse subparsers object; returns the parser. The options are
+    :func:`experiments.parsers.add_depth_parser`'s, built without importing this module."""
+    from .parsers import add_depth_parser
 
-
-#: options of the two-pass footage route that the single ``--flo`` pair has no use for
-_FOOTAGE_ROUTE_ONLY = ("every", "velocity", "velocity_run", "dis_preset", "accel_from_truth", "unweighted",
-                       "snr_min", "tv_start", "min_speed", "max_scale_rel_std", "average_frames", "plot_time", "front_end")
+    return add_depth_parser(subparsers)
 
 
 def run_depth(args) -> int:
@@ -186,6 +128,8 @@ def run_depth(args) -> int:
         one = pair.sel(estimator=args.method).drop_vars("estimator").expand_dims(time=[float(pair.attrs["t0"])])
         one["frame"] = ("time", [int(pair.attrs["first_frame"])])
         one = one.set_coords("frame")
+        one["time"].attrs.update(units="s", long_name="time of the pair's first frame")
+        one["frame"].attrs.update(units="1", long_name="index of the pair's first frame")
         one.attrs.update(method=args.method)
         write_netcdf(one, out)
         print(f"wrote {out}: depth from {Path(args.flo).name} at v = {float(pair.attrs['v_m_s']):+.3f} m/s "

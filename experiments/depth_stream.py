@@ -59,9 +59,9 @@ from collections import OrderedDict
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-import torch
 from scipy.spatial.transform import Rotation, Slerp
 
+from lobula._optional import is_tensor, optional_torch, require_torch, torch
 from lobula.camera import PinholeCamera
 from lobula.config import VelocityConfig
 from lobula.depth import DepthConfig, DepthResult, depth_parallax, depth_ratio, depth_tv
@@ -221,7 +221,7 @@ def _invalid(shape, method: str) -> DepthResult:
 
 
 def _np(a) -> np.ndarray:
-    return a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
+    return a.detach().cpu().numpy() if is_tensor(a) else np.asarray(a)
 
 
 def depth_at_first_frame(flow, camera: PinholeCamera, v: float, epipole, dt: float, method: str,
@@ -271,6 +271,7 @@ def depth_at_first_frame(flow, camera: PinholeCamera, v: float, epipole, dt: flo
     sigma = flow_noise(ft, camera, epipole, window_deg=noise_window_deg)
     raw = None
     if method == "tv":
+        require_torch("TV depth")
         f = torch.as_tensor(ft.astype(np.float32), device=device)
         wts = torch.as_tensor(precision_weights(sigma).astype(np.float32), device=device) if weighted else None
         raw = depth_tv(f, camera, v, epipole, init=init, config=cfg, weights=wts)
@@ -445,20 +446,22 @@ class _FrameReader:
 
 
 class torch_threads:
-    """Context: torch CPU threads set to ``n`` (0: unchanged), restored on exit."""
+    """Context: torch CPU threads set to ``n`` (0: unchanged), restored on exit; nothing without torch
+    (then only the ratio and parallax methods run, on numpy)."""
 
     def __init__(self, n: int):
-        self.n, self.old = int(n), None
+        self.n, self.old, self.torch = int(n), None, None
 
     def __enter__(self):
-        if self.n > 0:
-            self.old = torch.get_num_threads()
-            torch.set_num_threads(self.n)
+        self.torch = optional_torch() if self.n > 0 else None
+        if self.torch is not None:
+            self.old = self.torch.get_num_threads()
+            self.torch.set_num_threads(self.n)
         return self
 
     def __exit__(self, *exc):
         if self.old is not None:
-            torch.set_num_threads(self.old)
+            self.torch.set_num_threads(self.old)
         return False
 
 
@@ -593,7 +596,7 @@ def _build_dataset(records: list[dict], labels, ring_lo, ring_hi, H: int, W: int
     data = dict(
         depth=(("time", "y", "x"), np.stack([r["depth"] for r in records]),
                {"units": "m", "long_name": "forward depth at the pair's first frame (NaN: invalid)"}),
-        valid=(("time", "y", "x"), np.stack([r["valid"] for r in records]), {"long_name": "depth is an estimate"}),
+        valid=(("time", "y", "x"), np.stack([r["valid"] for r in records]), {"units": "1", "long_name": "depth is an estimate"}),
         v_used=("time", [r["v_used"] for r in records],
                 {"units": "m/s", "long_name": "forward velocity used (mean over the pair)"}),
         v_hat=("time", [r["v_hat"] for r in records], {"units": "m/s", "long_name": "v̂ of the pair"}),
@@ -607,16 +610,16 @@ def _build_dataset(records: list[dict], labels, ring_lo, ring_hi, H: int, W: int
         epipole_y=("time", [r["e"][1] for r in records],
                    {"units": "1", "long_name": "epipole seen at the pair's first frame, normalised y"}),
         ranged=("time", np.array([r["ranged"] for r in records], bool),
-                {"long_name": "velocity usable (finite, |v| ≥ min_speed_m_s) and metric: map solved"}),
+                {"units": "1", "long_name": "velocity usable (finite, |v| ≥ min_speed_m_s) and metric: map solved"}),
         metric=("time", np.array([r["metric"] for r in records], bool),
-                {"long_name": "the map's scale is known: scale_rel_std ≤ max_scale_rel_std (else the map is "
+                {"units": "1", "long_name": "the map's scale is known: scale_rel_std ≤ max_scale_rel_std (else the map is "
                  "unobservable: all NaN)"}),
         solve_ms=("time", [r["solve_ms"] for r in records],
                   {"units": "ms", "long_name": "depth solver time for this map (NaN: not solved)"}),
         iterations=("time", np.array([r["iterations"] for r in records], np.int32),
-                    {"long_name": "TV iterations at full resolution (−1: none)"}),
+                    {"units": "1", "long_name": "TV iterations at full resolution (−1: none)"}),
         has_true_depth=("time", np.array([r["scores"] is not None for r in records], bool),
-                        {"long_name": "exact depth exists for this frame"}),
+                        {"units": "1", "long_name": "exact depth exists for this frame"}),
     )
     if has_truth_v:
         data["v_true"] = ("time", [r["v_true"] for r in records],
@@ -630,11 +633,14 @@ def _build_dataset(records: list[dict], labels, ring_lo, ring_hi, H: int, W: int
     coords = dict(
         time=("time", [r["t0"] for r in records], {"units": "s", "long_name": "time of the pair's first frame"}),
         frame=("time", np.array([r["frame"] for r in records], np.int64),
-               {"long_name": "index of the pair's first frame (depth/NNNNNN.npy)"}),
+               {"units": "1", "long_name": "index of the pair's first frame (depth/NNNNNN.npy)"}),
         t1=("time", [r["t1"] for r in records], {"units": "s", "long_name": "time of the pair's second frame"}),
-        y=("y", np.arange(H), {"units": "pixel"}), x=("x", np.arange(W), {"units": "pixel"}),
+        y=("y", np.arange(H), {"units": "1", "long_name": "image row (pixel index, down)"}),
+        x=("x", np.arange(W), {"units": "1", "long_name": "image column (pixel index, right)"}),
         ring=("ring", labels, {"long_name": "band of angle from the epipole (deg); 'all' = whole image"}),
-        ring_lo_deg=("ring", ring_lo, {"units": "deg"}), ring_hi_deg=("ring", ring_hi, {"units": "deg"}),
+        ring_lo_deg=("ring", ring_lo, {"units": "degree", "long_name": "ring's lower angle from the epipole"}),
+        ring_hi_deg=("ring", ring_hi, {"units": "degree", "long_name": "ring's upper angle from the epipole "
+                                                                      "(exclusive)"}),
     )
     return xr.Dataset(data, coords=coords)
 

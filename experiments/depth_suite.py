@@ -55,7 +55,6 @@ settings match).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import shutil
@@ -271,14 +270,19 @@ def collect(records: list[dict], families, seeds, attrs: dict):
             arr[i, j, SOURCES.index(s), METHODS.index(m)] = _metric_values(res)
     ds = xr.Dataset(
         dict(score=(("family", "seed", "source", "estimator", "metric"), arr,
-                    {"long_name": "depth scores pooled over each scene's maps (ring 'all')"}),
+                    {"units": "1", "long_name": "depth scores pooled over each scene's maps (ring 'all'; "
+                                                "every metric a ratio, fraction or count)"}),
              v_hat_rmse=(("family", "seed"), _per_scene(records, families, seeds, "v_hat_rmse"),
                          {"units": "m/s", "long_name": "RMSE of v̂ (default velocity pipeline) after the skip"}),
              v_hat_rmse_medium=(("family", "seed"), _per_scene(records, families, seeds, "v_hat_rmse_medium"),
                                 {"units": "m/s", "long_name": "RMSE of v̂ (DIS medium) after the skip"})),
-        coords=dict(family=list(families), seed=list(seeds), source=list(SOURCES), estimator=list(METHODS),
-                    metric=list(METRICS),
-                    metric_description=("metric", [METRIC_DOC[k] for k in METRICS])))
+        coords=dict(family=("family", list(families), {"long_name": "scene family"}),
+                    seed=("seed", list(seeds), {"units": "1", "long_name": "scene seed"}),
+                    source=("source", list(SOURCES), {"long_name": "forward speed the depth is ranged with"}),
+                    estimator=("estimator", list(METHODS), {"long_name": "depth estimator"}),
+                    metric=("metric", list(METRICS), {"long_name": "depth metric"}),
+                    metric_description=("metric", [METRIC_DOC[k] for k in METRICS],
+                                        {"long_name": "what the metric is"})))
     ds.attrs.update(attrs)
     return ds
 
@@ -493,48 +497,12 @@ def run_depth_suite(args) -> int:
     return 0
 
 
-def _add_options(p: argparse.ArgumentParser) -> None:
-    from .suite import FAMILIES
+def add_parser(subparsers):
+    """Register ``lobula depth-suite`` on an argparse subparsers object; returns the parser. The options are
+    :func:`experiments.parsers.add_depth_suite_parser`'s, built without importing this module."""
+    from .parsers import add_depth_suite_parser
 
-    p.add_argument("--out", required=True, help="output folder (scenes are kept there and reused)")
-    p.add_argument("--families", default="all", help=f"comma-separated, or 'all': {', '.join(FAMILIES)}")
-    p.add_argument("--seeds", default="3", help="seeds per family: a count N (seeds 0..N-1, the reported ones) or a "
-                                                "comma-separated list (e.g. 100,101: development seeds; 7, for seed 7 alone)")
-    p.add_argument("--duration", type=float, default=6.0,
-                   help="seconds per scene (the velocity suite renders 10 s at --scale 0.5)")
-    p.add_argument("--skip", type=float, default=2.0,
-                   help="pairs starting in the first SKIP seconds are not scored (the velocity readout locks on "
-                        "then; the velocity suite skips the same)")
-    p.add_argument("--scale", type=float, default=0.25,
-                   help="camera scale of the D435i's 640x480 (0.25: 160x120; 0.5: 320x240, the velocity suite's)")
-    p.add_argument("--every", type=int, default=5, help="exact depth (and a scored map) every N frames")
-    p.add_argument("--max-range", type=float, default=DepthRunConfig().max_range_m,
-                   help="score pixels whose exact depth is within this range (m)")
-    p.add_argument("--max-scale-rel-std", type=float, default=DepthRunConfig().max_scale_rel_std,
-                   help="maps whose speed has v_std/|v| above this have no known metric scale: unobservable, as "
-                        "`lobula depth` reports them (the table also gives every map unmasked and scale-invariant)")
-    p.add_argument("--filter", default="zero-phase", choices=["zero-phase", "causal"], help="velocity readout filter")
-    p.add_argument("--average-frames", type=int, default=None, metavar="K",
-                   help="depth flow: each image the mean of frames i-K..i+K turned into frame i's orientation by "
-                        "the gyro (default: 2 with a gyroscope, 0 without)")
-    p.add_argument("--workers", type=int, default=1, help="scenes run in parallel (processes, one torch thread each)")
-    p.add_argument("--device", default="cpu", help="torch device of the TV solver (cpu, cuda)")
-    p.add_argument("--imu", default="realistic", choices=["ideal", "realistic"], help="synthetic IMU model")
-    p.add_argument("--imu-mount", default="rotated", choices=["camera", "rotated"], help="IMU mounting")
-    p.add_argument("--sample-map", type=int, default=6, help="which scored pair of each family's first seed "
-                                                            "the maps figure shows")
-
-
-def _description() -> str:
-    return __doc__.split("\n\n")[0] + " See the module doc for what is scored."
-
-
-def add_parser(subparsers) -> None:
-    """``lobula depth-suite``."""
-    p = subparsers.add_parser("depth-suite", help="depth on the suite's families x seeds, beside baselines",
-                              description=_description())
-    _add_options(p)
-    p.set_defaults(func=run_depth_suite)
+    return add_depth_suite_parser(subparsers)
 
 
 if __name__ == "__main__":  # ``python -m experiments.depth_suite`` is ``lobula depth-suite``

@@ -37,8 +37,8 @@ import sys
 from dataclasses import replace
 
 import numpy as np
-import torch
 
+from lobula._optional import torch
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
 from lobula.haltere import forward_acceleration, resample_to, turn_rate
 from lobula.photoreceptor import lowpass_scan, spatial_filter

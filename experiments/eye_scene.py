@@ -9,13 +9,19 @@ import time as _time
 
 def add_eye_scene_options(parser) -> None:
     """The compound-eye options of `lobula scene` (experiments.render calls this)."""
+    from .parsers import FRACTION, POSITIVE, Number
+
     parser.add_argument("--eye", default="pinhole", choices=["pinhole", "fly"],
                         help="pinhole: a camera footage folder; fly: two compound eyes' footage (ommatidia × time)")
-    parser.add_argument("--dphi", type=float, default=5.0, help="--eye fly: interommatidial angle Δφ (deg)")
-    parser.add_argument("--drho", type=float, help="--eye fly: acceptance angle Δρ (deg; default Δφ)")
-    parser.add_argument("--rate-hz", type=float, default=500.0, help="--eye fly: sampling rate of the eye (Hz)")
-    parser.add_argument("--rays", type=int, default=2, help="--eye fly: rings of acceptance rays (1: 7, 2: 19, 3: 37)")
-    parser.add_argument("--cast-rate-hz", type=float,
+    parser.add_argument("--dphi", type=Number(0.5, 30), default=5.0,
+                        help="--eye fly: interommatidial angle Δφ (deg)")
+    parser.add_argument("--drho", type=Number(0, 60, above=True),
+                        help="--eye fly: acceptance angle Δρ (deg) (default: Δφ)")
+    parser.add_argument("--rate-hz", type=Number(20, 5000), default=500.0,
+                        help="--eye fly: sampling rate of the eye (Hz)")
+    parser.add_argument("--rays", type=Number(0, 6, integer=True), default=2,
+                        help="--eye fly: rings of acceptance rays (0: 1 ray, 1: 7, 2: 19, 3: 37)")
+    parser.add_argument("--cast-rate-hz", type=POSITIVE,
                         help="--eye fly: ray-cast the world at this rate (--rate-hz divided by a whole number) and "
                              "interpolate linearly to --rate-hz (default: half of --rate-hz from 200 Hz up, which halves the "
                              "rendering; see stimuli.eye.render_eye_interpolated for why the 10 ms photoreceptors "
@@ -24,9 +30,9 @@ def add_eye_scene_options(parser) -> None:
                         help="--eye fly: none: the eyes are fixed on the body; haltere: the head counter-rotates on the "
                              "gyroscope's angular velocity (lobula.gaze: haltere-driven gaze stabilisation), and "
                              "head.csv records the head angles")
-    parser.add_argument("--gaze-gain", type=float, default=0.8,
+    parser.add_argument("--gaze-gain", type=FRACTION, default=0.8,
                         help="--eye fly --gaze haltere: fraction of the body's angular velocity the neck cancels")
-    parser.add_argument("--gaze-return", type=float, default=0.5, metavar="S",
+    parser.add_argument("--gaze-return", type=POSITIVE, default=0.5, metavar="S",
                         help="--eye fly --gaze haltere: time constant (s) with which the head relaxes back to the "
                              "body axis (lobula.gaze.GazeConfig.tau_return_s; with --gaze-gain 1 and a long return, "
                              "an ideal neck reflex)")

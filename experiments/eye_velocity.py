@@ -337,8 +337,10 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     """Velocity Dataset from an :class:`stimuli.eye.EyeFootage` (see the module docstring)."""
     from tqdm.auto import tqdm
 
+    from lobula._optional import require_torch
     from stimuli.footage import FootageError
 
+    require_torch("the compound eye's circuit")
     cfg = config or EyeVelocityConfig()
     if fo.imu is None:
         raise FootageError(f"{fo.path / 'imu.csv'}: missing; the eye's readout needs the accelerometer and gyro")
@@ -446,29 +448,37 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     keep = np.flatnonzero(f.eye == 0) if rho.shape[1] != f.n_fields else np.arange(f.n_fields)
     data = dict(
         v_hat=("time", v_hat, {"units": "m/s", "long_name": "estimated forward velocity"}),
-        observable=("time", observable, {"long_name": "velocity observable", "definition": obs_definition}),
+        observable=("time", observable, {"units": "1", "long_name": "velocity observable",
+                                          "definition": obs_definition}),
         v_std=("time", v_std, {"units": "m/s", "long_name": std_name}),
         accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": a_source}),
         r=(("time", "field"), rho, {"units": "1/s", "long_name": "LC field expansion rate v/D"}),
         r2=(("time", "field"), r2, {"units": "1/s2",
                                     "long_name": "r-squared term with the convective correction (r2_eff)"}),
-        r_dot=(("time", "field"), r_dot, {"units": "1/s2"}),
+        r_dot=(("time", "field"), r_dot, {"units": "1/s2", "long_name": "time derivative of the field rate r"}),
         haltere_gain=(("time", "field"), haltere_gain,
                       {"units": "1", "long_name": "gain at which the field subtracts the haltere's predicted turn "
                                                   "(1 + the learned α; 1: fixed; NaN: no haltere subtraction)"}),
         reliability=(("time", "field"), reliability,
-                     {"long_name": "field's causal slow-to-fast power ratio (lobula.eye_circuit.field_reliability)"}),
-        field_used=(("time", "field"), used, {"long_name": "field output passed to the readout "
+                     {"units": "1", "long_name": "field's causal slow-to-fast power ratio "
+                                                 "(lobula.eye_circuit.field_reliability)"}),
+        field_used=(("time", "field"), used, {"units": "1", "long_name": "field output passed to the readout "
                                                              f"(reliability >= {cfg.reliability_min:g})"}),
-        v_field=(("time", "field"), v_field, {"units": "m/s"}),
+        v_field=(("time", "field"), v_field, {"units": "m/s", "long_name": "per-field forward velocity "
+                                                                   "a·r/(r_dot − r2)"}),
     )
     if fo.truth is not None:
         data["v_true"] = ("time", np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"]),
                           {"units": "m/s", "long_name": "ground-truth forward velocity"})
-    coords = dict(time=("time", t, {"units": "s"}),
-                  azimuth_deg=("field", f.centres_deg[keep, 0]), elevation_deg=("field", f.centres_deg[keep, 1]),
-                  size_deg=("field", np.full(len(keep), f.size_deg)),
-                  eye=("field", np.where(f.eye[keep] == 0, "right" if len(keep) == f.n_fields else "both", "left")))
+    coords = dict(time=("time", t, {"units": "s", "long_name": "time of the LC step on the footage clock"}),
+                  azimuth_deg=("field", f.centres_deg[keep, 0],
+                               {"units": "degree", "long_name": "LC field centre azimuth"}),
+                  elevation_deg=("field", f.centres_deg[keep, 1],
+                                 {"units": "degree", "long_name": "LC field centre elevation (positive down)"}),
+                  size_deg=("field", np.full(len(keep), f.size_deg),
+                            {"units": "degree", "long_name": "LC field size (Gaussian FWHM, or box side)"}),
+                  eye=("field", np.where(f.eye[keep] == 0, "right" if len(keep) == f.n_fields else "both", "left"),
+                       {"long_name": "eye of the field (both: the mirror sum of a right-eye field and its left-eye twin)"}))
     ds = xr.Dataset(data, coords=coords)
     timings = dict(circ.timings, circuit_total=t_circ, readout=t_readout, n_ommatidia=fo.eye.n,
                    n_pairs=fo.eye.n_pairs)
@@ -567,53 +577,12 @@ def run_eye_velocity(args) -> int:
     return 0
 
 
-HALTERE_GAIN_HELP = ("with --rotation haltere or both: the prior of the gain each LC field subtracts the haltere's "
-                     "predicted turn at, before it has learned its own (lobula.eye_circuit.EyeCircuitConfig."
-                     "rotation_gain_prior): natural = the gain the EMDs read natural scenes at (natural_scene_gain, "
-                     "0.48 at Δφ = Δρ = 5° with the surround), or a number, e.g. 1 for the unit gain (the circuit "
-                     "before the thirty-third session)")
-
-
 def add_parser(subparsers):
-    """Register `lobula eye-velocity` (see experiments.cli)."""
-    v = subparsers.add_parser("eye-velocity", help="estimate forward velocity from compound-eye footage "
-                                                   "(photoreceptors, EMDs, LC fields, readout; causal)")
-    v.add_argument("footage", help="eye-footage folder from `lobula scene OUT --eye fly`")
-    v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
-    v.add_argument("--plot", help="PNG of v̂ against truth")
-    v.add_argument("--rotation", default="haltere", choices=["none", "haltere", "wide-field", "both"],
-                   help="rotation handling: gyro-driven (haltere) subtraction, left+right wide-field sums, both, none")
-    v.add_argument("--haltere-gain", metavar="natural|G", help=HALTERE_GAIN_HELP + " (default: natural)")
-    v.add_argument("--mean-removal", default="space", choices=sorted(MEAN_REMOVAL),
-                   help="how the columns remove the mean luminance before the EMDs: space = the LMCs' lateral "
-                        "inhibition, x − the six neighbours' mean (EyeCircuitConfig.surround 1, no temporal "
-                        "high-pass); time = an LMC-like 0.25 s temporal high-pass, no surround (the circuit "
-                        "before the surround: its memory drifts the fields' gains after each change of speed)")
-    v.add_argument("--field-size", type=float, default=30.0, help="LC field FWHM (deg)")
-    v.add_argument("--tau", type=float, default=0.035, help="EMD delay time constant (s)")
-    v.add_argument("--filter", default="causal", choices=["causal", "zero-phase"], help="readout filter kind")
-    v.add_argument("--accel-from-truth", action="store_true",
-                   help="forward acceleration from truth.csv instead of the accelerometer")
-    v.add_argument("--accel-scale-error", type=float, metavar="FRACTION",
-                   help="the accelerometer's scale-factor error (1σ fraction) the kalman/spikes readouts add to "
-                        "v_std as FRACTION·|v̂| (lobula.readout.ReadoutConfig.accel_scale_error; default 0.01)")
-    v.add_argument("--readout", default="kalman", choices=["kalman", "spikes", "neuron", "neuron-rate"],
-                   help="kalman: the arithmetic readout (lobula.readout, rates); spikes: its v̂ carried by 10 "
-                        "push-pull spiking output neuron pairs, decoded causally; neuron: the shunting readout "
-                        "neuron (lobula.readout_neuron) with spikes; neuron-rate: its rates")
-    v.add_argument("--seed", type=int, help="seed of the readout neuron's spikes (default 0)")
-    v.add_argument("--spike-model", choices=sorted(SPIKE_MODELS),
-                   help="how the output neurons spike with --readout spikes or neuron (default lif: leaky "
-                        "integrate-and-fire with membrane noise; poisson: Poisson trains)")
-    v.add_argument("--membrane-noise", type=float, metavar="MV",
-                   help="the LIF output neurons' free-membrane noise SD in mV (default 1.0)")
-    v.add_argument("--uncertainty", default="halves", choices=["halves", "posterior"],
-                   help="v_std of the kalman/spikes readouts: halves = the posterior std with the field halves' "
-                        "disagreement and the EMD gain error added; posterior = the readout's posterior std alone")
-    v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
-    v.add_argument("--quiet", action="store_true", help="no progress bar (default: False)")
-    v.set_defaults(func=run_eye_velocity)
+    """Register ``lobula eye-velocity`` on an argparse subparsers object; returns the parser. The options are
+    :func:`experiments.parsers.add_eye_velocity_parser`'s, built without importing this module."""
+    from .parsers import add_eye_velocity_parser
 
+    return add_eye_velocity_parser(subparsers)
 
 
 # ---------------------------------------------------------------------- figure

@@ -80,13 +80,13 @@ def _save_record(name, out: Path, record: dict):
 def make_replay(out: Path, start_s: float, duration_s: float, seed: int, progress: bool) -> tuple[Path, str]:
     """Render (once; cached) the replay the figures share; returns its folder and a label of its profile."""
     from stimuli.scene import SceneConfig
-    from stimuli.track import REAL_PROFILE, TrackRunConfig, make_track_run
+    from stimuli.track import TrackRunConfig, make_track_run, recorded_profile
 
-    real = REAL_PROFILE.exists()
+    real = recorded_profile()
     label = "real FLIVVER trajectory (velocity.csv)" if real else "built-in profile (../shared absent)"
     folder = out / f"replay_{'real' if real else 'builtin'}_{start_s:g}_{duration_s:g}_seed{seed}"
     if not (folder / "frames.csv").exists():
-        cfg = TrackRunConfig(profile=str(REAL_PROFILE) if real else None, start_s=start_s, duration_s=duration_s,
+        cfg = TrackRunConfig(profile=str(real) if real else None, start_s=start_s, duration_s=duration_s,
                              scale=0.5, scene=SceneConfig(seed=seed))
         make_track_run(folder, cfg, progress=progress)
     return folder, label
@@ -304,18 +304,11 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
 
 
 def add_parser(subparsers):
-    f = subparsers.add_parser("figures", help="make the hypothesis figures (PNG + JSON with command and config)")
-    f.add_argument("--out", default="figures", help="output folder (default figures/)")
-    f.add_argument("--only", nargs="+", choices=FIGURES + EXTRA_FIGURES,
-                   help="make only these figures (default: all but eye_rmse, eye_rate_vs_spiking, "
-                        "eye_rmse_vs_dphi_fov and emd_gaze, which render their own worlds and are made only when named)")
-    f.add_argument("--start", type=float, default=5.0, help="replay window start in the real trajectory (s)")
-    f.add_argument("--duration", type=float, default=25.0, help="replay duration (s)")
-    f.add_argument("--seed", type=int, default=0, help="scene, IMU and spike seed")
-    f.add_argument("--quick", action="store_true", help="coarse grids (for tests)")
-    f.add_argument("--quiet", action="store_true")
-    f.set_defaults(func=main)
-    return f
+    """Register ``lobula figures`` on an argparse subparsers object; returns the parser. The options are
+    :func:`experiments.parsers.add_figures_parser`'s, built without importing this module."""
+    from .parsers import add_figures_parser
+
+    return add_figures_parser(subparsers)
 
 
 def main(args) -> int:

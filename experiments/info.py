@@ -15,20 +15,11 @@ import numpy as np
 
 
 def add_footage_options(p) -> None:
-    """The reader options (stream, clock, bad frames, clock offset, undistortion) on a subcommand parser."""
-    p.add_argument("--stream", default=None,
-                   help="RealSense .bag/.db3: image stream to read, e.g. Color_0 or Infrared_1 (default: colour, "
-                        "else infrared)")
-    p.add_argument("--clock", default="device", choices=["device", "header", "record"],
-                   help="RealSense .bag/.db3: frame and IMU times from the device's time stamps, the message "
-                        "header stamps, or the bag's record times")
-    p.add_argument("--skip-bad-frames", action="store_true",
-                   help="leave out frames that cannot be decoded (counted in the output's attrs) instead of stopping")
-    p.add_argument("--clock-offset", default=None, metavar="S|auto",
-                   help="seconds added to the IMU's times to put them on the camera's clock, or 'auto' to "
-                        "estimate it by cross-correlating the gyro with the image rotation (default: none)")
-    p.add_argument("--undistort", default="same-k", choices=["same-k", "optimal"],
-                   help="EuRoC: undistort onto the same pinhole K, or onto OpenCV's optimal new K")
+    """The reader options (stream, clock, bad frames, clock offset, undistortion) on a subcommand parser
+    (:func:`experiments.parsers.add_footage_options`)."""
+    from .parsers import add_footage_options
+
+    add_footage_options(p)
 
 
 def open_footage_from_args(args, require_imu: bool = True):

@@ -6,12 +6,12 @@ def scene_config_from_args(args):
     """The stimuli.track.TrackRunConfig that `lobula scene`'s options describe."""
     from stimuli.imu import IMUConfig
     from stimuli.scene import SceneConfig
-    from stimuli.track import REAL_PROFILE, TrackRunConfig
+    from stimuli.track import TrackRunConfig, recorded_profile
 
     profile = args.profile
     if (profile is None and not args.builtin_profile and args.constant_velocity is None
-            and args.peak_speed is None and REAL_PROFILE.exists()):
-        profile = str(REAL_PROFILE)
+            and args.peak_speed is None and recorded_profile() is not None):
+        profile = str(recorded_profile())
     mipmap = {"auto": None, "on": True, "off": False}[args.mipmap]
     scene = SceneConfig(seed=args.seed, world=args.world, off_axis_yaw_deg=args.off_axis_yaw,
                         off_axis_pitch_deg=args.off_axis_pitch, rotation_amp_deg=args.rotation,
@@ -46,46 +46,49 @@ def run_scene(args) -> int:
 
 def add_parser(subparsers):
     """Register `lobula scene` (see experiments.cli)."""
+    from .parsers import FINITE, FRACTION, INDEX, NONNEGATIVE, POSITIVE, Number
+
     s = subparsers.add_parser("scene", help="render a synthetic track run (footage folder with exact truth)")
     s.add_argument("out", help="output footage folder (must not exist or be empty)")
     s.add_argument("--world", default="panels", choices=["panels", "corridor", "ground"],
                    help="panels: frontal textured panels, backdrop, floor; corridor: floor, ceiling, side walls "
                         "and end wall; ground: ground plane to the horizon, objects, a backdrop 50-200 m away, sky")
-    s.add_argument("--profile", help="velocity CSV (time_s, v_true_m_s); default: the real FLIVVER run if "
-                                     "../shared is present, else a built-in profile")
+    s.add_argument("--profile", help="velocity CSV (time_s, v_true_m_s) (default: the real FLIVVER run if "
+                                     "../shared is present, else a built-in profile)")
     s.add_argument("--builtin-profile", action="store_true", help="use the built-in profile")
-    s.add_argument("--constant-velocity", type=float, help="constant forward velocity (m/s) instead of a profile")
-    s.add_argument("--peak-speed", type=float,
-                   help="a seeded random smooth profile with this peak |v| (m/s) instead of a CSV profile")
+    s.add_argument("--constant-velocity", type=FINITE,
+                   help="constant forward velocity (m/s) instead of a profile (default: none, the profile)")
+    s.add_argument("--peak-speed", type=POSITIVE,
+                   help="a seeded random smooth profile with this peak |v| (m/s) instead of a CSV profile "
+                        "(default: none, the profile)")
     s.add_argument("--profile-start", default="rest", choices=["rest", "motion"],
                    help="with --peak-speed: start at rest (1 s still, then easing in) or in motion")
-    s.add_argument("--speed-scale", type=float, default=1.0, help="multiply the profile's velocity by this")
-    s.add_argument("--start", type=float, default=0.0, help="window start in the profile (s)")
-    s.add_argument("--duration", type=float, default=30.0, help="duration (s)")
-    s.add_argument("--scale", type=float, default=0.5, help="image scale of the D435i camera (0.5 = 320x240)")
-    s.add_argument("--camera", help="camera.json with other intrinsics")
-    s.add_argument("--seed", type=int, default=0, help="seeds layout, textures, rotation, profile, noise and IMU")
-    s.add_argument("--off-axis-yaw", type=float, default=0.0, help="angle between optical axis and motion (deg)")
-    s.add_argument("--off-axis-pitch", type=float, default=0.0, help="vertical off-axis angle (deg)")
-    s.add_argument("--rotation", type=float, default=0.0, help="yaw/pitch oscillation amplitude (deg)")
-    s.add_argument("--rotation3", type=float, nargs=3, default=[0.0, 0.0, 0.0], metavar=("YAW", "PITCH", "ROLL"),
+    s.add_argument("--speed-scale", type=POSITIVE, default=1.0, help="multiply the profile's velocity by this")
+    s.add_argument("--start", type=NONNEGATIVE, default=0.0, help="window start in the profile (s)")
+    s.add_argument("--duration", type=POSITIVE, default=30.0, help="duration (s)")
+    s.add_argument("--scale", type=POSITIVE, default=0.5, help="image scale of the D435i camera (0.5 = 320x240)")
+    s.add_argument("--camera", help="camera.json with other intrinsics (default: the D435i's)")
+    s.add_argument("--seed", type=INDEX, default=0, help="seeds layout, textures, rotation, profile, noise and IMU")
+    s.add_argument("--off-axis-yaw", type=FINITE, default=0.0, help="angle between optical axis and motion (deg)")
+    s.add_argument("--off-axis-pitch", type=FINITE, default=0.0, help="vertical off-axis angle (deg)")
+    s.add_argument("--rotation", type=NONNEGATIVE, default=0.0, help="yaw/pitch oscillation amplitude (deg)")
+    s.add_argument("--rotation3", type=NONNEGATIVE, nargs=3, default=[0.0, 0.0, 0.0], metavar=("YAW", "PITCH", "ROLL"),
                    help="peak amplitudes (deg) of a seeded 3-axis rotation, several incommensurate sinusoids each")
-    s.add_argument("--rotation3-band", type=float, nargs=2, default=[0.3, 1.5], metavar=("LO", "HI"),
-                   help="frequency band (Hz) of the 3-axis rotation's components")
-    s.add_argument("--noise", type=float, default=1.0, help="pixel noise std (grey levels)")
-    s.add_argument("--brightness", type=float, default=1.0, help="luminance gain (< 1: a dim scene)")
-    s.add_argument("--contrast", type=float, default=1.0, help="texture contrast gain (< 1: low contrast)")
-    s.add_argument("--sky", type=float, help="luminance (0..1) where no surface is hit (default: 0.8 for the "
+    s.add_argument("--rotation3-band", type=POSITIVE, nargs=2, default=[0.3, 1.5], metavar=("LO", "HI"),
+                   help="frequency band (Hz) of the 3-axis rotation's components, LO ≤ HI")
+    s.add_argument("--noise", type=NONNEGATIVE, default=1.0, help="pixel noise std (grey levels)")
+    s.add_argument("--brightness", type=POSITIVE, default=1.0, help="luminance gain (< 1: a dim scene)")
+    s.add_argument("--contrast", type=NONNEGATIVE, default=1.0, help="texture contrast gain (< 1: low contrast)")
+    s.add_argument("--sky", type=FRACTION, help="luminance (0..1) where no surface is hit (default: 0.8 for the "
                                             "ground world, else 0)")
     s.add_argument("--mipmap", default="auto", choices=["auto", "on", "off"],
                    help="texture mip-mapping by ray footprint (auto: on for corridor and ground)")
-    s.add_argument("--exposure", type=float, default=0.0, help="motion-blur exposure (s)")
-    s.add_argument("--panels", type=int, default=10, help="number of frontal panels (panels world)")
+    s.add_argument("--exposure", type=NONNEGATIVE, default=0.0, help="motion-blur exposure (s)")
+    s.add_argument("--panels", type=Number(1, integer=True), default=10, help="number of frontal panels (panels world)")
     s.add_argument("--no-floor", action="store_true", help="no floor (panels world)")
     s.add_argument("--side-walls", action="store_true", help="add side walls (panels world)")
     # Realistic by default: a constant bias that a whole-record mean removes exactly would let
-    # an estimator work only because the IMU is too kind (issue 10); ideal stays for checks
-    # that need known biases.
+    # an estimator work only because the IMU is too kind; ideal stays for checks that need known biases.
     s.add_argument("--imu", default="realistic", choices=["ideal", "realistic"],
                    help="IMU errors: realistic (BMI055-like bias random walk, scale-factor and misalignment "
                         "errors; see stimuli.imu) or ideal (constant bias + white noise)")
@@ -93,5 +96,5 @@ def add_parser(subparsers):
                    help="camera: imu.csv in the camera frame; rotated: IMU x forward/y left/z up plus a seeded "
                         "~1° mount error, imu.csv in the IMU frame and camera.json gets imu_to_camera")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
-    __import__("experiments.eye_scene").eye_scene.add_eye_scene_options(s)  # --eye fly (issue 11)
+    __import__("experiments.eye_scene").eye_scene.add_eye_scene_options(s)  # --eye fly
     s.set_defaults(func=run_scene)

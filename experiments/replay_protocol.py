@@ -75,7 +75,7 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
     field_size_deg: the LC fields' size (degree); None keeps the velocity pipeline's
     defaults. record: names from :data:`REPLAY_RECORDS` (default: all).
     """
-    import torch
+    from lobula._optional import torch
 
     from experiments.ephys.rig import cf_describe, recording_attrs
     from experiments.velocity import estimate_velocity

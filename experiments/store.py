@@ -2,13 +2,19 @@
 
 A crash or a bad input mid-run leaves no file under the final name, so nothing
 half-written ever looks complete.
+
+Every NetCDF (and Zarr) store the project writes follows the CF-1.10 conventions: the
+writers here set ``Conventions`` and walk each variable and coordinate with
+:func:`cf_problems` (a ``long_name`` on all, UDUNITS ``units`` on the numeric ones).
 """
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -64,10 +70,137 @@ def compressed_encoding(ds: xr.Dataset, level: int = 4, min_size: int = 1024) ->
     return enc
 
 
+# ----------------------------------------------------------------------------- CF metadata
+#: the CF version every output declares in its ``Conventions`` attribute
+CF_CONVENTIONS = "CF-1.10"
+#: environment variable: when set (not "", "0", "false", "no"), an output with CF problems raises
+#: instead of warning; the test suite sets it (tests/conftest.py), so every file a test writes is walked
+STRICT_CF_ENV = "LOBULA_STRICT_CF"
+
+# The UDUNITS-2 names the outputs use (a subset of its database; each checked against UDUNITS-2
+# itself). SI symbols take an SI prefix ("ms", "km"); the others are whole names.
+_SI_SYMBOLS = {"m", "s", "g", "rad", "sr", "Hz", "K", "N", "J", "W", "Pa", "V", "A", "C", "mol", "cd", "lm", "lx",
+               "meter", "metre", "second", "radian", "hertz"}
+_WHOLE_UNITS = {"1", "degree", "degrees", "arcdeg", "arc_degree", "degrees_north", "degrees_east", "degree_C",
+                "percent", "count", "min", "h", "day"}
+_SI_PREFIXES = ("da", "Y", "Z", "E", "P", "T", "G", "M", "k", "h", "d", "c", "m", "u", "µ", "n", "p", "f", "a", "z", "y")
+_UNIT_TOKEN = re.compile(r"\s*(?:(?P<num>[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?)"
+                         r"|(?P<sym>[A-Za-zµ_]+)(?:\^?(?P<exp>[-+]?\d+))?|(?P<op>[./*·]))\s*")
+
+
+def _known_unit(symbol: str) -> bool:
+    if symbol in _SI_SYMBOLS or symbol in _WHOLE_UNITS:
+        return True
+    return any(symbol.startswith(p) and symbol[len(p):] in _SI_SYMBOLS for p in _SI_PREFIXES)
+
+
+def units_problem(units) -> str | None:
+    """Why ``units`` is not a UDUNITS-2 string the project uses, or None when it is.
+
+    Accepts products, quotients and powers of known names (``"m/s"``, ``"m s-1"``,
+    ``"1/s2"``, ``"rad s-1"``, ``"ms"``, ``"degree"``, ``"1"``); rejects what UDUNITS
+    cannot parse ("deg", "pixel", "px") and empty strings.
+    """
+    if not isinstance(units, str) or not units.strip():
+        return f"units {units!r} is not a non-empty string"
+    pos, text = 0, units.strip()
+    while pos < len(text):
+        m = _UNIT_TOKEN.match(text, pos)
+        if m is None or m.end() == pos:
+            return f"units {units!r}: cannot parse {text[pos:]!r}"
+        if m.group("sym") and not _known_unit(m.group("sym")):
+            return f"units {units!r}: {m.group('sym')!r} is not a UDUNITS unit"
+        pos = m.end()
+    return None
+
+
+def cf_problems(ds: xr.Dataset) -> list[str]:
+    """What keeps ``ds`` from being self-describing CF-1.10 (empty list: nothing).
+
+    Checked: the Dataset's ``Conventions`` names CF; every variable and coordinate has a
+    non-empty ``long_name``; every numeric or boolean one has ``units`` that UDUNITS-2
+    parses (:func:`units_problem`; "1" for dimensionless numbers, counts, indices and
+    booleans), or, for a flag, ``flag_values`` with ``flag_meanings``. Strings need no
+    units; datetimes and timedeltas take theirs from xarray's encoding.
+
+    A stack of metrics in different units along one dimension (``lobula suite``'s
+    ``value``) has no single CF ``units``: it names instead, in ``units_coordinate``, a
+    string coordinate along one of its dimensions holding each element's units, each of
+    which must parse.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        the Dataset as it is to be written.
+
+    Returns
+    -------
+    list of str
+        one sentence per problem, naming the variable.
+    """
+    problems = []
+    conventions = ds.attrs.get("Conventions")
+    if not (isinstance(conventions, str) and conventions.startswith("CF-")):
+        problems.append(f"Dataset: no Conventions attribute naming CF (want {CF_CONVENTIONS!r})")
+    for name, var in ds.variables.items():
+        what = f"{'coordinate' if name in ds.coords else 'variable'} {name!r}"
+        long_name = var.attrs.get("long_name")
+        if not (isinstance(long_name, str) and long_name.strip()):
+            problems.append(f"{what}: no long_name")
+        if var.dtype.kind in "biufc":
+            if "units" in var.attrs:
+                why = units_problem(var.attrs["units"])
+                if why:
+                    problems.append(f"{what}: {why}")
+            elif "units_coordinate" in var.attrs:
+                per = ds.variables.get(var.attrs["units_coordinate"])
+                if per is None or per.ndim != 1 or per.dims[0] not in var.dims or per.dtype.kind not in "OUS":
+                    problems.append(f"{what}: units_coordinate {var.attrs['units_coordinate']!r} is not a string "
+                                    f"coordinate along one of its dimensions {var.dims}")
+                else:
+                    problems += [f"{what}: {why}" for why in map(units_problem, per.values.tolist()) if why]
+            elif not {"flag_values", "flag_meanings"} <= set(var.attrs):
+                problems.append(f"{what}: no units (\"1\" if dimensionless; flag_values and flag_meanings for a flag)")
+    return problems
+
+
+def strict_cf() -> bool:
+    """Whether :data:`STRICT_CF_ENV` asks outputs with CF problems to raise."""
+    return os.environ.get(STRICT_CF_ENV, "").strip().lower() not in ("", "0", "false", "no")
+
+
+def cf_ready(ds: xr.Dataset, path: str | Path) -> xr.Dataset:
+    """``ds`` (a shallow copy) with ``Conventions`` set to :data:`CF_CONVENTIONS`, checked by :func:`cf_problems`.
+
+    Problems raise ValueError when :func:`strict_cf` (the test suite), else they warn
+    (UserWarning) and the file is written anyway: incomplete metadata never costs a user
+    a run's results.
+    """
+    ds = ds.assign_attrs(Conventions=CF_CONVENTIONS)
+    problems = cf_problems(ds)
+    if problems:
+        msg = f"{path}: metadata not CF-1.10 (describe these where the Dataset is built): " + "; ".join(problems)
+        if strict_cf():
+            raise ValueError(msg)
+        warnings.warn(msg, UserWarning, stacklevel=3)
+    return ds
+
+
 def write_netcdf(ds: xr.Dataset, path: str | Path) -> Path:
-    """Write ``ds`` to NetCDF (h5netcdf engine) atomically, numeric variables deflated (:func:`compressed_encoding`)."""
+    """Write ``ds`` to NetCDF (h5netcdf engine) atomically, numeric variables deflated (:func:`compressed_encoding`).
+
+    The file declares ``Conventions = "CF-1.10"``; its variables and coordinates are walked
+    by :func:`cf_problems` first (:func:`cf_ready`: a warning, or with ``LOBULA_STRICT_CF=1``
+    a ValueError and no file). ``ds`` itself is not modified.
+    """
+    ds = cf_ready(ds, path)
+    enc = compressed_encoding(ds)
+    for name in ds.dims:
+        # CF: coordinate variables have no missing values, so they carry no _FillValue either.
+        if name in ds.variables and ds[name].dtype.kind == "f" and "_FillValue" not in ds[name].encoding:
+            enc.setdefault(name, {})["_FillValue"] = None
     with atomic_path(path) as tmp:
-        ds.to_netcdf(tmp, engine="h5netcdf", encoding=compressed_encoding(ds))
+        ds.to_netcdf(tmp, engine="h5netcdf", encoding=enc)
     return Path(path)
 
 
@@ -184,7 +317,10 @@ class ZarrSink:
                 xr.Dataset(extra_vars).to_zarr(self.tmp, mode="a", consolidated=False, **ZARR_KW)
             g = zarr.open_group(str(self.tmp), mode="r+")
             g.attrs.update({k: v for k, v in attrs.items()})
+            g.attrs["Conventions"] = CF_CONVENTIONS
             zarr.consolidate_metadata(str(self.tmp))
+            with xr.open_zarr(self.tmp, decode_times=False, decode_timedelta=False) as done:
+                cf_ready(done, self.out)
             trash = None
             if self.out.exists():
                 trash = self.out.parent / f".{self.out.name}.old-{os.getpid()}"

@@ -41,11 +41,21 @@ from pathlib import Path
 
 import numpy as np
 
-from .store import seed_summary
+
+def seed_summary(values, name: str) -> dict:
+    """:func:`experiments.store.seed_summary`, imported on first use: building `lobula suite`'s parser imports this
+    module, and that must not load xarray."""
+    from .store import seed_summary as summary
+
+    return summary(values, name)
+
 
 #: window name -> description
 WINDOWS = ("after_skip", "first_2s")
 METRICS = ("rmse_m_s", "median_abs_error_m_s", "coverage_2sigma", "z95", "observable_fraction", "lock_on_s")
+#: each metric's units (suite.nc's ``metric_units``)
+METRIC_UNITS = dict(rmse_m_s="m/s", median_abs_error_m_s="m/s", coverage_2sigma="1", z95="1",
+                    observable_fraction="1", lock_on_s="s")
 #: z95 where a Gaussian error's ±2σ coverage is 99 % and 85 % (1.96·2/z₀.₉₉₅, 1.96·2/z₀.₉₂₅): the suite figure's band
 Z95_TARGET = (1.52, 2.72)
 
@@ -106,7 +116,7 @@ def family_config(family: str, seed: int, duration_s: float, scale: float, imu: 
     """The stimuli.track.TrackRunConfig of one family's seed (all randomness from the seed)."""
     from stimuli.imu import IMUConfig
     from stimuli.scene import SceneConfig
-    from stimuli.track import REAL_PROFILE, TrackRunConfig
+    from stimuli.track import TrackRunConfig, recorded_profile
 
     if family not in FAMILIES:
         raise ValueError(f"unknown family {family!r}; choose from {', '.join(FAMILIES)}")
@@ -114,12 +124,12 @@ def family_config(family: str, seed: int, duration_s: float, scale: float, imu: 
     rng = np.random.default_rng([s, 9])
     scene = dict(seed=s)
     run = dict(duration_s=duration_s, scale=scale)
-    real = REAL_PROFILE.exists()
+    real = recorded_profile()
 
     def real_window():
         # A window of the real run (or the built-in profile) starting anywhere after its first rest.
         if real:
-            run.update(profile=str(REAL_PROFILE), start_s=float(rng.uniform(4.0, 77.5 - duration_s)))
+            run.update(profile=str(real), start_s=float(rng.uniform(4.0, 77.5 - duration_s)))
         else:
             run.update(start_s=float(rng.uniform(3.0, 40.0)))
 
@@ -372,13 +382,17 @@ def run_scene_job(job: SceneJob) -> dict:
         metrics[name] = score_series(t, v_hat, v_std, np.interp(t, tt, vt), job.skip_s)
     # Series file: every configuration on the reference times (the paper stamps pairs at their
     # first frame, so its times differ; interpolated for the file only, scored on its own).
-    data = {"v_true": ("time", v_true_ref)}
+    data = {"v_true": ("time", v_true_ref, {"units": "m/s", "long_name": "ground-truth forward velocity"})}
     for name, (t, v_hat, v_std) in series.items():
         key = name.replace(" ", "_").replace("=", "-")
-        data[f"v_hat__{key}"] = ("time", np.interp(t_ref, t, v_hat, left=np.nan, right=np.nan))
+        data[f"v_hat__{key}"] = ("time", np.interp(t_ref, t, v_hat, left=np.nan, right=np.nan),
+                                 {"units": "m/s", "long_name": f"estimated forward velocity, {name} (NaN: not "
+                                                               "observable)"})
         if v_std is not None:
-            data[f"v_std__{key}"] = ("time", np.interp(t_ref, t, v_std, left=np.nan, right=np.nan))
-    ds = xr.Dataset(data, coords={"time": ("time", t_ref, {"units": "s"})},
+            data[f"v_std__{key}"] = ("time", np.interp(t_ref, t, v_std, left=np.nan, right=np.nan),
+                                     {"units": "m/s", "long_name": f"stated std of v_hat, {name}"})
+    ds = xr.Dataset(data, coords={"time": ("time", t_ref, {"units": "s", "long_name": "frame time on the "
+                                                                                      "footage clock"})},
                     attrs=dict(scene=job.name, config=json.dumps(cfg.to_dict(), default=str)))
     write_netcdf(ds, out / "series" / f"{job.name}.nc")
     res = dict(key=job.key(), family=job.family, seed=job.seed, scene_seed=cfg.scene.seed, metrics=metrics,
@@ -552,11 +566,20 @@ def collect(results, families, seeds, configurations, settings):
             errors[name] = msg
     ds = xr.Dataset(
         dict(value=(("family", "seed", "configuration", "window", "metric"), val,
-                    {"long_name": "suite metric (units in the metric's name; fractions 0..1)"}),
-             peak_speed_m_s=(("family", "seed"), peak, {"units": "m/s"})),
-        coords=dict(family=list(families), seed=np.asarray(seeds), configuration=list(configurations),
-                    window=list(WINDOWS), metric=list(METRICS),
-                    family_description=("family", [FAMILIES[f] for f in families])))
+                    {"long_name": "suite metric (units: metric_units, also in the metric's name; fractions 0..1)",
+                     "units_coordinate": "metric_units"}),
+             peak_speed_m_s=(("family", "seed"), peak,
+                             {"units": "m/s", "long_name": "peak |true forward velocity| of the scene"})),
+        coords=dict(family=("family", list(families), {"long_name": "scene family"}),
+                    seed=("seed", np.asarray(seeds), {"units": "1", "long_name": "scene seed"}),
+                    configuration=("configuration", list(configurations),
+                                   {"long_name": "estimator configuration or baseline"}),
+                    window=("window", list(WINDOWS), {"long_name": "scoring window"}),
+                    metric=("metric", list(METRICS), {"long_name": "metric"}),
+                    metric_units=("metric", [METRIC_UNITS[m] for m in METRICS],
+                                  {"long_name": "UDUNITS units of the metric's values"}),
+                    family_description=("family", [FAMILIES[f] for f in families],
+                                        {"long_name": "what the scene family is"})))
     ds.attrs.update(provenance(VelocityConfig().to_json(), suite=settings,
                                configurations={c: _what_runs(c) for c in configurations},
                                configuration_errors=errors or "none", **_eye_provenance(configurations)))
@@ -697,27 +720,30 @@ def run_suite_cli(args) -> int:
 
 def add_parser(subparsers):
     """Register `lobula suite` (see experiments.cli)."""
+    from .parsers import COUNT, NONNEGATIVE, POSITIVE, seeds
+
     s = subparsers.add_parser("suite", help="accuracy suite: scene families x seeds, all configurations, baselines",
-                              description=__doc__.split("\n\n")[0])
+                              description="The accuracy suite: scene families × seeds, every configuration, "
+                                          "beside baselines.")
     s.add_argument("--out", required=True, help="output folder (scenes, per-scene results, suite.nc, table, figure)")
     s.add_argument("--families", default="all",
                    help="comma-separated families, or all: " + "; ".join(f"{k}: {v}" for k, v in FAMILIES.items())
                    .replace("%", "%%"))
-    s.add_argument("--seeds", default="3",
+    s.add_argument("--seeds", type=seeds, default="3",
                    help="seeds per family: a count N (seeds 0..N-1) or a comma-separated list (e.g. 100,101 "
                         "for development seeds that the reported 0..N-1 never see; 7, for seed 7 alone)")
-    s.add_argument("--duration", type=float, default=10.0, help="seconds per scene")
-    s.add_argument("--scale", type=float, default=0.5,
+    s.add_argument("--duration", type=POSITIVE, default=10.0, help="seconds per scene")
+    s.add_argument("--scale", type=POSITIVE, default=0.5,
                    help="image scale of the D435i camera (0.5 = 320x240; at 0.25 = 160x120 DIS resolves "
                         "the corridor and fast turns poorly)")
     s.add_argument("--configurations", default="all",
                    help="comma-separated, or all: " + ", ".join([*CONFIGURATIONS, *BASELINES])
                    + "; named only (the fly's eye on the same worlds, rendered again onto the eye, CPU-minutes "
                    "per scene): " + ", ".join(EYE_CONFIGURATIONS))
-    s.add_argument("--skip", type=float, default=2.0, help="seconds left out at the start for the after-skip window")
+    s.add_argument("--skip", type=NONNEGATIVE, default=2.0, help="seconds left out at the start for the after-skip window")
     s.add_argument("--imu", default="realistic", choices=["ideal", "realistic"], help="IMU error model")
     s.add_argument("--imu-mount", default="rotated", choices=["camera", "rotated"],
                    help="IMU axes: rotated (imu.csv in the IMU frame, camera.json imu_to_camera) or camera")
-    s.add_argument("--workers", type=int, default=1, help="scenes run in parallel (processes)")
+    s.add_argument("--workers", type=COUNT, default=1, help="scenes run in parallel (processes)")
     s.add_argument("--quiet", action="store_true", help="no progress lines")
     s.set_defaults(func=run_suite_cli)

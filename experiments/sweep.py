@@ -88,7 +88,7 @@ import xarray as xr
 from lobula import __version__
 from lobula.config import VelocityConfig
 from stimuli.footage import FootageError
-from stimuli.track import REAL_PROFILE, TrackRunConfig
+from stimuli.track import TrackRunConfig, recorded_profile
 
 from .compare import LOCK_HOLD_S, LOCK_TOL_M_S, METRIC_ATTRS, METRICS
 from .store import provenance
@@ -177,9 +177,13 @@ class SweepSpec:
 def _limit_threads(threads: int):
     if threads and threads > 0:
         import cv2
-        import torch
+
+        from lobula._optional import optional_torch
+
         cv2.setNumThreads(threads)
-        torch.set_num_threads(threads)
+        torch = optional_torch()   # None without torch: the EMD front end is then not in the sweep
+        if torch is not None:
+            torch.set_num_threads(threads)
 
 
 def ensure_render(run: TrackRunConfig, renders_dir: str, key: str, threads: int = 0) -> dict:
@@ -320,8 +324,11 @@ class _Client:
             self.threads = _threads_per_worker(workers)
             if scheduler == "threads":  # tasks set torch/OpenCV threads process-wide: restore them after
                 import cv2
-                import torch
-                self._restore = (torch.get_num_threads(), cv2.getNumThreads())
+
+                from lobula._optional import optional_torch
+
+                torch = optional_torch()
+                self._restore = (torch.get_num_threads() if torch is not None else None, cv2.getNumThreads())
         else:
             try:
                 self.client = Client(scheduler, timeout="20s")
@@ -337,8 +344,11 @@ class _Client:
                 self.cluster.close()
             if self._restore:
                 import cv2
-                import torch
-                torch.set_num_threads(self._restore[0])
+
+                from lobula._optional import optional_torch
+
+                if self._restore[0] is not None:
+                    optional_torch().set_num_threads(self._restore[0])
                 cv2.setNumThreads(self._restore[1])
 
 
@@ -458,6 +468,29 @@ def _coord_values(values: list):
     return np.array([v if isinstance(v, str) else json.dumps(jsonable(v)) for v in values], dtype=object)
 
 
+# The configuration's leaves carry their units in their names; these suffixes name UDUNITS units.
+_UNIT_SUFFIXES = (("_m_s2", "m/s2"), ("_m_s", "m/s"), ("_rad_s", "rad/s"), ("_deg", "degree"), ("_hz", "Hz"),
+                  ("_ms", "ms"), ("_s", "s"), ("_m", "m"))
+_DIMENSIONLESS = ("fraction", "frac", "scale", "contrast", "brightness", "rel_error", "scale_error", "scale_prior",
+                  "scale_std")
+
+
+def _param_attrs(p: Param, values: np.ndarray) -> dict:
+    """CF attributes of a swept parameter's coordinate: long_name, and units from the leaf's name (integers and
+    booleans: counts, seeds and switches, "1"); a float leaf whose name gives no units gets none, which
+    :func:`experiments.store.cf_problems` reports."""
+    attrs = dict(long_name=f"swept parameter {p.name}", sets=", ".join(p.targets))
+    if values.dtype.kind not in "biuf":
+        return attrs
+    leaf = p.targets[0].rsplit(".", 1)[-1]
+    units = next((u for suffix, u in _UNIT_SUFFIXES if leaf.endswith(suffix)), None)
+    if units is None and (values.dtype.kind in "biu" or leaf.endswith(_DIMENSIONLESS)):
+        units = "1"
+    if units is not None:
+        attrs["units"] = units
+    return attrs
+
+
 def assemble(spec: SweepSpec, grid: list[Point], points_dir: Path, series: bool = True) -> xr.Dataset:
     """The grid Dataset from the point records (NaN where a point has no record)."""
     shape, dims = spec.shape, spec.dims
@@ -502,14 +535,14 @@ def assemble(spec: SweepSpec, grid: list[Point], points_dir: Path, series: bool 
     vars_["point_wall_s"] = (dims, extra["point_wall_s"], dict(units="s", long_name="velocity run + scoring wall time"))
     vars_["stage_ms_per_frame"] = (dims + ["stage"], stage, dict(units="ms", long_name="wall time per estimate of each stage"))
     vars_["point_key"] = (dims, keys, dict(long_name="record name in the points folder (<key>.json)"))
-    vars_["done"] = (dims, done, dict(long_name="point has a record"))
-    coords = {p.name: (p.name, _coord_values(p.values), dict(sets=", ".join(p.targets))) for p in spec.params}
-    coords["stage"] = ("stage", np.array(stages, dtype=object))
+    vars_["done"] = (dims, done, dict(units="1", long_name="point has a record"))
+    coords = {p.name: (p.name, v, _param_attrs(p, v)) for p in spec.params for v in [_coord_values(p.values)]}
+    coords["stage"] = ("stage", np.array(stages, dtype=object), dict(long_name="pipeline stage"))
     if t_grid is not None:
         vars_["v_hat"] = (dims + ["time"], ser["v_hat"], dict(units="m/s", long_name="estimated forward velocity"))
         vars_["v_true"] = (dims + ["time"], ser["v_true"], dict(units="m/s", long_name="true forward velocity"))
         vars_["accel"] = (dims + ["time"], ser["accel"], dict(units="m/s2", long_name="forward acceleration used"))
-        vars_["observable"] = (dims + ["time"], obs, dict(long_name="velocity observable"))
+        vars_["observable"] = (dims + ["time"], obs, dict(units="1", long_name="velocity observable"))
         coords["time"] = ("time", t_grid, dict(units="s", long_name="time since the run's first frame"))
     ds = xr.Dataset(vars_, coords=coords)
     base = dict(velocity=spec.velocity.to_dict(), run=spec.run.to_dict())
@@ -525,8 +558,13 @@ def assemble(spec: SweepSpec, grid: list[Point], points_dir: Path, series: bool 
 
 
 def write_zarr(ds: xr.Dataset, out: str | Path) -> Path:
-    """Write ``ds`` as a Zarr store atomically: a temporary directory beside it, then a rename."""
+    """Write ``ds`` as a Zarr store atomically: a temporary directory beside it, then a rename.
+
+    The store declares CF-1.10, its variables walked first (:func:`experiments.store.cf_ready`)."""
+    from .store import cf_ready
+
     out = Path(out)
+    ds = cf_ready(ds, out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
     old = out.parent / f".{out.name}.old-{os.getpid()}"
@@ -579,10 +617,55 @@ def _base_configs(args) -> tuple[VelocityConfig, TrackRunConfig]:
         run = run_config_from_dict(d["config"] if isinstance(d.get("config"), dict) else d)
     else:
         profile = args.profile
-        if profile is None and not args.builtin_profile and REAL_PROFILE.exists():
-            profile = str(REAL_PROFILE)
+        if profile is None and not args.builtin_profile and recorded_profile() is not None:
+            profile = str(recorded_profile())
         run = TrackRunConfig(profile=profile, start_s=args.start, duration_s=args.base_duration, scale=args.scale)
     return vel, run
+
+
+def _value(v) -> str:
+    return f"{v:g}" if isinstance(v, (float, np.floating)) else str(v)
+
+
+def rmse_summary(ds: xr.Dataset, dims: list[str]) -> list[str]:
+    """Lines that say which swept values gave the lowest velocity RMSE (m/s), as `lobula sweep` prints them.
+
+    The range over the scored points and the lowest single point; then, for each swept parameter
+    with more than one value, its mean RMSE at each value over all the other parameters' values
+    (over seeds, say) and the value with the lowest mean: the single lowest point may sit at a value
+    whose mean is the worst. Failed points (NaN) are left out of a mean and the value says how
+    many were scored; the lowest mean is taken among the values with every point scored, when
+    any has.
+    """
+    rm = ds.rmse_m_s.transpose(*dims)
+    v = rm.values
+    ok = np.isfinite(v)
+    if not ok.any():
+        return ["RMSE: no point was scored (every point's RMSE is NaN)"]
+    best = np.unravel_index(int(np.nanargmin(v)), v.shape)
+    lines = [f"RMSE {np.nanmin(v):.4f}..{np.nanmax(v):.4f} m/s over {int(ok.sum())} of {v.size} points; "
+             f"lowest single point: " + ", ".join(f"{d}={_value(ds[d].values[i])}" for d, i in zip(dims, best))]
+    for k, d in enumerate(dims):
+        n_values = v.shape[k]
+        if n_values < 2:
+            continue
+        moved = np.moveaxis(v, k, 0).reshape(n_values, -1)
+        scored = np.isfinite(moved).sum(1)
+        means = np.array([np.mean(row[np.isfinite(row)]) if n else np.nan for row, n in zip(moved, scored)])
+        pool = np.isfinite(means) & (scored == moved.shape[1])
+        if not pool.any():
+            pool = np.isfinite(means)
+        lowest = int(np.flatnonzero(pool)[np.argmin(means[pool])])
+        others = [o for o in dims if o != d and ds.sizes[o] > 1]
+        what = ("RMSE" if moved.shape[1] == 1 else
+                f"mean RMSE over the {moved.shape[1]} values of {others[0]}" if len(others) == 1 else
+                f"mean RMSE over the {moved.shape[1]} combinations of {', '.join(others)}")
+        parts = [f"{_value(ds[d].values[i])}: " + (f"{means[i]:.4f}" if np.isfinite(means[i]) else "—")
+                 + (f" ({scored[i]} of {moved.shape[1]} scored)" if scored[i] < moved.shape[1] else "")
+                 for i in range(n_values)]
+        lines.append(f"{d}: {what} (m/s) at each value — {'; '.join(parts)}; lowest at "
+                     f"{d}={_value(ds[d].values[lowest])}")
+    return lines
 
 
 def _sweep(args) -> int:
@@ -621,13 +704,10 @@ def _sweep(args) -> int:
         print(f"lobula sweep: interrupted; {n} finished point(s) are recorded in {points_dir}. "
               f"Run the same command again to resume.", file=sys.stderr)
         return 130
-    rm = ds.rmse_m_s
     print(f"wrote {args.out}: dims {dict(zip(spec.dims, spec.shape))}; computed {ds.attrs['points_computed']}, "
           f"reused {ds.attrs['points_reused']}")
-    if np.isfinite(rm.values).any():
-        best = np.unravel_index(int(np.nanargmin(rm.values)), rm.shape)
-        print(f"RMSE {np.nanmin(rm.values):.4f}..{np.nanmax(rm.values):.4f} m/s; best at "
-              + ", ".join(f"{d}={ds[d].values[i]}" for d, i in zip(spec.dims, best)))
+    for line in rmse_summary(ds, spec.dims):
+        print(line)
     failed = json.loads(ds.attrs.get("failed", "{}"))
     if failed:
         print(f"{len(failed)} point(s) failed (NaN in the store; rerun to retry): "
@@ -637,38 +717,8 @@ def _sweep(args) -> int:
 
 
 def add_parser(subparsers):
-    """Register ``lobula sweep`` on an argparse subparsers object; returns the parser."""
-    s = subparsers.add_parser("sweep", help="a grid over configuration parameters, each point a scored synthetic run "
-                                            "(Dask, Zarr, resumable)",
-                              description="A grid over velocity and synthetic-run parameters; each point renders "
-                                          "(or reuses) a synthetic run, estimates velocity and scores it against "
-                                          "truth. Finished points are recorded beside the store, so an interrupted "
-                                          "sweep resumes where it stopped.")
-    s.add_argument("--param", action="append", metavar="PATH=V1,V2,...",
-                   help="a swept parameter: a dotted path into the velocity configuration (fields.size_deg, "
-                        "readout.cutoff_hz, front_end, emd.emd.tau_s, emd.lattice.dphi_deg, ...) or the synthetic "
-                        "run (scene.seed, scene.noise_grey, imu.accel_noise_density, duration_s, ...), or 'seed'; "
-                        "values comma-separated, a JSON list, or lin:A:B:N / log:A:B:N. Repeat for more dims")
-    s.add_argument("--out", help="output Zarr store (written atomically); records go to OUT's stem + .points/")
-    s.add_argument("--base-duration", type=float, default=30.0, help="duration of each synthetic run (s, default 30)")
-    s.add_argument("--start", type=float, default=0.0, help="window start in the velocity profile (s)")
-    s.add_argument("--scale", type=float, default=0.5, help="image scale of the D435i camera (0.5 = 320×240)")
-    s.add_argument("--profile", help="velocity CSV; default the real FLIVVER run when ../shared is present")
-    s.add_argument("--builtin-profile", action="store_true", help="use the built-in velocity profile")
-    s.add_argument("--base-velocity", help="VelocityConfig JSON (or a velocity NetCDF's attrs['config'] saved as JSON)")
-    s.add_argument("--base-run", help="TrackRunConfig JSON (or a rendered footage's scene.json)")
-    s.add_argument("--paper", action="store_true", help="start from the paper's velocity configuration")
-    s.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring (default 2)")
-    s.add_argument("--tol", type=float, default=LOCK_TOL_M_S, help="lock-on tolerance (m/s)")
-    s.add_argument("--hold", type=float, default=LOCK_HOLD_S, help="lock-on hold time (s)")
-    s.add_argument("--scheduler", default="processes",
-                   help="processes (default: a local dask.distributed cluster), threads, synchronous, or the "
-                        "ADDRESS of a dask.distributed scheduler (e.g. tcp://10.0.0.5:8786)")
-    s.add_argument("--workers", type=int, default=2, help="local workers (default 2)")
-    s.add_argument("--keep-renders", action="store_true", help="keep the rendered footage beside the store")
-    s.add_argument("--no-series", action="store_true", help="metrics only; no per-frame v_hat etc. in the store")
-    s.add_argument("--dry-run", action="store_true", help="print the grid and what is already recorded, run nothing")
-    s.add_argument("--list-params", action="store_true", help="print every sweepable path with its default")
-    s.add_argument("--quiet", action="store_true")
-    s.set_defaults(func=_sweep)
-    return s
+    """Register ``lobula sweep`` on an argparse subparsers object; returns the parser. The options are
+    :func:`experiments.parsers.add_sweep_parser`'s, built without importing this module."""
+    from .parsers import add_sweep_parser
+
+    return add_sweep_parser(subparsers)

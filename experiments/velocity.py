@@ -19,13 +19,13 @@ from scipy.spatial.transform import Rotation, Slerp
 from tqdm.auto import tqdm
 
 from lobula.config import VelocityConfig
-from lobula.emd_decoding import EMDFrontEnd
 from lobula.epipole import HEADING_POINTS, EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
 from lobula.flow import FlowSample, StaggeredFlow
 from lobula.photoreceptor import MEAN_REMOVAL, mean_removal
-from lobula.haltere import (GRAVITY_WINDOW_S, GyroAttitude, attitude_leak, forward_acceleration, forward_axis,
-                            fused_gyro_bias, gravity_drift_std, gravity_time_constant, gyro_bias, leak_walk,
-                            orientation_from_gyro, resample_to, transport_rate, turn_rate, vision_gyro_bias)
+from lobula.haltere import (GRAVITY_WINDOW_S, HEADING_FIT_BIAS_PRIOR, GyroAttitude, attitude_leak,
+                            forward_acceleration, forward_axis, fused_gyro_bias, gravity_drift_std,
+                            gravity_time_constant, gyro_bias, leak_walk, orientation_from_gyro, resample_to,
+                            transport_rate, turn_rate, vision_gyro_bias)
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
 from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
@@ -135,8 +135,11 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
             # 0-2) 0.016 / 0.039 -> 0.011 / 0.018 m/s zero-phase / causal; a camera turning ±10° at up
             # to 2 Hz with a realistic IMU read v̂ 40-60 % slow without it (zero-phase 0.106 m/s, zero
             # estimator 0.20, ideal IMU 0.012) and 0.013 with it.
+            # The fit's own bias prior is its regulariser against the heading–bias confound, narrower than
+            # the data sheet's spread (lobula.haltere.HEADING_FIT_BIAS_PRIOR).
+            fit_prior = min(HEADING_FIT_BIAS_PRIOR, np.radians(config.gyro_bias_prior_deg_s))
             b_still, s_still = gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal",
-                                         with_std=True)
+                                         with_std=True, prior=fit_prior)
             attitude = GyroAttitude(footage.imu.time_s, gyro, b_still[0])
             est = HeadingBiasEstimator(x, y, b_still[0], s_still[0], scale_std=config.gyro_scale_prior or None,
                                        stride=max(1, int(np.sqrt(cam.width * cam.height / HEADING_POINTS))))
@@ -232,7 +235,7 @@ def _residual_rate(footage: Footage, s: FlowSample, r01: np.ndarray, e: np.ndarr
     return s.t_mid, b_then - dw, Rotation.from_matrix(r01).as_rotvec() / s.dt
 
 
-def gyro_bias_track(footage: Footage, rates: FieldRates, causal: bool):
+def gyro_bias_track(footage: Footage, rates: FieldRates, causal: bool, prior: float):
     """The gyro bias and its std ((n, 3) rad/s each, at the IMU samples) for the attitude that removes
     gravity and for the readout's drift std, and what they come from; None without a gyro or a
     flow-fitted bias (then the still-camera estimate alone serves).
@@ -240,7 +243,8 @@ def gyro_bias_track(footage: Footage, rates: FieldRates, causal: bool):
     With ``gyro_bias_from_vision`` (``rates.gyro_residual``): the flow's residual rotation
     (lobula.haltere.vision_gyro_bias), started from the still-camera estimate. Else the heading and
     bias fit's estimate (``rates.heading_bias``) fused with the still-camera one
-    (lobula.haltere.fused_gyro_bias). Without it a turning camera that never stops (the suite's
+    (lobula.haltere.fused_gyro_bias). ``prior`` (rad/s): the bias's std before the record measures
+    it (VelocityConfig.gyro_bias_prior_deg_s). Without it a turning camera that never stops (the suite's
     rotation family) removed gravity through an attitude drifting at the whole bias: its forward
     acceleration ramped by 0.05-0.09 m/s² per second; with it ≤ 0.005. The suite's development
     scenes (nine families × seeds 100-103, 320×240, 10 s): rotation zero-phase RMSE 0.017 / 0.026 /
@@ -252,7 +256,7 @@ def gyro_bias_track(footage: Footage, rates: FieldRates, causal: bool):
             or (rates.gyro_residual is None and rates.heading_bias is None)):
         return None
     tb = footage.imu.time_s
-    b_still, s_still = gyro_bias(tb, footage.imu.gyro, causal, with_std=True)
+    b_still, s_still = gyro_bias(tb, footage.imu.gyro, causal, with_std=True, prior=prior)
     if rates.gyro_residual is not None:
         t_m, res, rate = rates.gyro_residual
         return (*vision_gyro_bias(t_m, res, tb, b_still[0], s_still[0], causal, rate=rate),
@@ -285,6 +289,10 @@ def _emd_field_rates(footage: Footage, config: VelocityConfig, fields: Receptive
                      progress: bool, orientation: np.ndarray | None = None) -> FieldRates:
     """The EMD front end: (a gaze stabilised by the gyro's attitude ``orientation`` (N, 3, 3) at the
     frames, when given), lattice sampling, photoreceptors, EMDs, gradient-ratio fields."""
+    from lobula._optional import require_torch
+    from lobula.emd_decoding import EMDFrontEnd
+
+    require_torch("the EMD front end")
     front = EMDFrontEnd(footage.camera, fields, config.emd)
     frames = _timed(footage.frames(), timings, "read")
     ts, rs, r2s = [], [], []
@@ -411,7 +419,8 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     t_start = _time.perf_counter()
     rates = field_rates(footage, config, flo_files, flo_units, progress)
     causal = config.readout.filter == "causal"
-    vb = gyro_bias_track(footage, rates, causal)
+    prior = np.radians(config.gyro_bias_prior_deg_s)
+    vb = gyro_bias_track(footage, rates, causal, prior)
     # The attitude that removes gravity, integrated once for the acceleration and the axis its error turns with.
     imu = footage.imu if not config.accel_from_truth else None
     rot = (orientation_from_gyro(imu.time_s, imu.gyro, causal, None if vb is None else vb[0])
@@ -454,7 +463,8 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
             # a state of the readout's filter, offline and online alike.
             drift = np.interp(rates.t, footage.imu.time_s,
                               gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=causal,
-                                                bias_std=None if vb is None else vb[1], accel=footage.imu.accel))
+                                                bias_std=None if vb is None else vb[1], accel=footage.imu.accel,
+                                                prior=prior))
             if causal:
                 # Online the attitude took each sample's bias estimate; where that estimate moves, the
                 # gravity it let in moves the offset the filter had learned (lobula.haltere.leak_walk).
@@ -471,30 +481,36 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     nan_nf = np.full((n, F), np.nan)
     data = dict(
         v_hat=("time", res.v_hat if res else np.full(n, np.nan), {"units": "m/s", "long_name": "estimated forward velocity"}),
-        observable=("time", res.observable if res else np.zeros(n, bool), {"long_name": "velocity observable"}),
+        observable=("time", res.observable if res else np.zeros(n, bool), {"units": "1", "long_name": "velocity observable"}),
         v_std=("time", res.v_std if res else np.full(n, np.nan), {"units": "m/s", "long_name": "posterior std of v_hat"}),
         accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": accel_source}),
         r=(("time", "field"), rates.r, {"units": "1/s", "long_name": "pooled expansion rate v/d"}),
         r2=(("time", "field"), rates.r2, {"units": "1/s2", "long_name": "pooled mean of r squared"}),
-        r_dot=(("time", "field"), res.r_dot if res else nan_nf, {"units": "1/s2"}),
-        v_field=(("time", "field"), res.v_field if res else nan_nf, {"units": "m/s"}),
+        r_dot=(("time", "field"), res.r_dot if res else nan_nf,
+               {"units": "1/s2", "long_name": "time derivative of the pooled expansion rate r"}),
+        v_field=(("time", "field"), res.v_field if res else nan_nf,
+                 {"units": "m/s", "long_name": "per-field forward velocity a·r/(r_dot − r2)"}),
         epipole_x=("time", rates.epipole[:, 0], {"units": "1", "long_name": "epipole, normalised x"}),
         epipole_y=("time", rates.epipole[:, 1], {"units": "1", "long_name": "epipole, normalised y"}),
     )
     if footage.truth is not None:
         data["v_true"] = ("time", np.interp(rates.t, footage.truth["time_s"], footage.truth["v_forward_m_s"]),
                           {"units": "m/s", "long_name": "ground-truth forward velocity"})
-    coords = dict(time=("time", rates.t, {"units": "s"}),
-                  azimuth_deg=("field", fields.centres_deg[:, 0]),
-                  elevation_deg=("field", fields.centres_deg[:, 1]),
-                  size_deg=("field", np.full(F, fields.size_deg)))
+    coords = dict(time=("time", rates.t, {"units": "s", "long_name": "time of the estimate on the footage clock"}),
+                  azimuth_deg=("field", fields.centres_deg[:, 0],
+                               {"units": "degree", "long_name": "LC field centre azimuth"}),
+                  elevation_deg=("field", fields.centres_deg[:, 1],
+                                 {"units": "degree", "long_name": "LC field centre elevation (positive down)"}),
+                  size_deg=("field", np.full(F, fields.size_deg),
+                            {"units": "degree", "long_name": "LC field size (Gaussian FWHM, or box side)"}))
     if vb is not None:
         tb = footage.imu.time_s
         at_t = lambda b: np.stack([np.interp(rates.t, tb, b[:, k]) for k in range(3)], -1)
         data["gyro_bias"] = (("time", "axis"), at_t(vb[0]), {"units": "rad/s", "long_name":
                              "gyro bias from " + vb[2]})
-        data["gyro_bias_std"] = (("time", "axis"), at_t(vb[1]), {"units": "rad/s"})
-        coords["axis"] = ("axis", ["x", "y", "z"])
+        data["gyro_bias_std"] = (("time", "axis"), at_t(vb[1]), {"units": "rad/s", "long_name":
+                                 "std of the gyro bias estimate"})
+        coords["axis"] = ("axis", ["x", "y", "z"], {"long_name": "camera axis (x right, y down, z forward)"})
     ds = xr.Dataset(data, coords=coords)
     lag = config.readout.lag_s if config.readout.filter == "causal" else 0.0
     online = {}
@@ -545,37 +561,108 @@ def score(ds: xr.Dataset, skip_s: float = 2.0) -> dict:
     return out
 
 
-def plot_velocity(ds: xr.Dataset, path, title: str | None = None):
-    """A PNG of v̂ (with its ±1 std band and unobservable spans) against truth, and the acceleration."""
+#: Seconds ignored at the start when scoring a run (`lobula velocity --skip`'s default).
+SCORE_SKIP_S = 2.0
+
+
+def scoring_skip(ds: xr.Dataset, skip_s: float = SCORE_SKIP_S) -> float:
+    """Seconds ignored at the start when scoring ``ds``: ``skip_s``, at most a quarter of the run.
+
+    Short clips (the 1.2 s D435i sample) keep three quarters of their estimates to score.
+    """
+    t = ds.time.values
+    return min(float(skip_s), 0.25 * float(t[-1] - t[0])) if t.size else float(skip_s)
+
+
+def score_line(sc: dict, skip_s: float) -> str:
+    """The one-line score of a run, as the console and the figure's title both print it.
+
+    sc: :func:`score`'s dict (RMSE and median |error| in m/s, observable fraction);
+    skip_s: the seconds it ignored.
+    """
+    if not sc:
+        return "no truth: not scored"
+    obs = f"observable {100 * sc['observable_fraction']:.1f} % of {sc['n_frames']} estimates"
+    if not np.isfinite(sc["rmse_m_s"]):
+        return f"scored after {skip_s:.3g} s: no observable estimate to score ({obs})"
+    return (f"scored after {skip_s:.3g} s: RMSE {sc['rmse_m_s']:.4f} m/s, median |error| "
+            f"{sc['median_abs_error_m_s']:.4f} m/s, {obs}")
+
+
+#: Each front end, filter and readout in words, for figure captions.
+FRONT_END_WORDS = {"dis": "dense optical flow (OpenCV DIS)", "farneback": "dense optical flow (Farnebäck)",
+                   "flo": "precomputed optical flow (.flo files)",
+                   "emd": "Hassenstein–Reichardt motion detectors (EMD array)"}
+READOUT_WORDS = {"kalman": "Kalman filter fusing the expansion rates with the forward acceleration a",
+                 "median": "median over fields of the expansion ratio (the paper's readout)"}
+
+
+def describe_run(ds: xr.Dataset) -> str:
+    """The run's front end, then (on a second line) its readout and filter, in words (from ``ds.attrs``)."""
+    fe, ro = str(ds.attrs.get("front_end", "?")), str(ds.attrs.get("readout", "?"))
+    filt = str(ds.attrs.get("filter", "?"))
+    when = ("zero-phase: offline, each estimate uses the whole record" if filt.startswith("zero-phase") else
+            "causal: online, each estimate uses only what came before it" + (
+                " and a fixed lag" if "fixed lag" in filt else "") if filt.startswith("causal") else filt)
+    return f"front end: {FRONT_END_WORDS.get(fe, fe)}\nreadout: {READOUT_WORDS.get(ro, ro)} ({when})"
+
+
+def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | None = None):
+    """The figure of a velocity run: v̂ with its ±2σ band against truth (top), forward acceleration (bottom).
+
+    ds: the velocity Dataset (:func:`estimate_velocity`, or its NetCDF read back); ``v_std`` is the
+    1σ posterior std (m/s), drawn as v̂ ± 2·v_std. skip_s: seconds not scored (default
+    :func:`scoring_skip`, as `lobula velocity` prints it); the title's numbers are :func:`score_line` of
+    :func:`score` on ``ds`` with it, the console's numbers, after ``title`` (default "forward velocity");
+    below them the front end, readout and filter in words (:func:`describe_run`).
+    Returns the matplotlib Figure.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .store import save_figure
-
+    skip = scoring_skip(ds) if skip_s is None else float(skip_s)
     t = ds.time.values
-    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True, gridspec_kw=dict(height_ratios=[3, 1]))
-    if "v_true" in ds:
-        ax.plot(t, ds.v_true, "k--", lw=1.2, label="truth")
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(10, 6.2), sharex=True, layout="constrained",
+                                  gridspec_kw=dict(height_ratios=[3, 1]))
     v, s = ds.v_hat.values, ds.v_std.values
-    ax.plot(t, v, color="m", lw=1.6, label=f"v̂ ({ds.attrs.get('front_end')}, {ds.attrs.get('readout')}, "
-                                             f"{ds.attrs.get('filter')})")
     if np.isfinite(s).any():
-        ax.fill_between(t, v - s, v + s, color="m", alpha=0.2, lw=0)
-    unobs = ~ds.observable.values
+        ax.fill_between(t, v - 2 * s, v + 2 * s, color="m", alpha=0.18, lw=0, label="±2σ (2 × v_std)")
+    ax.plot(t, v, color="m", lw=2.2, label="v̂ estimate", zorder=3)
+    if "v_true" in ds:
+        # Drawn over v̂, thinner and dashed, so it stays visible where the two agree.
+        ax.plot(t, ds.v_true.values, color="k", ls="--", lw=1.2, label="truth", zorder=4)
+    unobs = ~ds.observable.values.astype(bool)
     if unobs.any():
         ax.fill_between(t, 0, 1, where=unobs, transform=ax.get_xaxis_transform(), color="0.85", lw=0,
-                        label="unobservable")
-    sc = score(ds)
-    if sc:
-        ax.set_title(title or f"RMSE {sc['rmse_m_s']:.3f} m/s after 2 s, observable {100 * sc['observable_fraction']:.0f}%")
-    ax.set_ylabel("forward velocity (m/s)")
-    ax.legend(loc="upper right", fontsize=8)
-    ax2.plot(t, ds.accel, color="tab:blue", lw=1)
-    ax2.axhline(0, color="0.5", lw=0.5)
+                        label="unobservable (std too large: no v̂)")
+    if skip > 0 and "v_true" in ds:
+        ax.axvspan(t[0], t[0] + skip, color="0.5", alpha=0.08, lw=0, label=f"not scored (first {skip:.3g} s)")
+    ax.axhline(0, color="0.4", lw=0.8, zorder=1)
+    ax.set_ylabel("forward velocity (m/s)\nbelow 0: moving backwards")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    sc = score(ds, skip)
+    head = f"{title or 'forward velocity'}: {score_line(sc, skip)}"
+    fig.suptitle(f"{head}\n{describe_run(ds)}", fontsize=9)
+    ax2.plot(t, ds.accel.values, color="tab:blue", lw=1, label="a")
+    ax2.axhline(0, color="0.4", lw=0.8)
+    src = str(ds.accel.attrs.get("source", ds.attrs.get("acceleration_source", "")))
+    where = ("the IMU's accelerometer, gravity and bias removed" if src.startswith("accelerometer")
+             else src or "unknown source")
+    ax2.set_title(f"a: forward acceleration (m/s², from {where}), the readout's input beside the flow",
+                  fontsize=8, loc="left")
     ax2.set_ylabel("a (m/s²)")
     ax2.set_xlabel("time (s)")
-    fig.tight_layout()
+    return fig
+
+
+def plot_velocity(ds: xr.Dataset, path, title: str | None = None, skip_s: float | None = None):
+    """Write :func:`velocity_figure` of ``ds`` as a PNG (atomically); returns ``path``."""
+    import matplotlib.pyplot as plt
+
+    from .store import save_figure
+
+    fig = velocity_figure(ds, skip_s, title)
     save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path
@@ -657,80 +744,29 @@ def run_velocity(args) -> int:
     ds = estimate_velocity(footage, cfg, progress=not args.quiet, flo_files=flo_files, flo_units=units)
     write_netcdf(ds, args.out)
     # Short clips (the 1.2 s D435i sample) are scored after at most a quarter of their length.
-    skip = min(args.skip, 0.25 * float(ds.time[-1] - ds.time[0]))
+    skip = scoring_skip(ds, args.skip)
     sc = score(ds, skip)
     print(f"wrote {args.out}: {ds.sizes['time']} frames x {ds.sizes['field']} fields "
           f"[{ds.attrs['front_end']}, {ds.attrs['readout']} readout, {ds.attrs['filter']}; "
           f"acceleration: {ds.attrs['acceleration_source']}]")
     e = ds.epipole_x.values[-1], ds.epipole_y.values[-1]
     print(f"epipole: ({np.degrees(np.arctan(e[0])):+.2f}°, {np.degrees(np.arctan(e[1])):+.2f}°) from the principal point")
-    print(f"observable fraction: {float(ds.observable.mean()):.3f}")
+    print(f"observable: {100 * float(ds.observable.mean()):.1f} % of all {ds.sizes['time']} estimates")
     if sc:
-        print(f"after {skip:.3g} s: RMSE {sc['rmse_m_s']:.4f} m/s, median |error| {sc['median_abs_error_m_s']:.4f} m/s, "
-              f"observable {sc['observable_fraction']:.3f} of {sc['n_frames']} frames")
+        print(score_line(sc, skip))
     if ds.sizes["time"] < 3:
         med = np.nanmedian(ds.r.values, axis=1)
         print("too few flows for a velocity readout; median r̄ over fields per flow (1/s): "
               + ", ".join(f"{x:+.3f}" for x in med))
     if args.plot:
-        plot_velocity(ds, args.plot)
+        plot_velocity(ds, args.plot, skip_s=skip)
         print(f"wrote {args.plot}")
     return 0
 
 
 def add_parser(subparsers):
-    """Register `lobula velocity` (see experiments.cli)."""
-    v = subparsers.add_parser("velocity", help="estimate forward velocity from footage")
-    v.add_argument("footage", help="footage folder, D435i sample, RealSense .bag/.db3, EuRoC folder or video file")
-    v.add_argument("--front-end", default="dis", choices=["dis", "farneback", "flo", "emd"])
-    v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
-    v.add_argument("--plot", help="PNG of v̂ against truth")
-    v.add_argument("--paper", action="store_true", help="the paper's configuration, as its text states it")
-    v.add_argument("--filter", default="zero-phase", choices=["zero-phase", "causal"],
-                   help="readout filter: zero-phase (offline smoother, the whole record) or causal (online)")
-    v.add_argument("--lag", type=float, metavar="SECONDS",
-                   help="with --filter causal: a fixed-lag smoother; each v_hat also uses the next SECONDS of "
-                        "footage and is known that much later (lobula.readout.ReadoutConfig.lag_s; default 0: "
-                        "the forward filter)")
-    v.add_argument("--gap", type=int, help="frames between the two images of a flow pair (default 6)")
-    v.add_argument("--field-size", type=float, help="receptive-field size (deg; default 5 on camera footage, "
-                   "the eye's LC field FWHM 30 on compound-eye footage)")
-    v.add_argument("--dis-preset", choices=["ultrafast", "fast", "medium"])
-    v.add_argument("--dis-grid-px", type=int, help="DIS refines its flow on a grid at least this many pixels wide "
-                   "(its preset's finest level, made finer on small images; lobula.flow.FlowConfig.dis_grid_px; "
-                   "default 160; 0: the preset's level at every image size)")
-    v.add_argument("--epipole", choices=["estimate", "principal"])
-    v.add_argument("--accel-from-truth", action="store_true",
-                   help="forward acceleration from truth.csv instead of imu.csv")
-    v.add_argument("--gyro-bias-from-vision", action="store_true",
-                   help="estimate the gyro bias from the flow's residual rotation (lobula.haltere.vision_gyro_bias) "
-                        "for gravity removal and the drift std; writes gyro_bias, gyro_bias_std")
-    v.add_argument("--accel-scale-error", type=float, metavar="FRACTION",
-                   help="the accelerometer's scale-factor error (1σ fraction), added to v_std as FRACTION·|v̂| "
-                        "(vision cannot see it; lobula.readout.ReadoutConfig.accel_scale_error; default 0.01, "
-                        "a consumer MEMS sensitivity tolerance: set it from your IMU's calibration)")
-    v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo)")
-    v.add_argument("--flo-units", default="rad/s", choices=["rad/s", "px"], help="units of the .flo values")
-    v.add_argument("--flo-gap", type=float, default=0.2, help="time between the .flo frame pair (s)")
-    v.add_argument("--flo-size", type=int, nargs=2, default=[640, 448], metavar=("W", "H"),
-                   help="image size the .flo refers to")
-    v.add_argument("--dphi", type=float, help="EMD front end: interommatidial angle (deg, default 0.75)")
-    v.add_argument("--drho", type=float, help="EMD front end: acceptance angle (deg, default = Δφ)")
-    v.add_argument("--tau", type=float, help="EMD front end: delay time constant (s; default 0.010 on "
-                   "camera footage, 0.035 on compound-eye footage)")
-    v.add_argument("--mean-removal", choices=sorted(MEAN_REMOVAL),
-                   help="EMD front end: how the columns remove the mean luminance before the EMDs — space: the "
-                        "LMCs' lateral inhibition (x − the lattice neighbours' mean), no temporal high-pass; time: "
-                        "an LMC-like 0.25 s temporal high-pass, the front end before the surround "
-                        "(lobula.photoreceptor.MEAN_REMOVAL; not given: space)")
-    v.add_argument("--emd-gaze", choices=["fixate", "none"],
-                   help="EMD front end on camera footage with a gyro: fixate — warp each frame into a gaze held fixed "
-                        "by the integrated gyro, with a saccade back to the camera once it has turned 12° away "
-                        "(lobula.gaze.fixation_reference); none — the camera's own image (not given: fixate)")
-    v.add_argument("--emd-calibration", help="EMD front end: gains JSON from `lobula calibrate-emd` on another scene")
-    v.add_argument("--skip", type=float, default=2.0, help="seconds ignored at the start when scoring")
-    v.add_argument("--quiet", action="store_true")
-    from .info import add_footage_options
-    add_footage_options(v)  # --stream, --clock, --skip-bad-frames, --clock-offset, --undistort (readers)
-    v.set_defaults(func=run_velocity)
-    return v
+    """Register `lobula velocity`'s camera options (:func:`experiments.parsers.add_velocity_parser`, built without
+    importing this module; experiments.velocity_command adds the compound eye's)."""
+    from .parsers import add_velocity_parser
+
+    return add_velocity_parser(subparsers)

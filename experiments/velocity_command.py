@@ -15,27 +15,27 @@ EYE_ONLY_OPTIONS = ("rotation", "haltere_gain", "readout", "uncertainty", "seed"
 
 
 def add_parser(subparsers):
-    """Register `lobula velocity` (see experiments.cli): the options of :func:`experiments.velocity.add_parser`,
-    and the compound-eye options of `lobula eye-velocity` (refused on camera footage)."""
-    from .eye_velocity import HALTERE_GAIN_HELP
-    from .velocity import add_parser as add_velocity_parser
+    """Register `lobula velocity` (see experiments.cli): the camera options of
+    :func:`experiments.parsers.add_velocity_parser`, and the compound-eye options of `lobula eye-velocity`
+    (refused on camera footage). Building it imports nothing heavy."""
+    from .parsers import HALTERE_GAIN_HELP, INDEX, NONNEGATIVE, SPIKE_MODELS, add_velocity_parser, haltere_gain
 
     p = add_velocity_parser(subparsers)
     g = p.add_argument_group("compound-eye footage only (`lobula scene OUT --eye fly`; as `lobula eye-velocity`)")
     g.add_argument("--rotation", choices=["none", "haltere", "wide-field", "both"],
-                   help="rotation handling of the eye's circuit (not given: haltere)")
-    g.add_argument("--haltere-gain", metavar="natural|G",
-                   help="(not given: natural) " + HALTERE_GAIN_HELP)
+                   help="rotation handling of the eye's circuit (default: haltere)")
+    g.add_argument("--haltere-gain", type=haltere_gain, metavar="natural|G",
+                   help=HALTERE_GAIN_HELP + " (default: natural)")
     g.add_argument("--readout", choices=["kalman", "spikes", "neuron", "neuron-rate"],
-                   help="the eye's readout (not given: kalman); spikes and neuron decode causally: add --filter causal")
+                   help="the eye's readout; spikes and neuron decode causally: add --filter causal (default: kalman)")
     g.add_argument("--uncertainty", choices=["halves", "posterior"],
-                   help="v_std of the kalman/spikes readouts (not given: halves; see `lobula eye-velocity --help`)")
-    g.add_argument("--seed", type=int, help="seed of the output neurons' spikes (--readout spikes or neuron; "
-                                            "not given: 0)")
-    g.add_argument("--spike-model", choices=["lif", "poisson"],
-                   help="how the output neurons spike (--readout spikes or neuron; not given: lif)")
-    g.add_argument("--membrane-noise", type=float, metavar="MV",
-                   help="the LIF output neurons' membrane noise SD in mV (not given: 1.0)")
+                   help="v_std of the kalman/spikes readouts (see `lobula eye-velocity --help`) (default: halves)")
+    g.add_argument("--seed", type=INDEX, help="seed of the output neurons' spikes (--readout spikes or neuron) "
+                                              "(default: 0)")
+    g.add_argument("--spike-model", choices=SPIKE_MODELS,
+                   help="how the output neurons spike (--readout spikes or neuron) (default: lif)")
+    g.add_argument("--membrane-noise", type=NONNEGATIVE, metavar="MV",
+                   help="the LIF output neurons' membrane noise SD in mV (default: 1.0)")
     p.set_defaults(func=run)
 
 

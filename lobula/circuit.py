@@ -11,16 +11,18 @@ what a monitor asked for (:data:`FRONT_END_RECORDS`, :data:`FIELD_RECORDS`,
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
-import torch
-from torch import Tensor
 
+from ._optional import torch
 from .emd import EMDConfig, EMDState, emd_init, emd_run
 from .photoreceptor import PhotoreceptorConfig, PhotoreceptorState, photoreceptor_init, photoreceptor_run
 from .population import (FIELD_RECORDS, FRONT_END_RECORDS, NEURON_RECORDS, UNIT_RECORDS, LCNeurons, LCPopulation,
                          LCPopulationConfig, PopulationState, _positive)
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 __all__ = ["CircuitConfig", "CircuitState", "Circuit"]
 
@@ -186,7 +188,7 @@ class Circuit:
         records (B, K, T, U); with ``return_state`` also the final state.
         """
         want = _parse_record(record, self.available())
-        if callable(stimulus) and not isinstance(stimulus, Tensor):
+        if callable(stimulus) and not isinstance(stimulus, torch.Tensor):
             if n_steps is None:
                 raise ValueError("a stimulus callable needs n_steps")
             source = stimulus

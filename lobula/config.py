@@ -36,6 +36,11 @@ class VelocityConfig:
     (lobula.epipole.HeadingBiasEstimator) and applied to the fields' attitude
     (lobula.haltere.GyroAttitude); 0: not fitted. A residual rotation E·ω grows with the turn
     rate: a MEMS gyro's 1 % scale error at 2 rad/s leaves 0.02 rad/s, ten times its bias.
+    gyro_bias_prior_deg_s: prior std (°/s) of the gyro's zero-rate offset before the record measures
+    it (still samples, the heading fit): a consumer data sheet's ±1°/s by default
+    (lobula.haltere.GYRO_BIAS_PRIOR); a gyro calibrated on the platform may say less. It bounds how
+    fast gravity may leak into the forward axis through the integrated attitude, so a prior narrower
+    than the gyro's real offset makes the readout confidently wrong.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
@@ -58,6 +63,7 @@ class VelocityConfig:
     derotate: bool = True
     gyro_bias_from_vision: bool = False
     gyro_scale_prior: float = 0.02
+    gyro_bias_prior_deg_s: float = 1.0
     timestamps: str = "mid"
     accel_from_truth: bool = False
     emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)
@@ -73,6 +79,8 @@ class VelocityConfig:
             raise ValueError(f"timestamps must be 'mid' or 'start', got {self.timestamps!r}")
         if not (self.gyro_scale_prior >= 0 and math.isfinite(self.gyro_scale_prior)):
             raise ValueError(f"gyro_scale_prior must be a finite std >= 0, got {self.gyro_scale_prior}")
+        if not (self.gyro_bias_prior_deg_s > 0 and math.isfinite(self.gyro_bias_prior_deg_s)):
+            raise ValueError(f"gyro_bias_prior_deg_s must be a finite std > 0, got {self.gyro_bias_prior_deg_s}")
 
     @classmethod
     def paper(cls, front_end: str = "dis", filter: str = "zero-phase") -> "VelocityConfig":

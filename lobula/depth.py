@@ -50,7 +50,8 @@ gyroscope leaves: :mod:`lobula.depth_motion` (``flow_noise``, ``precision_weight
 the data weights :func:`depth_tv` takes —, ``translational_snr``, ``refine_motion``).
 
 Every array input may be a numpy array or a torch tensor; outputs come back as the same
-kind (torch outputs on the input's device).
+kind (torch outputs on the input's device). The ratio and parallax estimators and the scores
+compute numpy inputs with numpy, so they run without torch; TV depth needs torch (the ``bio`` extra).
 """
 from __future__ import annotations
 
@@ -59,8 +60,8 @@ import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-import torch
 
+from ._optional import is_tensor, require_torch, torch
 from lobula.camera import PinholeCamera
 from lobula.epipole import rotational_flow
 
@@ -156,7 +157,7 @@ class DepthResult:
 
 # ----------------------------------------------------------------------------- helpers
 def _to_tensor(a, device=None, dtype=None) -> torch.Tensor:
-    if isinstance(a, torch.Tensor):
+    if is_tensor(a):
         return a.to(device=device if device is not None else a.device,
                     dtype=dtype if dtype is not None else a.dtype)
     t = torch.as_tensor(np.asarray(a))
@@ -165,16 +166,48 @@ def _to_tensor(a, device=None, dtype=None) -> torch.Tensor:
     return t.to(device=device, dtype=dtype if dtype is not None else t.dtype)
 
 
-def _like_input(t: torch.Tensor, as_numpy: bool):
-    return t.detach().cpu().numpy() if as_numpy else t
+def _like_input(t, as_numpy: bool):
+    return t.detach().cpu().numpy() if as_numpy and is_tensor(t) else t
 
 
-def _check_flow(flow, camera: PinholeCamera) -> tuple[torch.Tensor, bool]:
-    """Flow as a floating tensor of shape (2, H, W) matching the camera; plus 'was numpy'."""
-    as_numpy = not isinstance(flow, torch.Tensor)
-    f = _to_tensor(flow)
-    if not f.is_floating_point():
-        f = f.to(torch.get_default_dtype())
+def _as_array(a):
+    """A tensor stays one, anything else becomes a numpy array; integers become floating point
+    (float32, torch's default, for numpy)."""
+    if is_tensor(a):
+        return a if a.is_floating_point() else a.to(torch.get_default_dtype())
+    a = np.asarray(a)
+    return a if np.issubdtype(a.dtype, np.floating) else a.astype(np.float32)
+
+
+def _xp(a):
+    """The array library of ``a``: torch for a tensor, else numpy (their functions used here share names)."""
+    return torch if is_tensor(a) else np
+
+
+def _quiet(a):
+    """For a computation on ``a`` that divides by 0 or meets NaN on purpose: no autograd for a tensor,
+    no floating-point warnings for numpy (0/0 → NaN, x/0 → inf, as torch gives them)."""
+    return torch.no_grad() if is_tensor(a) else np.errstate(divide="ignore", invalid="ignore")
+
+
+def _clamp(a, lo=None, hi=None):
+    """``a`` limited to [lo, hi] (None: unbounded), either kind."""
+    return a.clamp(lo, hi) if is_tensor(a) else np.clip(a, lo, hi)
+
+
+def _median_low(a):
+    """Median of a 1-D array; of an even count the lower middle value (torch's rule, for both kinds)."""
+    if is_tensor(a):
+        return a.median()
+    k = (a.size - 1) // 2
+    return np.partition(a, k)[k]
+
+
+def _check_flow(flow, camera: PinholeCamera) -> tuple[object, bool]:
+    """Flow as a floating array of shape (2, H, W) matching the camera (a tensor stays a tensor, any
+    other input becomes numpy, see :func:`_as_array`); plus 'was not a tensor'."""
+    as_numpy = not is_tensor(flow)
+    f = _as_array(flow)
     if f.ndim != 3 or f.shape[0] != 2:
         raise ValueError(f"flow must have shape (2, H, W) (x and y components, 1/s), got {tuple(f.shape)}")
     if (f.shape[1], f.shape[2]) != (camera.height, camera.width):
@@ -184,23 +217,26 @@ def _check_flow(flow, camera: PinholeCamera) -> tuple[torch.Tensor, bool]:
 
 
 def _epipole(epipole) -> tuple[float, float]:
-    e = np.asarray(epipole.detach().cpu() if isinstance(epipole, torch.Tensor) else epipole, dtype=float).ravel()
+    e = np.asarray(epipole.detach().cpu() if is_tensor(epipole) else epipole, dtype=float).ravel()
     if e.shape != (2,) or not np.all(np.isfinite(e)):
         raise ValueError(f"epipole must be two finite normalised coordinates (ex, ey), got {epipole!r}")
     return float(e[0]), float(e[1])
 
 
-def _grid(camera: PinholeCamera, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _grid(camera: PinholeCamera, like) -> tuple[object, object]:
+    """The camera's normalised pixel coordinates x, y (H, W), of the kind, dtype (and device) of ``like``."""
     x, y = camera.normalised_grid(np.float64)
+    if not is_tensor(like):
+        return x.astype(like.dtype, copy=False), y.astype(like.dtype, copy=False)
     return (torch.as_tensor(x).to(device=like.device, dtype=like.dtype),
             torch.as_tensor(y).to(device=like.device, dtype=like.dtype))
 
 
-def _offsets(camera: PinholeCamera, epipole, like: torch.Tensor) -> torch.Tensor:
-    """q = p − e, shape (2, H, W), normalised units."""
+def _offsets(camera: PinholeCamera, epipole, like):
+    """q = p − e, shape (2, H, W), normalised units, of the kind of ``like``."""
     ex, ey = _epipole(epipole)
     x, y = _grid(camera, like)
-    return torch.stack([x - ex, y - ey])
+    return _xp(like).stack([x - ex, y - ey])
 
 
 def angle_from_epipole(camera: PinholeCamera, epipole) -> np.ndarray:
@@ -216,26 +252,26 @@ def angle_from_epipole(camera: PinholeCamera, epipole) -> np.ndarray:
 
 def _speed(v) -> float:
     """Forward speed as a Python float (m/s); accepts a 0-d tensor."""
-    return float(v.item() if isinstance(v, torch.Tensor) else v)
+    return float(v.item() if is_tensor(v) else v)
 
 
-def rate_to_depth(rate: torch.Tensor, v: float, max_depth_m: float,
-                  extra_valid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def rate_to_depth(rate, v: float, max_depth_m: float, extra_valid=None) -> tuple[object, object]:
     """d = v / z with validity: z finite, of the sign of v (approach: expansion), d ≤ max_depth_m.
 
     rate: (H, W) z in 1/s; v: forward speed (m/s). Returns depth (m, NaN where invalid)
     and the bool mask. v = 0 or non-finite makes every pixel invalid: depth is then
-    unobservable from flow, and saying so beats returning 0 or inf.
+    unobservable from flow, and saying so beats returning 0 or inf. Tensors or numpy arrays.
     """
+    xp = _xp(rate)
     if not math.isfinite(v) or v == 0.0:
-        valid = torch.zeros_like(rate, dtype=torch.bool)
+        valid = xp.zeros_like(rate, dtype=bool)
     else:
-        with torch.no_grad():
+        with _quiet(rate):
             d = v / rate
-        valid = torch.isfinite(rate) & (rate * math.copysign(1.0, v) > 0) & torch.isfinite(d) & (d <= max_depth_m)
+            valid = xp.isfinite(rate) & (rate * math.copysign(1.0, v) > 0) & xp.isfinite(d) & (d <= max_depth_m)
     if extra_valid is not None:
         valid = valid & extra_valid
-    depth = torch.full_like(rate, float("nan"))
+    depth = xp.full_like(rate, float("nan"))
     if valid.any():
         depth[valid] = v / rate[valid]
     return depth, valid
@@ -248,10 +284,12 @@ def radial_rate(flow, camera: PinholeCamera, epipole) -> object:
     NaN where |p−e| = 0 or the flow is not finite. Same array kind as ``flow``.
     """
     f, as_numpy = _check_flow(flow, camera)
+    xp = _xp(f)
     q = _offsets(camera, epipole, f)
     w = (q * q).sum(0)
-    r = (f * q).sum(0) / w
-    r = torch.where(w > 0, r, torch.full_like(r, float("nan")))
+    with _quiet(f):
+        r = (f * q).sum(0) / w
+    r = xp.where(w > 0, r, xp.full_like(r, float("nan")))
     return _like_input(r, as_numpy)
 
 
@@ -268,8 +306,10 @@ def depth_ratio(flow, camera: PinholeCamera, v: float, epipole,
     cfg = config or DepthConfig()
     radius = cfg.min_radius_deg if min_radius_deg is None else float(min_radius_deg)
     f, as_numpy = _check_flow(flow, camera)
-    r = _to_tensor(radial_rate(f, camera, epipole))
-    far = torch.as_tensor(angle_from_epipole(camera, epipole) > radius, device=f.device)
+    r = radial_rate(f, camera, epipole)
+    far = angle_from_epipole(camera, epipole) > radius
+    if is_tensor(f):
+        far = torch.as_tensor(far, device=f.device)
     depth, valid = rate_to_depth(r, _speed(v), cfg.max_depth_m, extra_valid=far)
     return DepthResult(depth=_like_input(depth, as_numpy), valid=_like_input(valid, as_numpy),
                        rate=_like_input(r, as_numpy), method="ratio")
@@ -318,7 +358,7 @@ def tv_objective(z, flow, camera: PinholeCamera, epipole, gamma: float, weights=
     carry no data term (as in :func:`depth_tv`).
     """
     f, _ = _check_flow(flow, camera)
-    f = f.to(torch.float64)
+    f = _to_tensor(f, dtype=torch.float64)
     zt = _to_tensor(z, device=f.device, dtype=torch.float64)
     q = _offsets(camera, epipole, f)
     ok = torch.isfinite(f).all(0)
@@ -368,7 +408,9 @@ def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None
     tol = cfg.tv_tol if tol is None else float(tol)
     if not gamma >= 0:
         raise ValueError(f"gamma must be ≥ 0, got {gamma}")
+    require_torch("TV depth")
     f, as_numpy = _check_flow(flow, camera)
+    f = _to_tensor(f)
     t0 = time.perf_counter()
     with torch.no_grad():
         q = _offsets(camera, epipole, f)
@@ -546,15 +588,13 @@ def _tv_init(init, f: torch.Tensor, shape: tuple) -> tuple[torch.Tensor, torch.T
 def _rotational_flow(camera: PinholeCamera, omega, like=None):
     """Flow (2, H, W) in normalised units (1/s) of a pinhole camera rotating at ω (rad/s, camera frame).
 
-    :func:`lobula.epipole.rotational_flow` on the camera's grid, on the device and dtype
-    of ``like`` (a tensor; returns a tensor), else numpy float64.
+    :func:`lobula.epipole.rotational_flow` on the camera's grid, of the kind, dtype (and
+    device) of ``like`` (a tensor or a numpy array), else numpy float64.
     """
     wx, wy, wz = (float(c) for c in np.asarray(
-        omega.detach().cpu() if isinstance(omega, torch.Tensor) else omega, dtype=float).ravel())
-    t = like if isinstance(like, torch.Tensor) else torch.zeros((), dtype=torch.float64)
-    x, y = _grid(camera, t)
-    out = rotational_flow((wx, wy, wz), x, y)
-    return out if isinstance(like, torch.Tensor) else out.numpy()
+        omega.detach().cpu() if is_tensor(omega) else omega, dtype=float).ravel())
+    x, y = _grid(camera, np.zeros((), np.float64) if like is None else like)
+    return rotational_flow((wx, wy, wz), x, y)
 
 
 def _rotation_matrix(omega, dt: float) -> np.ndarray:
@@ -582,12 +622,15 @@ def derotate_flow(flow, camera: PinholeCamera, omega, dt: float | None = None):
         return _like_input(out, as_numpy)
     if not dt > 0:
         raise ValueError(f"dt must be positive seconds, got {dt}")
+    xp = _xp(f)
     x, y = _grid(camera, f)
-    Rt = torch.as_tensor(_rotation_matrix(omega, dt).T, dtype=f.dtype, device=f.device)
+    Rt = _rotation_matrix(omega, dt).T
+    Rt = torch.as_tensor(Rt, dtype=f.dtype, device=f.device) if is_tensor(f) else Rt.astype(f.dtype)
     xe, ye = x + f[0] * dt, y + f[1] * dt
-    P = torch.stack([xe, ye, torch.ones_like(xe)])            # (3, H, W) end rays
-    Q = torch.einsum("ij,jhw->ihw", Rt, P)
-    out = torch.stack([Q[0] / Q[2] - x, Q[1] / Q[2] - y]) / dt
+    P = xp.stack([xe, ye, xp.ones_like(xe)])            # (3, H, W) end rays
+    Q = xp.einsum("ij,jhw->ihw", Rt, P)
+    with _quiet(f):
+        out = xp.stack([Q[0] / Q[2] - x, Q[1] / Q[2] - y]) / dt
     return _like_input(out, as_numpy)
 
 
@@ -608,7 +651,7 @@ def depth_parallax(flow, camera: PinholeCamera, v: float, epipole, gyro=None,
     beyond ``config.max_depth_m``.
     """
     f, as_numpy = _check_flow(flow, camera)
-    ft = f if gyro is None else _to_tensor(derotate_flow(f, camera, gyro, dt=dt))
+    ft = f if gyro is None else derotate_flow(f, camera, gyro, dt=dt)
     res = depth_ratio(ft, camera, v, epipole, min_radius_deg=min_radius_deg, config=config)
     return DepthResult(depth=_like_input(res.depth, as_numpy), valid=_like_input(res.valid, as_numpy),
                        rate=_like_input(res.rate, as_numpy), method="parallax")
@@ -621,7 +664,7 @@ def scorable(true, max_depth_m: float = math.inf) -> tuple[np.ndarray, np.ndarra
     sky: no surface (true depth non-finite or ≤ 0); far: finite but beyond
     ``max_depth_m`` (the stated range of the scores); scored: the rest.
     """
-    t = np.asarray(true.detach().cpu() if isinstance(true, torch.Tensor) else true, dtype=np.float64)
+    t = np.asarray(true.detach().cpu() if is_tensor(true) else true, dtype=np.float64)
     sky = ~(np.isfinite(t) & (t > 0))
     far = ~sky & (np.where(sky, 0.0, t) > max_depth_m)
     return ~sky & ~far, sky, far
@@ -660,7 +703,7 @@ def depth_metrics(pred, true, mask, epipole, camera: PinholeCamera,
     Metrics over no valid pixels are NaN.
     """
     def _np(a):
-        return a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
+        return a.detach().cpu().numpy() if is_tensor(a) else np.asarray(a)
 
     p = _np(pred).astype(np.float64)
     t = _np(true).astype(np.float64)

@@ -4,17 +4,19 @@ epipole, and the rotation a gyroscope leaves behind.
 Used by the depth estimators of :mod:`lobula.depth` (TV's data weights, the ratio map's
 mask) and by the ranging pass (:mod:`experiments.depth_stream`). Shapes and units as
 there: flow (2, H, W) in normalised coordinates per second (1/s), epipole (ex, ey)
-normalised. Every array input may be numpy or torch; outputs follow the input's kind.
+normalised. Every array input may be numpy or torch; outputs follow the input's kind (numpy
+inputs are computed with numpy: no torch needed).
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-import torch
 
+from ._optional import is_tensor, torch
 from lobula.camera import PinholeCamera
-from lobula.depth import _check_flow, _epipole, _like_input, _offsets, _to_tensor
+from lobula.depth import (_as_array, _check_flow, _clamp, _epipole, _grid, _like_input, _median_low, _offsets, _quiet,
+                          _xp)
 from lobula.epipole import EpipoleEstimator, rotational_flow
 
 __all__ = ["flow_noise", "precision_weights", "translational_snr", "refine_motion"]
@@ -32,40 +34,61 @@ def flow_noise(flow, camera: PinholeCamera, epipole, window_deg: float = 3.0):
     (σ_image / 2)², σ_image = 1.4826·median|n| over the image, keeps a locally lucky
     patch from claiming perfect flow. Same array kind as ``flow``.
     """
-    import torch.nn.functional as F
-
     f, as_numpy = _check_flow(flow, camera)
+    xp = _xp(f)
     q = _offsets(camera, epipole, f)
-    nq = torch.sqrt((q * q).sum(0))
-    ok = torch.isfinite(f).all(0) & (nq > 0)
-    n = torch.where(ok, (f[1] * q[0] - f[0] * q[1]) / nq.clamp(min=1e-30), torch.zeros_like(nq))
+    nq = xp.sqrt((q * q).sum(0))
+    ok = xp.isfinite(f).all(0) & (nq > 0)
+    with _quiet(f):
+        n = xp.where(ok, (f[1] * q[0] - f[0] * q[1]) / _clamp(nq, 1e-30), xp.zeros_like(nq))
     if not bool(ok.any()):
-        return _like_input(torch.full_like(nq, float("nan")), as_numpy)
+        return _like_input(xp.full_like(nq, float("nan")), as_numpy)
     k = max(3, int(round(math.radians(window_deg) * float(camera.fx))) | 1)
-    m = ok.to(f.dtype)
-    num = F.avg_pool2d((n * n)[None, None], k, stride=1, padding=k // 2, count_include_pad=False)[0, 0]
-    den = F.avg_pool2d(m[None, None], k, stride=1, padding=k // 2, count_include_pad=False)[0, 0]
-    local = num / den.clamp(min=1e-12)
-    s_img = 1.4826 * n[ok].abs().median()
+    if is_tensor(f):
+        import torch.nn.functional as F
+
+        m = ok.to(f.dtype)
+        num = F.avg_pool2d((n * n)[None, None], k, stride=1, padding=k // 2, count_include_pad=False)[0, 0]
+        den = F.avg_pool2d(m[None, None], k, stride=1, padding=k // 2, count_include_pad=False)[0, 0]
+        local = num / den.clamp(min=1e-12)
+    else:
+        # Window sums: the window's mean square over its valid pixels is their ratio; den counts
+        # the valid pixels exactly (sums of 0/1), so den > 0 means at least one.
+        num, den = _window_sum(n * n, k), _window_sum(ok.astype(f.dtype), k)
+        local = num / np.maximum(den, 1.0)
+    s_img = 1.4826 * _median_low(abs(n[ok]))
     floor = (0.5 * s_img) ** 2
-    var = torch.where(den > 0, torch.maximum(local, floor), torch.full_like(local, float(s_img) ** 2))
-    return _like_input(torch.sqrt(var), as_numpy)
+    var = xp.where(den > 0, xp.maximum(local, floor), xp.full_like(local, float(s_img) ** 2))
+    return _like_input(xp.sqrt(var), as_numpy)
+
+
+def _window_sum(a: np.ndarray, k: int) -> np.ndarray:
+    """Sum of ``a`` (H, W) over the k×k window centred on each pixel (k odd; outside the image counts 0).
+
+    Direct sums along each axis (no running sums), so sums of integers are exact.
+    """
+    from scipy.ndimage import correlate1d
+
+    ones = np.ones(k, a.dtype)
+    return correlate1d(correlate1d(a, ones, axis=0, mode="constant"), ones, axis=1, mode="constant")
 
 
 def precision_weights(sigma, clip: float = 1e3):
     """Relative precision c = median(σ²)/σ² of each pixel's flow (σ from :func:`flow_noise`),
     clipped to [1/clip, clip]; the data weights of :func:`depth_tv`. Same array kind."""
-    as_numpy = not isinstance(sigma, torch.Tensor)
-    s = _to_tensor(sigma)
+    as_numpy = not is_tensor(sigma)
+    s = _as_array(sigma)
+    xp = _xp(s)
     v = s * s
-    good = torch.isfinite(v) & (v > 0)
+    good = xp.isfinite(v) & (v > 0)
     if not bool(good.any()):
-        return _like_input(torch.ones_like(s), as_numpy)
-    med = v[good].median()
+        return _like_input(xp.ones_like(s), as_numpy)
+    med = _median_low(v[good])
     if not bool(med > 0):
-        return _like_input(torch.ones_like(s), as_numpy)
+        return _like_input(xp.ones_like(s), as_numpy)
     # Relative floor (not an absolute one): exact synthetic flow has σ² ~ 1e-32.
-    c = torch.where(good, med / torch.maximum(v, med / clip), torch.ones_like(v)).clamp(1.0 / clip, clip)
+    with _quiet(s):
+        c = _clamp(xp.where(good, med / xp.maximum(v, med / clip), xp.ones_like(v)), 1.0 / clip, clip)
     return _like_input(c, as_numpy)
 
 
@@ -80,14 +103,17 @@ def translational_snr(flow, camera: PinholeCamera, epipole, sigma):
     depth from flow is ill-conditioned. Same array kind as ``flow``.
     """
     f, as_numpy = _check_flow(flow, camera)
+    xp = _xp(f)
     q = _offsets(camera, epipole, f)
-    ok = torch.isfinite(f).all(0)
+    ok = xp.isfinite(f).all(0)
     w = (q * q).sum(0)
-    z_bar = (torch.where(ok, (f * q).sum(0), torch.zeros_like(w)).sum()
-             / torch.where(ok, w, torch.zeros_like(w)).sum().clamp(min=1e-30))
-    s = _to_tensor(sigma, device=f.device, dtype=f.dtype)
-    snr = z_bar.abs() * torch.sqrt(w) / s.clamp(min=1e-30)
-    return _like_input(torch.where(torch.isfinite(snr), snr, torch.zeros_like(snr)), as_numpy)
+    s = (torch.as_tensor(sigma, device=f.device, dtype=f.dtype) if is_tensor(f)
+         else np.asarray(sigma.detach().cpu() if is_tensor(sigma) else sigma, dtype=f.dtype))
+    with _quiet(f):
+        z_bar = (xp.where(ok, (f * q).sum(0), xp.zeros_like(w)).sum()
+                 / _clamp(xp.where(ok, w, xp.zeros_like(w)).sum(), 1e-30))
+        snr = abs(z_bar) * xp.sqrt(w) / _clamp(s, 1e-30)
+    return _like_input(xp.where(xp.isfinite(snr), snr, xp.zeros_like(snr)), as_numpy)
 
 
 # ----------------------------------------------------------------------------- ego-motion refinement
@@ -112,7 +138,7 @@ def refine_motion(flow, camera: PinholeCamera, epipole, iters: int = 6, n_points
     Returns (e (2,), δω (3,) rad/s, flow with Bδω removed (same kind as flow)).
     """
     f, as_numpy = _check_flow(flow, camera)
-    fn = f.detach().cpu().numpy().astype(np.float64)
+    fn = (f.detach().cpu().numpy() if is_tensor(f) else f).astype(np.float64)
     x, y = camera.normalised_grid(np.float64)
     stride = max(1, int(math.sqrt(camera.width * camera.height / max(n_points, 1))))
     xs, ys = x[::stride, ::stride].ravel(), y[::stride, ::stride].ravel()
@@ -135,8 +161,7 @@ def refine_motion(flow, camera: PinholeCamera, epipole, iters: int = 6, n_points
         if best is None or perp < best[0]:
             best = (perp, e, dw)
     _, e, dw = best
-    rot = rotational_flow(tuple(dw), torch.as_tensor(x, dtype=f.dtype, device=f.device),
-                          torch.as_tensor(y, dtype=f.dtype, device=f.device))
+    rot = rotational_flow(tuple(dw), *_grid(camera, f))
     return e, dw, _like_input(f - rot, as_numpy)
 
 

@@ -47,11 +47,14 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import asdict, dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-import torch
-from torch import Tensor
+
+from ._optional import torch
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 __all__ = [
     "EMDConfig", "EMDCoefficients", "EMDState", "EMDArray", "emd_coefficients",

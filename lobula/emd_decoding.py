@@ -37,9 +37,9 @@ from dataclasses import asdict, dataclass, field
 from typing import Iterable, Iterator
 
 import numpy as np
-import torch
 from scipy import sparse
 
+from ._optional import torch
 from .camera import PinholeCamera, angles_to_normalised, normalised_to_angles
 from .emd import EMDArray, EMDConfig
 from .lattice import Lattice, LatticeConfig

@@ -121,8 +121,8 @@ import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-import torch
 
+from ._optional import torch
 from .compound_eye import CompoundEye
 from .emd import EMDArray, EMDConfig
 from .photoreceptor import PhotoreceptorConfig, Photoreceptors, lattice_filter, lowpass_scan, spatial_filter

@@ -28,13 +28,25 @@ from scipy.spatial.transform import Rotation
 
 
 GYRO_NOISE_DENSITY = np.radians(0.014)  # rad/s/√Hz, Bosch BMI055 (the D435i's IMU) datasheet
-GYRO_BIAS_PRIOR = np.radians(0.2)  # rad/s: spread of a factory-calibrated MEMS gyro's zero-rate offset
+#: rad/s: prior spread of a MEMS gyro's zero-rate offset before anything in the record has measured it, as
+#: consumer data sheets give it (Bosch BMI055, the D435i's IMU: ±1°/s). A narrower prior leaves a camera
+#: that starts moving and turning, with a bias of that size, confidently wrong: the attitude integrated
+#: meanwhile lets gravity into the forward axis faster than the readout's offset is allowed to move.
+GYRO_BIAS_PRIOR = np.radians(1.0)
+#: rad/s: the bias prior of the flow's heading and bias fit (lobula.epipole.HeadingBiasEstimator), a
+#: regulariser rather than a belief about the gyro: on frontal scenes a pitch/yaw bias is nearly
+#: confounded with a shift of the epipole, and a fit that starts at the data sheet's spread trades one
+#: for the other (the suite's mixed family: zero-phase RMSE ×4). The fit still moves its bias where the
+#: flow tells the two apart (a 1°/s bias is learned within ~3 s), and its estimate is fused, std
+#: scaled by HEADING_BIAS_STD_SCALE, with the still-camera estimate, whose prior is GYRO_BIAS_PRIOR.
+HEADING_FIT_BIAS_PRIOR = np.radians(0.2)
 ACCEL_CORRELATION_S = 1.0  # s: a track's accelerations stay correlated over about a second
 G = 9.80665  # m/s², standard gravity
 
 
 def gyro_bias(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False, window_s: float = 0.5,
-              noise_density: float = GYRO_NOISE_DENSITY, with_std: bool = False):
+              noise_density: float = GYRO_NOISE_DENSITY, with_std: bool = False,
+              prior: float = GYRO_BIAS_PRIOR):
     """Gyroscope bias (rad/s, (n, 3)) estimated where the camera is still — the one implementation.
 
     A sample is still when, over a window of ``window_s`` around it (causal: ending at it),
@@ -44,13 +56,13 @@ def gyro_bias(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False, window
     the bias's expected value); offline, all of the record's. A camera that keeps turning
     gives no estimate rather than a wrong one: a mean rate over motion is the net angle
     turned divided by the time, not the bias. with_std: also return the estimate's
-    standard deviation (rad/s, (n,)): the prior ``GYRO_BIAS_PRIOR`` narrowed by the still
-    samples' white noise.
+    standard deviation (rad/s, (n,)): the prior ``prior`` (rad/s; default ``GYRO_BIAS_PRIOR``)
+    narrowed by the still samples' white noise.
     """
     time_s, gyro = np.asarray(time_s, float), np.asarray(gyro, float)
     n = len(time_s)
     if n < 3:
-        return (np.zeros((n, 3)), np.full(n, GYRO_BIAS_PRIOR)) if with_std else np.zeros((n, 3))
+        return (np.zeros((n, 3)), np.full(n, prior)) if with_std else np.zeros((n, 3))
     rate = 1.0 / float(np.median(np.diff(time_s)))
     sigma = noise_density * np.sqrt(rate / 2)
     k = max(3, int(round(window_s * rate)))
@@ -72,7 +84,7 @@ def gyro_bias(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False, window
         count = np.full(n, still.sum())
     if not with_std:
         return bias
-    return bias, 1.0 / np.sqrt(1.0 / GYRO_BIAS_PRIOR ** 2 + count / sigma ** 2)
+    return bias, 1.0 / np.sqrt(1.0 / prior ** 2 + count / sigma ** 2)
 
 
 def orientation_from_gyro(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False,
@@ -267,18 +279,19 @@ def transport_rate(times: np.ndarray, time_s: np.ndarray, gyro: np.ndarray, bias
 
 
 def gravity_drift_std(time_s: np.ndarray, gyro: np.ndarray, causal: bool = True,
-                      bias_std: np.ndarray | None = None, accel: np.ndarray | None = None) -> np.ndarray:
+                      bias_std: np.ndarray | None = None, accel: np.ndarray | None = None,
+                      prior: float = GYRO_BIAS_PRIOR) -> np.ndarray:
     """How fast (m/s²/s, (n,)) gravity may drift through the forward axis: |g|·σ_b.
 
-    σ_b: that of :func:`gyro_bias` — causal: from the still samples seen so far (online);
-    else from the whole record's — or ``bias_std`` (n, 3) rad/s per camera axis where given
+    σ_b: that of :func:`gyro_bias` (its prior ``prior``, rad/s) — causal: from the still samples seen
+    so far (online); else from the whole record's — or ``bias_std`` (n, 3) rad/s per camera axis where given
     (e.g. :func:`vision_gyro_bias`'s). A bias error δb turns gravity g at δb × g, whose
     forward (z) part is δb_x·g_y − δb_y·g_x: with ``accel`` (n, 3), the specific force whose
     mean (expanding, causal; whole record, offline) gives g's direction in the camera,
     the std is |g|·√(σ_x²ĝ_y² + σ_y²ĝ_x²); without it, |g|·max σ (any orientation).
     """
     if bias_std is None:
-        return G * gyro_bias(time_s, gyro, causal, with_std=True)[1]
+        return G * gyro_bias(time_s, gyro, causal, with_std=True, prior=prior)[1]
     b = np.asarray(bias_std, float)
     if accel is None:
         return G * b.max(axis=-1)
@@ -356,8 +369,8 @@ def fused_gyro_bias(time_s: np.ndarray, still_bias: np.ndarray, still_std: np.nd
 
     Causal: each sample takes the flow's newest estimate known by then (the still one alone before
     the first); offline: the flow's last, which has seen the whole record. A camera that never stops
-    has no still estimate (std the prior, 0.2°/s), and its attitude then drifts at the whole bias,
-    turning gravity into the forward axis at up to |g|·0.2°/s ≈ 0.03 m/s² per second.
+    has no still estimate (std the prior, GYRO_BIAS_PRIOR), and its attitude then drifts at the whole bias,
+    turning gravity into the forward axis at up to |g|·1°/s ≈ 0.17 m/s² per second.
     """
     n = len(time_s)
     ss = np.broadcast_to(np.reshape(np.asarray(still_std, float), (n, -1)), (n, 3))

@@ -44,8 +44,8 @@ import warnings
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import torch
 
+from ._optional import torch
 from .camera import PinholeCamera, normalised_to_angles
 
 __all__ = [
@@ -430,8 +430,9 @@ class Lattice:
             self._operator_cache[(torch.device("cpu"), torch.float32)] = self._operator
         return self._operator
 
-    def operator_on(self, device, dtype=torch.float32) -> torch.Tensor:
-        """The acceptance operator on ``device`` in ``dtype`` (cached)."""
+    def operator_on(self, device, dtype=None) -> torch.Tensor:
+        """The acceptance operator on ``device`` in ``dtype`` (None: torch.float32; cached)."""
+        dtype = torch.float32 if dtype is None else dtype   # not the default value: torch loads on first use
         key = (torch.device(device), dtype)
         if key not in self._operator_cache:
             op = self.operator

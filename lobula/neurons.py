@@ -31,10 +31,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import NamedTuple, Sequence
+from typing import TYPE_CHECKING, NamedTuple, Sequence
 
-import torch
-from torch import Tensor
+from ._optional import is_tensor, torch
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 __all__ = [
     "RateNeuronConfig", "RateState", "RateNeuron", "naka_rushton", "rate_step",
@@ -318,7 +320,7 @@ def lif_fi_curve(current, config: LIFConfig | None = None):
     Works on floats, numpy arrays and tensors (returns the same kind).
     """
     c = config or LIFConfig()
-    if isinstance(current, Tensor):
+    if is_tensor(current):
         lib, I = torch, current
     else:
         import numpy as np
@@ -330,7 +332,7 @@ def lif_fi_curve(current, config: LIFConfig | None = None):
     num = lib.where(fires, drive + c.V_rest - c.V_reset, 2.0)
     isi = c.t_ref + c.tau_m * lib.log(num / lib.where(fires, gap, 1.0))
     f = lib.where(fires, 1.0 / isi, 0.0)
-    return float(f) if f.ndim == 0 and not isinstance(current, Tensor) else f
+    return float(f) if f.ndim == 0 and not is_tensor(current) else f
 
 
 def _white_sigma(c: LIFConfig) -> float:

@@ -31,11 +31,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-import torch
-from torch import Tensor
+
+from ._optional import torch
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 __all__ = [
     "PhotoreceptorConfig", "PhotoreceptorState", "Photoreceptors",

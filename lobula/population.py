@@ -63,17 +63,19 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import MISSING, asdict, dataclass, field, fields as dc_fields, is_dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-import torch
-from torch import Tensor
 
+from ._optional import torch
 from .camera import normalised_to_angles
 from .emd import pair_difference, pair_runs
 from .lc_geometry import field_centres, field_weights, pair_blocks, pair_templates
 from .neurons import (LIFConfig, LIFNeuron, LIFState, PoissonConfig, PoissonNeuron, PoissonState, RateNeuron,
                       RateNeuronConfig, RateState)
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 __all__ = [
     "ReceptiveFieldConfig", "MatchedFilterConfig", "NormalisationConfig", "PathwayConfig", "LCNeuronConfig",

@@ -48,8 +48,8 @@ from dataclasses import asdict, dataclass
 from functools import lru_cache
 
 import numpy as np
-import torch
 
+from ._optional import torch
 from .neurons import LIFConfig, LIFState, lif_current_for_rate, lif_isi_cv, lif_step, make_generator
 from .photoreceptor import lowpass_scan
 

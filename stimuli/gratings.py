@@ -34,12 +34,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
-from torch import Tensor
 
+from lobula._optional import torch
 from lobula.camera import PinholeCamera
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 __all__ = ["GratingConfig", "drum_coordinates", "frame_times",
            "drifting_grating_lattice", "drifting_grating_frames"]

@@ -33,14 +33,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 from scipy import special
-from torch import Tensor
 
+from lobula._optional import torch
 from lobula.camera import angles_to_normalised
 from .gratings import GratingConfig, drifting_grating_lattice, drum_coordinates, frame_times
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 __all__ = [
     "drifting_grating", "GratingSource", "radial_grating", "moving_edge", "looming_disc",

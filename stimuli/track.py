@@ -1,7 +1,7 @@
 """Synthetic track runs: a trajectory, a scene and an IMU, written as a footage folder.
 
 ``make_track_run`` is what ``lobula scene`` calls: it replays a velocity profile (by
-default the real FLIVVER trajectory when ``../shared`` is present, else a built-in
+default the real FLIVVER trajectory when ``../shared`` is present (:func:`recorded_profile`), else a built-in
 profile with rests, accelerations and reversals, or a seeded random smooth profile with
 a given peak speed) through a :class:`TrackScene`, and synthesises the IMU from the same
 trajectory and rotation.
@@ -28,6 +28,18 @@ from .trajectory import trajectory_from_function, trajectory_from_profile
 # suite's scene markers (which store this path) agree across checkouts and worktrees.
 REAL_PROFILE = (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flivver_d435i"
                 / "velocity.csv").resolve()
+#: Environment variable: "builtin" makes scenes that would follow the recorded profile follow the built-in
+#: one even where the recording is beside the checkout, so that the same scene is rendered on every
+#: machine (the test suite sets it: its verdict must not depend on an optional folder).
+PROFILE_ENV = "LOBULA_PROFILE"
+
+
+def recorded_profile() -> Path | None:
+    """The recorded FLIVVER velocity profile (``REAL_PROFILE``) where it is present and ``$LOBULA_PROFILE``
+    is not "builtin"; None where scenes follow :func:`builtin_profile` instead."""
+    if os.environ.get(PROFILE_ENV, "").strip().lower() == "builtin" or not REAL_PROFILE.exists():
+        return None
+    return REAL_PROFILE
 
 
 def builtin_profile(t: np.ndarray) -> np.ndarray:

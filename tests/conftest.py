@@ -19,7 +19,15 @@ import pytest
 from stimuli.scene import SceneConfig
 from stimuli.track import REAL_PROFILE, TrackRunConfig, make_track_run
 
+# Every NetCDF or Zarr store any test writes is walked for CF-1.10 metadata (experiments.store.cf_ready):
+# a variable without long_name or units fails the test that wrote it (subprocesses inherit this too).
+os.environ.setdefault("LOBULA_STRICT_CF", "1")
+
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flivver_d435i"
+# Synthetic scenes follow the built-in velocity profile whether or not ../shared is beside the checkout,
+# so the suite renders the same worlds and gives the same verdict on every machine; a test that needs the
+# recorded profile asks for it (the real_profile fixture) and skips where it is absent.
+os.environ["LOBULA_PROFILE"] = "builtin"
 REPLAY_FIXTURES = {"make_replay", "replay_rates", "emd_replay"}
 
 

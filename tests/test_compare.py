@@ -123,3 +123,67 @@ def test_compare_emd_gaze_option_reaches_the_emd_run():
     cfg = _config_from_args(args)
     assert cfg.emd.gaze == "none" and cfg.for_front_end("emd").emd.gaze == "none"
     assert _config_from_args(p.parse_args(["compare", "X", "--out", "Y"])).emd.gaze == "fixate"
+
+
+def test_lock_on_is_never_negative_and_counts_from_the_first_frame():
+    t = np.arange(-0.05, 3.0, 0.1)                         # the EMD stamps its first estimates before frame 0
+    v = np.ones_like(t)
+    assert lock_on_time(t, v, v, t_origin=0.0) == 0.0       # locked on from the first frame
+    assert lock_on_time(t + 0.1, v, v, t_origin=0.0) == pytest.approx(0.05)  # first estimate 0.05 s in
+    late = np.where(t < 0.9, 0.5, 0.0)
+    assert lock_on_time(t, v + late, v, t_origin=0.0) == pytest.approx(0.95)
+
+
+def test_counts_in_the_timings_are_not_stages_and_the_table_says_its_units():
+    ds = xr.Dataset(coords={"time": np.arange(10.0)})
+    ds.attrs["timings_s"] = '{"read": 0.5, "emd": 1.0, "n_saccades": 3, "n_pairs": 900, "n_ommatidia": 4000}'
+    assert stage_ms_per_frame(ds) == {"read": 50.0, "emd": 100.0}
+    from experiments.compare import format_table
+    table = format_table(_comparison())
+    header = table.splitlines()[0]
+    assert "n_saccades" not in header and "end-to-end ms" in header and "RMSE m/s" in header
+    assert "lock-on s" in header and "ms: wall time per estimate" in table
+
+
+def _comparison():
+    """A comparison Dataset with known numbers (two front ends, stages that do not add up to end to end)."""
+    t = np.arange(0.0, 4.0, 1 / 30)
+    v_true = 0.2 * np.sin(t)
+    names, stages = ["emd", "dis"], ["read", "flow", "emd", "fields", "readout"]
+    stage = np.array([[0.5, np.nan, 3.0, 2.0, 0.2], [0.4, 13.0, np.nan, 9.0, 0.2]])
+    ds = xr.Dataset(
+        dict(v_hat=(("front_end", "time"), np.stack([v_true + 0.01, v_true - 0.02])), v_true=("time", v_true),
+             stage_ms_per_frame=(("front_end", "stage"), stage),
+             rmse_m_s=("front_end", [0.01, 0.02]), median_abs_error_m_s=("front_end", [0.01, 0.02]),
+             lock_on_s=("front_end", [0.0, np.nan]), observable_fraction=("front_end", [1.0, 0.9]),
+             r_rel_error=("front_end", [0.5, 0.1]), ms_per_frame=("front_end", [19.4, 13.4]),
+             n_frames=("front_end", [90.0, 84.0])),
+        coords=dict(front_end=names, stage=stages, time=t))
+    ds.attrs.update(skip_s=1.0, footage="/x/clip", readout="kalman", filter="zero-phase", lock_tol_m_s=0.1,
+                    lock_hold_s=1.0)
+    return ds
+
+
+def test_comparison_figure_bars_are_the_table_columns_and_legends_clear_the_bars():
+    import matplotlib.pyplot as plt
+
+    from experiments.compare import comparison_figure, comparison_rows
+
+    ds = _comparison()
+    fig = comparison_figure(ds)
+    fig.canvas.draw()
+    ax = next(a for a in fig.axes if a.get_ylabel() == "ms per estimate")
+    rows = comparison_rows(ds)
+    heights = {c.get_label(): [p.get_height() for p in c.patches] for c in ax.containers}
+    assert heights["end to end"] == [r["ms_per_frame"] for r in rows]
+    for s in ds.stage.values:                               # each stage's bars: its column, where it has one
+        assert heights[str(s)] == [r[f"ms_{s}"] for r in rows if np.isfinite(r[f"ms_{s}"])]
+    for a in fig.axes:                                      # no legend over a bar or a curve's panel
+        leg = a.get_legend()
+        if leg is None:
+            continue
+        box = leg.get_window_extent()
+        assert not box.overlaps(a.get_window_extent()), a.get_title()
+    lock = next(a for a in fig.axes if a.get_ylabel() == "lock-on time (s)")
+    assert {t.get_text() for t in lock.texts} == {"0.00 s", "never"}
+    plt.close(fig)

@@ -322,9 +322,10 @@ def test_command_line(synthetic, tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(FootageError, match="not found"):
         _cli(["depth", str(tmp_path / "missing"), "--out", str(tmp_path / "x.nc")])
-    with pytest.raises(ValueError, match="every"):
+    with pytest.raises(SystemExit):  # refused while parsing, before anything loads
         _cli(["depth", str(fo.path), "--every", "0", "--out", str(tmp_path / "x.nc"),
               "--velocity-run", str(tmp_path / "vel.nc")])
+    assert "--every" in capsys.readouterr().err
     with pytest.raises(ValueError, match=r"\.nc"):
         _cli(["depth", str(fo.path), "--out", str(tmp_path / "x.txt")])
     assert not (tmp_path / "x.nc").exists()

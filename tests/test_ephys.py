@@ -182,3 +182,48 @@ def test_rf_map_recovers_a_box_field():
     err = math.hypot(float(ds.rf_centre_azimuth_deg[0]) + 8.0, float(ds.rf_centre_elevation_deg[0]) + 4.0)
     assert err < ds.attrs["dphi_deg"]
     assert float(ds.rf_size_deg[0]) == pytest.approx(10.0, rel=0.2)
+
+
+def _blank_margins(png) -> dict:
+    """The blank (white) band at each edge of a PNG written at experiments.ephys.figures.DPI (inches)."""
+    import matplotlib.image as mpimg
+
+    from experiments.ephys.figures import DPI
+
+    img = mpimg.imread(str(png))[..., :3]
+    ink = (img < 0.97).any(-1)
+    cols, rows = np.flatnonzero(ink.any(0)), np.flatnonzero(ink.any(1))
+    w, h = ink.shape[1], ink.shape[0]
+    return {k: px / DPI for k, px in dict(left=cols[0], right=w - 1 - cols[-1], top=rows[0],
+                                          bottom=h - 1 - rows[-1]).items()}
+
+
+def test_figures_have_no_blank_margins_when_a_panel_has_no_data(tmp_path):
+    from experiments.ephys.figures import plot_recording
+
+    # LC rates only (no EMD probe pairs): one tuning panel, not a blank one beside it.
+    tuning = tf_tuning(EphysConfig(trials=1), temporal_frequencies_hz=(1.0, 4.0, 16.0), duration_s=0.6,
+                       settle_s=0.2, record=["lc.rate"])
+    assert "emd_response_tuning" not in tuning
+    # One mapped field in a figure sized for several.
+    cfg = _with_fields(EphysConfig(trials=1), size_deg=10.0, centres_deg=((-8.0, -4.0),), shape="gaussian")
+    one_field = rf_map(cfg, extent_deg=11.0, directions=3)
+    for name, ds in (("tuning", tuning), ("rf", one_field)):
+        png, pdf = plot_recording(ds, tmp_path / f"{name}.png")
+        assert pdf.exists()
+        m = _blank_margins(png)
+        assert max(m.values()) < 0.2, (name, m)               # inches: the saved pad, not an empty panel
+
+
+def test_replay_scores_score_a_short_replay_after_a_quarter_of_it():
+    from experiments.ephys.figures import replay_scores
+
+    t = np.arange(0.0, 1.9, 1 / 30)                             # shorter than the 2 s default skip
+    v = 0.2 * np.sin(t)
+    rec = xr.Dataset(dict(v_true=("time", v), arithmetic_v=("time", v + 0.01),
+                          readout_v=(("trial", "time"), np.full((2, t.size), np.nan))), coords=dict(time=t))
+    sc = replay_scores(rec)
+    assert sc["scored_after_s"] == pytest.approx(0.25 * t[-1])
+    assert sc["arithmetic_rmse_m_s"] == pytest.approx(0.01)
+    assert np.isnan(sc["neuron_rmse_m_s"])                      # the neuron never confident: no score, not 0
+    assert replay_scores(rec, skip_s=1.0)["scored_after_s"] == 1.0

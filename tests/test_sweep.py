@@ -166,3 +166,27 @@ def test_sweeping_the_front_end_gives_each_its_own_defaults():
         (want.epipole, want.readout.kappa_rel_error, want.readout.shared_error_frac) == ("principal", 0.5, 0.8)
     back, _ = apply_value("velocity.front_end", "dis", vel, TrackRunConfig())
     assert back.readout.kappa_rel_error == VelocityConfig().readout.kappa_rel_error
+
+
+def test_the_summary_names_the_lowest_mean_not_the_luckiest_point():
+    from experiments.sweep import rmse_summary
+
+    # size × seed: the single lowest point is at 15° (seed 2), yet 15° has the worst mean over seeds.
+    r = np.array([[0.010, 0.012, 0.011], [0.013, 0.014, 0.012], [0.030, 0.025, 0.005]])
+    ds = xr.Dataset({"rmse_m_s": (("fields.size_deg", "seed"), r)},
+                    coords={"fields.size_deg": [5.0, 10.0, 15.0], "seed": [0, 1, 2]})
+    lines = rmse_summary(ds, ["fields.size_deg", "seed"])
+    assert "lowest single point: fields.size_deg=15, seed=2" in lines[0]
+    size = next(ln for ln in lines if ln.startswith("fields.size_deg:"))
+    assert "mean RMSE over the 3 values of seed" in size and "5: 0.0110; 10: 0.0130; 15: 0.0200" in size
+    assert size.endswith("lowest at fields.size_deg=5")
+    assert int(np.argmin(r.mean(1))) == 0                      # the known answer: argmin of the mean
+    # Failed points (NaN): a value with points missing is flagged and not preferred over a complete one.
+    r2 = r.copy()
+    r2[0, :2] = np.nan
+    lines = rmse_summary(ds.assign(rmse_m_s=(("fields.size_deg", "seed"), r2)), ["fields.size_deg", "seed"])
+    size = next(ln for ln in lines if ln.startswith("fields.size_deg:"))
+    assert "5: 0.0110 (1 of 3 scored)" in size and size.endswith("lowest at fields.size_deg=10")
+    assert "over 7 of 9 points" in lines[0]
+    assert rmse_summary(ds.assign(rmse_m_s=ds.rmse_m_s * np.nan), ["fields.size_deg", "seed"]) == [
+        "RMSE: no point was scored (every point's RMSE is NaN)"]

@@ -22,13 +22,32 @@ deterministic and carries no ``trial`` dim; neuron variables do (one trial for a
 deterministic neuron model). Spikes are counts per model step (``dt_s`` in their attrs,
 with the neuron model and its parameters).
 """
-from .bench import bench_tuning_sweep
+import importlib
+
 from .command import PROTOCOLS, add_parser, main, run_protocol, summary
-from .figures import plot_looming, plot_recording, plot_rf_map, plot_tf_tuning
-from .protocols import TF_GRID_HZ, looming, psth, psth_sem, raster, rf_map, steady_state_mean, tf_tuning
-from .rig import EphysConfig, Monitor, Rig, cf_describe, parse_monitor, record_dataset, recording_attrs, torch_threads
+
+#: public name -> the module of this package that defines it, imported on first use: the rig and
+#: the protocols need torch, and `lobula ephys --help` (which needs only .command) should not
+_API = {
+    "bench_tuning_sweep": "bench",
+    "plot_looming": "figures", "plot_recording": "figures", "plot_rf_map": "figures", "plot_tf_tuning": "figures",
+    "TF_GRID_HZ": "protocols", "looming": "protocols", "psth": "protocols", "psth_sem": "protocols",
+    "raster": "protocols", "rf_map": "protocols", "steady_state_mean": "protocols", "tf_tuning": "protocols",
+    "EphysConfig": "rig", "Monitor": "rig", "Rig": "rig", "cf_describe": "rig", "parse_monitor": "rig",
+    "record_dataset": "rig", "recording_attrs": "rig", "torch_threads": "rig",
+}
 
 __all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "record_dataset", "recording_attrs", "cf_describe",
            "torch_threads", "tf_tuning", "rf_map", "looming", "psth", "psth_sem", "raster", "steady_state_mean",
            "TF_GRID_HZ", "plot_tf_tuning", "plot_rf_map", "plot_looming", "plot_recording", "bench_tuning_sweep",
            "add_parser", "main", "run_protocol", "summary", "PROTOCOLS"]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        return getattr(importlib.import_module(f".{_API[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return __all__

@@ -4,8 +4,8 @@ from __future__ import annotations
 import time as _time
 
 import numpy as np
-import torch
 
+from lobula._optional import torch
 from lobula.camera import PinholeCamera
 from lobula.circuit import Circuit, CircuitConfig
 from lobula.lattice import Lattice, LatticeConfig, dphi_for_count

@@ -38,6 +38,8 @@ S = argparse.SUPPRESS
 
 def add_parser(subparsers):
     """Register ``lobula ephys PROTOCOL ...`` on an argparse subparsers object."""
+    from ..parsers import COUNT, FINITE, INDEX, LATTICE_ANGLE, POSITIVE, Number, haltere_gain
+
     e = subparsers.add_parser(
         "ephys", help="virtual electrophysiology: record LC/EMD/photoreceptor/readout neurons",
         description="Virtual electrophysiology: show the model fly a stimulus, record any neuron, get labelled, "
@@ -58,22 +60,24 @@ def add_parser(subparsers):
                         "(default: tf-tuning: probe EMD pairs + the neuron model's variables; rf-map: lc.input; "
                         "looming: the neuron model's variables (rate: lc.rate; poisson: lc.rate lc.spikes; "
                         "lif: lc.v lc.spikes); velocity-replay: all readout variables)")
-    g.add_argument("--trials", type=int, default=S,
-                   help="[tf-tuning, looming, velocity-replay] repeats per condition (default: 4 for spiking models; 1 for the deterministic rate "
-                        "model, which refuses more: its trials would be identical)")
-    g.add_argument("--seed", type=int, default=S,
+    g.add_argument("--trials", type=COUNT, default=S,
+                   help="[tf-tuning, looming, velocity-replay] repeats per condition (default: 4 for spiking models; "
+                        "1 for the deterministic rate model, which refuses more: its trials would be identical)")
+    g.add_argument("--seed", type=INDEX, default=S,
                    help="[tf-tuning, looming, velocity-replay] seed of the neurons' noise and of the built-in "
                         "replay scene (default: 0)")
     g.add_argument("--neuron-model", choices=["rate", "lif", "poisson"], default=S,
-                   help="[tf-tuning, looming, velocity-replay] LC units: rate (Naka-Rushton), poisson (spikes from rates), lif (integrate-and-fire) "
-                        "(default: rate; velocity-replay's readout neuron: poisson, or rate; with --eye fly its "
+                   help="[tf-tuning, looming, velocity-replay] LC units: rate (Naka-Rushton), poisson (spikes from "
+                        "rates), lif (integrate-and-fire) (default: rate; velocity-replay's readout neuron: "
+                        "poisson, or rate; with --eye fly its "
                         "output neurons: lif, or poisson, or rate)")
-    g.add_argument("--tau", type=float, default=S,
+    g.add_argument("--tau", type=POSITIVE, default=S,
                    help="EMD delay τ (s) (default: 0.035; velocity-replay's EMD front end: 0.01; --eye fly: 0.035 "
                         "everywhere)")
-    g.add_argument("--dphi", type=float, default=S,
-                   help="interommatidial angle Δφ (degree) (default: 2; velocity-replay's front end: 0.75; --eye fly: 5)")
-    g.add_argument("--field-size", type=float, default=S,
+    g.add_argument("--dphi", type=LATTICE_ANGLE, default=S,
+                   help="interommatidial angle Δφ (degree) (default: 2; velocity-replay's front end: 0.75; "
+                        "--eye fly: 5)")
+    g.add_argument("--field-size", type=POSITIVE, default=S,
                    help="LC receptive-field size (degree) (default: 10; velocity-replay's fields: 5; --eye fly: 30)")
     g.add_argument("--eye", choices=["pinhole", "fly"], default=S,
                    help="the eye recorded: pinhole (the lattice over the D435i's field "
@@ -83,34 +87,39 @@ def add_parser(subparsers):
                         "lc.grad, lc.r2; velocity-replay replays eye footage (--footage, from `lobula scene OUT --eye "
                         "fly`) and records lc.r, lc.rdot and the spiking output neurons over trials) (default: pinhole)")
     g.add_argument("--device", default=S, help="[tf-tuning, rf-map, looming] torch device (default: cpu)")
-    g.add_argument("--duration", type=float, default=S,
-                   help="stimulus duration (s) [tf-tuning: 2; looming: 1; velocity-replay: 10, built-in run only]")
-    g.add_argument("--contrast", type=float, nargs="+", default=S,
-                   help="stimulus contrast [tf-tuning: 0.5 (several allowed); rf-map: spot 1.0; looming: disc 1.0]")
+    g.add_argument("--duration", type=POSITIVE, default=S,
+                   help="stimulus duration (s); velocity-replay: the built-in run's only (default: tf-tuning: 2; "
+                        "looming: 1; velocity-replay: 10)")
+    g.add_argument("--contrast", type=Number(0, 1, above=True), nargs="+", default=S,
+                   help="stimulus contrast; several allowed for tf-tuning (default: tf-tuning: 0.5; rf-map: the "
+                        "spot's 1.0; looming: the disc's 1.0)")
     t = e.add_argument_group("tf-tuning")
-    t.add_argument("--tf", type=float, nargs="+", default=S,
+    t.add_argument("--tf", type=POSITIVE, nargs="+", default=S,
                    help="temporal frequencies (Hz) (default: 16 log-spaced from 0.5 to 32)")
-    t.add_argument("--wavelength", type=float, default=S, help="grating wavelength (degree) (default: 20)")
+    t.add_argument("--wavelength", type=POSITIVE, default=S, help="grating wavelength (degree) (default: 20)")
     t.add_argument("--stimulus", choices=["rings", "grating"], default=S,
                    help="rings expanding about the epipole, or a planar drum grating (default: rings)")
-    t.add_argument("--settle", type=float, default=S,
+    t.add_argument("--settle", type=Number(0), default=S,
                    help="time (s) left out before the steady-state mean (default: 0.5)")
-    t.add_argument("--direction", type=float, default=S,
+    t.add_argument("--direction", type=FINITE, default=S,
                    help="drum grating's motion direction (degree, image: 0 right, 90 down) (default: 0)")
     r = e.add_argument_group("rf-map")
-    r.add_argument("--fields", type=int, nargs="+", default=S, help="LC field indices to map (default: all)")
-    r.add_argument("--directions", type=int, default=S, help="spot motion directions, ≥ 3 (default: 4)")
-    r.add_argument("--spacing", type=float, default=S, help="mapping grid spacing (degree) (default: Δφ)")
-    r.add_argument("--extent", type=float, default=S,
+    r.add_argument("--fields", type=INDEX, nargs="+", default=S, help="LC field indices to map (default: all)")
+    r.add_argument("--directions", type=Number(3, integer=True), default=S,
+                   help="spot motion directions, ≥ 3 (default: 4)")
+    r.add_argument("--spacing", type=POSITIVE, default=S, help="mapping grid spacing (degree) (default: Δφ)")
+    r.add_argument("--extent", type=POSITIVE, default=S,
                    help="mapping grid half-width about each field (degree) (default: 1.6 × field size)")
-    r.add_argument("--spot-size", type=float, default=S, help="spot FWHM (degree) (default: Δφ)")
-    r.add_argument("--spot-path", type=float, default=S, help="spot path length per passage (degree) (default: 2Δφ)")
-    r.add_argument("--spot-speed", type=float, default=S, help="spot speed (degree/s) (default: 50Δφ per s)")
+    r.add_argument("--spot-size", type=POSITIVE, default=S, help="spot FWHM (degree) (default: Δφ)")
+    r.add_argument("--spot-path", type=POSITIVE, default=S,
+                   help="spot path length per passage (degree) (default: 2Δφ)")
+    r.add_argument("--spot-speed", type=POSITIVE, default=S, help="spot speed (degree/s) (default: 50Δφ per s)")
     lo = e.add_argument_group("looming")
-    lo.add_argument("--l-over-v", type=float, nargs="+", default=S,
+    lo.add_argument("--l-over-v", type=POSITIVE, nargs="+", default=S,
                     help="disc half-size over approach speed l/|v| (s) (default: 0.01 0.02 0.04 0.08)")
-    lo.add_argument("--max-size", type=float, default=S, help="disc's angular size cap (degree) (default: 60)")
-    lo.add_argument("--collision-time", type=float, default=S,
+    lo.add_argument("--max-size", type=Number(0, 180, above=True), default=S,
+                    help="disc's angular size cap (degree) (default: 60)")
+    lo.add_argument("--collision-time", type=POSITIVE, default=S,
                     help="collision time after stimulus onset (s); the stored time is relative to it "
                          "(default: 0.8 × duration)")
     v = e.add_argument_group("velocity-replay")
@@ -118,11 +127,10 @@ def add_parser(subparsers):
     v.add_argument("--rotation", choices=["none", "haltere", "wide-field", "both"], default=S,
                    help="with --eye fly: the eye circuit's rotation handling, as `lobula eye-velocity --rotation` "
                         "(default: haltere)")
-    v.add_argument("--haltere-gain", metavar="natural|G", default=S,
+    v.add_argument("--haltere-gain", type=haltere_gain, metavar="natural|G", default=S,
                    help="with --eye fly: the haltere gain's prior, as `lobula eye-velocity --haltere-gain` "
                         "(default: natural)")
-    e.add_argument("--quiet", action="store_true",
-                   help="no progress bars (velocity-replay's rendering and circuit) (default: False)")
+    e.add_argument("--quiet", action="store_true", help="no progress bars (velocity-replay's rendering and circuit)")
     e.set_defaults(func=main)
     return e
 
@@ -161,8 +169,7 @@ def rig_config(protocol: str, opts: dict):
     """The :class:`EphysConfig` of an LC-rig protocol from the given options."""
     from dataclasses import replace
 
-    import torch
-
+    from lobula._optional import torch
     from lobula.population import LCNeurons
 
     from .rig import EphysConfig
@@ -197,7 +204,10 @@ def rig_config(protocol: str, opts: dict):
 def run_protocol(protocol: str, opts: dict, progress: bool = False):
     """Run one protocol from a dict of given options (the command line's, or a test's); returns the Dataset.
     progress: progress bars where a protocol runs long (velocity-replay's rendering and circuit)."""
+    from lobula._optional import require_torch
+
     check_applicable(protocol, opts)
+    require_torch("virtual electrophysiology")
     if protocol == "velocity-replay" and opts.get("eye", "pinhole") == "fly":
         return _eye_replay(opts, progress)
     if protocol == "velocity-replay":

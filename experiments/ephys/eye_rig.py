@@ -40,9 +40,9 @@ import re
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import torch
 import xarray as xr
 
+from lobula._optional import torch
 from lobula.compound_eye import CompoundEye, CompoundEyeConfig
 from lobula.emd import emd_sine_response_discrete
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig

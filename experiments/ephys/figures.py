@@ -26,14 +26,17 @@ def _plt():
 
 
 def save_png_and_pdf(fig, path) -> list[Path]:
-    """Save ``fig`` at ``path`` (.png or .pdf) and the other format beside it, atomically; close it."""
+    """Save ``fig`` at ``path`` (.png or .pdf) and the other format beside it, atomically; close it.
+
+    Cropped to what is drawn (``bbox_inches="tight"``): no blank band where a figure's width
+    outgrows its panels (one field's map, one tuning panel)."""
     from experiments.store import save_figure
 
     path = Path(path)
     if path.suffix.lower() not in (".png", ".pdf"):
         raise ValueError(f"figure path {path} must end in .png or .pdf (both are written)")
     other = path.with_suffix(".pdf" if path.suffix.lower() == ".png" else ".png")
-    out = [save_figure(fig, p, dpi=DPI) for p in (path, other)]
+    out = [save_figure(fig, p, dpi=DPI, bbox_inches="tight", pad_inches=0.08) for p in (path, other)]
     _plt().close(fig)
     return out
 
@@ -107,26 +110,30 @@ def plot_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
     plt = _plt()
     spikes = "lc_spikes" in ds
     var = _neuron_var(ds)
-    fig, ax = plt.subplots(1, 4 if spikes else 2, figsize=(17 if spikes else 10, 4.2), squeeze=False)
-    ax = ax[0]
+    # Only the panels the recording has data for: an empty panel is a blank band in the figure.
+    names = ([k for k, has in (("emd", "emd_response_tuning" in ds), ("lc", bool(var and f"{var}_tuning" in ds)))
+              if has] + (["raster", "psth"] if spikes else []))
+    if not names:
+        raise ValueError("the tf-tuning recording holds no EMD probe pairs, LC tuning or spikes to plot; "
+                         "record emd.response or an LC variable (--record)")
+    fig, axes = plt.subplots(1, len(names), figsize=(4.3 * len(names), 4.2), squeeze=False, layout="constrained")
+    ax = dict(zip(names, axes[0]))
     tf = ds.temporal_frequency_hz.values
     opt = ds.attrs.get("optimum_hz")
     cols = _colours(ds.sizes["contrast"])
-    if "emd_response_tuning" in ds:
-        a = ax[0]
+    if "emd" in ax:
+        a = ax["emd"]
         da = ds.emd_response_tuning
         for i, (c, col) in enumerate(zip(ds.contrast.values, cols)):
             y = da.sel(contrast=c).values
             y = y / np.nanmax(np.abs(y), axis=0, keepdims=True)
             a.errorbar(tf, nanmean(y, 1), yerr=sem(y, 1), color=col, **_style(i),
                        label=f"contrast {c:g}: mean ± SEM over pairs")
-        a.plot(tf, ds.emd_prediction.values, "k--", lw=1, label="prediction (discrete EMD × photoreceptor)")
+        a.plot(tf, ds.emd_prediction.values, "k--", lw=1, zorder=4, label="prediction (discrete EMD × photoreceptor)")
         a.set_title(f"EMD probe pairs (n = {da.sizes['pair']})", fontsize=10)
         a.set_ylabel("response / each pair's maximum")
-    else:
-        ax[0].set_axis_off()
-    if var and f"{var}_tuning" in ds:
-        a = ax[1]
+    if "lc" in ax:
+        a = ax["lc"]
         da = ds[f"{var}_tuning"]
         if "neuron" in da.dims:
             da = _units_of(ds, da, "expansion")
@@ -138,17 +145,14 @@ def plot_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
             top = max(top, float(np.nanmax(m)))
             a.errorbar(tf, m, yerr=sem(y, 1), color=col, **_style(i),
                        label=f"contrast {c:g}: mean ± SEM over units")
-        a.plot(tf, ds.lc_drive_prediction.values * top, "k--", lw=1, label="predicted drive, scaled to the peak")
+        a.plot(tf, ds.lc_drive_prediction.values * top, "k--", lw=1, zorder=4,
+               label="predicted drive, scaled to the peak")
         a.set_title(f"LC expansion units (n = {da.sizes[nd]}, {ds.attrs.get('neuron_model', '')} model)",
                     fontsize=10)
         a.set_ylabel(f"steady-state {'firing rate' if var in ('lc_rate', 'lc_spikes') else var} "
                      f"({da.attrs.get('units', '')})")
-    else:
-        ax[1].set_axis_off()
     from matplotlib.ticker import LogLocator, ScalarFormatter
-    for a in ax[:2]:
-        if not a.axison:
-            continue
+    for a in (ax[k] for k in ("emd", "lc") if k in ax):
         a.set_xscale("log")
         a.xaxis.set_major_locator(LogLocator(base=10, subs=(1, 2, 5)))
         a.xaxis.set_major_formatter(ScalarFormatter())
@@ -167,11 +171,10 @@ def plot_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
         n = live[0] if live else int(ds.neuron.values[0])
         c0 = ds.contrast.values[-1]
         dur = float(ds.time[-1] - ds.time[0])
-        _raster_psth(fig, ax[2], ax[3], ds, n, cols[-1], "time since stimulus onset (s)",
+        _raster_psth(fig, ax["raster"], ax["psth"], ds, n, cols[-1], "time since stimulus onset (s)",
                      bin_s=max(0.02, round(dur / 30, 2)), temporal_frequency_hz=tf[k], contrast=c0)
-        ax[2].set_title(f"unit {n} (expansion), {tf[k]:.2f} Hz, contrast {c0:g}: raster", fontsize=10)
-        ax[3].set_title("PSTH ± SEM across trials", fontsize=10)
-    fig.tight_layout()
+        ax["raster"].set_title(f"unit {n} (expansion), {tf[k]:.2f} Hz, contrast {c0:g}: raster", fontsize=10)
+        ax["psth"].set_title("PSTH ± SEM across trials", fontsize=10)
     return save_png_and_pdf(fig, path)
 
 
@@ -199,7 +202,8 @@ def plot_rf_map(ds: xr.Dataset, path) -> list[Path]:
     from matplotlib.patches import Circle
 
     probed = [int(f) for f in ds.field.values][:6]
-    fig, ax = plt.subplots(1, len(probed), figsize=(max(4.6 * len(probed), 9.0), 4.4), squeeze=False)
+    fig, ax = plt.subplots(1, len(probed), figsize=(max(4.6 * len(probed), 7.0), 4.6), squeeze=False,
+                           layout="constrained")
     az, el = ds.location_azimuth_deg.values, ds.location_elevation_deg.values
     units = ds.rf_sensitivity.attrs.get("units", "")
     for a, f in zip(ax[0], probed):
@@ -233,8 +237,8 @@ def plot_rf_map(ds: xr.Dataset, path) -> list[Path]:
                Line2D([], [], color="tab:red", label="mapped RF (centroid, deconvolved size)"),
                Line2D([], [], color="k", marker=r"$\rightarrow$", ls="", ms=10,
                       label="local preferred direction (length: sensitivity)")]
-    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.legend(handles=handles, loc="outside lower center", ncol=3 if len(probed) > 1 else 1, fontsize=8,
+               frameon=False)
     return save_png_and_pdf(fig, path)
 
 
@@ -274,8 +278,12 @@ def plot_looming(ds: xr.Dataset, path) -> list[Path]:
     from matplotlib.lines import Line2D
 
     var = _neuron_var(ds)
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.4), squeeze=False)
-    ax = ax[0]
+    peak = f"{var}_time_of_peak_s" if var else None
+    has_peak = bool(peak and peak in ds and "neuron" in ds[peak].dims)
+    # Only the panels the recording has data for (the stimulus always): an empty panel is a blank band.
+    names = (["units"] if var else []) + ["stimulus"] + (["peak"] if has_peak else [])
+    fig, axes = plt.subplots(1, len(names), figsize=(5 * len(names), 4.4), squeeze=False, layout="constrained")
+    ax = dict(zip(names, axes[0]))
     lvs = ds.l_over_v_s.values
     cols = _colours(len(lvs))
     if var:
@@ -294,39 +302,42 @@ def plot_looming(ds: xr.Dataset, path) -> list[Path]:
             for mot, ls in (("approach", "-"), ("recede", "--")):
                 y = da.sel(l_over_v_s=lv, motion=mot).transpose("time", ...).values.reshape(len(tt), -1)
                 m, e = nanmean(y, 1), sem(y, 1)
-                ax[0].plot(tt, m, ls, color=col, lw=1.3)
+                ax["units"].plot(tt, m, ls, color=col, lw=1.3)
                 if nd and np.isfinite(e).any():
-                    ax[0].fill_between(tt, m - e, m + e, color=col, alpha=0.2, lw=0)
+                    ax["units"].fill_between(tt, m - e, m + e, color=col, alpha=0.2, lw=0)
         n_units = da.sizes.get("neuron", 1)
-        ax[0].set_ylabel(ylab)
-        ax[0].set_title(f"LC expansion units (n = {n_units}; mean ± SEM over units)", fontsize=10)
-    _looming_stimulus(ax[1], ax[:2], ds, cols)
-    peak = f"{var}_time_of_peak_s" if var else None
-    if peak and peak in ds and "neuron" in ds[peak].dims:
+        ax["units"].set_ylabel(ylab)
+        ax["units"].set_title(f"LC expansion units (n = {n_units}; mean ± SEM over units)", fontsize=10)
+    _looming_stimulus(ax["stimulus"], [ax[k] for k in ("units", "stimulus") if k in ax], ds, cols)
+    if has_peak:
+        a = ax["peak"]
         p = _units_of(ds, ds[peak], "expansion").sel(motion="approach")
         y = p.transpose("l_over_v_s", ...).values.reshape(len(lvs), -1)
         m, e = nanmean(y, 1), sem(y, 1)
         for lv, mm, ee, col in zip(lvs, m, e, cols):
-            ax[2].errorbar([lv], [mm], yerr=[ee] if np.isfinite(ee) else None, color=col, marker="o", capsize=3)
-        if _peak_time_fit(ax[2], lvs, m, 1.0, color="k"):
-            ax[2].legend(fontsize=8, loc="lower left", frameon=False)
-        ax[2].set_xlabel("l/|v| (s)")
-        ax[2].set_ylabel("time of peak relative to collision (s)")
-        ax[2].set_title("approach: peak time (mean ± SEM over units)", fontsize=10)
-    else:
-        ax[2].set_axis_off()
+            a.errorbar([lv], [mm], yerr=[ee] if np.isfinite(ee) else None, color=col, marker="o", capsize=3)
+        if _peak_time_fit(a, lvs, m, 1.0, color="k"):
+            a.legend(fontsize=8, loc="lower left", frameon=False)
+        a.set_xlabel("l/|v| (s)")
+        a.set_ylabel("time of peak relative to collision (s)")
+        a.set_title("approach: peak time (mean ± SEM over units)", fontsize=10)
     handles = [Line2D([], [], color=c, lw=2, label=f"l/|v| = {lv * 1e3:g} ms") for lv, c in zip(lvs, cols)]
     handles += [Line2D([], [], color="k", ls="-", label="approach"), Line2D([], [], color="k", ls="--", label="recede")]
-    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8, frameon=False)
     return save_png_and_pdf(fig, path)
 
 
-def replay_scores(rec: xr.Dataset, skip_s: float = 2.0) -> dict:
-    """RMSE (m/s) of the neuron (trial mean) and of the arithmetic readout against truth after skip_s."""
+def replay_scores(rec: xr.Dataset, skip_s: float | None = None) -> dict:
+    """RMSE (m/s) of the neuron (trial mean) and of the arithmetic readout against truth after skip_s
+    (default 2 s, at most a quarter of the replay, as `lobula velocity` scores), and that skip
+    (``scored_after_s``, s). An RMSE is NaN where no estimate after the skip is finite (the neuron
+    never confident)."""
     if "v_true" not in rec or "readout_v" not in rec:
         return {}
-    m = (rec.time >= rec.time[0] + skip_s).values
+    t = rec.time.values
+    if skip_s is None:
+        skip_s = min(2.0, 0.25 * float(t[-1] - t[0]))
+    m = t >= t[0] + skip_s
     vt = rec.v_true.values[m]
 
     def rm(v):
@@ -335,7 +346,8 @@ def replay_scores(rec: xr.Dataset, skip_s: float = 2.0) -> dict:
         return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
 
     neuron = nanmean(rec.readout_v.values, 0)  # trial mean where any trial is confident
-    return dict(neuron_rmse_m_s=rm(neuron), arithmetic_rmse_m_s=rm(rec.arithmetic_v.values))
+    return dict(neuron_rmse_m_s=rm(neuron), arithmetic_rmse_m_s=rm(rec.arithmetic_v.values),
+                scored_after_s=float(skip_s))
 
 
 def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
@@ -366,18 +378,25 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
         m = nanmean(v, 0)
         e = sem(v, 0) if k > 1 else None
         who = "output neurons, decoded" if eye else "readout neuron"
-        ax_v.plot(t, m, color="m", lw=1.6, label=f"{who} (mean of {k} trial{'s' if k > 1 else ''})")
-        if e is not None:
-            ax_v.fill_between(t, m - e, m + e, color="m", alpha=0.25, lw=0, label="± SEM across trials")
+        if np.isfinite(m).any():
+            ax_v.plot(t, m, color="m", lw=1.6, label=f"{who} (mean of {k} trial{'s' if k > 1 else ''})")
+            if e is not None:
+                ax_v.fill_between(t, m - e, m + e, color="m", alpha=0.25, lw=0, label="± SEM across trials")
+        else:  # said in the legend: a line the reader looks for and cannot find reads as hidden
+            ax_v.plot([], [], color="m", lw=1.6, label=f"{who}: not confident in any of {k} trial(s), no v̂")
+    ax_v.axhline(0, color="0.4", lw=0.8, zorder=1)
     sc = replay_scores(rec)
     if sc:
-        ax_v.set_title(f"velocity replay{' on the compound eye' if eye else ''}: RMSE "
-                       f"{'output neurons' if eye else 'neuron'} {sc['neuron_rmse_m_s']:.3f} m/s, "
-                       f"{'readout' if eye else 'arithmetic'} {sc['arithmetic_rmse_m_s']:.3f} m/s (after 2 s)",
-                       fontsize=10)
-    ax_v.set_ylabel("forward velocity (m/s)")
+        def rmse(x):
+            return f"{x:.4f} m/s" if np.isfinite(x) else "— (no estimate)"
+        fig.suptitle(f"velocity replay{' on the compound eye' if eye else ''}: RMSE "
+                       f"{'output neurons' if eye else 'neuron'} {rmse(sc['neuron_rmse_m_s'])}, "
+                       f"{'readout' if eye else 'arithmetic'} {rmse(sc['arithmetic_rmse_m_s'])} "
+                       f"(scored after {sc['scored_after_s']:.3g} s)", fontsize=10)
+    ax_v.set_ylabel("forward velocity (m/s)\nbelow 0: moving backwards")
     ax_v.set_xlabel("time (s)")
-    ax_v.legend(fontsize=8, loc="lower right", ncol=2, frameon=False)
+    # Above the panel, clear of the data whatever the run does.
+    ax_v.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=4, frameon=False)
     ax_r = fig.add_subplot(gs[1, 0])
     ax_p = fig.add_subplot(gs[1, 1], sharex=ax_r)
     cols = {"plus": "tab:red", "minus": "tab:blue"}
@@ -442,7 +461,7 @@ def plot_eye_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
     panels = [(v, t) for v, t in (("emd_response_tuning", "EMD probe pairs"),
                                   ("lc_input_tuning", "LC matched-filter input"),
                                   ("lc_r_tuning", "LC expansion rate ρ (pooled)")) if v in ds]
-    fig, ax = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.0), squeeze=False)
+    fig, ax = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.0), squeeze=False, layout="constrained")
     tf = ds.temporal_frequency_hz.values
     opt = float(ds.attrs["optimum_hz"])
     for a, (v, title) in zip(ax[0], panels):
@@ -454,7 +473,7 @@ def plot_eye_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
             a.errorbar(tf, nanmean(x, 1), yerr=sem(x, 1), **_style(i),
                        label=f"contrast {c:g}: mean ± SEM over {x.shape[1]}")
         if v != "lc_r_tuning" and "emd_prediction" in ds:
-            a.plot(tf, ds.emd_prediction.values, "k--", lw=1, label="prediction (discrete EMD × photoreceptor)")
+            a.plot(tf, ds.emd_prediction.values, "k--", lw=1, zorder=4, label="prediction (discrete EMD × photoreceptor)")
         a.axvline(opt, color="0.4", ls=":", lw=1, label=f"1/(2πτ) = {opt:.2f} Hz")
         a.set_xscale("log")
         a.set_xlabel("temporal frequency (Hz)")
@@ -463,7 +482,6 @@ def plot_eye_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
         a.legend(fontsize=7, frameon=False)
     fig.suptitle(f"Compound eye (Δφ = {ds.attrs.get('dphi_deg', '?')}°): expanding rings, the velocity circuit's "
                  f"own units", fontsize=10)
-    fig.tight_layout()
     return save_png_and_pdf(fig, path)
 
 
@@ -476,10 +494,15 @@ def plot_eye_looming(ds: xr.Dataset, path) -> list[Path]:
     cols = _colours(len(lvs))
     t = ds.time.values
     sees = ds.field_sees_disc.values if "field_sees_disc" in ds.coords else np.ones(ds.sizes.get("field", 0), bool)
-    fig, ax = plt.subplots(1, 4, figsize=(19, 4.4))
     panels = [(v, title) for v, title in (("lc_r", "LC expansion rate ρ"), ("lc_input", "LC matched-filter input"))
               if v in ds]
-    for a, (v, title) in zip(ax[:2], panels):
+    peaks = [(k, v, title) for k, (v, title) in enumerate(panels) if f"{v}_time_of_peak_s" in ds]
+    # Only the panels the recording has data for (the stimulus always): an empty panel is a blank band.
+    n = len(panels) + 1 + bool(peaks)
+    fig, axes = plt.subplots(1, n, figsize=(4.8 * n, 4.4), squeeze=False, layout="constrained")
+    ax = list(axes[0])
+    a_size, a_peak = ax[len(panels)], (ax[-1] if peaks else None)
+    for a, (v, title) in zip(ax, panels):
         for lv, col in zip(lvs, cols):
             for mot, ls in (("approach", "-"), ("recede", "--")):
                 y = ds[v].sel(l_over_v_s=lv, motion=mot).values[:, sees]
@@ -488,24 +511,22 @@ def plot_eye_looming(ds: xr.Dataset, path) -> list[Path]:
                 a.fill_between(t, m - e, m + e, color=col, alpha=0.2, lw=0)
         a.set_ylabel(f"{title} ({ds[v].attrs.get('units', '')})")
         a.set_title(f"{title}, {int(sees.sum())} fields the disc reaches\n(mean ± SEM over fields)", fontsize=10)
-    ax[0].legend(fontsize=8, frameon=False, loc="upper left", title="solid approach, dashed recede",
-                 title_fontsize=8)
-    _looming_stimulus(ax[2], ax[:3], ds, cols)
-    for k, (v, title) in enumerate(panels):
-        pk = f"{v}_time_of_peak_s"
-        if pk not in ds:
-            continue
-        y = ds[pk].sel(motion="approach").transpose("l_over_v_s", "field").values[:, sees]
+    if panels:
+        ax[0].legend(fontsize=8, frameon=False, loc="upper left", title="solid approach, dashed recede",
+                     title_fontsize=8)
+    _looming_stimulus(a_size, ax[:len(panels) + 1], ds, cols)
+    for k, v, title in peaks:
+        y = ds[f"{v}_time_of_peak_s"].sel(motion="approach").transpose("l_over_v_s", "field").values[:, sees]
         m = np.nanmedian(y, 1)
-        ax[3].plot(lvs * 1e3, m * 1e3, "o", color=f"C{k}", label=f"{title} (median over fields)")
-        _peak_time_fit(ax[3], lvs, m, 1e3, color=f"C{k}")
-    ax[3].set_xlabel("l/|v| (ms)")
-    ax[3].set_ylabel("approach: time of peak relative to collision (ms)")
-    ax[3].set_title("peak time against l/|v|", fontsize=10)
-    ax[3].legend(fontsize=7, frameon=False, loc="lower left")
+        a_peak.plot(lvs * 1e3, m * 1e3, "o", color=f"C{k}", label=f"{title} (median over fields)")
+        _peak_time_fit(a_peak, lvs, m, 1e3, color=f"C{k}")
+    if a_peak is not None:
+        a_peak.set_xlabel("l/|v| (ms)")
+        a_peak.set_ylabel("approach: time of peak relative to collision (ms)")
+        a_peak.set_title("peak time against l/|v|", fontsize=10)
+        a_peak.legend(fontsize=7, frameon=False, loc="lower left")
     fig.suptitle(f"Compound eye (Δφ = {ds.attrs.get('dphi_deg', '?')}°): a dark disc approaching or receding "
                  "straight ahead, recorded on the velocity circuit's own LC fields", fontsize=10)
-    fig.tight_layout()
     return save_png_and_pdf(fig, path)
 
 

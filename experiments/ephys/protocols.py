@@ -12,9 +12,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
 import xarray as xr
 
+from lobula._optional import torch
 from lobula.camera import normalised_to_angles
 from lobula.emd import emd_sine_response_discrete
 from lobula.lc_geometry import pair_templates

@@ -17,9 +17,9 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
-import torch
 import xarray as xr
 
+from lobula._optional import torch
 from lobula.camera import PinholeCamera, normalised_to_angles
 from lobula.circuit import Circuit, CircuitConfig
 from lobula.lattice import Lattice, LatticeConfig
