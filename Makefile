@@ -50,3 +50,10 @@ bench: setup
 
 clean:
 	rm -rf $(OUT) .pytest_cache
+
+# The documentation site (mkdocs.yml, docs/) into site/, strict: any warning fails the build. The CLI
+# reference is generated from the parsers and the API pages from the docstrings at build time.
+.PHONY: docs
+docs: setup
+	$(BIN)/pip install -q -c constraints.txt -e ".[docs]"
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict

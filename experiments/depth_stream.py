@@ -100,8 +100,8 @@ class DepthRunConfig:
     stay), then averaged pixel by pixel — the pixel noise of each image falls by √(2k+1)
     while the flow between the two averages still spans the pair (its centre frames). None
     (default): k = 2 with a gyroscope, 0 without (unturned neighbours of a turning camera
-    smear the image: median flow error 0.08 → 0.87 px on a development rotation scene).
-    Measured against exact flow on development seeds (100, 101; 160×120, "fine" flow):
+    smear the image: median flow error 0.87 px against 0.08 turned, on a development rotation
+    scene). Against exact flow on development seeds (100, 101; 160×120, "fine" flow), k = 0 → 2:
     median error 0.30/0.28 → 0.17/0.15 px on ``dim``, 0.05 → 0.05 panels, 0.09 → 0.07 fast,
     0.05 → 0.04 corridor, 0.08 → 0.08 rotation; TV median AbsRel with the exact speed
     (``lobula depth-suite``, the same seeds, 6 s): dim 0.205 → 0.124, panels 0.044 → 0.042,
@@ -138,8 +138,8 @@ class DepthRunConfig:
     False, ``metric`` False) rather than confidently wrong, as v̂ itself is NaN where its
     std exceeds 0.1 m/s. 0.2 (default): a scale good to 20 % at 1σ, i.e. a median scale
     error of about 0.13 — the most a map can carry and still meet a median AbsRel of 0.2
-    with the TV fit's own error of about 0.05 beside it (issue 10's bound; this is a
-    statement of that bound, not a value fitted to scenes). ``math.inf`` disables it; the
+    with the TV fit's own error of about 0.05 beside it (the project's bound on depth maps;
+    this is a statement of that bound, not a value fitted to scenes). ``math.inf`` disables it; the
     true speed (``velocity="truth"``) has std 0 and is always metric. A NaN std (a velocity
     run without one) counts as unknown scale, hence not metric, unless the bound is inf.
     depth: the solvers' settings. Its TV weight defaults here to γ = 1e-6, not

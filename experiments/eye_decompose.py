@@ -26,7 +26,7 @@ under a turn that never stops costs):
    under rotation; the fields the pipeline gates by reliability (``field_used``) left out.
 
 The exact motion uses the forward velocity of ``truth.csv`` only (the tracks translate along
-the body axis; the lateral velocity a turn adds in the camera frame changed the exact level by
+the body axis; the lateral velocity a turn adds in the camera frame changes the exact level by
 < 0.006 m/s on the dev worlds). Run: ``python -m experiments.eye_decompose EYE_FOOTAGE ...``.
 """
 from __future__ import annotations

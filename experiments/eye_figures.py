@@ -1,4 +1,4 @@
-"""Figures of the fly's compound eye (issue 11), each over ≥ 3 seeds with the spread shown.
+"""Figures of the fly's compound eye, each over ≥ 3 seeds with the spread shown.
 
 ``eye_rate_vs_spiking`` — on the worlds' families (panels, rotation, corridor; seeds 0–2, 10 s):
 the causal velocity RMSE of the eye's circuit read out by (i) the arithmetic readout's rates,

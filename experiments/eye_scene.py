@@ -1,4 +1,4 @@
-"""`lobula scene OUT --eye fly`: the compound-eye options and branch of the scene command (issue 11).
+"""`lobula scene OUT --eye fly`: the compound-eye options and branch of the scene command.
 
 Kept apart from experiments.eye_velocity so that building the `scene` parser imports nothing heavy.
 """

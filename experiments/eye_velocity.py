@@ -39,114 +39,120 @@ __all__ = ["EyeVelocityConfig", "estimate_eye_velocity", "causal_gyro", "readout
 class EyeVelocityConfig:
     """The eye velocity pipeline: circuit, readout (causal by default), streaming chunk (samples).
 
-    accel_from_truth: forward acceleration from truth.csv's a_forward_m_s2 instead of the
-    accelerometer (isolates the visual circuit from gravity removal; labelled in the output).
-    readout_kind: "kalman" (:func:`lobula.readout.readout`, the arithmetic readout, causal
-    filter: v_std its posterior std), "spikes" (the same readout's v̂ carried by ``neuron.population``
-    push–pull spiking output neuron pairs and decoded causally, :func:`lobula.readout_neuron.spiking_output`:
-    v_std combines the posterior std and the decoding's count noise) or "neuron" (:func:`lobula.readout_neuron.readout_neuron`:
-    shunting division, haltere integration, push–pull output neurons; spikes decoded
-    causally when ``neuron.spiking``; v_std is then the spike decoding's count noise only,
-    and ``observable`` the neuron's confidence).
-    neuron: the output neurons (and the "neuron" readout). The eye's spike as leaky
-    integrate-and-fire neurons with 1 mV membrane noise (``spike_model="lif"``): a driven fly
-    neuron fires nearly regularly (H1: de Ruyter van Steveninck et al. 1997), and Poisson trains
-    — the earlier default, ``--spike-model poisson`` — made the output's count noise most of the
-    spiking error. They are driven by v̂ phase-advanced by the decoder's own filter
-    (``lead="encoder"``), so the decoder needs no accelerometer and its lag is made up exactly,
-    lock-on included. Dev eye worlds (seeds 100–103, 10 pairs), Poisson with the haltere lead →
-    LIF with the encoder lead: panels 0.045 → 0.036, corridor 0.041 → 0.016 m/s, against the
-    rates' 0.035 / 0.015. Configurations written before these fields read as Poisson with the
-    haltere lead.
-    settle_s: LC output the readout ignores at the start while the circuit's filters leave their
-    resting state (None: :meth:`settle_time`'s default, 0.09 s for the default circuit).
-    uncertainty: what ``v_std`` states for the "kalman" and "spikes" readouts. "posterior": the
-    readout's posterior std alone (the old behaviour; it covered the truth within ±2σ in only
-    20–70 % of steps on the dev worlds, seeds 7 and 8). "halves" (default): that std combined
-    with (1) the disagreement of the two eyes, each read out alone, and of the upper and lower
-    halves of the fields (:func:`field_halves`, :func:`split_half_variance`, causal running mean
-    over ``split_tau_s``), which sees the errors the halves do not share — a turn's haltere
-    residue is opposite on the two sides (yaw, roll) or above and below (pitch) — and
-    (2) ``emd_gain_error``·|v̂|, the error every field shares: the EMD's response is not
-    proportional to image speed but grows as ρ^β (a correlator's velocity tuning: Egelhaaf &
-    Reichardt 1987; Borst & Egelhaaf 1989), and the readout's (ρ̇ − r²)/ρ of a power law is
-    β·a/v, so v̂ is off by a factor ~1/β that no spread across fields can show. β measured on the
-    dev worlds (log–log slope of each field's ρ̂ against the exact v/D from the rendered range, the
-    fields used after 2 s): with the 0.25 s temporal high-pass medians 0.78–0.88, lower quartiles
-    0.49–0.74 (seeds 7, 8; 0.4 until the twenty-seventh session); with the surround (the default,
-    :mod:`lobula.eye_circuit`) medians 1.03–1.10, lower quartiles 0.95–1.04 (panels and corridor,
-    seeds 100, 103), hence 0.05 ≈ 1 − β at the lowest lower quartile. Then the posterior and the
-    halves' disagreement cover the truth within ±2σ on 100 % of the steps after 2 s on the dev panels
-    and corridor worlds (seeds 100–105; the posterior alone 91–100 %), 61–84 % on the rotating ones.
-    split_tau_s: time constant (s) of that running mean: 1 s, the readout's low-pass (1 Hz) makes
-    errors that persist about that long.
-    rest_bound: whether the readout may take "no detectable expansion" as a bound on the speed
-    (:func:`lobula.readout.rest_measurement`, |v| ≤ d_max·(|r̄| + 2·SE)). That bound assumes the
-    fields measure r̄ = v/d at gain 1; the EMDs do not at low speed: on a dev corridor (seed 100)
-    the fields read 0.04–0.36 of the exact expansion while the fly moved at 0.05–0.35 m/s, so the
-    bound called slow flight rest and pulled v̂ toward 0 (causal RMSE 0.131 m/s with it, 0.054
-    without; panels seed 7 0.085 → 0.071; the other dev worlds, seeds 7, 8, 100, within 0.005).
-    But most of that gain is steps declared unobservable (corridor seed 100: 13 % of them), and
-    without the bound a readout on few fields can drift confidently: LC fields only in the D435i's
-    69°×42° on a corridor, seeds 7, 8: observable 0.67 / 0.70 of the steps, RMSE 0.088 → 0.039 and
-    0.078 → 0.108 m/s. The bound's premise, gain 1, fails for the fly's EMDs at Δφ = 5°: the
-    decoded ρ of the wide-field eye is γ·v/D with γ = 0.28–0.37 in a corridor at every speed
-    (dev seed 100, pooled over the fields against the exact v/D from the rendered range) and
-    0.9–1.0 on panels, so "no detectable expansion" bounds |v| by d_max/γ, not d_max. Measured
-    with both eyes' fields (dev seeds 100–103, causal, accelerometer): corridor mean RMSE
-    0.111 → 0.054 m/s without the bound (seed 100: 0.211 → 0.048), panels 0.0561 and rotation
-    0.2328 / 0.2330 unchanged. So False (default): the bound only where the image is frozen
-    (depth bound 10⁶ m), elsewhere at rest v̂ rests on the accelerometer and the readout says
-    when it cannot tell (NaN); True: the bound as for the camera.
-    lead_offset_tau_s: with ``neuron.lead="haltere"``, the spiking decoder's lead τ_d·a uses the accelerometer less the
-    offset the readout's v̂ implies (:func:`readout_offset`, running mean over this time constant, s);
-    0: the raw accelerometer. Measured on the dev worlds (seeds 7, 8, 100): where the start's offset
-    is large (panels 7, 0.6 m/s²) spikes 0.134 → 0.098 m/s (rates 0.093); elsewhere within ±0.02.
-    reliability_min: a field's output reaches the readout only at steps where its causal slow-to-fast
-    power ratio (:func:`lobula.eye_circuit.field_reliability`, running means over ``reliability_tau_s``)
-    is at least this (0: every field always), provided at least ``min_valid_fraction`` of the fields
-    pass (else every field, :func:`reliability_gate`). Why: under rotation the fields that see nothing near
-    (sky, a distant backdrop) carry little expansion and much correlator noise and rotation residue,
-    and the readout's median over fields took them as measurements of a/v (development rotation world,
-    seed 100: fields looking down at the floor follow the exact v/D at correlation 0.97–0.98, fields
-    looking up at −0.24–0.3). The readout's ``min_valid_fraction`` is 0.1 here (8 of the 80 fields)
-    so that a few reliable fields suffice. 10 chosen on development seeds 100–103 (mean causal RMSE over
-    11 dev worlds 0.169 m/s without the gate, 0.143 at 5, 0.136 at 10).
-    reliability_tau_s: time constant (s) of the running powers in :func:`lobula.eye_circuit.field_reliability`.
-    readout: the estimator's readout, causal, with the noise the eye's κ = a/v really carries. The
-    camera's ``kappa_rel_error`` (0.25) and ``shared_error_frac`` (0.5) were set on DIS flow; the
-    eye's κ errs more and for longer. Measured on the dev worlds (seeds 100–103, gated fields, κ
-    against lp(a)/lp(v) of truth where |v| > 0.1 m/s): rms relative error 0.24–0.32 on panels and
-    corridors, 0.46–1.75 under rotation. Most of it is shared by the fields and slow: each field's
-    EMD gain γ(t) changes as texture flows through it (ρ̂ = γρ, so ρ̂'s ṙ/r carries γ̇/γ). Exact
-    fields times a constant per-field gain give κ (in a = κ·v) within 0.001–0.005 m/s² of exact;
-    times the slow part (1 Hz) of the measured γ(t) they err by 0.042–0.052 m/s², most of the EMD
-    fields' 0.053–0.068 (panels). A slow shared error the filter takes as white noise locks a wrong
-    accelerometer offset in, so both are raised: kappa_rel_error 0.5, shared_error_frac 0.8.
-    Dev seeds 100–103 (12 worlds, causal, accelerometer, rest_bound False), mean RMSE panels /
-    rotation / corridor: 0.0561 / 0.2328 / 0.0537 m/s at the camera's values, 0.0499 / 0.2176 /
-    0.0420 at these (0.3 / 0.8: 0.053 / 0.218 / 0.056; 0.7 / 0.8: 0.050 / 0.218 / 0.040;
-    0.5 / 1.0: 0.048 / 0.209 / 0.040 — a broad optimum, not a knife edge).
-    The readout's online low-pass keeps the 2.5σ window the eye was developed with
-    (``online_window_sigma``). The camera's 1.5σ is no clear gain here: on development eye worlds (seeds
-    100–102, 10 s, Δφ = 5°) rates read panels / rotation / corridor 0.057 / 0.252 / 0.044 m/s at 2.5σ and
-    0.051 / 0.246 / 0.041 at 1.5σ, spikes 0.065 / 0.257 / 0.064 and 0.061 / 0.252 / 0.069, while the
-    coarse 6 s test scene (`tests/test_compound_eye.py`) reads 0.269 m/s at 1.5σ against 0.142 (zero
-    estimator 0.319); 3.5σ / 4.5σ are worse everywhere (rates 0.061 / 0.267 / 0.045, 0.065 / 0.280 / 0.047).
-    Nor does it read the reversals (``ReadoutConfig.reversal``, on for the camera since the twenty-fifth
-    session): the EMD's r̄ is stamped only to within its group delay, and on the same development eye
-    worlds they were no clear gain — rates panels / rotation / corridor 0.057 / 0.253 / 0.044 m/s without,
-    0.056 / 0.254 / 0.048 with (the corridor observable on 83 → 90 % of the frames), spikes 0.065 / 0.257 /
-    0.064 and 0.064 / 0.259 / 0.068, the rotation worlds' ±2σ 62 → 60 %.
-    It does read the expansion's sign (``ReadoutConfig.sign``): the fields' gains drift fastest under
-    rotation, κ then cannot pin the accelerometer's offset, and the filter carried v̂ through zero,
-    confidently, against what every field showed (development mixed world 100: v̂ +0.8 m/s where the
-    truth was −0.4, ±2σ 43 %). Development worlds (rates, causal; rotation 100–109, panels, corridor and
-    mixed 100–101; the rule and its 0.5 s persistence set on mixed 100 and rotation 100–103, the front-end
-    fault test): mean RMSE 0.127 → 0.098 m/s, ±2σ 89 → 92 %, observable 85 → 81 %; rotation 100 / 101 /
-    105 / 106 0.202 / 0.155 / 0.125 / 0.149 → 0.162 / 0.123 / 0.096 / 0.082, mixed 100 / 101 0.533 / 0.081
-    → 0.273 / 0.058 (mixed 100 now observable on 27 % of its steps, not 74 %), panels and corridor within
-    0.001.
+    Parameters
+    ----------
+    circuit : EyeCircuitConfig
+        The compound eye's circuit (:mod:`lobula.eye_circuit`).
+    readout : ReadoutConfig
+        The estimator's readout, causal, with the noise the eye's κ = a/v carries:
+        :meth:`ReadoutConfig.emd` (kappa_rel_error 0.5, shared_error_frac 0.8), min_valid_fraction
+        0.1 (8 of the 80 fields, so that a few reliable fields suffice), online_window_sigma 2.5,
+        reversal off, sign on. Why each:
+
+        * κ's errors. The eye's κ errs more and for longer than DIS flow's (dev worlds, seeds
+          100–103, gated fields, κ against lp(a)/lp(v) of truth where |v| > 0.1 m/s: rms relative
+          error 0.24–0.32 on panels and corridors, 0.46–1.75 under rotation), mostly shared by the
+          fields and slow: each field's EMD gain γ(t) changes as texture flows through it (ρ̂ = γρ,
+          so ρ̂'s ṙ/r carries γ̇/γ). Exact fields times the slow part (1 Hz) of the measured γ(t)
+          err by 0.042–0.052 m/s², most of the EMD fields' 0.053–0.068 (panels); a constant gain
+          per field errs by only 0.001–0.005. A slow shared error taken as white noise locks a
+          wrong accelerometer offset in. Mean RMSE panels / rotation / corridor (dev seeds 100–103,
+          causal, accelerometer): 0.0499 / 0.2176 / 0.0420 m/s at 0.5 / 0.8, 0.0561 / 0.2328 /
+          0.0537 at the camera's 0.25 / 0.5 (0.3 / 0.8: 0.053 / 0.218 / 0.056; 0.7 / 0.8: 0.050 /
+          0.218 / 0.040; 0.5 / 1.0: 0.048 / 0.209 / 0.040 — a broad optimum, not a knife edge).
+        * The 2.5σ online window. The camera's 1.5σ is no clear gain on development eye worlds
+          (seeds 100–102, 10 s, Δφ = 5°: rates panels / rotation / corridor 0.057 / 0.252 / 0.044
+          m/s at 2.5σ, 0.051 / 0.246 / 0.041 at 1.5σ) and the coarse 6 s test scene
+          (`tests/test_compound_eye.py`) reads 0.269 m/s at 1.5σ against 0.142 (zero estimator
+          0.319); 3.5σ and 4.5σ are worse everywhere.
+        * No reversals (``ReadoutConfig.reversal``): the EMD's r̄ is stamped only to within its
+          group delay, and on the same worlds they are no clear gain (rates 0.056 / 0.254 / 0.048
+          m/s with them, 0.057 / 0.253 / 0.044 without).
+        * The expansion's sign (``ReadoutConfig.sign``): the fields' gains drift fastest under
+          rotation, κ then cannot pin the accelerometer's offset, and without the sign the filter
+          carries v̂ through zero, confidently, against what every field shows (development mixed
+          world 100: v̂ +0.8 m/s where the truth is −0.4, ±2σ 43 %). On development worlds (rates,
+          causal; rotation 100–109, panels, corridor and mixed 100–101) the mean RMSE is 0.098 m/s
+          with it against 0.127 without, ±2σ 92 against 89 %, observable 81 against 85 %; panels
+          and corridor within 0.001.
+    chunk : int
+        Eye samples per streaming chunk.
+    accel_from_truth : bool
+        Take the forward acceleration from truth.csv's a_forward_m_s2 instead of the accelerometer
+        (isolates the visual circuit from gravity removal; labelled in the output).
+    readout_kind : {"kalman", "spikes", "neuron"}
+        "kalman": :func:`lobula.readout.readout`, the arithmetic readout, causal filter, v_std its
+        posterior std. "spikes": the same readout's v̂ carried by ``neuron.population`` push–pull
+        spiking output neuron pairs and decoded causally
+        (:func:`lobula.readout_neuron.spiking_output`); v_std combines the posterior std and the
+        decoding's count noise. "neuron": :func:`lobula.readout_neuron.readout_neuron` (shunting
+        division, haltere integration, push–pull output neurons; spikes decoded causally when
+        ``neuron.spiking``); v_std is then the spike decoding's count noise only, and
+        ``observable`` the neuron's confidence.
+    neuron : ReadoutNeuronConfig
+        The output neurons (and the "neuron" readout): 10 pairs of leaky integrate-and-fire
+        neurons with 1 mV membrane noise (``spike_model="lif"``), as a driven fly neuron fires
+        nearly regularly (H1: de Ruyter van Steveninck et al. 1997), driven by v̂ phase-advanced
+        by the decoder's own filter (``lead="encoder"``), so the decoder needs no accelerometer
+        and its lag is made up exactly, lock-on included. Poisson trains (``--spike-model
+        poisson``) make the output's count noise most of the spiking error: on dev eye worlds
+        (seeds 100–103) LIF with the encoder lead reads panels 0.036 and corridor 0.016 m/s,
+        Poisson with the haltere lead 0.045 / 0.041, the rates 0.035 / 0.015. A stored
+        configuration without ``spike_model`` and ``lead`` reads as Poisson with the haltere lead.
+    settle_s : float or None
+        s: LC output the readout ignores at the start while the circuit's filters leave their
+        resting state (None: :meth:`settle_time`'s default, 0.09 s for the default circuit).
+    uncertainty : {"halves", "posterior"}
+        What ``v_std`` states for the "kalman" and "spikes" readouts. "posterior": the readout's
+        posterior std alone. "halves" (default): that std combined with (1) the disagreement of
+        the two eyes, each read out alone, and of the upper and lower halves of the fields
+        (:func:`field_halves`, :func:`split_half_variance`, causal running mean over
+        ``split_tau_s``), which sees the errors the halves do not share — a turn's haltere residue
+        is opposite on the two sides (yaw, roll) or above and below (pitch) — and (2)
+        ``emd_gain_error``·|v̂|, the error every field shares. Together they cover the truth within
+        ±2σ on 100 % of the steps after 2 s on the dev panels and corridor worlds (seeds 100–105;
+        the posterior alone 91–100 %), 61–84 % on the rotating ones.
+    split_tau_s : float
+        s: time constant of that running mean. 1 s: the readout's 1 Hz low-pass makes errors that
+        persist about that long.
+    emd_gain_error : float
+        Fraction of |v̂|: the EMD's response is not proportional to image speed but grows as ρ^β
+        (a correlator's velocity tuning: Egelhaaf & Reichardt 1987; Borst & Egelhaaf 1989), and
+        the readout's (ρ̇ − r²)/ρ of a power law is β·a/v, so v̂ is off by a factor ~1/β that no
+        spread across fields can show. With the surround (:mod:`lobula.eye_circuit`) β, the
+        log–log slope of each field's ρ̂ against the exact v/D after 2 s, has medians 1.03–1.10
+        and lower quartiles 0.95–1.04 (panels and corridor, seeds 100, 103), hence 0.05 ≈ 1 − β
+        at the lowest lower quartile.
+    lead_offset_tau_s : float
+        s: with ``neuron.lead="haltere"``, the spiking decoder's lead τ_d·a uses the accelerometer
+        less the offset the readout's v̂ implies (:func:`readout_offset`, running mean over this
+        time constant); 0: the raw accelerometer. Where the start's offset is large (panels seed
+        7, 0.6 m/s²) spikes read 0.098 m/s with it against 0.134 without (rates 0.093); elsewhere
+        within ±0.02.
+    rest_bound : bool
+        Whether the readout may take "no detectable expansion" as a bound on the speed
+        (:func:`lobula.readout.rest_measurement`, |v| ≤ d_max·(|r̄| + 2·SE)). The bound assumes
+        fields that measure r̄ = v/d at gain 1; the fly's EMDs at Δφ = 5° decode γ·v/D with
+        γ = 0.28–0.37 in a corridor at every speed (dev seed 100, pooled over the fields against
+        the exact v/D) and 0.9–1.0 on panels, so "no detectable expansion" bounds |v| by d_max/γ
+        and the bound calls slow flight rest. False (default): the bound only where the image is
+        frozen (depth bound 10⁶ m); elsewhere at rest v̂ rests on the accelerometer and the readout
+        says when it cannot tell (NaN). On dev seeds 100–103 (causal, accelerometer, both eyes'
+        fields) the corridor's mean RMSE is 0.054 m/s without the bound against 0.111 with it,
+        panels and rotation the same. True: the bound as for the camera.
+    reliability_min : float
+        A field's output reaches the readout only at steps where its causal slow-to-fast power
+        ratio (:func:`lobula.eye_circuit.field_reliability`, running means over
+        ``reliability_tau_s``) is at least this (0: every field always), provided at least
+        ``min_valid_fraction`` of the fields pass (else every field, :func:`reliability_gate`).
+        Under rotation the fields that see nothing near (sky, a distant backdrop) carry little
+        expansion and much correlator noise and rotation residue, which the readout's median
+        would take as measurements of a/v (development rotation world, seed 100: fields looking
+        down at the floor follow the exact v/D at correlation 0.97–0.98, fields looking up at
+        −0.24–0.3). 10: chosen on development seeds 100–103 (mean causal RMSE over 11 dev worlds
+        0.136 m/s at 10, 0.143 at 5, 0.169 without the gate).
+    reliability_tau_s : float
+        s: time constant of the running powers in :func:`lobula.eye_circuit.field_reliability`.
     """
 
     circuit: EyeCircuitConfig = field(default_factory=EyeCircuitConfig)
@@ -229,11 +235,11 @@ def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
     pipeline, the gravity reference's error is held here as one forward offset, not as a vector
     whose forward share turns with the body (lobula.readout.kalman_velocity's offset_axis), and the
     transport term is left out (the eye's heading is taken along its body axis, where λ = 0): the
-    eye's worlds turn by a few degrees. Measured (development rotation world, seed 100, rates): the
-    camera's vector offset (prior 1 m/s² per axis) 0.257 → 0.263 m/s, panels 0.038 → 0.038; with the
-    attitude's leak walk as well, the same. Nor is the gyro bias behind the gravity this attitude lets
-    in the eye's error under rotation: given the camera's flow-fitted bias track, rotation seeds 100 /
-    101 read 0.247 / 0.213 against 0.257 / 0.197 (docs/accuracy-history.md, thirty-first session).
+    eye's worlds turn by a few degrees. On a development rotation world (seed 100, rates) the camera's
+    vector offset (prior 1 m/s² per axis) reads 0.263 m/s against 0.257 as one offset, panels 0.038
+    either way; with the attitude's leak walk as well, the same. Nor is the gyro bias behind the gravity
+    this attitude lets in the eye's error under rotation: given the camera's flow-fitted bias track,
+    rotation seeds 100 / 101 read 0.247 / 0.213 against 0.257 / 0.197.
     Returns (ReadoutConfig, gravity_tau (n,) or None, drift_std (n,) or None).
     """
     from experiments.velocity import START_ACCEL_PRIOR_M_S2, TRUTH_ACCEL_OFFSET_M_S2
@@ -439,8 +445,8 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     if cfg.readout_kind == "neuron":
         obs_definition = "the readout neuron's own confidence"
     else:
-        # What v_std adds beyond the posterior does not gate: gating on it was tried and left the eye blind
-        # (docs/accuracy-history.md, twenty-first session), so the file says which std the flag is of.
+        # What v_std adds beyond the posterior does not gate: gating on it leaves the eye blind, so the
+        # file says which std the flag is of.
         obs_definition = f"the readout's posterior std ≤ {rcfg.max_std_m_s:g} m/s" + (
             "; v_std adds the field halves' disagreement and the EMD gain error, so it may exceed that"
             if cfg.uncertainty == "halves" else "")

@@ -83,7 +83,7 @@ def make_replay(out: Path, start_s: float, duration_s: float, seed: int, progres
     from stimuli.track import TrackRunConfig, make_track_run, recorded_profile
 
     real = recorded_profile()
-    label = "real FLIVVER trajectory (velocity.csv)" if real else "built-in profile (../shared absent)"
+    label = "real FLIVVER trajectory (velocity.csv)" if real else "built-in profile (stimuli.track.builtin_profile)"
     folder = out / f"replay_{'real' if real else 'builtin'}_{start_s:g}_{duration_s:g}_seed{seed}"
     if not (folder / "frames.csv").exists():
         cfg = TrackRunConfig(profile=str(real) if real else None, start_s=start_s, duration_s=duration_s,

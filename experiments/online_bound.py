@@ -1,6 +1,6 @@
 """How close online can come to offline: optimal filter against optimal smoother on the suite's trajectories.
 
-Issue 10 asks the causal readout to stay within 1.5× of the zero-phase one. This module asks what any
+The project's target is a causal readout within 1.5× of the zero-phase one. This module asks what any
 estimator could do with the information the readout has, under a linear-Gaussian model of it, so that the
 pipeline's ratio can be read against the ratio the information allows.
 
@@ -28,8 +28,7 @@ measures only κ = a/v, so v̂ = a_m/κ takes the accelerometer's scale whole, o
 Measured, not fitted (the models: :data:`NOISE_MODELS`):
 
 - κ's relative error: on the suite's development worlds (seeds 100–103, true acceleration), 2–10 % rms,
-  correlated over 3–9 frames, a per-frame-equivalent 0.05–0.26 (median 0.135; docs/accuracy-history.md,
-  eighteenth session).
+  correlated over 3–9 frames, a per-frame-equivalent 0.05–0.26 (median 0.135).
 - The accelerometer's white noise after the readout's removal of its slow part: 0.001–0.009 m/s² over 1 s
   (ReadoutConfig.accel_noise, 0.01 m/s²/√Hz).
 - The offset's walk: ReadoutConfig.bias_walk (0.002). The realistic IMU's own is 0.001; the gravity the
@@ -337,7 +336,7 @@ def plot_ratios(rows, families, models, path):
     if pipe:
         ax.scatter([x[families.index(r["family"])] + offsets[-1] for r in pipe], [r["pipeline_ratio"] for r in pipe],
                    marker="D", color="k", s=26, label="the pipeline (lobula causal / zero-phase)")
-    ax.axhline(1.5, color="r", lw=1, label="issue 10's target, 1.5")
+    ax.axhline(1.5, color="r", lw=1, label="the target, 1.5")
     ax.axhline(1.25, color="r", lw=1, ls="--", label="its stretch target, 1.25")
     ax.axhline(1.0, color="0.6", lw=0.8)
     ax.set_xticks(x, families)

@@ -33,7 +33,7 @@ def run_scene(args) -> int:
     cfg = scene_config_from_args(args)
     from experiments.eye_scene import refuse_eye_options_for_pinhole, run_eye_scene
 
-    if args.eye == "fly":  # compound-eye footage (issue 11)
+    if args.eye == "fly":  # compound-eye footage
         return run_eye_scene(args, cfg)
     refuse_eye_options_for_pinhole(args)
     out = make_track_run(args.out, cfg, progress=not args.quiet)

@@ -80,7 +80,7 @@ def run_on_eye_footage(args) -> int:
     defaults = vars(parser.parse_args(["velocity", "X", "--out", "Y"]))
     if getattr(args, "lag", None):
         raise ValueError(f"{args.footage}: --lag (a fixed-lag smoother) is the camera pipeline's readout option; the "
-                         f"eye's readout stays online, as the fly's must (issue 11): drop --lag, or run the camera "
+                         f"eye's readout stays online, as the fly's must: drop --lag, or run the camera "
                          f"footage of the same world")
     given = [k for k, v in vars(args).items() if k not in _VELOCITY_OPTIONS_ON_EYE and k in defaults
              and v != defaults[k]]

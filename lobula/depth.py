@@ -93,7 +93,7 @@ class DepthConfig:
     gamma: TV weight γ in 1/s · (normalised image length); see :func:`depth_tv`.
         Larger γ suppresses more flow noise but biases z toward its surroundings where
         the data weight |p−e|² is small (a region of radius ρ around the epipole is
-        pulled by about γ·perimeter / Σ|p−e|², ∝ γ/ρ²). The default was chosen on
+        pulled by about γ·perimeter / Σ|p−e|², ∝ γ/ρ²). The default is chosen on
         synthetic scenes at 160×120–320×240 with flow noise 0.005–0.02 1/s (AbsRel
         within 5–10° of the epipole ≈ 0.05–0.09 where the ratio map gives 0.2–1).
     tv_iters: iteration cap of the TV solver at full resolution (each pyramid level of a

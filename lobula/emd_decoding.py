@@ -52,34 +52,53 @@ from .receptive_field import ReceptiveFields
 class EMDFrontEndConfig:
     """The EMD front end for velocity estimation.
 
-    lattice: ommatidia (default Δφ = 0.75°, Δρ = Δφ: a ~5,000-ommatidia eye on the
-    D435i's field of view, enough for 5° fields; the fly's 4.6° needs ≥ 20° fields).
-    photoreceptor: low-pass 10 ms (no temporal high-pass: the surround removes the mean).
-    surround: weight s of the LMCs' lateral inhibition, x − s·(the lattice neighbours' mean),
-    after the photoreceptors (:func:`lobula.photoreceptor.lattice_filter`): 1 (default) removes
-    the mean luminance in space, with no memory, as the compound eye's circuit does; 0 with
-    ``tau_hp_s=0.25`` is the front end until the twenty-seventh session, whose temporal high-pass
-    drifts the decoded gain after every change of speed (its memory is a trailing copy of the
-    pattern moving at the past speed). Measured on development suite worlds (10 s, 320×240,
-    realistic IMU, causal; seeds 100, 101), high-pass → surround: panels 0.081 / 0.070 → 0.044 /
-    0.035, corridor 0.090 / 0.084 → 0.011 / 0.014 m/s.
-    emd: delay τ (s); 10 ms keeps the replay's image motion in the EMD's near-linear range.
-    decoding: "gradient-ratio". calibration: gain on r̄, one number or one per field
-    (1 = none; fitted on another scene by :func:`fit_calibration`, then held fixed).
-    latency_s: how far the decoded r̄ trails the image motion; outputs are stamped that
-    much earlier. None: the low-frequency group delay of the photoreceptor and EMD
-    low-passes plus half a frame (the correlator averages over the frame interval).
-    chunk: frames processed per batch.
-    gaze: "fixate" (default): with a gyro, each frame is warped into a gaze held fixed in the world
-    (:func:`lobula.gaze.fixation_reference`) before the lattice samples it, and the gaze jumps back to
-    the camera (a saccade: photoreceptors and EMDs restart, that frame's output NaN) once the camera
-    has turned ``saccade_limit_deg`` away from it; the fields' expansion templates follow the focus of
-    expansion (the optical axis) into the gaze's frame each frame. Why: at 30 frames/s a turning
-    camera's image moves up to 1.6° per frame under the suite's turns, two ommatidial spacings at
-    Δφ = 0.75°, so the correlators alias, and subtracting the gyro's predicted response after the
-    correlators did not help (development rotation worlds 100 / 101, causal: 0.435 / 0.399 → 0.418 /
-    0.346 m/s; a stabilised image 0.107 / 0.049). "none": the camera's own image (configurations
-    written before the twenty-ninth session).
+    Parameters
+    ----------
+    lattice : LatticeConfig
+        The ommatidia. Default Δφ = 0.75°, Δρ = Δφ: a ~5,000-ommatidia eye on the D435i's field
+        of view, enough for 5° fields (the fly's 4.6° needs ≥ 20° fields).
+    photoreceptor : PhotoreceptorConfig
+        A 10 ms low-pass and no temporal high-pass: the surround removes the mean luminance.
+    emd : EMDConfig
+        The correlators' delay τ (s); 10 ms keeps the replay's image motion in the EMD's
+        near-linear range.
+    surround : float
+        Weight s in [0, 1] of the LMCs' lateral inhibition, x − s·(the lattice neighbours' mean),
+        after the photoreceptors (:func:`lobula.photoreceptor.lattice_filter`). 1 (default)
+        removes the mean luminance in space, with no memory, as the compound eye's circuit does;
+        0 with the photoreceptor's ``tau_hp_s=0.25`` removes it in time instead, whose high-pass
+        drifts the decoded gain after every change of speed (its memory is a trailing copy of the
+        pattern moving at the past speed). On development suite worlds (10 s, 320×240, realistic
+        IMU, causal; seeds 100, 101) the surround reads panels 0.044 / 0.035 and corridor
+        0.011 / 0.014 m/s, the high-pass 0.081 / 0.070 and 0.090 / 0.084.
+    decoding : {"gradient-ratio"}
+        How r̄ is decoded from the EMD pairs (see the module docstring).
+    calibration : float or list of float
+        Gain on r̄, one number or one per field (1 = none); fitted on another scene by
+        :func:`fit_calibration`, then held fixed.
+    latency_s : float or None
+        s: how far the decoded r̄ trails the image motion; outputs are stamped that much earlier.
+        None: the low-frequency group delay of the photoreceptor and EMD low-passes plus half a
+        frame (the correlator averages over the frame interval).
+    chunk : int
+        Frames processed per batch.
+    gaze : {"fixate", "none"}
+        "fixate" (default): with a gyro, each frame is warped into a gaze held fixed in the world
+        (:func:`lobula.gaze.fixation_reference`) before the lattice samples it, and the gaze jumps
+        back to the camera (a saccade: photoreceptors and EMDs restart, that frame's output NaN)
+        once the camera has turned ``saccade_limit_deg`` away from it; the fields' expansion
+        templates follow the focus of expansion (the optical axis) into the gaze's frame each
+        frame. At 30 frames/s a turning camera's image moves up to 1.6° per frame under the
+        suite's turns, two ommatidial spacings at Δφ = 0.75°, so the correlators alias;
+        subtracting the gyro's predicted response after them does not help (development rotation
+        worlds 100 / 101, causal: 0.418 / 0.346 m/s, against 0.435 / 0.399 without it and
+        0.107 / 0.049 on a stabilised image). "none": the camera's own image.
+    saccade_limit_deg : float
+        deg, in (0, 90]: how far the camera may turn from the fixated gaze before a saccade
+        returns the gaze to it.
+    heading_tau_s : float
+        s: with a fixating gaze, the time constant with which the heading the templates follow
+        (the camera's epipole, in the world-fixed frame) trails the camera's (0: no lag).
     """
 
     lattice: LatticeConfig = field(default_factory=lambda: LatticeConfig(dphi_deg=0.75))
@@ -112,8 +131,10 @@ class EMDFrontEndConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "EMDFrontEndConfig":
         d = dict(d)
-        d.setdefault("surround", 0.0)   # configurations written before the surround existed had none
-        d.setdefault("gaze", "none")     # nor, before the twenty-ninth session, a stabilised gaze
+        # A stored configuration without these fields describes a front end without them: no
+        # surround (the mean removed in time) and the camera's own image.
+        d.setdefault("surround", 0.0)
+        d.setdefault("gaze", "none")
         return cls(lattice=LatticeConfig(**d.pop("lattice", {})),
                    photoreceptor=PhotoreceptorConfig(**d.pop("photoreceptor", {})),
                    emd=EMDConfig(**d.pop("emd", {})), **d)

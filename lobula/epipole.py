@@ -196,8 +196,8 @@ class EpipoleEstimator:
         e = np.asarray(start, float)
         # About a start far from this frame's heading the residuals hold the model's error, and
         # σ² taken from them (below) overcorrects: from the principal point a heading 20° off the
-        # axis came out at 75°, one 30° off made the system indefinite and the frame was dropped,
-        # so such a heading was never found. Plain steps first, while they move the heading far.
+        # axis would come out at 75°, and one 30° off makes the system indefinite so that the frame
+        # is dropped and such a heading never found. Plain steps first, while they move the heading far.
         neq = normal_equations(e)
         for _ in range(WARMUP_ITERS):
             if not _well_posed(neq[0]):
@@ -419,9 +419,9 @@ class HeadingBiasEstimator(EpipoleEstimator):
                 # This frame's own heading lies far from the running one (a heading 30° off the axis
                 # against the principal point, the prior): about that start the residuals hold the
                 # model's error, and the noise correction below, taken from them, overcorrects until
-                # the system is indefinite — every such frame was refused and the heading stayed at
-                # the prior for the whole record. Plain steps from the frame's own heading first, as
-                # the parent's warm-up does.
+                # the system is indefinite, which would refuse every such frame and hold the heading
+                # at the prior for the whole record. Plain steps from the frame's own heading first,
+                # as the parent's warm-up does.
                 h_ref = R @ np.array([own[0], own[1], 1.0])
                 theta[:2] = h_ref[:2] / h_ref[2]
                 for _ in range(WARMUP_ITERS):
@@ -468,7 +468,7 @@ class HeadingBiasEstimator(EpipoleEstimator):
         A slow frame's residuals are small because its flow is, and by its own scale its
         few-pixel heading information would outweigh every fast frame's; a fast frame's flow
         errs more (large displacements), and by the median alone its errors would pass for
-        rotation (the causal fast corridor's bias, before the still-camera estimate came in)."""
+        rotation (the causal fast corridor's bias until the still-camera estimate arrives)."""
         scale = 1.4826 * np.median(np.abs(res)) + 1e-12
         noise = max(scale, float(np.median(self._scales))) if self._scales else scale
         # Flow errors are correlated over many pixels: a frame counts as FRAME_POINTS independent ones.
@@ -498,10 +498,10 @@ class HeadingBiasEstimator(EpipoleEstimator):
             return None
         # The bias still unknown shifts the heading by about its std / r: place it only where that is
         # small (~3°), or where this frame's own heading (−k/r from the fit above) lies farther from
-        # the running one than 3× that shift (a camera panning 25° to the side otherwise kept the
-        # principal point, its prior, for seconds, and the fields read about it showed a forward run
-        # as a retreat; the shift's bound alone, relaxed, let slow frames drag a heading near the
-        # axis and the bias the wrong way: development rotation seed 100, 0.014 → 0.15 m/s).
+        # the running one than 3× that shift (a camera panning 25° to the side otherwise keeps the
+        # principal point, its prior, for seconds, and the fields read about it show a forward run
+        # as a retreat; relaxing the shift's bound instead lets slow frames drag a heading near the
+        # axis and the bias the wrong way: development rotation seed 100, 0.15 m/s against 0.014).
         shift = np.linalg.norm(self.bias_std) / abs(r)
         own = np.array([x.mean() - du.mean() / r, y.mean() - dv.mean() / r])
         if shift > HEADING_TOL and np.hypot(*(own - e0)) < 3.0 * shift:

@@ -27,7 +27,7 @@ Stages
    divided by the pooled contrast signals — a 2×2 solve per field and step. By default
    each pair's speed is decoded before the pooling (see "Per-pair decoding" below).
 4. **Material derivative.** ṙ = a/d + r² holds along a scene point; at a fixed direction
-   points flow through (issue 10). For ρ = v/D along a point, Dρ/Dt = a/D + ρ² cos θ, and
+   points flow through. For ρ = v/D along a point, Dρ/Dt = a/D + ρ² cos θ, and
    at a fixed direction ∂ρ/∂t = Dρ/Dt − θ̇·∂ρ/∂θ with θ̇ = ρ sin θ. So
    ``v = a·ρ / (∂ρ/∂t − r2_eff)`` with ``r2_eff = ρ² cos θ − ρ sin θ · g`` — the
    readout's own ``v_f = a·r̄/(ṙ − r²)`` with r²̄ replaced by r2_eff. Exact for any plane
@@ -66,21 +66,22 @@ linear in the pattern, zero on average and large wherever contrast is low. The u
 removes it in time with an LMC-like high-pass (0.25 s: Eichner et al. 2011), but a temporal
 high-pass of a moving pattern subtracts a trailing, blurred copy of it that moves with the
 *past* speed: after every change of speed, and most after a reversal, the pairs' decoded speed
-carries a transient of the high-pass's time constant, the same in every field (on dev panels
-worlds the fields' slow gains correlated at 0.54–0.66 across fields, the common part 40 % of
-their variance, not explained by speed or timing). That drift is what the readout took for an
-accelerometer offset ("offset learned" in docs/fly-eye.md). LMCs also have an antagonistic
+carries a transient of the high-pass's time constant, the same in every field (with the
+high-pass, on dev panels worlds the fields' slow gains correlate at 0.54–0.66 across fields, the
+common part 40 % of their variance, not explained by speed or timing). The readout takes that
+drift for an accelerometer offset ("offset learned" in docs/fly-eye.md). LMCs also have an antagonistic
 surround (Srinivasan, Laughlin & Dubs 1982, Proc R Soc B 216:427; Freifeld et al. 2013,
 Neuron 79:111 for L2), and subtracting the neighbours' mean removes the mean luminance in
-space, with no memory: the photoreceptor stage then needs no temporal high-pass. Measured on
-development eye worlds (seeds 100–105, 10 s, rates, causal, accelerometer; before → now):
-panels 0.081 → 0.033 m/s, corridor 0.045 → 0.013, rotation (100–102) 0.252 → 0.181; with the
-true acceleration and an offset to learn, panels 0.063 → 0.030, corridor 0.060 → 0.010 — the
-offset is no longer mislearned. Tried: no high-pass and no surround (panels 0.17: the mean
-leaks in as above), a 1 s high-pass (panels 0.08–0.30 on seeds 100–102, mean 0.18), the surround with the
-0.25 s high-pass kept (panels 0.082, corridor 0.044), a Gaussian surround of σ = 2Δφ instead of
-the six neighbours (panels / corridor 0.030 / 0.014 against 0.033 / 0.013: within the seeds'
-spread, for a denser filter).
+space, with no memory: the photoreceptor stage then needs no temporal high-pass. On
+development eye worlds (seeds 100–105, 10 s, rates, causal, accelerometer), the surround against
+the 0.25 s high-pass: panels 0.033 against 0.081 m/s, corridor 0.013 against 0.045, rotation
+(100–102) 0.181 against 0.252; with the true acceleration and an offset to learn, panels 0.030
+against 0.063, corridor 0.010 against 0.060 — with the surround the offset is not mislearned.
+The alternatives read worse or no better: no high-pass and no surround (panels 0.17: the mean
+leaks in as above), a 1 s high-pass (panels 0.08–0.30 on seeds 100–102, mean 0.18), the surround
+together with the 0.25 s high-pass (panels 0.082, corridor 0.044), a Gaussian surround of
+σ = 2Δφ instead of the six neighbours (panels / corridor 0.030 / 0.014 against 0.033 / 0.013:
+within the seeds' spread, for a denser filter).
 
 **Columnar pooling** (a hypothesis, off by default). Before the EMDs each column's
 signal may be averaged with its six neighbours' (``column_pool``), as the T4/T5 input neurons pool over several columns
@@ -88,12 +89,13 @@ signal may be averaged with its six neighbours' (``column_pool``), as the T4/T5 
 et al. 2014, Nature 512:427). Why it matters here: the gradient ratio underestimates a
 sine of phase step Δϕ between neighbours by (Δϕ/2)·cot(Δϕ/2) (0 at the Nyquist limit),
 and with Δρ = Δφ a 1/f world puts much contrast near it; the 7-column average passes
-λ = 2Δφ at −1/7 and λ = 6Δφ at 0.78, which raises the decoded gain toward 1 — but
-measured on a panels world it also lowered the fields' correlation with the exact v/D
-(0.83 → 0.65) and raised the velocity RMSE, so it stays off. (A gain γ on ρ does not cancel
+λ = 2Δφ at −1/7 and λ = 6Δφ at 0.78, which raises the decoded gain toward 1 — but on a
+panels world it also lowers the fields' correlation with the exact v/D (0.65 against 0.83
+without) and raises the velocity RMSE, so it is off by default. (A gain γ on ρ does not cancel
 in the readout v = a·ρ/(ρ̇ − r²): r² is made from ρ too, at γ², so κ = (ρ̇ − r²)/ρ errs by
 (1 − γ)·r²/ρ, and a gain that varies adds γ̇/γ. Measured on the camera's EMD front end, whose
-r̄ reads 0.45–0.65 of DIS's: dividing its rates by that gain moved a replay's RMSE 0.0111 → 0.0107 m/s.)
+r̄ reads 0.45–0.65 of DIS's: dividing its rates by that gain takes a replay's RMSE only from 0.0111
+to 0.0107 m/s.)
 
 Rotation, two hypotheses (``rotation``):
 
@@ -188,15 +190,15 @@ class EyeCircuitConfig:
     surround: weight s of the LMC's lateral inhibition, x' = x − s·mean(neighbours) after the
     photoreceptors (and any columnar pooling): 1 (default) removes the mean luminance in space,
     so the photoreceptor stage needs no temporal high-pass (its ``tau_hp_s`` is None); 0: none
-    (the circuit before the twenty-seventh session: tau_hp_s 0.25 s, no surround) — see
+    (then pair it with the photoreceptor's ``tau_hp_s`` 0.25 s to remove the mean in time) — see
     "Lateral inhibition" in the module docstring.
     rotation_gain: "adaptive" (default: each field learns the gain γ at which its EMDs report the turn
     the haltere predicts, see :meth:`EyeCircuit._rotation_gain`) or "fixed" (the prediction subtracted at
     unit gain). rotation_gain_prior: γ's prior mean, what the adaptive gain starts from before a field
     has seen a turn (about a second) and is drawn toward while its evidence is weak; None (default):
     :func:`natural_scene_gain` for this eye and these lattice filters (0.48 for the default eye); 1: the
-    unit gain, as before the thirty-third session (it over-subtracts a turn by half, a residue ~10× the
-    fields' own signal in their first second: docs/fly-eye.md).
+    unit gain, which over-subtracts a turn by half, a residue ~10× the fields' own signal in their first
+    second (docs/fly-eye.md).
     calibration: gain on ρ (1 = none).
     latency_s: stamp shift; None = τ_photoreceptor + τ_EMD + half a block (+ τ_EMD more for the
     "pair" normaliser, whose per-pair decoding low-passes once more).
@@ -245,8 +247,10 @@ class EyeCircuitConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "EyeCircuitConfig":
         d = dict(d)
-        d.setdefault("surround", 0.0)   # configurations written before the surround existed had none
-        d.setdefault("rotation_gain_prior", 1.0)   # nor the haltere gain's prior: theirs was the unit gain
+        # A stored configuration without these fields describes a circuit without them: no surround
+        # and the haltere gain's prior at unit gain.
+        d.setdefault("surround", 0.0)
+        d.setdefault("rotation_gain_prior", 1.0)
         f = dict(d.pop("fields", {}))
         for k in ("azimuth_deg", "elevation_deg"):
             if k in f:

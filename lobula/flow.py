@@ -37,11 +37,12 @@ class FlowConfig:
     power of two below the image (``fast``: 1/4, so 160×120 at 640×480 but 80×60 at 320×240).
     The level is taken finer while it would be narrower than this many pixels, so the flow's
     angular resolution does not fall with the image size (0: the preset's level at every size).
-    On the 80×60 grid the growth of r as a surface nears is smoothed away: vision's a/v erred by
+    On the 80×60 grid the growth of r as a surface nears is smoothed away: vision's a/v errs by
     −0.3·r̄·v per frame (r̄·v ≈ v²/d; development corridor and fast scenes, seed 102, 320×240),
     on a 160-px grid by −0.1·r̄·v, as the same scenes give at 640×480 with the preset unchanged
-    (exact flow: 0.0). Over the 36 development scenes (9 families × seeds 100–103, with the
-    readout of the same commit) zero-phase RMSE 0.0091 → 0.0073 m/s, causal 0.0203 → 0.0149.
+    (exact flow: 0.0). Over the 36 development scenes (9 families × seeds 100–103) the 160-px
+    grid reads zero-phase RMSE 0.0073 m/s against 0.0091 on the preset's, causal 0.0149 against
+    0.0203.
     Cost: unchanged at 640×480 (160 px is the preset's own grid there); at 320×240 DIS ``fast``
     takes 4.5 against 1.3 ms a pair (one thread).
     chain_fraction: a pair whose image moves far is computed through the frames between its two
@@ -50,10 +51,10 @@ class FlowConfig:
     many steps as it holds of that (up to ``gap``); and the first pair and every ``chain_check``-th
     are computed in two steps as a check, kept if they move that far, because a failed flow hides
     its own failure. Why: DIS cannot follow a fast approach. On the development fast scene
-    (corridor, 2 m/s, seed 103, 320×240) the single 6-frame pair's flow kept 0.97 of the exact
-    displacement while its 90th percentile stayed under ~30 px, then collapsed to −0.1…0.3 of it
-    (errors 13–22 px) as the approach reached 35–43 px — while reading only 11–15 px itself;
-    through the frames between, in 2 or 3 steps, it kept 1.00 (errors 0.2–0.3 px). 0.05 (16 px at
+    (corridor, 2 m/s, seed 103, 320×240) the single 6-frame pair's flow keeps 0.97 of the exact
+    displacement while its 90th percentile stays under ~30 px, then collapses to −0.1…0.3 of it
+    (errors 13–22 px) as the approach reaches 35–43 px — while reading only 11–15 px itself;
+    through the frames between, in 2 or 3 steps, it keeps 1.00 (errors 0.2–0.3 px). 0.05 (16 px at
     320 wide): below where the single pair starts to fail, so a speed that grows is caught before;
     a pair that already failed reads less, which the periodic check catches. The displacement is
     what the flow method saw, less the pre-warped rotation (steps add their flows' noise: a slow

@@ -337,11 +337,11 @@ def leak_walk(times: np.ndarray, time_s: np.ndarray, leak: np.ndarray, window_s:
     by the leak's change squared).
 
     The leak is not subtracted from the acceleration: the flow-fitted bias also wanders on its own,
-    and re-integrating the attitude with its newest value turned that wander into offset steps the
-    filter took for motion (development seeds 100–102, causal RMSE 0.0138 → 0.0145 m/s; rotation
-    seed 102 0.013 → 0.037). As uncertainty it costs nothing where the estimate stays put and,
-    where it moves, says the offset is no longer known (1°/s gyro bias: 0.25 m/s RMSE with
-    ±2σ 54 % → 0.025 with 100 %).
+    and re-integrating the attitude with its newest value turns that wander into offset steps the
+    filter takes for motion (development seeds 100–102, causal RMSE 0.0145 m/s subtracted against
+    0.0138 not; rotation seed 102 0.037 against 0.013). As uncertainty it costs nothing where the
+    estimate stays put and, where it moves, says the offset is less well known (1°/s gyro bias:
+    0.025 m/s RMSE with ±2σ 100 %, against 0.25 with 54 % without it).
     """
     now = np.interp(times, time_s, leak)
     before = np.interp(np.asarray(times, float) - window_s, time_s, leak)
@@ -350,7 +350,7 @@ def leak_walk(times: np.ndarray, time_s: np.ndarray, leak: np.ndarray, window_s:
 
 #: The flow-fitted gyro bias (lobula.epipole.HeadingBiasEstimator) claims a formal std that its
 #: error exceeds: over the development rotation scenes (suite seeds 100-103, realistic IMU, causal,
-#: the final estimate against the scene's true bias in the camera frame) |error|/std per axis was
+#: the final estimate against the scene's true bias in the camera frame) |error|/std per axis is
 #: 0.1-15, RMS 6.1 (a constant-bias model of a bias that walks, flow errors taken as independent).
 #: Its std is scaled by this much before it is fused with the still-camera estimate. (3 and 10 give
 #: the same development results within 0.0003 m/s; on the real EuRoC start, whose 1.7 / 0.2 /

@@ -9,7 +9,7 @@ The chain, per ommatidium, each stage optional except the first:
 3. **LMC-like high-pass**: subtract a low-pass of time constant ``tau_hp_s``, which
    removes the mean (steady state 0), as large monopolar cells do.
 4. **Contrast gain control**: divide by the running RMS of the signal (a low-pass of its
-   square with ``tau_gain_s``), so the output's amplitude no longer scales with contrast.
+   square with ``tau_gain_s``), so the output's amplitude does not scale with contrast.
 
 Across columns, :func:`lattice_filter` gives the LMCs' lateral inhibition (x − the neighbours'
 mean), which removes the mean in space instead of in time (:mod:`lobula.eye_circuit`, "Lateral

@@ -45,115 +45,138 @@ from scipy.special import log_ndtr
 class ReadoutConfig:
     """Readout parameters (SI units).
 
-    method: "kalman" (project default) or "median" (the paper).
-    filter: "zero-phase" (offline, the paper's) or "causal" (online).
-    paper_wn / paper_order: the paper's Butterworth (fraction of Nyquist, order).
-    stagger: frames between the two samples of the difference for ṙ̄.
-    cutoff_hz / order: the kalman readout's common low-pass of r̄, r²̄ and a.
-    online_window_sigma: online, that low-pass is a symmetric Gaussian FIR (gain ½ at cutoff_hz)
-        cut at this many of its σ either side, so every term reaches the filter that many σ late
-        (plus half the stagger): the measurement latency the forward filter bridges with ∫a and
-        its uncertain offset. 1.5 (0.30 s at 30 frames/s; 2.5 until the twenty-fourth session,
-        0.50 s): on the suite's development seeds 100–101 (all ten families, stored readout inputs)
-        the causal RMSE 0.0119 → 0.0104 m/s mean, 17 of 20 scenes better, observable 0.949 →
-        0.962; 1.0 / 1.25 / 2.0 read 0.0109 / 0.0103 / 0.0112 (a broad optimum: the bridge's error
-        grows with the latency, the cut kernel's leakage of noise as it shortens). Offline
-        (zero-phase Butterworth) it plays no part.
-    accel_min_m_s2: |a| below this carries no depth information (noise floor of a filtered accelerometer).
-    depth_min_m / depth_max_m: physical range of depths a field may imply.
-    min_valid_fraction: fraction of fields that must agree on a physical depth.
-    rest_depth_max_m: farthest depth assumed in view when judging "no flow means no motion".
-    rest_accel_change_m_s2: that judgement is made only where the accelerometer's forward reading
-        (smoothed over 5 frames) stayed within this range of a straight line over the last second
-        (offline: the second around the frame) — a camera that starts or stops accelerating is not
-        at rest, whatever the image shows; a line is an offset and its ramp (:func:`accelerometer_steady`).
-        Online also only where that reading less the offset the filter has learned lies within
-        this (plus 2σ of the offset) of zero: a camera that accelerates is not at rest either
-        (:func:`kalman_velocity`'s rest_accel; 0.03 / 0.1 give the same results on the dev seeds).
-        0.05 m/s²: ~8× the smoothed reading's white noise at the synthetic IMU's 150 µg/√Hz, under
-        the 0.1 m/s² a gentle start reaches in a fraction of a second; not fitted.
-    accel_noise: white acceleration noise driving v (m/s²/√Hz); bias_walk: offset random walk (m/s²/√s).
-        Measured on the suite's development seeds 100-103 (not fitted): the accelerometer-derived a
-        less the truth's derivative, its slow part (offset, ramp: states) removed, averages over 1 s
-        to 0.001-0.009 m/s² on the families that do not turn, so 0.01 (was 0.05, which made the
-        posterior 2-3x wider than the errors and the estimate worse: dev zero-phase RMSE 0.018 ->
-        0.009 m/s, causal 0.033 -> 0.026 with the other changes of that commit).
-    accel_turn_noise: more of it while the camera turns, per rad/s of |ω| (m/s²/√Hz per rad/s):
-        on the rotation family's dev seeds that 1 s average is 0.08-0.12 × the rms |ω| (one seed
-        0.02), so 0.1. Used where readout() is given turn_rate.
-    bias_prior_m_s2: prior std of the accelerometer offset; v_prior_m_s: prior std of v.
-    meas_floor_m_s: smallest standard deviation granted to one frame's measurement.
-    kappa_rel_error: error of vision's κ = a/v that all fields share (DIS flow error, residual
-        rotation), as a fraction of |κ|, added in quadrature to the fields' standard error. Fitted
-        on ONE world only — the suite's "moving" family, dev seed 100: the value that brings the
-        online filter's ±2σ coverage there to ~95% (0.1: 71%, 0.25: 94%) — and tested on the other
-        families and seeds. With the flow's finer grid (lobula.flow.FlowConfig.dis_grid_px) κ is
-        cleaner and the same fit gives 0.125 (moving dev seed 100, 10 s: 0.25 → 100 %, 0.125 →
-        95 %), but 0.125 fails three known-answer tests (the band widening while turning, a shared
-        error covered offline, fields drowned in noise: RMSE 0.024 against 0.02): kept at 0.25.
-    adapt_s: time constant (s) of the offline filter's covariance matching: the κ measurement's
-        noise is scaled up by the running mean of its normalised squared innovations where they
-        show it worse than claimed (0: off, the default). 2 s helps offline on the dev seeds (100) of
-        the panels, fast and corridor families but widens the corridor's band past 99.5 % coverage
-        on the 6 s scene of tests/test_families.py and doubles the ground family's seed-1 error, so
-        it is not on by default.
-    accel_scale_error: the accelerometer's scale-factor error (fraction, 1σ). Vision measures only
-        κ = a/v, so v̂ = a/κ takes the accelerometer's scale whole, and nothing the camera sees can
-        correct it (the scale ambiguity of monocular vision is what the accelerometer resolves): it
-        is added to the posterior std as accel_scale_error·|v̂|. 0.01: the sensitivity tolerance of a
+    Parameters
+    ----------
+    method : {"kalman", "median"}
+        "kalman" (the project's default) or "median" (the paper's text).
+    filter : {"zero-phase", "causal"}
+        "zero-phase" (offline, the paper's) or "causal" (online).
+    paper_wn : float
+        The paper's Butterworth cutoff, as a fraction of Nyquist.
+    paper_order : int
+        The paper's Butterworth order.
+    stagger : int
+        Frames between the two samples of the staggered difference for ṙ̄.
+    cutoff_hz : float
+        Hz: cutoff of the kalman readout's common low-pass of r̄, r²̄ and a.
+    online_window_sigma : float
+        Online, that low-pass is a symmetric Gaussian FIR (gain ½ at ``cutoff_hz``) cut at this
+        many of its σ either side, so every term reaches the filter this many σ late (plus half
+        the stagger): the measurement latency the forward filter bridges with ∫a and its
+        uncertain offset. 1.5 (0.30 s at 30 frames/s) lies in a broad optimum on the suite's
+        development scenes (causal RMSE 0.0104 m/s; 1.0 / 2.5 read 0.0109 / 0.0119): the
+        bridge's error grows with the latency, the cut kernel's leakage of noise as it shortens.
+        Unused offline.
+    order : int
+        Order of the offline (zero-phase Butterworth) common low-pass.
+    accel_min_m_s2 : float
+        m/s²: |a| below this carries no depth information (the noise floor of a filtered
+        accelerometer).
+    depth_min_m, depth_max_m : float
+        m: the physical range of depths a field may imply.
+    min_valid_fraction : float
+        Fraction of the fields that must agree on a physical depth.
+    rest_depth_max_m : float
+        m: the farthest depth assumed in view when judging that no flow means no motion.
+    rest_accel_change_m_s2 : float
+        m/s²: that judgement is made only where the accelerometer's forward reading (smoothed over
+        5 frames) stays within this of a line (an offset and its ramp) over the last second
+        (offline: the second around the frame; :func:`accelerometer_steady`) and, online, where
+        that reading less the learned offset lies within this (plus 2σ of the offset) of zero
+        (:func:`kalman_velocity`'s ``rest_accel``): a camera that starts, stops or keeps
+        accelerating is not at rest, whatever the image shows. 0.05 is ~8× the smoothed reading's
+        white noise at the synthetic IMU's 150 µg/√Hz and under the 0.1 m/s² a gentle start
+        reaches in a fraction of a second; not fitted (0.03 and 0.1 read the same).
+    accel_noise : float
+        m/s²/√Hz: white acceleration noise driving v. 0.01 is measured, not fitted: on the suite's
+        development scenes the accelerometer-derived a less the truth's derivative, its offset and
+        ramp removed, averages over 1 s to 0.001–0.009 m/s² on the families that do not turn;
+        0.05 makes the posterior 2–3× wider than the errors and the estimate worse.
+    accel_turn_noise : float
+        m/s²/√Hz per rad/s of |ω|: more acceleration noise while the camera turns. 0.1: on the
+        rotation family's development scenes that 1 s average is 0.08–0.12 × the rms |ω|. Used
+        where :func:`readout` is given ``turn_rate``.
+    bias_walk : float
+        m/s²/√s: random walk of the accelerometer offset.
+    bias_prior_m_s2 : float
+        m/s²: prior std of the accelerometer offset.
+    v_prior_m_s : float
+        m/s: prior std of v.
+    meas_floor_m_s : float
+        m/s: the smallest standard deviation granted to one frame's measurement.
+    kappa_rel_error : float
+        Error of vision's κ = a/v that all fields share (flow error, residual rotation), as a
+        fraction of |κ|, added in quadrature to the fields' standard error. 0.25 is fitted on one
+        world only — the suite's "moving" family, development seed 100, where it brings the online
+        filter's ±2σ coverage to ~95 % (0.1: 71 %) — and tested on the other families and seeds.
+        The finer flow grid (:attr:`lobula.flow.FlowConfig.dis_grid_px`) would allow 0.125 there,
+        but 0.125 fails three known-answer tests (the band widening while turning, a shared error
+        covered offline, fields drowned in noise).
+    adapt_s : float
+        s: time constant of the offline filter's covariance matching, which scales the κ
+        measurement's noise up by the running mean of its normalised squared innovations where
+        they show it worse than claimed (0: off, the default). 2 s helps offline on the panels,
+        fast and corridor families, but widens the corridor's band past 99.5 % coverage on the
+        6 s scene of tests/test_families.py and doubles the ground family's seed-1 error.
+    accel_scale_error : float
+        Fraction (1σ): the accelerometer's scale-factor error. Vision measures only κ = a/v, so
+        v̂ = a/κ takes the accelerometer's scale whole and nothing the camera sees corrects it; it
+        adds ``accel_scale_error``·|v̂| to the posterior std. 0.01 is the sensitivity tolerance of a
         consumer MEMS accelerometer such as the D435i's BMI055, and what the realistic synthetic
         IMU draws per axis (stimuli.imu.IMUConfig.realistic); set it from a calibration where one
-        exists. Found on unseen footage (a corridor at 2.5 m/s, its accelerometer 1.25 % low):
-        v̂ 2 % slow while its band claimed 1 %, zero-phase ±2σ 74 % → 85 %; not fitted.
-    max_std_m_s: posterior std above which v̂ is reported as unobservable (NaN).
-    shared_error_frac / shared_error_s: vision's a_m = κ·v + b also carries an error
-        all fields share that persists for seconds (fast family, dev seeds: +0.07–0.11 m/s² for
-        seconds on end), which per-frame white noise cannot describe: the forward filter would
-        average it down and lock it into a confident, wrong offset b. It is a Schmidt–Kalman
-        "consider" state: a Gauss–Markov error of time constant shared_error_s (s) whose std is
-        shared_error_frac × the running RMS (same time constant) of the κ measurement's
-        innovations — accounted for in the gain and the covariance, never estimated, so it can
-        neither be locked in nor run away (an estimated Gauss–Markov state did run away on the
-        dim family). The RMS also takes in the start's large innovations (v still unknown), which
-        keeps the offset from being locked in during the first seconds. Chosen on the suite's
-        development seeds 100–101 (fraction 0.3 / 0.5 / 0.7: fast causal RMSE 0.067 / 0.041 /
-        0.030 m/s, dim 0.032 / 0.042 / 0.048 with the former informative-frame rule).
-        0: off (the forward filter as before). Offline the same Gauss–Markov error is an
-        estimated state of the smoother (the RTS pass has the whole record, so it cannot run
-        away there): dev seeds 100-103, zero-phase RMSE 0.0099 -> 0.0091 m/s, the lowest
-        coverage 59 -> 81 %.
-    r2_term: "field" (the field's mean of r², the geometry) or "mean_squared" (r̄², the ablation).
-    fusion: "kalman" (vision measurements fused with integrated acceleration) or "vision-only"
-        (the per-frame robust median of v_f through the same low-pass, no acceleration integration).
-    reversal: use the moments the image's expansion changes sign (:func:`reversal_measurement`): every
+        exists.
+    max_std_m_s : float
+        m/s: posterior std above which v̂ is reported unobservable (NaN).
+    shared_error_frac, shared_error_s : float
+        Vision's a_m = κ·v + b also carries an error all fields share that persists for seconds
+        (fast family: +0.07–0.11 m/s² for seconds on end), which per-frame white noise cannot
+        describe. Online it is a Schmidt–Kalman "consider" state: a Gauss–Markov error of time
+        constant ``shared_error_s`` (s) whose std is ``shared_error_frac`` × the running RMS (same
+        time constant) of the κ measurement's innovations — accounted for in the gain and the
+        covariance, never estimated, so the forward filter can neither average it into a
+        confident, wrong offset b nor let it run away. The RMS also takes in the start's large
+        innovations (v still unknown), which keeps the offset from locking in during the first
+        seconds. Offline the same error is an estimated state of the smoother, which has the whole
+        record. 0.5 balances the fast family (whose error falls as the fraction grows) against
+        the dim one (whose error rises) on the development scenes; 0: off.
+    r2_term : {"field", "mean_squared"}
+        "field": the field's mean of r² (the geometry); "mean_squared": r̄² (the ablation).
+    fusion : {"kalman", "vision-only"}
+        "kalman": vision's measurements fused with integrated acceleration; "vision-only": the
+        per-frame robust median of v_f through the same low-pass, no acceleration integrated.
+    reversal : bool
+        Use the moments the image's expansion changes sign (:func:`reversal_measurement`): every
         field's r̄ = v/d has the sign of v whatever its depth, so where the fields' median r̄ goes
-        from clearly negative to clearly positive (or back) v passed through 0 in between — a
-        velocity measurement v(t*) = 0 that needs no depth and no κ, exactly where κ = a/v is
-        ill-conditioned (v ≈ 0), which is where a reversing camera loses its lock. On the suite's
-        development seeds (stored readout inputs; on the frames both call observable): fast family
-        (seeds 100-111) causal RMSE 0.0174 → 0.0169 m/s, better on 12 of 12; all ten families (seeds
-        100-101) causal 0.0104 → 0.0103 (15 of 20 better), zero-phase 0.0045 → 0.0044 (16 of 20);
-        ±2σ and the observable fraction as before. False: not used.
-    stamp_error_s: how far the fields' rates may be off the times they are stamped with (s, 1σ), added to
-        each reversal's timing: a front end whose latency is taken out only roughly (the EMD's) moves
-        the crossing it shows. One frame at 30 frames/s (0.033): with none the development seeds gain
-        more (fast 0.0160, all 0.0101 causal) but rates stamped 2 frames late push the offline band
-        below 90 % (tests/test_readout.py); two frames keep a third of the gain.
-    sign: use the sign of the image's expansion (:func:`expansion_sign`): where the fields' signed
-        median r̄ has been clearly of one sign (beyond NO_EXPANSION_SE standard errors) for SIGN_PERSIST_S,
-        v has that sign whatever the depths. A reported posterior (std ≤ max_std_m_s) whose mean has the
-        other sign is moved to it, and widened first where it was sure (:func:`_sign_update`). It needs no κ:
-        where vision's κ errs for seconds (an EMD front end whose gains drift as texture flows, fast
-        under rotation) the filter locks a wrong offset and carries v̂ through zero against what every
-        field sees. False (default): not used — on the camera's DIS readout (22 development scenes, causal) it
-        changed nothing on 21 and cost one (mixed 101, 0.0138 → 0.0155 m/s): DIS's κ does not drift so.
-    lag_s: with filter "causal", a fixed-lag smoother (s; 0: the forward filter, the default). Every
+        from clearly negative to clearly positive (or back), v passed through 0 in between — a
+        measurement v(t*) = 0 that needs neither depth nor κ, exactly where κ = a/v is
+        ill-conditioned and a reversing camera loses its lock. On by default: on the development
+        scenes it lowers the causal RMSE on all twelve fast-family seeds (0.0169 m/s against
+        0.0174) and leaves the other families' errors, ±2σ coverage and observable fraction as
+        they are.
+    sign : bool
+        Use the sign of the image's expansion (:func:`expansion_sign`): where the fields' signed
+        median r̄ has been clearly of one sign (beyond NO_EXPANSION_SE standard errors) for
+        SIGN_PERSIST_S, v has that sign whatever the depths, and a reported posterior (std ≤
+        ``max_std_m_s``) of the other sign is moved to it, widened first where it is sure
+        (:func:`_sign_update`). It needs no κ, so it guards against a κ that errs for seconds (an
+        EMD front end whose gains drift as texture flows) and carries v̂ through zero against what
+        every field sees. Off by default: on the camera's DIS readout (22 development scenes,
+        causal) it changes nothing on 21 and costs one (mixed 101: 0.0155 m/s against 0.0138),
+        as DIS's κ does not drift so.
+    stamp_error_s : float
+        s (1σ): how far the fields' rates may be off the times they are stamped with, added to
+        each reversal's timing (a front end whose latency is taken out only roughly, as the EMD's,
+        moves the crossing it shows). One frame at 30 frames/s: with none the development scenes
+        gain a little more, but rates stamped 2 frames late push the offline band below 90 %
+        (tests/test_readout.py).
+    lag_s : float
+        s: with filter "causal", a fixed-lag smoother (0: the forward filter, the default). Every
         input stays online (causal low-passes, the online gravity reference); each frame's v̂ also
-        takes the measurements up to lag_s after it, so it is known lag_s (plus the measurement
-        latency) after the moment it describes — a declared delay, as in fixed-lag smoothing for
-        odometry. Why: the forward filter can average vision's errors over the past only, and under
-        its own model a causal estimate stays ~2× the smoother's (development seeds); 0.5-1 s of
-        look-ahead buys most of that back (see docs/accuracy-history.md, eighteenth session).
+        takes the measurements up to ``lag_s`` after it, so it is known ``lag_s`` (plus the
+        measurement latency) after the moment it describes — a declared delay, as in fixed-lag
+        smoothing for odometry. The forward filter averages vision's errors over the past only,
+        and its causal estimate stays ~2× the smoother's on the development scenes; 0.5–1 s of
+        look-ahead recovers most of that.
     """
 
     method: str = "kalman"
@@ -557,21 +580,22 @@ def accelerometer_level(a: np.ndarray, dt: float, change_max: float, causal: boo
     sensor's own noise: the bar is raised to 5× the rms of what the 5-frame average leaves out
     of white noise of the reading's own level (≈ 11σ of the average, ~2.7× the range white noise
     spans in a 1 s window), over the last 5 s online, the 5 s around the frame offline. (EuRoC
-    V1_01's still start: at 3× its last 0.8 s, a −0.1 → −0.29 m/s² step — rotors spinning up or
-    the take-off beginning; the copy has no ground truth to tell — lost the rest bound, and v̂
-    drifted to an RMS of 0.011 m/s.) That level is read from the second differences
+    V1_01's still start ends in a −0.1 → −0.29 m/s² step over 0.8 s — rotors spinning up or the
+    take-off beginning; the copy has no ground truth to tell; at 3× that bar loses the rest bound
+    and v̂ drifts to an RMS of 0.011 m/s.) That level is read from the second differences
     (E[(Δ²a)²] = 6σ² for white noise), which a smooth trajectory barely enters; what the average
-    itself leaves out also holds the flight's own jerk, which on unseen footage (a corridor at
-    2 m/s) raised the bar to 0.5 m/s² and let a rest bound through while the camera accelerated
-    at 0.3 m/s² (causal RMSE 0.047 → 0.033 m/s; the real EuRoC start unchanged).
+    itself leaves out also holds the flight's own jerk, which on a corridor at 2 m/s would raise
+    the bar to 0.5 m/s² and let a rest bound through while the camera accelerates at 0.3 m/s²
+    (causal RMSE 0.047 m/s that way, 0.033 from the second differences; the real EuRoC start
+    the same either way).
 
     Second differences see white noise at the frame rate, not a slow wobble: a hovering platform's
     3 Hz, 0.1 m/s² wobble leaves the bar at change_max, so the wobble reads as motion and the rest
     bound is not used through it. That is the cautious side. Counting such a wobble as vibration
-    (what a half-second quadratic leaves, tried) gave the rest bound back on 20 % of the replay of
-    the real FLIVVER run, but with the EMD front end's weak expansion at coarse resolution a wrongly
-    applied bound is confidently wrong (Δφ = 3°: 0.045 → 0.105 m/s), while losing it costs little
-    (τ = 5 ms at full contrast 0.026 → 0.032 m/s; DIS unchanged, 0.0052).
+    (what a half-second quadratic leaves) gives the rest bound back on 20 % of the replay of the
+    real FLIVVER run, but with the EMD front end's weak expansion at coarse resolution a wrongly
+    applied bound is confidently wrong (Δφ = 3°: 0.105 m/s against 0.045), while losing it costs
+    little (τ = 5 ms at full contrast: 0.032 m/s against 0.026; DIS the same, 0.0052).
     """
     from scipy.ndimage import uniform_filter1d
 
@@ -649,15 +673,16 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
 
     offset_walk (n,) m/s²/√s: more random walk of the offset at each frame, beyond bias_walk —
     online, as fast as the attitude's gravity leak moved while the gyro-bias estimate moved
-    (lobula.haltere.leak_walk): the offset learned before is then no longer known (None: none).
+    (lobula.haltere.leak_walk): the offset learned up to then loses that much certainty (None: none).
 
     rest_accel: (a_s, tol), each (n,) m/s² (:func:`accelerometer_level`), when the
     ``measurements`` are rest bounds (v ≈ 0): the forward filter uses one only where the camera's
     reading less the offset it has learned could be a camera that does not accelerate,
     |a_s − b̂| ≤ tol + 2σ_b (kalman_readout gives it online only). A camera that accelerates passes through v = 0 for an instant, and a
     bound resting on an assumed depth is then wrong by however far the fields' depths exceed it
-    (unseen worlds: a ground plane with a far backdrop, the camera reversing at 1.4 m/s², read
-    v = 0 ± 0.02 at −0.14 m/s; causal RMSE 0.074 → 0.057 m/s, and a corridor 0.047 → 0.015).
+    (a ground plane with a far backdrop, the camera reversing at 1.4 m/s²: an unconditional bound
+    reads v = 0 ± 0.02 at −0.14 m/s; causal RMSE 0.057 m/s with this condition against 0.074
+    without, and on a corridor 0.015 against 0.047).
     Offline the bound is widened by the low-pass's smear σ_t·|a| instead (see kalman_readout).
 
     offset_axis (n, 3): the optical axis in the frame gravity was taken in (the first sample's,
@@ -781,22 +806,22 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             # information (as for v_f): it then speaks for the offset b alone, not for v through a
             # noisy κ ≈ 0. A small a_m alone does not make it so: a_m holds the offset (online the
             # gravity reference's, up to ~1 m/s²; offline the record's mean acceleration), so a_m ≈ 0
-            # may be a true −b that κ̂ sees; asking a_m alone pulled b̂ toward 0 there (offline, exact
+            # may be a true −b that κ̂ sees; asking a_m alone pulls b̂ toward 0 there (offline, exact
             # rates with a constant 0.3 m/s² offset: 0.034 m/s RMSE, 0.0002 with this rule; the
-            # development seeds' zero-phase 0.0054 → 0.0052). So the frame counts as informative
-            # when vision sees an acceleration too.
+            # development scenes' zero-phase 0.0054 against 0.0052). So the frame counts as
+            # informative when vision sees an acceleration too.
             informative = abs(am) >= cfg.accel_min_m_s2
             # v one latency ago as the posterior has it: mean and variance (x, P are the prior here).
             vd, pd = H @ x - shift, H @ P @ H
             if not informative:
                 # Vision sees an acceleration where κ̂·v would reach accel_min for v as the posterior has
                 # it — its RMS √(v̂² + σ_v²), not v̂ alone: while v is unknown (the prior's mean 0) κ̂·v̂ ≈ 0
-                # would call every frame uninformative, and those frames, read as a_m = b, held the offset
-                # at the reading (exact rates receding at 0.15 m/s with a 0.05 m/s² offset: the truth
-                # outside ±2σ on 97 % of the first 2 s). Not also "κ̂ ≥ 2σ_κ": σ_κ holds a share of |κ̂|
-                # (kappa_rel_error), so that asks for a relative error under ½, not a κ apart from 0, and
-                # with the eye's 0.5 it held every such frame at the reading again (exact fields under
-                # rotation: 0.028 → 0.235 m/s).
+                # would call every frame uninformative, and those frames, read as a_m = b, would hold the
+                # offset at the reading (exact rates receding at 0.15 m/s with a 0.05 m/s² offset: the
+                # truth outside ±2σ on 97 % of the first 2 s). Not also "κ̂ ≥ 2σ_κ": σ_κ holds a share of
+                # |κ̂| (kappa_rel_error), so that asks for a relative error under ½, not a κ apart from 0,
+                # and with the eye's 0.5 it would hold every such frame at the reading (exact fields
+                # under rotation: 0.235 m/s against 0.028).
                 informative = abs(kap) * np.sqrt(vd ** 2 + pd) >= cfg.accel_min_m_s2
             kv = kap if informative else 0.0
             # a_m = κ·(v(t − D) + shift) + the offset one latency ago, b − ḃ·D (+ c(t − D)·δ)
@@ -810,9 +835,10 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
             # Offline, those floors, like the fields' spread (σ_κ holds it already), are errors of
             # low-passed signals, correlated over corr_frames frames, and counted once per frame they
             # would add up over the whole record to a confidence the data do not hold. Online the
-            # filter has only the past, and so counted they slow it down more than they help: on the
-            # dev seeds causal RMSE 0.026 -> 0.020 m/s, but a real still EuRoC sequence read 0.013 m/s
-            # of motion (bound 0.01) and a 3 s librealsense recording was observable on 44 % only.
+            # filter has only the past, and so counted they slow it down more than they help: the
+            # development scenes' causal RMSE falls (0.020 m/s against 0.026), but a real still EuRoC
+            # sequence reads 0.013 m/s of motion (bound 0.01) and a 3 s librealsense recording is
+            # observable on 44 % only.
             cf = corr_frames if smooth_pass else 1.0
             R = ((vd ** 2 + pd) * skap ** 2 + cf * ((kap * cfg.meas_floor_m_s) ** 2
                  + (cfg.meas_floor_m_s * skap) ** 2 + cfg.accel_min_m_s2 ** 2 + (kap * e_lp) ** 2))
@@ -828,7 +854,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                 # turning camera, near walls at speed): R is scaled up by their running mean
                 # ratio (time constant adapt_s), never down. Offline only: the online filter's
                 # innovations also carry its own latency bridging's model error, which this would
-                # blame on vision (exact rates: causal RMSE 0.030 → 0.038 m/s with it).
+                # blame on vision (exact rates: causal RMSE 0.038 m/s with it, 0.030 without).
                 w = np.exp(-(t[k] - t[k - 1]) / cfg.adapt_s) if k > 0 else 0.0
                 nis_sum = w * nis_sum + nu ** 2 / (hph + R / corr_frames)
                 nis_w = w * nis_w + 1.0
@@ -1053,10 +1079,10 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     # symmetric about t − delay, so lp(v)(t − delay) = v(t) − shift + b·delay with
     # shift = cum(t) − lp(cum)(t − delay). Pairing κ with v(t − delay) instead errs by
     # κ·(lp(v) − v) ≈ κ·σ_t²·v̈/2, a bias wherever v bends (exact tracked-point rates: causal RMSE
-    # 0.014 → 0.007 m/s). Offline (delay 0, the zero-phase low-pass) the same pairing is as exact,
-    # shift = cum − lp(cum); pairing κ with v(t) and carrying the mismatch as noise instead read the
-    # suite's 20 development scenes (seeds 100-101) at 0.0052 m/s zero-phase RMSE, 0.0045 with it
-    # (the worst 0.0094 → 0.0092; exact rates 0.0036 → 0.0002).
+    # 0.014 m/s against 0.007). Offline (delay 0, the zero-phase low-pass) the same pairing is as
+    # exact, shift = cum − lp(cum); pairing κ with v(t) and carrying the mismatch as noise instead
+    # reads the suite's 20 development scenes (seeds 100-101) at 0.0052 m/s zero-phase RMSE, 0.0045
+    # with this pairing (the worst 0.0094 against 0.0092; exact rates 0.0036 against 0.0002).
     shift = cum - _lag(lp(cum), lag)
     # Bridge the measurement's latency with ∫a (the haltere's fast path).
     z = z + shift
@@ -1065,8 +1091,8 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     # low-passed r̄ like everything else.
     zr, sr = rest_measurement(rf if zp else r, cfg)
     # A far backdrop or the sky can fill most fields and show no expansion while the camera
-    # moves (suite ground family, seed 0: with a 160-px DIS grid the bound then held v at 0
-    # ± 0.02 m/s while it reached −0.2 and pinned a wrong offset for the whole record, 0.40 m/s
+    # moves (suite ground family, seed 0: with a 160-px DIS grid the bound alone holds v at 0
+    # ± 0.02 m/s while it reaches −0.2 and pins a wrong offset for the whole record, 0.40 m/s
     # RMSE); the accelerometer says when the camera is at least not starting or stopping.
     zr = np.where(accelerometer_steady(a, dt, cfg.rest_accel_change_m_s2, causal=not zp), zr, np.nan)
     sigma_t = np.sqrt(np.log(2.0) / 2.0) / (np.pi * cfg.cutoff_hz)  # the low-pass's Gaussian width (s)
@@ -1076,8 +1102,8 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     if zp:
         # Offline r̄ is low-passed over ~σ_t either side, in which v moves by ~σ_t·|a|: where the
         # image's expansion crosses zero while the camera accelerates (v through 0, or far
-        # surfaces filling the fields), the bound holds only that well (dev seeds: ground
-        # 102, a backdrop 50-200 m away, 0.039 -> 0.004 m/s). Online r̄ is the newest frame's.
+        # surfaces filling the fields), the bound holds only that well (development scene ground
+        # 102, a backdrop 50-200 m away: 0.004 m/s widened, 0.039 not). Online r̄ is the newest frame's.
         # |a| less what the accelerometer's offset (2 prior std) could make of a still camera
         # (a real still EuRoC sequence's offset otherwise lifts the bound off: 0.043 m/s of "motion").
         sr = np.hypot(sr, sigma_t * np.maximum(np.abs(terms[3]) - 2.0 * offset_prior, 0.0))
@@ -1091,11 +1117,11 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     # The pairing above is exact for rates stamped at the right time. A front end whose rates are a
     # frame or two off (the EMD's latency is taken out only as its low-frequency group delay) pairs κ
     # with the wrong moment, an error in a_m that grows where the acceleration changes: offline it is
-    # carried as noise κ·σ_t²·|ȧ|/2, sized like the readout's own low-pass (σ_t), which before the exact
-    # pairing stood for the whole mismatch. Exact rates 2 frames late: ±2σ 97 % with it, 72 % without
-    # (3 frames early: 100 / 46 %); the EMD front end on a development scene (moving, seed 100) 0.035 m/s
-    # with ±2σ 80 %, 0.043 and 58 % without; DIS alike (development seeds 0.0045 / 0.0046 m/s). Online
-    # it changed nothing (development seeds causal 0.0119 / 0.0120): the forward filter goes without.
+    # carried as noise κ·σ_t²·|ȧ|/2, sized like the readout's own low-pass (σ_t). Exact rates 2 frames
+    # late: ±2σ 97 % with it, 72 % without (3 frames early: 100 / 46 %); the EMD front end on a
+    # development scene (moving, seed 100) 0.035 m/s with ±2σ 80 %, 0.043 and 58 % without; DIS alike
+    # (development seeds 0.0045 / 0.0046 m/s). Online it changes nothing (development seeds causal
+    # 0.0119 / 0.0120): the forward filter goes without.
     e_lp = (0.5 * sigma_t ** 2 * np.abs(np.gradient(_fill_nan(terms[3]), dt)) if zp else np.zeros(len(t)))
     min_fields = int(np.ceil(cfg.min_valid_fraction * r.shape[1]))  # for the reversals and the sign
     v, v_std = kalman_velocity(t, a, [(zr, sr, 0.0)], cfg, smooth=zp, gravity_tau=gravity_tau,

@@ -39,7 +39,7 @@ circuit form, batched over trials in torch:
    by v̂ phase-advanced by that filter (``lead="encoder"``, :func:`phase_advance`), which it
    then returns exactly. Its count noise is ``decode_std`` = √(Σ± F·r±/(2τ_d·population))/gain
    (m/s; F = 1 for Poisson, the LIF's ISI CV² plus the filter's ripple): the decoding's own
-   uncertainty, not the estimate's model error. ``decode="centred"`` is the earlier
+   uncertainty, not the estimate's model error. ``decode="centred"`` is a
    centred boxcar of window_s (it sees window_s/2 ahead: not causal; for comparison only).
 """
 from __future__ import annotations

@@ -18,7 +18,7 @@ Worlds (``SceneConfig.world``):
   line / hills band 50-200 m away), scattered upright panels on the ground and a sky
   (no surface; background luminance).
 
-Camera rotation: the legacy yaw/pitch oscillation (``rotation_amp_deg``) and a seeded
+Camera rotation: a yaw/pitch oscillation (``rotation_amp_deg``) and a seeded
 3-axis rotation (yaw, pitch, roll) made of several incommensurate sinusoids
 (``rotation3_amp_deg``). Distant and grazing surfaces are sampled from a mip-map of
 their texture (``mipmap``) so the ground near the horizon does not alias.
@@ -78,7 +78,7 @@ class SceneConfig:
     ground_objects: upright panels standing on the ground 3-40 m ahead.
     sky_luminance: luminance where no surface is hit (None: 0.8 for the ground world,
     else 0). mipmap: sample textures from a mip-map chosen by each ray's footprint
-    (None: on for corridor and ground, off for panels, which keeps its frames as they were).
+    (None: on for corridor and ground, off for panels, which stays point-sampled).
     """
 
     seed: int = 0
@@ -453,7 +453,7 @@ class TrackScene:
         cfg = self.config
         if not any(cfg.rotation3_amp_deg):
             return None
-        rng = np.random.default_rng([cfg.seed, 3])  # its own stream: the layout stays as it was
+        rng = np.random.default_rng([cfg.seed, 3])  # its own stream: the layout does not depend on it
         k = cfg.rotation3_components
         freq = rng.uniform(*cfg.rotation3_band_hz, (3, k))
         phase = rng.uniform(0, 2 * np.pi, (3, k))

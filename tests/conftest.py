@@ -45,7 +45,7 @@ def pytest_configure(config):
 
 
 def pytest_collection_modifyitems(config, items):
-    """Groups for ``--dist loadgroup``: the tests that use the session's 30 s replay run on one worker
+    """Groups for ``--dist loadgroup``: the tests that use the test session's 30 s replay run on one worker
     (it is rendered once), every other test with the rest of its file (module fixtures once)."""
     for item in items:
         uses_replay = REPLAY_FIXTURES & set(getattr(item, "fixturenames", ()))
@@ -68,7 +68,7 @@ def real_profile() -> str:
 
 @pytest.fixture(scope="session")
 def make_replay(tmp_path_factory, real_profile):
-    """Render (once per session) a replay of the real trajectory: make_replay(start, duration, **scene)."""
+    """Render (once per test session) a replay of the real trajectory: make_replay(start, duration, **scene)."""
     cache = {}
 
     def make(start=0.0, duration=30.0, **scene_kwargs):

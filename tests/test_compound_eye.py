@@ -256,7 +256,7 @@ def test_lateral_inhibition_removes_the_mean_in_space_without_a_memory():
     (2) A sine is only scaled by it, which the decoding's pool divides out: field 19 reads rings of
     λ = 20° within 5 % of the high-passed circuit (measured 0.97, 0.95 at 0.5, 2 rad/s).
     (3) After a reversal of the rings (1 rad/s out, then in) the high-passed circuit's decoded speed
-    carries the high-pass's memory, a trailing copy of the pattern moving the old way (measured: 12 %
+    carries the high-pass's memory, a trailing copy of the pattern moving the other way (measured: 12 %
     low over the first 0.3 s, then 5 % high); the surround has no memory (measured within 2 %)."""
     from lobula.eye_circuit import lattice_filter
 
@@ -531,7 +531,7 @@ def test_the_haltere_gain_starts_from_its_prior():
         assert np.all(np.abs(alpha[-10:] + 0.3) < 0.05), alpha[-10:]
     with pytest.raises(ValueError, match="rotation_gain_prior"):
         EyeCircuitConfig(rotation_gain_prior=0.0)
-    assert EyeCircuitConfig.from_dict({}).rotation_gain_prior == 1.0   # configurations from before it: unit gain
+    assert EyeCircuitConfig.from_dict({}).rotation_gain_prior == 1.0   # a stored configuration without it: unit gain
 
 
 def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, tmp_path, capsys):
@@ -740,7 +740,7 @@ def test_pair_pool_weighs_fast_and_slow_parts_of_a_field_alike():
         assert 3.3 < fast / slow < 4.4, (norm, slow, fast)           # linear in speed alone (4×)
         out[norm] = mixed / (0.5 * (slow + fast))
     assert abs(out["pair"] - 1.0) < 0.05, out
-    assert out["delayed"] < 0.9, out                                 # the old pool leans on the slow half
+    assert out["delayed"] < 0.9, out                                 # the delayed pool leans on the slow half
 
 
 def test_split_half_variance_is_a_causal_running_mean_of_the_squared_difference():
@@ -782,7 +782,7 @@ def test_stated_std_adds_the_halves_disagreement_and_the_shared_gain_error(eye_f
     alone, at least the gain term above it, the same v̂, and covering the truth. Measured on this coarse
     eye (Δφ = 8°, 6 s from rest, accelerometer): ±2σ 1.00 / 1.00 (posterior / halves), RMSE 0.013 m/s
     against a median posterior std of 0.018 (with the 0.25 s high-pass instead of the surround the
-    posterior alone covered 0.44 and the halves 1.0: its gain drift was what the halves had to state)."""
+    posterior alone covers 0.44 and the halves 1.0: its gain drift is what the halves have to state)."""
     from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
     from stimuli.eye import open_eye_footage
 
@@ -817,14 +817,15 @@ def test_decomposition_levels_fall_from_exact_motion_to_the_emds(eye_footage):
     # A perfect linear detector weighted by the circuit's contrast pool — built, as the EMDs' is, from
     # the photoreceptors after the surround — reads about what the EMDs read: on this eye the loss
     # from exact motion is the contrast weighting, not the correlator. (Pooled from photoreceptors
-    # without the surround, it read 0.0035, 30 % under the EMDs.)
+    # without the surround, it reads 0.0035, 30 % under the EMDs.)
     assert exact < 0.5 * d["ideal|true"][0] and abs(d["ideal|true"][0] - emd) < 0.25 * emd, d
     # Exact motion times each field's slow EMD gain γ_f(t), on the fields the pipeline uses: a valid
     # readout (measured 0.00002 m/s: with the surround the gain hardly drifts; with the 0.25 s
-    # high-pass it did, 0.014, and the offset it made the readout learn cost 0.026).
+    # high-pass it does, 0.014, and the offset it makes the readout learn costs 0.026).
     assert d["gain|true"][0] < 0.1 * zero, d
     # The true acceleration with an offset to learn (as from an accelerometer's): the exact fields pin
-    # it (measured 0.0010 -> 0.0012), and so do the EMDs now (0.0050 -> 0.0095 m/s).
+    # it (measured 0.0012 m/s against 0.0010 without the offset), and so do the EMDs (0.0095 against
+    # 0.0050).
     # This footage records no run configuration, so there is no true gyro bias to read with.
     assert {k.split("|")[1] for k in d if "|" in k} == {"true", "offset", "imu"}, d
     assert d["exact|offset"][0] < 1.5 * d["exact|true"][0] + 0.001, d

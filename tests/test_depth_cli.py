@@ -21,10 +21,10 @@ mean AbsRel / coverage; rings are degrees from the refined epipole):
 
 (Parallax equals ratio: both undo the same finite rotation, one through
 lobula.epipole.derotate_finite, the other through the plane-at-infinity homography.)
-Before this session's changes (DIS "fast", first-order derotation, no refinement, a fixed
-2° hole) the same maps scored 0.17 overall and 0.33–0.41 within 5°.
+With DIS "fast", first-order derotation, no refinement and a fixed 2° hole instead, the same
+maps score 0.17 overall and 0.33–0.41 within 5°.
 
-TV at 320×240 (cold coarse-to-fine, γ = 1e-6, one thread) took 75–120 ms per map in the
+TV at 320×240 (cold coarse-to-fine, γ = 1e-6, one thread) takes 75–120 ms per map in the
 streaming run on the shared 2-core machine (printed by ``test_tv_beats_ratio_near_the_epipole``).
 
 Real D435i data (skipped without ../shared): the FlowNet2 pair 522→528 at v = −0.151 m/s
@@ -215,7 +215,7 @@ def test_maps_whose_scale_the_speed_cannot_fix_are_unobservable(synthetic, runs)
     doubtful["v_std"] = xr.DataArray(np.where(wide, 0.5, 0.05) * np.abs(vel.v_hat.values), dims="time")
     run = DepthRunConfig(method="ratio", every=10)
     out = estimate_depth(fo, run=run, velocity=doubtful, progress=False)
-    # The bound disabled: every moving map is reported, as before the bound existed.
+    # The bound disabled: every moving map is reported.
     ref = estimate_depth(fo, run=DepthRunConfig(method="ratio", every=10, max_scale_rel_std=math.inf),
                          velocity=doubtful, progress=False)
     moving = np.isfinite(out.v_hat.values) & (np.abs(out.v_hat.values) >= run.min_speed_m_s)
@@ -429,9 +429,9 @@ def test_real_frames_give_depths_in_the_scene_range(d435i, capsys):
         ds = estimate_depth(fo, run=run, velocity=vel, progress=False)
         assert "has_true_depth" in ds and not ds.has_true_depth.any()
         # Every map is ranged but where v̂'s relative std leaves its scale unknown (the first, at the
-        # clip's start: unobservable, all NaN; the second at 0.22 since the flow follows this handheld
-        # clip's 50–110 px turns through the frames between: v̂ 0.10 ± 0.04 → 0.17 ± 0.06 m/s at its
-        # start, truth 0.23); the true speed ranges them all.
+        # clip's start: unobservable, all NaN; the second at 0.22: with the flow following this handheld
+        # clip's 50–110 px turns through the frames between, v̂ reads 0.17 ± 0.06 m/s at its start
+        # (0.10 ± 0.04 from single pairs), truth 0.23); the true speed ranges them all.
         assert (ds.ranged | (ds.scale_rel_std > run.max_scale_rel_std)).all() and ds.ranged.sum() >= 1
         assert ds.ranged.all() or v == "estimate"
         meds[(v, m)] = float(np.median(ds.depth.values[ds.valid.values]))

@@ -71,15 +71,15 @@ def test_family_beats_the_baselines(family_run, family):
 
 @pytest.mark.parametrize("filt", [
     pytest.param("zero-phase", marks=pytest.mark.xfail(strict=True, reason=(
-        "band too wide here since the acceleration noise was measured (0.05 -> 0.01 m/s²/√Hz): "
-        "RMSE 0.004 m/s but σ 0.016, truth inside ±2σ on 100 % (issue 10, open)"))),
+        "known limitation: the offline band is too wide on the corridor (RMSE 0.004 m/s against σ 0.016), "
+        "so the truth lies inside ±2σ on 100 % of the frames, above the 99.5 % a calibrated band allows"))),
     pytest.param("causal", marks=pytest.mark.xfail(strict=True, reason=(
-        "online band too wide here since the 160-px flow grid: RMSE 0.016 m/s, σ 0.019, truth inside ±2σ "
-        "on 100 % (73 % before; issue 10, open)")))])
+        "known limitation: the online band is too wide on the corridor (RMSE 0.016 m/s against σ 0.019), "
+        "so the truth lies inside ±2σ on 100 % of the frames, above the 99.5 % a calibrated band allows")))])
 def test_posterior_std_is_calibrated_on_a_family_it_was_not_fitted_on(family_run, filt):
     """Truth inside ±2σ for 85–99.5 % of the frames on the corridor (floor, walls, ceiling).
 
-    The readout's one calibration constant (ReadoutConfig.kappa_rel_error) was fitted on the
+    The readout's one calibration constant (ReadoutConfig.kappa_rel_error) is fitted on the
     "moving" family's dev seed 100 only; this is another world and seed. Both ends count: a
     band too narrow misses the truth, one too wide (or a v_std that says nothing) covers it always.
     """
@@ -90,9 +90,8 @@ def test_posterior_std_is_calibrated_on_a_family_it_was_not_fitted_on(family_run
     assert sc["median_sd"] <= 0.1 * sc["zero"]  # a band that says something
 
 
-# ------------------------------------------------------------- known failures beyond the suite
-# Found on footage the suite does not make (160×120, 8 s, one seed each; issue 10, open). Strict:
-# the day one passes, its marker must go.
+# ------------------------------------------------------------- footage beyond the suite
+# Cases the suite's footage does not make (160×120, 8 s, one seed each).
 def _small_run(tmp_path, family, seed, **imu):
     from dataclasses import replace
 
@@ -102,10 +101,8 @@ def _small_run(tmp_path, family, seed, **imu):
     return open_footage(tmp_path / "run")
 
 
-# A known failure until the twenty-third session (a strict xfail where ../shared holds the real run: offline
-# 0.018 m/s against online 0.016); it passes since the smoother pairs κ with the low-passed velocity it
-# multiplies, as the online filter already did (zero-phase 0.0158, causal 0.0171 m/s; on the built-in profile
-# of a clone with no ../shared it passed before).
+# The smoother pairs κ with the low-passed velocity it multiplies, as the online filter does, so offline
+# reads no worse than online here (zero-phase 0.0158, causal 0.0171 m/s).
 def test_offline_is_not_worse_than_online_under_a_nearly_constant_acceleration(tmp_path):
     """The rotation family's seed 10 decelerates almost uniformly from 0.29 to −0.6 m/s. Then
     κ(t) = a/v = 1/(t − t₀) whatever a is, so an accelerometer offset δb and a velocity error
@@ -162,9 +159,9 @@ def test_online_is_honest_with_a_gyro_bias_on_the_recorded_profile(tmp_path, rea
 def test_a_still_camera_that_turns_fast_is_known_still(tmp_path):
     """A hovering camera turning ±15° in yaw (±5° pitch and roll) at 0.3–1.5 Hz, up to ~80°/s, never
     translating. Over a 0.2 s flow pair a first-order derotation leaves ~ω²·dt of expansion at
-    every pixel whichever way the camera turns (at 45°/s, r̄ ≈ +0.1 1/s: 0.3 m/s at 3 m), so the fields
-    showed motion, the rest bound never applied and offline v̂ was NaN on every frame (320×240, seed
-    70000; online observable 58 % in the first 2 s). The fixed-pixel rates now derotate exactly
+    every pixel whichever way the camera turns (at 45°/s, r̄ ≈ +0.1 1/s: 0.3 m/s at 3 m), so with it the
+    fields would show motion, the rest bound would never apply and offline v̂ would be NaN on every frame
+    (320×240, seed 70000; online observable 58 % in the first 2 s). The fixed-pixel rates derotate exactly
     (lobula.receptive_field.pool_fields, ``turns``)."""
     from stimuli.imu import IMUConfig
     from stimuli.scene import SceneConfig

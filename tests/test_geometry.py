@@ -86,9 +86,9 @@ def test_epipole_estimator_recovers_a_known_epipole_from_noisy_flow():
 def test_a_camera_at_rest_leaves_the_epipole_where_motion_then_puts_it():
     """Noise-only flow (a still camera) must not move the heading; later motion must find it.
 
-    Before: one rest frame could place the running estimate far outside the image, and every
-    later frame's fit, started there, degenerated and was dropped (suite corridor: the online
-    epipole locked 48° and 70° off for the whole run).
+    Were one rest frame to place the running estimate far outside the image, every later frame's
+    fit, started there, would degenerate and be dropped (suite corridor: the online epipole locked
+    48° and 70° off for the whole run).
     """
     f = tile_fields(CAM)
     rng = np.random.default_rng(3)
@@ -328,18 +328,19 @@ def _heading_fits(heading_deg, rate, frames=15):
 def test_epipole_far_off_the_optical_axis_is_found(heading_deg):
     """A camera moving 20–50° off its optical axis (a side-looking camera; beyond 34.5° the epipole
     is outside the 69°×42° view) has a heading the plain estimator must find, not stay at its prior,
-    the principal point. Started there, a frame's fit took the model's error for flow noise and
-    over-corrected for it: 20° came out at 75° and drew the running heading for many frames, and
-    from ~25° on every frame was dropped (the correction made the system indefinite)."""
+    the principal point. Started there, a frame's fit takes the model's error for flow noise and
+    over-corrects for it: 20° comes out at 75° and draws the running heading for many frames, and
+    from ~25° on every frame is dropped (the correction makes the system indefinite); plain steps
+    first prevent that."""
     assert _heading_fits(heading_deg, 0.3)[0] < 0.5
 
 
 def test_joint_heading_fit_finds_a_slow_camera_panning_to_the_side():
     """The joint heading-and-bias fit (the pipeline's, with a gyro) at a slow expansion, r = 0.05 1/s,
-    where the gyro bias's prior (0.2°/s) could shift the heading by ~7°: that bound once kept it from
-    placing any heading, so a camera panning 25° to the side kept the principal point (on a ground
-    plane turning ±25°, beyond the suite, causal v̂ then read a forward run as a retreat: RMSE 0.83 m/s,
-    ±2σ 11 %). A frame whose own heading lies beyond 3× that shift from the running one now counts."""
+    where the gyro bias's prior (0.2°/s) could shift the heading by ~7°: that bound alone would keep it
+    from placing any heading, so a camera panning 25° to the side would keep the principal point (on a
+    ground plane turning ±25°, beyond the suite, causal v̂ would read a forward run as a retreat: RMSE
+    0.83 m/s, ±2σ 11 %). A frame whose own heading lies beyond 3× that shift from the running one counts."""
     joint_err = _heading_fits(25.0, 0.05)[1]
     assert joint_err < 7.0
 
@@ -348,7 +349,7 @@ def test_joint_heading_fit_finds_a_slow_camera_panning_to_the_side():
 def test_joint_heading_fit_finds_a_fast_camera_moving_to_the_side(heading_deg):
     """The joint heading-and-bias fit at a fast expansion (r = 0.3 1/s) 20–50° off the axis, started at the
     principal point: a frame counts where its flow is radial about its own heading (not the running one,
-    about which a translation 35° off is not radial), and its fit starts there with plain steps. Before,
-    every frame was refused and the heading stayed at the prior for the whole record (a stress scene 30°
-    off the axis: the epipole at the principal point for 10 s)."""
+    about which a translation 35° off is not radial), and its fit starts there with plain steps. Judged
+    about the running heading instead, every frame would be refused and the heading stay at the prior
+    for the whole record (a stress scene 30° off the axis: the epipole at the principal point for 10 s)."""
     assert _heading_fits(heading_deg, 0.3)[1] < 3.0

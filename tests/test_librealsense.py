@@ -49,7 +49,7 @@ _RECORDED: dict[str, Path] = {}
 
 
 def _record(run, suffix, tmp_path) -> Path:
-    """The run recorded by librealsense in this format (once per session)."""
+    """The run recorded by librealsense in this format (once per test session)."""
     if suffix in _RECORDED:
         return _RECORDED[suffix]
     folder, gyro_npz, g = run

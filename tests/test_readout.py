@@ -130,7 +130,7 @@ def test_a_shared_error_of_vision_is_covered_offline_and_adaptation_only_widens(
         out[key] = (float(np.mean(e <= 2 * res.v_std[m])), float(np.sqrt(np.mean(e ** 2))),
                     float(np.median(res.v_std[m])))
     assert out["adapt"][2] >= 1.1 * out["default"][2], out
-    # 0.768 against 0.781 (before the offline informative-frame rule of kalman_velocity: 0.770 against 0.776)
+    # measured: 0.768 against 0.781
     assert out["adapt"][0] >= out["default"][0] - 0.02, out
 
 
@@ -168,10 +168,10 @@ def test_kappa_is_paired_with_the_low_passed_velocity(filt, bound):
     """Exact material rates of tracked points (d = d0 − ∫v, r = v/d, Dr/Dt = a/d + r²) and an exact
     accelerometer, a camera moving from the first frame with |a| up to 2 m/s²: κ = lp(a/d)/lp(v/d)
     multiplies the low-passed velocity, which the filter builds from its state and ∫a. Pairing κ
-    with v(t − delay) itself (the old online model) leaves 0.014 m/s causal here, 0.007 with the
+    with v(t − delay) itself instead leaves 0.014 m/s causal here, 0.007 with the
     pairing, 0.005 with vision's shared error as a consider state (which leaves v̂ NaN over
     2.0–3.4 s, while the start's large innovations keep that error's std large: 82 % observable);
-    zero-phase 0.0002 with the same pairing (0.0036 when it paired κ with v(t) and carried the
+    zero-phase 0.0002 with the same pairing (0.0036 pairing κ with v(t) and carrying the
     mismatch as noise)."""
     from lobula.readout import MaterialRates
 
@@ -326,7 +326,7 @@ def test_online_rest_bound_waits_for_a_camera_that_does_not_accelerate():
     camera is slower than ~0.5 m/s; it swings through v = 0 at 0.94 m/s² (v = 0.6·sin(2πt/4)).
     The bound then says v = 0 ± 0.02 m/s for whole stretches it is not: online it counts only
     where the accelerometer less its learned offset could be a camera that does not accelerate
-    (before: RMSE 0.29 m/s, truth inside ±2σ on 4 % of frames; now 0.010, 100 %)."""
+    (RMSE 0.010 m/s, truth inside ±2σ on 100 % of frames; without the condition 0.29, 4 %)."""
     from lobula.readout import MaterialRates, rest_measurement
 
     t = np.arange(0, 12, 1 / 30)
@@ -352,7 +352,7 @@ def test_online_rest_bound_waits_for_a_camera_that_does_not_accelerate():
 @pytest.mark.parametrize("lowpass", ["gaussian", "butterworth"])
 def test_online_lowpass_reads_nothing_after_a_gap_it_bridges(lowpass):
     """Online, a NaN gap is held, not interpolated toward the value after it: changing what
-    comes after the gap must leave every earlier output unchanged (the old interpolation moved
+    comes after the gap must leave every earlier output unchanged (interpolating would move
     them by up to the change's size times the kernel's weight on the gap)."""
     from lobula.readout import gaussian_lowpass
 

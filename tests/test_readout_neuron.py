@@ -47,12 +47,12 @@ def test_neuron_on_the_emd_replay_is_close_to_the_arithmetic_readout(emd_replay)
     """Same EMD input (30 s replay). The neuron is causal, so its fair comparison is the
     causal arithmetic readout; the zero-phase one is reported too.
 
-    Measured with the EMD front end's LMC surround (the default since the twenty-seventh session):
-    rate neuron 0.048 m/s, spiking 0.082, observable 0.79; arithmetic causal 0.011, zero-phase 0.0017.
-    With the front end's former 0.25 s high-pass: neuron 0.05, spiking ~0.07; arithmetic causal 0.075,
-    zero-phase 0.053. The neuron's parameters (confidence, shunt) were chosen on that front end (another
-    scene: built-in profile, texture seed 11) and not since; the arithmetic readout gained from the
-    surround, the neuron did not — bounded here against the zero estimator until they are re-chosen.
+    Measured with the EMD front end's LMC surround (its default): rate neuron 0.048 m/s, spiking 0.082,
+    observable 0.79; arithmetic causal 0.011, zero-phase 0.0017. With a 0.25 s temporal high-pass in
+    place of the surround: neuron 0.05, spiking ~0.07; arithmetic causal 0.075, zero-phase 0.053. The
+    neuron's parameters (confidence, shunt) are chosen on that high-pass front end (another scene:
+    built-in profile, texture seed 11); the surround helps the arithmetic readout and not the neuron,
+    so the neuron is bounded here against the zero estimator.
     """
     ds = emd_replay
     t, vt = ds.time.values, ds.v_true.values
@@ -62,8 +62,8 @@ def test_neuron_on_the_emd_replay_is_close_to_the_arithmetic_readout(emd_replay)
     spk = readout_neuron(t, ds.r.values, ds.r2.values, ds.accel.values, ReadoutNeuronConfig(spiking=True))
     # The arithmetic model the neuron implements: the forward filter without vision's shared-error
     # consider state (which brings the default causal readout here from 0.069 to 0.057 m/s), with
-    # the acceleration noise it was built against (0.05 m/s²/√Hz; the readout's default is now the
-    # measured 0.01, which brings that filter here to 0.049 m/s).
+    # the acceleration noise it is built for (0.05 m/s²/√Hz; the readout's default, the measured
+    # 0.01, brings that filter here to 0.049 m/s).
     causal = readout(t, ds.r.values, ds.r2.values, ds.accel.values,
                      ReadoutConfig(filter="causal", shared_error_frac=0.0, accel_noise=0.05, accel_turn_noise=0.0))
     print(f"\nEMD replay: neuron {rm(rate['v_hat']):.4f} (spiking {rm(spk['v_hat']):.4f}); arithmetic causal "
@@ -94,7 +94,7 @@ def test_spiking_output_decodes_causally_with_its_stated_noise():
     out2 = spiking_output(t, v2, a, cfg)
     past = t < 30
     np.testing.assert_array_equal(out2["v_dec"][past], out["v_dec"][past])
-    # The centred window of the earlier decoder sees the future: it fails the same test.
+    # The centred window (decode="centred") sees the future: it fails the same test.
     cen = ReadoutNeuronConfig(spiking=True, population=10, seed=1, decode="centred")
     c1, c2 = spiking_output(t, v, a, cen), spiking_output(t, v2, a, cen)
     assert not np.array_equal(c1["v_dec"][past], c2["v_dec"][past])

@@ -1,6 +1,6 @@
 """Synthetic replays of the real FLIVVER trajectory, scored against their exact truth.
 
-These are the issue's headline checks; each replay is rendered once per session
+These are the project's headline checks; each replay is rendered once per test run
 (320×240, the default scene) and read back through the footage reader.
 """
 import json
@@ -30,7 +30,7 @@ def test_replay_default_dis_beats_the_bound(make_replay, replay_rates):
     causal = score(estimate_velocity(open_footage(make_replay(0.0, 30.0)), cfg, progress=False), 2.0)
     print(f"\nreplay 0-30 s, DIS: zero-phase RMSE {rmse:.4f} m/s (observable {obs:.3f}); "
           f"causal {causal['rmse_m_s']:.4f} ({causal['observable_fraction']:.3f})")
-    assert rmse <= 0.03 and obs >= 0.9  # issue 10: the README replay may not get worse than 0.03
+    assert rmse <= 0.03 and obs >= 0.9  # the README replay's bound: 0.03 m/s
     assert causal["rmse_m_s"] <= max(1.5 * rmse, 0.03) and causal["observable_fraction"] >= 0.9
 
 

@@ -1,4 +1,4 @@
-"""Issue 10's rotation: flow under fast turns (gyro pre-warp) and what the gyro leaves to vision."""
+"""Rotation: flow under fast turns (gyro pre-warp) and what the gyro leaves to vision."""
 import cv2
 import numpy as np
 import pytest
@@ -93,8 +93,7 @@ def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path,
     within half of that, with a std that covers its error — from its residual rotation
     (``gyro_bias_from_vision``) or, by default, from the heading and bias fit fused with the
     still-camera estimate. Gravity removed through that attitude then ramps less through the
-    forward acceleration than through the still-camera one (without the fused bias, the default
-    had no ``gyro_bias`` and ramped at the whole bias)."""
+    forward acceleration than through the still-camera one (which ramps at the whole bias)."""
     from dataclasses import replace
 
     from experiments import suite

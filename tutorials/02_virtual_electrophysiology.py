@@ -8,12 +8,12 @@
 # ---
 
 # %% [markdown]
-# # Tutorial 2 — a virtual electrophysiology session
+# # Tutorial 2 — a virtual electrophysiology recording session
 #
 # The model fly (ommatidial lattice → photoreceptors → Hassenstein–Reichardt EMDs → lobula-
 # columnar (LC) units → readout neuron) is recorded the way a physiologist records a fly:
 # choose a protocol, choose what to record, get a labelled, self-describing file (NetCDF, and
-# NWB to share). In this session: a temporal-frequency tuning curve (the known answer: EMDs
+# NWB to share). In this recording session: a temporal-frequency tuning curve (the known answer: EMDs
 # peak at 1/(2πτ)), a receptive-field map, and a raster with its PSTH.
 #
 # Each `lobula(...)` call is exactly the shell command `lobula ...`. Open this file as a

@@ -13,7 +13,7 @@ The package follows the physiologist's workflow, one module per stage:
   :func:`raster`. ``velocity-replay`` lives in :mod:`experiments.replay_protocol`.
 - :mod:`.figures` — each protocol's figure (PNG + PDF), drawn from the stored data.
 - :mod:`.command` — ``lobula ephys`` (NetCDF and/or NWB via :mod:`experiments.nwb`).
-- :mod:`.bench` — issue 5's tuning-sweep benchmark.
+- :mod:`.bench` — the tuning-sweep benchmark (a 5,000-ommatidia eye).
 
 Recordings have dims ``trial``, ``time`` (s), ``neuron`` (LC units; coords ``neuron_type``,
 ``azimuth_deg``, ``elevation_deg``, ``size_deg``, ``field_index``), ``field``,

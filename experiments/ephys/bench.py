@@ -1,4 +1,4 @@
-"""Issue 5's benchmark of virtual electrophysiology: a tuning sweep on a 5,000-ommatidia eye."""
+"""A benchmark of virtual electrophysiology: a tuning sweep on a 5,000-ommatidia eye."""
 from __future__ import annotations
 
 import time as _time
@@ -22,7 +22,7 @@ def bench_tuning_sweep(n_ommatidia: int = 5000, n_tf: int = 20, n_contrasts: int
                        field_size_deg: float = 5.0, threads: int | None = 1, device: str = "cpu",
                        chunk_steps: int = 8, compile: bool = False, max_steps: int | None = None,
                        verbose: bool = True) -> dict:
-    """Issue 5's benchmark: a tuning sweep of n_tf TFs × n_contrasts contrasts × trials, duration_s at dt_s,
+    """The benchmark: a tuning sweep of n_tf TFs × n_contrasts contrasts × trials, duration_s at dt_s,
     for an eye of ~n_ommatidia (D435i field of view at 320×240) with its LC population (5° Gaussian
     fields tiling the eye, 5 unit types each).
 
@@ -32,8 +32,9 @@ def bench_tuning_sweep(n_ommatidia: int = 5000, n_tf: int = 20, n_contrasts: int
     time courses). threads: torch CPU threads during the run (1 is fastest on a shared
     2-core machine: per-step tensors are small); compile: fuse the pair pooling
     with torch.compile (its one-off compilation is timed separately, as ``compile_s``,
-    by a short warm-up run; off by default: since the circuit runs lobula.emd's correlator,
-    compiling the pooling alone was 1.5× slower on this CPU); max_steps: time only that many steps and extrapolate. Returns a dict with seconds and neuron-steps per second:
+    by a short warm-up run; off by default: with the circuit running lobula.emd's correlator,
+    compiling the pooling alone is 1.5× slower on a CPU); max_steps: time only that many steps and
+    extrapolate. Returns a dict with seconds and neuron-steps per second:
     ``computed`` counts each stage as run (front end per condition, LC per trial),
     ``equivalent`` as if every trial ran the whole eye.
     """
