@@ -9,12 +9,23 @@ a fraction of a second. Numeric options are checked at parse time (:class:`exper
 a refused value is argparse's one-line error naming the option and the allowed range, exit status 2.
 To add a subcommand, write its parser function (which calls ``set_defaults(func=...)``) and add
 one line here.
+
+A command that fails says so in one line, "lobula COMMAND: error: …", naming the file and the fix,
+exit status 2: bad input, and an output it cannot write. Every output the command line names is
+checked for writability before the run starts; a full disk met while writing names the output,
+not its temporary (:class:`experiments.store.OutputError`); a command in :data:`ALL_OR_NOTHING`
+leaves all of its outputs or none. SIGINT and SIGTERM unwind the run (temporaries removed) and
+end it with one line, "lobula COMMAND: interrupted; …", exit status 130 or 143.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
+import threading
+from contextlib import contextmanager, nullcontext
 
 #: subcommand: ("module:function" that adds its parser to a subparsers object, one-line help shown by ``lobula --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -134,6 +145,84 @@ def keep_freed_blocks() -> bool:
     return bool(mallopt(_M_MMAP_THRESHOLD, _MMAP_BYTES) and mallopt(_M_TRIM_THRESHOLD, _TRIM_BYTES))
 
 
+#: commands whose --out (or positional OUT) is a folder they fill; every other output option names a file
+FOLDER_OUTPUTS = frozenset({"scene", "suite", "depth-suite", "figures"})
+#: the options (argparse dests) that name what a command writes
+OUTPUT_OPTIONS = ("out", "plot", "csv")
+#: commands whose few outputs appear together when the run ends, or none of them
+#: (experiments.store.all_or_nothing); the others keep what they finish, to resume from it
+ALL_OR_NOTHING = frozenset({"velocity", "eye-velocity", "compare", "depth", "ephys", "calibrate-emd"})
+
+
+def _outputs(args) -> list[tuple[str, str]]:
+    """(option, path) of every output the parsed command line names."""
+    found = []
+    for dest in OUTPUT_OPTIONS:
+        value = getattr(args, dest, None)
+        for v in (value if isinstance(value, (list, tuple)) else [value]):
+            if isinstance(v, str) and v:
+                found.append((f"--{dest}" if dest != "out" or args.command != "scene" else "OUT", v))
+    return found
+
+
+class _Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM, raised in the main thread so that every ``with``/``finally`` on the way out
+    (temporaries, worker threads) runs; ``signum`` says which."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_signal(signum, frame):
+    # A second signal while the first one unwinds ends the process at once: the user asked twice.
+    for s in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(s) is _on_signal:
+            signal.signal(s, _exit_now)
+    raise _Interrupted(signum)
+
+
+def _exit_now(signum, frame):
+    os._exit(128 + signum)
+
+
+@contextmanager
+def _signals_unwind():
+    """SIGINT and SIGTERM raise :class:`_Interrupted` while the block runs (main thread only), so the
+    run's context managers remove what it had begun; the previous handlers come back afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    # A signal the caller ignores (a background job's SIGINT, nohup) stays ignored.
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM) if signal.getsignal(s) != signal.SIG_IGN}
+    for s in before:
+        signal.signal(s, _on_signal)
+    try:
+        yield
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+
+
+def _fix_for(exc, outputs: list[tuple[str, str]]) -> str:
+    """An OutputError's one line, its fix naming the option that chose the output where one did."""
+    from pathlib import Path
+
+    option = next((o for o, v in outputs if Path(v) == Path(exc.filename or "")), None)
+    if option is None:
+        return str(exc)
+    fix = exc.fix.replace("choose another place for it", f"choose another {option}")
+    return f"{exc.problem}; {fix}"
+
+
+def _not_kept(command: str, group: list) -> str:
+    """What a failed all-or-nothing run had finished and removed again, for the end of its error line."""
+    if not group:
+        return ""
+    names = ", ".join(str(path) for _, path in group)
+    return f" ({names} not kept: lobula {command} writes its outputs together or not at all)"
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
@@ -151,14 +240,43 @@ def main(argv=None) -> int:
     from lobula._optional import MissingExtraError
     from stimuli.footage import FootageError
 
+    from . import store
+
+    outputs = _outputs(args)
+    folders = args.command in FOLDER_OUTPUTS
+    for option, path in outputs:  # before the run: a run is never lost to a folder it cannot write
+        problem = store.writable_problem(path, folder=folders and option in ("--out", "OUT"))
+        if problem is not None:
+            print(f"lobula {args.command}: error: {_fix_for(problem, outputs)}", file=sys.stderr)
+            return 2
+    written, group = len(store.WRITTEN), []
     try:
-        return args.func(args)
+        with _signals_unwind(), (store.all_or_nothing() if args.command in ALL_OR_NOTHING
+                                 else nullcontext([])) as group:
+            return args.func(args)
     except (FootageError, FileExistsError, FileNotFoundError, ValueError, MissingExtraError) as exc:
-        print(f"lobula {args.command}: error: {exc}", file=sys.stderr)
+        print(f"lobula {args.command}: error: {exc}{_not_kept(args.command, group)}", file=sys.stderr)
+        return 2
+    except store.OutputError as exc:  # a full disk, a read-only folder: the output is named, nothing half-written
+        print(f"lobula {args.command}: error: {_fix_for(exc, outputs)}{_not_kept(args.command, group)}",
+              file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into `head` and closed: not an error
         sys.stderr.close()
         return 0
+    except OSError as exc:  # a writer outside experiments.store that met a full disk or a read-only folder
+        err = store.output_error(exc, store.output_of(exc.filename)) if exc.filename else exc
+        if not isinstance(err, store.OutputError):
+            raise
+        print(f"lobula {args.command}: error: {_fix_for(err, outputs)}{_not_kept(args.command, group)}",
+              file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as exc:  # SIGINT or SIGTERM: temporaries are removed on the way here
+        signum = getattr(exc, "signum", signal.SIGINT)
+        kept = len(store.WRITTEN) - written
+        what = "nothing written" if kept <= 0 else f"{kept} finished output(s) kept, nothing half-written"
+        print(f"lobula {args.command}: interrupted; {what}", file=sys.stderr)
+        return 128 + signum
 
 
 if __name__ == "__main__":

@@ -22,8 +22,10 @@ def add_footage_options(p) -> None:
     add_footage_options(p)
 
 
-def open_footage_from_args(args, require_imu: bool = True):
-    """open_footage with the options of :func:`add_footage_options` (absent options: defaults)."""
+def open_footage_from_args(args, require_imu: bool = True, keep_nan: bool = False, require_camera: bool = True):
+    """open_footage with the options of :func:`add_footage_options` (absent options: defaults);
+    keep_nan: count NaN IMU and truth values instead of stopping at them (``lobula info``);
+    require_camera: False opens a recording without intrinsics (a GoPro MP4) with camera None (``lobula info``)."""
     from stimuli.footage import open_footage
 
     clock = getattr(args, "clock", None)
@@ -31,7 +33,8 @@ def open_footage_from_args(args, require_imu: bool = True):
                         clock=None if clock == "device" else clock, require_imu=require_imu,
                         skip_bad_frames=getattr(args, "skip_bad_frames", False),
                         clock_offset=getattr(args, "clock_offset", None),
-                        undistort=getattr(args, "undistort", "same-k"))
+                        undistort=getattr(args, "undistort", "same-k"), camera=getattr(args, "camera", None),
+                        keep_nan=keep_nan, require_camera=require_camera)
 
 
 def _rate(t: np.ndarray) -> float | None:
@@ -39,7 +42,17 @@ def _rate(t: np.ndarray) -> float | None:
 
 
 def _ranges(v: np.ndarray) -> dict:
-    return {ax: [round(float(v[:, k].min()), 4), round(float(v[:, k].max()), 4)] for k, ax in enumerate("xyz")}
+    """Per axis [min, max] of the finite values (None where an axis has none)."""
+    out = {}
+    for k, ax in enumerate("xyz"):
+        x = v[:, k][np.isfinite(v[:, k])]
+        out[ax] = [round(float(x.min()), 4), round(float(x.max()), 4)] if x.size else None
+    return out
+
+
+def _nan_note(counts: dict) -> str:
+    """NaN counts per column as text, e.g. "accel_x 3, gyro_z 1"."""
+    return ", ".join(f"{k} {n}" for k, n in counts.items())
 
 
 def describe(footage) -> dict:
@@ -48,13 +61,18 @@ def describe(footage) -> dict:
 
     t = np.asarray(footage.times, float)
     cam = footage.camera
+    # A GoPro MP4 opened without intrinsics: the container's nominal rate stands in for camera.json's.
+    nominal = (float(cam.frame_rate_hz) if cam is not None
+               else float(getattr(footage, "nominal_fps", 0) or _rate(t) or 1))
     d = dict(path=str(footage.path), layout=footage.kind,
              frames=dict(count=int(len(t)), start_s=float(t[0]) if len(t) else None,
                          duration_s=float(t[-1] - t[0]) if len(t) else 0.0,
-                         nominal_rate_hz=float(cam.frame_rate_hz), measured_rate_hz=_rate(t),
+                         nominal_rate_hz=nominal, measured_rate_hz=_rate(t),
                          median_interval_s=float(np.median(np.diff(t))) if len(t) > 1 else None,
-                         **{f"dropped_{k}": v for k, v in frame_gaps(t, 1.0 / cam.frame_rate_hz).items()}),
-             intrinsics=cam.to_dict(), distortion=footage.distortion or None)
+                         **{f"dropped_{k}": v for k, v in frame_gaps(t, 1.0 / nominal).items()}),
+             intrinsics=None if cam is None else cam.to_dict(), distortion=footage.distortion or None)
+    if getattr(footage, "telemetry", None) is not None:
+        d["telemetry"] = footage.telemetry
     for extra in ("topic", "encoding", "time_source", "time_origin_s"):
         if getattr(footage, extra, None) not in (None, ""):
             d["frames"][extra] = getattr(footage, extra)
@@ -62,14 +80,17 @@ def describe(footage) -> dict:
     if imu is None:
         d["imu"] = None
     else:
+        norm = np.linalg.norm(imu.accel, axis=1)
         d["imu"] = dict(samples=int(len(imu.time_s)), rate_hz=_rate(imu.time_s),
                         span_s=[float(imu.time_s[0]), float(imu.time_s[-1])],
                         accel_range_m_s2=_ranges(imu.accel),
-                        accel_mean_norm_m_s2=round(float(np.linalg.norm(imu.accel, axis=1).mean()), 4),
+                        accel_mean_norm_m_s2=round(float(np.nanmean(norm)), 4) if np.isfinite(norm).any() else None,
                         gyro=None if imu.gyro is None else dict(range_rad_s=_ranges(imu.gyro),
-                                                                 mean_rad_s=np.round(imu.gyro.mean(0), 5).tolist()),
+                                                                 mean_rad_s=np.round(np.nanmean(imu.gyro, 0), 5)
+                                                                 .tolist()),
                         gaps=frame_gaps(imu.time_s), source=imu.source,
-                        frame="camera optical (x right, y down, z forward)")
+                        frame="camera optical (x right, y down, z forward)",
+                        nan_rows=dict(getattr(imu, "nan_counts", {}) or {}))
     r = footage.imu_to_camera
     d["extrinsics"] = None if r is None else dict(imu_to_camera=np.round(r, 6).tolist(),
                                                    angle_deg=round(float(np.degrees(np.arccos(np.clip(
@@ -78,10 +99,13 @@ def describe(footage) -> dict:
         d["truth"] = None
     else:
         tt = footage.truth["time_s"]
-        d["truth"] = dict(columns=sorted(footage.truth), samples=int(len(tt)), span_s=[float(tt[0]), float(tt[-1])])
+        d["truth"] = dict(columns=sorted(footage.truth), samples=int(len(tt)), span_s=[float(tt[0]), float(tt[-1])],
+                          nan_rows=dict(getattr(footage, "truth_nan_counts", {}) or {}))
         if "v_forward_m_s" in footage.truth:
-            v = footage.truth["v_forward_m_s"]
-            d["truth"]["v_forward_range_m_s"] = [round(float(np.min(v)), 4), round(float(np.max(v)), 4)]
+            v = np.asarray(footage.truth["v_forward_m_s"], float)
+            v = v[np.isfinite(v)]
+            if v.size:
+                d["truth"]["v_forward_range_m_s"] = [round(float(np.min(v)), 4), round(float(np.max(v)), 4)]
     d["streams"] = list(footage.streams)
     d["notes"] = list(footage.notes)
     return d
@@ -102,7 +126,8 @@ def format_text(d: dict) -> str:
     for k in ("topic", "encoding", "time_source"):
         if k in f:
             out.append(f"{k + ':':<11} {f[k]}")
-    out.append(f"intrinsics: {c['width']}x{c['height']}, fx {c['fx']:.3f}, fy {c['fy']:.3f}, "
+    out.append("intrinsics: none in the recording; velocity needs them: --camera FILE (a camera.json)" if c is None else
+               f"intrinsics: {c['width']}x{c['height']}, fx {c['fx']:.3f}, fy {c['fy']:.3f}, "
                f"cx {c['cx']:.3f}, cy {c['cy']:.3f}")
     out.append(f"distortion: {json.dumps(d['distortion']) if d['distortion'] else 'none reported'}")
     imu = d["imu"]
@@ -112,15 +137,19 @@ def format_text(d: dict) -> str:
         rate = f"{imu['rate_hz']:.1f} Hz" if imu["rate_hz"] else "-"
         out.append(f"imu:        {imu['samples']} samples, {rate}, {imu['span_s'][0]:.3f}..{imu['span_s'][1]:.3f} s; "
                    f"{imu['frame']}")
-        out.append("  accel:    " + ", ".join(f"{k} {v[0]:+.3f}..{v[1]:+.3f}" for k, v in
+        mean = imu["accel_mean_norm_m_s2"]
+        out.append("  accel:    " + ", ".join(f"{k} {v[0]:+.3f}..{v[1]:+.3f}" if v else f"{k} -" for k, v in
                                               imu["accel_range_m_s2"].items())
-                   + f" m/s²; mean |a| {imu['accel_mean_norm_m_s2']:.3f}")
+                   + " m/s²; mean |a| " + (f"{mean:.3f}" if mean is not None else "-"))
         if imu["gyro"]:
-            out.append("  gyro:     " + ", ".join(f"{k} {v[0]:+.4f}..{v[1]:+.4f}" for k, v in
+            out.append("  gyro:     " + ", ".join(f"{k} {v[0]:+.4f}..{v[1]:+.4f}" if v else f"{k} -" for k, v in
                                                   imu["gyro"]["range_rad_s"].items())
                        + f" rad/s; mean {imu['gyro']['mean_rad_s']}")
         else:
             out.append("  gyro:     none")
+        if imu.get("nan_rows"):
+            out.append(f"  NaN:      {_nan_note(imu['nan_rows'])} rows of {imu['source']} are NaN or empty "
+                       f"(ranges above leave them out); velocity stops at them: repair or remove those rows")
         if imu["gaps"]["gaps"]:
             out.append(f"  gaps:     {imu['gaps']['gaps']} IMU gap(s), longest {imu['gaps']['largest_s'] * 1e3:.1f} ms")
     e = d["extrinsics"]
@@ -130,19 +159,25 @@ def format_text(d: dict) -> str:
                                  f"{tr['samples']} samples, {', '.join(tr['columns'])}"
                                  + (f"; v_forward {tr['v_forward_range_m_s'][0]:+.3f}..{tr['v_forward_range_m_s'][1]:+.3f} m/s"
                                     if "v_forward_range_m_s" in tr else "")))
+    if tr is not None and tr.get("nan_rows"):
+        out.append(f"  NaN:      {_nan_note(tr['nan_rows'])} rows of the truth are NaN or empty (left out of the "
+                   f"range; rows without a time are left out of the samples)")
     if d["streams"]:
         shown = [s for s in d["streams"] if "/option/" not in str(s.get("topic", ""))]
         hidden = len(d["streams"]) - len(shown)
         out.append("streams:" + (f" ({hidden} sensor-option topics not shown; see --json)" if hidden else ""))
         for s in shown:
             out.append("  " + "  ".join(f"{v}" for v in s.values()))
+    if d.get("telemetry"):
+        from stimuli.gopro import describe_telemetry
+        out += describe_telemetry(d["telemetry"])
     for n in d["notes"]:
         out.append(f"note: {n}")
     return "\n".join(out)
 
 
 def run_info(args) -> int:
-    footage = open_footage_from_args(args, require_imu=False)
+    footage = open_footage_from_args(args, require_imu=False, keep_nan=True, require_camera=False)
     d = describe(footage)
     if args.json:
         json.dump(d, sys.stdout, indent=1, default=str)

@@ -165,6 +165,11 @@ def add_footage_options(p) -> None:
                         "times as recorded)")
     p.add_argument("--undistort", default="same-k", choices=["same-k", "optimal"],
                    help="EuRoC: undistort onto the same pinhole K, or onto OpenCV's optimal new K")
+    p.add_argument("--camera", metavar="FILE",
+                   help="camera.json (width, height, fx, fy, cx, cy in pixels, frame_rate_hz) with the intrinsics "
+                        "to use instead of the recording's: for a bag without usable CameraInfo, or to correct "
+                        "them; for a footage folder or video it stands for their camera.json (imu_to_camera too) "
+                        "(default: the recording's own)")
 
 
 # ----------------------------------------------------------------------------- lobula velocity (camera)

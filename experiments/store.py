@@ -1,7 +1,13 @@
 """Atomic output: write to a temporary name beside the target, then rename.
 
 A crash or a bad input mid-run leaves no file under the final name, so nothing
-half-written ever looks complete.
+half-written ever looks complete. The temporary is a hidden name beside the output,
+``.<name>.lobula-tmp-<pid>-<random><suffix>``: removed when the block raises (a signal that
+``lobula`` catches raises too, see :func:`experiments.cli.main`), and, where a run was killed
+outright (SIGKILL, power loss), by the next run that writes the same output
+(:func:`stimuli.footage_core.remove_stale`). Inside :func:`all_or_nothing` several outputs
+appear together or none of them. A full disk, a read-only folder or a refused permission
+raise :class:`OutputError`, whose message names the output, never its temporary.
 
 Every NetCDF (and Zarr) store the project writes follows the CF-1.10 conventions: the
 writers here set ``Conventions`` and walk each variable and coordinate with
@@ -9,6 +15,7 @@ writers here set ``Conventions`` and walk each variable and coordinate with
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -17,11 +24,15 @@ import tempfile
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
-
-import xarray as xr
+from typing import TYPE_CHECKING
 
 from lobula.version import provenance_attrs
+from stimuli.footage_core import remove_stale
+
+if TYPE_CHECKING:  # xarray is imported where a Dataset is written: the command line's error handling needs none
+    import xarray as xr
 
 
 def provenance(config_json: str, **extra) -> dict:
@@ -33,15 +44,112 @@ def provenance(config_json: str, **extra) -> dict:
     return attrs
 
 
+#: what every temporary name of :func:`atomic_path` holds between the output's name and the writer's pid
+TEMP_TAG = "lobula-tmp"
+
+#: the outputs :func:`atomic_path` has put in place in this process, in order
+WRITTEN: list[Path] = []
+
+# The open all_or_nothing() group of this thread of control: (temporary, output) pairs to rename at its end.
+_GROUP: ContextVar[list | None] = ContextVar("lobula_output_group", default=None)
+
+
+class OutputError(OSError):
+    """An output that cannot be written: a full disk, a read-only folder, a refused permission.
+
+    ``problem`` names the output (never its temporary) and what is wrong; ``fix`` says what to
+    do; ``str()`` is both, one line. ``filename`` is the output's path.
+    """
+
+    def __init__(self, code: int, path: str | Path, problem: str, fix: str = "choose another place for it"):
+        super().__init__(code, problem, str(path))
+        self.problem, self.fix = problem, fix
+
+    def __str__(self) -> str:
+        return f"{self.problem}; {self.fix}"
+
+
+_NO_SPACE = (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC))
+
+
+def output_error(exc: OSError, path: str | Path) -> OSError:
+    """``exc`` as an :class:`OutputError` naming ``path`` where it says the output cannot be written
+    (no space, read-only, no permission, too large); any other OSError is returned as it is."""
+    if isinstance(exc, OutputError):
+        return exc
+    path = Path(path)
+    if exc.errno in _NO_SPACE:
+        return OutputError(exc.errno, path, f"no space left on device writing {path}",
+                           "free some space or choose another place for it")
+    if exc.errno == errno.EROFS:
+        return OutputError(exc.errno, path, f"cannot write {path}: folder is read-only")
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return OutputError(exc.errno, path, f"cannot write {path}: no permission to write in {path.parent}")
+    if exc.errno == errno.EFBIG:
+        return OutputError(exc.errno, path, f"cannot write {path}: too large for its file system")
+    return exc
+
+
+def output_of(path: str | Path) -> Path:
+    """The output a hidden temporary name stands for (:func:`atomic_path`'s, a partial or rendering folder's,
+    one inside another); any other path as it is."""
+    path = Path(path)
+    while m := re.fullmatch(rf"\.(.+)\.(?:{TEMP_TAG}-\d+-.*|partial-\d+|track-\d+)", path.name, re.S):
+        path = path.with_name(m.group(1))
+    return path
+
+
+def writable_problem(path: str | Path, folder: bool = False) -> OutputError | None:
+    """Why ``path`` cannot be written, checked before a run, or None where it can.
+
+    folder: ``path`` is an output folder (its entries are made in it) rather than a file
+    (made beside it, in its parent). The nearest folder that exists is where a file is made
+    (missing parents are created); an empty temporary file is made and removed there, so a
+    read-only mount, a refused permission and a full disk are all found, as root too.
+    """
+    path = Path(path)
+    if not folder and path.is_dir():
+        return OutputError(errno.EISDIR, path, f"cannot write {path}: a folder of that name exists",
+                           "give a file name")
+    d = path if folder else path.parent
+    d = Path(os.path.abspath(d))
+    while not d.exists() and d != d.parent:
+        d = d.parent
+    if not d.is_dir():
+        return OutputError(errno.ENOTDIR, path, f"cannot write {path}: {d} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{TEMP_TAG}-check-{os.getpid()}-", dir=d)
+        os.close(fd)
+        os.unlink(probe)
+        st = os.statvfs(d)
+        if st.f_bavail == 0 and st.f_blocks > 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    except OSError as exc:
+        err = output_error(exc, path)
+        if isinstance(err, OutputError):
+            return err
+        return OutputError(exc.errno or errno.EIO, path, f"cannot write {path}: {exc.strerror or exc}")
+    return None
+
+
 @contextmanager
 def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
     """A temporary name beside ``path`` to write to: renamed onto ``path`` when the block ends
-    normally, removed when it raises. ``suffix`` ends the temporary name (some writers choose the
-    format from it)."""
+    normally (inside :func:`all_or_nothing`: when the group ends), removed when it raises.
+    ``suffix`` ends the temporary name (some writers choose the format from it).
+
+    Temporaries of ``path`` that a killed run left (their process gone, older than this one)
+    are removed first. An OSError saying the output cannot be written (no space, read-only,
+    no permission) is raised as :class:`OutputError` naming ``path``.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale(path.parent, f".{path.name}.{TEMP_TAG}-")
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{TEMP_TAG}-{os.getpid()}-", suffix=suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise output_error(exc, path) from None
     try:
         yield Path(tmp)
         if Path(tmp).is_file():
@@ -49,10 +157,58 @@ def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
             mask = os.umask(0)
             os.umask(mask)
             os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        group = _GROUP.get()
+        if group is not None:
+            group.append((Path(tmp), path))
+        else:
+            os.replace(tmp, path)
+            WRITTEN.append(path)
+    except BaseException as exc:
+        _remove(Path(tmp))
+        if isinstance(exc, OSError):
+            raise output_error(exc, path) from None
         raise
+
+
+def _remove(p: Path) -> None:
+    """Remove a temporary file or folder, whichever it is (some writers make a folder of the name)."""
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    else:
+        p.unlink(missing_ok=True)
+
+
+@contextmanager
+def all_or_nothing() -> Iterator[list]:
+    """Outputs written with :func:`atomic_path` inside the block appear together when it ends normally,
+    or none of them: each stays under its temporary name until then, and all are removed if the block
+    raises (a signal included) or one cannot be put in place. Yields the list of (temporary, output)
+    pairs waiting. Only the thread (context) that opens the group defers; outputs written by other
+    threads are put in place at once."""
+    group: list = []
+    token = _GROUP.set(group)
+    try:
+        yield group
+    except BaseException:
+        for tmp, _ in group:
+            _remove(tmp)
+        raise
+    finally:
+        _GROUP.reset(token)
+    placed = []
+    try:
+        for tmp, path in group:
+            os.replace(tmp, path)
+            placed.append(path)
+    except BaseException as exc:
+        for tmp, _ in group:
+            _remove(tmp)
+        for path in placed:  # new outputs only: what they replaced is gone either way
+            _remove(path)
+        if isinstance(exc, OSError):
+            raise output_error(exc, path) from None
+        raise
+    WRITTEN.extend(placed)
 
 
 def compressed_encoding(ds: xr.Dataset, level: int = 4, min_size: int = 1024) -> dict:
@@ -191,7 +347,8 @@ def write_netcdf(ds: xr.Dataset, path: str | Path) -> Path:
 
     The file declares ``Conventions = "CF-1.10"``; its variables and coordinates are walked
     by :func:`cf_problems` first (:func:`cf_ready`: a warning, or with ``LOBULA_STRICT_CF=1``
-    a ValueError and no file). ``ds`` itself is not modified.
+    a ValueError and no file). ``ds`` itself is not modified. The encoded file is built in memory
+    (as large as the compressed output) and then written in one go.
     """
     ds = cf_ready(ds, path)
     enc = compressed_encoding(ds)
@@ -199,8 +356,11 @@ def write_netcdf(ds: xr.Dataset, path: str | Path) -> Path:
         # CF: coordinate variables have no missing values, so they carry no _FillValue either.
         if name in ds.variables and ds[name].dtype.kind == "f" and "_FillValue" not in ds[name].encoding:
             enc.setdefault(name, {})["_FillValue"] = None
+    # HDF5 writes into memory and the bytes go to disk with an ordinary write, so a full disk is one clean
+    # OSError: HDF5 writing the file itself fails on every object it closes and crashes the interpreter at exit.
+    data = ds.to_netcdf(engine="h5netcdf", encoding=enc)
     with atomic_path(path) as tmp:
-        ds.to_netcdf(tmp, engine="h5netcdf", encoding=enc)
+        tmp.write_bytes(data)
     return Path(path)
 
 
@@ -280,6 +440,8 @@ class ZarrSink:
 
         self.out, self.batch = Path(out), max(1, int(batch))
         self.out.parent.mkdir(parents=True, exist_ok=True)
+        for kind in ("partial", "old"):  # what a killed run left of this store
+            remove_stale(self.out.parent, f".{self.out.name}.{kind}-")
         self.tmp = self.out.parent / f".{self.out.name}.partial-{os.getpid()}"
         shutil.rmtree(self.tmp, ignore_errors=True)
         self.pending: list[dict] = []
@@ -290,7 +452,13 @@ class ZarrSink:
     def add(self, rec: dict) -> None:
         self.pending.append(rec)
         if len(self.pending) >= self.batch:
-            self._flush()
+            try:
+                self._flush()
+            except BaseException as exc:  # a full disk mid-run: no half-written store left behind
+                self.abort()
+                if isinstance(exc, OSError):
+                    raise output_error(exc, self.out) from None
+                raise
 
     def _flush(self) -> None:
         if not self.pending:
@@ -307,6 +475,7 @@ class ZarrSink:
         self.pending = []
 
     def finish(self, build, extra_vars: dict, attrs: dict, out) -> xr.Dataset:
+        import xarray as xr
         import zarr
 
         try:
@@ -328,9 +497,12 @@ class ZarrSink:
             self.tmp.rename(self.out)
             if trash is not None:
                 shutil.rmtree(trash, ignore_errors=True)
-        except BaseException:
+        except BaseException as exc:
             self.abort()
+            if isinstance(exc, OSError):
+                raise output_error(exc, self.out) from None
             raise
+        WRITTEN.append(self.out)
         return xr.open_zarr(self.out)
 
     def abort(self) -> None:

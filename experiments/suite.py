@@ -155,7 +155,7 @@ def family_config(family: str, seed: int, duration_s: float, scale: float, imu: 
         run.update(random_peak_m_s=0.6, random_start="rest" if family == "rest" else "motion")
     elif family == "mixed":
         # The other families change one thing at a time; the footage the project is judged on
-        # changes several at once. Nothing was tuned on this family.
+        # changes several at once. Nothing is tuned on this family.
         world = str(rng.choice(["panels", "corridor", "ground"]))
         peak = {"panels": (0.6, 1.0), "corridor": (0.8, 2.5), "ground": (0.8, 2.5)}[world]
         scene.update(world=world, side_walls=bool(world == "panels" and rng.random() < 0.5),
@@ -406,6 +406,24 @@ def run_scene_job(job: SceneJob) -> dict:
     return res
 
 
+def remove_partial_scenes(out: Path) -> list[Path]:
+    """Remove the partial scene folders (``OUT/scenes/.<scene>.partial-<pid>``, ``.<scene>.track-<pid>``)
+    that a suite stopped outright (SIGKILL, power loss) left: those whose process is gone and that are
+    older than this run (stimuli.footage_core.remove_stale). Returns them."""
+    import re
+
+    from stimuli.footage_core import remove_stale
+
+    scenes = Path(out) / "scenes"
+    if not scenes.is_dir():
+        return []
+    # ".<scene>.partial-<pid>" (stimuli.footage_core.atomic_folder), ".<scene>.track-<pid>" (stimuli.track's
+    # rendering folder) and the one inside the other
+    prefixes = {m.group(1) for e in os.scandir(scenes)
+                if (m := re.fullmatch(r"(\..+\.(?:partial|track)-)\d+", e.name))}
+    return [p for prefix in sorted(prefixes) for p in remove_stale(scenes, prefix)]
+
+
 def ensure_rendered(folder: Path, settings: dict, render) -> Path:
     """``folder``, rendered by ``render(folder)`` unless it is already there with these ``settings``
     (kept beside it in ``<folder>.json``, written atomically after the render: a cut-off run never
@@ -457,6 +475,10 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
         raise ValueError(f"--duration ({duration_s} s) must exceed --skip ({skip_s} s)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    stale = remove_partial_scenes(out)
+    if stale:
+        progress(f"removed {len(stale)} partial scene folder(s) a stopped run left: "
+                 f"{', '.join(p.name for p in stale)}")
     jobs = [SceneJob(f, s, duration_s, scale, imu, imu_mount, configurations, skip_s, str(out))
             for f in families for s in seeds]
     results = []
@@ -630,7 +652,7 @@ def plot_suite(ds, path):
 
     The coverage cannot tell a calibrated band from one far too wide (both hold ~100 %), so the last
     panel shows z95, the 95th percentile of |e|/σ (1.96 for a calibrated Gaussian band; log scale),
-    shaded where a Gaussian error would put the ±2σ coverage at 85–99 % (z95 1.52–2.72, the issue's
+    shaded where a Gaussian error would put the ±2σ coverage at 85–99 % (z95 1.52–2.72, the project's
     target). Configurations that state no σ (z95 infinite) have no bar there."""
     import matplotlib
     matplotlib.use("Agg")

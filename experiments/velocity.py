@@ -132,8 +132,8 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
             # and the fields' attitude follows the bias and the scale error E learned so far
             # (lobula.haltere.GyroAttitude); the pre-warp, a thread ahead, keeps the plain attitude.
             # E (VelocityConfig.gyro_scale_prior): the suite's rotation family (±5°, to 1.5 Hz, seeds
-            # 0-2) 0.016 / 0.039 -> 0.011 / 0.018 m/s zero-phase / causal; a camera turning ±10° at up
-            # to 2 Hz with a realistic IMU read v̂ 40-60 % slow without it (zero-phase 0.106 m/s, zero
+            # 0-2) 0.011 / 0.018 m/s zero-phase / causal with it, 0.016 / 0.039 without; a camera turning
+            # ±10° at up to 2 Hz with a realistic IMU reads v̂ 40-60 % slow without it (zero-phase 0.106 m/s, zero
             # estimator 0.20, ideal IMU 0.012) and 0.013 with it.
             # The fit's own bias prior is its regulariser against the heading–bias confound, narrower than
             # the data sheet's spread (lobula.haltere.HEADING_FIT_BIAS_PRIOR).
@@ -245,9 +245,9 @@ def gyro_bias_track(footage: Footage, rates: FieldRates, causal: bool, prior: fl
     bias fit's estimate (``rates.heading_bias``) fused with the still-camera one
     (lobula.haltere.fused_gyro_bias). ``prior`` (rad/s): the bias's std before the record measures
     it (VelocityConfig.gyro_bias_prior_deg_s). Without it a turning camera that never stops (the suite's
-    rotation family) removed gravity through an attitude drifting at the whole bias: its forward
-    acceleration ramped by 0.05-0.09 m/s² per second; with it ≤ 0.005. The suite's development
-    scenes (nine families × seeds 100-103, 320×240, 10 s): rotation zero-phase RMSE 0.017 / 0.026 /
+    rotation family) removes gravity through an attitude drifting at the whole bias: its forward
+    acceleration ramps by 0.05-0.09 m/s² per second; with it ≤ 0.005. The suite's development
+    scenes (nine families × seeds 100-103, 320×240, 10 s), without → with: rotation zero-phase RMSE 0.017 / 0.026 /
     0.020 / 0.016 → 0.005 / 0.011 / 0.014 / 0.013 m/s, causal 0.018 / 0.057 / 0.039 / 0.035 →
     0.015 / 0.042 / 0.033 / 0.039; the other 32 scenes within ±0.002; all 36 zero-phase 0.0073 →
     0.0063, causal 0.0149 → 0.0144.
@@ -385,16 +385,21 @@ def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig
     causal = config.readout.filter == "causal"
     if config.accel_from_truth or footage.imu is None:
         if not config.accel_from_truth and footage.kind != "d435i-sample":
-            raise FootageError(f"{footage.path / 'imu.csv'}: missing; velocity needs forward acceleration. "
-                               f"Add imu.csv, or pass --accel-from-truth to use truth.csv")
+            where = footage.path / "imu.csv" if footage.kind == "folder" else footage.path
+            raise FootageError(f"{where}: {'missing' if footage.kind == 'folder' else 'no IMU'}; velocity needs "
+                               f"forward acceleration. Add the IMU log, or pass --accel-from-truth to use the truth")
         if footage.truth is None:
             raise FootageError(f"{footage.path}: no IMU and no truth to derive acceleration from")
         tt, at = acceleration_from_truth(footage.truth)
         return np.interp(times, tt, at), "ground truth (smoothed derivative of velocity; no IMU)"
     imu = footage.imu
     if times[0] < imu.time_s[0] - 0.5 or times[-1] > imu.time_s[-1] + 0.5:
-        raise FootageError(f"{footage.path / 'imu.csv'}: covers {imu.time_s[0]:.2f}..{imu.time_s[-1]:.2f} s "
-                           f"but frames need {times[0]:.2f}..{times[-1]:.2f} s; the time stamps do not match")
+        # imu.source names the file (or bag and topic) the samples came from, whatever the layout.
+        realsense = footage.kind.startswith("realsense")
+        raise FootageError(f"{imu.source}: the IMU covers {imu.time_s[0]:.2f}..{imu.time_s[-1]:.2f} s but the "
+                           f"frames of {footage.path.name} need {times[0]:.2f}..{times[-1]:.2f} s; their time stamps "
+                           f"are not on one clock: shift the IMU with --clock-offset SECONDS (or auto)"
+                           + (", or read both on another --clock" if realsense else ""))
     a = forward_acceleration(imu.time_s, imu.accel, imu.gyro if config.derotate else None, causal=causal,
                              bias=bias, orientation=orientation if config.derotate else None)
     dt = float(np.median(np.diff(footage.times)))
@@ -589,6 +594,49 @@ def score_line(sc: dict, skip_s: float) -> str:
             f"{sc['median_abs_error_m_s']:.4f} m/s, {obs}")
 
 
+def never_observable_reason(ds: xr.Dataset) -> str | None:
+    """One sentence saying why a run's v̂ is never observable, or None where it is observable somewhere.
+
+    Computed from what the run stores: its forward acceleration ``accel`` (m/s²) low-passed as the
+    readout low-passes it (a zero-phase Butterworth of the configuration's ``readout.order`` at
+    ``readout.cutoff_hz``) against ``readout.accel_min_m_s2``; else the expansion rates ``r``
+    (none finite: the fields measured nothing); else ``v_std`` against ``readout.max_std_m_s``.
+    """
+    if "observable" not in ds or bool(ds.observable.values.astype(bool).any()):
+        return None
+    try:
+        ro = json.loads(ds.attrs.get("config", "{}")).get("readout", {})
+    except (TypeError, ValueError):
+        ro = {}
+    accel_min = float(ro.get("accel_min_m_s2", 0.03))
+    max_std = float(ro.get("max_std_m_s", 0.1))
+    t, a = ds.time.values.astype(float), ds.accel.values.astype(float)
+    ok = np.isfinite(a)
+    a_lp = a[ok]
+    if ok.sum() > 12 and t.size > 1:
+        from scipy import signal
+
+        fs = (t.size - 1) / float(t[-1] - t[0])
+        wn = float(ro.get("cutoff_hz", 1.0)) / (fs / 2)
+        if 0 < wn < 1:
+            a_lp = signal.filtfilt(*signal.butter(int(ro.get("order", 2)), wn), a[ok], padlen=min(ok.sum() - 1, 12))
+    peak = float(np.max(np.abs(a_lp))) if a_lp.size else 0.0
+    if peak < accel_min:
+        return (f"never observable: the camera's forward acceleration never exceeded the readout's accel_min "
+                f"({accel_min:g} m/s²; at most {peak:.3f} m/s² here, low-passed at "
+                f"{float(ro.get('cutoff_hz', 1.0)):g} Hz) — speed cannot be told from vision while it does not "
+                f"change; v̂ is NaN throughout")
+    if "r" in ds and not np.isfinite(ds.r.values).any():
+        return ("never observable: no receptive field measured an expansion rate (r is NaN throughout: too "
+                "little texture in view, or the flow failed) — without it vision says nothing of speed; v̂ is NaN "
+                "throughout")
+    std = ds.v_std.values.astype(float) if "v_std" in ds else np.full(1, np.nan)
+    low = float(np.nanmin(std)) if np.isfinite(std).any() else float("nan")
+    return (f"never observable: the posterior std of v̂ never fell below the readout's max_std ({max_std:g} m/s; "
+            f"at best {low:.3f} m/s) — the forward acceleration (up to {peak:.3f} m/s², low-passed) and the "
+            f"expansion rates were too weak or too noisy to fix the speed; v̂ is NaN throughout")
+
+
 #: Each front end, filter and readout in words, for figure captions.
 FRONT_END_WORDS = {"dis": "dense optical flow (OpenCV DIS)", "farneback": "dense optical flow (Farnebäck)",
                    "flo": "precomputed optical flow (.flo files)",
@@ -754,6 +802,9 @@ def run_velocity(args) -> int:
     print(f"observable: {100 * float(ds.observable.mean()):.1f} % of all {ds.sizes['time']} estimates")
     if sc:
         print(score_line(sc, skip))
+    why = never_observable_reason(ds) if ds.sizes["time"] >= 3 else None
+    if why:
+        print(why)
     if ds.sizes["time"] < 3:
         med = np.nanmedian(ds.r.values, axis=1)
         print("too few flows for a velocity readout; median r̄ over fields per flow (1/s): "

@@ -152,8 +152,12 @@ def find_mav0(path: Path) -> Path:
 
 
 def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", require_imu: bool = True,
-               undistort: str = "same-k") -> EurocFootage:
-    """Open an ASL/EuRoC sequence folder as footage (see the module doc for the conventions)."""
+               undistort: str = "same-k", intrinsics: PinholeCamera | None = None) -> EurocFootage:
+    """Open an ASL/EuRoC sequence folder as footage (see the module doc for the conventions).
+
+    intrinsics: the raw camera's size, focal lengths, principal point and rate to use instead of
+    sensor.yaml's (``--camera``); its distortion model and coefficients still apply.
+    """
     path = Path(path)
     mav = find_mav0(path)
     cam_dir, imu_dir = mav / camera, mav / imu
@@ -173,6 +177,12 @@ def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", requir
     model = str(sy.get("distortion_model", "none"))
     coeffs = np.asarray(sy.get("distortion_coefficients", []) or [], float)
     rate = float(sy.get("rate_hz", 0) or 0)
+    if intrinsics is not None:
+        c = intrinsics
+        fu, fv, cu, cv, w, h, rate = c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.frame_rate_hz
+    elif min(fu, fv) <= 0 or min(w, h) <= 0:
+        raise FootageError(f"{cam_dir / 'sensor.yaml'}: intrinsics {[fu, fv, cu, cv]} and resolution {[w, h]} must "
+                           f"have positive focal lengths and size; repair it, or give them with --camera FILE")
     t_bc = _t_bs(sy, cam_dir / "sensor.yaml")
 
     # ---- frames

@@ -23,7 +23,9 @@ Frames are decoded one at a time on iteration, so memory does not grow with leng
 from __future__ import annotations
 
 import csv
+import errno
 import json
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,18 +37,21 @@ from scipy.ndimage import gaussian_filter1d
 from lobula.camera import PinholeCamera
 
 from .footage_core import (IMU, Footage, FootageError, check_times as _check_times, frame_gaps,  # noqa: F401
-                           atomic_folder, imu_to_camera, read_csv_columns as _read_csv, read_frame, read_imu_csv, rotation_deg,
-                           rotation_from_json, to_grey)
+                           atomic_folder, imu_to_camera, nan_counts, numeric_column, read_camera_json,
+                           read_csv_columns as _read_csv, read_frame, read_imu_csv, rotation_deg, rotation_from_json,
+                           to_grey)
 
 
 def open_footage(path: str | Path, *, stream: str | None = None, clock: str | None = None,
                  require_imu: bool = True, skip_bad_frames: bool = False,
-                 clock_offset: float | str | None = None, undistort: str = "same-k") -> Footage:
+                 clock_offset: float | str | None = None, undistort: str = "same-k",
+                 camera: str | Path | None = None, keep_nan: bool = False, require_camera: bool = True) -> Footage:
     """Open any footage the project reads, checking everything cheap up front.
 
     path: a footage folder, the D435i sample folder, a RealSense ``.bag`` (ROS1) or ``.db3``
     (rosbag2), an ASL/EuRoC folder (``mav0/``), or a video file (mp4, mkv, avi, mov) with
-    ``camera.json`` and ``imu.csv`` beside it (or a folder holding those and one video).
+    ``camera.json`` and ``imu.csv`` beside it (or a folder holding those and one video), or a
+    GoPro MP4 as the camera wrote it, with its GPMF telemetry track (:mod:`stimuli.gopro`).
     stream: RealSense recordings: image stream ("Color_0", "Infrared_1", or part of a topic;
     default colour, else infrared). clock: RealSense recordings: "device" (the frames' own
     time stamps, default), "header" (message header stamps) or "record" (the bag's record
@@ -55,7 +60,15 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
     frames out (counted in ``skipped_frames``) instead of stopping. clock_offset: seconds
     added to the IMU's times to put them on the frames' clock, or "auto" to estimate it
     (:mod:`stimuli.clock_offset`). undistort: EuRoC: "same-k" (undistort onto the same
-    pinhole K) or "optimal" (onto OpenCV's optimal new K, all pixels valid).
+    pinhole K) or "optimal" (onto OpenCV's optimal new K, all pixels valid). camera: a
+    camera.json (width, height, fx, fy, cx, cy, frame_rate_hz; optionally imu_to_camera) to use
+    instead of the recording's own intrinsics, on every layout (``--camera FILE``): for a folder
+    or a video it stands for the camera.json beside the frames (its imu_to_camera too); for
+    RealSense bags and EuRoC it replaces the recorded intrinsics (EuRoC's distortion is still
+    removed with them). keep_nan: open IMU and truth logs with NaN or empty values, counting
+    them per column (IMU.nan_counts, ``truth_nan_counts``) instead of stopping (``lobula info``).
+    require_camera: a GoPro MP4 carries no intrinsics: without ``camera`` or a camera.json beside
+    it, stop (True) or open it with ``camera=None`` (False, ``lobula info``).
     """
     path = Path(path)
     if clock not in (None, "device", "header", "record"):
@@ -64,35 +77,38 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
     if not path.exists():
         raise FootageError(f"{path}: not found (not a folder or a file); give a footage folder, a RealSense "
                            f".bag/.db3, an EuRoC folder or a video file")
+    cam_json = None if camera is None else Path(camera)
+    intrinsics = None if cam_json is None else read_camera_json(cam_json)
     if path.is_file() and suffix == ".bag":
         from .realsense_bag import open_realsense_bag
-        footage = open_realsense_bag(path, stream=stream, require_imu=require_imu,
+        footage = open_realsense_bag(path, stream=stream, require_imu=require_imu, camera=intrinsics,
                                      time_source={"record": "bag", "header": "header", "device": "header"}.get(clock))
     elif suffix == ".db3" or (path.is_dir() and (path / "metadata.yaml").exists()):
         from .rosbag2_db3 import open_rosbag2
-        footage = open_rosbag2(path, stream=stream, clock=clock or "device", require_imu=require_imu)
+        footage = open_rosbag2(path, stream=stream, clock=clock or "device", require_imu=require_imu,
+                               camera=intrinsics)
     elif path.is_file() and suffix in VIDEO_SUFFIXES:
-        from .video import open_video
-        footage = open_video(path, require_imu=require_imu)
+        footage = _open_video_file(path, require_imu, cam_json, keep_nan, require_camera)
     elif not path.is_dir():
         raise FootageError(f"{path}: not a footage folder, a RealSense .bag/.db3 or a video "
                            f"({', '.join(VIDEO_SUFFIXES)}); give one of those")
     elif (path / "frames.csv").exists():
-        footage = _open_folder(path)
+        footage = _open_folder(path, cam_json, keep_nan)
     elif (path / "velocity.csv").exists() and (path / "frames").is_dir():
-        footage = _open_d435i_sample(path)
+        footage = _open_d435i_sample(path, cam_json)
     elif (path / "mav0").is_dir() or (path / "cam0" / "data.csv").exists():
         from .euroc import open_euroc
-        footage = open_euroc(path, require_imu=require_imu, undistort=undistort)
+        footage = open_euroc(path, require_imu=require_imu, undistort=undistort, intrinsics=intrinsics)
     elif videos := sorted(p for p in path.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES):
         if len(videos) > 1:
             raise FootageError(f"{path}: holds {len(videos)} videos ({videos[0].name}, {videos[1].name}, ...); "
                                f"give the video file itself")
-        from .video import open_video
-        footage = open_video(videos[0], require_imu=require_imu)
+        footage = _open_video_file(videos[0], require_imu, cam_json, keep_nan, require_camera)
     else:
         raise FootageError(f"{path}: neither a footage folder (frames.csv), the D435i sample layout "
                            f"(frames/ + velocity.csv), an EuRoC folder (mav0/cam0) nor a folder with a video")
+    if cam_json is not None:
+        footage.notes.append(f"intrinsics from {cam_json} (--camera), not the recording's own")
     _refuse_options_for_layout(footage, stream, clock, undistort)
     footage.skip_bad_frames = skip_bad_frames
     if clock_offset not in (None, 0, 0.0, "0"):
@@ -115,6 +131,17 @@ def _refuse_options_for_layout(footage: Footage, stream, clock, undistort) -> No
 
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov", ".m4v", ".webm")
+
+
+def _open_video_file(path: Path, require_imu: bool, cam_json: Path | None, keep_nan: bool,
+                     require_camera: bool) -> Footage:
+    """A video file: a GoPro MP4 with its GPMF track (stimuli.gopro), else the video reader (camera.json + imu.csv)."""
+    if path.suffix.lower() in (".mp4", ".mov", ".m4v"):
+        from .gopro import has_gpmf_track, open_gopro
+        if has_gpmf_track(path):
+            return open_gopro(path, require_imu=require_imu, camera_json=cam_json, require_camera=require_camera)
+    from .video import open_video
+    return open_video(path, require_imu=require_imu, camera_json=cam_json, keep_nan=keep_nan)
 
 
 def _apply_clock_offset(footage: Footage, clock_offset) -> None:
@@ -147,8 +174,9 @@ def footage_provenance(footage) -> dict:
     return fn() if fn is not None else {}
 
 
-def _open_folder(path: Path) -> Footage:
-    camera = PinholeCamera.from_json(path / "camera.json")
+def _open_folder(path: Path, cam_json: Path | None = None, keep_nan: bool = False) -> Footage:
+    cam_json = cam_json or path / "camera.json"
+    camera = read_camera_json(cam_json)
     fr = _read_csv(path / "frames.csv", ("frame", "time_s", "file"))
     _check_times(path / "frames.csv", fr["time_s"])
     files = [path / str(f) for f in fr["file"]]
@@ -158,22 +186,41 @@ def _open_folder(path: Path) -> Footage:
                            f"{missing[0].relative_to(path)}; restore them or drop their rows")
     imu = None
     imu_path = path / "imu.csv"
-    r = imu_to_camera(path / "camera.json")
+    r = imu_to_camera(cam_json)
     notes = []
     if imu_path.exists():
-        imu = read_imu_csv(imu_path, r)
+        imu = read_imu_csv(imu_path, r, keep_nan=keep_nan)
         if r is not None:
-            notes.append(f"IMU rotated into the camera frame by camera.json's imu_to_camera "
+            notes.append(f"IMU rotated into the camera frame by {cam_json.name}'s imu_to_camera "
                          f"({rotation_deg(r):.2f} deg)")
-    truth = None
-    if (path / "truth.csv").exists():
-        truth = _read_csv(path / "truth.csv", ("time_s", "v_forward_m_s"))
-        _check_times(path / "truth.csv", truth["time_s"])
-    return Footage(path, camera, fr["time_s"], files, imu, truth, kind="folder", notes=notes, imu_to_camera=r)
+    truth, truth_nan = read_truth_csv(path / "truth.csv", keep_nan) if (path / "truth.csv").exists() else (None, {})
+    return Footage(path, camera, fr["time_s"], files, imu, truth, kind="folder", notes=notes, imu_to_camera=r,
+                   truth_nan_counts=truth_nan)
 
 
-def _open_d435i_sample(path: Path) -> Footage:
-    camera = PinholeCamera.from_json(path / "camera.json")
+def read_truth_csv(path: Path, keep_nan: bool = False) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """truth.csv (time_s, v_forward_m_s, other columns) and its NaN count per column.
+
+    Rows without a time are a FootageError naming the file, unless ``keep_nan`` (then they are
+    left out and counted); NaN velocities are kept either way (counted).
+    """
+    truth = _read_csv(path, ("time_s", "v_forward_m_s"))
+    counts = nan_counts(truth)
+    for k, v in truth.items():
+        try:
+            truth[k] = numeric_column(v)
+        except ValueError:  # a text column (a label) stays text; time and velocity must be numbers
+            if k in ("time_s", "v_forward_m_s"):
+                raise FootageError(f"{path}: {k} has values that are not numbers; repair those rows") from None
+    if keep_nan:
+        keep = np.isfinite(truth["time_s"])
+        truth = {k: v[keep] for k, v in truth.items()}
+    _check_times(path, truth["time_s"])
+    return truth, counts
+
+
+def _open_d435i_sample(path: Path, cam_json: Path | None = None) -> Footage:
+    camera = read_camera_json(cam_json or path / "camera.json")
     vel = _read_csv(path / "velocity.csv", ("sample", "raw_frame", "time_s", "v_true_m_s"))
     _check_times(path / "velocity.csv", vel["time_s"])
     files = sorted((p for p in (path / "frames").iterdir() if re.fullmatch(r"\d+\.(png|jpg)", p.name)),
@@ -271,6 +318,15 @@ def flo_to_normalised(flow: np.ndarray, camera: PinholeCamera, units: FloUnits) 
 
 
 # ---------------------------------------------------------------------- writing
+def _no_space(folder: Path) -> bool:
+    """Whether the file system holding ``folder`` has no space left for an ordinary user."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < 1 << 16
+
+
 def write_footage(folder: str | Path, scene, imu: dict, times: np.ndarray, metadata: dict,
                   depth_every: int = 10, progress=None) -> Path:
     """Render ``scene`` at ``times`` into a footage folder, atomically.
@@ -289,7 +345,8 @@ def write_footage(folder: str | Path, scene, imu: dict, times: np.ndarray, metad
             wr.writerow(["frame", "time_s", "file"])
             for i, t in enumerate(times):
                 name = f"frames/{i:06d}.png"
-                cv2.imwrite(str(tmp / name), scene.render(float(t), i))
+                if not cv2.imwrite(str(tmp / name), scene.render(float(t), i)):  # OpenCV reports a failed write so
+                    raise OSError(errno.ENOSPC if _no_space(tmp) else errno.EIO, f"cannot write {name}", str(folder))
                 if depth_every and i % depth_every == 0:
                     np.save(tmp / "depth" / f"{i:06d}.npy", scene.depth(float(t)))
                 wr.writerow([i, f"{t:.6f}", name])

@@ -18,9 +18,13 @@ Conventions every reader keeps (COMMON contract 4):
 from __future__ import annotations
 
 import csv
+import errno
 import json
+import math
 import os
+import re
 import shutil
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +38,91 @@ from lobula.camera import PinholeCamera
 
 class FootageError(ValueError):
     """Bad or missing footage input; the message names the file and what to do."""
+
+
+#: the fields every camera.json holds
+CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy", "frame_rate_hz")
+
+
+def read_camera_json(path: str | Path) -> PinholeCamera:
+    """The intrinsics of a camera.json (width, height, fx, fy, cx, cy in pixels; frame_rate_hz),
+    each field checked: a FootageError names the file, the field, what it must be and what it is."""
+    path = Path(path)
+    need = ", ".join(CAMERA_FIELDS)
+    try:
+        d = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FootageError(f"{path}: not found; write a camera.json with {need}, or give one with --camera FILE"
+                           ) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FootageError(f"{path}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+    except json.JSONDecodeError as exc:
+        raise FootageError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno}); "
+                           f"a camera.json is one object with {need}") from None
+    if not isinstance(d, dict):
+        raise FootageError(f"{path}: must be one JSON object with {need}")
+    missing = [k for k in CAMERA_FIELDS if k not in d]
+    if missing:
+        raise FootageError(f"{path}: missing {', '.join(missing)}; a camera.json needs {need}")
+    vals = {}
+    for k in CAMERA_FIELDS:
+        v = d[k]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise FootageError(f"{path}: {k} must be a finite number, got {json.dumps(v)}")
+        if k in ("width", "height") and v != int(v):
+            raise FootageError(f"{path}: {k} must be a whole number of pixels, got {v:g}")
+        if k in ("width", "height", "fx", "fy", "frame_rate_hz") and v <= 0:
+            raise FootageError(f"{path}: {k} must be > 0, got {v:g}")
+        vals[k] = int(v) if k in ("width", "height") else float(v)
+    return PinholeCamera(**vals)
+
+
+#: when this run started (the first import of this module, before any output is begun): what a
+#: killed run left is older than this
+RUN_START = time.time()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process (EPERM): alive
+        return True
+    return True
+
+
+def remove_stale(folder: str | Path, prefix: str) -> list[Path]:
+    """Remove what a killed run left in ``folder``: the files and folders named ``prefix``, a process id
+    and (optionally) more, whose process is gone and which were last changed before this run started.
+
+    The writers here name their temporaries so (``.<name>.lobula-tmp-<pid>-…``,
+    ``.<name>.partial-<pid>``); a run stopped by SIGKILL or a power cut cannot remove its own, so
+    the next run that writes the same output does. A temporary of a run still going (its process
+    alive) or begun after this one is left alone. Returns what was removed.
+    """
+    pattern = re.compile(re.escape(prefix) + r"(\d+)(?:\D.*)?$", re.S)
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for e in entries:
+        m = pattern.match(e.name)
+        if not m:
+            continue
+        pid = int(m.group(1))
+        try:
+            if e.stat(follow_symlinks=False).st_mtime >= RUN_START or (pid != os.getpid() and _alive(pid)):
+                continue
+            if e.is_dir(follow_symlinks=False):
+                shutil.rmtree(e.path)
+            else:
+                os.unlink(e.path)
+        except OSError:
+            continue
+        removed.append(Path(e.path))
+    return removed
 
 
 def read_csv_columns(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
@@ -71,11 +160,27 @@ def check_times(path: Path, t: np.ndarray, what: str = "time_s") -> None:
                            f"({t[bad[0]]} then {t[bad[0] + 1]}); sort the rows and drop duplicates")
 
 
+@contextmanager
+def opencv_quiet() -> Iterator[None]:
+    """OpenCV's own log off while the block runs: a damaged image is reported once, by the reader's
+    FootageError (or counted by --skip-bad-frames), not also by OpenCV's "[ERROR…] readHeader" lines."""
+    try:
+        before = cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    except AttributeError:  # an OpenCV build without the logging module
+        yield
+        return
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(before)
+
+
 def read_frame(path: Path) -> np.ndarray:
     """Decode one frame as grey float32 (H, W) in grey levels 0..255; clear error if corrupt."""
     if not path.exists():
         raise FootageError(f"{path}: frame file is missing")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    with opencv_quiet():
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise FootageError(f"{path}: cannot decode this image (corrupt or not an image); replace or remove it")
     return to_grey(img)
@@ -132,20 +237,26 @@ def rotation_deg(r: np.ndarray) -> float:
 
 @dataclass
 class IMU:
-    """IMU samples in the camera optical frame: time_s (n,), accel (n, 3) m/s², gyro (n, 3) rad/s or None."""
+    """IMU samples in the camera optical frame: time_s (n,), accel (n, 3) m/s², gyro (n, 3) rad/s or None.
+
+    nan_counts: {column of the file: rows with NaN or no value there}, filled only where the
+    samples were read keeping such rows (``lobula info``, which reports them); empty otherwise.
+    """
 
     time_s: np.ndarray
     accel: np.ndarray
     gyro: np.ndarray | None
     source: str
+    nan_counts: dict[str, int] = field(default_factory=dict)
 
     def rotated(self, r: np.ndarray) -> "IMU":
         """The same samples with every vector rotated by r (v' = r @ v)."""
-        return IMU(self.time_s, self.accel @ r.T, None if self.gyro is None else self.gyro @ r.T, self.source)
+        return IMU(self.time_s, self.accel @ r.T, None if self.gyro is None else self.gyro @ r.T, self.source,
+                   self.nan_counts)
 
     def shifted(self, offset_s: float) -> "IMU":
         """The same samples on a clock ``offset_s`` later (t' = t + offset)."""
-        return IMU(self.time_s + offset_s, self.accel, self.gyro, self.source)
+        return IMU(self.time_s + offset_s, self.accel, self.gyro, self.source, self.nan_counts)
 
 
 @dataclass
@@ -158,7 +269,8 @@ class Footage:
     the reader removed or ignored (None: none reported); ``imu_to_camera`` the rotation
     applied to the IMU on reading (None: none needed or known). ``skip_bad_frames``,
     ``skipped_frames`` and the clock offset fields are filled by :func:`stimuli.footage.open_footage`;
-    ``streams`` lists what the recording holds (one dict per topic or sensor: name, type, count, ...).
+    ``streams`` lists what the recording holds (one dict per topic or sensor: name, type, count, ...);
+    ``truth_nan_counts`` the truth log's NaN or empty values per column (filled where counted).
     """
 
     path: Path
@@ -176,6 +288,7 @@ class Footage:
     clock_offset_s: float = 0.0
     clock_offset_source: str = "none"
     streams: list[dict] = field(default_factory=list)
+    truth_nan_counts: dict[str, int] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.files)
@@ -237,22 +350,52 @@ def imu_to_camera(path: Path) -> np.ndarray | None:
     return rotation_from_json(d["imu_to_camera"], str(path))
 
 
-def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None) -> IMU:
-    """imu.csv (time_s, accel_x..z m/s², gyro_x..z rad/s) as an IMU, rotated by ``rotation`` if given."""
+def numeric_column(values: np.ndarray) -> np.ndarray:
+    """A CSV column as float, empty cells and "nan" as NaN; ValueError on any other text."""
+    if values.dtype.kind == "f":
+        return values
+    return np.array([float(v) if str(v).strip() else np.nan for v in values], float)
+
+
+def nan_counts(columns: dict[str, np.ndarray]) -> dict[str, int]:
+    """{column: rows that are NaN, infinite or empty}, for the columns that have any."""
+    out = {}
+    for name, v in columns.items():
+        try:
+            n = int(np.count_nonzero(~np.isfinite(numeric_column(np.asarray(v)))))
+        except ValueError:
+            continue
+        if n:
+            out[name] = n
+    return out
+
+
+def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None, keep_nan: bool = False) -> IMU:
+    """imu.csv (time_s, accel_x..z m/s², gyro_x..z rad/s) as an IMU, rotated by ``rotation`` if given.
+
+    A NaN, infinite or empty value is a FootageError naming its row, unless ``keep_nan``: then
+    rows without a time are left out, other NaNs kept, and every column's count of them is in
+    the IMU's ``nan_counts`` (what ``lobula info`` reports).
+    """
     cols = ("time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
     d = read_csv_columns(imu_path, cols)
     try:
-        acc = np.stack([d["accel_x"], d["accel_y"], d["accel_z"]], -1).astype(float)
-        gyr = np.stack([d["gyro_x"], d["gyro_y"], d["gyro_z"]], -1).astype(float)
-        t = d["time_s"].astype(float)
+        v = {c: numeric_column(d[c]) for c in cols}
     except ValueError:
         raise FootageError(f"{imu_path}: non-numeric values; every IMU column must be a number") from None
-    if not (np.all(np.isfinite(acc)) and np.all(np.isfinite(gyr))):
-        row = int(np.flatnonzero(~np.isfinite(np.c_[acc, gyr]).all(1))[0]) + 2
-        raise FootageError(f"{imu_path}: NaN or missing values (first at row {row}); "
-                           f"repair or remove those rows")
+    acc = np.stack([v["accel_x"], v["accel_y"], v["accel_z"]], -1)
+    gyr = np.stack([v["gyro_x"], v["gyro_y"], v["gyro_z"]], -1)
+    t = v["time_s"]
+    counts = nan_counts(v)
+    if counts and not keep_nan:
+        row = int(np.flatnonzero(~np.isfinite(np.c_[t, acc, gyr]).all(1))[0]) + 2
+        raise FootageError(f"{imu_path}: NaN or missing values in {', '.join(counts)} (first at row {row}); "
+                           f"repair or remove those rows (`lobula info` counts them)")
+    if keep_nan:
+        timed = np.isfinite(t)
+        t, acc, gyr = t[timed], acc[timed], gyr[timed]
     check_times(imu_path, t)
-    imu = IMU(t, acc, gyr, source=str(imu_path))
+    imu = IMU(t, acc, gyr, source=str(imu_path), nan_counts=counts)
     return imu.rotated(rotation) if rotation is not None else imu
 
 
@@ -264,6 +407,7 @@ def atomic_folder(folder: str | Path) -> Iterator[Path]:
     folder = Path(folder)
     if folder.exists() and any(folder.iterdir()):
         raise FileExistsError(f"{folder}: exists and is not empty; choose a new folder or delete it")
+    remove_stale(folder.parent, f".{folder.name}.partial-")
     tmp = folder.parent / f".{folder.name}.partial-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -272,6 +416,15 @@ def atomic_folder(folder: str | Path) -> Iterator[Path]:
         if folder.exists():
             folder.rmdir()
         tmp.rename(folder)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(exc, OSError) and exc.errno in _CANNOT_WRITE:
+            # Named by the folder being written, not a file inside its hidden temporary (nor none at all,
+            # as a failed write() reports it): the command line turns it into one line naming OUT.
+            raise OSError(exc.errno, exc.strerror or str(exc), str(folder)) from None
         raise
+
+
+#: errno values that say a write failed for want of space or permission
+_CANNOT_WRITE = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EROFS, errno.EACCES, errno.EPERM,
+                 errno.EFBIG}

@@ -6,7 +6,7 @@ angular velocity ω of the same rotation R(t) that renders the frames.
 
 Two error models (:class:`IMUConfig`):
 
-* **ideal** (the default, as before): a constant bias drawn once per run plus white
+* **ideal** (the default): a constant bias drawn once per run plus white
   noise, in the camera optical frame;
 * **realistic** (:meth:`IMUConfig.realistic`): on top of that, a bias random walk
   (the bias drifts, so no whole-record mean removes it), per-axis scale-factor errors

@@ -541,16 +541,19 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
     if fps is None:
         fps = 30.0
         notes.append("one frame only: frame rate taken as 30 Hz")
+    intrinsics_from = "--camera" if camera is not None else info_topic
     if camera is None:
         if info_topic is None:
-            raise FootageError(f"{path}: no sensor_msgs/CameraInfo for {topic}, so no intrinsics; pass "
-                               f"camera=PinholeCamera(...) (fx, fy, cx, cy of this stream)")
+            raise FootageError(f"{path}: no sensor_msgs/CameraInfo for {topic}, so no intrinsics; give them with "
+                               f"--camera FILE, a camera.json with width, height, fx, fy, cx, cy, frame_rate_hz "
+                               f"of this stream")
         info = _first(reader, [c for c in topics[info_topic] if c.msgtype == CAMERA_INFO_TYPE], _parse_camera_info)
         k = info["K"]
         w, h = (info["width"] or first.width), (info["height"] or first.height)
         if k[0] <= 0 or k[4] <= 0:
-            raise FootageError(f"{path}: {info_topic} has no intrinsics (K = {k.tolist()}); pass "
-                               f"camera=PinholeCamera(...) for this stream")
+            raise FootageError(f"{path}: {info_topic} has no intrinsics (K = {k.tolist()}); give them with "
+                               f"--camera FILE, a camera.json with width, height, fx, fy, cx, cy, frame_rate_hz "
+                               f"of this stream")
         camera = PinholeCamera(width=int(w), height=int(h), fx=float(k[0]), fy=float(k[4]), cx=float(k[2]),
                                cy=float(k[5]), frame_rate_hz=float(fps))
         if np.any(np.abs(info["D"]) > 1e-9):
@@ -559,7 +562,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
                          f"ignored: pinhole model")
     if (first.width, first.height) != (camera.width, camera.height):
         raise FootageError(f"{path}: {topic} images are {first.width}x{first.height} but the intrinsics "
-                           f"({info_topic or 'camera='}) are for {camera.width}x{camera.height}")
+                           f"({intrinsics_from}) are for {camera.width}x{camera.height}")
     dom_img = _timestamp_domain(reader, topics, prefix, "image")
     notes.insert(0, f"RealSense bag: {len(times)} frames from {topic} ({first.encoding} -> grey), "
                     f"{camera.frame_rate_hz:g} Hz; times are {'header stamps' if use_header else 'bag record times (header stamps are zero)'}"

@@ -47,7 +47,7 @@ import numpy as np
 
 from lobula.camera import PinholeCamera
 
-from .footage_core import IMU, Footage, FootageError, rotation_deg, to_grey
+from .footage_core import IMU, Footage, FootageError, opencv_quiet, rotation_deg, to_grey
 from .realsense_bag import FramePlaceholders, choose_image_topic
 
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
@@ -149,10 +149,19 @@ class Rosbag2Footage(Footage):
             except Exception as exc:  # rosbags' SerdeError and the struct/numpy errors under it
                 raise FootageError(f"{self.path}: frame {i} on {self.topic} is corrupt ({exc}); re-record") from None
             if self.msgtype == COMPRESSED_TYPE:
-                img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+                data = np.asarray(msg.data, np.uint8)
+                fix = "re-record, or pass --skip-bad-frames to leave such frames out"
+                if data.size == 0:  # OpenCV asserts on an empty buffer instead of returning None
+                    raise FootageError(f"{self.path}: frame {i} on {self.topic} is empty (0 bytes of "
+                                       f"{msg.format!r} data); {fix}")
+                try:
+                    with opencv_quiet():
+                        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+                except cv2.error:
+                    img = None
                 if img is None:
                     raise FootageError(f"{self.path}: frame {i} on {self.topic}: cannot decode its "
-                                       f"{msg.format!r} data; the message is damaged")
+                                       f"{data.size} bytes of {msg.format!r} data (damaged); {fix}")
                 grey = to_grey(img)
             else:
                 grey = _raw_image_grey(msg)
@@ -349,9 +358,12 @@ def _open(path, reader, ts, stream, clock, require_imu, camera) -> Rosbag2Footag
                 except (KeyError, ValueError):
                     info = None
                 break
-        if info is None or info["fx"] <= 0 or info["fy"] <= 0:
-            raise FootageError(f"{path}: no intrinsics for {topic} (no CameraInfo or camera_info string); pass "
-                               f"camera=PinholeCamera(...)")
+        if info is None or info["fx"] <= 0 or info["fy"] <= 0 or info["w"] <= 0 or info["h"] <= 0:
+            what = ("no intrinsics (no CameraInfo or camera_info string)" if info is None else
+                    f"unusable intrinsics in {info['source']} ({info['w']}x{info['h']}, fx {info['fx']:g}, "
+                    f"fy {info['fy']:g})")
+            raise FootageError(f"{path}: {topic} has {what}; give them with --camera FILE, a camera.json with "
+                               f"width, height, fx, fy, cx, cy, frame_rate_hz of this stream")
         camera = PinholeCamera(width=info["w"], height=info["h"], fx=info["fx"], fy=info["fy"], cx=info["cx"],
                                cy=info["cy"], frame_rate_hz=float(fps))
         if any(abs(x) > 1e-9 for x in info["coeffs"]):

@@ -19,10 +19,8 @@ from typing import Iterator
 import av
 import numpy as np
 
-from lobula.camera import PinholeCamera
-
-from .footage_core import (check_times, Footage, FootageError, imu_to_camera, read_csv_columns, read_imu_csv,
-                           rotation_deg, to_grey)
+from .footage_core import (Footage, FootageError, imu_to_camera, read_camera_json, read_imu_csv, rotation_deg,
+                           to_grey)
 
 
 def _beside(video: Path, name: str) -> Path:
@@ -138,17 +136,40 @@ class VideoFootage(Footage):
         return None
 
 
-def open_video(path: str | Path, require_imu: bool = True) -> VideoFootage:
-    """Open a video with its camera.json and imu.csv (see the module doc); clear errors for anything missing."""
+def check_presentation_times(path: Path, times: np.ndarray) -> None:
+    """FootageError naming the video, the frames and the fix where two frames share a presentation
+    time stamp (``times`` sorted, s): each frame's time then is not known."""
+    if not np.all(np.isfinite(times)):
+        raise FootageError(f"{path}: some packets have no usable presentation time stamp; remux the video with "
+                           f"fresh time stamps (ffmpeg -i IN -c copy OUT.mkv)")
+    same = np.flatnonzero(np.diff(times) <= 0)
+    if same.size:
+        k = int(same[0])
+        raise FootageError(
+            f"{path}: the video's time stamps are broken: {same.size} frame(s) repeat the presentation time of the "
+            f"frame before (first: frames {k} and {k + 1}, both at {times[k]:.6f} s), so when each frame was taken "
+            f"is not known (the container was written without proper time stamps); "
+            f"re-encode it with one time stamp per frame at its true rate, e.g. ffmpeg -i IN -vf "
+            f"setpts=N/(FPS*TB) -r FPS OUT.mp4, and check that the IMU log's time_s is on the same clock")
+
+
+def open_video(path: str | Path, require_imu: bool = True, camera_json: str | Path | None = None,
+               keep_nan: bool = False) -> VideoFootage:
+    """Open a video with its camera.json and imu.csv (see the module doc); clear errors for anything missing.
+
+    camera_json: a camera.json to use instead of the one beside the video (``--camera``);
+    keep_nan: count NaN IMU and truth values instead of stopping (``lobula info``)."""
+    from .footage import read_truth_csv
+
     path = Path(path)
     if not path.is_file():
         raise FootageError(f"{path}: video file not found")
-    cam_path = _beside(path, "camera.json")
-    camera = PinholeCamera.from_json(cam_path)
+    cam_path = Path(camera_json) if camera_json is not None else _beside(path, "camera.json")
+    camera = read_camera_json(cam_path)
     times, w, h, fps, codec = container_times(path)
     if len(times) == 0:
         raise FootageError(f"{path}: no frames could be read (empty or damaged video)")
-    check_times(path, times, "container time stamp")
+    check_presentation_times(path, times)
     if (w, h) != (camera.width, camera.height):
         raise FootageError(f"{path}: video is {w}x{h} but {cam_path.name} says {camera.width}x{camera.height}")
     r = imu_to_camera(cam_path)
@@ -157,18 +178,17 @@ def open_video(path: str | Path, require_imu: bool = True) -> VideoFootage:
     imu_path = _beside(path, "imu.csv")
     imu = None
     if imu_path.exists():
-        imu = read_imu_csv(imu_path, r)
+        imu = read_imu_csv(imu_path, r, keep_nan=keep_nan)
         if r is not None:
             notes.append(f"IMU rotated into the camera frame by imu_to_camera ({rotation_deg(r):.2f} deg)")
     elif require_imu:
         raise FootageError(f"{imu_path}: missing; velocity needs an IMU log beside the video ({path.stem}.imu.csv "
                            f"or imu.csv: time_s, accel_x..z, gyro_x..z on the video's clock)")
-    truth = None
+    truth, truth_nan = None, {}
     tp = _beside(path, "truth.csv")
     if tp.exists():
-        truth = read_csv_columns(tp, ("time_s", "v_forward_m_s"))
-        check_times(tp, truth["time_s"])
+        truth, truth_nan = read_truth_csv(tp, keep_nan)
     streams = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=fps)]
     return VideoFootage(path, camera, times, [path] * 0, imu, truth, kind="video", notes=notes,
-                        imu_to_camera=r, streams=streams)
+                        imu_to_camera=r, streams=streams, truth_nan_counts=truth_nan)
 

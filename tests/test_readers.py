@@ -107,7 +107,7 @@ def test_euroc_stationary_reports_no_motion(euroc, tmp_path, capsys, filt):
     # never confidently moving: wherever it claims a speed, zero is inside ±2σ — while the platform is
     # still. Its last 0.8 s hold a −0.1 → −0.29 m/s² step in the forward specific force (rotors spinning
     # up, or the take-off beginning; the copy has no ground truth to tell): there v̂ leans to −0.015 m/s,
-    # at 1.97σ before the fifteenth session's exact fixed-pixel derotation and 2.0003σ after it.
+    # at 2.0003σ, so those 0.8 s are left out.
     t = ds.time.values - ds.time.values[0]
     still = obs & (t <= t[-1] - 0.8)
     assert np.all(np.abs(v[still]) <= 2 * s[still]), np.nanmax(np.abs(v[still]) / s[still])

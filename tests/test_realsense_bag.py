@@ -444,7 +444,7 @@ def test_non_increasing_stamps(tmp_path):
 def test_missing_or_mismatched_intrinsics_and_unsupported_encoding(tmp_path):
     bag = tmp_path / "noinfo.bag"
     write_bag(bag, n=5, with_info=False)
-    with pytest.raises(FootageError, match=r"no sensor_msgs/CameraInfo .* pass camera=PinholeCamera"):
+    with pytest.raises(FootageError, match=r"no sensor_msgs/CameraInfo .* give them with --camera FILE"):
         open_realsense_bag(bag)
     cam = PinholeCamera(64, 48, 60.0, 60.0, 32.0, 24.0, 30.0)
     assert open_realsense_bag(bag, camera=cam).camera == cam
