@@ -95,7 +95,7 @@ def haltere_gain(text: str) -> str:
 def seeds(text: str) -> str:
     """``--seeds``: a count N (seeds 0..N-1) or a comma-separated list, as experiments.suite.parse_seeds reads
     it; the text is kept as given."""
-    from .suite import parse_seeds
+    from .families import parse_seeds
 
     try:
         parse_seeds(text)
@@ -452,7 +452,7 @@ def add_depth_parser(subparsers) -> argparse.ArgumentParser:
 # ----------------------------------------------------------------------------- lobula depth-suite
 def add_depth_suite_parser(subparsers) -> argparse.ArgumentParser:
     """`lobula depth-suite` (experiments.depth_suite)."""
-    from .suite import FAMILIES
+    from .families import FAMILIES
 
     p = subparsers.add_parser(
         "depth-suite", help="depth on the suite's families x seeds, beside baselines",

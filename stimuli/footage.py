@@ -38,8 +38,8 @@ from lobula.camera import PinholeCamera
 
 from .footage_core import (IMU, Footage, FootageError, check_times as _check_times, frame_gaps,  # noqa: F401
                            atomic_folder, imu_to_camera, nan_counts, numeric_column, read_camera_json,
-                           read_csv_columns as _read_csv, read_frame, read_imu_csv, rotation_deg, rotation_from_json,
-                           to_grey)
+                           read_csv_columns as _read_csv, read_frame, read_imu_csv, read_truth_csv, rotation_deg,
+                           rotation_from_json, to_grey)
 
 
 def open_footage(path: str | Path, *, stream: str | None = None, clock: str | None = None,
@@ -196,27 +196,6 @@ def _open_folder(path: Path, cam_json: Path | None = None, keep_nan: bool = Fals
     truth, truth_nan = read_truth_csv(path / "truth.csv", keep_nan) if (path / "truth.csv").exists() else (None, {})
     return Footage(path, camera, fr["time_s"], files, imu, truth, kind="folder", notes=notes, imu_to_camera=r,
                    truth_nan_counts=truth_nan)
-
-
-def read_truth_csv(path: Path, keep_nan: bool = False) -> tuple[dict[str, np.ndarray], dict[str, int]]:
-    """truth.csv (time_s, v_forward_m_s, other columns) and its NaN count per column.
-
-    Rows without a time are a FootageError naming the file, unless ``keep_nan`` (then they are
-    left out and counted); NaN velocities are kept either way (counted).
-    """
-    truth = _read_csv(path, ("time_s", "v_forward_m_s"))
-    counts = nan_counts(truth)
-    for k, v in truth.items():
-        try:
-            truth[k] = numeric_column(v)
-        except ValueError:  # a text column (a label) stays text; time and velocity must be numbers
-            if k in ("time_s", "v_forward_m_s"):
-                raise FootageError(f"{path}: {k} has values that are not numbers; repair those rows") from None
-    if keep_nan:
-        keep = np.isfinite(truth["time_s"])
-        truth = {k: v[keep] for k, v in truth.items()}
-    _check_times(path, truth["time_s"])
-    return truth, counts
 
 
 def _open_d435i_sample(path: Path, cam_json: Path | None = None) -> Footage:

@@ -428,3 +428,24 @@ def atomic_folder(folder: str | Path) -> Iterator[Path]:
 #: errno values that say a write failed for want of space or permission
 _CANNOT_WRITE = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EROFS, errno.EACCES, errno.EPERM,
                  errno.EFBIG}
+
+
+def read_truth_csv(path: Path, keep_nan: bool = False) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """truth.csv (time_s, v_forward_m_s, other columns) and its NaN count per column.
+
+    Rows without a time are a FootageError naming the file, unless ``keep_nan`` (then they are
+    left out and counted); NaN velocities are kept either way (counted).
+    """
+    truth = read_csv_columns(path, ("time_s", "v_forward_m_s"))
+    counts = nan_counts(truth)
+    for k, v in truth.items():
+        try:
+            truth[k] = numeric_column(v)
+        except ValueError:  # a text column (a label) stays text; time and velocity must be numbers
+            if k in ("time_s", "v_forward_m_s"):
+                raise FootageError(f"{path}: {k} has values that are not numbers; repair those rows") from None
+    if keep_nan:
+        keep = np.isfinite(truth["time_s"])
+        truth = {k: v[keep] for k, v in truth.items()}
+    check_times(path, truth["time_s"])
+    return truth, counts

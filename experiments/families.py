@@ -1,0 +1,33 @@
+"""The accuracy suite's scene families and its ``--seeds`` syntax: plain data, shared by the suite and
+its command-line parser (which imports nothing heavy)."""
+from __future__ import annotations
+
+#: family name: what its scenes are (experiments.suite.family_config builds them)
+FAMILIES = {
+    "panels": "frontal panels, a window of the real FLIVVER run",
+    "rotation": "frontal panels with 3-axis rotation (yaw, pitch, roll up to ±5°, 0.3-1.5 Hz)",
+    "corridor": "corridor (floor, ceiling, walls, end wall ~12 m beyond), to 1 m/s",
+    "fast": "corridor, to 2 m/s, starting in motion",
+    "offaxis": "frontal panels, heading 5-9° sideways and up to 4° vertically off the optical axis",
+    "dim": "frontal panels, 35% brightness, half contrast, pixel noise 6 grey levels",
+    "ground": "outdoor ground plane to the horizon, objects, backdrop 50-200 m, sky; to 1.5 m/s",
+    "rest": "frontal panels, random smooth run to 0.6 m/s starting at rest",
+    "moving": "frontal panels, random smooth run to 0.6 m/s starting in motion",
+    "mixed": ("held out: a world drawn among panels (side walls or not), corridor and ground, turning "
+              "(3-axis, 2-5°), heading up to 9° × 4° off the axis, to 0.6-2.5 m/s, from rest or in "
+              "motion, pixel noise 1-6 grey levels; every seed another combination"),
+}
+
+
+def parse_seeds(text: str) -> int | list[int]:
+    """``--seeds``: "3" means seeds 0, 1, 2; "100,101" means exactly those seeds; "7," seed 7 alone."""
+    try:
+        if "," not in text:
+            n = int(text)
+            if n < 1:
+                raise ValueError
+            return n
+        # one trailing comma makes a list of one seed ("7," is seed 7, "7" is seeds 0..6)
+        return [int(t) for t in (text[:-1] if text.endswith(",") else text).split(",")]
+    except ValueError:
+        raise ValueError(f"--seeds must be a positive count or a comma-separated list of seeds, got {text!r}") from None
