@@ -713,7 +713,7 @@ def test_a_sign_fault_of_the_front_end_is_not_taken_for_a_reversal(monkeypatch):
     there (σ ≈ 0.03), leaves both out (innovations 12-13σ, gate 4σ): as on the clean rates. Taken in, they pull
     v̂ to 0 and hold it there confidently: RMSE 0.29 m/s, ±2σ 48 %. Offline the low-passed r̄ also passes through
     "no expansion" there, and the smoother leaves those rest bounds out the same way (0.36 m/s on seed 0 without)."""
-    import lobula.readout as lr
+    import lobula.readout.kalman as lr  # where the gate is read
     from lobula.readout import MaterialRates, reversal_measurement
 
     t = np.arange(0, 10, 1 / 30)

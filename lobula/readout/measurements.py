@@ -1,0 +1,553 @@
+"""What vision and the accelerometer measure of v: the readout's terms and its per-frame measurements.
+
+Vision gives, per frame, each field's velocity v_f = a·r̄/(ṙ̄ − r²̄) (:func:`vision_measurement`),
+the ratio κ = a/v that needs no accelerometer (:func:`ratio_measurement`, :func:`physical_kappa`),
+a bound on |v| where nothing expands (:func:`rest_measurement`), the moments v passed through 0
+(:func:`reversal_measurement`) and v's sign (:func:`expansion_sign`); the accelerometer says where
+the camera is not starting or stopping (:func:`accelerometer_level`, :func:`accelerometer_steady`).
+:func:`readout_terms` low-passes the fields' rates and the acceleration alike for the kalman readout.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import ReadoutConfig
+from .filters import _integral, _lag, butterworth, gaussian_lowpass, staggered_difference
+
+#: the fields' signed median r̄ within this many standard errors of 0: no expansion detected (see rest_measurement)
+NO_EXPANSION_SE = 3.0
+#: s: how long the fields' expansion must have held one clear sign before it counts as v's (expansion_sign)
+SIGN_PERSIST_S = 0.5
+#: s: the longest stretch without a clear expansion sign across which a reversal is read (see reversal_measurement)
+REVERSAL_MAX_GAP_S = 1.0
+
+
+@dataclass
+class MaterialRates:
+    """Field rates taken along the image content (the material derivative), time-major (n, F).
+
+    For each frame k: r̄, r²̄ averaged over the *same scene points* at both ends of a difference
+    and ṙ̄ = Dr/Dt over those points, all in the camera's orientation at frame k
+    (lobula.receptive_field.MaterialFields); NaN where no difference exists.
+
+    Parameters
+    ----------
+    r : ndarray, (n, F)
+        1/s: r̄.
+    r2 : ndarray, (n, F)
+        1/s²: r²̄.
+    r_dot : ndarray, (n, F)
+        1/s²: ṙ̄ = Dr/Dt.
+    """
+
+    r: np.ndarray
+    r2: np.ndarray
+    r_dot: np.ndarray
+
+
+def field_velocity(r, r2, r_dot, a):
+    """Per-field velocity v_f = a·r̄/(ṙ̄ − r²̄) and implied depth d_f = a/(ṙ̄ − r²̄).
+
+    Parameters
+    ----------
+    r : ndarray, (n, F)
+        1/s: r̄.
+    r2 : ndarray, (n, F)
+        1/s²: r²̄.
+    r_dot : ndarray, (n, F)
+        1/s²: ṙ̄.
+    a : ndarray, (n,)
+        m/s²: the forward acceleration.
+
+    Returns
+    -------
+    v_f : ndarray, (n, F)
+        m/s (inf or NaN where ṙ̄ = r²̄).
+    d_f : ndarray, (n, F)
+        m.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = r_dot - r2
+        depth = a[:, None] / denom
+        return r * depth, depth
+
+
+def median_and_error(values: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median over fields, NaN left out, and its standard error 1.253·1.4826·MAD/√n.
+
+    1.253 is the median's efficiency for Gaussian samples, 1.4826 turns the MAD into σ.
+
+    Parameters
+    ----------
+    values : ndarray, (n_frames, F)
+        Any units U; NaN where a field has none.
+    n : ndarray, (n_frames,)
+        The fields counted per frame.
+
+    Returns
+    -------
+    med : ndarray, (n_frames,)
+        U, NaN where a frame has no value.
+    se : ndarray, (n_frames,)
+        U.
+    """
+    with warnings.catch_warnings():  # all-NaN frames are expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(values, axis=1)
+        mad = np.nanmedian(np.abs(values - med[:, None]), axis=1)
+    return med, 1.253 * 1.4826 * mad / np.sqrt(np.maximum(n, 1))
+
+
+def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
+    """One velocity measurement per frame from the fields, with its standard deviation.
+
+    Fields are kept when their implied depth lies in [depth_min, depth_max] (d > 0 is
+    geometry, not a tuning); a frame is informative when |a| ≥ accel_min and at least
+    min_valid_fraction of fields are kept. The std is the median's standard error
+    (1.253·1.4826·MAD/√n), floored.
+
+    Parameters
+    ----------
+    r, r2, r_dot : ndarray, (n, F)
+        1/s, 1/s², 1/s²: r̄, r²̄, ṙ̄.
+    a : ndarray, (n,)
+        m/s²: the forward acceleration.
+    cfg : ReadoutConfig
+
+    Returns
+    -------
+    z : ndarray, (n,)
+        m/s: the median of the kept fields' v_f, NaN where uninformative.
+    std : ndarray, (n,)
+        m/s, NaN where uninformative.
+    v_f : ndarray, (n, F)
+        m/s, NaN for rejected fields.
+    """
+    v_f, depth = field_velocity(r, r2, r_dot, a)
+    ok = np.isfinite(v_f) & (depth >= cfg.depth_min_m) & (depth <= cfg.depth_max_m)
+    ok &= (np.abs(a) >= cfg.accel_min_m_s2)[:, None]
+    v_f = np.where(ok, v_f, np.nan)
+    n_ok = ok.sum(1)
+    z, se = median_and_error(v_f, n_ok)
+    std = np.maximum(se, cfg.meas_floor_m_s)
+    enough = n_ok >= max(3, cfg.min_valid_fraction * r.shape[1])
+    return np.where(enough, z, np.nan), np.where(enough, std, np.nan), v_f
+
+
+def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
+    """Vision's a/v per frame, κ = median over fields of (ṙ̄ − r²̄)/r̄, and its standard error.
+
+    No accelerometer enters: ṙ − r² = a/d and r = v/d, so their ratio is a/v for every
+    field whatever its depth. Fields whose |r̄| is under a fifth of the frame's median
+    |r̄| (nothing expanding there to measure) are left out, and so are fields outside
+    ``keep`` (e.g. those whose implied depth is not physical); a frame needs at least
+    min_valid_fraction of the fields.
+
+    Parameters
+    ----------
+    r, r2, r_dot : ndarray, (n, F)
+        1/s, 1/s², 1/s²: r̄, r²̄, ṙ̄.
+    cfg : ReadoutConfig
+    keep : ndarray of bool, (n, F), optional
+        The fields that may count.
+
+    Returns
+    -------
+    kappa : ndarray, (n,)
+        1/s: κ, NaN where uninformative.
+    std : ndarray, (n,)
+        1/s, NaN where uninformative.
+    """
+    with warnings.catch_warnings(), np.errstate(divide="ignore", invalid="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ra = np.abs(r)
+        ok = np.isfinite(r) & np.isfinite(r2) & np.isfinite(r_dot) & (ra >= 0.2 * np.nanmedian(ra, axis=1)[:, None])
+        if keep is not None:
+            ok &= keep
+        k = np.where(ok, (r_dot - r2) / r, np.nan)
+    n_ok = ok.sum(1)
+    kap, std = median_and_error(k, n_ok)
+    enough = (n_ok >= max(3, cfg.min_valid_fraction * r.shape[1])) & np.isfinite(kap)
+    return np.where(enough, kap, np.nan), np.where(enough, std, np.nan)
+
+
+def signed_expansion(r: np.ndarray):
+    """The fields' signed median expansion r̄ per frame, its standard error and the fields counted.
+
+    What the rest bound and the reversals judge "expansion detected" on (|r̄| > NO_EXPANSION_SE·SE).
+
+    Parameters
+    ----------
+    r : ndarray, (n, F)
+        1/s, NaN where a field has none.
+
+    Returns
+    -------
+    r_med : ndarray, (n,)
+        1/s.
+    se : ndarray, (n,)
+        1/s.
+    n : ndarray of int, (n,)
+        The fields counted.
+    """
+    n = np.isfinite(r).sum(1)
+    r_med, se = median_and_error(r, n)
+    return r_med, se, n
+
+
+def clear_expansion(r: np.ndarray, min_fields: int):
+    """The fields' signed median r̄ and where it stands clear of zero.
+
+    Clear: beyond NO_EXPANSION_SE standard errors, with at least max(3, ``min_fields``) fields —
+    "expansion detected", as the reversals and the expansion's sign judge it.
+
+    Parameters
+    ----------
+    r : ndarray, (n, F)
+        1/s, NaN where a field has none.
+    min_fields : int
+        The fields a frame needs for its median to count.
+
+    Returns
+    -------
+    r_med : ndarray, (n,)
+        1/s.
+    clear : ndarray of bool, (n,)
+    """
+    r_med, se, n = signed_expansion(r)
+    return r_med, np.isfinite(r_med) & (n >= max(3, min_fields)) & (np.abs(r_med) > NO_EXPANSION_SE * se)
+
+
+def expansion_sign(t: np.ndarray, r: np.ndarray, min_fields: int, persist_s: float = SIGN_PERSIST_S) -> np.ndarray:
+    """The sign of v that the fields' expansion shows (causal).
+
+    Every field's r̄ = v/d has the sign of v whatever its depth d > 0; the persistence keeps a
+    moment's front-end fault (an expansion read with the wrong sign for 0.3 s, tests/test_readout.py) out.
+
+    Parameters
+    ----------
+    t : ndarray, (n,)
+        s.
+    r : ndarray, (n, F)
+        1/s, NaN where a field has none.
+    min_fields : int
+        The fields a frame needs for its median to count.
+    persist_s : float
+        s: how long the sign must have held.
+
+    Returns
+    -------
+    ndarray, (n,)
+        ±1 where the fields' signed median r̄ has lain beyond NO_EXPANSION_SE standard errors of 0, with
+        that sign and at least ``min_fields`` fields, at every frame of the last ``persist_s`` seconds;
+        NaN elsewhere.
+    """
+    r_med, clear = clear_expansion(r, min_fields)
+    sgn = np.where(clear, np.sign(r_med), 0.0)
+    t = np.asarray(t, float)
+    start = np.searchsorted(t, t - persist_s, side="left")
+    out = np.full(len(t), np.nan)
+    for s in (-1.0, 1.0):
+        # frames with this clear sign, counted: the window [start, k] must hold nothing else
+        c = np.concatenate([[0], np.cumsum(sgn == s)])
+        whole = (c[np.arange(1, len(t) + 1)] - c[start]) == (np.arange(len(t)) - start + 1)
+        out[whole & (t - t[0] >= persist_s)] = s
+    return out
+
+
+def rest_measurement(r, cfg: ReadoutConfig):
+    """v = r·d with 0 < d ≤ rest_depth_max: no detectable expansion bounds |v|.
+
+    Translation makes every field's r̄ = v/d_f of one sign (v's), while flow noise and residual
+    rotation scatter the fields' r̄ about zero (rotation's divergence is odd across the image).
+    So the fields' *signed* median r̄_m, known to within its standard error SE
+    (1.253·1.4826·MAD/√n), tells: where |r̄_m| ≤ 3·SE no expansion is detected (3·SE, not 2·SE:
+    r̄ also carries small non-translational biases — an epipole that wanders while nothing
+    moves, a derotation with a biased gyro — which on the real still EuRoC sequence 2·SE calls
+    motion on a third of the frames), and the speed
+    is bounded by |v| ≤ d_max·(|r̄_m| + 2·SE) at 95%, that bound being the measurement's 2σ.
+    (The median of |r̄| would count the noise as motion: a still camera's DIS flow noise alone
+    is ~0.02 1/s per field, which at 5 m is 0.1 m/s.) Where expansion is detected the camera
+    moves, and a bound resting on an assumed depth would only pull v̂ toward 0: not used.
+
+    Parameters
+    ----------
+    r : ndarray, (n, F)
+        1/s, NaN where a field has none.
+    cfg : ReadoutConfig
+
+    Returns
+    -------
+    z : ndarray, (n,)
+        m/s: 0 where the bound is used, NaN elsewhere.
+    std : ndarray, (n,)
+        m/s, NaN where the bound is not used.
+    """
+    r_med, se, n = signed_expansion(r)
+    std = np.maximum(0.5 * cfg.rest_depth_max_m * (np.abs(r_med) + 2.0 * se), cfg.meas_floor_m_s)
+    # It is a bound, not a noisy sample: repeating a loose bound frame after frame must
+    # not add up to confidence, so it only counts where it alone would be decisive.
+    use = (np.isfinite(r_med) & (n >= max(3, cfg.min_valid_fraction * r.shape[1]))
+           & (np.abs(r_med) <= NO_EXPANSION_SE * se) & (std <= 0.5 * cfg.max_std_m_s))
+    return np.where(use, 0.0, np.nan), np.where(use, std, np.nan)
+
+
+def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.0):
+    """Where v passed through 0: the frames at which the fields' expansion is seen to change sign.
+
+    Every field's r̄ = v/d has v's sign (d > 0), so where the fields' signed median r̄ stands clear
+    of zero (|r̄| > 3·SE, as :func:`rest_measurement` judges "expansion detected") at frame i and
+    again at a later frame j with the other sign, and nowhere clearly in between, v was 0 at some
+    t* in [t_i, t_j] — whatever the depths (a far backdrop only makes r̄ small, never of the
+    wrong sign). t* is interpolated linearly in r̄ between the two, and is uncertain by the gap's
+    uniform spread (t_j − t_i)/√12 and by how far the rates' stamps may be off (``stamp_error_s``,
+    1σ, in quadrature), which turns into a velocity error of |a|·that: the
+    acceleration's own offset is still unknown here, so :func:`kalman_velocity` takes |a| as its
+    posterior has it. Gaps longer than REVERSAL_MAX_GAP_S are skipped (v may have crossed more
+    than once). Each reversal is known at frame j (online: once the new sign is clear); the four
+    arrays returned are NaN except at those frames j.
+
+    Parameters
+    ----------
+    t : ndarray, (n,)
+        s.
+    r : ndarray, (n, F)
+        1/s: the fields' expansion rates at fixed pixels (the newest, not low-passed).
+    a : ndarray, (n,)
+        m/s²: the forward acceleration as read (offset and all).
+    min_fields : int
+        The fields a frame needs for its median to count.
+    stamp_error_s : float
+        s (1σ): how far the rates' stamps may be off.
+
+    Returns
+    -------
+    shift : ndarray, (n,)
+        m/s: the integrated reading from t* to t_j (the measurement of v(t_j − delay) + ∫a, as the
+        filter's rows take it).
+    time_std : ndarray, (n,)
+        s: t*'s std.
+    delay : ndarray, (n,)
+        s: t_j − t*.
+    accel : ndarray, (n,)
+        m/s²: the mean reading over [t_i, t_j].
+    """
+    r_med, clear = clear_expansion(r, min_fields)
+    idx = np.flatnonzero(clear)
+    flip = np.flatnonzero(np.sign(r_med[idx[1:]]) != np.sign(r_med[idx[:-1]]))
+    i, j = idx[flip], idx[flip + 1]
+    keep = t[j] - t[i] <= REVERSAL_MAX_GAP_S
+    i, j = i[keep], j[keep]
+    t_star = t[i] + (t[j] - t[i]) * np.abs(r_med[i]) / (np.abs(r_med[i]) + np.abs(r_med[j]))
+    cum = _integral(a, t)
+    out = tuple(np.full(len(t), np.nan) for _ in range(4))
+    out[0][j] = cum[j] - np.interp(t_star, t, cum)
+    out[1][j] = np.hypot((t[j] - t[i]) / np.sqrt(12.0), stamp_error_s)
+    out[2][j] = t[j] - t_star
+    a_sum = np.concatenate([[0.0], np.cumsum(a)])
+    out[3][j] = (a_sum[j + 1] - a_sum[i]) / (j - i + 1)  # the mean reading over frames i..j
+    return out
+
+
+def accelerometer_level(a: np.ndarray, dt: float, change_max: float, causal: bool = False):
+    """The forward accelerometer reading averaged over 5 frames, and how far it may stray while nothing happens.
+
+    A vibrating platform (a real drone's running rotors) shakes the reading far beyond the
+    sensor's own noise: the bar is raised to 5× the rms of what the 5-frame average leaves out
+    of white noise of the reading's own level (≈ 11σ of the average, ~2.7× the range white noise
+    spans in a 1 s window), over the last 5 s online, the 5 s around the frame offline. (EuRoC
+    V1_01's still start ends in a −0.1 → −0.29 m/s² step over 0.8 s — rotors spinning up or the
+    take-off beginning; the copy has no ground truth to tell; at 3× that bar loses the rest bound
+    and v̂ drifts to an RMS of 0.011 m/s.) That level is read from the second differences
+    (E[(Δ²a)²] = 6σ² for white noise), which a smooth trajectory barely enters; what the average
+    itself leaves out also holds the flight's own jerk, which on a corridor at 2 m/s would raise
+    the bar to 0.5 m/s² and let a rest bound through while the camera accelerates at 0.3 m/s²
+    (causal RMSE 0.047 m/s that way, 0.033 from the second differences; the real EuRoC start
+    the same either way).
+
+    Second differences see white noise at the frame rate, not a slow wobble: a hovering platform's
+    3 Hz, 0.1 m/s² wobble leaves the bar at change_max, so the wobble reads as motion and the rest
+    bound is not used through it. That is the cautious side. Counting such a wobble as vibration
+    (what a half-second quadratic leaves) gives the rest bound back on 20 % of the replay of the
+    real FLIVVER run, but with the EMD front end's weak expansion at coarse resolution a wrongly
+    applied bound is confidently wrong (Δφ = 3°: 0.105 m/s against 0.045), while losing it costs
+    little (τ = 5 ms at full contrast: 0.032 m/s against 0.026; DIS the same, 0.0052).
+
+    Parameters
+    ----------
+    a : ndarray, (n,)
+        m/s²: the forward reading.
+    dt : float
+        s: the frame interval.
+    change_max : float
+        m/s²: the least bar.
+    causal : bool
+        Trailing averages (online) rather than centred ones.
+
+    Returns
+    -------
+    level : ndarray, (n,)
+        m/s²: the 5-frame average.
+    tol : ndarray, (n,)
+        m/s²: ``change_max``, or 5× the reading's own vibration where that is more.
+    """
+    from scipy.ndimage import uniform_filter1d
+
+    a = np.asarray(a, float)
+    sm = uniform_filter1d(a, 5, mode="nearest", origin=2 if causal else 0)  # trailing when causal
+    k = max(3, int(round(5.0 / dt)))
+    d2 = np.diff(a, 2) if len(a) >= 3 else np.zeros(1)
+    d2 = np.concatenate([d2[:1], d2[:1], d2] if causal else [d2[:1], d2, d2[-1:]])[:len(a)]
+    # 0.8σ²: the variance white noise leaves after its 5-frame average is taken away.
+    hf = 0.8 * uniform_filter1d(d2 ** 2 / 6.0, k, mode="nearest", origin=(k - 1) // 2 if causal else 0)
+    return sm, np.maximum(change_max, 5.0 * np.sqrt(np.maximum(hf, 0.0)))
+
+
+def accelerometer_steady(a: np.ndarray, dt: float, change_max: float, window_s: float = 1.0,
+                         causal: bool = False) -> np.ndarray:
+    """Where the forward acceleration stayed within a bar of a straight line over a window.
+
+    Each reading is first averaged over 5 frames; the bar is ``change_max`` or 5× the reading's
+    own vibration where that is more (:func:`accelerometer_level`).
+
+    A still camera's accelerometer reads its offset, gravity's residue — a constant, or a ramp while
+    an uncorrected gyro bias turns gravity into the forward axis (a real still EuRoC sequence: 0.17
+    m/s² per second). A reading that bends away from a line says the camera starts or stops
+    accelerating: not at rest, whatever the image shows. The converse does not hold (constant
+    velocity reads the same as rest): that the image must tell. No offset or ramp enters the test
+    (the online filter also asks the reading less its learned offset: :func:`kalman_velocity`).
+
+    Parameters
+    ----------
+    a : ndarray, (n,)
+        m/s²: the forward reading.
+    dt : float
+        s: the frame interval.
+    change_max : float
+        m/s²: the least bar.
+    window_s : float
+        s: the window's length.
+    causal : bool
+        The window ending at each frame (online); else the one centred on it.
+
+    Returns
+    -------
+    ndarray of bool, (n,)
+    """
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    n = len(a)
+    w = min(max(3, int(round(window_s / dt))), n)
+    sm, change_max = accelerometer_level(a, dt, change_max, causal)
+    # Window j covers frames j .. j + w − 1; causal frame k takes the window ending at k, offline the
+    # one centred on it (both clipped at the record's ends).
+    win = sliding_window_view(sm, w)                                       # (n − w + 1, w)
+    x = np.arange(w) - 0.5 * (w - 1)
+    slope = win @ x / (x @ x)
+    res = win - win.mean(1, keepdims=True) - slope[:, None] * x
+    bend = res.max(1) - res.min(1)                                         # (n − w + 1,)
+    j = np.arange(n) - (w - 1 if causal else w // 2)
+    return bend[np.clip(j, 0, len(bend) - 1)] <= change_max
+
+
+def readout_lag(cfg: ReadoutConfig, dt: float) -> int:
+    """Frames by which the kalman readout's terms are late (:func:`readout_terms`).
+
+    Parameters
+    ----------
+    cfg : ReadoutConfig
+    dt : float
+        s: the frame interval.
+
+    Returns
+    -------
+    int
+        0 offline; online the centred low-pass's half-width plus half the stagger of ṙ̄'s
+        difference (11 at 30 frames/s by default).
+    """
+    if cfg.filter == "zero-phase":
+        return 0
+    stagger = max(2, cfg.stagger + cfg.stagger % 2)
+    return gaussian_lowpass(np.zeros(3), cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma)[1] + stagger // 2
+
+
+def physical_kappa(terms, v_f, cfg: ReadoutConfig, offset_prior: float):
+    """κ and its standard error (:func:`ratio_measurement`), a field left out where its implied depth is not physical.
+
+    A field's depth is judged (v_f NaN, :func:`vision_measurement`) only where |a| is beyond what
+    the accelerometer's offset could make of nothing: an offset (the online gravity reference's,
+    up to the start's acceleration) would otherwise make every field look unphysical exactly when
+    κ ≈ 0 is what pins it down. Elsewhere κ ≈ 0 ties the offset down.
+
+    Parameters
+    ----------
+    terms : tuple of ndarray
+        The readout's (r̄, r²̄, ṙ̄, a): (n, F) 1/s, 1/s², 1/s² and (n,) m/s² (:func:`readout_terms`).
+    v_f : ndarray, (n, F)
+        m/s: the fields' velocities, NaN where rejected.
+    cfg : ReadoutConfig
+    offset_prior : float
+        m/s²: the prior std of the accelerometer's offset.
+
+    Returns
+    -------
+    kappa : ndarray, (n,)
+        1/s, NaN where uninformative.
+    std : ndarray, (n,)
+        1/s.
+    """
+    judge = np.abs(terms[3]) >= cfg.accel_min_m_s2 + 2.0 * offset_prior
+    return ratio_measurement(*terms[:3], cfg, keep=np.isfinite(v_f) | ~judge[:, None])
+
+
+def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None):
+    """The kalman readout's low-passed inputs: (r̄, r²̄, ṙ̄, a) and how late they are.
+
+    Offline (``cfg.filter`` "zero-phase") a zero-phase Butterworth, no latency; online the same
+    centred (linear-phase) computation, known ``lag`` frames later, every term delayed alike so
+    the ratios the readout takes stay unbiased.
+
+    Parameters
+    ----------
+    t : ndarray, (n,)
+        s, uniformly spaced.
+    r, r2 : ndarray, (n, F)
+        1/s and 1/s²: the fields' rates at fixed pixels.
+    a : ndarray, (n,)
+        m/s².
+    cfg : ReadoutConfig
+    material : MaterialRates, optional
+        The rates along the content; then r̄, r²̄ and ṙ̄ are its own.
+
+    Returns
+    -------
+    terms : tuple of ndarray
+        The four terms (n, F), (n, F), (n, F), (n,) as of ``lag`` frames ago.
+    lag : int
+        Frames, including half the stagger of ṙ̄'s difference.
+    lp : callable
+        The low-pass used, on (n, ...) arrays.
+    rf : ndarray, (n, F)
+        1/s: the low-passed fixed-pixel r̄ as of now (not lagged).
+    """
+    dt = float(np.median(np.diff(t)))
+    stagger = max(2, cfg.stagger + cfg.stagger % 2)
+    lag = readout_lag(cfg, dt)
+    if cfg.filter == "zero-phase":
+        wn = cfg.cutoff_hz / (0.5 / dt)
+        lp = lambda x: butterworth(x, wn, cfg.order, True)
+    else:
+        lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma, causal=True)[0]
+    rf = lp(r)
+    if material is None:
+        r2f = lp(r2) if cfg.r2_term == "field" else rf ** 2
+        terms = (rf, r2f, staggered_difference(rf, stagger, dt, centred=True), lp(a))
+    else:
+        m = material
+        rm = lp(m.r)
+        r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp(m.r2)
+        terms = (rm, r2m, lp(m.r_dot), lp(a))
+    return tuple(_lag(x, lag) for x in terms), lag, lp, rf
