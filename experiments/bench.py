@@ -250,18 +250,31 @@ def run_device_bench(device: str) -> list[dict]:
     return rows
 
 
-def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) -> list[dict]:
-    """Print a table of frames/s per stage for each image size and DIS preset; return the rows."""
+#: stages `lobula bench --skip` leaves out, and what each times
+SKIPPABLE = {"render": "the synthetic world's renderer", "emd": "the EMD front end (torch)",
+             "ephys": "the ephys tuning sweep (torch, ~70 s)", "tv": "TV depth (torch)"}
+
+
+def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium"), skip=()) -> list[dict]:
+    """Print a table of frames/s per stage for each image size and DIS preset; return the rows.
+
+    skip: names of :data:`SKIPPABLE` stages not to time (the camera pipeline's stages always run).
+    """
     import cv2
 
     from stimuli.scene import SceneConfig
     from stimuli.track import TrackRunConfig, make_track_run
 
     rows = []
-    from lobula._optional import torch
+    from lobula._optional import optional_torch, require_torch
 
+    skip = set(skip)
+    torch = optional_torch()
+    if torch is None and not {"emd", "ephys", "tv"} <= skip:
+        require_torch("timing the EMD front end, the ephys sweep and TV depth (or --skip emd ephys tv)")
+    threads = torch.get_num_threads() if torch is not None else "-"
     print(f"lobula bench: {frames} frames per run, OpenCV threads {cv2.getNumThreads()}, "
-          f"torch threads {torch.get_num_threads()}, {os.cpu_count()} CPUs, load average "
+          f"torch threads {threads}, {os.cpu_count()} CPUs, load average "
           f"{os.getloadavg()[0]:.1f}.\nStage figures are frames/s of that stage alone; end-to-end is "
           f"estimate_velocity in this process (decode included), CPU ms/frame its CPU time over all "
           f"threads; command is `lobula velocity` as its own process, frames/s after its start-up, which is "
@@ -285,25 +298,29 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium")) 
                 print(f"{r['size']:>9} {preset:>7} {r['read']:8.0f} {r['flow']:8.1f} {r['fields']:8.0f} "
                       f"{r['readout']:9.0f} {r['end_to_end']:11.1f} {r['cpu_ms_per_frame']:12.1f} "
                       f"{r['command_fps']:8.1f} {r['startup_s']:10.2f} {r['rss_mb']:8.0f}")
-            rr = bench_render(scale)
-            print(f"rendering the synthetic world at {rr['size']} (lobula scene's default scene, 2x2 rays a pixel): "
-                  f"{rr['render_fps']:.1f} frames/s")
-            rows.append(rr)
-            if scale == 0.5:
+            if "render" not in skip:
+                rr = bench_render(scale)
+                print(f"rendering the synthetic world at {rr['size']} (lobula scene's default scene, 2x2 rays a "
+                      f"pixel): {rr['render_fps']:.1f} frames/s")
+                rows.append(rr)
+            if scale == 0.5 and "emd" not in skip:
                 e = bench_emd(folder)
                 print(f"EMD front end, {e['n_ommatidia']} ommatidia (Δφ {e['dphi_deg']:.2f}°) on {r['size']}: "
                       f"sampling {e['sampling']:.0f}, photoreceptor {e['photoreceptor']:.0f}, EMD {e['emd']:.0f}, "
                       f"fields {e['fields']:.0f} frames/s; front end {e['emd_front_end']:.0f} frames/s; "
                       f"with PNG decoding {e['end_to_end']:.0f} frames/s (after building the eye once)")
                 rows.append(e)
-    from experiments.ephys import bench_tuning_sweep
+    if "ephys" not in skip:
+        from experiments.ephys import bench_tuning_sweep
 
-    print("ephys tuning sweep (20 TF x 5 contrasts x 10 trials, 2 s at 1 ms, 5,000-ommatidia eye + LC population):")
-    rows.append(bench_tuning_sweep())
-    tv = bench_tv_depth()
-    print(f"TV depth (lobula depth --method tv) at 320x240, cold start, 1 torch thread: "
-          f"median {tv['median_ms']:.0f} ms/map, max {tv['max_ms']:.0f} ms")
-    rows.append(tv)
+        print("ephys tuning sweep (20 TF x 5 contrasts x 10 trials, 2 s at 1 ms, 5,000-ommatidia eye + LC "
+              "population):")
+        rows.append(bench_tuning_sweep())
+    if "tv" not in skip:
+        tv = bench_tv_depth()
+        print(f"TV depth (lobula depth --method tv) at 320x240, cold start, 1 torch thread: "
+              f"median {tv['median_ms']:.0f} ms/map, max {tv['max_ms']:.0f} ms")
+        rows.append(tv)
     print(f"peak resident memory {_peak_mb():.0f} MiB. Memory is flat in footage length: frames are "
           f"streamed and only gap+1 frames are held; a run of N frames keeps O(N·fields) numbers.")
     return rows
@@ -314,7 +331,7 @@ def _run(args) -> int:
         check_device(args.device)
         run_device_bench(args.device)
         return 0
-    run_bench(frames=args.frames, scales=args.scales, presets=args.presets)
+    run_bench(frames=args.frames, scales=args.scales, presets=args.presets, skip=args.skip)
     return 0
 
 
@@ -331,4 +348,7 @@ def add_parser(subparsers):
                    help="cpu: the whole pipeline on this CPU. cuda (or cuda:N): only the torch stages (EMD circuit "
                         "tuning sweep, TV depth), on that GPU beside this CPU, after checking they agree; "
                         "--frames/--scales/--presets do not apply (DIS flow has no GPU path)")
+    b.add_argument("--skip", nargs="+", default=[], choices=list(SKIPPABLE), metavar="STAGE",
+                   help="stages not to time: " + "; ".join(f"{k}: {v}" for k, v in SKIPPABLE.items())
+                        + " (default: none)")
     b.set_defaults(func=_run)
