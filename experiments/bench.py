@@ -32,7 +32,7 @@ def _peak_mb() -> float:
 def bench_velocity(folder: Path, preset: str) -> dict:
     from experiments.velocity import estimate_velocity
     from lobula.config import VelocityConfig
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     fo = open_footage(folder)
     cfg = VelocityConfig()
@@ -84,7 +84,7 @@ def bench_emd(folder: Path, n_ommatidia: int = 5000) -> dict:
     from experiments.velocity import field_rates
     from lobula.config import VelocityConfig
     from lobula.lattice import dphi_for_count
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     fo = open_footage(folder)
     cfg = VelocityConfig(front_end="emd")

@@ -14,7 +14,7 @@ import numpy as np
 
 from lobula.config import VelocityConfig
 from lobula.receptive_field import pool_fields, tile_fields
-from stimuli.footage import Footage, FootageError
+from lobula.readers.core import Footage, FootageError
 
 
 def exact_field_rates(footage: Footage, config: VelocityConfig, epipole=(0.0, 0.0)):
@@ -96,7 +96,7 @@ def read_calibration(path):
 def run_calibrate(args) -> int:
     from experiments.calibrate import calibrate_emd, write_calibration
     from lobula.config import VelocityConfig
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     fo = open_footage(args.footage)
     gains, latency, n = calibrate_emd(fo, VelocityConfig(front_end="emd"), per_field=not args.single_gain)

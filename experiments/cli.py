@@ -238,7 +238,7 @@ def main(argv=None) -> int:
     if not hasattr(args, "func"):
         build_parser([args.command]).parse_args([args.command, "--help"])
     from lobula._optional import MissingExtraError
-    from stimuli.footage import FootageError
+    from lobula.readers.core import FootageError
 
     from . import store
 

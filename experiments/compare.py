@@ -47,12 +47,15 @@ import numpy as np
 import xarray as xr
 
 from lobula.config import VelocityConfig
-from stimuli.footage import FloUnits, Footage, FootageError, open_footage
+from lobula.front_ends import FRONT_ENDS
+from lobula.readers import open_footage
+from lobula.readers.core import Footage, FootageError
+from lobula.readers.flo import FloUnits
 
 from .store import provenance, save_figure, write_netcdf, write_text
 
+#: every front end of lobula.front_ends.FRONT_ENDS, the EMD array first
 DEFAULT_FRONT_ENDS = ("emd", "dis", "farneback", "flo")
-FRONT_ENDS = ("emd", "dis", "farneback", "flo")
 LOCK_TOL_M_S = 0.1
 LOCK_HOLD_S = 1.0
 STAGE_ORDER = ("read", "flow", "sampling", "photoreceptor", "emd", "fields", "readout")

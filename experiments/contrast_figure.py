@@ -63,7 +63,7 @@ def contrast_noise_numbers(cache, seeds=(0, 1, 2), taus=(0.005, 0.01, 0.035), co
 
     from experiments.velocity import estimate_velocity, score
     from lobula.config import VelocityConfig
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.scene import SceneConfig
 
     sigma = SceneConfig().noise_grey

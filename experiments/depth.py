@@ -20,7 +20,8 @@ import xarray as xr
 from lobula.config import VelocityConfig
 from lobula.depth import DepthConfig
 from lobula.epipole import EpipoleEstimator
-from stimuli.footage import FloUnits, Footage, FootageError
+from lobula.readers.core import Footage, FootageError
+from lobula.readers.flo import FloUnits
 
 from .depth_figure import plot_depth, plot_flo_pair
 from .depth_score import format_scores, pooled_scores
@@ -51,7 +52,7 @@ def depth_flo_pair(footage: Footage, flo_path: str | Path, units: FloUnits | Non
     per estimator ``median_depth_m`` and ``valid_fraction``; v, the epipole and provenance
     in attrs.
     """
-    from .velocity import flo_samples
+    from lobula.front_ends.flo import flo_samples
 
     units = units or FloUnits()
     cfg = config or DepthConfig(gamma=FOOTAGE_GAMMA)

@@ -15,7 +15,7 @@ from lobula.camera import PinholeCamera
 from lobula.config import VelocityConfig
 from lobula.depth import DepthConfig, DepthResult, depth_metrics
 from lobula.flow import pixel_to_angular
-from stimuli.footage import Footage, read_frame
+from lobula.readers.core import Footage, read_frame
 
 from .depth_stream import (METHODS, DepthRunConfig, _FrameReader, depth_at_first_frame, depth_flow_fn, flow_config,
                            footage_attitude, torch_threads)

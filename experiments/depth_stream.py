@@ -69,7 +69,7 @@ from lobula.depth_motion import flow_noise, precision_weights, refine_motion, tr
 from lobula.epipole import derotate_finite
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
 from lobula.haltere import orientation_from_gyro
-from stimuli.footage import Footage, FootageError, footage_provenance
+from lobula.readers.core import Footage, FootageError, footage_provenance
 
 __all__ = ["METHODS", "FOOTAGE_GAMMA", "DepthRunConfig", "Pair", "estimate_depth", "metric_scale", "attitude_track", "pair_rotation",
            "depth_at_first_frame", "ranged_pairs", "depth_flow_fn", "footage_attitude", "flow_config", "mean_truth_velocity", "torch_threads",

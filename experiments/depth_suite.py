@@ -205,7 +205,7 @@ def range_scene(footage, velocity, scene, run: DepthRunConfig, depth_every: int,
 def run_one(out: Path, family: str, seed: int, args) -> dict:
     """Render, estimate velocity, range one scene; returns its record (metrics and the sample map)."""
     from lobula.config import VelocityConfig
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import build_track
 
     from .velocity import estimate_velocity

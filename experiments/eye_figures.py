@@ -35,7 +35,7 @@ def ensure_runs(workdir, families=FAMILIES, seeds=(0, 1, 2), duration_s: float =
     from lobula.compound_eye import CompoundEyeConfig
     from lobula.config import VelocityConfig
     from stimuli.eye import make_eye_run
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import make_track_run
 
     workdir = Path(workdir)
@@ -318,7 +318,7 @@ def eye_benchmark(workdir, families=("panels", "rotation", "corridor"), seeds=(0
     from lobula.compound_eye import CompoundEyeConfig
     from lobula.config import VelocityConfig
     from stimuli.eye import make_eye_run, open_eye_footage
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import make_track_run
 
     workdir = Path(workdir)

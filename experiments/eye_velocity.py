@@ -344,7 +344,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     from tqdm.auto import tqdm
 
     from lobula._optional import require_torch
-    from stimuli.footage import FootageError
+    from lobula.readers.core import FootageError
 
     require_torch("the compound eye's circuit")
     cfg = config or EyeVelocityConfig()

@@ -40,7 +40,7 @@ from lobula.version import command_line, provenance_attrs
 from lobula.config import VelocityConfig
 from lobula.readout import ReadoutConfig, readout
 from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron
-from stimuli.footage import open_footage
+from lobula.readers import open_footage
 
 FIGURES = ("replay_emd_vs_dis", "rmse_vs_field_size", "rmse_vs_dphi", "rmse_vs_tau_contrast_noise",
            "error_vs_acceleration", "rate_vs_spiking", "replay_velocity")
@@ -256,7 +256,7 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
         from experiments.velocity import plot_velocity, score
 
         plot_velocity(dis, out / "replay_velocity.png", title=f"Default pipeline on the replay ({profile})")
-        records["replay_velocity"] = dict(base, what="v̂ ± 1σ against truth, default pipeline (DIS, zero-phase)",
+        records["replay_velocity"] = dict(base, what="v̂ with its ±2σ band against truth, default pipeline (DIS, zero-phase)",
                                           config=json.loads(dis.attrs["config"]), results=score(dis, 2.0))
         _save_record("replay_velocity", out, records["replay_velocity"])
 

@@ -45,7 +45,7 @@ def gaze_numbers(workdir, seeds=(0, 1, 2), families=("rotation", "mixed", "panel
     traces: the first family's first seed, {label: (t, v_hat)} plus "truth"."""
     from experiments.suite import family_config
     from experiments.velocity import estimate_velocity, score
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import make_track_run
 
     workdir = Path(workdir)

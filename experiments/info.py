@@ -26,7 +26,7 @@ def open_footage_from_args(args, require_imu: bool = True, keep_nan: bool = Fals
     """open_footage with the options of :func:`add_footage_options` (absent options: defaults);
     keep_nan: count NaN IMU and truth values instead of stopping at them (``lobula info``);
     require_camera: False opens a recording without intrinsics (a GoPro MP4) with camera None (``lobula info``)."""
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     clock = getattr(args, "clock", None)
     return open_footage(args.footage, stream=getattr(args, "stream", None),
@@ -57,7 +57,7 @@ def _nan_note(counts: dict) -> str:
 
 def describe(footage) -> dict:
     """Everything ``lobula info`` reports about a footage, as plain JSON-able values."""
-    from stimuli.footage import frame_gaps
+    from lobula.readers.core import frame_gaps
 
     t = np.asarray(footage.times, float)
     cam = footage.camera
@@ -169,7 +169,7 @@ def format_text(d: dict) -> str:
         for s in shown:
             out.append("  " + "  ".join(f"{v}" for v in s.values()))
     if d.get("telemetry"):
-        from stimuli.gopro import describe_telemetry
+        from lobula.readers.gopro import describe_telemetry
         out += describe_telemetry(d["telemetry"])
     for n in d["notes"]:
         out.append(f"note: {n}")

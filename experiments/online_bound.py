@@ -237,7 +237,7 @@ def footage_kappa(path, front_end: str = "dis") -> dict:
     from lobula.config import VelocityConfig
     from lobula.readout import butterworth
     from stimuli.eye import is_eye_footage, open_eye_footage
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     from .eye_velocity import EyeVelocityConfig, estimate_eye_velocity
     from .velocity import field_rates
@@ -274,7 +274,7 @@ def family_trajectory(family: str, seed: int, duration_s: float = 10.0):
 
     scene, _ = build_track(family_config(family, seed, duration_s, scale=0.5))
     times = np.arange(0.0, duration_s - 1e-9, 1.0 / scene.camera.frame_rate_hz)
-    # As stimuli.footage.write_footage writes truth.csv: the track's acceleration projected on the optical axis.
+    # As stimuli.footage_writer.write_footage writes truth.csv: the track's acceleration projected on the optical axis.
     v = scene.camera_velocity(times)[:, 2]
     a = scene.trajectory.acceleration(times) * scene.rotation(times)[:, 2, 2]
     return times, v, a

@@ -133,6 +133,10 @@ class LazyCommand:
 MEAN_REMOVAL = ("space", "time")
 #: the output neurons' spike models (sorted keys of lobula.readout_neuron.SPIKE_MODELS)
 SPIKE_MODELS = ("lif", "poisson")
+#: the velocity front ends (the keys of lobula.front_ends.FRONT_ENDS, in its order)
+FRONT_END_NAMES = ("dis", "farneback", "flo", "emd")
+#: `lobula compare`'s default: every front end, the EMD array first (experiments.compare.DEFAULT_FRONT_ENDS)
+COMPARE_FRONT_ENDS = ("emd", "dis", "farneback", "flo")
 #: lock-on tolerance (m/s) and hold time (s) of the scores (experiments.compare.LOCK_TOL_M_S, LOCK_HOLD_S)
 LOCK_TOL_M_S, LOCK_HOLD_S = 0.1, 1.0
 
@@ -177,7 +181,7 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
     """`lobula velocity`'s camera options (experiments.velocity_command adds the compound eye's)."""
     v = subparsers.add_parser("velocity", help="estimate forward velocity from footage")
     v.add_argument("footage", help="footage folder, D435i sample, RealSense .bag/.db3, EuRoC folder or video file")
-    v.add_argument("--front-end", default="dis", choices=["dis", "farneback", "flo", "emd"],
+    v.add_argument("--front-end", default="dis", choices=FRONT_END_NAMES,
                    help="what measures the image motion: dis or farneback (OpenCV dense optical flow), flo "
                         "(precomputed .flo files, with --flo) or emd (an EMD array on the camera image)")
     v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
@@ -293,8 +297,8 @@ def add_compare_parser(subparsers) -> argparse.ArgumentParser:
                     "(fields, readout, filter and acceleration shared), each scored against the truth.")
     c.add_argument("footage",
                    help="footage folder (synthetic: r̄ is also scored against depth maps) or the D435i sample")
-    c.add_argument("--front-ends", default="emd,dis,farneback,flo",
-                   help="comma-separated, from emd, dis, farneback, flo (flo is skipped without --flo)")
+    c.add_argument("--front-ends", default=",".join(COMPARE_FRONT_ENDS),
+                   help=f"comma-separated, from {', '.join(COMPARE_FRONT_ENDS)} (flo is skipped without --flo)")
     c.add_argument("--out", required=True, help="comparison NetCDF (written atomically)")
     c.add_argument("--csv", help="the table as CSV (default: none)")
     c.add_argument("--plot",

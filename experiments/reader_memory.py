@@ -2,7 +2,7 @@
 
 ``python -m experiments.reader_memory --frames 20000`` writes one synthetic recording per
 layout (footage folder, EuRoC/ASL folder, MJPG video, ROS1 ``.bag`` and rosbag2 ``.db3``
-written with rosbags) at a tiny resolution, opens each with :func:`stimuli.footage.open_footage`
+written with rosbags) at a tiny resolution, opens each with :func:`lobula.readers.open_footage`
 and streams every frame, printing the resident memory after opening, after the first
 10% of frames and at the end. Flat streaming: the end and the 10% figures agree.
 A measurement, not a test: it prints figures.
@@ -193,7 +193,7 @@ LAYOUTS = {"folder": make_folder, "euroc": make_euroc, "video": make_video, "bag
 
 def measure(path: Path) -> dict:
     """Open and stream every frame; resident memory (MiB) at each stage and the frames/s."""
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     gc.collect()
     before = rss_mib()

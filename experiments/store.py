@@ -5,7 +5,7 @@ half-written ever looks complete. The temporary is a hidden name beside the outp
 ``.<name>.lobula-tmp-<pid>-<random><suffix>``: removed when the block raises (a signal that
 ``lobula`` catches raises too, see :func:`experiments.cli.main`), and, where a run was killed
 outright (SIGKILL, power loss), by the next run that writes the same output
-(:func:`stimuli.footage_core.remove_stale`). Inside :func:`all_or_nothing` several outputs
+(:func:`stimuli.footage_writer.remove_stale`). Inside :func:`all_or_nothing` several outputs
 appear together or none of them. A full disk, a read-only folder or a refused permission
 raise :class:`OutputError`, whose message names the output, never its temporary.
 
@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from lobula.version import provenance_attrs
-from stimuli.footage_core import remove_stale
+from stimuli.footage_writer import remove_stale
 
 if TYPE_CHECKING:  # xarray is imported where a Dataset is written: the command line's error handling needs none
     import xarray as xr

@@ -61,8 +61,9 @@ METRIC_UNITS = dict(rmse_m_s="m/s", median_abs_error_m_s="m/s", coverage_2sigma=
 #: z95 where a Gaussian error's ±2σ coverage is 99 % and 85 % (1.96·2/z₀.₉₉₅, 1.96·2/z₀.₉₂₅): the suite figure's band
 Z95_TARGET = (1.52, 2.72)
 
-#: configuration name -> (base, filter, {config path: value}); base "lobula" (DIS), "emd" (the camera's EMD
-#: front end, with its own defaults: VelocityConfig(front_end="emd")) or "paper"
+#: configuration name -> (base, filter, {config path: value}); base "lobula" (DIS), a front end's name
+#: (lobula.front_ends.FRONT_ENDS, with its own defaults: VelocityConfig(front_end=base); "emd", the camera's
+#: EMD front end) or "paper"
 CONFIGURATIONS = {
     "lobula zero-phase": ("lobula", "zero-phase", {}),
     "lobula causal": ("lobula", "causal", {}),
@@ -156,6 +157,7 @@ def velocity_config(name: str):
     """The VelocityConfig of a configuration name (an EyeVelocityConfig for :data:`EYE_CONFIGURATIONS`);
     a config path the estimator lacks raises ValueError."""
     from lobula.config import VelocityConfig
+    from lobula.front_ends import FRONT_ENDS
 
     if name in EYE_CONFIGURATIONS:
         from .eye_velocity import EyeVelocityConfig
@@ -163,7 +165,7 @@ def velocity_config(name: str):
         return _set_paths(EyeVelocityConfig(), EYE_CONFIGURATIONS[name], name)
     base, filt, paths = CONFIGURATIONS[name]
     cfg = (VelocityConfig.paper("dis", filt) if base == "paper" else
-           VelocityConfig(front_end="emd") if base == "emd" else VelocityConfig())
+           VelocityConfig(front_end=base) if base in FRONT_ENDS else VelocityConfig())
     cfg.readout.filter = filt
     return _set_paths(cfg, paths, name)
 
@@ -306,7 +308,7 @@ def run_scene_job(job: SceneJob) -> dict:
     """Render (unless already there), run every configuration, write series and result; return the result."""
     import xarray as xr
 
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import make_track_run
 
     from .store import write_netcdf
@@ -395,15 +397,15 @@ def run_scene_job(job: SceneJob) -> dict:
 def remove_partial_scenes(out: Path) -> list[Path]:
     """Remove the partial scene folders (``OUT/scenes/.<scene>.partial-<pid>``, ``.<scene>.track-<pid>``)
     that a suite stopped outright (SIGKILL, power loss) left: those whose process is gone and that are
-    older than this run (stimuli.footage_core.remove_stale). Returns them."""
+    older than this run (stimuli.footage_writer.remove_stale). Returns them."""
     import re
 
-    from stimuli.footage_core import remove_stale
+    from stimuli.footage_writer import remove_stale
 
     scenes = Path(out) / "scenes"
     if not scenes.is_dir():
         return []
-    # ".<scene>.partial-<pid>" (stimuli.footage_core.atomic_folder), ".<scene>.track-<pid>" (stimuli.track's
+    # ".<scene>.partial-<pid>" (stimuli.footage_writer.atomic_folder), ".<scene>.track-<pid>" (stimuli.track's
     # rendering folder) and the one inside the other
     prefixes = {m.group(1) for e in os.scandir(scenes)
                 if (m := re.fullmatch(r"(\..+\.(?:partial|track)-)\d+", e.name))}

@@ -87,7 +87,7 @@ import xarray as xr
 
 from lobula import __version__
 from lobula.config import VelocityConfig
-from stimuli.footage import FootageError
+from lobula.readers.core import FootageError
 from stimuli.track import TrackRunConfig, recorded_profile
 
 from .compare import LOCK_HOLD_S, LOCK_TOL_M_S, METRIC_ATTRS, METRICS
@@ -190,7 +190,7 @@ def ensure_render(run: TrackRunConfig, renders_dir: str, key: str, threads: int 
     """Render ``run`` into ``renders_dir/key`` unless it is already there; returns its path and cost.
 
     Renders are deterministic functions of the run configuration, and the folder appears
-    atomically (:func:`stimuli.footage.write_footage`), so a complete folder is always reusable.
+    atomically (:func:`stimuli.footage_writer.write_footage`), so a complete folder is always reusable.
     """
     from stimuli.track import make_track_run
 
@@ -223,7 +223,7 @@ def ensure_render(run: TrackRunConfig, renders_dir: str, key: str, threads: int 
 def compute_point(render: dict, velocity: VelocityConfig, run: TrackRunConfig, scoring: dict, key: str,
                   renders_dir: str, threads: int = 0) -> dict:
     """One grid point: velocity on its render, scored against exact truth. Returns its record."""
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     from .compare import exact_rates, front_end_metrics, stage_ms_per_frame
     from .velocity import estimate_velocity, forward_accel_at

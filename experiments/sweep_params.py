@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lobula.config import VelocityConfig
+from lobula.front_ends import get_front_end
 from stimuli.track import TrackRunConfig
 
 ALIASES = {"seed": ("run.scene.seed", "run.imu.seed")}
@@ -204,13 +205,14 @@ def config_hash(obj, n: int = 20) -> str:
 
 def effective_velocity(cfg: VelocityConfig) -> dict:
     """The part of a velocity configuration a run depends on (for deduplicating points):
-    a flow front end ignores ``emd``, the EMD ignores ``flow``; ``flow.method`` follows ``front_end``."""
+    each front end reads only its own sections (lobula.front_ends.FrontEnd.sections: a flow front end
+    ignores ``emd``, the EMD ``flow``); ``flow.method`` follows ``front_end``."""
     d = cfg.to_dict()
-    if cfg.front_end == "emd":
-        d.pop("flow", None)
-    else:
-        d.pop("emd", None)
-        d.get("flow", {}).pop("method", None)
+    sections = get_front_end(cfg.front_end).sections
+    for section in ("flow", "emd"):
+        if section not in sections:
+            d.pop(section, None)
+    d.get("flow", {}).pop("method", None)   # the front end sets it
     return d
 
 

@@ -8,7 +8,6 @@ the filter kind, the acceleration source and the version in ``attrs``.
 from __future__ import annotations
 
 import json
-import re
 import time as _time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -20,7 +19,8 @@ from tqdm.auto import tqdm
 
 from lobula.config import VelocityConfig
 from lobula.epipole import HEADING_POINTS, EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
-from lobula.flow import FlowSample, StaggeredFlow
+from lobula.flow import FlowSample
+from lobula.front_ends import FRONT_ENDS, FrontEndInput, get_front_end
 from lobula.photoreceptor import MEAN_REMOVAL, mean_removal
 from lobula.haltere import (GRAVITY_WINDOW_S, HEADING_FIT_BIAS_PRIOR, GyroAttitude, attitude_leak,
                             forward_acceleration, forward_axis, fused_gyro_bias, gravity_drift_std,
@@ -28,8 +28,8 @@ from lobula.haltere import (GRAVITY_WINDOW_S, HEADING_FIT_BIAS_PRIOR, GyroAttitu
                             transport_rate, turn_rate, vision_gyro_bias)
 from lobula.readout import MaterialRates, readout
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
-from stimuli.footage import (FloUnits, Footage, FootageError, acceleration_from_truth, flo_to_normalised,
-                             footage_provenance, read_flo)
+from lobula.readers.core import Footage, FootageError, acceleration_from_truth, footage_provenance
+from lobula.readers.flo import FloUnits
 
 from .store import provenance
 from .stream import threaded
@@ -64,34 +64,15 @@ class FieldRates:
     known: np.ndarray | None = None
 
 
-def flo_samples(footage: Footage, flo_files: list[Path], units: FloUnits):
-    """FlowSamples from .flo files named ``*_<i0>_to_<i1>.flo`` (raw frame numbers or indices)."""
-    by_name = {int(f.stem): i for i, f in enumerate(footage.files) if f.stem.isdigit()}
-    for path in flo_files:
-        m = re.search(r"(\d+)_to_(\d+)\.flo$", path.name)
-        if not m:
-            raise FootageError(f"{path}: .flo files must be named *_<first>_to_<second>.flo")
-        a, b = int(m.group(1)), int(m.group(2))
-        t0, t1 = _frame_time(footage, a, by_name), _frame_time(footage, b, by_name)
-        flow = flo_to_normalised(read_flo(path), footage.camera, units)
-        yield FlowSample(a, t0, t1, flow)
-
-
-def _frame_time(footage: Footage, frame: int, by_name: dict) -> float:
-    if frame in by_name:
-        return float(footage.times[by_name[frame]])
-    if footage.kind == "d435i-sample":
-        vel = footage.truth
-        # raw_frame = sample + 3; time_s is the sample's time.
-        k = frame - 3
-        if 0 <= k < len(vel["time_s"]):
-            return float(vel["time_s"][k])
-    raise FootageError(f"no time known for frame {frame} in {footage.path}")
-
-
 def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] | None = None,
                 flo_units: FloUnits | None = None, progress: bool = True) -> FieldRates:
-    """Run the front end over the footage (streamed) and pool every flow into the fields."""
+    """Run the front end over the footage (streamed) and pool every flow into the fields.
+
+    The front end (:func:`lobula.front_ends.get_front_end` of ``config.front_end``) yields each pair's
+    flow, which is derotated and pooled here, or the fields' rates it pooled itself (its ``yields``).
+    flo_files, flo_units: the precomputed flow of the ``flo`` front end.
+    """
+    front = get_front_end(config.front_end)
     cam = footage.camera
     fields = tile_fields(cam, config.fields)
     x, y = fields.x, fields.y
@@ -106,51 +87,31 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
     b0 = (gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal")
           if attitude is not None and config.gyro_bias_from_vision else None)
 
-    if config.front_end == "emd":
-        return _emd_field_rates(footage, config, fields, timings, progress,
-                                None if attitude is None else attitude(footage.times))
-    if config.front_end == "flo":
-        if not flo_files:
-            raise FootageError("--front-end flo needs --flo FILE_OR_DIR with *_<first>_to_<second>.flo files")
-        samples = _timed(flo_samples(footage, flo_files, flo_units or FloUnits()), timings, "flow")
-        total = len(flo_files)
-    elif config.front_end in ("dis", "farneback"):
-        config.flow.method = config.front_end
-        # Decoding, flow and pooling overlap: each runs in its own thread, a few frames ahead.
-        frames = threaded(_timed(footage.frames(), timings, "read"), name="decode")
-        waited = dict(decode=0.0)
-        # With a gyro, each pair's flow is taken on the image turned by the gyro's rotation
-        # (lobula.flow.prewarp_flow): the flow method then sees only small displacements.
-        turn = None
-        if attitude is not None:
-            def turn(t0, t1, plain=attitude):
-                q = plain(np.array([t0, t1]))
-                return q[0].T @ q[1]
-        flows = StaggeredFlow(cam, config.flow, rotation=turn).run(_timed(frames, waited, "decode"))
-        if attitude is not None and config.epipole == "estimate":
-            # The heading and the gyro's bias are fitted jointly (lobula.epipole.HeadingBiasEstimator)
-            # and the fields' attitude follows the bias and the scale error E learned so far
-            # (lobula.haltere.GyroAttitude); the pre-warp, a thread ahead, keeps the plain attitude.
-            # E (VelocityConfig.gyro_scale_prior): the suite's rotation family (±5°, to 1.5 Hz, seeds
-            # 0-2) 0.011 / 0.018 m/s zero-phase / causal with it, 0.016 / 0.039 without; a camera turning
-            # ±10° at up to 2 Hz with a realistic IMU reads v̂ 40-60 % slow without it (zero-phase 0.106 m/s, zero
-            # estimator 0.20, ideal IMU 0.012) and 0.013 with it.
-            # The fit's own bias prior is its regulariser against the heading–bias confound, narrower than
-            # the data sheet's spread (lobula.haltere.HEADING_FIT_BIAS_PRIOR).
-            fit_prior = min(HEADING_FIT_BIAS_PRIOR, np.radians(config.gyro_bias_prior_deg_s))
-            b_still, s_still = gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal",
-                                         with_std=True, prior=fit_prior)
-            attitude = GyroAttitude(footage.imu.time_s, gyro, b_still[0])
-            est = HeadingBiasEstimator(x, y, b_still[0], s_still[0], scale_std=config.gyro_scale_prior or None,
-                                       stride=max(1, int(np.sqrt(cam.width * cam.height / HEADING_POINTS))))
-        samples = threaded(_timed(flows, timings, "flow", minus=(waited, "decode")), name="flow")
-        total = max(len(footage) - config.flow.gap, 0)
-    else:
-        raise ValueError(f"unknown front end {config.front_end!r}; choose dis, farneback, flo or emd")
+    stream = front.open(FrontEndInput(footage, config, fields, timings, attitude, flo_files, flo_units,
+                                      ahead=threaded))
+    if front.yields == "fields":
+        return _pooled_field_rates(stream, config, fields, timings, progress)
+    if front.live and attitude is not None and config.epipole == "estimate":
+        # The heading and the gyro's bias are fitted jointly (lobula.epipole.HeadingBiasEstimator)
+        # and the fields' attitude follows the bias and the scale error E learned so far
+        # (lobula.haltere.GyroAttitude); the pre-warp, a thread ahead, keeps the plain attitude.
+        # E (VelocityConfig.gyro_scale_prior): the suite's rotation family (±5°, to 1.5 Hz, seeds
+        # 0-2) 0.011 / 0.018 m/s zero-phase / causal with it, 0.016 / 0.039 without; a camera turning
+        # ±10° at up to 2 Hz with a realistic IMU reads v̂ 40-60 % slow without it (zero-phase 0.106 m/s, zero
+        # estimator 0.20, ideal IMU 0.012) and 0.013 with it.
+        # The fit's own bias prior is its regulariser against the heading–bias confound, narrower than
+        # the data sheet's spread (lobula.haltere.HEADING_FIT_BIAS_PRIOR).
+        fit_prior = min(HEADING_FIT_BIAS_PRIOR, np.radians(config.gyro_bias_prior_deg_s))
+        b_still, s_still = gyro_bias(footage.imu.time_s, gyro, causal=config.readout.filter == "causal",
+                                     with_std=True, prior=fit_prior)
+        attitude = GyroAttitude(footage.imu.time_s, gyro, b_still[0])
+        est = HeadingBiasEstimator(x, y, b_still[0], s_still[0], scale_std=config.gyro_scale_prior or None,
+                                   stride=max(1, int(np.sqrt(cam.width * cam.height / HEADING_POINTS))))
+    samples, total = stream.samples, stream.total
 
     stagger = max(2, config.readout.stagger + config.readout.stagger % 2)
     material = (MaterialFields(fields, stagger, gap_correction=config.fields.gap_correction)
-                if config.fields.material and config.front_end in ("dis", "farneback") else None)
+                if config.fields.material and front.live else None)
     ts, rs, r2s, es, ms, gres, hb, known = [], [], [], [], [], [], [], []
     bar = tqdm(total=total, desc=f"{config.front_end} flow → fields", unit="frame", disable=not progress,
                leave=False, mininterval=2)
@@ -205,7 +166,7 @@ def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] 
                       _material_rates(ms, len(ts), fields.n_fields, stagger) if material is not None else None,
                       tuple(np.array([g[i] for g in gres]) for i in range(3)) if gres else None,
                       tuple(np.array([h[i] for h in hb]) for i in range(3)) if hb else None,
-                      np.array(known) if config.front_end in ("dis", "farneback") else None)
+                      np.array(known) if front.live else None)
 
 
 #: pixels per pair for the residual-rotation fit: a 3-parameter fit (with a 2-parameter
@@ -285,49 +246,19 @@ def _material_rates(items: list, n: int, n_fields: int, stagger: int) -> Materia
     return MaterialRates(*out)
 
 
-def _emd_field_rates(footage: Footage, config: VelocityConfig, fields: ReceptiveFields, timings: dict,
-                     progress: bool, orientation: np.ndarray | None = None) -> FieldRates:
-    """The EMD front end: (a gaze stabilised by the gyro's attitude ``orientation`` (N, 3, 3) at the
-    frames, when given), lattice sampling, photoreceptors, EMDs, gradient-ratio fields."""
-    from lobula._optional import require_torch
-    from lobula.emd_decoding import EMDFrontEnd
-
-    require_torch("the EMD front end")
-    front = EMDFrontEnd(footage.camera, fields, config.emd)
-    frames = _timed(footage.frames(), timings, "read")
+def _pooled_field_rates(stream, config: VelocityConfig, fields: ReceptiveFields, timings: dict,
+                        progress: bool) -> FieldRates:
+    """FieldRates of a front end that pools its own fields (``yields`` "fields", the EMD): its
+    FieldSamples in order, the epipole at the principal point (zeros)."""
     ts, rs, r2s = [], [], []
-    with tqdm(total=len(footage), desc="emd → fields", unit="frame", disable=not progress, leave=False,
-              mininterval=2) as bar:
-        for t, r, r2 in front.run(frames, orientation):
-            ts.append(t)
-            rs.append(r)
-            r2s.append(r2)
+    with tqdm(total=stream.total, desc=f"{config.front_end} → fields", unit="frame", disable=not progress,
+              leave=False, mininterval=2) as bar:
+        for s in stream.samples:
+            ts.append(s.t)
+            rs.append(s.r)
+            r2s.append(s.r2)
             bar.update(1)
-    timings.pop("flow", None)
-    timings.pop("fields", None)
-    timings.update(front.timings)
-    timings["n_ommatidia"] = front.lattice.n
-    timings["n_saccades"] = front.saccades
-    if len(ts) < 2:
-        raise FootageError(f"{footage.path}: too few frames for the EMD front end ({len(ts)})")
     return FieldRates(np.array(ts), np.array(rs), np.array(r2s), np.zeros((len(ts), 2)), timings, fields)
-
-
-def _timed(items, timings: dict, key: str, minus: tuple[dict, str] | None = None):
-    """Pass items through, adding the time spent producing each to timings[key] (s).
-
-    minus=(other, k): leave out what other[k] grew by meanwhile — the time this stage spent
-    waiting for the stage before it, timed by a ``_timed`` on its input in the same thread.
-    """
-    it = iter(items)
-    while True:
-        before, t0 = minus[0][minus[1]] if minus else 0.0, _time.perf_counter()
-        try:
-            item = next(it)
-        except StopIteration:
-            return
-        timings[key] += _time.perf_counter() - t0 - ((minus[0][minus[1]] - before) if minus else 0.0)
-        yield item
 
 
 TRUTH_ACCEL_OFFSET_M_S2 = 0.01  # prior std of the offset of an acceleration derived from ground truth
@@ -418,9 +349,12 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                       flo_files: list[Path] | None = None, flo_units: FloUnits | None = None) -> xr.Dataset:
     """Estimate forward velocity over a footage; returns the velocity Dataset (see module doc)."""
     config = config or VelocityConfig()
-    if config.front_end == "emd" and config.epipole == "estimate":
-        raise ValueError("the EMD front end has no epipole estimate (its fields expand about the principal "
-                         "point); use epipole 'principal' (--epipole principal) or a flow front end")
+    front = get_front_end(config.front_end)
+    if config.epipole not in front.epipoles:
+        others = [f.name for f in FRONT_ENDS.values() if config.epipole in f.epipoles]
+        raise ValueError(f"the {front.name} front end has no epipole {config.epipole} (it runs with epipole "
+                         f"{' or '.join(front.epipoles)}); use epipole {front.epipoles[0]!r} (--epipole "
+                         f"{front.epipoles[0]}) or another front end ({', '.join(others)})")
     t_start = _time.perf_counter()
     rates = field_rates(footage, config, flo_files, flo_units, progress)
     causal = config.readout.filter == "causal"
@@ -530,7 +464,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     if online:
         filt += f" (each v_hat known {online['output_latency_s']:g} s after its time)"
     gyro = footage.imu is not None and footage.imu.gyro is not None
-    if config.front_end == "emd":
+    if front.derotation == "gaze":
         derotation = (f"gaze stabilised by the integrated gyro (fixations, saccades beyond "
                       f"{config.emd.saccade_limit_deg:g} deg: {int(rates.timings.get('n_saccades', 0))})"
                       if config.derotate and gyro and config.emd.gaze == "fixate" else
@@ -637,10 +571,7 @@ def never_observable_reason(ds: xr.Dataset) -> str | None:
             f"expansion rates were too weak or too noisy to fix the speed; v̂ is NaN throughout")
 
 
-#: Each front end, filter and readout in words, for figure captions.
-FRONT_END_WORDS = {"dis": "dense optical flow (OpenCV DIS)", "farneback": "dense optical flow (Farnebäck)",
-                   "flo": "precomputed optical flow (.flo files)",
-                   "emd": "Hassenstein–Reichardt motion detectors (EMD array)"}
+#: Each readout in words, for figure captions (each front end's: lobula.front_ends.FrontEnd.description).
 READOUT_WORDS = {"kalman": "Kalman filter fusing the expansion rates with the forward acceleration a",
                  "median": "median over fields of the expansion ratio (the paper's readout)"}
 
@@ -652,7 +583,8 @@ def describe_run(ds: xr.Dataset) -> str:
     when = ("zero-phase: offline, each estimate uses the whole record" if filt.startswith("zero-phase") else
             "causal: online, each estimate uses only what came before it" + (
                 " and a fixed lag" if "fixed lag" in filt else "") if filt.startswith("causal") else filt)
-    return f"front end: {FRONT_END_WORDS.get(fe, fe)}\nreadout: {READOUT_WORDS.get(ro, ro)} ({when})"
+    words = FRONT_ENDS[fe].description if fe in FRONT_ENDS else fe
+    return f"front end: {words}\nreadout: {READOUT_WORDS.get(ro, ro)} ({when})"
 
 
 def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | None = None):
@@ -690,7 +622,8 @@ def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | No
     ax.set_ylabel("forward velocity (m/s)\nbelow 0: moving backwards")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     sc = score(ds, skip)
-    head = f"{title or 'forward velocity'}: {score_line(sc, skip)}"
+    # A caller's title gets a line of its own: with the scores after it, it ran past the figure's edge.
+    head = f"{title}\n{score_line(sc, skip)}" if title else f"forward velocity: {score_line(sc, skip)}"
     fig.suptitle(f"{head}\n{describe_run(ds)}", fontsize=9)
     ax2.plot(t, ds.accel.values, color="tab:blue", lw=1, label="a")
     ax2.axhline(0, color="0.4", lw=0.8)
@@ -755,13 +688,14 @@ def apply_velocity_options(cfg, args):
                             drho_deg=opt("drho") or e.lattice.drho_deg)
     if opt("tau"):
         e.emd = replace(e.emd, tau_s=args.tau)
+    front = get_front_end(cfg.front_end)
     if opt("mean_removal"):
-        if cfg.front_end != "emd":
+        if "emd" not in front.sections:   # the option sets VelocityConfig.emd
             raise ValueError(f"--mean-removal sets the EMD front end's columns, but the front end is {cfg.front_end}; "
                              f"drop it or use --front-end emd")
         e.surround, e.photoreceptor = mean_removal(args.mean_removal, e.photoreceptor)
     if opt("emd_gaze"):
-        if cfg.front_end != "emd":
+        if front.derotation != "gaze":
             raise ValueError(f"--emd-gaze sets the EMD front end's gaze, but the front end is {cfg.front_end} (the flow "
                              f"front ends derotate their flow exactly); drop it or use --front-end emd")
         e.gaze = args.emd_gaze

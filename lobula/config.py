@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass, field, fields, is_dataclass
 
 from .emd_decoding import EMDFrontEndConfig
 from .flow import FlowConfig
+from .front_ends import FRONT_ENDS, get_front_end
 from .readout import ReadoutConfig
 from .receptive_field import FieldConfig
 
@@ -20,7 +21,7 @@ from .receptive_field import FieldConfig
 class VelocityConfig:
     """Velocity estimation from footage.
 
-    front_end: "dis" | "farneback" | "flo" | "emd". epipole: "estimate" (from the
+    front_end: a name of :data:`lobula.front_ends.FRONT_ENDS` ("dis" | "farneback" | "flo" | "emd"). epipole: "estimate" (from the
     derotated flow) or "principal" (assume the principal point, as the paper does).
     derotate: subtract gyro-predicted rotational flow when a gyroscope is present.
     gyro_bias_from_vision: with a gyroscope, estimate its bias from the rotation the
@@ -44,8 +45,9 @@ class VelocityConfig:
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
-    readout: None (the default) gives ``ReadoutConfig()`` for the flow front ends and
-    ``ReadoutConfig.emd()`` (κ's larger shared error) for "emd".
+    readout: None (the default) gives a ReadoutConfig with the front end's κ errors
+    (:attr:`lobula.front_ends.FrontEnd.kappa_errors`: ReadoutConfig's own for the flow front ends,
+    ``ReadoutConfig.EMD_KAPPA_ERRORS``, κ's larger shared error, for "emd").
     emd: the EMD front end (lattice, photoreceptors, EMD, decoding) when front_end is "emd".
     Its epipole is the principal point (the EMD path has no estimate: a configuration made for it
     with the default "estimate" records "principal", what runs, and asking for "estimate" with it
@@ -69,10 +71,11 @@ class VelocityConfig:
     emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)
 
     def __post_init__(self):
-        if self.readout is None:   # EMD fields' κ errs more than flow's: ReadoutConfig.emd
-            self.readout = ReadoutConfig.emd() if self.front_end == "emd" else ReadoutConfig()
-        if self.front_end == "emd" and self.epipole == "estimate":
-            self.epipole = "principal"   # what the EMD front end runs with (see the docstring)
+        fe = get_front_end(self.front_end)
+        if self.readout is None:   # EMD fields' κ errs more than flow's: the front end's own κ errors
+            self.readout = fe.default_readout()
+        if self.epipole == "estimate" and not fe.estimates_epipole:
+            self.epipole = fe.epipoles[0]   # what the front end runs with (the EMD: the principal point)
         if self.epipole not in ("estimate", "principal"):
             raise ValueError(f"epipole must be 'estimate' or 'principal', got {self.epipole!r}")
         if self.timestamps not in ("mid", "start"):
@@ -97,12 +100,10 @@ class VelocityConfig:
         d = copy.deepcopy(self)
         d.front_end = front_end
         d.__post_init__()          # the front end's epipole, as a new configuration's, and validation
-        flow_k = (ReadoutConfig.kappa_rel_error, ReadoutConfig.shared_error_frac)
         now = (d.readout.kappa_rel_error, d.readout.shared_error_frac)
-        if front_end == "emd" and now == flow_k:      # the flow default's κ errors: the EMD default's
-            d.readout.kappa_rel_error, d.readout.shared_error_frac = ReadoutConfig.EMD_KAPPA_ERRORS
-        elif front_end != "emd" and now == ReadoutConfig.EMD_KAPPA_ERRORS:
-            d.readout.kappa_rel_error, d.readout.shared_error_frac = flow_k
+        # Another front end's default κ errors become this one's; κ errors set otherwise stay.
+        if now in {tuple(f.kappa_errors) for f in FRONT_ENDS.values()}:
+            d.readout.kappa_rel_error, d.readout.shared_error_frac = get_front_end(front_end).kappa_errors
         return d
 
     def to_dict(self) -> dict:

@@ -5,7 +5,7 @@ frames apart, staggered so that every frame starts a pair (the paper: 6 frames,
 0.2 s, at 30 frames/s). A pair's flow is the *average* image velocity over its
 interval, so it belongs to the middle of the interval: :class:`StaggeredFlow`
 stamps each flow with that mid time. Precomputed flow (``.flo``) enters through
-:func:`stimuli.footage.flo_to_normalised`.
+:func:`lobula.readers.flo.flo_to_normalised`.
 """
 from __future__ import annotations
 

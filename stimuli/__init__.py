@@ -1,15 +1,11 @@
-"""stimuli: everything that makes or reads input — synthetic scenes with exact truth, footage readers."""
+"""stimuli: synthetic worlds with exact truth and their writers (the readers of footage are :mod:`lobula.readers`)."""
 from __future__ import annotations
 
 import importlib
 
 #: public name -> the module of this package that defines it (imported on first use)
 _API = {
-    "IMU": "footage_core", "Footage": "footage_core", "FootageError": "footage_core", "frame_gaps": "footage_core",
-    "read_frame": "footage_core",
-    "FloUnits": "footage", "acceleration_from_truth": "footage", "flo_to_normalised": "footage",
-    "footage_provenance": "footage", "open_footage": "footage", "read_flo": "footage", "read_imu_csv": "footage_core",
-    "write_footage": "footage",
+    "write_footage": "footage_writer",
     "IMUConfig": "imu", "synthesize_imu": "imu",
     "SceneConfig": "scene", "TrackScene": "scene", "band_limited_texture": "scene",
     "Trajectory": "trajectory", "read_velocity_profile": "trajectory", "trajectory_from_function": "trajectory",
@@ -20,11 +16,6 @@ _API = {
     "looming_angular_size": "lattice_stimuli", "looming_disc": "lattice_stimuli", "moving_edge": "lattice_stimuli",
     "moving_spot": "lattice_stimuli", "noise_panorama": "lattice_stimuli", "radial_grating": "lattice_stimuli",
     "sparse_noise": "lattice_stimuli",
-    "BagFootage": "realsense_bag", "open_realsense_bag": "realsense_bag",
-    "Rosbag2Footage": "rosbag2_db3", "open_rosbag2": "rosbag2_db3",
-    "EurocFootage": "euroc", "open_euroc": "euroc",
-    "VideoFootage": "video", "open_video": "video",
-    "ClockOffset": "clock_offset", "estimate_clock_offset": "clock_offset",
     "EyeFootage": "eye", "open_eye_footage": "eye", "write_eye_footage": "eye", "make_eye_run": "eye",
     "render_eye": "eye",
 }

@@ -44,8 +44,9 @@ import numpy as np
 
 from lobula.compound_eye import CompoundEye, CompoundEyeConfig
 from lobula.gaze import GazeConfig, head_angles, head_rotation
+from lobula.readers.core import IMU, FootageError, check_times as _check_times, read_csv_columns as _read_csv
 
-from .footage_core import IMU, FootageError, atomic_folder, check_times as _check_times, read_csv_columns as _read_csv
+from .footage_writer import atomic_folder
 
 __all__ = ["EyeFootage", "render_eye", "write_eye_footage", "open_eye_footage", "is_eye_footage"]
 

@@ -19,7 +19,7 @@ import numpy as np
 from lobula import __version__
 from lobula.camera import PinholeCamera
 
-from .footage import write_footage
+from .footage_writer import write_footage
 from .imu import IMUConfig, synthesize_imu
 from .scene import SceneConfig, TrackScene
 from .trajectory import trajectory_from_function, trajectory_from_profile

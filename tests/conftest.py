@@ -88,7 +88,7 @@ def replay_rates(make_replay):
     """Field rates of the 0–30 s replay with the default DIS front end, and what a readout needs."""
     from experiments.velocity import field_rates, forward_accel_at
     from lobula.config import VelocityConfig
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     fo = open_footage(make_replay(0.0, 30.0))
     cfg = VelocityConfig()
@@ -103,6 +103,6 @@ def emd_replay(make_replay):
     """The 0–30 s replay through the EMD front end (uncalibrated) and the default readout."""
     from experiments.velocity import estimate_velocity
     from lobula.config import VelocityConfig
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     return estimate_velocity(open_footage(make_replay(0.0, 30.0)), VelocityConfig(front_end="emd"), progress=False)

@@ -36,7 +36,7 @@ def record(folder: str | Path, out: str | Path, gyro_t: np.ndarray, gyro: np.nda
     import cv2
     import pyrealsense2 as rs
 
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     fo = open_footage(folder)
     cam = fo.camera

@@ -222,7 +222,7 @@ _REFUSED = [
     (["depth-suite", "--out", "D", "--scale", "0"], "--scale", "a number > 0"),
     (["ephys", "looming", "--out", "x.nc", "--trials", "0"], "--trials", "a whole number ≥ 1"),
     (["ephys", "tf-tuning", "--out", "x.nc", "--contrast", "0.5", "1.5"], "--contrast", "a number in (0, 1]"),
-    (["ephys", "tf-tuning", "--out", "x.nc", "--tf", "0"], "--tf", "a number > 0"),
+    (["ephys", "tf-tuning", "--out", "x.nc", "--tf", "0"], "--tf", "a number in (0, 500)"),
     (["ephys", "rf-map", "--out", "x.nc", "--directions", "2"], "--directions", "a whole number ≥ 3"),
     (["ephys", "looming", "--out", "x.nc", "--max-size", "181"], "--max-size", "a number in (0, 180]"),
     (["ephys", "looming", "--out", "x.nc", "--duration", "-1"], "--duration", "a number > 0"),

@@ -9,7 +9,7 @@ import xarray as xr
 from experiments.compare import (add_parser, compare_front_ends, exact_rates, field_rate_error, lock_on_time,
                                  stage_ms_per_frame)
 from lobula.config import VelocityConfig
-from stimuli.footage import open_footage
+from lobula.readers import open_footage
 from stimuli.track import TrackRunConfig, make_track_run
 
 

@@ -177,7 +177,7 @@ def test_render_known_world_gives_analytic_luminance_and_range():
 
 def test_eye_footage_roundtrip(tmp_path):
     from stimuli.eye import open_eye_footage, write_eye_footage
-    from stimuli.footage import FootageError
+    from lobula.readers.core import FootageError
 
     world = flying_straight(Corridor())
     eye = CompoundEye(CompoundEyeConfig(dphi_deg=10.0, rings=1))

@@ -50,7 +50,8 @@ from experiments.store import write_netcdf
 from experiments.velocity import estimate_velocity
 from lobula.depth import angle_from_epipole
 from lobula.epipole import mean_angular_velocity
-from stimuli.footage import FootageError, open_footage
+from lobula.readers import open_footage
+from lobula.readers.core import FootageError
 from stimuli.imu import IMUConfig
 from stimuli.scene import SceneConfig
 from stimuli.track import TrackRunConfig, build_track, make_track_run

@@ -170,7 +170,7 @@ def rendered(tmp_path_factory):
     """The suite's corridor family, development seed 101, 3 s at 160×120, exact depth every 10 frames."""
     from experiments.suite import family_config
     from experiments.velocity import estimate_velocity
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import make_track_run
 
     cfg = replace(family_config("corridor", 101, 3.0, 0.25), depth_every=10)

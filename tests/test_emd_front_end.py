@@ -9,7 +9,7 @@ from lobula.config import VelocityConfig
 from lobula.readout import ReadoutConfig, readout
 from lobula.emd_decoding import EMDFrontEnd, EMDFrontEndConfig, fit_calibration
 from lobula.receptive_field import tile_fields
-from stimuli.footage import open_footage
+from lobula.readers import open_footage
 from stimuli.scene import SceneConfig
 from stimuli.track import TrackRunConfig, make_track_run
 

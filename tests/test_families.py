@@ -11,7 +11,7 @@ import pytest
 from experiments import suite
 from experiments.velocity import estimate_velocity
 from lobula.config import VelocityConfig
-from stimuli.footage import open_footage
+from lobula.readers import open_footage
 from stimuli.track import make_track_run
 
 DURATION_S, SCALE, SKIP_S = 6.0, 0.5, 1.5

@@ -26,8 +26,8 @@ import xarray as xr
 
 from experiments.cli import main
 from experiments.store import TEMP_TAG
-from stimuli.footage import open_footage
-from stimuli.footage_core import RUN_START, remove_stale
+from lobula.readers import open_footage
+from stimuli.footage_writer import RUN_START, remove_stale
 from stimuli.scene import SceneConfig
 from stimuli.track import TrackRunConfig, make_track_run
 

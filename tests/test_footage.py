@@ -13,7 +13,9 @@ from experiments.velocity import estimate_velocity, score
 from lobula.camera import PinholeCamera
 from lobula.config import VelocityConfig
 from lobula.receptive_field import pool_fields, tile_fields
-from stimuli.footage import FloUnits, FootageError, flo_to_normalised, open_footage, read_flo
+from lobula.readers import open_footage
+from lobula.readers.core import FootageError
+from lobula.readers.flo import FloUnits, flo_to_normalised, read_flo
 from stimuli.scene import SceneConfig
 from stimuli.track import TrackRunConfig, make_track_run
 

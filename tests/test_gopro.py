@@ -1,4 +1,4 @@
-"""GoPro MP4s with their GPMF telemetry (stimuli.gopro): axes, timing, GPS truth, stabilisation, bad input.
+"""GoPro MP4s with their GPMF telemetry (lobula.readers.gopro): axes, timing, GPS truth, stabilisation, bad input.
 
 Synthetic GoPro files are built here (GPMF written key by key, muxed with PyAV into a small MP4, the
 camera's settings block appended to its index) and read back through ``open_footage``; the two
@@ -21,9 +21,10 @@ import pytest
 from scipy.ndimage import uniform_filter1d
 
 from experiments.cli import main
-from stimuli.footage import FootageError, open_footage
-from stimuli.gopro import (GOPRO_TO_CAMERA, axis_order_matrix, has_gpmf_track, imu_axes_to_camera,
-                           packet_sample_times, quaternion_angle_deg)
+from lobula.readers import open_footage
+from lobula.readers.core import FootageError
+from lobula.readers.gopro import (GOPRO_TO_CAMERA, axis_order_matrix, has_gpmf_track, imu_axes_to_camera,
+                                  packet_sample_times, quaternion_angle_deg)
 
 GOPRO = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "gopro_walking"
 G = 9.80665
@@ -303,7 +304,7 @@ def test_no_camera_file_is_one_line_naming_the_fix(synthetic, tmp_path, capsys):
 
 @needs_gpmf
 def test_mp4_without_telemetry(tmp_path, capsys):
-    from stimuli.gopro import open_gopro
+    from lobula.readers.gopro import open_gopro
     clip = write_gopro_mp4(tmp_path / "plain.mp4", [], seconds=0.5)
     assert not has_gpmf_track(clip)
     with pytest.raises(FootageError, match=r"plain\.mp4: no GPMF telemetry track \(gpmd\).*camera's original file"):

@@ -24,7 +24,8 @@ from tests import realsense_writer  # noqa: E402
 
 from experiments.velocity import estimate_velocity, score  # noqa: E402
 from lobula.config import VelocityConfig  # noqa: E402
-from stimuli.footage import IMU, open_footage  # noqa: E402
+from lobula.readers import open_footage  # noqa: E402
+from lobula.readers.core import IMU  # noqa: E402
 from stimuli.imu import IMUConfig, synthesize_imu  # noqa: E402
 from stimuli.track import TrackRunConfig, build_track, make_track_run  # noqa: E402
 

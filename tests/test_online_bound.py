@@ -72,7 +72,7 @@ def test_bad_input_is_refused():
 
 def test_family_trajectory_is_the_rendered_truth(tmp_path):
     from experiments.suite import family_config
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import make_track_run
 
     cfg = replace(family_config("rotation", 5, 1.0, scale=0.1), depth_every=0)

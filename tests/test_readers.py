@@ -15,7 +15,8 @@ import xarray as xr
 
 from experiments.cli import main
 from lobula.flow import FlowConfig, StaggeredFlow
-from stimuli.footage import FootageError, open_footage
+from lobula.readers import open_footage
+from lobula.readers.core import FootageError
 from stimuli.scene import SceneConfig
 from stimuli.track import TrackRunConfig, make_track_run
 

@@ -20,9 +20,9 @@ from rosbags.rosbag1 import Writer  # noqa: E402
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
 
 from lobula.camera import PinholeCamera  # noqa: E402
-from stimuli import realsense_bag  # noqa: E402
-from stimuli.footage import Footage, FootageError, open_footage, read_frame  # noqa: E402
-from stimuli.realsense_bag import BagFootage, open_realsense_bag  # noqa: E402
+from lobula.readers import open_footage, realsense_bag  # noqa: E402
+from lobula.readers.core import Footage, FootageError, read_frame  # noqa: E402
+from lobula.readers.realsense_bag import BagFootage, open_realsense_bag  # noqa: E402
 
 TS = get_typestore(Stores.ROS1_NOETIC)
 TS.register(get_types_from_msg("uint32 fps\nstring encoding\nbool is_recommended\n", "realsense_msgs/msg/StreamInfo"))
@@ -516,7 +516,7 @@ def test_velocity_on_a_bag_equals_velocity_on_its_folder(tmp_path):
 
 def test_open_footage_and_the_cli_take_a_bag(tmp_path, capsys):
     from experiments.cli import main
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
 
     bag = tmp_path / "rec.bag"
     write_bag(bag)

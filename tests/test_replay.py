@@ -11,7 +11,7 @@ import pytest
 from experiments.velocity import estimate_velocity, score
 from lobula.config import VelocityConfig
 from lobula.readout import MaterialRates, ReadoutConfig, readout
-from stimuli.footage import open_footage
+from lobula.readers import open_footage
 
 
 def rmse_after(t, v_hat, v_true, observable, skip=2.0):

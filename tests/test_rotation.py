@@ -100,7 +100,7 @@ def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path,
     from experiments.velocity import estimate_velocity, forward_accel_at
     from lobula.config import VelocityConfig
     from lobula.haltere import gyro_bias
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import build_track, make_track_run
 
     cfg = suite.family_config("rotation", 9, 4.0, 0.5)
@@ -328,7 +328,7 @@ def test_gyro_scale_error_is_fitted_on_a_camera_turning_fast(tmp_path):
     from experiments import suite
     from experiments.velocity import estimate_velocity, score
     from lobula.config import VelocityConfig
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import make_track_run
 
     cfg = suite.family_config("rotation", 9, 8.0, 0.25)

@@ -8,7 +8,7 @@ from lobula.camera import PinholeCamera
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
 from lobula.haltere import forward_acceleration
 from lobula.receptive_field import gap_correction, pool_fields, tile_fields
-from stimuli.footage import open_footage
+from lobula.readers import open_footage
 from stimuli.imu import IMUConfig, synthesize_imu
 from stimuli.scene import SceneConfig, TrackScene
 from stimuli.track import TrackRunConfig, make_track_run

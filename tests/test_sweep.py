@@ -97,7 +97,7 @@ def test_sweep_grid_resume_after_lost_record_and_same_numbers(tmp_path, counter)
 
     # The recomputed point against a direct render + estimate_velocity + score.
     from experiments.velocity import estimate_velocity, score
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.track import make_track_run
     pt = next(p for p in spec.points() if p.key == lost)
     fo = open_footage(make_track_run(tmp_path / "direct", pt.run, progress=False))

@@ -178,6 +178,6 @@ def test_extrinsics_rotating_imu_back_gives_the_camera_frame_specific_force(tmp_
     np.testing.assert_allclose(acc @ r.T, f_cam, atol=2e-6)
     np.testing.assert_allclose(gyr @ r.T, imu["gyro_true"], atol=2e-7)
     assert np.abs(acc - f_cam).max() > 1.0  # imu.csv itself is not in the camera frame
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     fo = open_footage(out)
     np.testing.assert_allclose(fo.imu.accel, f_cam, atol=2e-6)

@@ -37,7 +37,7 @@ import numpy as np
 
 from lobula.camera import PinholeCamera
 
-from .footage_core import IMU, Footage, FootageError, check_times, read_frame
+from .core import IMU, Footage, FootageError, check_times, read_frame
 
 EUROC_KIND = "euroc"
 IMU_MARGIN_S = 1.0   # IMU kept this far before the first and after the last frame

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .footage_core import FootageError
+from .core import FootageError
 
 
 @dataclass

@@ -2,9 +2,10 @@
 
 :class:`Footage` is the streamed recording (camera, frame times, frames on demand, IMU,
 truth), :class:`IMU` its inertial samples, :class:`FootageError` the one error a bad
-input raises. Layout readers (:mod:`stimuli.footage`'s folders, :mod:`stimuli.realsense_bag`,
-:mod:`stimuli.rosbag2_db3`, :mod:`stimuli.euroc`, :mod:`stimuli.video`) import only this
-module; :func:`stimuli.footage.open_footage` imports them, so there is no import circle.
+input raises. The layout readers (:mod:`lobula.readers.folder`, :mod:`lobula.readers.realsense_bag`,
+:mod:`lobula.readers.rosbag2_db3`, :mod:`lobula.readers.euroc`, :mod:`lobula.readers.video`,
+:mod:`lobula.readers.gopro`) import this module; :func:`lobula.readers.open_footage` imports
+them only when it opens their layout, so there is no import circle.
 
 Conventions every reader keeps (COMMON contract 4):
 
@@ -18,13 +19,8 @@ Conventions every reader keeps (COMMON contract 4):
 from __future__ import annotations
 
 import csv
-import errno
 import json
 import math
-import os
-import re
-import shutil
-import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -75,54 +71,6 @@ def read_camera_json(path: str | Path) -> PinholeCamera:
             raise FootageError(f"{path}: {k} must be > 0, got {v:g}")
         vals[k] = int(v) if k in ("width", "height") else float(v)
     return PinholeCamera(**vals)
-
-
-#: when this run started (the first import of this module, before any output is begun): what a
-#: killed run left is older than this
-RUN_START = time.time()
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # another user's process (EPERM): alive
-        return True
-    return True
-
-
-def remove_stale(folder: str | Path, prefix: str) -> list[Path]:
-    """Remove what a killed run left in ``folder``: the files and folders named ``prefix``, a process id
-    and (optionally) more, whose process is gone and which were last changed before this run started.
-
-    The writers here name their temporaries so (``.<name>.lobula-tmp-<pid>-…``,
-    ``.<name>.partial-<pid>``); a run stopped by SIGKILL or a power cut cannot remove its own, so
-    the next run that writes the same output does. A temporary of a run still going (its process
-    alive) or begun after this one is left alone. Returns what was removed.
-    """
-    pattern = re.compile(re.escape(prefix) + r"(\d+)(?:\D.*)?$", re.S)
-    removed = []
-    try:
-        entries = list(os.scandir(folder))
-    except OSError:
-        return removed
-    for e in entries:
-        m = pattern.match(e.name)
-        if not m:
-            continue
-        pid = int(m.group(1))
-        try:
-            if e.stat(follow_symlinks=False).st_mtime >= RUN_START or (pid != os.getpid() and _alive(pid)):
-                continue
-            if e.is_dir(follow_symlinks=False):
-                shutil.rmtree(e.path)
-            else:
-                os.unlink(e.path)
-        except OSError:
-            continue
-        removed.append(Path(e.path))
-    return removed
 
 
 def read_csv_columns(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
@@ -268,7 +216,7 @@ class Footage:
     column name -> array at ``truth['time_s']``. ``distortion`` describes lens distortion
     the reader removed or ignored (None: none reported); ``imu_to_camera`` the rotation
     applied to the IMU on reading (None: none needed or known). ``skip_bad_frames``,
-    ``skipped_frames`` and the clock offset fields are filled by :func:`stimuli.footage.open_footage`;
+    ``skipped_frames`` and the clock offset fields are filled by :func:`lobula.readers.open_footage`;
     ``streams`` lists what the recording holds (one dict per topic or sensor: name, type, count, ...);
     ``truth_nan_counts`` the truth log's NaN or empty values per column (filled where counted).
     """
@@ -399,37 +347,6 @@ def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None, keep_nan: b
     return imu.rotated(rotation) if rotation is not None else imu
 
 
-@contextmanager
-def atomic_folder(folder: str | Path) -> Iterator[Path]:
-    """A hidden sibling folder to write footage into, renamed onto ``folder`` when the block ends
-    normally and removed when it raises, so an interrupted run leaves nothing that looks finished.
-    ``folder`` must not exist or be empty (FileExistsError otherwise)."""
-    folder = Path(folder)
-    if folder.exists() and any(folder.iterdir()):
-        raise FileExistsError(f"{folder}: exists and is not empty; choose a new folder or delete it")
-    remove_stale(folder.parent, f".{folder.name}.partial-")
-    tmp = folder.parent / f".{folder.name}.partial-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    try:
-        yield tmp
-        if folder.exists():
-            folder.rmdir()
-        tmp.rename(folder)
-    except BaseException as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(exc, OSError) and exc.errno in _CANNOT_WRITE:
-            # Named by the folder being written, not a file inside its hidden temporary (nor none at all,
-            # as a failed write() reports it): the command line turns it into one line naming OUT.
-            raise OSError(exc.errno, exc.strerror or str(exc), str(folder)) from None
-        raise
-
-
-#: errno values that say a write failed for want of space or permission
-_CANNOT_WRITE = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EROFS, errno.EACCES, errno.EPERM,
-                 errno.EFBIG}
-
-
 def read_truth_csv(path: Path, keep_nan: bool = False) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """truth.csv (time_s, v_forward_m_s, other columns) and its NaN count per column.
 
@@ -449,3 +366,26 @@ def read_truth_csv(path: Path, keep_nan: bool = False) -> tuple[dict[str, np.nda
         truth = {k: v[keep] for k, v in truth.items()}
     check_times(path, truth["time_s"])
     return truth, counts
+
+
+def footage_provenance(footage) -> dict:
+    """The attrs an output carries about its footage (works on wrappers without the method too)."""
+    fn = getattr(footage, "provenance", None)
+    if fn is None and hasattr(footage, "_footage"):
+        fn = getattr(footage._footage, "provenance", None)
+    return fn() if fn is not None else {}
+
+
+def acceleration_from_truth(truth: dict[str, np.ndarray], smoothing_s: float = 0.15) -> tuple[np.ndarray, np.ndarray]:
+    """Forward acceleration (m/s²) as the derivative of Gaussian-smoothed ground-truth velocity.
+
+    Returns (time_s, a). Used where a recording has no accelerometer (the D435i sample),
+    and always labelled as such in outputs.
+    """
+    from scipy.ndimage import gaussian_filter1d  # here: SciPy is slow to load, and only this needs it
+
+    t, v = truth["time_s"], truth["v_forward_m_s"]
+    if "a_forward_m_s2" in truth:
+        return t, truth["a_forward_m_s2"]
+    dt = float(np.median(np.diff(t)))
+    return t, gaussian_filter1d(v, smoothing_s / dt, order=1, mode="nearest") / dt

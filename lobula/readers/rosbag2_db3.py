@@ -47,7 +47,8 @@ import numpy as np
 
 from lobula.camera import PinholeCamera
 
-from .footage_core import IMU, Footage, FootageError, opencv_quiet, rotation_deg, to_grey
+from .bag_frames import bag_frames
+from .core import IMU, Footage, FootageError, opencv_quiet, rotation_deg, to_grey
 from .realsense_bag import FramePlaceholders, choose_image_topic
 
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
@@ -110,37 +111,16 @@ class Rosbag2Footage(Footage):
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
         """Yield (index, time_s, grey float32 (H, W)) for frames start..stop-1, one message at a time."""
-        n = len(self)
-        start, stop = max(0, int(start)), (n if stop is None else min(int(stop), n))
-        if start >= stop:
-            return
-        Reader, ReaderError, ts = _rosbags()
-        first_ns = int(self.record_ns[start])
-        i = int(np.searchsorted(self.record_ns, first_ns, side="left"))
-        try:
-            with Reader(self.path) as reader:
-                conns = [c for c in reader.connections if c.topic == self.topic]
-                for _, rec_ns, raw in reader.messages(connections=conns, start=first_ns):
-                    if i < start:
-                        i += 1
-                        continue
-                    if rec_ns != int(self.record_ns[i]):
-                        raise FootageError(f"{self.path}: frame {i} on {self.topic} recorded at {rec_ns} ns, "
-                                           f"{int(self.record_ns[i])} ns when opened; the bag changed, open it again")
-                    grey = self._decode(i, raw, ts)
-                    if grey is not None:
-                        yield i, float(self.times[i]), grey
-                    i += 1
-                    if i >= stop:
-                        break
-        except FootageError:
-            raise
-        except (ReaderError, *_CORRUPT) as exc:
-            raise FootageError(f"{self.path}: cannot read frame {i} on {self.topic} ({type(exc).__name__}: {exc}); "
-                               f"the bag is damaged or changed: re-record it") from exc
-        if i < stop:
-            raise FootageError(f"{self.path}: {self.topic} ended after frame {i - 1}, {n} frames when opened; "
-                               f"the bag changed, open it again")
+        yield from bag_frames(self, self.topic, self.record_ns, start, stop, open_bag=_rosbags,
+                              select=lambda c: c.topic == self.topic, decode=self._decode_recorded,
+                              corrupt=_CORRUPT, fix="the bag is damaged or changed: re-record it")
+
+    def _decode_recorded(self, i: int, raw, rec_ns: int, ts) -> np.ndarray | None:
+        """Frame i's grey image, after checking its record time is the one seen when opening."""
+        if rec_ns != int(self.record_ns[i]):
+            raise FootageError(f"{self.path}: frame {i} on {self.topic} recorded at {rec_ns} ns, "
+                               f"{int(self.record_ns[i])} ns when opened; the bag changed, open it again")
+        return self._decode(i, raw, ts)
 
     def _decode(self, i: int, raw, ts) -> np.ndarray | None:
         try:

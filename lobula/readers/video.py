@@ -19,7 +19,7 @@ from typing import Iterator
 import av
 import numpy as np
 
-from .footage_core import (Footage, FootageError, imu_to_camera, read_camera_json, read_imu_csv, rotation_deg,
+from .core import (Footage, FootageError, imu_to_camera, read_camera_json, read_imu_csv, rotation_deg,
                            to_grey)
 
 
@@ -159,7 +159,7 @@ def open_video(path: str | Path, require_imu: bool = True, camera_json: str | Pa
 
     camera_json: a camera.json to use instead of the one beside the video (``--camera``);
     keep_nan: count NaN IMU and truth values instead of stopping (``lobula info``)."""
-    from .footage_core import read_truth_csv
+    from .core import read_truth_csv
 
     path = Path(path)
     if not path.is_file():

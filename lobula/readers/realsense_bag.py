@@ -1,6 +1,6 @@
 """RealSense ROS1 bags, as the RealSense Viewer (librealsense's recorder) writes them, as footage.
 
-``open_realsense_bag(path)`` returns a :class:`BagFootage`, a :class:`~stimuli.footage.Footage`
+``open_realsense_bag(path)`` returns a :class:`BagFootage`, a :class:`~lobula.readers.core.Footage`
 whose :meth:`~BagFootage.frames` streams grey images out of the bag one message at a
 time (memory does not grow with the recording's length) and whose ``imu`` holds the
 accelerometer and gyroscope on one time base in the camera optical frame.
@@ -29,7 +29,7 @@ Choices, each also written into ``footage.notes``:
   are used instead. Stamps must increase; IMU messages repeated verbatim (same stamp,
   same values) are dropped, anything else out of order is an error.
 * **Grey** is ITU-R 601 luma as OpenCV computes it from rgb8/bgr8/rgba8/bgra8 (the same
-  as reading a PNG of the frame with :func:`stimuli.footage.read_frame`), the Y channel
+  as reading a PNG of the frame with :func:`lobula.readers.core.read_frame`), the Y channel
   of YUYV/UYVY, mono8/8UC1 as is, mono16/16UC1 divided by 257.
 * **IMU**: the accelerometer's times are the time base; the gyroscope (its own rate,
   200/400 Hz on the D435i) is linearly interpolated onto them, and accelerometer samples
@@ -58,7 +58,8 @@ import numpy as np
 
 from lobula.camera import PinholeCamera
 
-from .footage_core import IMU, Footage, FootageError, rotation_deg as _rotation_deg
+from .bag_frames import bag_frames
+from .core import IMU, Footage, FootageError, rotation_deg as _rotation_deg
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 IMU_TYPE = "sensor_msgs/msg/Imu"
@@ -247,39 +248,11 @@ class BagFootage(Footage):
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
         """Yield (index, time_s, grey float32 (H, W)) for frames start..stop-1, one message at a time."""
-        n = len(self)
-        start = max(0, int(start))
-        stop = n if stop is None else min(int(stop), n)
-        if start >= stop:
-            return
-        Reader, ReaderError = _rosbags()
-        first_ns = int(self.bag_times_ns[start])
-        # Messages are yielded in bag-time order; the reader starts at the first with this
-        # record time, which may be a few before ``start`` when record times repeat.
-        skip = start - int(np.searchsorted(self.bag_times_ns, first_ns, side="left"))
-        i = start - skip
-        try:
-            with Reader(self.path) as reader:
-                conns = [c for c in reader.connections if c.topic == self.topic and c.msgtype == IMAGE_TYPE]
-                for _, bag_ns, raw in reader.messages(connections=conns, start=first_ns):
-                    if i < start:
-                        i += 1
-                        continue
-                    grey = self._decode_message(i, raw, bag_ns)
-                    if grey is not None:
-                        yield i, float(self.times[i]), grey
-                    i += 1
-                    if i >= stop:
-                        break
-        except FootageError:
-            raise
-        except (ReaderError, *_CORRUPT) as exc:
-            raise FootageError(f"{self.path}: cannot read frame {i} on {self.topic} ({type(exc).__name__}: "
-                               f"{exc}); the bag is damaged or changed: re-record it, or try `rosbag reindex`"
-                               ) from exc
-        if i < stop:
-            raise FootageError(f"{self.path}: {self.topic} ended after frame {i - 1}, {n} frames when opened; "
-                               f"the bag changed, open it again")
+        yield from bag_frames(self, self.topic, self.bag_times_ns, start, stop, open_bag=lambda: (*_rosbags(), None),
+                              select=lambda c: c.topic == self.topic and c.msgtype == IMAGE_TYPE,
+                              decode=lambda i, raw, bag_ns, _: self._decode_message(i, raw, bag_ns),
+                              corrupt=_CORRUPT,
+                              fix="the bag is damaged or changed: re-record it, or try `rosbag reindex`")
 
     def _decode_message(self, i: int, raw, bag_ns: int) -> np.ndarray | None:
         """Frame i's grey image, or None when it is undecodable and skip_bad_frames is set."""

@@ -44,7 +44,7 @@ from pathlib import Path
 import av
 import numpy as np
 
-from .footage_core import FootageError, IMU, imu_to_camera as camera_json_rotation, read_camera_json, rotation_deg
+from .core import FootageError, IMU, imu_to_camera as camera_json_rotation, read_camera_json, rotation_deg
 from .video import VideoFootage, container_times
 
 #: Sample-description type of the MP4 track that holds GPMF.
@@ -529,7 +529,7 @@ def stabilisation(settings: dict, streams: dict[str, Stream]) -> dict:
 class GoProFootage(VideoFootage):
     """A GoPro MP4: frames decoded from the video, IMU and GPS truth from its GPMF track.
 
-    Beside the :class:`~stimuli.footage_core.Footage` fields: ``telemetry`` (a JSON-able summary:
+    Beside the :class:`~lobula.readers.core.Footage` fields: ``telemetry`` (a JSON-able summary:
     model, firmware, stabilisation, lens, streams), ``gps`` (every GPS sample, with or without a fix;
     :func:`gps_samples`) and ``orientation`` ({"CORI", "IORI", "GRAV": (time_s (n,), values)} where
     the file has them, in GoPro's own frame, unrotated). ``camera`` is None only where the footage
