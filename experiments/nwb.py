@@ -11,7 +11,8 @@ duration plus a 0.5 s gap, in the Dataset's order (conditions row-major, then tr
   stimulus onset, or collision for looming). rf-map's spot passages are its trials, with
   each passage's per-field response as a column.
 - **units** (Units): every recorded spiking unit (LC units, readout neurons) with its spike
-  times over the session — the centre of the model step each spike fell in — and columns
+  times over the session — the start of the model step each spike fell in, as the NetCDF's time
+  (``time`` or ``spike_time``) coordinate — and columns
   ``unit_type``, ``field_index``, ``rf_azimuth_deg``, ``rf_elevation_deg``, ``rf_size_deg``
   (NaN where a unit has no receptive field).
 - **acquisition**: every other time-resolved variable (rates, membrane potentials,
@@ -44,6 +45,39 @@ GAP_S = 0.5
 _TIME_DIMS = ("time", "spike_time")
 _CHANNEL_DIMS = ("neuron", "unit", "field", "ommatidium", "pair")
 _SPIKES = ("lc_spikes", "readout_spikes")
+#: time-resolved variables that describe the stimulus: written as templates under /stimulus
+_STIMULUS_VARS = ("angular_size_deg",)
+
+
+def _stimulus_templates(nwb, ds: xr.Dataset, lay: dict) -> None:
+    """The stimulus of each condition as a template under ``/stimulus/templates`` (time × condition,
+    conditions in the trials table's ``condition_index`` order, the recording's own time from its first
+    sample); the trials' stimulus columns name each condition's parameters.
+
+    looming: the disc's angular size (degree). tf-tuning: the grating's luminance at one point of the
+    eye (mean · (1 + contrast · sin 2πft)), relative to the mean luminance."""
+    from pynwb import TimeSeries
+
+    protocol = ds.attrs.get("protocol")
+    cdims = lay["cdims"]
+    if "time" not in ds.dims or len(ds.time) < 2:
+        return
+    rate = 1.0 / float(np.median(np.diff(ds.time.values)))
+    comments = json.dumps({"dims": ["time", "condition_index"], "conditions": cdims})
+    if protocol == "looming" and "angular_size_deg" in ds:
+        x = _condition_major(ds.angular_size_deg, cdims, ["time"]).reshape(lay["C"], -1).T
+        nwb.add_stimulus_template(TimeSeries(
+            name="angular_size_deg", data=x.astype(np.float64), unit="degree", rate=rate, starting_time=0.0,
+            description=ds.angular_size_deg.attrs.get("long_name", "disc angular size"), comments=comments))
+    elif protocol == "tf-tuning" and {"temporal_frequency_hz", "contrast"} <= set(cdims):
+        g = np.meshgrid(*[ds[d].values for d in cdims], indexing="ij")
+        cv = dict(zip(cdims, (a.ravel() for a in g)))
+        t_abs = ds.time.values
+        x = 1.0 + cv["contrast"][None, :] * np.sin(2 * np.pi * cv["temporal_frequency_hz"][None, :] * t_abs[:, None])
+        nwb.add_stimulus_template(TimeSeries(
+            name="grating_luminance", data=x, unit="1", rate=rate, starting_time=0.0,
+            description="drifting grating's luminance at one point of the eye relative to the mean "
+                        "(1 + contrast·sin 2πft); every point sees it phase-shifted", comments=comments))
 
 
 def _condition_dims(ds: xr.Dataset) -> list[str]:
@@ -85,14 +119,18 @@ def _condition_major(da: xr.DataArray, cdims: list[str], rest: list[str]) -> np.
 
 
 def _session_times(ds: xr.Dataset, lay: dict, tdim: str) -> np.ndarray:
-    """(C, K, T) session times of a time dim's samples (sample start + half a step for spike bins)."""
+    """(C, K, T) session times of a time dim's samples (for spike bins: the step's start)."""
     t = ds[tdim].values.astype(float)
     rel = t - lay["t0"]
     return lay["starts"][:, :, None] + rel[None, None, :]
 
 
-def write_nwb(ds: xr.Dataset, path: str | Path) -> Path:
-    """Write the recording ``ds`` (any ephys protocol) as an NWB file at ``path``, atomically."""
+def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str | None = None,
+              institution: str | None = None, lab: str | None = None) -> Path:
+    """Write the recording ``ds`` (any ephys protocol) as an NWB file at ``path``, atomically.
+
+    experimenter ("Last, First", one or several), institution, lab: the file's general metadata
+    (left out when None)."""
     from hdmf.common import DynamicTable, VectorData
     from pynwb import NWBHDF5IO, NWBFile, TimeSeries
     from pynwb.file import Subject
@@ -117,12 +155,23 @@ def write_nwb(ds: xr.Dataset, path: str | Path) -> Path:
         source_script_file_name="lobula (experiments.cli)", keywords=["lobula", "virtual electrophysiology",
                                                                        protocol],
         data_collection=f"lobula {ds.attrs.get('lobula_version', '')}, commit {ds.attrs.get('git_commit', 'unknown')}",
-        session_id=protocol)
-    # A model has no age, sex or species: sex "U" (unknown) and the open range "P0D/" (age ≥ 0 days, unknown)
-    # say so in NWB's terms; no species is claimed.
-    nwb.subject = Subject(subject_id="lobula-model", sex="U", age="P0D/",
-                          description="in-silico model of the fly's optic lobe (photoreceptors, EMDs, LC units, "
-                                      "readout neuron); not an animal")
+        session_id=protocol,
+        **({"experimenter": [experimenter] if isinstance(experimenter, str) else list(experimenter)}
+           if experimenter else {}),
+        **({"institution": institution} if institution else {}), **({"lab": lab} if lab else {}))
+    # The model is of Drosophila's optic lobe; it has no age or sex: sex "U" (unknown) and the open range
+    # "P0D/" (age ≥ 0 days, unknown) say so in NWB's terms.
+    nwb.subject = Subject(subject_id="lobula-model", sex="U", age="P0D/", species="Drosophila melanogaster",
+                          description="in-silico model of the fly's (Drosophila melanogaster) optic lobe "
+                                      "(photoreceptors, EMDs, LC units, readout neuron); not an animal")
+    device = nwb.create_device(name="lobula_virtual_rig",
+                               description="virtual electrophysiology rig of the lobula software model: every "
+                                           "model neuron recorded exactly, at the model's time step")
+    probe = nwb.create_electrode_group(name="virtual_electrodes", device=device,
+                                       location="lobula (optic lobe), in silico",
+                                       description="one virtual electrode per recorded spiking unit, "
+                                                   "isolating that unit alone")
+    _stimulus_templates(nwb, ds, lay)
     # --- trials
     cvals = {}
     if cdims:
@@ -162,7 +211,7 @@ def write_nwb(ds: xr.Dataset, path: str | Path) -> Path:
         # Spike times are known to the model step: that is the table's resolution (several spikes of a
         # Poisson unit may share one step, so equal consecutive times are expected, not refractory violations).
         res = min(float(ds[v].attrs["dt_s"]) for v in spike_vars)
-        nwb.units = Units(name="units", description="spiking model units; spike times at the centre of the model "
+        nwb.units = Units(name="units", description="spiking model units; spike times at the start of the model "
                                                     "step each spike fell in", resolution=res)
         for col, desc in (("unit_type", "unit type (LC: expansion, contraction, r2, rdot+, rdot-; readout: plus, "
                                         "minus)"), ("source_variable", "recording variable the spikes come from"),
@@ -178,7 +227,7 @@ def write_nwb(ds: xr.Dataset, path: str | Path) -> Path:
         dt = float(da.attrs.get("dt_s", np.median(np.diff(ds[tdim].values))))
         ch = "neuron" if "neuron" in da.dims else "unit"   # LC units / the readout's output neurons
         x = _condition_major(da, cdims, ["trial", tdim, ch]).reshape(C, K, ds.sizes[tdim], -1)
-        times = _session_times(ds, lay, tdim) + (dt / 2 if tdim == "time" else dt / 2)
+        times = _session_times(ds, lay, tdim)  # a spike's time: its step's start, as the time coordinate
         for j, n in enumerate(da[ch].values):
             counts = x[..., j]
             if not np.isfinite(counts).all():
@@ -188,7 +237,9 @@ def write_nwb(ds: xr.Dataset, path: str | Path) -> Path:
             is_lc = "neuron_type" in ds.coords and var == "lc_spikes"
             kind = (ds.neuron_type.sel(neuron=n).values if is_lc else
                     ds.unit_neuron.sel(unit=n).values if "unit_neuron" in da.coords else n)
-            nwb.add_unit(spike_times=st, unit_type=str(kind),
+            nwb.add_electrode(group=probe, location="lobula (optic lobe), in silico")
+            nwb.add_unit(spike_times=st, unit_type=str(kind), electrodes=[len(nwb.electrodes) - 1],
+                         electrode_group=probe,
                          source_variable=var,
                          field_index=int(ds.field_index.sel(neuron=n)) if is_lc else -1,
                          rf_azimuth_deg=float(ds.azimuth_deg.sel(neuron=n)) if is_lc else float("nan"),
@@ -199,7 +250,7 @@ def write_nwb(ds: xr.Dataset, path: str | Path) -> Path:
     for var in ds.data_vars:
         da = ds[var]
         tdim = next((d for d in _TIME_DIMS if d in da.dims), None)
-        if var in spike_vars or tdim is None:
+        if var in spike_vars or tdim is None or var in _STIMULUS_VARS:
             continue
         chans = [d for d in da.dims if d in _CHANNEL_DIMS]
         ch = chans[0] if chans else None
@@ -264,7 +315,7 @@ def read_nwb_spike_counts(path, ds: xr.Dataset, var: str = "lc_spikes") -> np.nd
             st = np.asarray(st)
             e = np.floor(st / (lay["duration"] + GAP_S)).astype(int)
             c, k = np.divmod(e, lay["K"])
-            step = np.floor((st - lay["starts"].ravel()[e] - t_first) / dt).astype(int)
+            step = np.rint((st - lay["starts"].ravel()[e] - t_first) / dt).astype(int)  # times are step starts
             np.add.at(out, (c, k, step, j), 1)
     return out
 

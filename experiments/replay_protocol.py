@@ -7,8 +7,9 @@ the arithmetic readout runs on the same input for comparison. The recording is a
 self-describing Dataset (the attributes every ephys recording carries) with dims
 ``trial``, ``time`` (frames), ``neuron`` (the readout's push–pull pair), ``field`` (LC
 fields), ``unit`` (every spiking output neuron: ``population`` pairs, each with its own train) and
-``spike_time`` (the spike generator's 1 ms steps: readout spikes are counts per step, not per
-frame).
+``spike_time`` (the spike generator's steps, a whole number per frame: frame interval /
+round(frame interval / 1 ms), e.g. 1.0101 ms at 30 frames/s; readout spikes are counts per step, not
+per frame; a spike's time is its step's start). Trial k's noise is seeded by (seed, k) alone.
 
 On the compound eye (``lobula ephys velocity-replay --eye fly``, :func:`eye_velocity_replay`)
 the footage is eye footage (``lobula scene OUT --eye fly``) and the circuit is
@@ -65,6 +66,16 @@ def _replay_records(record, spiking: bool, eye: bool = False) -> tuple:
     return tuple(out)
 
 
+def per_trial(run, trials: int, ncfg) -> dict[str, np.ndarray]:
+    """``run(config)`` once per trial, trial k with the seed :func:`experiments.ephys.rig.trial_seed`
+    (config.seed, k), stacked along a leading trial dim: trial k's spikes are the same whatever the
+    number of trials."""
+    from experiments.ephys.rig import trial_seed
+
+    outs = [run(replace(ncfg, seed=trial_seed(ncfg.seed, k))) for k in range(trials)]
+    return {key: np.stack([np.asarray(o[key]) for o in outs]) for key in outs[0]}
+
+
 def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, seed: int = 0,
                     spiking: bool = True, duration_s: float = 10.0, progress: bool = False,
                     tau_s: float | None = None, dphi_deg: float | None = None,
@@ -79,7 +90,7 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
 
     from experiments.ephys.rig import cf_describe, recording_attrs
     from experiments.velocity import estimate_velocity
-    from stimuli.footage import open_footage
+    from lobula.readers import open_footage
     from stimuli.scene import SceneConfig
     from stimuli.track import TrackRunConfig, make_track_run
 
@@ -106,10 +117,7 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
         ds = estimate_velocity(open_footage(footage_path), vcfg, progress=progress)
     t = ds.time.values
     ncfg = ReadoutNeuronConfig(spiking=spiking, seed=seed)
-    r = np.broadcast_to(ds.r.values, (trials,) + ds.r.shape)
-    r2 = np.broadcast_to(ds.r2.values, (trials,) + ds.r2.shape)
-    a = np.broadcast_to(ds.accel.values, (trials, len(t)))
-    out = readout_neuron(t, r, r2, a, ncfg)
+    out = per_trial(lambda c: readout_neuron(t, ds.r.values, ds.r2.values, ds.accel.values, c), trials, ncfg)
     dt = float(np.median(np.diff(t)))
     r_s, _, r_dot = lc_pathways(torch.as_tensor(np.nan_to_num(ds.r.values))[None],
                                 torch.as_tensor(np.nan_to_num(ds.r2.values))[None], dt, ncfg)
@@ -170,7 +178,9 @@ def _replay_dataset(ds: xr.Dataset, want, out: dict, ncfg: ReadoutNeuronConfig, 
     if spiking and "readout.spikes" in want:
         st = t[0] + np.arange(len(t) * sub) * spike_dt
         n = int(ncfg.population)
-        coords["spike_time"] = ("spike_time", st, {"units": "s", "long_name": "start of the spike generator's step"})
+        coords["spike_time"] = ("spike_time", st, {
+            "units": "s", "long_name": f"start of the spike generator's step (a spike's time; steps of "
+                                       f"{spike_dt * 1e3:.5g} ms: the frame interval / {sub})"})
         # Every output neuron its own train (a unit an experimenter would isolate); the decoder reads
         # the population of each sign pooled (sum over the units of one unit_neuron).
         coords["unit"] = ("unit", [f"{sign} {i}" for sign in ("plus", "minus") for i in range(n)],
@@ -253,7 +263,7 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
     # silent), the decoder's lead from the accelerometer less the offset that v̂ implies.
     v_hat, a = ds.v_hat.values, ds.accel.values
     a_lead = a - readout_offset(t, v_hat, a, ecfg.lead_offset_tau_s) if ecfg.lead_offset_tau_s else a
-    out = spiking_output(t, np.broadcast_to(v_hat, (trials, len(t))), a_lead, ncfg)
+    out = per_trial(lambda c: spiking_output(t, v_hat, a_lead, c), trials, ncfg)
     out["v_hat"] = (np.where(ds.observable.values, out["v_dec"], np.nan) if spiking
                     else np.broadcast_to(v_hat, (trials, len(t))).copy())
     data = {}

@@ -306,26 +306,31 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
         sp_fine, sm_fine, fano, units = _lif_counts(rate_p, rate_m, sub, dt, N, cfg, gen)
         base = cfg.spontaneous_hz
     else:
-        hold = lambda r: r.float().repeat_interleave(sub, dim=1)  # noqa: E731  (trials, time·sub)
-        # N independent pairs at the same rate: their pooled count is Poisson with N times the rate.
-        # Each step's count is the Poisson quantile of its own uniform draw, so a step's spikes depend
-        # on its own rate only: changing later rates leaves earlier spikes unchanged (a causal simulation).
-        lam_p, lam_m = (hold(x * N).double() * (dt / sub) for x in (rate_p, rate_m))
-        u = torch.rand((2,) + tuple(lam_p.shape), generator=gen, dtype=torch.float64)
-        sp_fine = torch.as_tensor(_poisson_quantile(u[0].numpy(), lam_p.numpy()))
-        sm_fine = torch.as_tensor(_poisson_quantile(u[1].numpy(), lam_m.numpy()))
+        hold = lambda r: r.double().repeat_interleave(sub, dim=1)  # noqa: E731  (trials, time·sub)
+        # N independent neurons per sign, each at most one spike per step: a Bernoulli draw with
+        # p = 1 − exp(−rate·step), the chance that a Poisson train at that rate fires in the step.
+        # Each step's spikes come from its own uniform draws, so they depend on its own rate only:
+        # changing later rates leaves earlier spikes unchanged (a causal simulation).
+        p_p, p_m = (-torch.expm1(-hold(x) * (dt / sub)) for x in (rate_p, rate_m))
+        u = torch.rand((2,) + tuple(p_p.shape) + (N,), generator=gen, dtype=torch.float64)
+        up, um = (u[0] < p_p[..., None]).double(), (u[1] < p_m[..., None]).double()   # (trials, time·sub, N)
+        sp_fine, sm_fine = up.sum(-1), um.sum(-1)
         fano, base = [torch.ones_like(rate_p)] * 2, 0.0
-        # The pooled counts dealt to the N pairs' neurons with a generator of their own (the pooled
-        # trains, and so the decoding, are the same with or without it).
-        deal = make_generator(int(np.random.SeedSequence([cfg.seed, 1]).generate_state(1)[0]))
-        units = torch.cat([_deal_to_units(x, N, deal) for x in (sp_fine, sm_fine)], -1)
+        units = torch.cat([up, um], -1)
     # Counts per frame for the rate decoding.
     sp, sm = (x.reshape(trials, n, sub).sum(-1) for x in (sp_fine, sm_fine))
+    h = dt / sub
+    if cfg.spike_model == "lif":
+        unsat = lambda e: e  # noqa: E731
+    else:
+        # A Poisson neuron's mean count per step is 1 − exp(−r·h) (at most one spike): a rate estimate e
+        # (Hz, counts per neuron per second) inverts to r = −ln(1 − e·h)/h.
+        unsat = lambda e: -torch.log1p(-(e * h).clamp(max=1.0 - 1e-9)) / h  # noqa: E731
     r_p, r_m = rate_p + base, rate_m + base
     if cfg.decode == "causal":
         tau_d = 0.5 * cfg.window_s
         # Exponential synaptic filter of the pooled counts (rate per neuron), then the lead τ_d·a.
-        syn = lambda s: _lowpass(s / (N * dt), tau_d, dt)  # noqa: E731
+        syn = lambda s: unsat(_lowpass(s / (N * dt), tau_d, dt))  # noqa: E731
         v_dec = (syn(sp) - syn(sm)) / gain
         if cfg.lead == "haltere":
             v_dec = v_dec + tau_d * torch.nan_to_num(a)
@@ -339,7 +344,7 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
         w = max(1, int(round(cfg.window_s / dt)))
         kern = torch.ones(1, 1, w, dtype=sp.dtype) / (w * dt * N)
         # Centred boxcar rate estimate of each spike train (looks window_s/2 ahead), then push–pull decoding.
-        smooth = lambda s: torch.nn.functional.conv1d(s[:, None], kern, padding=w // 2)[:, 0, :n]  # noqa: E731
+        smooth = lambda s: unsat(torch.nn.functional.conv1d(s[:, None], kern, padding=w // 2)[:, 0, :n])  # noqa: E731
         v_dec = (smooth(sp) - smooth(sm)) / gain
         std = torch.sqrt((fano[0] * r_p + fano[1] * r_m) / (w * dt * N)) / gain
     return dict(v_dec=v_dec, decode_std=std, spikes_plus=sp_fine, spikes_minus=sm_fine,

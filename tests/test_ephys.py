@@ -227,3 +227,42 @@ def test_replay_scores_score_a_short_replay_after_a_quarter_of_it():
     assert sc["arithmetic_rmse_m_s"] == pytest.approx(0.01)
     assert np.isnan(sc["neuron_rmse_m_s"])                      # the neuron never confident: no score, not 0
     assert replay_scores(rec, skip_s=1.0)["scored_after_s"] == 1.0
+
+
+def test_looming_figure_averages_only_the_expansion_units(tmp_path, monkeypatch):
+    from experiments.ephys import figures
+    cfg = _with_neurons(EphysConfig(trials=2, seed=2), model="poisson")
+    ds = looming(cfg, l_over_v_s=(0.02,), duration_s=0.4, record=["lc.spikes"])
+    drawn = []
+    monkeypatch.setattr(figures, "save_png_and_pdf", lambda fig, path: drawn.append(fig) or [])
+    figures.plot_looming(ds, tmp_path / "loom.png")
+    ax = drawn[0].axes[0]
+    # The expansion units' PSTH (20 ms bins, Hz), computed here from the stored counts.
+    ex = ds.lc_spikes.sel(neuron=ds.neuron_type == "expansion").isel(l_over_v_s=0).sel(motion="approach")
+    n_ex = ex.sizes["neuron"]
+    s = ex.transpose("trial", "time", "neuron").values.astype(float)
+    k = 20
+    n = s.shape[1] // k * k
+    want = s[:, :n].reshape(s.shape[0], -1, k, n_ex).sum(2).mean((0, 2)) / (k * 1e-3)
+    np.testing.assert_allclose(ax.lines[0].get_ydata(), want, rtol=1e-5)
+    assert want.max() > 100.0                                   # the expansion units fire hard near collision
+    assert f"n = {n_ex};" in ax.get_title() and n_ex == 15
+
+
+@pytest.mark.parametrize("model,record", [("poisson", ["lc.rate", "lc.drive[r2]"]),
+                                          ("lif", ["lc.spikes[expansion]", "lc.v[20:23]"])])
+def test_looming_records_monitors_of_different_subsets(tmp_path, model, record):
+    from experiments.ephys.command import run_protocol, write_outputs
+    from experiments.ephys.figures import plot_looming
+    ds = run_protocol("looming", dict(neuron_model=model, trials=2, duration=0.3, l_over_v=[0.02], record=record))
+    names = [r.split("[")[0].replace(".", "_") for r in record]
+    for name, spec in zip(names, record):
+        own = ds[name].notnull().any([d for d in ds[name].dims if d != "neuron"])
+        peak = ds[f"{name}_peak"]
+        # Each variable's peak is finite exactly on the neurons its monitor recorded.
+        np.testing.assert_array_equal(np.isfinite(peak.isel(l_over_v_s=0, motion=0)).values, own.values)
+        assert int(own.sum()) == (ds.sizes["neuron"] if "[" not in spec else
+                                  3 if spec.endswith("[20:23]") else 15)
+    written = write_outputs(ds, [tmp_path / "loom.nc", tmp_path / "loom.nwb"])
+    assert all(p.exists() for p in written)
+    assert plot_looming(ds, tmp_path / "loom.png")[0].exists()

@@ -202,3 +202,35 @@ def test_command_line_help_shows_defaults_and_writes_nc_nwb_and_figures(tmp_path
         assert ds.attrs["command_line"] and ds.attrs["protocol"] == "looming"
     assert cli_main(["ephys", "looming", "--out", str(tmp_path / "x.csv")]) == 2
     assert "use a .nc" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("model", ["poisson", "lif"])
+def test_trial_k_is_the_same_whatever_the_number_of_trials(model):
+    opts = {**BASE["looming"], "neuron_model": model, "seed": 4}
+    one = run_protocol("looming", {**opts, "trials": 1})
+    three = run_protocol("looming", {**opts, "trials": 3})
+    two = run_protocol("looming", {**opts, "trials": 2})
+    np.testing.assert_array_equal(one.lc_spikes.isel(trial=0).values, three.lc_spikes.isel(trial=0).values)
+    np.testing.assert_array_equal(two.lc_spikes.values, three.lc_spikes.isel(trial=[0, 1]).values)
+    assert one.lc_spikes.sum() > 0
+    # ... and the trials differ from one another.
+    assert not np.array_equal(three.lc_spikes.isel(trial=0).values, three.lc_spikes.isel(trial=1).values)
+
+
+def test_temporal_frequencies_above_the_nyquist_limit_are_refused(capsys):
+    with pytest.raises(SystemExit):
+        parse_command(["ephys", "tf-tuning", "--tf", "2", "600", "--out", "x.nc"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "500 Hz Nyquist limit" in err and "600" in err
+    assert parse_command(["ephys", "tf-tuning", "--tf", "499", "--out", "x.nc"]).tf == [499.0]
+    from experiments.ephys import EphysConfig, tf_tuning
+    with pytest.raises(ValueError, match=r"Nyquist limit 500 Hz .*\[700\.0\]"):
+        tf_tuning(EphysConfig(trials=1), temporal_frequencies_hz=[4.0, 700.0], duration_s=0.2, settle_s=0.0)
+
+
+def test_lif_summary_gives_the_spike_rate_peak_not_the_membrane_potential():
+    ds = run_protocol("tf-tuning", {**BASE["tf-tuning"], "tf": [2.0, 8.0], "neuron_model": "lif", "trials": 1})
+    lines = summary(ds)
+    assert "lc_v_peak_temporal_frequency_hz" in ds              # stored, but no tuning peak to report
+    assert not any(line.startswith("lc_v:") for line in lines), lines
+    assert any(line.startswith("lc_spikes: peak temporal frequency") for line in lines), lines

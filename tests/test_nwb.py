@@ -22,8 +22,10 @@ RUNS = {"tf-tuning": dict(TINY, tf=[2.0, 6.0], contrast=[0.3, 0.9], duration=0.2
 
 
 def critical_findings(path):
+    """nwbinspector's findings down to best-practice violations (errors, critical, violations)."""
     from nwbinspector import Importance, inspect_nwbfile
-    return [m for m in inspect_nwbfile(nwbfile_path=str(path), importance_threshold=Importance.CRITICAL)]
+    return [m for m in inspect_nwbfile(nwbfile_path=str(path),
+                                       importance_threshold=Importance.BEST_PRACTICE_VIOLATION)]
 
 
 @pytest.fixture(scope="module", params=list(RUNS))
@@ -127,3 +129,56 @@ def test_atomic_outputs_get_an_ordinary_files_mode(tmp_path):
     finally:
         os.umask(old)
     assert out.stat().st_mode & 0o777 == 0o644
+
+
+def test_nwb_describes_subject_device_and_stimulus(recording, tmp_path):
+    from pynwb import NWBHDF5IO
+
+    protocol, ds, path = recording
+    with NWBHDF5IO(str(path), "r") as io:
+        f = io.read()
+        assert f.subject.species == "Drosophila melanogaster" and "in-silico model" in f.subject.description
+        assert "lobula_virtual_rig" in f.devices
+        assert f.electrode_groups["virtual_electrodes"].device.name == "lobula_virtual_rig"
+        assert "angular_size_deg" not in f.acquisition
+        if protocol == "looming":
+            tpl = f.stimulus_template["angular_size_deg"]
+            np.testing.assert_array_equal(
+                tpl.data[:], ds.angular_size_deg.transpose("l_over_v_s", "motion", "time").values.reshape(-1, ds.sizes["time"]).T)
+            assert tpl.unit == "degree"
+        if protocol == "tf-tuning":
+            tpl = f.stimulus_template["grating_luminance"]
+            assert tpl.data.shape == (ds.sizes["time"], ds.sizes["temporal_frequency_hz"] * ds.sizes["contrast"])
+            # contrast 0.9 (the last condition): the luminance swings by ±0.9 about the mean
+            assert np.max(tpl.data[:, -1]) == pytest.approx(1.9, abs=0.01)
+            assert set(f.trials.colnames) >= {"temporal_frequency_hz", "contrast"}
+        if "lc_spikes" in ds:
+            units = f.units.to_dataframe()
+            assert all(g.name == "virtual_electrodes" for g in units.electrode_group)
+            assert len(f.electrodes) == len(units)
+            # A spike's time is its step's start: the NetCDF time coordinate, on the session timeline.
+            lay = epoch_layout(ds)
+            first = ds.lc_spikes.transpose(*lay["cdims"], "trial", "time", "neuron").values.reshape(
+                lay["C"], lay["K"], ds.sizes["time"], -1)[..., 0]
+            c, k, ti = np.nonzero(first > 0)
+            want = np.sort(np.repeat(lay["starts"][c, k] + ds.time.values[ti] - lay["t0"], first[c, k, ti].astype(int)))
+            np.testing.assert_allclose(np.asarray(units.spike_times.values[0]), want, atol=1e-9)
+            assert "step's start" in ds.lc_spikes.attrs["note"]
+    named = write_nwb(ds, tmp_path / "named.nwb", experimenter="Borst, Alexander", institution="MPI BI")
+    with NWBHDF5IO(str(named), "r") as io:
+        f = io.read()
+        assert list(f.experimenter) == ["Borst, Alexander"] and f.institution == "MPI BI"
+
+
+def test_command_line_writes_experimenter_and_institution(tmp_path):
+    from pynwb import NWBHDF5IO
+
+    from experiments.ephys.command import parse_command
+    out = tmp_path / "loom.nwb"
+    args = parse_command(["ephys", "looming", "--dphi", "4", "--field-size", "20", "--l-over-v", "0.04",
+                          "--duration", "0.2", "--experimenter", "Borst, Alexander", "--institution", "MPI BI",
+                          "--out", str(out)])
+    assert args.func(args) == 0
+    with NWBHDF5IO(str(out), "r") as io:
+        f = io.read()
+        assert list(f.experimenter) == ["Borst, Alexander"] and f.institution == "MPI BI"

@@ -115,7 +115,7 @@ def test_replay_spikes_are_at_1_ms_and_nwb_round_trips(footage, tmp_path):
     nc = write_netcdf(ds, tmp_path / "r.nc")
     back = xr.open_dataset(nc, engine="h5netcdf").load()
     nwb = write_nwb(back, tmp_path / "r.nwb")
-    assert list(inspect_nwbfile(nwbfile_path=str(nwb), importance_threshold=Importance.CRITICAL)) == []
+    assert list(inspect_nwbfile(nwbfile_path=str(nwb), importance_threshold=Importance.BEST_PRACTICE_VIOLATION)) == []
     lay = epoch_layout(back)
     assert lay["C"] == 1 and lay["K"] == 3
     counts = read_nwb_spike_counts(nwb, back, "readout_spikes")
@@ -125,3 +125,47 @@ def test_replay_spikes_are_at_1_ms_and_nwb_round_trips(footage, tmp_path):
     assert unit == "Hz"
     v, _, _ = read_nwb_series(nwb, "arithmetic_v")
     np.testing.assert_array_equal(v, back.arithmetic_v.values)
+
+
+def test_replay_trial_k_and_spike_steps_are_what_is_stated(footage, tmp_path):
+    from pynwb import NWBHDF5IO
+
+    from experiments.nwb import epoch_layout, write_nwb
+    one = run_protocol("velocity-replay", {"footage": str(footage), "trials": 1, "seed": 3})
+    three = run_protocol("velocity-replay", {"footage": str(footage), "trials": 3, "seed": 3})
+    # Trial 0 is the same whatever the number of trials; the trials differ from one another.
+    np.testing.assert_array_equal(one.readout_spikes.isel(trial=0).values, three.readout_spikes.isel(trial=0).values)
+    assert not np.array_equal(three.readout_spikes.isel(trial=0).values, three.readout_spikes.isel(trial=1).values)
+    # At most one spike per unit per step (Bernoulli, p = 1 − exp(−rate·step)).
+    assert int(three.readout_spikes.max()) == 1 and int(three.readout_spikes.sum()) > 100
+    # The step is the one stated: the spike_time coordinate's spacing, dt_s, and its long_name in ms.
+    dt = float(three.readout_spikes.attrs["dt_s"])
+    np.testing.assert_allclose(np.diff(three.spike_time.values), dt, rtol=1e-9)
+    sub = round(float(np.median(np.diff(three.time.values))) / dt)
+    assert f"{dt * 1e3:.5g} ms: the frame interval / {sub}" in three.spike_time.attrs["long_name"]
+    # A spike's time is its step's start in the NetCDF coordinate and in the NWB Units table alike.
+    path = write_nwb(three, tmp_path / "r.nwb")
+    lay = epoch_layout(three)
+    with NWBHDF5IO(str(path), "r") as io:
+        st = np.asarray(io.read().units.to_dataframe().spike_times.values[0])
+    s = three.readout_spikes.isel(unit=0).transpose("trial", "spike_time").values
+    k, i = np.nonzero(s)
+    want = np.sort(lay["starts"][0, k] + three.spike_time.values[i] - lay["t0"])
+    np.testing.assert_allclose(st, want, atol=1e-9)
+
+
+@pytest.mark.parametrize("model", ["lif", "poisson"])
+def test_output_neurons_trial_k_is_the_same_whatever_the_number_of_trials(model):
+    from dataclasses import replace
+
+    from experiments.eye_velocity import EyeVelocityConfig
+    from experiments.replay_protocol import per_trial
+    from lobula.readout_neuron import spiking_output
+    t = np.arange(0, 2.0, 0.02)
+    v = 0.3 + 0.2 * np.sin(2 * np.pi * 0.5 * t)
+    ncfg = replace(EyeVelocityConfig().neuron, spiking=True, seed=5, spike_model=model)
+    one = per_trial(lambda c: spiking_output(t, v, np.zeros_like(t), c), 1, ncfg)
+    three = per_trial(lambda c: spiking_output(t, v, np.zeros_like(t), c), 3, ncfg)
+    np.testing.assert_array_equal(one["spikes_units"][0], three["spikes_units"][0])
+    assert not np.array_equal(three["spikes_units"][0], three["spikes_units"][1])
+    assert three["spikes_units"].sum() > 0

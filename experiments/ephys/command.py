@@ -50,6 +50,9 @@ def add_parser(subparsers):
     e.add_argument("--out", nargs="+", required=True, metavar="PATH", default=S,
                    help="outputs, by suffix: .nc (NetCDF, CF-1.10) and/or .nwb (Neurodata Without Borders); "
                         "each written atomically")
+    e.add_argument("--experimenter", nargs="+", metavar="'LAST, FIRST'", default=S,
+                   help="the NWB file's experimenter(s) (default: none written)")
+    e.add_argument("--institution", default=S, help="the NWB file's institution (default: none written)")
     e.add_argument("--plot", default=S,
                    help="the protocol's figure: PNG (200 dpi) and a vector PDF beside it (.png or .pdf) "
                         "(default: no figure)")
@@ -94,8 +97,11 @@ def add_parser(subparsers):
                    help="stimulus contrast; several allowed for tf-tuning (default: tf-tuning: 0.5; rf-map: the "
                         "spot's 1.0; looming: the disc's 1.0)")
     t = e.add_argument_group("tf-tuning")
-    t.add_argument("--tf", type=POSITIVE, nargs="+", default=S,
-                   help="temporal frequencies (Hz) (default: 16 log-spaced from 0.5 to 32)")
+    t.add_argument("--tf", type=Number(0, 500, above=True, below=True,
+                                       note="below the 500 Hz Nyquist limit of the 1 kHz stimulus"),
+                   nargs="+", default=S,
+                   help="temporal frequencies (Hz), below the stimulus' Nyquist limit: 500 Hz (1 kHz steps); "
+                        "--eye fly: 250 Hz (500 Hz) (default: 16 log-spaced from 0.5 to 32)")
     t.add_argument("--wavelength", type=POSITIVE, default=S, help="grating wavelength (degree) (default: 20)")
     t.add_argument("--stimulus", choices=["rings", "grating"], default=S,
                    help="rings expanding about the epipole, or a planar drum grating (default: rings)")
@@ -316,6 +322,8 @@ def summary(ds) -> list[str]:
                 continue
             da = ds[v]
             base = v.replace("_peak_temporal_frequency_hz", "")
+            if base == "lc_v":  # a LIF unit's mean membrane potential falls as its rate rises: no tuning peak
+                continue
             for c in ds.contrast.values:
                 x = da.sel(contrast=c)
                 if "neuron" in x.dims:
@@ -361,7 +369,9 @@ def summary(ds) -> list[str]:
     return lines
 
 
-def write_outputs(ds, outs) -> list[Path]:
+def write_outputs(ds, outs, **nwb_metadata) -> list[Path]:
+    """Write ``ds`` to each path of ``outs`` by its suffix (.nc, .nwb); nwb_metadata: experimenter,
+    institution for the NWB file (see :func:`experiments.nwb.write_nwb`)."""
     from experiments.store import write_netcdf
 
     written = []
@@ -370,7 +380,7 @@ def write_outputs(ds, outs) -> list[Path]:
             written.append(write_netcdf(ds, o))
         else:
             from experiments.nwb import write_nwb
-            written.append(write_nwb(ds, o))
+            written.append(write_nwb(ds, o, **nwb_metadata))
     return written
 
 
@@ -382,7 +392,8 @@ def main(args) -> int:
     if plot and Path(plot).suffix.lower() not in (".png", ".pdf"):
         raise ValueError(f"--plot {plot}: use a .png or .pdf file name (both are written)")
     ds = run_protocol(args.protocol, opts, progress=not args.quiet)
-    for path in write_outputs(ds, outs):
+    meta = {k: getattr(args, k) for k in ("experimenter", "institution") if hasattr(args, k)}
+    for path in write_outputs(ds, outs, **meta):
         print(f"wrote {path} ({args.protocol})")
     for line in summary(ds):
         print("  " + line)

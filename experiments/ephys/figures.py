@@ -270,6 +270,26 @@ def _peak_time_fit(ax, lvs, t_peak, scale: float, color) -> bool:
     return True
 
 
+def looming_unit_traces(ds: xr.Dataset, var: str) -> tuple[xr.DataArray, str]:
+    """The expansion units' trial-mean traces the looming figure averages, and their axis label.
+
+    Only the units ``var``'s monitor recorded (a unit another monitor added to the shared
+    ``neuron`` dim is NaN here and is left out, not counted as silent). Spike counts become a
+    PSTH (Hz, 20 ms bins). Returns (l_over_v_s, motion, time[, neuron]) and the label."""
+    da = ds[var]
+    if "neuron" in da.dims:
+        da = _units_of(ds, da, "expansion")
+        recorded = da.notnull().any([d for d in da.dims if d != "neuron"]).values
+        da = da.isel(neuron=np.flatnonzero(recorded))
+    if var == "lc_spikes":
+        # The units' own Dataset: assigning them back onto ``ds`` would realign them onto every
+        # neuron, NaN-filled, and the PSTH's sums would count those as silent units.
+        return psth(da.to_dataset(name=var), var, 0.02), "expansion units' PSTH (Hz, 20 ms bins)"
+    da = da.mean("trial") if "trial" in da.dims else da
+    return da, (f"expansion units' {da.attrs.get('long_name', var).replace('LC unit ', '')} "
+                f"({da.attrs.get('units', '')})")
+
+
 def plot_looming(ds: xr.Dataset, path) -> list[Path]:
     """Expansion units' response (mean ± SEM over units; PSTH with spikes) and the disc's angular size
     against time relative to collision, one colour per l/|v| (solid approach, dashed recede), and the
@@ -287,15 +307,7 @@ def plot_looming(ds: xr.Dataset, path) -> list[Path]:
     lvs = ds.l_over_v_s.values
     cols = _colours(len(lvs))
     if var:
-        da = ds[var]
-        if "neuron" in da.dims:
-            da = _units_of(ds, da, "expansion")
-        if var == "lc_spikes":
-            da = psth(ds.assign({var: da}), var, 0.02)
-            ylab = "expansion units' PSTH (Hz, 20 ms bins)"
-        else:
-            da = da.mean("trial") if "trial" in da.dims else da
-            ylab = f"expansion units' {da.attrs.get('long_name', var).replace('LC unit ', '')} ({da.attrs.get('units', '')})"
+        da, ylab = looming_unit_traces(ds, var)
         tt = da.time.values
         nd = "neuron" if "neuron" in da.dims else None
         for lv, col in zip(lvs, cols):
@@ -352,7 +364,7 @@ def replay_scores(rec: xr.Dataset, skip_s: float | None = None) -> dict:
 
 def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
     """Velocity (truth, arithmetic readout, readout neuron mean ± SEM over trials); the readout neurons'
-    raster (1 ms spike times, integer trial ticks) beside their PSTH ± SEM; the LC sustained pathway
+    raster (spike times at their step's start, integer trial ticks) beside their PSTH ± SEM; the LC sustained pathway
     of every field (labelled colour bar). PNG (200 dpi) and PDF."""
     import matplotlib
     matplotlib.use("Agg")
@@ -414,7 +426,7 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
             shown = s[0].T if pool > 1 else s[..., 0]                                  # (row, step)
             rr, ti = np.nonzero(shown > 0)
             row = rr + j * (rows + 1)
-            ax_r.vlines(st[ti] + dts / 2, row - 0.4, row + 0.4, color=cols[name], lw=0.5)
+            ax_r.vlines(st[ti], row - 0.4, row + 0.4, color=cols[name], lw=0.5)  # a spike at its step's start
             n = s.shape[1] // b * b
             rate = s[:, :n].sum(-1).reshape(k, -1, b).sum(-1) / (b * dts * pool)     # per neuron, per trial
             tb = st[:n].reshape(-1, b).mean(-1) + dts / 2

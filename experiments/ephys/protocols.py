@@ -22,8 +22,8 @@ from lobula.photoreceptor import photoreceptor_frequency_response
 from lobula.population import FIELD_RECORDS
 from stimuli.lattice_stimuli import GratingSource, direction_from_angles, looming_disc, moving_spot, tangent_basis
 
-from .rig import (VARIABLES, EphysConfig, Rig, cf_describe, dim_coords, monitors_for, protocol, record_dataset,
-                  rig_attrs)
+from .rig import (VARIABLES, EphysConfig, Rig, _neuron_dim, cf_describe, dim_coords, monitors_for, protocol,
+                  record_dataset, rig_attrs)
 
 __all__ = ["tf_tuning", "rf_map", "looming", "psth", "psth_sem", "raster", "steady_state_mean", "TF_GRID_HZ",
            "LOOMING_L_OVER_V_S"]
@@ -149,6 +149,12 @@ def _tf_tuning(config: EphysConfig, *, temporal_frequencies_hz=None, contrasts=(
         raise ValueError(f"tf-tuning stimulus must be 'rings' or 'grating', got {stimulus!r}")
     if not (np.all(tf > 0) and np.all(np.isfinite(tf))):
         raise ValueError(f"temporal frequencies must be positive (Hz), got {tf.tolist()}")
+    nyquist = 0.5 / rig.dt
+    if np.any(tf >= nyquist):
+        # Sampled every dt, a grating above the Nyquist limit aliases to a lower frequency moving the
+        # other way: the response flips sign.
+        raise ValueError(f"temporal frequencies must lie below the Nyquist limit {nyquist:g} Hz of the "
+                         f"{1.0 / rig.dt:g} Hz stimulus, got {tf[tf >= nyquist].tolist()}")
     if not np.all((c > 0) & (c <= 1)):
         raise ValueError(f"contrasts must lie in (0, 1], got {c.tolist()}")
     if not 0 <= settle_s < duration_s:
@@ -442,6 +448,9 @@ def _looming(config: EphysConfig, *, l_over_v_s=LOOMING_L_OVER_V_S, duration_s: 
     t = ds.time.values
     for mon in monitors:
         da = ds[mon.name]
+        if mon.neurons is not None:  # only the monitor's own neurons: the rest of a shared dim is NaN
+            dim = _neuron_dim(mon.variable)
+            da = da.sel({dim: list(mon.neurons)})
         x = da.mean("trial") if "trial" in da.dims else da
         units, what = da.attrs["units"], da.attrs["long_name"]
         if mon.variable == "lc.spikes":  # smooth spike counts into a rate before taking the peak

@@ -26,7 +26,7 @@ from lobula.lattice import Lattice, LatticeConfig
 from lobula.population import FIELD_RECORDS, NEURON_RECORDS, UNIT_RECORDS, config_from_dict
 
 __all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "monitors_for", "record_dataset", "dim_coords",
-           "recording_attrs", "cf_describe", "torch_threads", "VARIABLES", "neuron_model_attrs"]
+           "recording_attrs", "cf_describe", "torch_threads", "VARIABLES", "neuron_model_attrs", "trial_seed"]
 
 #: what each monitor variable is: (units (UDUNITS), long_name). Spike counts are per model step.
 VARIABLES = {
@@ -170,10 +170,53 @@ class Rig:
                 "lif": ("lc.v", "lc.spikes")}[self.neuron_model]
 
     def run(self, stimulus, n_steps, monitors, *, baseline=None) -> dict:
-        """Run the circuit on a stimulus, recording the monitors; trials as :attr:`stored_trials`."""
+        """Run the circuit on a stimulus, recording the monitors; trials as :attr:`stored_trials`.
+
+        The front end (deterministic) runs once; the LC units then run once per trial, trial k
+        on its own random stream :func:`trial_seed` (seed, k), so trial k holds the same spikes
+        whatever the number of trials. Returns {variable: tensor}: (B, T, X), neuron
+        variables (B, K, T, U)."""
         rec = {m.variable: m.neurons for m in monitors}
-        return self.circuit.run(stimulus, n_steps, trials=self.stored_trials, record=rec, seed=self.config.seed,
-                                baseline=baseline)
+        if not self.stochastic:
+            return self.circuit.run(stimulus, n_steps, trials=1, record=rec, seed=self.config.seed,
+                                    baseline=baseline)
+        neuron = {k: v for k, v in rec.items() if k in NEURON_RECORDS}
+        front = {k: v for k, v in rec.items() if k not in NEURON_RECORDS}
+        out = self.circuit.run(stimulus, n_steps, trials=1, record={**front, "lc.drive": None}, seed=self.config.seed,
+                               baseline=baseline)
+        drive = out["lc.drive"]                                              # (B, T, U)
+        if "lc.drive" in front and front["lc.drive"] is not None:
+            out["lc.drive"] = drive.index_select(-1, torch.as_tensor(front["lc.drive"], device=drive.device))
+        elif "lc.drive" not in front:
+            del out["lc.drive"]
+        neurons, dt = self.circuit.neurons, self.dt
+        B, T, U = drive.shape
+        per_trial = {k: [] for k in neuron}
+        for trial in range(self.stored_trials):
+            gen = torch.Generator(device=drive.device)
+            gen.manual_seed(trial_seed(self.config.seed, trial))
+            state = neurons.init_state((B, 1, U), drive.device, drive.dtype, gen)
+            bufs = {k: drive.new_empty((T, B, 1, U)) for k in neuron}
+            for t in range(T):  # the circuit's own neuron step, on this trial's stream
+                state = neurons.step(state, drive[:, t].unsqueeze(1), dt, gen)
+                for k in neuron:
+                    bufs[k][t] = neurons.read(state, k)
+            for k, idx in neuron.items():
+                x = bufs[k].movedim(0, 2)                                    # (B, 1, T, U)
+                per_trial[k].append(x if idx is None else
+                                    x.index_select(-1, torch.as_tensor(idx, device=x.device)))
+        out.update({k: torch.cat(v, dim=1) for k, v in per_trial.items()})
+        return out
+
+
+def trial_seed(seed: int, trial: int) -> int:
+    """The seed of trial ``trial``'s random stream, a function of (seed, trial) alone, the same for every
+    number of trials: trial 0 takes ``seed`` itself (a one-trial recording is the pipeline run with that
+    seed), trial k > 0 numpy's ``SeedSequence(seed).spawn(n)[k]`` (entropy ``seed``, spawn key ``(k,)``)."""
+    if int(trial) == 0:
+        return int(seed)
+    return int(np.random.SeedSequence(int(seed), spawn_key=(int(trial),)).generate_state(1, np.uint64)[0]
+               & 0x7FFF_FFFF_FFFF_FFFF)
 
 
 # =========================================================================== monitors
@@ -342,7 +385,8 @@ def record_dataset(rig: Rig, records: dict, monitors: list, cond: dict, n_steps:
         if mon.variable in NEURON_RECORDS:
             a.update(neuron_model_attrs(rig))
         if mon.variable == "lc.spikes":
-            a["note"] = "spike counts in each model step of dt_s; spike times are time + dt_s (end of the step)"
+            a["note"] = ("spike counts in each model step of dt_s; a spike's time is its step's start, the time "
+                         "coordinate (the same in the NWB Units table)")
         data[mon.name] = (dims, arr, a)
     ds = xr.Dataset(data, coords=coords)
     if any(m.variable in NEURON_RECORDS for m in monitors):
