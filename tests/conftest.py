@@ -6,6 +6,8 @@ footage folder, read back through the same reader users use.
 `make test` runs the suite on pytest-xdist workers (``-n auto --dist loadgroup``): each test
 file is one group, so its module fixtures are built once, and every test that uses the 30 s
 replay joins one group, so it is rendered once (see :func:`pytest_collection_modifyitems`).
+The groups that take longest are handed out first (``LONGEST_GROUPS``), so that the workers
+finish together.
 """
 from __future__ import annotations
 
@@ -33,7 +35,14 @@ REPLAY_FIXTURES = {"make_replay", "replay_rates", "emd_replay"}
 
 def pytest_configure(config):
     """On an xdist worker, the cores are shared among the workers: torch and OpenCV get their share of
-    threads, not each all of them (two workers on two cores would otherwise run four threads)."""
+    threads, not each all of them (two workers on two cores would otherwise run four threads).
+
+    Under ``--dist loadgroup`` the controller hands the groups out in the order of the collection
+    (which :func:`pytest_collection_modifyitems` sorts longest first), not by their number of tests:
+    by that count the replay (seven tests, the second longest group) would follow every many-test
+    file, start last and run alone."""
+    if getattr(config.option, "dist", None) == "loadgroup":
+        config.option.loadscopereorder = False
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
     if workers > 1:
         import cv2
@@ -44,12 +53,41 @@ def pytest_configure(config):
         cv2.setNumThreads(threads)
 
 
+# The groups with the most CPU time, longest first (measured on one worker thread with ../shared present:
+# families 91 s, the replay 78 s, tutorials 60 s, depth 41 s, faults 28 s, compound eye 27 s, of about
+# 580 s in all). Under --dist loadgroup they are handed out before the rest, so that a short group, not
+# a long one, is the last to finish; a group missing here only starts later (it changes no result).
+LONGEST_GROUPS = ("test_families.py", "replay", "test_tutorials.py", "test_depth_cli.py", "test_faults.py",
+                  "test_compound_eye.py")
+
+
+def _xdist_group(item) -> str:
+    """The test's ``--dist loadgroup`` group: "replay" for the tests that use the test session's 30 s
+    replay (rendered once), otherwise its file (module fixtures built once)."""
+    uses_replay = REPLAY_FIXTURES & set(getattr(item, "fixturenames", ()))
+    return "replay" if uses_replay else item.path.name
+
+
+@pytest.hookimpl(wrapper=True)
 def pytest_collection_modifyitems(config, items):
-    """Groups for ``--dist loadgroup``: the tests that use the test session's 30 s replay run on one worker
-    (it is rendered once), every other test with the rest of its file (module fixtures once)."""
+    """Groups for ``--dist loadgroup`` (see :func:`_xdist_group`), longest first on a worker.
+
+    xdist reads the ``xdist_group`` marker and sends each group to one worker by a ``@group`` suffix it
+    writes on the test's node id; pytest 9.2 (constraints.txt) keeps the node id in ``item._id`` (a
+    ``NodeId``), where xdist's write does not reach, so the suffix is written here where it is missing.
+    Without it every test is scheduled on its own and each worker builds the replays and module
+    fixtures again."""
     for item in items:
-        uses_replay = REPLAY_FIXTURES & set(getattr(item, "fixturenames", ()))
-        item.add_marker(pytest.mark.xdist_group("replay" if uses_replay else item.path.name))
+        item.add_marker(pytest.mark.xdist_group(_xdist_group(item)))
+    result = yield
+    if getattr(config.option, "loadgroup", False):  # an xdist worker under --dist loadgroup
+        rank = {group: i for i, group in enumerate(LONGEST_GROUPS)}
+        items.sort(key=lambda item: rank.get(_xdist_group(item), len(rank)))  # stable: file order kept
+        for item in items:
+            suffix = "@" + _xdist_group(item)
+            if not item.nodeid.endswith(suffix) and hasattr(item, "_id"):
+                item._id = type(item._id).parse(item.nodeid + suffix)
+    return result
 
 
 @pytest.fixture(scope="session")
