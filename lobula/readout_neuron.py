@@ -198,12 +198,6 @@ def spike_steps_per_frame(frame_dt: float, config: ReadoutNeuronConfig) -> int:
     return max(1, int(round(frame_dt / config.spike_dt_s)))
 
 
-def _poisson_quantile(u: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """Poisson counts with means lam (≥ 0) from uniforms u (same shape): the inverse CDF."""
-    from scipy.stats import poisson
-    return np.where(lam > 0, poisson.ppf(u, np.maximum(lam, 1e-300)), 0.0)
-
-
 def output_lif(membrane_noise_mv: float) -> LIFConfig:
     """The LIF output neurons' parameters: Dayan & Abbott's defaults, white noise of
     ``membrane_noise_mv`` free-membrane SD (R·σ_I/√2, :class:`lobula.neurons.LIFConfig`)."""
@@ -252,23 +246,6 @@ def _lif_counts(rate_p: torch.Tensor, rate_m: torch.Tensor, sub: int, dt: float,
         counts[:, k] = state.spikes
     fano = [torch.as_tensor(np.interp(r, rates, cv ** 2)) for r in target]
     return counts[..., :N].sum(-1), counts[..., N:].sum(-1), fano, counts
-
-
-def _deal_to_units(pooled: torch.Tensor, n_units: int, gen: torch.Generator) -> torch.Tensor:
-    """Each step's pooled count (trials, steps) dealt to ``n_units`` neurons at random, (trials, steps, n_units).
-
-    Every spike goes to one of the units with equal probability, independently: given their sum,
-    the counts of N independent Poisson neurons at one rate are exactly this multinomial, so the
-    units are independent Poisson trains at 1/N of the pooled rate and their sum is ``pooled``.
-    """
-    c = pooled.to(torch.int64).reshape(-1)
-    if n_units == 1:
-        return c.reshape(pooled.shape + (1,))
-    out = torch.zeros(c.numel() * n_units, dtype=torch.int64)
-    step = torch.repeat_interleave(torch.arange(c.numel()), c)
-    unit = torch.randint(n_units, (len(step),), generator=gen)
-    out.index_add_(0, step * n_units + unit, torch.ones_like(step))
-    return out.reshape(pooled.shape + (n_units,))
 
 
 def phase_advance(v: torch.Tensor, tau: float, dt: float, limit: float = float("inf")) -> torch.Tensor:

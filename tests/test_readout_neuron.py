@@ -166,8 +166,8 @@ def test_encoder_lead_makes_the_synaptic_filter_return_the_estimate_without_acce
 @pytest.mark.parametrize("model", ["poisson", "lif"])
 def test_every_output_neuron_has_its_own_train_and_they_sum_to_the_decoded_population(model):
     """spikes_units: each of the population's + and − neurons' own counts. They sum to the pooled counts the
-    decoder reads, and each neuron carries its share: Poisson units are the pooled count dealt at random
-    (multinomial: independent Poisson trains at 1/N of the rate, so unit counts scatter as Poisson counts do),
+    decoder reads, and each neuron carries its share: Poisson units are independent trains at 1/N of the rate,
+    at most one spike a step (a Bernoulli draw per step), so unit counts scatter as such counts do;
     LIF units are the simulated neurons themselves (one spike per step at most, near-regular)."""
     from lobula.readout_neuron import spiking_output
 
