@@ -1,8 +1,7 @@
 """lobula: a model of the fly's lobula that estimates absolute velocity from vision plus acceleration."""
 from __future__ import annotations
 
-import importlib
-
+from ._lazy import lazy_api
 from .version import __version__, git_commit
 
 #: public name -> the module of this package that defines it (imported on first use)
@@ -50,13 +49,5 @@ _API = {
 __all__ = ["__version__", "git_commit", *sorted(_API)]
 
 
-def __getattr__(name: str):
-    # Lazy public API (PEP 562): `import lobula` stays light, so the command line
-    # starts fast; each stage's module (and torch, scipy, OpenCV behind it) loads when first used.
-    if name in _API:
-        return getattr(importlib.import_module(f".{_API[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__():
-    return __all__
+# Lazy public API: importing the package stays light, so the command line starts fast.
+__getattr__, __dir__ = lazy_api(__name__, _API, __all__)

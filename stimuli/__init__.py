@@ -1,7 +1,7 @@
 """stimuli: synthetic worlds with exact truth and their writers (the readers of footage are :mod:`lobula.readers`)."""
 from __future__ import annotations
 
-import importlib
+from lobula._lazy import lazy_api
 
 #: public name -> the module of this package that defines it (imported on first use)
 _API = {
@@ -22,13 +22,5 @@ _API = {
 __all__ = sorted(_API)
 
 
-def __getattr__(name: str):
-    # Lazy public API (PEP 562): `import stimuli` stays light, so the command line
-    # starts fast; each stage's module (and torch, scipy, OpenCV behind it) loads when first used.
-    if name in _API:
-        return getattr(importlib.import_module(f".{_API[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__():
-    return __all__
+# Lazy public API: importing the package stays light, so the command line starts fast.
+__getattr__, __dir__ = lazy_api(__name__, _API, __all__)

@@ -22,7 +22,7 @@ deterministic and carries no ``trial`` dim; neuron variables do (one trial for a
 deterministic neuron model). Spikes are counts per model step (``dt_s`` in their attrs,
 with the neuron model and its parameters).
 """
-import importlib
+from lobula._lazy import lazy_api
 
 from .command import PROTOCOLS, add_parser, main, run_protocol, summary
 
@@ -43,11 +43,5 @@ __all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "record_dataset", "
            "add_parser", "main", "run_protocol", "summary", "PROTOCOLS"]
 
 
-def __getattr__(name: str):
-    if name in _API:
-        return getattr(importlib.import_module(f".{_API[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__():
-    return __all__
+# Lazy public API: importing the package stays light, so the command line starts fast.
+__getattr__, __dir__ = lazy_api(__name__, _API, __all__)
