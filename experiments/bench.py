@@ -30,7 +30,7 @@ def _peak_mb() -> float:
 
 
 def bench_velocity(folder: Path, preset: str) -> dict:
-    from experiments.velocity import estimate_velocity
+    from lobula.velocity import estimate_velocity
     from lobula.config import VelocityConfig
     from lobula.readers import open_footage
 
@@ -47,6 +47,34 @@ def bench_velocity(folder: Path, preset: str) -> dict:
     # numpy run threads of their own), so it can exceed the wall time; per frame, imports excluded.
     return dict(frames=n, wall=wall, **{k: n / v if v > 0 else float("inf") for k, v in tm.items()},
                 end_to_end=n / wall, cpu_ms_per_frame=1000.0 * cpu / n)
+
+
+def bench_streaming(folder: Path, preset: str) -> dict:
+    """Per-frame latency of :class:`lobula.VelocityEstimator` (the causal pipeline frame by frame): the wall
+    time of each ``update(frame, t, imu)`` that makes an estimate, frames decoded beforehand. Returns its
+    median and 99th percentile (ms) and the frames/s of their sum."""
+    from lobula.config import VelocityConfig
+    from lobula.readers import open_footage
+    from lobula.velocity import VelocityEstimator
+
+    fo = open_footage(folder)
+    cfg = VelocityConfig()
+    cfg.flow.dis_preset = preset
+    cfg.readout.filter = "causal"
+    est = VelocityEstimator(fo.camera, cfg)
+    imu, j, lat = fo.imu, 0, []
+    for _, t, image in fo.frames():
+        k = int(np.searchsorted(imu.time_s, t, side="right"))
+        chunk = (imu.time_s[j:k], imu.gyro[j:k], imu.accel[j:k])
+        j = k
+        t0 = time.perf_counter()
+        est.update(image, t, chunk)
+        made = est.drain()
+        if made:
+            lat.append(1000.0 * (time.perf_counter() - t0))
+    lat = np.array(lat)
+    return dict(stream_median_ms=float(np.median(lat)), stream_p99_ms=float(np.percentile(lat, 99)),
+                stream_fps=1000.0 * len(lat) / float(lat.sum()))
 
 
 def bench_command(folder: Path, preset: str, repeats: int = 1) -> dict:
@@ -81,7 +109,7 @@ def bench_emd(folder: Path, n_ommatidia: int = 5000) -> dict:
     """Stages of the EMD front end (sampling, photoreceptors, EMDs, fields) on a footage folder."""
     from dataclasses import replace
 
-    from experiments.velocity import field_rates
+    from lobula.velocity import field_rates
     from lobula.config import VelocityConfig
     from lobula.lattice import dphi_for_count
     from lobula.readers import open_footage
@@ -278,9 +306,10 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium"), 
           f"{os.getloadavg()[0]:.1f}.\nStage figures are frames/s of that stage alone; end-to-end is "
           f"estimate_velocity in this process (decode included), CPU ms/frame its CPU time over all "
           f"threads; command is `lobula velocity` as its own process, frames/s after its start-up, which is "
-          f"given apart")
+          f"given apart; frame-by-frame is lobula.VelocityEstimator's latency per frame (median / 99th "
+          f"percentile, ms), the causal filter run as frames come, decoding excluded")
     header = (f"{'size':>9} {'DIS':>7} {'read':>8} {'flow':>8} {'fields':>8} {'readout':>9} {'end-to-end':>11} "
-              f"{'CPU ms/frame':>12} {'command':>8} {'start-up s':>10} {'RSS MiB':>8}")
+              f"{'CPU ms/frame':>12} {'command':>8} {'start-up s':>10} {'RSS MiB':>8} {'frame-by-frame ms':>18}")
     with tempfile.TemporaryDirectory() as tmp:
         for scale in scales:
             cfg = TrackRunConfig(profile=None, start_s=5.0, duration_s=frames / 30.0, scale=scale,
@@ -290,6 +319,7 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium"), 
                 rss0 = _rss_mb()
                 r = bench_velocity(folder, preset)
                 r.update(bench_command(folder, preset))
+                r.update(bench_streaming(folder, preset))
                 r.update(size=f"{int(640 * scale)}x{int(480 * scale)}", preset=preset, rss_mb=_rss_mb(),
                          rss_growth_mb=_rss_mb() - rss0)
                 rows.append(r)
@@ -297,7 +327,8 @@ def run_bench(frames: int = 120, scales=(1.0, 0.5), presets=("fast", "medium"), 
                     print(header)
                 print(f"{r['size']:>9} {preset:>7} {r['read']:8.0f} {r['flow']:8.1f} {r['fields']:8.0f} "
                       f"{r['readout']:9.0f} {r['end_to_end']:11.1f} {r['cpu_ms_per_frame']:12.1f} "
-                      f"{r['command_fps']:8.1f} {r['startup_s']:10.2f} {r['rss_mb']:8.0f}")
+                      f"{r['command_fps']:8.1f} {r['startup_s']:10.2f} {r['rss_mb']:8.0f} "
+                      f"{r['stream_median_ms']:8.1f} / {r['stream_p99_ms']:<7.1f}")
             if "render" not in skip:
                 rr = bench_render(scale)
                 print(f"rendering the synthetic world at {rr['size']} (lobula scene's default scene, 2x2 rays a "

@@ -148,7 +148,7 @@ def keep_freed_blocks() -> bool:
 #: commands whose --out (or positional OUT) is a folder they fill; every other output option names a file
 FOLDER_OUTPUTS = frozenset({"scene", "suite", "depth-suite", "figures"})
 #: the options (argparse dests) that name what a command writes
-OUTPUT_OPTIONS = ("out", "plot", "csv")
+OUTPUT_OPTIONS = ("out", "plot", "csv", "tum")
 #: commands whose few outputs appear together when the run ends, or none of them
 #: (experiments.store.all_or_nothing); the others keep what they finish, to resume from it
 ALL_OR_NOTHING = frozenset({"velocity", "eye-velocity", "compare", "depth", "ephys", "calibrate-emd"})

@@ -225,7 +225,8 @@ def compare_front_ends(footage: Footage | str | Path, front_ends=DEFAULT_FRONT_E
     when absent). skip_s: seconds ignored when scoring (default :func:`default_skip`).
     log: a callable receiving progress lines (default: none).
     """
-    from .velocity import estimate_velocity, forward_accel_at
+    from lobula.velocity import estimate_velocity
+    from lobula.velocity.inertial import forward_accel_at
 
     if not isinstance(footage, Footage):
         footage = open_footage(footage)

@@ -61,7 +61,8 @@ def contrast_noise_numbers(cache, seeds=(0, 1, 2), taus=(0.005, 0.01, 0.035), co
     """RMSE (after 2 s) of the EMD front end per seed, contrast and τ: {"rmse_m_s": (S, C, T) list, ...}."""
     from dataclasses import replace
 
-    from experiments.velocity import estimate_velocity, score
+    from experiments.velocity import score
+    from lobula.velocity import estimate_velocity
     from lobula.config import VelocityConfig
     from lobula.readers import open_footage
     from stimuli.scene import SceneConfig

@@ -1,8 +1,9 @@
 """``lobula depth``: dense forward depth from v and the flow, on any footage the readers open.
 
-The work is split by concern: :mod:`experiments.depth_stream` (the run: pairs, exact
-finite derotation from the gyro, the gyro-stabilised epipole, the three estimators,
-the streamed NetCDF/Zarr output), :mod:`experiments.depth_score` (pooled scores with
+The work is split by concern: :mod:`experiments.depth_stream` (the run: exact finite
+derotation from the gyro, the three estimators, the streamed NetCDF/Zarr output),
+:mod:`experiments.depth_pairs` (the flow pairs: their speed, the gyro's rotation over
+each, the gyro-stabilised epipole), :mod:`experiments.depth_score` (pooled scores with
 truth masking and coverage), :mod:`experiments.depth_figure` (the panel figure) and
 :mod:`experiments.depth_suite` (families × seeds beside baselines). This module holds
 the command line and the single precomputed ``.flo`` pair, and re-exports the public

@@ -17,8 +17,9 @@ from lobula.depth import DepthConfig, DepthResult, depth_metrics
 from lobula.flow import pixel_to_angular
 from lobula.readers.core import Footage, read_frame
 
-from .depth_stream import (METHODS, DepthRunConfig, _FrameReader, depth_at_first_frame, depth_flow_fn, flow_config,
-                           footage_attitude, torch_threads)
+from .depth_pairs import _FrameReader
+from .depth_stream import (METHODS, DepthRunConfig, depth_at_first_frame, depth_flow_fn, flow_config, footage_attitude,
+                           torch_threads)
 from .store import save_figure
 
 __all__ = ["plot_depth", "plot_flo_pair", "depth_panel"]

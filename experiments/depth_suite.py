@@ -208,7 +208,7 @@ def run_one(out: Path, family: str, seed: int, args) -> dict:
     from lobula.readers import open_footage
     from stimuli.track import build_track
 
-    from .velocity import estimate_velocity
+    from lobula.velocity import estimate_velocity
 
     t0 = _time.perf_counter()
     folder, cfg = _scene(out, family, seed, args.duration, args.scale, args.every, args.imu, args.imu_mount)

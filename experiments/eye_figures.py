@@ -31,7 +31,8 @@ def ensure_runs(workdir, families=FAMILIES, seeds=(0, 1, 2), duration_s: float =
     DIS: the project's default velocity pipeline on the pinhole footage, causal filter, scored after 2 s.
     """
     from experiments.suite import family_config
-    from experiments.velocity import estimate_velocity, score
+    from experiments.velocity import score
+    from lobula.velocity import estimate_velocity
     from lobula.compound_eye import CompoundEyeConfig
     from lobula.config import VelocityConfig
     from stimuli.eye import make_eye_run
@@ -314,7 +315,8 @@ def eye_benchmark(workdir, families=("panels", "rotation", "corridor"), seeds=(0
     """
     from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
     from experiments.suite import family_config
-    from experiments.velocity import estimate_velocity, score
+    from experiments.velocity import score
+    from lobula.velocity import estimate_velocity
     from lobula.compound_eye import CompoundEyeConfig
     from lobula.config import VelocityConfig
     from stimuli.eye import make_eye_run, open_eye_footage

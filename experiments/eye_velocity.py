@@ -242,7 +242,7 @@ def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
     rotation seeds 100 / 101 read 0.247 / 0.213 against 0.257 / 0.197.
     Returns (ReadoutConfig, gravity_tau (n,) or None, drift_std (n,) or None).
     """
-    from experiments.velocity import START_ACCEL_PRIOR_M_S2, TRUTH_ACCEL_OFFSET_M_S2
+    from lobula.velocity.inertial import START_ACCEL_PRIOR_M_S2, TRUTH_ACCEL_OFFSET_M_S2
 
     rcfg = cfg.readout
     if not cfg.rest_bound:

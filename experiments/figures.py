@@ -100,7 +100,7 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
     import matplotlib.pyplot as plt
     import matplotlib.ticker
 
-    from experiments.velocity import estimate_velocity
+    from lobula.velocity import estimate_velocity
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

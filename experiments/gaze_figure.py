@@ -44,7 +44,8 @@ def gaze_numbers(workdir, seeds=(0, 1, 2), families=("rotation", "mixed", "panel
     Returns (numbers, traces): numbers[family][label] = dict(rmse=[per seed], coverage=[per seed]);
     traces: the first family's first seed, {label: (t, v_hat)} plus "truth"."""
     from experiments.suite import family_config
-    from experiments.velocity import estimate_velocity, score
+    from experiments.velocity import score
+    from lobula.velocity import estimate_velocity
     from lobula.readers import open_footage
     from stimuli.track import make_track_run
 

@@ -240,7 +240,7 @@ def footage_kappa(path, front_end: str = "dis") -> dict:
     from lobula.readers import open_footage
 
     from .eye_velocity import EyeVelocityConfig, estimate_eye_velocity
-    from .velocity import field_rates
+    from lobula.velocity import field_rates
 
     eye = is_eye_footage(path)
     fo = open_eye_footage(path) if eye else open_footage(path)

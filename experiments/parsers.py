@@ -186,6 +186,10 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
                         "(precomputed .flo files, with --flo) or emd (an EMD array on the camera image)")
     v.add_argument("--out", required=True, help="output NetCDF (written atomically)")
     v.add_argument("--plot", help="PNG of v̂ against truth (default: no figure)")
+    v.add_argument("--tum", metavar="FILE",
+                   help="the camera's trajectory in the TUM format (timestamp tx ty tz qx qy qz qw; evo reads it): "
+                        "v̂ along the heading, turned by the gyro's attitude and integrated from the first "
+                        "observable estimate; needs a gyro (default: none)")
     v.add_argument("--paper", action="store_true", help="the paper's configuration, as its text states it")
     v.add_argument("--filter", default="zero-phase", choices=["zero-phase", "causal"],
                    help="readout filter: zero-phase (offline smoother, the whole record) or causal (online)")

@@ -89,7 +89,7 @@ def velocity_replay(footage_path: str | Path | None = None, trials: int = 4, see
     from lobula._optional import torch
 
     from experiments.ephys.rig import cf_describe, recording_attrs
-    from experiments.velocity import estimate_velocity
+    from lobula.velocity import estimate_velocity
     from lobula.readers import open_footage
     from stimuli.scene import SceneConfig
     from stimuli.track import TrackRunConfig, make_track_run

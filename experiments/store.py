@@ -28,20 +28,11 @@ from contextvars import ContextVar
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from lobula.version import provenance_attrs
+from lobula.version import provenance, provenance_attrs  # noqa: F401  (provenance: re-exported for the commands)
 from stimuli.footage_writer import remove_stale
 
 if TYPE_CHECKING:  # xarray is imported where a Dataset is written: the command line's error handling needs none
     import xarray as xr
-
-
-def provenance(config_json: str, **extra) -> dict:
-    """Attributes every output carries: the full configuration (JSON), the package version, the git
-    commit (or "unknown"), the command line and the creation time; ``extra`` adds more (non-strings as JSON)."""
-    attrs = {**provenance_attrs(), "config": config_json}
-    attrs.update({k: (v if isinstance(v, (str, int, float)) else json.dumps(v, default=str))
-                  for k, v in extra.items()})
-    return attrs
 
 
 #: what every temporary name of :func:`atomic_path` holds between the output's name and the writer's pid

@@ -17,9 +17,10 @@ import numpy as np
 
 from ._optional import torch
 from .emd import EMDConfig, EMDState, emd_init, emd_run
+from .lc_config import _positive
 from .photoreceptor import PhotoreceptorConfig, PhotoreceptorState, photoreceptor_init, photoreceptor_run
 from .population import (FIELD_RECORDS, FRONT_END_RECORDS, NEURON_RECORDS, UNIT_RECORDS, LCNeurons, LCPopulation,
-                         LCPopulationConfig, PopulationState, _positive)
+                         LCPopulationConfig, PopulationState)
 
 if TYPE_CHECKING:
     from torch import Tensor

@@ -15,8 +15,8 @@ import numpy as np
 
 from ._optional import is_tensor, torch
 from lobula.camera import PinholeCamera
-from lobula.depth import (_as_array, _check_flow, _clamp, _epipole, _grid, _like_input, _median_low, _offsets, _quiet,
-                          _xp)
+from lobula.depth.geometry import (_as_array, _check_flow, _clamp, _epipole, _grid, _like_input, _median_low, _offsets,
+                                   _quiet, _xp)
 from lobula.epipole import EpipoleEstimator, rotational_flow
 
 __all__ = ["flow_noise", "precision_weights", "translational_snr", "refine_motion"]

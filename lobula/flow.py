@@ -302,6 +302,8 @@ class StaggeredFlow:
         if self.config.gap < 1:
             raise ValueError("flow gap must be at least one frame")
         self._fn = make_flow_fn(self.config)
+        self._buf: deque | None = None  # the last gap + 1 frames
+        self._last_far, self._count = 0.0, 0
 
     def _pair(self, t0, a, t1, b) -> np.ndarray:
         """Pixel displacement (2, H, W) from image a at t0 to image b at t1 (prewarped where the rotation is known)."""
@@ -310,27 +312,36 @@ class StaggeredFlow:
         return self._fn(a, b)
 
     def run(self, frames: Iterable[tuple[int, float, np.ndarray]]) -> Iterator[FlowSample]:
-        cfg = self.config
-        buf: deque = deque(maxlen=cfg.gap + 1)
-        last_far, count = 0.0, 0
+        """FlowSample of every pair, from frames (index, time s, image) in order."""
         for item in frames:
-            buf.append(item)
-            if len(buf) == buf.maxlen:
-                (i0, t0, a), (_, t1, b) = buf[0], buf[-1]
-                reach = cfg.chain_fraction * a.shape[1]  # px a single step may move
-                steps = min(cfg.gap, int(np.ceil(last_far / reach))) if reach > 0 else 1
-                check = reach > 0 and cfg.gap > 1 and steps < 2 and count % cfg.chain_check == 0
-                r01 = None if self.rotation is None else self.rotation(t0, t1)  # once per pair
-                turn = None if r01 is None or reach <= 0 else rotation_warp(self.camera, r01)
-                px = None
-                if steps > 1 or check:
-                    px = chained_flow(self._pair, [(t, im) for _, t, im in buf], max(steps, 2))
-                    if check and far_displacement(px, turn) <= reach:
-                        px = None  # a check that found the image slow: one step is the better flow there
-                if px is None:
-                    px = self._fn(a, b) if r01 is None else prewarp_flow(self._fn, a, b, self.camera, r01)
-                if reach > 0:
-                    last_far = far_displacement(px, turn)
-                count += 1
-                flow = pixel_to_angular(px, self.camera, t1 - t0)
-                yield FlowSample(i0, t0, t1, flow)
+            sample = self.push(item)
+            if sample is not None:
+                yield sample
+
+    def push(self, item: tuple[int, float, np.ndarray]) -> FlowSample | None:
+        """Take in the next frame (index, time s, image); returns the pair it completes (from ``gap`` frames
+        before to it), or None while fewer than ``gap + 1`` frames have come."""
+        cfg = self.config
+        if self._buf is None:
+            self._buf = deque(maxlen=cfg.gap + 1)
+        buf = self._buf
+        buf.append(item)
+        if len(buf) < buf.maxlen:
+            return None
+        (i0, t0, a), (_, t1, b) = buf[0], buf[-1]
+        reach = cfg.chain_fraction * a.shape[1]  # px a single step may move
+        steps = min(cfg.gap, int(np.ceil(self._last_far / reach))) if reach > 0 else 1
+        check = reach > 0 and cfg.gap > 1 and steps < 2 and self._count % cfg.chain_check == 0
+        r01 = None if self.rotation is None else self.rotation(t0, t1)  # once per pair
+        turn = None if r01 is None or reach <= 0 else rotation_warp(self.camera, r01)
+        px = None
+        if steps > 1 or check:
+            px = chained_flow(self._pair, [(t, im) for _, t, im in buf], max(steps, 2))
+            if check and far_displacement(px, turn) <= reach:
+                px = None  # a check that found the image slow: one step is the better flow there
+        if px is None:
+            px = self._fn(a, b) if r01 is None else prewarp_flow(self._fn, a, b, self.camera, r01)
+        if reach > 0:
+            self._last_far = far_displacement(px, turn)
+        self._count += 1
+        return FlowSample(i0, t0, t1, pixel_to_angular(px, self.camera, t1 - t0))

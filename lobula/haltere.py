@@ -531,8 +531,9 @@ class GyroAttitude:
     """
 
     def __init__(self, time_s: np.ndarray, gyro: np.ndarray, bias0, scale=None):
-        self.t = np.asarray(time_s, float)
-        self.w = np.asarray(gyro, float)
+        self._t = np.array(time_s, float)
+        self._w = np.array(gyro, float).reshape(-1, 3)
+        self._n = len(self._t)
         if len(self.t) < 2:
             raise ValueError("GyroAttitude needs at least two gyro samples")
         self.bias = np.broadcast_to(np.asarray(bias0, float), (3,)).copy()
@@ -543,6 +544,29 @@ class GyroAttitude:
         self._q[0] = np.eye(3)
         self._corr = np.zeros((len(self.t), 3))  # w − rate used, at each integrated sample
         self._done = -1  # samples whose correction is fixed: 0.._done (orientation known to max(0, _done))
+
+    @property
+    def t(self) -> np.ndarray:
+        """(m,) s: the gyro's sample times so far."""
+        return self._t[:self._n]
+
+    @property
+    def w(self) -> np.ndarray:
+        """(m, 3) rad/s: its readings so far."""
+        return self._w[:self._n]
+
+    def extend(self, time_s: np.ndarray, gyro: np.ndarray) -> None:
+        """Append gyro samples (k,) s after the last one and (k, 3) rad/s (frame-by-frame use)."""
+        time_s, gyro = np.asarray(time_s, float).reshape(-1), np.asarray(gyro, float).reshape(-1, 3)
+        k, n = len(time_s), self._n
+        if not k:
+            return
+        if n + k > len(self._t):  # room doubles: appending stays linear in the samples
+            grow = max(n + k, 2 * len(self._t))
+            pad = lambda a: np.concatenate([a, np.zeros((grow - len(a),) + a.shape[1:])])
+            self._t, self._w, self._q, self._corr = (pad(a) for a in (self._t, self._w, self._q, self._corr))
+        self._t[n:n + k], self._w[n:n + k] = time_s, gyro
+        self._n = n + k
 
     def _integrate_to(self, k: int):
         k = min(k, len(self.t) - 1)

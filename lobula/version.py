@@ -52,3 +52,14 @@ def provenance_attrs() -> dict:
     """Version, commit, command line and creation time (UTC, ISO 8601) as flat string attributes."""
     return {"lobula_version": __version__, "git_commit": git_commit(), "command_line": command_line(),
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def provenance(config_json: str, **extra) -> dict:
+    """Attributes every output carries: the full configuration (JSON), the package version, the git
+    commit (or "unknown"), the command line and the creation time; ``extra`` adds more (non-strings as JSON)."""
+    import json
+
+    attrs = {**provenance_attrs(), "config": config_json}
+    attrs.update({k: (v if isinstance(v, (str, int, float)) else json.dumps(v, default=str))
+                  for k, v in extra.items()})
+    return attrs

@@ -7,7 +7,7 @@ from lobula._lazy import lazy_api
 _API = {
     "write_footage": "footage_writer",
     "IMUConfig": "imu", "synthesize_imu": "imu",
-    "SceneConfig": "scene", "TrackScene": "scene", "band_limited_texture": "scene",
+    "SceneConfig": "worlds", "TrackScene": "scene", "band_limited_texture": "worlds",
     "Trajectory": "trajectory", "read_velocity_profile": "trajectory", "trajectory_from_function": "trajectory",
     "trajectory_from_profile": "trajectory",
     "GratingConfig": "gratings", "drifting_grating_frames": "gratings", "drifting_grating_lattice": "gratings",

@@ -25,15 +25,18 @@ their texture (``mipmap``) so the ground near the horizon does not alias.
 Textures are seeded, band-limited 1/f noise defined in metres, so the image of a
 surface changes scale correctly with distance. Rendering is vectorised over pixels
 (one loop over the handful of surfaces) and super-sampled to avoid aliasing.
+
+The worlds' parameters and surfaces are :mod:`stimuli.worlds`; this module moves the camera through
+them and casts its rays.
 """
 from __future__ import annotations
-
-from dataclasses import asdict, dataclass, field
 
 import cv2
 import numpy as np
 
 from lobula.camera import PinholeCamera, ray_directions
+
+from .worlds import SceneConfig, Surface, band_limited_texture, world_surfaces
 
 
 def rotation_x(a: float) -> np.ndarray:
@@ -49,137 +52,6 @@ def rotation_y(a: float) -> np.ndarray:
 def rotation_z(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-@dataclass
-class SceneConfig:
-    """Scene and camera-motion parameters (SI units, angles in degrees).
-
-    seed: seeds layout, textures and the 3-axis rotation. world: "panels", "corridor" or
-    "ground" (module doc). Panels world: near_m/far_m: panel distances beyond the
-    camera's farthest position; backdrop_m: backdrop wall distance beyond it; floor,
-    side_walls: optional floor and side walls. off_axis_yaw_deg/off_axis_pitch_deg:
-    fixed angle between the optical axis and the track (0 = translation along the
-    optical axis). rotation_amp_deg/rotation_hz: sinusoidal yaw and pitch of the camera
-    (0 = none). rotation3_amp_deg: (yaw, pitch, roll) peak amplitudes of the seeded
-    3-axis rotation, each a sum of rotation3_components sinusoids with frequencies drawn
-    in rotation3_band_hz (incommensurate: independent uniform draws) and random phases;
-    the weights sum to 1 so |angle| never exceeds the amplitude.
-    gravity_pitch_deg/gravity_roll_deg: tilt of gravity in the track frame.
-    texture_wavelengths_m: band of the 1/f texture (shortest, longest wavelength).
-    supersample: rays per pixel side. noise_grey: pixel noise std (grey levels, 8-bit).
-    brightness: luminance gain (1 = today's; < 1 dims). contrast: texture contrast gain.
-    exposure_s: motion-blur exposure (0 = none), sampled with blur_samples sub-frames.
-    Corridor world: corridor_halfwidth_m, corridor_floor_m (floor below the camera),
-    corridor_ceiling_m (ceiling above it): (lo, hi) ranges drawn uniformly per seed;
-    corridor_end_m: end wall distance beyond the farthest camera position.
-    Ground world: ground_height_m (camera height above the ground), ground_backdrop_m
-    (backdrop distance), ground_backdrop_height_m: (lo, hi) ranges drawn per seed;
-    ground_objects: upright panels standing on the ground 3-40 m ahead.
-    sky_luminance: luminance where no surface is hit (None: 0.8 for the ground world,
-    else 0). mipmap: sample textures from a mip-map chosen by each ray's footprint
-    (None: on for corridor and ground, off for panels, which stays point-sampled).
-    """
-
-    seed: int = 0
-    world: str = "panels"
-    n_panels: int = 10
-    near_m: float = 0.5
-    far_m: float = 3.0
-    backdrop_m: float = 4.5
-    floor: bool = True
-    floor_height_m: float = 0.6
-    side_walls: bool = False
-    wall_halfwidth_m: float = 1.5
-    off_axis_yaw_deg: float = 0.0
-    off_axis_pitch_deg: float = 0.0
-    rotation_amp_deg: float = 0.0
-    rotation_hz: float = 0.5
-    rotation3_amp_deg: tuple = (0.0, 0.0, 0.0)
-    rotation3_band_hz: tuple = (0.3, 1.5)
-    rotation3_components: int = 3
-    gravity_pitch_deg: float = 3.0
-    gravity_roll_deg: float = 1.0
-    texture_wavelengths_m: tuple = (0.03, 0.4)
-    texture_texel_m: float = 0.004
-    texture_size: int = 512
-    supersample: int = 2
-    noise_grey: float = 1.0
-    brightness: float = 1.0
-    contrast: float = 1.0
-    exposure_s: float = 0.0
-    blur_samples: int = 5
-    corridor_halfwidth_m: tuple = (0.8, 1.5)
-    corridor_floor_m: tuple = (0.9, 1.4)
-    corridor_ceiling_m: tuple = (0.9, 1.6)
-    corridor_end_m: float = 12.0
-    ground_height_m: tuple = (0.8, 1.6)
-    ground_backdrop_m: tuple = (50.0, 200.0)
-    ground_backdrop_height_m: tuple = (8.0, 30.0)
-    ground_objects: int = 8
-    sky_luminance: float | None = None
-    mipmap: bool | None = None
-
-    WORLDS = ("panels", "corridor", "ground")
-
-    def __post_init__(self):
-        if self.world not in self.WORLDS:
-            raise ValueError(f"unknown world {self.world!r}; choose one of {', '.join(self.WORLDS)}")
-        if len(tuple(self.rotation3_amp_deg)) != 3:
-            raise ValueError(f"rotation3_amp_deg needs 3 amplitudes (yaw, pitch, roll), got {self.rotation3_amp_deg}")
-        lo, hi = self.rotation3_band_hz
-        if not 0 < lo <= hi:
-            raise ValueError(f"rotation3_band_hz must be 0 < lo <= hi, got {self.rotation3_band_hz}")
-        if self.rotation3_components < 1:
-            raise ValueError("rotation3_components must be >= 1")
-        if self.brightness <= 0 or self.contrast < 0:
-            raise ValueError(f"brightness must be > 0 and contrast >= 0, got {self.brightness}, {self.contrast}")
-
-    @property
-    def sky(self) -> float:
-        return (0.8 if self.world == "ground" else 0.0) if self.sky_luminance is None else float(self.sky_luminance)
-
-    @property
-    def use_mipmap(self) -> bool:
-        return self.world != "panels" if self.mipmap is None else bool(self.mipmap)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-@dataclass
-class Surface:
-    """A textured axis-aligned rectangle: coordinate ``axis`` equals ``offset``.
-
-    bounds: ((lo, hi) on the first in-plane axis, (lo, hi) on the second), metres.
-    in_plane: the two world axes that index the texture. texture: atlas tile index.
-    gain: luminance gain. texel_scale: the texture is stretched by this factor (a
-    backdrop 100 m away gets coarse texture, as a tree line would).
-    """
-
-    axis: int
-    offset: float
-    in_plane: tuple[int, int]
-    bounds: tuple[tuple[float, float], tuple[float, float]]
-    texture: int
-    gain: float = 1.0
-    texel_scale: float = 1.0  # texture metres per texel, relative to SceneConfig.texture_texel_m
-
-
-def band_limited_texture(rng: np.random.Generator, size: int, texel_m: float,
-                         wavelengths_m: tuple[float, float]) -> np.ndarray:
-    """A periodic (size, size) texture with a 1/f amplitude spectrum between two wavelengths.
-
-    Returns float32 luminance with zero mean and unit standard deviation.
-    """
-    f = np.fft.fftfreq(size, d=texel_m)  # cycles per metre
-    fr = np.hypot(*np.meshgrid(f, f))
-    lo, hi = 1.0 / wavelengths_m[1], 1.0 / wavelengths_m[0]
-    amp = np.where((fr >= lo) & (fr <= hi), 1.0 / np.maximum(fr, 1e-9), 0.0)
-    spec = amp * np.exp(2j * np.pi * rng.random((size, size)))
-    tex = np.real(np.fft.ifft2(spec))
-    tex -= tex.mean()
-    return (tex / tex.std()).astype(np.float32)
 
 
 def _rot_stack(angle, axis: int) -> np.ndarray:
@@ -293,8 +165,7 @@ class TrackScene:
         g = rotation_z(np.radians(config.gravity_roll_deg)) @ rotation_x(
             -np.radians(config.gravity_pitch_deg)) @ np.array([0.0, 9.80665, 0.0])
         self.gravity_world = g
-        layout = {"panels": self._layout, "corridor": self._layout_corridor, "ground": self._layout_ground}
-        self.surfaces = layout[config.world](rng, s_min, s_max)
+        self.surfaces = world_surfaces(config, camera, rng, s_min, s_max)
         self.textures = [band_limited_texture(rng, config.texture_size, config.texture_texel_m,
                                               config.texture_wavelengths_m)
                          for _ in range(len(self.surfaces))]
@@ -315,71 +186,7 @@ class TrackScene:
         self._unit_rays = ray_directions(*self._rays)
         self._rotation3 = self._draw_rotation3()
 
-    # ---------------------------------------------------------------- layout
-    def _layout(self, rng, s_min, s_max) -> list[Surface]:
-        cfg = self.config
-        hx, hy = [np.tan(np.radians(a / 2)) for a in self.camera.fov_deg]
-        z0 = s_max + cfg.near_m
-        surfaces = []
-        depths = np.sort(rng.uniform(z0, s_max + cfg.far_m, cfg.n_panels))[::-1]
-        for i, z in enumerate(depths):
-            # Panels are sized and placed so each is seen from the start of the run.
-            dist = z
-            w = rng.uniform(0.15, 0.5) * dist * hx * 2
-            h = rng.uniform(0.2, 0.6) * dist * hy * 2
-            cx = rng.uniform(-1, 1) * dist * hx
-            cy = rng.uniform(-1, 0.6) * dist * hy
-            surfaces.append(Surface(2, float(z), (0, 1), ((cx - w / 2, cx + w / 2), (cy - h / 2, cy + h / 2)),
-                                    i, gain=float(rng.uniform(0.6, 1.0))))
-        zb = s_max + cfg.backdrop_m
-        big = 100.0
-        surfaces.append(Surface(2, float(zb), (0, 1), ((-big, big), (-big, big)), len(surfaces), 0.8))
-        if cfg.floor:
-            surfaces.append(Surface(1, cfg.floor_height_m, (0, 2), ((-big, big), (-big, zb)), len(surfaces), 0.9))
-        if cfg.side_walls:
-            for sgn in (-1, 1):
-                surfaces.append(Surface(0, sgn * cfg.wall_halfwidth_m, (2, 1), ((-big, zb), (-big, big)),
-                                        len(surfaces), 0.85))
-        return surfaces
-
-    def _layout_corridor(self, rng, s_min, s_max) -> list[Surface]:
-        """Floor, ceiling, two side walls, an end wall and a back wall 20 m behind the start: a closed box."""
-        cfg = self.config
-        w = rng.uniform(*cfg.corridor_halfwidth_m)
-        fl = rng.uniform(*cfg.corridor_floor_m)
-        ce = rng.uniform(*cfg.corridor_ceiling_m)
-        z_end = s_max + cfg.corridor_end_m
-        z_back = s_min - 20.0
-        surf = [Surface(1, fl, (0, 2), ((-w, w), (z_back, z_end)), 0, float(rng.uniform(0.7, 0.95))),
-                Surface(1, -ce, (0, 2), ((-w, w), (z_back, z_end)), 1, float(rng.uniform(0.7, 0.95))),
-                Surface(0, -w, (2, 1), ((z_back, z_end), (-ce, fl)), 2, float(rng.uniform(0.7, 0.95))),
-                Surface(0, w, (2, 1), ((z_back, z_end), (-ce, fl)), 3, float(rng.uniform(0.7, 0.95))),
-                Surface(2, z_end, (0, 1), ((-w, w), (-ce, fl)), 4, float(rng.uniform(0.7, 0.95)),
-                        texel_scale=2.0),
-                Surface(2, z_back, (0, 1), ((-w, w), (-ce, fl)), 5, float(rng.uniform(0.7, 0.95)),
-                        texel_scale=2.0)]
-        return surf
-
-    def _layout_ground(self, rng, s_min, s_max) -> list[Surface]:
-        """A ground plane to the horizon, upright panels on it, a distant backdrop band; sky elsewhere."""
-        cfg = self.config
-        h = rng.uniform(*cfg.ground_height_m)
-        zb = s_max + rng.uniform(*cfg.ground_backdrop_m)
-        hb = rng.uniform(*cfg.ground_backdrop_height_m)
-        far = 1e5  # to the horizon
-        surf = [Surface(1, h, (0, 2), ((-far, far), (-far, zb)), 0, float(rng.uniform(0.6, 0.8)),
-                        texel_scale=2.0),
-                Surface(2, zb, (0, 1), ((-far, far), (h - hb, h)), 1, float(rng.uniform(0.4, 0.6)),
-                        texel_scale=zb / 4.0)]
-        for i in range(cfg.ground_objects):
-            z = s_max + rng.uniform(3.0, 40.0)
-            x = rng.choice([-1, 1]) * rng.uniform(0.5, 0.5 + 0.4 * (z - s_max))
-            wd, ht = rng.uniform(0.5, 3.0), rng.uniform(0.8, 4.0)
-            surf.append(Surface(2, float(z), (0, 1), ((x - wd / 2, x + wd / 2), (h - ht, h)), len(surf),
-                                float(rng.uniform(0.5, 1.0)), texel_scale=float(rng.uniform(1.0, 3.0))))
-        # Nearest first among equal ranges does not matter: the ray caster keeps the nearest hit.
-        return surf
-
+    # ---------------------------------------------------------------- textures
     def _build_atlas(self) -> np.ndarray:
         # Each tile gets a one-texel wrap border so bilinear lookups never bleed
         # into the neighbouring tile.

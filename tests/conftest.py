@@ -124,7 +124,8 @@ def make_replay(tmp_path_factory, real_profile):
 @pytest.fixture(scope="session")
 def replay_rates(make_replay):
     """Field rates of the 0–30 s replay with the default DIS front end, and what a readout needs."""
-    from experiments.velocity import field_rates, forward_accel_at
+    from lobula.velocity import field_rates
+    from lobula.velocity.inertial import forward_accel_at
     from lobula.config import VelocityConfig
     from lobula.readers import open_footage
 
@@ -139,7 +140,7 @@ def replay_rates(make_replay):
 @pytest.fixture(scope="session")
 def emd_replay(make_replay):
     """The 0–30 s replay through the EMD front end (uncalibrated) and the default readout."""
-    from experiments.velocity import estimate_velocity
+    from lobula.velocity import estimate_velocity
     from lobula.config import VelocityConfig
     from lobula.readers import open_footage
 

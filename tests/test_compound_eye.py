@@ -258,7 +258,7 @@ def test_lateral_inhibition_removes_the_mean_in_space_without_a_memory():
     (3) After a reversal of the rings (1 rad/s out, then in) the high-passed circuit's decoded speed
     carries the high-pass's memory, a trailing copy of the pattern moving the other way (measured: 12 %
     low over the first 0.3 s, then 5 % high); the surround has no memory (measured within 2 %)."""
-    from lobula.eye_circuit import lattice_filter
+    from lobula.photoreceptor import lattice_filter
 
     eye = CompoundEye(CompoundEyeConfig())
     M = lattice_filter(eye, surround=1.0)
@@ -359,7 +359,8 @@ def test_eye_readout_is_told_what_the_camera_readout_is_told(eye_footage):
     from dataclasses import replace
 
     from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity, readout_inputs
-    from experiments.velocity import START_ACCEL_PRIOR_M_S2, score
+    from experiments.velocity import score
+    from lobula.velocity.inertial import START_ACCEL_PRIOR_M_S2
     from lobula.haltere import gravity_time_constant
     from stimuli.eye import open_eye_footage
 

@@ -47,7 +47,7 @@ import lobula
 from experiments.depth import (DepthRunConfig, add_parser, depth_at_first_frame, depth_flo_pair,
                                estimate_depth, format_scores, pooled_scores)
 from experiments.store import write_netcdf
-from experiments.velocity import estimate_velocity
+from lobula.velocity import estimate_velocity
 from lobula.depth import angle_from_epipole
 from lobula.epipole import mean_angular_velocity
 from lobula.readers import open_footage

@@ -169,7 +169,7 @@ def test_stabilised_average_lowers_pixel_noise_where_an_unturned_mean_smears():
 def rendered(tmp_path_factory):
     """The suite's corridor family, development seed 101, 3 s at 160×120, exact depth every 10 frames."""
     from experiments.suite import family_config
-    from experiments.velocity import estimate_velocity
+    from lobula.velocity import estimate_velocity
     from lobula.readers import open_footage
     from stimuli.track import make_track_run
 

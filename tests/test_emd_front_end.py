@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from experiments.calibrate import calibrate_emd, exact_field_rates
-from experiments.velocity import estimate_velocity, field_rates, score
+from experiments.velocity import score
+from lobula.velocity import estimate_velocity, field_rates
 from lobula.camera import PinholeCamera
 from lobula.config import VelocityConfig
 from lobula.readout import ReadoutConfig, readout

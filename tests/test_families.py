@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from experiments import suite
-from experiments.velocity import estimate_velocity
+from lobula.velocity import estimate_velocity
 from lobula.config import VelocityConfig
 from lobula.readers import open_footage
 from stimuli.track import make_track_run

@@ -9,7 +9,8 @@ import pytest
 import xarray as xr
 
 from experiments.cli import main
-from experiments.velocity import estimate_velocity, score
+from experiments.velocity import score
+from lobula.velocity import estimate_velocity
 from lobula.camera import PinholeCamera
 from lobula.config import VelocityConfig
 from lobula.receptive_field import pool_fields, tile_fields

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from experiments import parsers
-from experiments.velocity import estimate_velocity, field_rates
+from lobula.velocity import estimate_velocity, field_rates
 from lobula.camera import PinholeCamera
 from lobula.config import VelocityConfig
 from lobula.flow import FlowSample

@@ -22,7 +22,8 @@ rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 (pip install '.[re
 
 from tests import realsense_writer  # noqa: E402
 
-from experiments.velocity import estimate_velocity, score  # noqa: E402
+from experiments.velocity import score  # noqa: E402
+from lobula.velocity import estimate_velocity
 from lobula.config import VelocityConfig  # noqa: E402
 from lobula.readers import open_footage  # noqa: E402
 from lobula.readers.core import IMU  # noqa: E402

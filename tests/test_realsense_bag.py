@@ -461,7 +461,7 @@ def test_missing_or_mismatched_intrinsics_and_unsupported_encoding(tmp_path):
 # ------------------------------------------------------------------ the velocity pipeline
 def test_velocity_on_a_bag_equals_velocity_on_its_folder(tmp_path):
     """A synthetic track run written into a Viewer-style bag gives the folder's v̂."""
-    from experiments.velocity import estimate_velocity
+    from lobula.velocity import estimate_velocity
     from lobula.config import VelocityConfig
     from stimuli.track import TrackRunConfig, make_track_run
 

@@ -8,7 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from experiments.velocity import estimate_velocity, score
+from experiments.velocity import score
+from lobula.velocity import estimate_velocity
 from lobula.config import VelocityConfig
 from lobula.readout import MaterialRates, ReadoutConfig, readout
 from lobula.readers import open_footage

@@ -97,7 +97,8 @@ def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path,
     from dataclasses import replace
 
     from experiments import suite
-    from experiments.velocity import estimate_velocity, forward_accel_at
+    from lobula.velocity import estimate_velocity
+    from lobula.velocity.inertial import forward_accel_at
     from lobula.config import VelocityConfig
     from lobula.haltere import gyro_bias
     from lobula.readers import open_footage
@@ -326,7 +327,8 @@ def test_gyro_scale_error_is_fitted_on_a_camera_turning_fast(tmp_path):
     from dataclasses import replace
 
     from experiments import suite
-    from experiments.velocity import estimate_velocity, score
+    from experiments.velocity import score
+    from lobula.velocity import estimate_velocity
     from lobula.config import VelocityConfig
     from lobula.readers import open_footage
     from stimuli.track import make_track_run

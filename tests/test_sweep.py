@@ -96,7 +96,8 @@ def test_sweep_grid_resume_after_lost_record_and_same_numbers(tmp_path, counter)
         np.testing.assert_array_equal(again[k].values, ds[k].values)  # same seed, same numbers
 
     # The recomputed point against a direct render + estimate_velocity + score.
-    from experiments.velocity import estimate_velocity, score
+    from experiments.velocity import score
+    from lobula.velocity import estimate_velocity
     from lobula.readers import open_footage
     from stimuli.track import make_track_run
     pt = next(p for p in spec.points() if p.key == lost)

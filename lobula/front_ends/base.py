@@ -46,7 +46,7 @@ class FrontEndInput:
     rotations (k, 3, 3), or None (no gyro, or ``config.derotate`` off). flo_files, flo_units: the
     precomputed flow of the ``flo`` front end (:mod:`lobula.readers.flo`). ahead: runs an iterable a few
     items ahead in a thread of its own, ``ahead(items, name) -> iterator`` (the command line's
-    :func:`experiments.stream.threaded`); by default no thread.
+    :func:`lobula.threads.threaded`); by default no thread.
     """
 
     footage: Any

@@ -12,21 +12,21 @@ How the file is read:
 * **container** — PyAV (FFmpeg) demultiplexes the ``gpmd`` track; each packet's presentation
   time and duration (the MP4 sample table, on the same clock as the video's frame times) give
   the time span its samples cover. The ``gpmd`` track and the ``udta`` settings are found by a
-  walk over the MP4's box headers (:func:`read_mp4_index`).
+  walk over the MP4's box headers (:func:`~lobula.readers.mp4_index.read_mp4_index`).
 * **GPMF** — GoPro's own parser, gpmf-parser, through its Python binding ``py-gpmf-parser``,
   decodes each packet: types, struct sizes, SCAL divisors and the axis order (ORIN → ORIO, or
   the calibration matrix MTRX), so ACCL and GYRO come out in GoPro's standard order Z, X, Y.
 * **timing** — the n samples of a stream in a packet spanning [t_in, t_out) are spread evenly,
-  t_k = t_in + k (t_out − t_in)/n (:func:`packet_sample_times`), then moved earlier by the
+  t_k = t_in + k (t_out − t_in)/n (:func:`~lobula.readers.gopro_telemetry.packet_sample_times`), then moved earlier by the
   stream's TIMO offset where it has one.
 * **axes** — GoPro's IMU axes (X, Y, Z of the gpmf-parser documentation: Z up out of the
   camera's top, Y out of its back, X to its left, right-handed) are rotated into the camera
   optical frame the pipeline uses (x right, y down, z forward): x = −X, y = −Z, z = −Y
-  (:data:`GOPRO_TO_CAMERA`). The signs hold on real clips (../shared/data/gopro_walking): the
+  (:data:`~lobula.readers.gopro_telemetry.GOPRO_TO_CAMERA`). The signs hold on real clips (../shared/data/gopro_walking): the
   mean specific force leans back by the camera's downward pitch, which puts the focus of
   expansion above the image centre as the flow shows, and the gyro's yaw and pitch move the
   image left and down as they should (tests/test_gopro.py). Files without ORIN use the order
-  GoPro documents for the model (:data:`DEFAULT_ORIN`: HERO5 Z,X,Y; HERO6 Y,−X,Z; Fusion −Y,X,Z).
+  GoPro documents for the model (:data:`~lobula.readers.gopro_telemetry.DEFAULT_ORIN`: HERO5 Z,X,Y; HERO6 Y,−X,Z; Fusion −Y,X,Z).
 * **truth** — GPS 2D ground speed (Doppler) of the samples with a 2D or 3D fix, as
   ``truth["v_forward_m_s"]``: the camera's forward speed only when its optical axis points along
   the walk (otherwise speed × cos of the angle between them). Every output says its truth is GPS.
@@ -35,48 +35,24 @@ How the file is read:
 
 GoPro files carry no lens intrinsics (the lens is a wide-angle fisheye), so velocity needs a
 camera.json: ``--camera FILE`` or ``CLIP.camera.json`` / ``camera.json`` beside the clip.
+
+The parts, one module each: :mod:`lobula.readers.mp4_index` (the box index), :mod:`lobula.readers.gpmf`
+(decoding a GPMF payload) and :mod:`lobula.readers.gopro_telemetry` (the streams over the whole file,
+timed and in the camera frame). This module holds the footage (:func:`open_gopro`: GPS truth,
+stabilisation, the telemetry summary) and re-exports the parts' public names.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import av
 import numpy as np
 
 from .core import FootageError, IMU, imu_to_camera as camera_json_rotation, read_camera_json, rotation_deg
+from .gopro_telemetry import (DEFAULT_ORIN, GOPRO_TO_CAMERA, GOPRO_XYZ_TO_CAMERA, STANDARD_ORDER, Stream,
+                              axis_order_matrix, imu_axes_to_camera, packet_sample_times, read_telemetry)
+from .gpmf import DATA_KEYS, GPMF_INSTALL_HINT, STICKY_KEYS, decode_gpmf, decode_settings
+from .mp4_index import GPMF_SAMPLE_TYPE, Mp4Index, has_gpmf_track, read_mp4_index
 from .video import VideoFootage, container_times
-
-#: Sample-description type of the MP4 track that holds GPMF.
-GPMF_SAMPLE_TYPE = b"gpmd"
-
-#: GoPro's standard output axis order (ORIO of every camera that writes one; HERO5's native order).
-STANDARD_ORDER = "ZXY"
-
-#: Rotation from a vector in GoPro's standard order (Z, X, Y components) to the camera optical
-#: frame: x_cam = −X (X points left), y_cam = −Z (Z points up), z_cam = −Y (Y points out of the back).
-GOPRO_TO_CAMERA = np.array([[0.0, -1.0, 0.0],
-                            [-1.0, 0.0, 0.0],
-                            [0.0, 0.0, -1.0]])
-
-#: Rotation from GoPro's body axes in X, Y, Z order to the camera optical frame (what
-#: ``Footage.imu_to_camera`` reports): the same axes as :data:`GOPRO_TO_CAMERA`.
-GOPRO_XYZ_TO_CAMERA = np.array([[-1.0, 0.0, 0.0],
-                                [0.0, 0.0, -1.0],
-                                [0.0, -1.0, 0.0]])
-
-#: The stored channel order of ACCL/GYRO for models that write no ORIN (gpmf-parser's
-#: documentation: "Data order Z,X,Y" for HERO5, "Y,-X,Z" for HERO6, "-Y,X,Z" for Fusion);
-#: lower case is a negated axis. Later models (HERO7 Black onwards, MAX) write ORIN themselves.
-DEFAULT_ORIN = {"HERO5": "ZXY", "HERO6": "YxZ", "FUSION": "yXZ"}
-
-#: GPMF streams this reader keeps (data keys) and the per-stream properties it reads beside them.
-DATA_KEYS = ("ACCL", "GYRO", "GPS5", "GPS9", "CORI", "IORI", "GRAV")
-STICKY_KEYS = ("ORIN", "ORIO", "MTRX", "TIMO", "STNM", "SIUN", "UNIT", "GPSF", "GPSP")
-
-#: GPMF type characters of fixed-size numbers, as big-endian numpy dtypes.
-_DTYPES = {"b": ">i1", "B": ">u1", "s": ">i2", "S": ">u2", "l": ">i4", "L": ">u4", "f": ">f4", "d": ">f8",
-           "j": ">i8", "J": ">u8"}
 
 #: The lowest GPS fix (GPSF, GPS9's fix field: 0 no lock, 2 2D, 3 3D) whose samples count as truth.
 GPS_FIX_2D = 2
@@ -84,47 +60,8 @@ GPS_FIX_2D = 2
 #: An image orientation (IORI) further than this from the body's (degrees) counts as stabilisation.
 IORI_STABILISED_DEG = 0.5
 
-GPMF_INSTALL_HINT = ("reading GoPro telemetry needs py-gpmf-parser (GoPro's gpmf-parser; wheels for Linux x86-64, "
-                     "Python 3.8–3.12): pip install 'py-gpmf-parser>=0.1.1,<1'")
 
-
-# ----------------------------------------------------------------------------- pure helpers
-def axis_order_matrix(orin: str, orio: str = STANDARD_ORDER) -> np.ndarray:
-    """The 3×3 matrix M with out = M @ in, from a channel order ``orin`` to ``orio`` (GPMF ORIN/ORIO).
-
-    Each string names the axis each channel holds, e.g. "XzY": channel 0 is +X, channel 1 is −Z,
-    channel 2 is +Y (lower case: negated). M[i, j] = +1 where orio[i] and orin[j] name the same
-    axis with the same sign, −1 with opposite signs, 0 otherwise (gpmf-parser's rule), so
-    ``axis_order_matrix("XzY")`` is the MAX's MTRX [[0, −1, 0], [1, 0, 0], [0, 0, 1]].
-    ValueError unless both are orders of the three axes X, Y, Z.
-    """
-    for s in (orin, orio):
-        if len(s) != 3 or sorted(s.upper()) != ["X", "Y", "Z"]:
-            raise ValueError(f"axis order {s!r} must name X, Y and Z once each (lower case: negated)")
-    m = np.zeros((3, 3))
-    for i, o in enumerate(orio):
-        for j, c in enumerate(orin):
-            if o.upper() == c.upper():
-                m[i, j] = 1.0 if o.isupper() == c.isupper() else -1.0
-    return m
-
-
-def imu_axes_to_camera(order: str) -> np.ndarray:
-    """Rotation taking a GoPro IMU sample stored in channel ``order`` (e.g. "ZXY", "YxZ") to the
-    camera optical frame (x right, y down, z forward): v_cam = R @ v_stored. ValueError for an order
-    that mirrors the axes (no rotation maps it; the metadata are wrong)."""
-    m = axis_order_matrix(order, STANDARD_ORDER)
-    if np.linalg.det(m) < 0:
-        raise ValueError(f"axis order {order!r} mirrors the axes (a left-handed frame)")
-    return GOPRO_TO_CAMERA @ m
-
-
-def packet_sample_times(t_in: float, t_out: float, n: int) -> np.ndarray:
-    """Times (s) of the n samples of one stream in a GPMF packet spanning [t_in, t_out):
-    spread evenly from the packet's start, t_k = t_in + k (t_out − t_in) / n."""
-    return t_in + np.arange(n) * ((t_out - t_in) / n) if n > 0 else np.zeros(0)
-
-
+# ----------------------------------------------------------------------------- GPS and stabilisation
 def quaternion_angle_deg(q: np.ndarray) -> np.ndarray:
     """Rotation angle (degrees) of quaternions q (n, 4) ordered w, x, y, z (any norm)."""
     q = np.asarray(q, float)
@@ -132,361 +69,6 @@ def quaternion_angle_deg(q: np.ndarray) -> np.ndarray:
     return np.degrees(2.0 * np.arccos(np.clip(w, 0.0, 1.0)))
 
 
-# ----------------------------------------------------------------------------- MP4 boxes
-@dataclass
-class Mp4Index:
-    """What the MP4's box headers say: the track IDs whose sample type is ``gpmd`` and the GPMF
-    settings block of ``moov/udta`` (bytes, or None where the file has none)."""
-
-    gpmd_tracks: list[int] = field(default_factory=list)
-    udta_gpmf: bytes | None = None
-
-
-def _boxes(buf: bytes, start: int, end: int, where: str):
-    """(type, payload start, box end) of each box in buf[start:end]; ValueError where a box runs
-    past its parent."""
-    pos = start
-    while pos + 8 <= end:
-        size, typ, head = int.from_bytes(buf[pos:pos + 4], "big"), bytes(buf[pos + 4:pos + 8]), 8
-        if size == 1:
-            size, head = int.from_bytes(buf[pos + 8:pos + 16], "big"), 16
-        elif size == 0:
-            size = end - pos
-        if size < head or pos + size > end:
-            raise ValueError(f"box {typ!r} in {where} runs past its end")
-        yield typ, pos + head, pos + size
-        pos += size
-
-
-def _child(buf: bytes, start: int, end: int, path: tuple[bytes, ...]):
-    """(payload start, end) of the first box along ``path`` below buf[start:end], or None."""
-    for name in path:
-        for typ, s, e in _boxes(buf, start, end, name.decode("latin-1")):
-            if typ == name:
-                start, end = s, e
-                break
-        else:
-            return None
-    return start, end
-
-
-def read_mp4_index(path: str | Path) -> Mp4Index | None:
-    """The GPMF-relevant part of an MP4/MOV's index (see :class:`Mp4Index`); None where the file
-    does not start like an ISO-BMFF file (not an MP4: another reader's business).
-
-    FootageError naming the file where it is an MP4 without its index (``moov``) — a recording cut
-    short (GoPro cameras write the index last) or an incomplete copy. A file cut after its index
-    passes: FFmpeg reads the packets that are left.
-    """
-    path = Path(path)
-    size = path.stat().st_size
-    with open(path, "rb") as fh:
-        head = fh.read(8)
-        if len(head) < 8 or head[4:8] not in (b"ftyp", b"moov", b"mdat", b"free", b"skip", b"wide"):
-            return None
-        pos, moov, seen, cut = 0, None, [], None
-        while pos + 8 <= size:
-            fh.seek(pos)
-            h = fh.read(16)
-            box, typ, hlen = int.from_bytes(h[:4], "big"), h[4:8], 8
-            if box == 1:
-                box, hlen = int.from_bytes(h[8:16], "big"), 16
-            elif box == 0:
-                box = size - pos
-            if box < hlen:
-                raise FootageError(f"{path}: damaged MP4 (box {typ!r} at byte {pos} has size {box}); copy the file "
-                                   f"again from the camera's card")
-            seen.append(typ)
-            if pos + box > size:  # cut short; with the index before the cut, FFmpeg reads what is left
-                cut = f"; its {typ.decode('latin-1')!r} box needs {pos + box} bytes and the file has {size}"
-                break
-            if typ == b"moov":
-                fh.seek(pos + hlen)
-                moov = fh.read(box - hlen)
-            pos += box
-    if moov is None:
-        raise FootageError(f"{path}: the MP4 has no index (moov box; boxes: "
-                           f"{', '.join(t.decode('latin-1') for t in seen)}{cut or ''}): the recording was cut short "
-                           f"or the copy is incomplete; copy the whole file again from the camera's card (or repair an "
-                           f"interrupted recording, e.g. with untrunc and a good clip from the same camera)")
-    index = Mp4Index()
-    try:
-        for typ, s, e in _boxes(moov, 0, len(moov), "moov"):
-            if typ == b"udta":
-                g = _child(moov, s, e, (b"GPMF",))
-                if g is not None:
-                    index.udta_gpmf = bytes(moov[g[0]:g[1]])
-            elif typ == b"trak":
-                tkhd = _child(moov, s, e, (b"tkhd",))
-                stsd = _child(moov, s, e, (b"mdia", b"minf", b"stbl", b"stsd"))
-                if tkhd is None or stsd is None or stsd[1] - stsd[0] < 16:
-                    continue
-                version = moov[tkhd[0]]
-                id_at = tkhd[0] + (20 if version == 1 else 12)
-                # stsd: version/flags, entry count, then sample entries (size, type, ...)
-                if moov[stsd[0] + 12:stsd[0] + 16] == GPMF_SAMPLE_TYPE:
-                    index.gpmd_tracks.append(int.from_bytes(moov[id_at:id_at + 4], "big"))
-    except ValueError as exc:
-        raise FootageError(f"{path}: damaged MP4 index ({exc}); copy the file again from the camera's card") from None
-    return index
-
-
-def has_gpmf_track(path: str | Path) -> bool:
-    """Whether ``path`` is an MP4/MOV with a GPMF (``gpmd``) telemetry track — a GoPro recording as the
-    camera wrote it. FootageError for an MP4 cut short (:func:`read_mp4_index`)."""
-    index = read_mp4_index(path)
-    return bool(index and index.gpmd_tracks)
-
-
-# ----------------------------------------------------------------------------- GPMF
-def _parser():
-    try:
-        import py_gpmf_parser as pg
-    except ImportError:
-        raise FootageError(GPMF_INSTALL_HINT) from None
-    return pg
-
-
-def _value(pg, ms, type_char: str):
-    """A property's value: text for 'c'/'U' (several strings joined by ", "), a float or an array for
-    fixed-size numbers, else None."""
-    raw = pg.GPMF_RawData(ms)
-    if type_char in "cU":
-        size, repeat = pg.GPMF_StructSize(ms), pg.GPMF_Repeat(ms)
-        parts = [raw[i * size:(i + 1) * size] for i in range(repeat)] if size > 1 and repeat > 1 else [raw]
-        return ", ".join(p.split(b"\0", 1)[0].decode("latin-1").strip() for p in parts)
-    dt = _DTYPES.get(type_char)
-    if dt is None or len(raw) < np.dtype(dt).itemsize:
-        return None
-    v = np.frombuffer(raw[:len(raw) // np.dtype(dt).itemsize * np.dtype(dt).itemsize], dt).astype(float)
-    return float(v[0]) if v.size == 1 else v
-
-
-def _error_name(pg, ret) -> str:
-    """gpmf-parser's name of an error code (its functions return the enum or a bare int)."""
-    try:
-        return pg.GPMF_ERROR(int(ret)).name
-    except (ValueError, TypeError):
-        return f"error {int(ret)}"
-
-
-def decode_gpmf(payload: bytes, keys=DATA_KEYS) -> list[dict]:
-    """Every occurrence of a data key of ``keys`` in one GPMF payload, decoded by gpmf-parser.
-
-    Returns dicts {key, device (DVID), data (n, m) float64 scaled by SCAL and put in the ORIO
-    order where ORIN/ORIO or MTRX say so, properties {ORIN, ORIO, MTRX, TIMO, STNM, SIUN, UNIT,
-    GPSF, GPSP: the stream's values before the key}}. ValueError where the payload's structure is
-    damaged (the message says how).
-    """
-    pg = _parser()
-    ok = int(pg.GPMF_ERROR.GPMF_OK)
-    ends = (int(pg.GPMF_ERROR.GPMF_ERROR_BUFFER_END), int(pg.GPMF_ERROR.GPMF_ERROR_LAST))
-    if len(payload) < 8 or payload[:4] != b"DEVC":
-        raise ValueError(f"not GPMF (starts {payload[:4]!r}, not DEVC)")
-    words = np.frombuffer(payload + b"\0" * (-len(payload) % 4), dtype=np.uint32)  # gpmf-parser swaps the bytes
-    ret, ms = pg.GPMF_Init(words, len(payload))
-    if int(ret) != ok:
-        raise ValueError(f"gpmf-parser cannot start on it ({_error_name(pg, ret)})")
-    found, device, props = [], None, {}
-    while True:
-        key = pg.fourCC_to_string(pg.GPMF_Key(ms))
-        tc = chr(pg.GPMF_Type(ms) or 0)
-        if key == "DEVC":
-            device, props = None, {}
-        elif key == "DVID":
-            device = _value(pg, ms, tc)
-        elif key == "STRM":
-            props = {}
-        elif key in STICKY_KEYS:
-            props[key] = _value(pg, ms, tc)
-        elif key in keys:
-            n, m = pg.GPMF_Repeat(ms), pg.GPMF_ElementsInStruct(ms)
-            data = np.zeros((0, m))
-            if n and m:
-                ret, values = pg.GPMF_ScaledData(ms, n * m * 8, 0, n, pg.GPMF_SampleType.DOUBLE)
-                if int(ret) != ok:
-                    raise ValueError(f"gpmf-parser cannot scale {key} ({_error_name(pg, ret)})")
-                data = np.asarray(values[:n * m], float).reshape(n, m)
-            found.append(dict(key=key, device=device, data=data, props=dict(props)))
-        ret = int(pg.GPMF_Next(ms, pg.GPMF_RECURSE_LEVELS))
-        if ret in ends:
-            return found
-        if ret != ok:
-            raise ValueError(f"damaged structure after {key} ({_error_name(pg, ret)})")
-
-
-def decode_settings(payload: bytes | None) -> dict:
-    """The camera's settings from the ``udta`` GPMF block: {four-character key: text or number}
-    (MINF model, FMWR firmware, EISE/EISA stabilisation, VFOV/ZFOV lens, OREN orientation, ...);
-    {} where there is none or it cannot be read (the settings are informative only)."""
-    if not payload or payload[:4] != b"DEVC":
-        return {}
-    pg = _parser()
-    words = np.frombuffer(payload + b"\0" * (-len(payload) % 4), dtype=np.uint32)
-    ret, ms = pg.GPMF_Init(words, len(payload))
-    out = {}
-    if int(ret) != int(pg.GPMF_ERROR.GPMF_OK):
-        return out
-    while True:
-        key = pg.fourCC_to_string(pg.GPMF_Key(ms))
-        tc = chr(pg.GPMF_Type(ms) or 0)
-        if tc != "\0" and key not in out:
-            v = _value(pg, ms, tc)
-            if isinstance(v, (str, float)):
-                out[key] = v
-        if int(pg.GPMF_Next(ms, pg.GPMF_RECURSE_LEVELS)) != int(pg.GPMF_ERROR.GPMF_OK):
-            return out
-
-
-@dataclass
-class Stream:
-    """One GPMF stream over the whole file: times (n,) s on the video's clock, data (n, m) as
-    gpmf-parser scaled it, the channel order the data is in (ACCL/GYRO: e.g. "ZXY"), its name and
-    units, and the properties of its first packet."""
-
-    key: str
-    time_s: np.ndarray
-    data: np.ndarray
-    order: str | None = None
-    name: str = ""
-    units: str = ""
-    props: dict = field(default_factory=dict)
-    per_packet_fix: np.ndarray | None = None  # GPS5: each sample's packet GPSF
-    per_packet_dop: np.ndarray | None = None  # GPS5: each sample's packet GPSP / 100
-
-    @property
-    def rate_hz(self) -> float | None:
-        t = self.time_s
-        return float((len(t) - 1) / (t[-1] - t[0])) if len(t) > 1 and t[-1] > t[0] else None
-
-
-def _stored_order(props: dict, key: str, model: str, path: Path) -> str:
-    """The channel order gpmf-parser's scaled ACCL/GYRO data is in.
-
-    gpmf-parser applies MTRX when it is a calibration (not only 0/±1), else the permutation
-    ORIN → ORIO when both are there; without either the data keep the sensor's order: ORIN, or
-    the model's documented default.
-    """
-    orin, orio, mtrx = props.get("ORIN"), props.get("ORIO"), props.get("MTRX")
-    calibration = mtrx is not None and np.any(~np.isin(np.round(np.ravel(mtrx), 6), (-1.0, 0.0, 1.0)))
-    if isinstance(orio, str) and len(orio) == 3 and (calibration or (isinstance(orin, str) and len(orin) == 3)):
-        return orio
-    if calibration:
-        return STANDARD_ORDER
-    if isinstance(orin, str) and len(orin) == 3:
-        return orin
-    for name, order in DEFAULT_ORIN.items():
-        if name in model.upper().replace(" ", ""):
-            return order
-    raise FootageError(f"{path}: the {key} stream does not say its axis order (no ORIN) and GoPro documents none for "
-                       f"{model or 'this camera'} (documented: HERO5, HERO6, Fusion); export the IMU in the camera "
-                       f"frame to imu.csv and read a copy of the video with it (the video reader)")
-
-
-def read_telemetry(path: str | Path, index: Mp4Index | None = None) -> tuple[dict[str, Stream], dict, tuple]:
-    """All kept GPMF streams of a GoPro MP4, on the video's clock.
-
-    Returns ({key: :class:`Stream`}, settings (:func:`decode_settings`), (first packet start s,
-    last packet end s, packet count)). FootageError naming the file for an MP4 without a ``gpmd``
-    track, a damaged container or a damaged telemetry packet.
-    """
-    path = Path(path)
-    index = index if index is not None else read_mp4_index(path)
-    if index is None or not index.gpmd_tracks:
-        raise FootageError(f"{path}: no GPMF telemetry track (gpmd) in this file, so no IMU or GPS from the camera; "
-                           f"use the camera's original file (re-encoding or editing drops the track), or give "
-                           f"imu.csv and camera.json beside the video for the plain video reader")
-    settings = decode_settings(index.udta_gpmf)
-    try:
-        container = av.open(str(path))
-    except (av.error.FFmpegError, UnicodeDecodeError) as exc:
-        raise FootageError(f"{path}: FFmpeg cannot open this MP4 ({exc.__class__.__name__}); copy the file again from "
-                           f"the camera's card") from None
-    chunks: dict[str, list] = {}
-    spans = []
-    try:
-        streams = [s for s in container.streams if s.id in index.gpmd_tracks and s.type == "data"]
-        if not streams:
-            raise FootageError(f"{path}: FFmpeg does not see the gpmd track (track {index.gpmd_tracks[0]}); copy the "
-                               f"file again from the camera's card")
-        stream = streams[0]
-        try:
-            for packet in container.demux(stream):
-                if packet.size == 0 or packet.pts is None:
-                    continue
-                t_in = float(packet.pts * packet.time_base)
-                t_out = float((packet.pts + (packet.duration or 0)) * packet.time_base)
-                k = len(spans)
-                if t_out <= t_in:
-                    raise FootageError(f"{path}: telemetry packet {k} at {t_in:.3f} s has no duration in the MP4's "
-                                       f"sample table; copy the file again from the camera's card")
-                try:
-                    found = decode_gpmf(bytes(packet))
-                except ValueError as exc:
-                    raise FootageError(f"{path}: telemetry packet {k} ({t_in:.3f}–{t_out:.3f} s) is damaged ({exc}); "
-                                       f"copy the file again from the camera's card") from None
-                spans.append((t_in, t_out))
-                first_device = {}
-                for f in found:
-                    first_device.setdefault(f["key"], f["device"])
-                    if f["device"] != first_device[f["key"]]:
-                        continue  # a second device (a connected sensor) with the same stream: keep the camera's
-                    chunks.setdefault(f["key"], []).append((t_in, t_out, f))
-        except av.error.FFmpegError as exc:
-            raise FootageError(f"{path}: the MP4 is damaged after {len(spans)} telemetry packets ({exc}); copy the "
-                               f"file again from the camera's card") from None
-    finally:
-        container.close()
-    if not spans:
-        raise FootageError(f"{path}: the gpmd telemetry track holds no packets; use the camera's original file")
-    model = str(settings.get("MINF", ""))
-    out = {}
-    for key, parts in chunks.items():
-        # Samples of one key within a packet share its span; a key can occur more than once per packet.
-        per_packet: dict[tuple, list] = {}
-        for t_in, t_out, f in parts:
-            per_packet.setdefault((t_in, t_out), []).append(f)
-        times, data, fix, dop = [], [], [], []
-        props = parts[0][2]["props"]
-        order = None
-        for (t_in, t_out), fs in per_packet.items():
-            d = np.concatenate([f["data"] for f in fs]) if len({f["data"].shape[1] for f in fs}) == 1 else fs[0]["data"]
-            if not len(d):
-                continue
-            p = fs[0]["props"]
-            t = packet_sample_times(t_in, t_out, len(d)) - float(p.get("TIMO") or 0.0)
-            if key in ("ACCL", "GYRO"):
-                if d.shape[1] < 3:
-                    raise FootageError(f"{path}: the {key} samples have {d.shape[1]} axes, not 3: the telemetry is "
-                                       f"damaged; copy the file again from the camera's card")
-                o = _stored_order(p, key, model, path)
-                try:
-                    d = d[:, :3] @ imu_axes_to_camera(o).T
-                except ValueError as exc:
-                    raise FootageError(f"{path}: the {key} stream's axis order cannot be used ({exc}); the "
-                                       f"telemetry's ORIN/ORIO are damaged: export the IMU in the camera frame to "
-                                       f"imu.csv and read a copy of the video with it (the video reader)") from None
-                order = order or o
-            times.append(t)
-            data.append(d)
-            fix.append(np.full(len(d), np.nan if p.get("GPSF") is None else float(p["GPSF"])))
-            dop.append(np.full(len(d), np.nan if p.get("GPSP") is None else float(p["GPSP"]) / 100.0))
-        if not times:
-            continue
-        t = np.concatenate(times)
-        bad = np.flatnonzero(~(np.diff(t) > 0))
-        if not np.all(np.isfinite(t)) or bad.size:
-            at = t[bad[0]] if bad.size else float("nan")
-            raise FootageError(f"{path}: the {key} samples' times do not increase (at {at:.3f} s): the MP4's sample "
-                               f"table for the telemetry track is damaged; copy the file again from the camera's card")
-        out[key] = Stream(key, t, np.concatenate(data), order=order, name=str(props.get("STNM") or ""),
-                          units=str(props.get("SIUN") or props.get("UNIT") or ""), props=props,
-                          per_packet_fix=np.concatenate(fix) if key == "GPS5" else None,
-                          per_packet_dop=np.concatenate(dop) if key == "GPS5" else None)
-    return out, settings, (spans[0][0], spans[-1][1], len(spans))
-
-
-# ----------------------------------------------------------------------------- GPS and stabilisation
 def gps_samples(streams: dict[str, Stream]) -> dict[str, np.ndarray] | None:
     """The GPS samples of GPS9 (preferred: per-sample fix and DOP) or GPS5 (the packet's GPSF/GPSP):
     {time_s, lat_deg, lon_deg, alt_m, speed_2d_m_s, speed_3d_m_s, fix, dop, source}; None without GPS."""
@@ -602,6 +184,38 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
     if times[-1] > t1 + 0.5 / max(fps, 1.0) or times[0] < t0 - 1e-6:
         notes.append(f"the telemetry covers {t0:.3f}..{t1:.3f} s and the frames {times[0]:.3f}..{times[-1]:.3f} s: "
                      f"frames outside it have no IMU samples around them")
+    imu, r_extra = _gopro_imu(path, streams, cam_path, require_imu, notes)
+    gps = gps_samples(streams)
+    truth = _gps_truth(gps, notes)
+    stab = stabilisation(settings, streams)
+    if stab["electronic"]:
+        notes.append(f"electronic stabilisation on ({stab['setting'] or 'HyperSmooth'}; from {stab['source']}): the "
+                     f"image is warped against the gyro's frame, so image rotation is not the camera body's")
+    distortion = dict(model="GoPro wide-angle (fisheye) lens; the file gives no intrinsics or distortion, and the "
+                            "pipeline treats the image as a pinhole camera's", removed=False)
+    if settings.get("VFOV"):
+        distortion["fov_mode"] = settings["VFOV"]
+    if isinstance(settings.get("ZFOV"), float):
+        distortion["diagonal_fov_deg"] = round(settings["ZFOV"], 3)
+    orientation = {k: (streams[k].time_s, streams[k].data) for k in ("CORI", "IORI", "GRAV") if k in streams}
+    stream_list = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=round(fps, 3))]
+    for k, s in sorted(streams.items()):
+        entry = dict(stream=k, name=s.name, samples=int(len(s.time_s)), rate_hz=round(s.rate_hz or 0.0, 3),
+                     units=s.units, axes=_axes_text(s) if s.order else None)
+        stream_list.append({a: v for a, v in entry.items() if v not in (None, "")})
+    telemetry = _telemetry_summary(model, firmware, packets, t0, t1, streams, settings, gps, truth, stab)
+    footage = GoProFootage(path, camera, times, [], imu, truth, kind="gopro", notes=notes, distortion=distortion,
+                           imu_to_camera=(GOPRO_XYZ_TO_CAMERA if r_extra is None else r_extra @ GOPRO_XYZ_TO_CAMERA)
+                           if imu is not None else None, streams=stream_list)
+    footage.telemetry, footage.gps, footage.orientation, footage.nominal_fps = telemetry, gps, orientation, fps
+    return footage
+
+
+def _gopro_imu(path: Path, streams: dict[str, Stream], cam_path: Path | None, require_imu: bool,
+               notes: list[str]) -> tuple[IMU | None, np.ndarray | None]:
+    """The IMU of ACCL and GYRO (gyro interpolated onto the accelerometer's times where they differ), then
+    rotated by the camera file's imu_to_camera where it has one: (IMU or None, that rotation (3, 3) or
+    None). Appends what it did to ``notes``."""
     acc, gyr = streams.get("ACCL"), streams.get("GYRO")
     imu, r_extra = None, None
     if acc is None and require_imu:
@@ -628,7 +242,12 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
                 imu = imu.rotated(r_extra)
                 notes.append(f"IMU then rotated by {cam_path.name}'s imu_to_camera ({rotation_deg(r_extra):.2f} deg), "
                              f"a correction in the camera frame")
-    gps = gps_samples(streams)
+    return imu, r_extra
+
+
+def _gps_truth(gps: dict | None, notes: list[str]) -> dict | None:
+    """The truth of the GPS samples (:func:`gps_samples`) with a 2D/3D fix: {time_s, v_forward_m_s (the 2D
+    ground speed), gps_speed_3d_m_s, gps_fix, gps_dop}; None with fewer than two. Appends a note."""
     truth = None
     if gps is not None:
         good = np.isfinite(gps["fix"]) & (gps["fix"] >= GPS_FIX_2D) & np.isfinite(gps["speed_2d_m_s"])
@@ -643,23 +262,14 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
         else:
             notes.append(f"GPS ({gps['source']}) has {int(good.sum())} of {len(good)} samples with a 2D/3D fix: "
                          f"no truth")
-    stab = stabilisation(settings, streams)
-    if stab["electronic"]:
-        notes.append(f"electronic stabilisation on ({stab['setting'] or 'HyperSmooth'}; from {stab['source']}): the "
-                     f"image is warped against the gyro's frame, so image rotation is not the camera body's")
-    distortion = dict(model="GoPro wide-angle (fisheye) lens; the file gives no intrinsics or distortion, and the "
-                            "pipeline treats the image as a pinhole camera's", removed=False)
-    if settings.get("VFOV"):
-        distortion["fov_mode"] = settings["VFOV"]
-    if isinstance(settings.get("ZFOV"), float):
-        distortion["diagonal_fov_deg"] = round(settings["ZFOV"], 3)
-    orientation = {k: (streams[k].time_s, streams[k].data) for k in ("CORI", "IORI", "GRAV") if k in streams}
-    stream_list = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=round(fps, 3))]
-    for k, s in sorted(streams.items()):
-        entry = dict(stream=k, name=s.name, samples=int(len(s.time_s)), rate_hz=round(s.rate_hz or 0.0, 3),
-                     units=s.units, axes=_axes_text(s) if s.order else None)
-        stream_list.append({a: v for a, v in entry.items() if v not in (None, "")})
-    telemetry = dict(
+    return truth
+
+
+def _telemetry_summary(model: str, firmware: str, packets: int, t0: float, t1: float, streams: dict[str, Stream],
+                       settings: dict, gps: dict | None, truth: dict | None, stab: dict) -> dict:
+    """The JSON-able ``GoProFootage.telemetry``: model, firmware, packets and their span (s), truth source,
+    stabilisation, lens, streams, GPS and the camera settings kept."""
+    return dict(
         model=model or None, firmware=firmware or None, packets=packets, span_s=[round(t0, 6), round(t1, 6)],
         truth_source=f"GPS ({gps['source']} 2D ground speed)" if truth is not None else "none",
         stabilisation=stab, lens=dict(fov_mode=settings.get("VFOV"), diagonal_fov_deg=settings.get("ZFOV")),
@@ -673,11 +283,6 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
             speed_2d_mean_m_s=float(np.mean(truth["v_forward_m_s"])) if truth is not None else None),
         settings={k: v for k, v in settings.items() if k in ("MINF", "FMWR", "EISE", "EISA", "VFOV", "ZFOV", "OREN",
                                                              "DZOM", "HCTL", "PRJT")})
-    footage = GoProFootage(path, camera, times, [], imu, truth, kind="gopro", notes=notes, distortion=distortion,
-                           imu_to_camera=(GOPRO_XYZ_TO_CAMERA if r_extra is None else r_extra @ GOPRO_XYZ_TO_CAMERA)
-                           if imu is not None else None, streams=stream_list)
-    footage.telemetry, footage.gps, footage.orientation, footage.nominal_fps = telemetry, gps, orientation, fps
-    return footage
 
 
 def _axes_text(s: Stream) -> str:

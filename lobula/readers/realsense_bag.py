@@ -42,7 +42,8 @@ Choices, each also written into ``footage.notes``:
 * Lens distortion (CameraInfo ``D``) is ignored, as for the other footage kinds; the
   D435i colour stream reports zero coefficients.
 
-Needs the ``rosbags`` package (pure Python) only when a bag is opened.
+Needs the ``rosbags`` package (pure Python) only when a bag is opened; its messages are parsed by
+:mod:`lobula.readers.ros1_messages`.
 """
 from __future__ import annotations
 
@@ -53,153 +54,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
-import cv2
 import numpy as np
 
 from lobula.camera import PinholeCamera
 
 from .bag_frames import bag_frames
 from .core import IMU, Footage, FootageError, rotation_deg as _rotation_deg
-
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-IMU_TYPE = "sensor_msgs/msg/Imu"
-CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-TRANSFORM_TYPE = "geometry_msgs/msg/Transform"
-KEY_VALUE_TYPE = "diagnostic_msgs/msg/KeyValue"
-STREAM_INFO_TYPE = "realsense_msgs/msg/StreamInfo"
+from .ros1_messages import (CAMERA_INFO_TYPE, IMAGE_TYPE, IMU_TYPE, KEY_VALUE_TYPE, STREAM_INFO_TYPE,
+                            SUPPORTED_ENCODINGS, TRANSFORM_TYPE, _ENCODINGS, _header, _parse_camera_info,
+                            _parse_image, _parse_imu, _parse_key_value, _parse_stream_info_fps, _parse_transform,
+                            _to_grey)
 
 # /device_<d>/sensor_<s>/<Stream>_<i>/image/data, as librealsense's ros_topic names them.
 VIEWER_TOPIC = re.compile(r"^/device_(?P<device>\d+)/sensor_(?P<sensor>\d+)/(?P<stream>[A-Za-z]+)_(?P<index>\d+)/")
 
-# encoding -> (bytes per pixel, how to make grey)
-_ENCODINGS = {
-    "rgb8": (3, "rgb"), "bgr8": (3, "bgr"), "rgba8": (4, "rgba"), "bgra8": (4, "bgra"),
-    "mono8": (1, "mono8"), "8uc1": (1, "mono8"), "y8": (1, "mono8"),
-    "mono16": (2, "mono16"), "16uc1": (2, "mono16"), "y16": (2, "mono16"),
-    "yuyv": (2, "yuyv"), "yuy2": (2, "yuyv"), "yuv422_yuy2": (2, "yuyv"),
-    "uyvy": (2, "uyvy"), "yuv422": (2, "uyvy"),
-}
-_CV_CODES = {"rgb": cv2.COLOR_RGB2GRAY, "bgr": cv2.COLOR_BGR2GRAY,
-             "rgba": cv2.COLOR_RGBA2GRAY, "bgra": cv2.COLOR_BGRA2GRAY}
-SUPPORTED_ENCODINGS = tuple(_ENCODINGS)
-
 # What rosbags and the decompressors raise on damaged bytes, besides ReaderError.
 _CORRUPT = (AssertionError, KeyError, IndexError, RuntimeError, OSError, EOFError, struct.error, ValueError,
             UnicodeDecodeError)
-
-
-# ---------------------------------------------------------------------- message parsing
-# ROS1 wire format through rosbags' Noetic typestore. librealsense appends a float32
-# depth_units to every sensor_msgs/Image whose header frame_id is "1" (all Viewer
-# recordings since 2.3x), which the typestore's strict ``deserialize_ros1`` rejects as
-# a size mismatch; :func:`_deserialize` runs the same message definition but accepts
-# trailing bytes after a complete message (never a message cut short).
-def _typestore():
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-    ts = get_typestore(Stores.ROS1_NOETIC)
-    ts.register(get_types_from_msg("uint32 fps\nstring encoding\nbool is_recommended\n", STREAM_INFO_TYPE))
-    return ts
-
-
-_TS = None
-
-
-def _deserialize(raw, typename: str):
-    """A ROS1 message through the typestore, allowing trailing bytes (see above)."""
-    global _TS
-    if _TS is None:
-        _TS = _typestore()
-    msgdef = _TS.get_msgdef(typename)
-    try:
-        msg, pos = msgdef.deserialize_ros1(memoryview(raw), 0, msgdef.cls, _TS)
-    except (struct.error, UnicodeDecodeError, IndexError) as exc:
-        raise ValueError(f"{typename} message is truncated or damaged ({exc})") from None
-    if pos > len(raw):
-        raise ValueError(f"{typename} message runs past its end")
-    return msg
-
-
-def _stamp_ns(header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
-def _header(raw) -> tuple[int, None]:
-    """(stamp in ns, None) of the std_msgs/Header that every stamped message starts with."""
-    return _stamp_ns(_deserialize(raw, "std_msgs/msg/Header")), None
-
-
-@dataclass(frozen=True)
-class _Image:
-    stamp_ns: int
-    height: int
-    width: int
-    encoding: str
-    is_bigendian: int
-    step: int
-    data: np.ndarray
-
-
-def _parse_image(raw) -> _Image:
-    m = _deserialize(raw, IMAGE_TYPE)
-    return _Image(_stamp_ns(m.header), int(m.height), int(m.width), m.encoding, int(m.is_bigendian),
-                  int(m.step), m.data)
-
-
-def _parse_imu(raw) -> tuple[int, np.ndarray, np.ndarray]:
-    """(stamp ns, angular_velocity (3,), linear_acceleration (3,)) of a sensor_msgs/Imu."""
-    m = _deserialize(raw, IMU_TYPE)
-    w, a = m.angular_velocity, m.linear_acceleration
-    return _stamp_ns(m.header), np.array([w.x, w.y, w.z]), np.array([a.x, a.y, a.z])
-
-
-def _parse_camera_info(raw) -> dict:
-    m = _deserialize(raw, CAMERA_INFO_TYPE)
-    return dict(height=int(m.height), width=int(m.width), distortion_model=m.distortion_model,
-                D=np.asarray(m.D, float).copy(), K=np.asarray(m.K, float).copy())
-
-
-def _parse_transform(raw) -> tuple[np.ndarray, np.ndarray]:
-    """(translation (3,), rotation matrix (3, 3)) of a geometry_msgs/Transform."""
-    m = _deserialize(raw, TRANSFORM_TYPE)
-    t, q = m.translation, m.rotation
-    return np.array([t.x, t.y, t.z]), _quat_to_matrix(q.x, q.y, q.z, q.w)
-
-
-def _parse_key_value(raw) -> tuple[str, str]:
-    m = _deserialize(raw, KEY_VALUE_TYPE)
-    return m.key, m.value
-
-
-def _parse_stream_info_fps(raw) -> int:
-    return int(_deserialize(raw, STREAM_INFO_TYPE).fps)
-
-
-def _quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    n = np.sqrt(x * x + y * y + z * z + w * w)
-    if not np.isfinite(n) or n < 1e-9:
-        raise ValueError("zero or non-finite quaternion")
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def _to_grey(img: _Image) -> np.ndarray:
-    """Decode one image message to grey float32 (H, W) in grey levels 0..255."""
-    bpp, kind = _ENCODINGS[img.encoding.lower()]
-    h, w, step = img.height, img.width, img.step
-    if step < w * bpp or len(img.data) < step * h:
-        raise ValueError(f"{w}x{h} {img.encoding} needs {w * bpp} bytes a row and {step * h} in all, "
-                         f"message has step {step} and {len(img.data)} bytes")
-    rows = np.frombuffer(img.data, np.uint8, count=step * h).reshape(h, step)[:, :w * bpp]
-    if kind == "mono8":
-        return rows.astype(np.float32)
-    if kind == "mono16":
-        px = np.ascontiguousarray(rows).view(">u2" if img.is_bigendian else "<u2")
-        return px.astype(np.float32) / 257.0
-    if kind in ("yuyv", "uyvy"):
-        return rows.reshape(h, w, 2)[..., 0 if kind == "yuyv" else 1].astype(np.float32)
-    return cv2.cvtColor(np.ascontiguousarray(rows).reshape(h, w, bpp), _CV_CODES[kind]).astype(np.float32)
 
 
 # ---------------------------------------------------------------------- footage
@@ -460,6 +331,47 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
                            f"{', '.join(SUPPORTED_ENCODINGS)}; record colour as RGB8/BGR8/YUYV or infrared Y8")
 
     # ---- IMU topics (before the time check, which depends on the IMU's stamps too)
+    accel_topic, gyro_topic, united, imu_raw = _imu_messages(path, reader, topics, types, counts, topic,
+                                                             require_imu)
+
+    # ---- time source: header stamps unless they are missing (all zero) somewhere
+    notes = []
+    if time_source not in (None, "header", "bag"):
+        raise ValueError(f"unknown time source {time_source!r}; choose header or bag")
+    use_header = np.any(hdr_ns != 0) and all(np.any(v[0] != 0) for v in imu_raw.values())
+    if time_source is not None:
+        use_header = time_source == "header"
+    source = "header" if use_header else "bag"
+    stamps = hdr_ns if use_header else bag_ns
+    _check_increasing(path, topic, stamps, "image")
+    origin = int(stamps[0])
+    times = (stamps - origin) / 1e9
+
+    # ---- camera
+    camera, distortion = _camera(path, reader, topics, types, counts, topic, prefix, first, times, camera, notes)
+    dom_img = _timestamp_domain(reader, topics, prefix, "image")
+    notes.insert(0, f"RealSense bag: {len(times)} frames from {topic} ({first.encoding} -> grey), "
+                    f"{camera.frame_rate_hz:g} Hz; times are {'header stamps' if use_header else 'bag record times (header stamps are zero)'}"
+                    f"{' (' + dom_img + ')' if dom_img else ''} relative to the first frame's, "
+                    f"origin {origin / 1e9:.6f} s")
+
+    # ---- IMU: accel time base, gyro interpolated, rotated into the colour optical frame
+    imu, r_imu = _bag_imu(path, reader, topics, prefix, accel_topic, gyro_topic, united, imu_raw, use_header,
+                          origin, dom_img, notes)
+
+    return BagFootage(path=path, camera=camera, times=times, files=FramePlaceholders(path, topic, len(times)),
+                      imu=imu, truth=None, kind="realsense-bag", notes=notes, topic=topic, distortion=distortion,
+                      imu_to_camera=r_imu,
+                      encoding=first.encoding, time_origin_s=origin / 1e9, time_source=source,
+                      bag_times_ns=bag_ns, stamps_ns=stamps,
+                      streams=[dict(topic=t, type=", ".join(sorted(types[t])), messages=int(counts[t]))
+                               for t in sorted(topics)])
+
+
+def _imu_messages(path: Path, reader, topics: dict, types: dict, counts: dict, topic: str, require_imu: bool):
+    """The accelerometer and gyroscope topics nearest the image ``topic`` (one united IMU topic where the bag
+    has no separate ones) and their messages: (accel_topic, gyro_topic, united, {role: (header stamps ns,
+    record times ns, values (n, 6): linear acceleration then angular velocity)})."""
     imu_topics = [t for t, ty in types.items() if IMU_TYPE in ty and counts[t] > 0]
     accel_topic = _closest([t for t in imu_topics if "accel" in t.lower()], topic)
     gyro_topic = _closest([t for t in imu_topics if "gyro" in t.lower()], topic)
@@ -486,21 +398,14 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
         imu_raw[role] = (np.array(st, np.int64), np.array(bt, np.int64), np.array(vals))
     if united:
         imu_raw["gyro"] = imu_raw["accel"]
+    return accel_topic, gyro_topic, united, imu_raw
 
-    # ---- time source: header stamps unless they are missing (all zero) somewhere
-    notes = []
-    if time_source not in (None, "header", "bag"):
-        raise ValueError(f"unknown time source {time_source!r}; choose header or bag")
-    use_header = np.any(hdr_ns != 0) and all(np.any(v[0] != 0) for v in imu_raw.values())
-    if time_source is not None:
-        use_header = time_source == "header"
-    source = "header" if use_header else "bag"
-    stamps = hdr_ns if use_header else bag_ns
-    _check_increasing(path, topic, stamps, "image")
-    origin = int(stamps[0])
-    times = (stamps - origin) / 1e9
 
-    # ---- camera
+def _camera(path: Path, reader, topics: dict, types: dict, counts: dict, topic: str, prefix: str, first,
+            times: np.ndarray, camera: PinholeCamera | None, notes: list[str]):
+    """(camera, distortion): ``camera`` as given, else the intrinsics of the image stream's CameraInfo at its
+    StreamInfo frame rate (else the frames' median rate); the distortion the CameraInfo reports (ignored),
+    or None. FootageError where there are no intrinsics or they disagree with the frames' size."""
     distortion = None
     info_topics = [t for t, ty in types.items() if CAMERA_INFO_TYPE in ty and counts[t] > 0]
     info_topic = f"{prefix}/info/camera_info" if f"{prefix}/info/camera_info" in info_topics else \
@@ -536,13 +441,14 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
     if (first.width, first.height) != (camera.width, camera.height):
         raise FootageError(f"{path}: {topic} images are {first.width}x{first.height} but the intrinsics "
                            f"({intrinsics_from}) are for {camera.width}x{camera.height}")
-    dom_img = _timestamp_domain(reader, topics, prefix, "image")
-    notes.insert(0, f"RealSense bag: {len(times)} frames from {topic} ({first.encoding} -> grey), "
-                    f"{camera.frame_rate_hz:g} Hz; times are {'header stamps' if use_header else 'bag record times (header stamps are zero)'}"
-                    f"{' (' + dom_img + ')' if dom_img else ''} relative to the first frame's, "
-                    f"origin {origin / 1e9:.6f} s")
+    return camera, distortion
 
-    # ---- IMU: accel time base, gyro interpolated, rotated into the colour optical frame
+
+def _bag_imu(path: Path, reader, topics: dict, prefix: str, accel_topic, gyro_topic, united: bool, imu_raw: dict,
+             use_header: bool, origin: int, dom_img: str | None, notes: list[str]):
+    """(IMU or None, the rotation applied to it or None): the accelerometer's times as the time base (s from
+    ``origin``, ns), the gyroscope interpolated onto them, both rotated into the image stream's optical
+    frame. Appends what it did to ``notes``."""
     imu, r_imu = None, None
     if "accel" in imu_raw:
         pick = 0 if use_header else 1
@@ -586,14 +492,7 @@ def _open(path: Path, reader, stream: str | None, camera: PinholeCamera | None, 
                   + (f" + {gyro_topic}" if gyro_topic and not united else ""))
     else:
         notes.append("no IMU in this bag: velocity cannot be estimated from it")
-
-    return BagFootage(path=path, camera=camera, times=times, files=FramePlaceholders(path, topic, len(times)),
-                      imu=imu, truth=None, kind="realsense-bag", notes=notes, topic=topic, distortion=distortion,
-                      imu_to_camera=r_imu,
-                      encoding=first.encoding, time_origin_s=origin / 1e9, time_source=source,
-                      bag_times_ns=bag_ns, stamps_ns=stamps,
-                      streams=[dict(topic=t, type=", ".join(sorted(types[t])), messages=int(counts[t]))
-                               for t in sorted(topics)])
+    return imu, r_imu
 
 
 def _dedupe_check(path: Path, topic: str, stamps: np.ndarray, values: np.ndarray, what: str):

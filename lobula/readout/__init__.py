@@ -40,12 +40,14 @@ The package, one module per concept: :mod:`lobula.readout.config` (:class:`Reado
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .config import ReadoutConfig, ReadoutResult
 from .filters import _fill_nan, _integral, _lag, butterworth, gaussian_lowpass, hold_gaps, staggered_difference
-from .kalman import (OUTLIER_GATE, _accel_density2, _axis_terms, _gated_update, _sign_update, _update,
-                     kalman_velocity, predict, ratio_update)
+from .kalman import ForwardPass, FilterRecord, _accel_density2, _axis_terms, filter_record, kalman_velocity, predict  # noqa: F401
+from .updates import OUTLIER_GATE, _gated_update, _sign_update, _update, ratio_update  # noqa: F401
 from .measurements import (NO_EXPANSION_SE, REVERSAL_MAX_GAP_S, SIGN_PERSIST_S, MaterialRates,
                            accelerometer_level, accelerometer_steady, clear_expansion, expansion_sign,
                            field_velocity, median_and_error, physical_kappa, ratio_measurement, readout_lag,
@@ -166,18 +168,93 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     ReadoutResult
     """
     zp = cfg.filter == "zero-phase"
-    dt = float(np.median(np.diff(t)))
-    terms, lag, lp, rf = readout_terms(t, r, r2, a, cfg, material)
+    inp = kalman_inputs(t, r, r2, a, cfg, material, offset_axis, offset_axis_prior)
+    if cfg.fusion == "vision-only":
+        z, s = inp.z, inp.z_std
+        obs = np.isfinite(z) & (s <= cfg.max_std_m_s)
+        return ReadoutResult(np.where(obs, z, np.nan), obs, np.where(obs, s, np.nan), inp.v_field, inp.r_dot, z, s, a,
+                             info=dict(measurement_delay_s=inp.delay))
+    v, v_std = kalman_velocity(t, a, inp.measurements, cfg, smooth=zp, gravity_tau=gravity_tau,
+                               ratio=inp.ratio, drift_std=drift_std, delay=inp.delay,
+                               corr_frames=inp.corr_frames, turn_rate=turn_rate, offset_walk=offset_walk,
+                               offset_axis=offset_axis, offset_axis_prior=offset_axis_prior, transport=transport,
+                               rest_accel=inp.rest_accel, lag=cfg.lag_s,  # the smoother (zero-phase) ignores lag
+                               reversal=inp.reversal, sign=inp.sign)
+    return finish_readout(v, v_std, inp, a, cfg)
+
+
+def finish_readout(v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> ReadoutResult:
+    """The :class:`ReadoutResult` of the filter's posterior v, v_std ((n,) m/s): v_std widened by the
+    accelerometer's scale error (ReadoutConfig.accel_scale_error), v̂ NaN where v_std exceeds max_std_m_s."""
+    v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
+    obs = v_std <= cfg.max_std_m_s
+    zp = cfg.filter == "zero-phase"
+    # The direct measurement as the filter takes it: its latency bridged with ∫a (the haltere's fast path).
+    z = inp.z + inp.ratio[3]
+    return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
+                         info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s))
+
+
+@dataclass
+class KalmanInputs:
+    """What the kalman readout's filter takes from the fields and the acceleration (:func:`kalman_inputs`).
+
+    measurements, ratio, rest_accel, reversal, sign: :func:`kalman_velocity`'s arguments of those names
+    (arrays (n,)); delay: s, the measurements' latency; corr_frames: frames over which their errors are
+    correlated; v_field (n, F) m/s, r_dot (n, F) 1/s², z and z_std (n,) m/s: the per-field velocities, ṙ̄ and
+    the direct vision measurement (of the low-passed v one ``delay`` ago) with its std, for the result.
+    """
+
+    measurements: list
+    ratio: tuple
+    rest_accel: tuple | None
+    reversal: tuple | None
+    sign: np.ndarray | None
+    delay: float
+    corr_frames: float
+    v_field: np.ndarray
+    r_dot: np.ndarray
+    z: np.ndarray
+    z_std: np.ndarray
+
+
+def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, offset_axis=None,
+                  offset_axis_prior=0.0, dt: float | None = None) -> KalmanInputs:
+    """The kalman readout's measurements from the fields' rates and the forward acceleration.
+
+    Online (``cfg.filter`` "causal") each frame's inputs depend on that frame and those before it only,
+    so they may be computed on any trailing stretch of the record long enough for the low-pass, the
+    rest test's windows and the reversals' gaps (:class:`lobula.velocity.VelocityEstimator` does).
+
+    Parameters
+    ----------
+    t : ndarray, (n,)
+        s, uniformly spaced.
+    r, r2 : ndarray, (n, F)
+        1/s and 1/s².
+    a : ndarray, (n,)
+        m/s², finite.
+    cfg : ReadoutConfig
+    material : MaterialRates, optional
+    offset_axis : ndarray, (n, 3), optional
+    offset_axis_prior : float or ndarray, (3,)
+        As :func:`readout` takes them.
+    dt : float, optional
+        s: the frame interval (None: the median of t's differences).
+
+    Returns
+    -------
+    KalmanInputs
+    """
+    zp = cfg.filter == "zero-phase"
+    dt = float(np.median(np.diff(t))) if dt is None else float(dt)
+    terms, lag, lp, rf = readout_terms(t, r, r2, a, cfg, material, dt=dt)
     r_dot = terms[2]
     z, s, v_f = vision_measurement(*terms, cfg)
     delay = lag * dt
     # Low-passed measurements are correlated over about 1/(2·cutoff) s; treating each
     # frame as independent would make the posterior overconfident by √(that many frames).
     s = s * np.sqrt(max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt)))
-    if cfg.fusion == "vision-only":
-        obs = np.isfinite(z) & (s <= cfg.max_std_m_s)
-        return ReadoutResult(np.where(obs, z, np.nan), obs, np.where(obs, s, np.nan), v_f, r_dot, z, s, a,
-                             info=dict(measurement_delay_s=delay))
     cum = _integral(a, t)
     # What the measurements speak of. κ = lp(a/d)/lp(v/d) is a ratio of low-passed signals, so
     # κ·lp(v) = lp(a) (exactly, for a depth constant over the filter's span): the velocity it
@@ -191,8 +268,6 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     # reads the suite's 20 development scenes (seeds 100-101) at 0.0052 m/s zero-phase RMSE, 0.0045
     # with this pairing (the worst 0.0094 against 0.0092; exact rates 0.0036 against 0.0002).
     shift = cum - _lag(lp(cum), lag)
-    # Bridge the measurement's latency with ∫a (the haltere's fast path).
-    z = z + shift
     sigma_t = np.sqrt(np.log(2.0) / 2.0) / (np.pi * cfg.cutoff_hz)  # the low-pass's Gaussian width (s)
     # The prior std of the acceleration's whole forward offset: the accelerometer's own, and the
     # start frame's gravity error where the filter tracks it apart (offset_axis).
@@ -200,20 +275,12 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     zr, sr = _rest_bound(r, rf, a, terms[3], cfg, dt, sigma_t, offset_prior)
     kap, skap, e_lp, n_corr = _kappa_measurement(terms, v_f, cfg, dt, sigma_t, offset_prior)
     min_fields = int(np.ceil(cfg.min_valid_fraction * r.shape[1]))  # for the reversals and the sign
-    v, v_std = kalman_velocity(t, a, [(zr, sr, 0.0)], cfg, smooth=zp, gravity_tau=gravity_tau,
-                               ratio=(kap, skap, terms[3], shift, e_lp), drift_std=drift_std, delay=delay,
-                               corr_frames=n_corr, turn_rate=turn_rate, offset_walk=offset_walk,
-                               offset_axis=offset_axis, offset_axis_prior=offset_axis_prior, transport=transport,
-                               rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2,
-                                                                              causal=True),
-                               lag=cfg.lag_s,  # the smoother (zero-phase) ignores it
-                               reversal=(reversal_measurement(t, r, a, min_fields, cfg.stamp_error_s)
-                                         if cfg.reversal else None),
-                               sign=expansion_sign(t, rf if zp else r, min_fields) if cfg.sign else None)
-    v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
-    obs = v_std <= cfg.max_std_m_s
-    return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, v_f, r_dot, z, s, a,
-                         info=dict(measurement_delay_s=delay, lag_s=0.0 if zp else cfg.lag_s))
+    return KalmanInputs(
+        measurements=[(zr, sr, 0.0)], ratio=(kap, skap, terms[3], shift, e_lp),
+        rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True),
+        reversal=reversal_measurement(t, r, a, min_fields, cfg.stamp_error_s) if cfg.reversal else None,
+        sign=expansion_sign(t, rf if zp else r, min_fields) if cfg.sign else None,
+        delay=delay, corr_frames=n_corr, v_field=v_f, r_dot=r_dot, z=z, z_std=s)
 
 
 def _rest_bound(r, rf, a, a_lp, cfg: ReadoutConfig, dt: float, sigma_t: float, offset_prior: float):

@@ -36,7 +36,10 @@ def _lag(x: np.ndarray, h: int) -> np.ndarray:
     -------
     ndarray, (n, ...)
     """
-    return np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:-h]]) if h else x
+    if not h:
+        return x
+    h = min(h, len(x))
+    return np.concatenate([np.full((h,) + x.shape[1:], np.nan), x[:len(x) - h]])
 
 
 def hold_gaps(x: np.ndarray) -> np.ndarray:

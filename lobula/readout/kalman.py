@@ -3,11 +3,12 @@
 The state is (v, b, c, ḃ[, δ]): the forward velocity v (m/s), the accelerometer's offset b (m/s²),
 vision's error c that all fields share (m/s², online a consider state, offline estimated), the
 offset's ramp ḃ (m/s³) and, where the gravity reference's error turns with the camera, the start
-frame's gravity error δ (3, m/s²). :func:`kalman_velocity` runs over the record a frame at a time:
-:func:`predict` carries the state to the frame, then vision's measurements update it — the moments v
-passed through 0 (:func:`_reversal_update`), the sign of v (:func:`_sign_update`), the rest bounds
-(:func:`_velocity_updates`) and κ = a/v (:func:`ratio_update`) — and offline :func:`rts_smooth`
-(or, online with a declared delay, :func:`fixed_lag_smooth`) runs back over it.
+frame's gravity error δ (3, m/s²). :func:`kalman_velocity` runs over the record a frame at a time
+(:class:`ForwardPass`, which :class:`lobula.velocity.VelocityEstimator` also steps as frames come):
+:func:`predict` carries the state to the frame, then vision's measurements update it
+(:mod:`lobula.readout.updates`: the moments v passed through 0, the sign of v, the rest bounds and
+κ = a/v) — and offline :func:`lobula.readout.smoothers.rts_smooth` (or, online with a declared delay,
+:func:`lobula.readout.smoothers.fixed_lag_smooth`) runs back over it.
 """
 from __future__ import annotations
 
@@ -15,16 +16,12 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy.special import log_ndtr
 
 from .config import ReadoutConfig
 from .filters import _integral
 from .smoothers import fixed_lag_smooth, rts_smooth
+from .updates import _reversal_update, _sign_update, _velocity_updates, ratio_update
 
-#: a reversal or rest bound whose innovation exceeds this many of its standard deviations is taken for the front
-#: end's fault, not a fact about v (kalman_velocity): an expansion read with the wrong sign for a moment gives two
-#: false reversals and, low-passed offline, frames of "no expansion" (tests/test_readout.py)
-OUTLIER_GATE = 4.0
 
 
 def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravity_tau=None,
@@ -134,36 +131,14 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     n = len(t)
     fixed_lag = lag > 0 and not smooth
     smooth_pass = smooth or fixed_lag  # the smoother's forward pass (whole record or fixed lag)
-    nd = 0 if offset_axis is None else 3
-    N = 4 + nd
-    sv, sb = cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2
-    sd0 = float(drift_std[0]) ** 2 if drift_std is not None else 0.0
-    x = np.zeros(N)
-    # States: v, the offset b, vision's shared error c (online a consider state, offline estimated), the
-    # ramp ḃ, and with offset_axis the start frame's gravity error δ (3).
-    P = np.diag([sv, sb, 0.0, sd0] + list(np.broadcast_to(np.asarray(offset_axis_prior, float) ** 2, (nd,))))
-    consider = cfg.shared_error_frac > 0 and not smooth_pass
+    rec = filter_record(t, a, offset_axis, transport, gravity_tau, drift_std, turn_rate, offset_walk)
+    fp = ForwardPass(cfg, 0 if offset_axis is None else 3, drift_std, offset_axis_prior, smooth_pass, corr_frames)
+    N = len(fp.x)
     xs_pred, Ps_pred, xs, Ps, Fs = (np.zeros((n, N)), np.zeros((n, N, N)), np.zeros((n, N)),
                                     np.zeros((n, N, N)), np.zeros((n, N, N)))
-    D = float(delay)
-    rec = _record(t, a, offset_axis, transport, gravity_tau, drift_std, turn_rate, offset_walk)
-    noise = _KappaNoise()
-    cf = corr_frames if smooth_pass else 1.0
     for k in range(n):  # a loop over time steps; the state has 4 or 7 dimensions
-        if k > 0:
-            x, P, Fs[k] = predict(x, P, k, rec, cfg, noise.shared_var(cfg.shared_error_frac))
-        xs_pred[k], Ps_pred[k] = x, P
-        H = rec.v_row(k, D)  # v(t − D) + shift, in the state at t
-        if reversal is not None and np.isfinite(reversal[0][k]):
-            x, P = _reversal_update(x, P, k, rec, reversal, cfg.meas_floor_m_s, consider)
-        if sign is not None and np.isfinite(sign[k]):
-            x, P = _sign_update(x, P, rec.v_row(k, 0.0), sign[k], cfg.max_std_m_s)
-        x, P = _velocity_updates(x, P, k, rec, H, measurements, rest_accel, consider)
-        if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
-            x, P, nu, hph, R = ratio_update(x, P, k, rec, cfg, H, D, [q[k] for q in ratio], noise.scale, cf,
-                                            consider)
-            noise.learn(k, t, nu, hph, R, cfg, smooth_pass, corr_frames)
-        xs[k], Ps[k] = x, P
+        xs_pred[k], Ps_pred[k], Fs[k], xs[k], Ps[k] = fp.step(k, rec, float(delay), measurements, ratio,
+                                                              rest_accel, reversal, sign)
     if smooth:
         xs, Ps = rts_smooth(xs, Ps, xs_pred, Ps_pred, Fs)
     elif fixed_lag:
@@ -173,8 +148,70 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
     return xs[:, 0], np.sqrt(np.maximum(Ps[:, 0, 0], 0.0))
 
 
+class ForwardPass:
+    """The filter's forward pass, one frame at a time: :func:`kalman_velocity`'s loop, and what
+    :class:`lobula.velocity.VelocityEstimator` runs as frames come.
+
+    Parameters
+    ----------
+    cfg : ReadoutConfig
+    nd : int
+        3 where the start frame's gravity error δ is tracked (``offset_axis`` given), else 0.
+    drift_std : ndarray, (n,), or None
+        m/s²/s: its first value sets the ramp's prior std.
+    offset_axis_prior : float or ndarray, (3,)
+        m/s²: δ's prior std.
+    smooth_pass : bool
+        The smoother's forward pass (vision's shared error estimated, floors counted once per
+        ``corr_frames``), else the online filter (the shared error a consider state).
+    corr_frames : float
+        As :func:`kalman_velocity` takes it.
+    """
+
+    def __init__(self, cfg: ReadoutConfig, nd: int, drift_std, offset_axis_prior, smooth_pass: bool,
+                 corr_frames: float):
+        self.cfg, self.smooth_pass, self.corr_frames = cfg, smooth_pass, corr_frames
+        sv, sb = cfg.v_prior_m_s ** 2, cfg.bias_prior_m_s2 ** 2
+        sd0 = float(drift_std[0]) ** 2 if drift_std is not None else 0.0
+        # States: v, the offset b, vision's shared error c (online a consider state, offline estimated), the
+        # ramp ḃ, and with offset_axis the start frame's gravity error δ (3).
+        self.x = np.zeros(4 + nd)
+        self.P = np.diag([sv, sb, 0.0, sd0] + list(np.broadcast_to(np.asarray(offset_axis_prior, float) ** 2, (nd,))))
+        self.consider = cfg.shared_error_frac > 0 and not smooth_pass
+        self.noise = _KappaNoise()
+        self.cf = corr_frames if smooth_pass else 1.0
+
+    def step(self, k: int, rec: "FilterRecord", D: float, measurements, ratio, rest_accel, reversal, sign):
+        """Predict to frame k (of ``rec``'s arrays) and update with its measurements (each array indexed at k,
+        as :func:`kalman_velocity` takes them; D s the measurements' latency).
+
+        Returns
+        -------
+        x_pred, P_pred, F, x, P : ndarray
+            The prediction (N,), (N, N), the transition used (N, N) (identity at the first frame), and the
+            posterior (N,), (N, N).
+        """
+        cfg, x, P, consider = self.cfg, self.x, self.P, self.consider
+        F = np.zeros((len(x), len(x)))
+        if k > 0:
+            x, P, F = predict(x, P, k, rec, cfg, self.noise.shared_var(cfg.shared_error_frac))
+        x_pred, P_pred = x, P
+        H = rec.v_row(k, D)  # v(t − D) + shift, in the state at t
+        if reversal is not None and np.isfinite(reversal[0][k]):
+            x, P = _reversal_update(x, P, k, rec, reversal, cfg.meas_floor_m_s, consider)
+        if sign is not None and np.isfinite(sign[k]):
+            x, P = _sign_update(x, P, rec.v_row(k, 0.0), sign[k], cfg.max_std_m_s)
+        x, P = _velocity_updates(x, P, k, rec, H, measurements, rest_accel, consider)
+        if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
+            x, P, nu, hph, R = ratio_update(x, P, k, rec, cfg, H, D, [q[k] for q in ratio], self.noise.scale,
+                                            self.cf, consider)
+            self.noise.learn(k, rec.t, nu, hph, R, cfg, self.smooth_pass, self.corr_frames)
+        self.x, self.P = x, P
+        return x_pred, P_pred, F, x, P
+
+
 @dataclass
-class _Record:
+class FilterRecord:
     """The record the filter runs over, and the rows its measurements take in the state.
 
     Parameters
@@ -217,11 +254,11 @@ class _Record:
         return abs(reading - o @ x) + n_sigma * np.sqrt(o @ P @ o)
 
 
-def _record(t, a, offset_axis, transport, gravity_tau, drift_std, turn_rate, offset_walk) -> _Record:
-    """The :class:`_Record` of :func:`kalman_velocity`'s inputs (same names, units and shapes)."""
+def filter_record(t, a, offset_axis, transport, gravity_tau, drift_std, turn_rate, offset_walk) -> FilterRecord:
+    """The :class:`FilterRecord` of :func:`kalman_velocity`'s inputs (same names, units and shapes)."""
     c_at, c_mean = _axis_terms(t, offset_axis)
     lam = np.zeros(len(t)) if transport is None else np.asarray(transport, float)
-    return _Record(t, a, lam, _integral(lam, t), c_at, c_mean, gravity_tau, drift_std, turn_rate, offset_walk)
+    return FilterRecord(t, a, lam, _integral(lam, t), c_at, c_mean, gravity_tau, drift_std, turn_rate, offset_walk)
 
 
 @dataclass
@@ -270,7 +307,7 @@ class _KappaNoise:
             self.scale = max(1.0, self.nis / self.nis_w)
 
 
-def predict(x, P, k: int, rec: _Record, cfg: ReadoutConfig, shared_var: float):
+def predict(x, P, k: int, rec: FilterRecord, cfg: ReadoutConfig, shared_var: float):
     """The state's prediction from frame k − 1 to frame k.
 
     v integrates the acceleration less the offset (and, turning, the transport λ·v); b follows its
@@ -286,7 +323,7 @@ def predict(x, P, k: int, rec: _Record, cfg: ReadoutConfig, shared_var: float):
         Its covariance.
     k : int
         The frame predicted to (≥ 1).
-    rec : _Record
+    rec : FilterRecord
     cfg : ReadoutConfig
     shared_var : float
         (m/s²)²: the variance of vision's shared error c (:meth:`_KappaNoise.shared_var`).
@@ -326,160 +363,6 @@ def predict(x, P, k: int, rec: _Record, cfg: ReadoutConfig, shared_var: float):
         P[3, :] *= f
         P[:, 3] *= f
     return x, P, F
-
-
-def _reversal_update(x, P, k: int, rec: _Record, reversal, floor: float, consider: bool):
-    """Update with v(t_k − delay) = 0 where the fields' expansion changed sign (:func:`reversal_measurement`).
-
-    Its std is the crossing time's std × the acceleration as the posterior has it (|accel − b̂| + 2σ_b),
-    floored at ``floor`` (m/s); gated: a posterior sure that v was far from 0 takes the sign change for a
-    front-end fault.
-
-    Parameters
-    ----------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-    k : int
-        The frame.
-    rec : _Record
-    reversal : tuple of ndarray
-        (shift, time_std, delay, accel), each (n,), as :func:`kalman_velocity` takes it.
-    floor : float
-        m/s: the least std.
-    consider : bool
-        As in :func:`_update`.
-
-    Returns
-    -------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-    """
-    Hr = rec.v_row(k, reversal[2][k])
-    s_rev = max(reversal[1][k] * rec.accel_reach(x, P, k, reversal[3][k], 2.0), floor)
-    return _gated_update(x, P, Hr, reversal[0][k] - Hr @ x, s_rev ** 2, consider)
-
-
-def _velocity_updates(x, P, k: int, rec: _Record, H, measurements, rest_accel, consider: bool):
-    """Update with frame k's direct measurements of v (:func:`kalman_velocity`'s ``measurements``), each gated.
-
-    With ``rest_accel`` (the measurements are rest bounds) one is used only where the reading less the
-    offset the posterior has learned could be a camera that does not accelerate.
-
-    Parameters
-    ----------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-    k : int
-        The frame.
-    rec : _Record
-    H : ndarray, (N,)
-        The row of v one latency ago (:meth:`_Record.v_row`), for measurements without their own delay.
-    measurements : list of tuple
-        As :func:`kalman_velocity` takes them.
-    rest_accel : tuple of ndarray or None
-        As :func:`kalman_velocity` takes it.
-    consider : bool
-        As in :func:`_update`.
-
-    Returns
-    -------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-    """
-    for m in measurements:
-        z, sd = m[0], m[1]
-        Hm = H if len(m) < 3 else rec.v_row(k, m[2])
-        if np.isfinite(z[k]) and np.isfinite(sd[k]):
-            if rest_accel is not None and rec.accel_reach(x, P, k, rest_accel[0][k], -2.0) > rest_accel[1][k]:
-                continue
-            x, P = _gated_update(x, P, Hm, z[k] - Hm @ x, sd[k] ** 2, consider)
-    return x, P
-
-
-def ratio_update(x, P, k: int, rec: _Record, cfg: ReadoutConfig, H, D: float, q, r_scale: float,
-                 cf: float, consider: bool):
-    """Update with vision's κ against the accelerometer: a_m = κ·(v(t − D) + shift) + the offset one latency ago.
-
-    Parameters
-    ----------
-    x : ndarray, (N,)
-        The prior mean.
-    P : ndarray, (N, N)
-        Its covariance.
-    k : int
-        The frame.
-    rec : _Record
-    cfg : ReadoutConfig
-    H : ndarray, (N,)
-        The row of v one latency ago (:meth:`_Record.v_row`).
-    D : float
-        s: the latency.
-    q : sequence of float
-        Frame k's (κ (1/s), σ_κ (1/s), a_m (m/s²), shift (m/s)[, e_lp (m/s)]), as
-        :func:`kalman_velocity`'s ``ratio``.
-    r_scale : float
-        The factor on the noise variance (covariance matching, :class:`_KappaNoise`).
-    cf : float
-        The frames each floor's error is counted over (corr_frames on the smoother's pass, else 1).
-    consider : bool
-        As in :func:`_update`.
-
-    Returns
-    -------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-    nu : float
-        m/s²: the innovation.
-    hph : float
-        (m/s²)²: its prior variance.
-    R : float
-        (m/s²)²: the noise variance, before ``r_scale``.
-    """
-    # Long only by its comments, which say why each term of the row and of the noise is what it is.
-    kap, skap, am, shift = q[:4]
-    e_lp = q[4] if len(q) > 4 else 0.0  # the rates' timing error (m/s), see kalman_readout
-    # Where no acceleration is seen (|a_m| below accel_min) the frame carries no depth
-    # information (as for v_f): it then speaks for the offset b alone, not for v through a
-    # noisy κ ≈ 0. A small a_m alone does not make it so: a_m holds the offset (online the
-    # gravity reference's, up to ~1 m/s²; offline the record's mean acceleration), so a_m ≈ 0
-    # may be a true −b that κ̂ sees; asking a_m alone pulls b̂ toward 0 there (offline, exact
-    # rates with a constant 0.3 m/s² offset: 0.034 m/s RMSE, 0.0002 with this rule; the
-    # development scenes' zero-phase 0.0054 against 0.0052). So the frame counts as
-    # informative when vision sees an acceleration too.
-    informative = abs(am) >= cfg.accel_min_m_s2
-    # v one latency ago as the posterior has it: mean and variance (x, P are the prior here).
-    vd, pd = H @ x - shift, H @ P @ H
-    if not informative:
-        # Vision sees an acceleration where κ̂·v would reach accel_min for v as the posterior has
-        # it — its RMS √(v̂² + σ_v²), not v̂ alone: while v is unknown (the prior's mean 0) κ̂·v̂ ≈ 0
-        # would call every frame uninformative, and those frames, read as a_m = b, would hold the
-        # offset at the reading (exact rates receding at 0.15 m/s with a 0.05 m/s² offset: the
-        # truth outside ±2σ on 97 % of the first 2 s). Not also "κ̂ ≥ 2σ_κ": σ_κ holds a share of
-        # |κ̂| (kappa_rel_error), so that asks for a relative error under ½, not a κ apart from 0,
-        # and with the eye's 0.5 it would hold every such frame at the reading (exact fields
-        # under rotation: 0.235 m/s against 0.028).
-        informative = abs(kap) * np.sqrt(vd ** 2 + pd) >= cfg.accel_min_m_s2
-    kv = kap if informative else 0.0
-    # a_m = κ·(v(t − D) + shift) + the offset one latency ago, b − ḃ·D (+ c(t − D)·δ)
-    h = kv * H + np.concatenate([[0.0, 1.0, 1.0 if cfg.shared_error_frac > 0 else 0.0, -D], rec.c_at(k, D)])
-    zk = am + (kap * shift if informative else 0.0)
-    # The fields' spread (v·σ_κ, floored at meas_floor as a velocity measurement would
-    # be) and the filtered accelerometer's noise floor (accel_min_m_s2); its offset and
-    # ramp are states, not noise.
-    # κ's error multiplies the v it was measured at, v(t − D) (H above), so it counts with
-    # E[v(t − D)²] = vd² + pd (errors in variables: a noisy κ ≈ 0 must not pin v while v is unknown).
-    # Offline, those floors, like the fields' spread (σ_κ holds it already), are errors of
-    # low-passed signals, correlated over corr_frames frames, and counted once per frame they
-    # would add up over the whole record to a confidence the data do not hold. Online the
-    # filter has only the past, and so counted they slow it down more than they help: the
-    # development scenes' causal RMSE falls (0.020 m/s against 0.026), but a real still EuRoC
-    # sequence reads 0.013 m/s of motion (bound 0.01) and a 3 s librealsense recording is
-    # observable on 44 % only.
-    R = ((vd ** 2 + pd) * skap ** 2 + cf * ((kap * cfg.meas_floor_m_s) ** 2
-         + (cfg.meas_floor_m_s * skap) ** 2 + cfg.accel_min_m_s2 ** 2 + (kap * e_lp) ** 2))
-    hph, nu = h @ P @ h, zk - h @ x
-    x, P = _update(x, P, h, nu, r_scale * R, consider)
-    return x, P, nu, hph, R
 
 
 def _axis_terms(t, axis):
@@ -528,83 +411,3 @@ def _accel_density2(cfg: ReadoutConfig, turn_rate: float | None) -> float:
     if turn_rate is not None:
         q += (cfg.accel_turn_noise * turn_rate) ** 2
     return q
-
-
-def _update(x, P, h, nu, r, consider: bool):
-    """One scalar measurement update of the state.
-
-    consider: state 2 (vision's shared error) is a Schmidt–Kalman consider state: its gain is
-    zeroed, and the covariance takes the Joseph form, exact for that suboptimal gain.
-
-    Parameters
-    ----------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-    h : ndarray, (N,)
-        The measurement's row.
-    nu : float
-        The innovation (the measurement's units).
-    r : float
-        The measurement's noise variance (its units squared).
-    consider : bool
-
-    Returns
-    -------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-    """
-    K = P @ h / (h @ P @ h + r)
-    if not consider:
-        return x + K * nu, P - np.outer(K, h @ P)
-    K[2] = 0.0
-    A = np.eye(len(x)) - np.outer(K, h)
-    return x + K * nu, A @ P @ A.T + np.outer(K, K) * r
-
-
-def _gated_update(x, P, h, nu, r, consider: bool):
-    """:func:`_update`, unless the innovation exceeds OUTLIER_GATE of its standard deviations: a measurement
-    the posterior is sure it cannot be is the front end's fault, not a fact about v, and is left out."""
-    if nu ** 2 > OUTLIER_GATE ** 2 * (h @ P @ h + r):
-        return x, P
-    return _update(x, P, h, nu, r, consider)
-
-
-def _sign_update(x, P, h, sgn: float, max_std: float):
-    """Move the posterior of y = h·x (v) to the side of zero ``sgn`` says, where it lies on the other.
-
-    Only a posterior confident enough to be reported (std ≤ ``max_std``) is judged, and only where its
-    mean has the wrong sign. Its variance is first widened until zero lies 1σ from the mean (a posterior
-    that was sure of the wrong sign is wrong, not the fields), then its mean moves to that Gaussian's mean
-    truncated to the allowed side, m + sgn·σ·φ(u)/Φ(u) with u = sgn·m/σ (Simon 2010, IET Control Theory
-    Appl 4:1303, "Kalman filtering with state constraints"), carried to the whole state by y's regression;
-    the covariance is kept (truncating it too, frame after frame, left ±2σ at 45 and 25 % on development eye
-    worlds rotation 100 and mixed 100: the same constraint counted as new information each frame).
-
-    Parameters
-    ----------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-    h : ndarray, (N,)
-        The row of v.
-    sgn : float
-        ±1: v's sign.
-    max_std : float
-        m/s: the largest std judged.
-
-    Returns
-    -------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-        Widened where the mean lay more than 1σ on the wrong side.
-    """
-    m, s2 = float(h @ x), float(h @ P @ h)
-    if not 0.0 < s2 <= max_std ** 2 or sgn * m >= 0.0:
-        return x, P
-    if sgn * m < -np.sqrt(s2):
-        P = P.copy()
-        P += np.outer(h, h) * (m * m - s2) / float(h @ h) ** 2
-        s2 = m * m
-    s = np.sqrt(s2)
-    u = sgn * m / s                          # in [−1, 0): how far onto the wrong side the mean lies, in σ
-    lam = float(np.exp(-0.5 * u * u - 0.5 * np.log(2.0 * np.pi) - log_ndtr(u)))   # inverse Mills ratio φ(u)/Φ(u)
-    return x + P @ h / s2 * (sgn * s * lam), P

@@ -400,7 +400,8 @@ def accelerometer_level(a: np.ndarray, dt: float, change_max: float, causal: boo
     sm = uniform_filter1d(a, 5, mode="nearest", origin=2 if causal else 0)  # trailing when causal
     k = max(3, int(round(5.0 / dt)))
     d2 = np.diff(a, 2) if len(a) >= 3 else np.zeros(1)
-    d2 = np.concatenate([d2[:1], d2[:1], d2] if causal else [d2[:1], d2, d2[-1:]])[:len(a)]
+    # Online the first two frames have no curvature to show yet (0); offline they take their neighbour's.
+    d2 = np.concatenate([np.zeros(2), d2] if causal else [d2[:1], d2, d2[-1:]])[:len(a)]
     # 0.8σ²: the variance white noise leaves after its 5-frame average is taken away.
     hf = 0.8 * uniform_filter1d(d2 ** 2 / 6.0, k, mode="nearest", origin=(k - 1) // 2 if causal else 0)
     return sm, np.maximum(change_max, 5.0 * np.sqrt(np.maximum(hf, 0.0)))
@@ -440,17 +441,29 @@ def accelerometer_steady(a: np.ndarray, dt: float, change_max: float, window_s: 
     from numpy.lib.stride_tricks import sliding_window_view
 
     n = len(a)
-    w = min(max(3, int(round(window_s / dt))), n)
+    w_full = max(3, int(round(window_s / dt)))
+    w = min(w_full, n)
     sm, change_max = accelerometer_level(a, dt, change_max, causal)
     # Window j covers frames j .. j + w − 1; causal frame k takes the window ending at k, offline the
     # one centred on it (both clipped at the record's ends).
     win = sliding_window_view(sm, w)                                       # (n − w + 1, w)
     x = np.arange(w) - 0.5 * (w - 1)
-    slope = win @ x / (x @ x)
+    slope = win @ x / max(x @ x, 1.0)  # one reading (x·x = 0) has no slope
     res = win - win.mean(1, keepdims=True) - slope[:, None] * x
     bend = res.max(1) - res.min(1)                                         # (n − w + 1,)
     j = np.arange(n) - (w - 1 if causal else w // 2)
-    return bend[np.clip(j, 0, len(bend) - 1)] <= change_max
+    steady = bend[np.clip(j, 0, len(bend) - 1)] <= change_max
+    if causal:
+        # Before a whole window has passed, the frames so far (at least 3: two always lie on a line).
+        for k in range(min(w_full - 1, n)):
+            if k < 2:
+                steady[k] = False
+                continue
+            xs = np.arange(k + 1) - 0.5 * k
+            y = sm[:k + 1]
+            res = y - y.mean() - (y @ xs / (xs @ xs)) * xs
+            steady[k] = res.max() - res.min() <= change_max[k]
+    return steady
 
 
 def readout_lag(cfg: ReadoutConfig, dt: float) -> int:
@@ -503,7 +516,7 @@ def physical_kappa(terms, v_f, cfg: ReadoutConfig, offset_prior: float):
     return ratio_measurement(*terms[:3], cfg, keep=np.isfinite(v_f) | ~judge[:, None])
 
 
-def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None):
+def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, dt: float | None = None):
     """The kalman readout's low-passed inputs: (r̄, r²̄, ṙ̄, a) and how late they are.
 
     Offline (``cfg.filter`` "zero-phase") a zero-phase Butterworth, no latency; online the same
@@ -521,6 +534,8 @@ def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     cfg : ReadoutConfig
     material : MaterialRates, optional
         The rates along the content; then r̄, r²̄ and ṙ̄ are its own.
+    dt : float, optional
+        s: the frame interval (None: the median of t's differences).
 
     Returns
     -------
@@ -533,7 +548,7 @@ def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     rf : ndarray, (n, F)
         1/s: the low-passed fixed-pixel r̄ as of now (not lagged).
     """
-    dt = float(np.median(np.diff(t)))
+    dt = float(np.median(np.diff(t))) if dt is None else float(dt)
     stagger = max(2, cfg.stagger + cfg.stagger % 2)
     lag = readout_lag(cfg, dt)
     if cfg.filter == "zero-phase":

@@ -4,7 +4,7 @@ import time
 
 import pytest
 
-from experiments.stream import threaded
+from lobula.threads import threaded
 
 
 def test_order_and_completeness():

@@ -1,0 +1,189 @@
+"""The velocity pipeline on a whole footage: :func:`estimate_velocity`.
+
+It returns the velocity Dataset: dims ``time`` and ``field``; ``v_hat``, ``v_std``, ``observable``,
+``accel``, ``r``, ``r2``, ``r_dot``, ``v_field``, the epipole, ``v_true`` where truth exists and the gyro
+bias where one was fitted; the whole configuration, the front end, the filter kind, the acceleration
+source, the version and the commit in ``attrs``.
+"""
+from __future__ import annotations
+
+import json
+import time as _time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+from scipy.spatial.transform import Rotation
+
+from lobula.config import VelocityConfig
+from lobula.front_ends import FRONT_ENDS, get_front_end
+from lobula.haltere import (GRAVITY_WINDOW_S, attitude_leak, forward_axis, gravity_drift_std, gyro_bias, leak_walk,
+                            orientation_from_gyro, transport_rate)
+from lobula.readers.core import Footage, footage_provenance
+from lobula.readers.flo import FloUnits
+from lobula.readout import readout
+from lobula.version import provenance
+
+from .fields import field_rates, slerp_orientations
+from .inertial import (TRUTH_ACCEL_OFFSET_M_S2, forward_accel_at, frame_interval, gravity_tau, gyro_bias_track,
+                       start_accel_prior, turn_rate_at)
+
+
+def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, progress: bool = True,
+                      flo_files: list[Path] | None = None, flo_units: FloUnits | None = None) -> xr.Dataset:
+    """Estimate forward velocity over a footage.
+
+    Parameters
+    ----------
+    footage : lobula.readers.core.Footage
+        What :func:`lobula.readers.open_footage` opens: frames, the camera, the IMU and any truth.
+    config : VelocityConfig, optional
+        None: ``VelocityConfig()`` (DIS flow, the kalman readout, zero-phase).
+    progress : bool
+        Show a progress bar.
+    flo_files, flo_units : optional
+        The precomputed flow of the ``flo`` front end.
+
+    Returns
+    -------
+    xarray.Dataset
+        The velocity Dataset (see the module's docstring); ``v_hat`` and ``v_std`` in m/s over ``time`` (n,) s.
+    """
+    config = config or VelocityConfig()
+    front = get_front_end(config.front_end)
+    if config.epipole not in front.epipoles:
+        others = [f.name for f in FRONT_ENDS.values() if config.epipole in f.epipoles]
+        raise ValueError(f"the {front.name} front end has no epipole {config.epipole} (it runs with epipole "
+                         f"{' or '.join(front.epipoles)}); use epipole {front.epipoles[0]!r} (--epipole "
+                         f"{front.epipoles[0]}) or another front end ({', '.join(others)})")
+    t_start = _time.perf_counter()
+    rates = field_rates(footage, config, flo_files, flo_units, progress)
+    causal = config.readout.filter == "causal"
+    prior = np.radians(config.gyro_bias_prior_deg_s)
+    vb = gyro_bias_track(footage, rates, causal, prior)
+    # The attitude that removes gravity, integrated once for the acceleration and the axis its error turns with.
+    imu = footage.imu if not config.accel_from_truth else None
+    rot = (orientation_from_gyro(imu.time_s, imu.gyro, causal, None if vb is None else vb[0])
+           if imu is not None and imu.gyro is not None and config.derotate else None)
+    a, accel_source = forward_accel_at(footage, rates.t, config, bias=None if vb is None else vb[0], orientation=rot)
+    fields = rates.fields
+    t0 = _time.perf_counter()
+    rcfg = config.readout
+    axis, gravity_error = None, 0.0
+    if not accel_source.startswith("accelerometer"):
+        # A derivative of the true velocity has noise but no accelerometer offset to learn.
+        rcfg = replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2))
+    else:
+        if not causal:
+            # Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which
+            # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
+            span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
+            gravity_error = rcfg.v_prior_m_s / max(span, 1.0)
+        else:
+            # Online, the gravity reference is set at the start and holds the acceleration there.
+            gravity_error = start_accel_prior(rates.r)
+        if footage.imu.gyro is not None and config.derotate:
+            # That error is a vector in the frame gravity was taken in; its forward share turns with the
+            # camera, so the readout tracks it there beside the accelerometer's own offset.
+            axis = forward_axis(footage.imu.time_s, footage.imu.gyro, causal=causal,
+                                bias=None if vb is None else vb[0], orientation=rot)
+            axis = np.stack([np.interp(rates.t, footage.imu.time_s, axis[:, j]) for j in range(3)], -1)
+            axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        else:
+            rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, gravity_error)))
+    if len(rates.t) >= 3:
+        tau = gravity_tau(footage, rates.t, config)
+        drift = walk = lam = None
+        if accel_source.startswith("accelerometer") and footage.imu.gyro is not None and config.derotate:
+            # A turning camera's forward speed changes by −λ·v beyond its forward acceleration.
+            lam = transport_rate(rates.t, footage.imu.time_s, footage.imu.gyro, None if vb is None else vb[0],
+                                 rates.epipole, frame_interval(footage.times),
+                                 causal=causal)
+            # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.haltere):
+            # a state of the readout's filter, offline and online alike.
+            drift = np.interp(rates.t, footage.imu.time_s,
+                              gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=causal,
+                                                bias_std=None if vb is None else vb[1], accel=footage.imu.accel,
+                                                prior=prior))
+            if causal:
+                # Online the attitude took each sample's bias estimate; where that estimate moves, the
+                # gravity it let in moves the offset the filter had learned (lobula.haltere.leak_walk).
+                tb = footage.imu.time_s
+                used = vb[0] if vb is not None else gyro_bias(tb, footage.imu.gyro, causal=True)
+                walk = leak_walk(rates.t, tb, attitude_leak(tb, used, footage.imu.accel))
+        res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material, gravity_tau=tau,
+                      drift_std=drift, turn_rate=turn_rate_at(footage, rates.t, accel_source, config),
+                      offset_walk=walk, offset_axis=axis, offset_axis_prior=gravity_error, transport=lam)
+    else:
+        res = None
+    rates.timings["readout"] = _time.perf_counter() - t0
+    n, F = rates.r.shape
+    nan_nf = np.full((n, F), np.nan)
+    data = dict(
+        v_hat=("time", res.v_hat if res else np.full(n, np.nan), {"units": "m/s", "long_name": "estimated forward velocity"}),
+        observable=("time", res.observable if res else np.zeros(n, bool), {"units": "1", "long_name": "velocity observable"}),
+        v_std=("time", res.v_std if res else np.full(n, np.nan), {"units": "m/s", "long_name": "posterior std of v_hat"}),
+        accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": accel_source}),
+        r=(("time", "field"), rates.r, {"units": "1/s", "long_name": "pooled expansion rate v/d"}),
+        r2=(("time", "field"), rates.r2, {"units": "1/s2", "long_name": "pooled mean of r squared"}),
+        r_dot=(("time", "field"), res.r_dot if res else nan_nf,
+               {"units": "1/s2", "long_name": "time derivative of the pooled expansion rate r"}),
+        v_field=(("time", "field"), res.v_field if res else nan_nf,
+                 {"units": "m/s", "long_name": "per-field forward velocity a·r/(r_dot − r2)"}),
+        epipole_x=("time", rates.epipole[:, 0], {"units": "1", "long_name": "epipole, normalised x"}),
+        epipole_y=("time", rates.epipole[:, 1], {"units": "1", "long_name": "epipole, normalised y"}),
+    )
+    if footage.truth is not None:
+        data["v_true"] = ("time", np.interp(rates.t, footage.truth["time_s"], footage.truth["v_forward_m_s"]),
+                          {"units": "m/s", "long_name": "ground-truth forward velocity"})
+    coords = dict(time=("time", rates.t, {"units": "s", "long_name": "time of the estimate on the footage clock"}),
+                  azimuth_deg=("field", fields.centres_deg[:, 0],
+                               {"units": "degree", "long_name": "LC field centre azimuth"}),
+                  elevation_deg=("field", fields.centres_deg[:, 1],
+                                 {"units": "degree", "long_name": "LC field centre elevation (positive down)"}),
+                  size_deg=("field", np.full(F, fields.size_deg),
+                            {"units": "degree", "long_name": "LC field size (Gaussian FWHM, or box side)"}))
+    if vb is not None:
+        tb = footage.imu.time_s
+        at_t = lambda b: np.stack([np.interp(rates.t, tb, b[:, k]) for k in range(3)], -1)
+        data["gyro_bias"] = (("time", "axis"), at_t(vb[0]), {"units": "rad/s", "long_name":
+                             "gyro bias from " + vb[2]})
+        data["gyro_bias_std"] = (("time", "axis"), at_t(vb[1]), {"units": "rad/s", "long_name":
+                                 "std of the gyro bias estimate"})
+        coords["axis"] = ("axis", ["x", "y", "z"], {"long_name": "camera axis (x right, y down, z forward)"})
+    if rot is not None:
+        q = Rotation.from_matrix(slerp_orientations(footage.imu.time_s, rot, rates.t)).as_quat()
+        data["attitude"] = (("time", "quaternion"), q, {"units": "1", "long_name":
+                            "camera orientation, camera to the first IMU sample's frame, from the integrated gyro"})
+        coords["quaternion"] = ("quaternion", ["x", "y", "z", "w"], {"long_name": "unit quaternion component"})
+    ds = xr.Dataset(data, coords=coords)
+    lag = config.readout.lag_s if config.readout.filter == "causal" else 0.0
+    online = {}
+    if config.readout.filter == "causal" and rates.known is not None and res is not None:
+        # When each v̂ is known after the time it is stamped with: its pair's second frame (half the
+        # flow gap after the pair's middle) plus any declared look-ahead. The vision measurements speak
+        # of the moment measurement_delay_s before that stamp, bridged by the integrated accelerometer.
+        online = dict(output_latency_s=round(float(np.median(rates.known - rates.t)) + lag, 4))
+        if "measurement_delay_s" in res.info:  # the kalman readout's (the paper's has no bridge)
+            online["measurement_delay_s"] = round(float(res.info["measurement_delay_s"]), 4)
+    filt = config.readout.filter + (f", fixed lag {lag:g} s" if lag else "")
+    if online:
+        filt += f" (each v_hat known {online['output_latency_s']:g} s after its time)"
+    gyro = footage.imu is not None and footage.imu.gyro is not None
+    if front.derotation == "gaze":
+        derotation = (f"gaze stabilised by the integrated gyro (fixations, saccades beyond "
+                      f"{config.emd.saccade_limit_deg:g} deg: {int(rates.timings.get('n_saccades', 0))})"
+                      if config.derotate and gyro and config.emd.gaze == "fixate" else
+                      "none: the EMD front end's image is not stabilised (the gyro serves the accelerometer's "
+                      "attitude only)")
+    else:
+        derotation = "exact finite rotation from the integrated gyro" if config.derotate and gyro else "none"
+    ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=filt, **online,
+                               derotation=derotation, epipole=config.epipole,
+                               readout=config.readout.method, acceleration_source=accel_source,
+                               footage=str(footage.path), footage_kind=footage.kind,
+                               notes="; ".join(footage.notes) or "none",
+                               timings_s=json.dumps({k: round(v, 4) for k, v in rates.timings.items()}),
+                               wall_s=round(_time.perf_counter() - t_start, 3), **footage_provenance(footage)))
+    return ds

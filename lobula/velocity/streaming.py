@@ -1,0 +1,285 @@
+"""Forward velocity frame by frame: :class:`VelocityEstimator`, the causal pipeline of
+:func:`lobula.velocity.estimate_velocity` fed one camera frame and a chunk of IMU samples at a time.
+
+Each frame's flow pair is taken once the IMU's samples reach its second frame (the gyro derotates the
+pair), then pooled, and the readout's filter steps once. Its estimates equal the whole-record causal
+run's (``VelocityConfig.readout.filter`` "causal") to rounding: every stage is causal, the readout's
+inputs are computed on a trailing stretch of ``history_s`` seconds that holds everything they reach
+back to, and the IMU's running quantities are carried sample by sample
+(:class:`lobula.velocity.inertial_stream.InertialStream`). Memory stays bounded by ``history_s``
+(the gyro's attitude for the heading fit keeps its samples: 128 bytes each).
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from lobula.config import VelocityConfig
+from lobula.flow import StaggeredFlow
+from lobula.front_ends import get_front_end
+from lobula.haltere import HEADING_FIT_BIAS_PRIOR
+from lobula.readout import MaterialRates, kalman_inputs
+from lobula.readout.kalman import ForwardPass, filter_record
+from lobula.receptive_field import tile_fields
+
+from .fields import FieldPooling
+from .inertial import start_accel_prior
+from .inertial_stream import Columns, InertialStream
+
+
+@dataclass
+class VelocityState:
+    """The estimate after one flow pair.
+
+    Attributes
+    ----------
+    t : float
+        s: the estimate's time (the pair's middle, as the whole-record run stamps it).
+    known_at : float
+        s: the newest frame it uses (the pair's second frame).
+    v : float
+        m/s: forward velocity along the optical axis; NaN where not observable.
+    v_std : float
+        m/s: its posterior std (1σ), also where not observable.
+    observable : bool
+        v_std within the readout's max_std_m_s.
+    heading : ndarray, (2,)
+        The epipole (v_x/v_z, v_y/v_z), normalised image coordinates.
+    velocity : ndarray, (3,)
+        m/s: v·(e_x, e_y, 1) in the camera frame (x right, y down, z forward); NaN where not observable.
+    accel : float
+        m/s²: the forward acceleration the readout took (gravity removed).
+    gyro_bias : ndarray, (3,)
+        rad/s: the gyro bias the attitude that removes gravity used (camera frame).
+    attitude : ndarray, (4,)
+        The camera's orientation as a quaternion (x, y, z, w), camera to the first IMU sample's frame.
+    reason : str
+        Why v is not observable ("" where it is).
+    """
+
+    t: float
+    known_at: float
+    v: float
+    v_std: float
+    observable: bool
+    heading: np.ndarray
+    velocity: np.ndarray
+    accel: float
+    gyro_bias: np.ndarray
+    attitude: np.ndarray
+    reason: str = ""
+
+
+class VelocityEstimator:
+    """Forward velocity from a camera and its IMU, one frame at a time (causal).
+
+    Parameters
+    ----------
+    camera : lobula.camera.PinholeCamera
+        The camera's intrinsics (the reader's ``footage.camera``).
+    config : VelocityConfig, optional
+        None: ``VelocityConfig()`` with the causal filter. The filter must be "causal" with the kalman
+        readout and no fixed lag; the front end a dense flow ("dis" or "farneback"); the IMU's own
+        accelerometer (not ``accel_from_truth``), with derotation by the gyro. Others fail here.
+    history_s : float
+        s of frames the readout's inputs are computed on (at least 8: the rest test's 5 s vibration
+        window and its 1 s bend, the low-pass, the reversals' 1 s).
+    frame_interval_s : float, optional
+        s: the camera's frame interval (None: the first flow pair's, over its gap).
+    imu_interval_s : float, optional
+        s: the IMU's sample interval (None: the median of its first 17 intervals).
+
+    Examples
+    --------
+    >>> est = VelocityEstimator(footage.camera, VelocityConfig(readout=ReadoutConfig(filter="causal")))
+    >>> for i, t, image in footage.frames():
+    ...     state = est.update(image, t, imu_between(t_prev, t))   # (time_s, gyro, accel)
+    """
+
+    def __init__(self, camera, config: VelocityConfig | None = None, history_s: float = 10.0,
+                 frame_interval_s: float | None = None, imu_interval_s: float | None = None):
+        if config is None:
+            config = VelocityConfig()
+            config.readout.filter = "causal"
+        config = copy.deepcopy(config)
+        _check_streamable(config)
+        if history_s < 8.0:
+            raise ValueError(f"history_s must be at least 8 s (the readout reaches that far back), got {history_s}")
+        self.camera, self.config, self.history_s = camera, config, float(history_s)
+        config.flow.method = config.front_end
+        self.fields = tile_fields(camera, config.fields)
+        self.fit_prior = min(HEADING_FIT_BIAS_PRIOR, np.radians(config.gyro_bias_prior_deg_s))
+        self.imu = InertialStream(np.radians(config.gyro_bias_prior_deg_s), self.fit_prior,
+                                  fitted=config.epipole == "estimate", interval_s=imu_interval_s)
+        self.flow = StaggeredFlow(camera, config.flow, rotation=self._turn)
+        self.pooling: FieldPooling | None = None
+        self._gyro_seen: list = []  # gyro samples before the heading fit's attitude is made
+        self._frames: list = []
+        self._index = 0
+        self._t_last = -np.inf
+        F = self.fields.n_fields
+        self.rows = Columns(t=(), known=(), r=(F,), r2=(F,), m_r=(F,), m_r2=(F,), m_rdot=(F,), a=(), axis=(3,),
+                            lam=(), drift=(), walk=(), turn=(), tau=(), epipole=(2,), bias=(3,), attitude=(4,))
+        self.dt: float | None = frame_interval_s
+        self.gravity_error: float | None = None
+        self._todo: list[int] = []
+        self._filter: ForwardPass | None = None
+        self._out: list[VelocityState] = []
+
+    # ---------------------------------------------------------------- input
+    def update(self, frame=None, t: float | None = None, imu=None) -> VelocityState | None:
+        """Take in a frame and the IMU samples that came with it; returns the newest estimate (None before any).
+
+        Parameters
+        ----------
+        frame : ndarray, (H, W) or (H, W, 3), optional
+            The image, as the footage's reader gives it.
+        t : float, optional
+            s: its time, on the IMU's clock.
+        imu : tuple of ndarray, optional
+            (time_s (m,) s, gyro (m, 3) rad/s, accel (m, 3) m/s²), in the camera frame, after the last chunk.
+
+        Returns
+        -------
+        VelocityState or None
+            The estimate of the newest pair the IMU has reached; all of them: :meth:`drain`.
+        """
+        if imu is not None:
+            self.imu.extend(*imu)
+            self._gyro(np.asarray(imu[0], float).reshape(-1), np.asarray(imu[1], float).reshape(-1, 3))
+        if frame is not None:
+            if t is None or not np.isfinite(t) or t <= self._t_last:
+                raise ValueError(f"frame times must be finite and increase; got {t} after {self._t_last}")
+            self._t_last = float(t)
+            self._frames.append((self._index, float(t), frame))
+            self._index += 1
+        self._advance(final=False)
+        return self._out[-1] if self._out else None
+
+    def finish(self) -> list[VelocityState]:
+        """Process the frames the IMU has not reached (as the whole-record run does at the record's end);
+        returns the estimates not yet drained."""
+        self._advance(final=True)
+        if self._todo:  # no frame ever showed three fields: the start's prior stays the resting one
+            self.gravity_error = start_accel_prior(np.full((1, 1), np.nan))
+            self._run_readout()
+        return self.drain()
+
+    def drain(self) -> list[VelocityState]:
+        """Every estimate made since the last drain, in time order."""
+        out, self._out = self._out, []
+        return out
+
+    # ---------------------------------------------------------------- stages
+    def _gyro(self, t, g) -> None:
+        if self.pooling is None:
+            self._gyro_seen.append((t, g))
+        else:
+            self.pooling.extend_gyro(t, g)
+
+    def _turn(self, t0: float, t1: float) -> np.ndarray:
+        q = self.imu.plain_attitude(np.array([t0, t1]))
+        return q[0].T @ q[1]
+
+    def _advance(self, final: bool) -> None:
+        while self._frames and self.imu.rate_hz is not None and (final or self.imu.last_time >= self._frames[0][1]):
+            sample = self.flow.push(self._frames.pop(0))
+            if sample is not None:
+                self._pair(sample)
+
+    def _make_pooling(self) -> None:
+        t = np.concatenate([s[0] for s in self._gyro_seen])
+        g = np.concatenate([s[1] for s in self._gyro_seen])
+        self._gyro_seen = []
+        self.pooling = FieldPooling(self.camera, self.config, self.fields, True, self.imu.plain_attitude, t, g,
+                                    lambda t1: self.imu.still_bias(t1, self.fit_prior))
+
+    def _pair(self, s) -> None:
+        if self.pooling is None:
+            self._make_pooling()
+        if self.dt is None:
+            self.dt = (s.t1 - s.t0) / self.config.flow.gap
+        p = self.pooling.push(s)
+        if p.heading_bias is not None:
+            self.imu.add_estimate(*p.heading_bias)
+        q = self.imu.at_frame(p.t, p.epipole, self.dt)
+        rows = self.rows
+        k = rows.n
+        sl = rows.append(1)
+        for name, val in (("t", p.t), ("known", p.known), ("r", p.r), ("r2", p.r2), ("a", q["a"]),
+                          ("axis", q["axis"]), ("lam", q["transport"]), ("drift", q["drift"]), ("walk", q["walk"]),
+                          ("turn", q["turn"]), ("tau", q["tau"]), ("epipole", p.epipole), ("bias", q["bias"]),
+                          ("attitude", Rotation.from_matrix(q["attitude"]).as_quat())):
+            rows.raw(name)[sl] = val
+        for name in ("m_r", "m_r2", "m_rdot"):
+            rows.raw(name)[sl] = np.nan
+        h = self.pooling.stagger // 2
+        if p.material is not None and k - h >= rows.first:
+            for name, val in zip(("m_r", "m_r2", "m_rdot"), p.material):
+                rows.raw(name)[rows._lo + k - h - rows.first] = val
+        if self.gravity_error is None and np.isfinite(p.r).sum() >= 3:
+            self.gravity_error = start_accel_prior(p.r[None])
+        self._todo.append(k)
+        if self.gravity_error is not None:
+            self._run_readout()
+
+    def _run_readout(self) -> None:
+        for k in self._todo:
+            self._out.append(self._readout(k))
+        self._todo = []
+        keep = int(np.ceil(self.history_s / self.dt)) + 2
+        self.rows.drop_before(self.rows.n - keep)
+
+    def _readout(self, k: int) -> VelocityState:
+        """One step of the readout's filter at row k, on the rows of the last history_s before it."""
+        rows, cfg = self.rows, self.config.readout
+        lo = max(rows.first, k - int(np.ceil(self.history_s / self.dt)))
+        w = slice(rows._lo + lo - rows.first, rows._lo + k + 1 - rows.first)
+        col = lambda name: rows.raw(name)[w]
+        t, a, axis = col("t"), col("a"), col("axis")
+        material = (MaterialRates(col("m_r"), col("m_r2"), col("m_rdot")) if self.pooling.material is not None
+                    else None)
+        inp = kalman_inputs(t, col("r"), col("r2"), a, cfg, material, axis, self.gravity_error, dt=self.dt)
+        rec = filter_record(t, a, axis, col("lam"), col("tau"), col("drift"), col("turn"), col("walk"))
+        if self._filter is None:
+            self._filter = ForwardPass(cfg, 3, col("drift"), self.gravity_error, False, inp.corr_frames)
+        i = k - lo
+        x, P = self._filter.step(i, rec, inp.delay, inp.measurements, inp.ratio, inp.rest_accel, inp.reversal,
+                                 inp.sign)[3:]
+        v = float(x[0])
+        v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
+        obs = v_std <= cfg.max_std_m_s
+        e = col("epipole")[i]
+        reason = "" if obs else (f"posterior std {v_std:.3f} m/s above the readout's max_std {cfg.max_std_m_s:g} m/s: "
+                                 f"the expansion and the acceleration have not yet fixed the speed")
+        return VelocityState(float(t[i]), float(col("known")[i]), v if obs else np.nan, v_std, bool(obs), e.copy(),
+                             (v * np.array([e[0], e[1], 1.0])) if obs else np.full(3, np.nan), float(a[i]),
+                             col("bias")[i].copy(), col("attitude")[i].copy(), reason)
+
+
+def _check_streamable(config: VelocityConfig) -> None:
+    """Raise ValueError, saying what to change, for a configuration the frame-by-frame estimator does not run."""
+    front = get_front_end(config.front_end)
+    ro = config.readout
+    problems = []
+    if ro.filter != "causal":
+        problems.append(f"readout.filter is {ro.filter!r}; frame by frame the filter is causal (set it to 'causal', "
+                        f"or run estimate_velocity on the whole record for the zero-phase one)")
+    if ro.method != "kalman" or ro.fusion != "kalman":
+        problems.append("the readout must be the kalman filter (method and fusion 'kalman')")
+    if ro.lag_s:
+        problems.append(f"readout.lag_s is {ro.lag_s:g} s; the fixed-lag smoother runs on whole records only (set 0)")
+    if not front.live or front.yields != "flow":
+        problems.append(f"the front end {config.front_end!r} does not give each pair's flow as frames come; use 'dis' "
+                        f"or 'farneback'")
+    if config.accel_from_truth:
+        problems.append("accel_from_truth needs the whole record's truth; give the IMU's samples")
+    if not config.derotate:
+        problems.append("derotate is off; frame by frame the gyro derotates the flow (set derotate True)")
+    if config.gyro_bias_from_vision:
+        problems.append("gyro_bias_from_vision fits the whole record's residuals; leave it off")
+    if problems:
+        raise ValueError("VelocityEstimator: " + "; ".join(problems))

@@ -1,0 +1,143 @@
+"""lobula.velocity.streaming: the frame-by-frame estimator against the whole-record causal run."""
+import numpy as np
+import pytest
+
+from experiments import suite
+from experiments.families import FAMILIES
+from lobula.config import VelocityConfig
+from lobula.readers import open_footage
+from lobula.velocity import VelocityEstimator, estimate_velocity
+from stimuli.track import make_track_run
+
+DURATION_S, SCALE = 4.0, 0.25
+
+
+def causal_config(**kw) -> VelocityConfig:
+    cfg = VelocityConfig(**kw)
+    cfg.readout.filter = "causal"
+    return cfg
+
+
+def stream(fo, cfg, chunks=None, intervals=None):
+    """Every VelocityState of ``fo`` run frame by frame, the IMU's samples given with each frame
+    (or in ``chunks`` of that many samples, cycled), intervals: (frame, IMU) s or None."""
+    fi, ii = intervals or (None, None)
+    est = VelocityEstimator(fo.camera, cfg, frame_interval_s=fi, imu_interval_s=ii)
+    imu, j, states = fo.imu, 0, []
+    sizes = iter(np.resize(chunks, 10 ** 5)) if chunks is not None else None
+    for _, t, image in fo.frames():
+        if sizes is None:
+            k = int(np.searchsorted(imu.time_s, t, side="right"))
+            est.update(image, t, (imu.time_s[j:k], imu.gyro[j:k], imu.accel[j:k]))
+            j = k
+        else:
+            est.update(image, t)
+            while j < len(imu.time_s) and imu.time_s[j] <= t + 0.05:
+                k = min(j + int(next(sizes)), len(imu.time_s))
+                est.update(imu=(imu.time_s[j:k], imu.gyro[j:k], imu.accel[j:k]))
+                j = k
+        states += est.drain()
+    est.update(imu=(imu.time_s[j:], imu.gyro[j:], imu.accel[j:]))
+    return states + est.finish(), est
+
+
+def whole_record_intervals(fo, ds):
+    """The frame and IMU intervals the whole-record run takes (medians over the record)."""
+    return float(np.median(np.diff(ds.time.values))), float(np.median(np.diff(fo.imu.time_s)))
+
+
+@pytest.fixture(scope="module")
+def family_footage(tmp_path_factory):
+    cache = {}
+
+    def make(family):
+        if family not in cache:
+            folder = tmp_path_factory.mktemp(family) / "run"
+            make_track_run(folder, suite.family_config(family, 0, DURATION_S, SCALE), progress=False)
+            cache[family] = open_footage(folder)
+        return cache[family]
+
+    return make
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_frame_by_frame_equals_the_whole_record_causal_run(family_footage, family):
+    """Same v̂, σ, observability and time stamps to 1e-9 on every suite family (a realistic IMU on a
+    rotated mount, the gyro bias fitted from the flow), given the record's own intervals."""
+    fo = family_footage(family)
+    cfg = causal_config()
+    ds = estimate_velocity(fo, cfg, progress=False)
+    states, _ = stream(fo, cfg, intervals=whole_record_intervals(fo, ds))
+    assert len(states) == ds.sizes["time"]
+    t = np.array([s.t for s in states])
+    v = np.array([s.v for s in states])
+    sd = np.array([s.v_std for s in states])
+    obs = np.array([s.observable for s in states])
+    assert np.array_equal(t, ds.time.values)
+    assert np.array_equal(obs, ds.observable.values)
+    assert obs.mean() > 0.3, "too few observable estimates for the comparison to mean anything"
+    np.testing.assert_allclose(v[obs], ds.v_hat.values[obs], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sd, ds.v_std.values, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.array([s.accel for s in states]), ds.accel.values, rtol=0, atol=1e-9)
+
+
+def test_imu_chunking_does_not_change_the_estimate(family_footage):
+    """Samples one at a time, in odd chunks, or with each frame: the same estimates; and without the record's
+    intervals (taken from the first pair and the first samples) within 1e-4 m/s of the record's."""
+    fo = family_footage("rotation")
+    cfg = causal_config()
+    ds = estimate_velocity(fo, cfg, progress=False)
+    iv = whole_record_intervals(fo, ds)
+    base, _ = stream(fo, cfg, intervals=iv)
+    for chunks in ([1], [7, 3, 50, 1]):
+        other, _ = stream(fo, cfg, chunks=chunks, intervals=iv)
+        np.testing.assert_allclose([s.v_std for s in other], [s.v_std for s in base], rtol=0, atol=1e-12)
+    own, _ = stream(fo, cfg)
+    np.testing.assert_allclose([s.v_std for s in own], ds.v_std.values, rtol=0, atol=1e-4)
+
+
+def test_state_gives_the_3d_velocity_along_the_heading_and_memory_stays_bounded(family_footage):
+    fo = family_footage("offaxis")
+    states, est = stream(fo, causal_config())
+    seen = [s for s in states if s.observable]
+    assert seen and all(np.allclose(s.velocity, s.v * np.array([*s.heading, 1.0])) for s in seen)
+    assert all(np.all(np.isnan(s.velocity)) and s.reason.startswith("posterior std")
+               for s in states if not s.observable)
+    # the readout holds history_s of rows, the IMU its last few seconds, whatever the record's length
+    assert est.rows.n - est.rows.first <= int(np.ceil(est.history_s / est.dt)) + 2
+    assert est.imu.cols.n - est.imu.cols.first <= (est.imu.keep_s + 1.0) * est.imu.rate_hz
+
+
+@pytest.mark.parametrize("change, words", [
+    (dict(filter="zero-phase"), "readout.filter is 'zero-phase'"),
+    (dict(front_end="emd"), "front end 'emd'"),
+    (dict(accel_from_truth=True), "accel_from_truth"),
+    (dict(lag_s=0.5), "lag_s"),
+])
+def test_configurations_it_cannot_run_fail_saying_what_to_change(change, words):
+    from dataclasses import replace
+
+    from lobula.camera import PinholeCamera
+
+    cfg = causal_config(front_end=change.get("front_end", "dis"), accel_from_truth=change.get("accel_from_truth", False))
+    if "filter" in change:
+        cfg.readout.filter = change["filter"]
+    if "lag_s" in change:
+        cfg.readout = replace(cfg.readout, lag_s=change["lag_s"])
+    with pytest.raises(ValueError, match="VelocityEstimator: .*" + words.replace("(", r"\(")):
+        VelocityEstimator(PinholeCamera(160, 120, 140.0, 140.0, 79.5, 59.5, 30.0), cfg)
+
+
+def test_bad_samples_and_frames_are_refused():
+    from lobula.camera import PinholeCamera
+
+    est = VelocityEstimator(PinholeCamera(160, 120, 140.0, 140.0, 79.5, 59.5, 30.0))
+    t = np.arange(20) / 200.0
+    with pytest.raises(ValueError, match="NaN"):
+        est.update(imu=(t, np.full((20, 3), np.nan), np.zeros((20, 3))))
+    est.update(imu=(t, np.zeros((20, 3)), np.zeros((20, 3))))
+    with pytest.raises(ValueError, match="increase"):
+        est.update(imu=(t, np.zeros((20, 3)), np.zeros((20, 3))))
+    est.update(np.zeros((120, 160), np.uint8), 0.01)
+    with pytest.raises(ValueError, match="frame times"):
+        est.update(np.zeros((120, 160), np.uint8), 0.01)
