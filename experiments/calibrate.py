@@ -45,7 +45,7 @@ def calibrate_emd(footage: Footage, config: VelocityConfig | None = None, per_fi
     Returns (gains, latency_s, number of frames with depth used).
     """
     from lobula._optional import require_torch
-    from lobula.emd_decoding import EMDFrontEnd, fit_calibration
+    from lobula.emd_front_end import EMDFrontEnd, fit_calibration
 
     require_torch("the EMD front end")
     config = config or VelocityConfig(front_end="emd")

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from lobula.camera import PinholeCamera
 from lobula.config import VelocityConfig
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
-from lobula.haltere import orientation_from_gyro
+from lobula.imu import orientation_from_gyro
 from lobula.readers.core import Footage, FootageError
 
 if TYPE_CHECKING:
@@ -33,7 +33,7 @@ __all__ = ["Pair", "attitude_track", "pair_rotation", "metric_scale", "mean_trut
 # ----------------------------------------------------------------------------- rotation
 def attitude_track(time_s: np.ndarray, gyro: np.ndarray, causal: bool):
     """t (k,) -> camera orientations (k, 3, 3) (camera → the first IMU sample's frame): the
-    bias-corrected integrated gyro (:func:`lobula.haltere.orientation_from_gyro`, as the
+    bias-corrected integrated gyro (:func:`lobula.imu.orientation_from_gyro`, as the
     velocity pass integrates it) slerped between samples."""
     q = orientation_from_gyro(time_s, gyro, causal)
     keep = np.concatenate([[True], np.diff(time_s) > 0])

@@ -10,7 +10,7 @@
    — the ratio map, the TV fit or plane+parallax — with the pair's speed.
 
 **Geometry, the same as the velocity pass.** The camera's attitude is the integrated,
-bias-corrected gyro (:func:`lobula.haltere.orientation_from_gyro`, slerped between
+bias-corrected gyro (:func:`lobula.imu.orientation_from_gyro`, slerped between
 samples; causal when the velocity run was), so a pair's rotation is the exact finite
 rotation R₀₁ = Q(t0)ᵀ·Q(t1) over its gap, not mean rate × gap. The flow's end points are
 turned back into the *first* frame's orientation (:func:`lobula.epipole.derotate_finite`

@@ -40,7 +40,7 @@ import numpy as np
 
 from lobula._optional import torch
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
-from lobula.haltere import forward_acceleration, resample_to, turn_rate
+from lobula.imu import forward_acceleration, resample_to, turn_rate
 from lobula.photoreceptor import lowpass_scan, spatial_filter
 from lobula.readout import readout
 

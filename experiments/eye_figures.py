@@ -285,7 +285,6 @@ def figure_eye(out_dir, seeds=(0, 1, 2), duration_s: float = 10.0, workdir=None,
 
     out_dir = Path(out_dir)
     workdir = Path(workdir) if workdir else out_dir / "eye_runs"
-    from experiments.eye_velocity import eye_figure
 
     rows = eye_benchmark(workdir, families, seeds, duration_s, rotations=("haltere",))
     fams = list(families)
@@ -352,3 +351,77 @@ def eye_benchmark(workdir, families=("panels", "rotation", "corridor"), seeds=(0
             rows.append(row)
             print(json.dumps(row))
     return rows
+
+
+def eye_figure(runs: dict, out_png, field_sizes=(20.0, 30.0, 45.0, 60.0),
+               rotations=("none", "haltere", "wide-field", "both"), skip_s: float = 2.0) -> dict:
+    """RMSE of the causal eye circuit against LC field size and rotation handling, beside causal DIS.
+
+    runs: {family: {"eye": [eye-footage folders (seeds)], "dis": [causal DIS velocity NetCDFs of the
+    same worlds and trajectories on the pinhole camera] or "dis_rmse": [their RMSEs]}}. Every eye configuration is run on every
+    seed; the plot shows the mean over seeds with min–max bars, DIS and the zero estimator as lines.
+    Returns the numbers (JSON-able) and writes ``out_png`` (and ``out_png`` with .json).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import xarray as xr
+
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
+    from experiments.store import save_figure
+    from experiments.velocity import score
+    from stimuli.eye import open_eye_footage
+
+    results: dict = {}
+    for fam, spec in runs.items():
+        res = results.setdefault(fam, dict(eye={}, dis=[], zero=[], seeds=len(spec["eye"])))
+        for path in spec["eye"]:
+            fo = open_eye_footage(path)
+            for rot in rotations:
+                for size in field_sizes:
+                    cfg = EyeVelocityConfig()
+                    cfg.circuit.rotation = rot
+                    cfg.circuit.fields.size_deg = float(size)
+                    ds = estimate_eye_velocity(fo, cfg)
+                    res["eye"].setdefault(f"{rot}|{size:g}", []).append(score(ds, skip_s)["rmse_m_s"])
+            keep = ds.time.values >= ds.time.values[0] + skip_s
+            res["zero"].append(float(np.sqrt(np.mean(ds.v_true.values[keep] ** 2))))
+        for nc in spec.get("dis", []):
+            with xr.open_dataset(nc) as d:
+                res["dis"].append(score(d, skip_s)["rmse_m_s"])
+        res["dis"].extend(float(x) for x in spec.get("dis_rmse", []))
+    fams = list(results)
+    fig, axes = plt.subplots(1, len(fams), figsize=(4.2 * len(fams), 3.8), squeeze=False, sharey=True)
+    for ax, fam in zip(axes[0], fams):
+        res = results[fam]
+        for k, (rot, colour) in enumerate(zip(rotations, ("0.5", "tab:blue", "tab:orange", "tab:green"))):
+            vals = [res["eye"].get(f"{rot}|{s:g}", [np.nan]) for s in field_sizes]
+            mean = np.array([np.mean(v) for v in vals])
+            lo = mean - np.array([np.min(v) for v in vals])
+            hi = np.array([np.max(v) for v in vals]) - mean
+            shift = 0.6 * (k - 0.5 * (len(rotations) - 1))   # side by side where they coincide
+            ax.errorbar(np.asarray(field_sizes) + shift, mean, yerr=[lo, hi], marker="o", ms=4, capsize=3,
+                        color=colour, label=f"fly eye, rotation: {rot}")
+        if res["dis"]:
+            ax.axhspan(min(res["dis"]), max(res["dis"]), color="m", alpha=0.12, lw=0)
+            ax.axhline(np.mean(res["dis"]), color="m", ls="--", label="DIS on the D435i camera (causal; band: seeds)")
+        ax.axhline(np.mean(res["zero"]), color="k", ls=":", label="zero estimator (mean over seeds)")
+        ax.set_title(f"{fam} ({res['seeds']} seed{'s' if res['seeds'] > 1 else ''})")
+        ax.set_xlabel("LC field size, FWHM (deg)")
+    axes[0][0].set_ylabel(f"velocity RMSE after {skip_s:g} s (m/s)")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=7, frameon=False)
+    ec = fo.eye.config
+    fig.suptitle(f"Two compound eyes (Δφ = {ec.dphi_deg:g}°, Δρ = {ec.acceptance_deg:g}°, {fo.rate_hz:g} Hz): "
+                 f"photoreceptors → EMDs (τ = {1000 * cfg.circuit.emd.tau_s:g} ms) → LC fields → readout, causal",
+                 fontsize=9)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    save_figure(fig, out_png, dpi=150)
+    plt.close(fig)
+    from pathlib import Path
+    js = Path(str(out_png)).with_suffix(".json")
+    tmp = js.with_name(f".{js.name}.tmp")
+    tmp.write_text(json.dumps(results, indent=1))
+    tmp.replace(js)
+    return results

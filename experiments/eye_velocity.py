@@ -3,7 +3,7 @@
 ``estimate_eye_velocity(eye_footage, config)`` streams the luminance of an eye-footage
 folder (``lobula scene OUT --eye fly``) through :class:`lobula.eye_circuit.EyeCircuit`
 with the gyroscope as haltere input, takes forward acceleration from the accelerometer
-(:func:`lobula.haltere.forward_acceleration`, causal: running gravity and bias), and reads
+(:func:`lobula.imu.forward_acceleration`, causal: running gravity and bias), and reads
 velocity out with :func:`lobula.readout.readout` (the estimator's readout, causal filter).
 The LC fields' convective-corrected r²-term (see :mod:`lobula.eye_circuit`) is passed as
 the readout's r²̄, so ṙ − r²̄ is the material-derivative form of a/d on any surface.
@@ -21,7 +21,7 @@ import xarray as xr
 
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig, field_reliability
 from lobula.gaze import retinal_rotation
-from lobula.haltere import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
+from lobula.imu import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
                             resample_to, turn_rate)
 from lobula.photoreceptor import MEAN_REMOVAL, mean_removal
 from lobula.readout import ReadoutConfig, readout
@@ -213,7 +213,7 @@ class EyeVelocityConfig:
 def causal_gyro(imu, times: np.ndarray) -> np.ndarray:
     """Angular velocity (T, 3) at ``times``: the latest IMU sample at or before each time (no
     look-ahead), minus the running mean of the samples so far (the gyro bias, since a
-    track's heading returns; lobula.haltere does the same)."""
+    track's heading returns; lobula.imu does the same)."""
     g = imu.gyro
     bias = np.cumsum(g, 0) / np.arange(1, len(g) + 1)[:, None]
     k = np.clip(np.searchsorted(imu.time_s, times, side="right") - 1, 0, len(g) - 1)
@@ -228,9 +228,9 @@ def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
     the first seconds and holds the platform's acceleration there, an offset of up to
     ``START_ACCEL_PRIOR_M_S2`` (measured on a panels world: −0.44 m/s², four times the
     readout's default offset prior, which then cannot absorb it), and it keeps learning
-    with time constant τ(t) (:func:`lobula.haltere.gravity_time_constant`), so the offset
+    with time constant τ(t) (:func:`lobula.imu.gravity_time_constant`), so the offset
     moves as ḃ = −a/τ; gravity seen through a gyro-integrated attitude ramps at up to
-    |g|·σ_b (:func:`lobula.haltere.gravity_drift_std`). Offline, gravity is a windowed
+    |g|·σ_b (:func:`lobula.imu.gravity_drift_std`). Offline, gravity is a windowed
     mean that holds Δv/T. Acceleration from truth has no offset to learn. Unlike the camera's
     pipeline, the gravity reference's error is held here as one forward offset, not as a vector
     whose forward share turns with the body (lobula.readout.kalman_velocity's offset_axis), and the
@@ -589,75 +589,3 @@ def add_parser(subparsers):
     from .parsers import add_eye_velocity_parser
 
     return add_eye_velocity_parser(subparsers)
-
-
-# ---------------------------------------------------------------------- figure
-def eye_figure(runs: dict, out_png, field_sizes=(20.0, 30.0, 45.0, 60.0),
-               rotations=("none", "haltere", "wide-field", "both"), skip_s: float = 2.0) -> dict:
-    """RMSE of the causal eye circuit against LC field size and rotation handling, beside causal DIS.
-
-    runs: {family: {"eye": [eye-footage folders (seeds)], "dis": [causal DIS velocity NetCDFs of the
-    same worlds and trajectories on the pinhole camera] or "dis_rmse": [their RMSEs]}}. Every eye configuration is run on every
-    seed; the plot shows the mean over seeds with min–max bars, DIS and the zero estimator as lines.
-    Returns the numbers (JSON-able) and writes ``out_png`` (and ``out_png`` with .json).
-    """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from experiments.store import save_figure
-    from experiments.velocity import score
-    from stimuli.eye import open_eye_footage
-
-    results: dict = {}
-    for fam, spec in runs.items():
-        res = results.setdefault(fam, dict(eye={}, dis=[], zero=[], seeds=len(spec["eye"])))
-        for path in spec["eye"]:
-            fo = open_eye_footage(path)
-            for rot in rotations:
-                for size in field_sizes:
-                    cfg = EyeVelocityConfig()
-                    cfg.circuit.rotation = rot
-                    cfg.circuit.fields.size_deg = float(size)
-                    ds = estimate_eye_velocity(fo, cfg)
-                    res["eye"].setdefault(f"{rot}|{size:g}", []).append(score(ds, skip_s)["rmse_m_s"])
-            keep = ds.time.values >= ds.time.values[0] + skip_s
-            res["zero"].append(float(np.sqrt(np.mean(ds.v_true.values[keep] ** 2))))
-        for nc in spec.get("dis", []):
-            with xr.open_dataset(nc) as d:
-                res["dis"].append(score(d, skip_s)["rmse_m_s"])
-        res["dis"].extend(float(x) for x in spec.get("dis_rmse", []))
-    fams = list(results)
-    fig, axes = plt.subplots(1, len(fams), figsize=(4.2 * len(fams), 3.8), squeeze=False, sharey=True)
-    for ax, fam in zip(axes[0], fams):
-        res = results[fam]
-        for k, (rot, colour) in enumerate(zip(rotations, ("0.5", "tab:blue", "tab:orange", "tab:green"))):
-            vals = [res["eye"].get(f"{rot}|{s:g}", [np.nan]) for s in field_sizes]
-            mean = np.array([np.mean(v) for v in vals])
-            lo = mean - np.array([np.min(v) for v in vals])
-            hi = np.array([np.max(v) for v in vals]) - mean
-            shift = 0.6 * (k - 0.5 * (len(rotations) - 1))   # side by side where they coincide
-            ax.errorbar(np.asarray(field_sizes) + shift, mean, yerr=[lo, hi], marker="o", ms=4, capsize=3,
-                        color=colour, label=f"fly eye, rotation: {rot}")
-        if res["dis"]:
-            ax.axhspan(min(res["dis"]), max(res["dis"]), color="m", alpha=0.12, lw=0)
-            ax.axhline(np.mean(res["dis"]), color="m", ls="--", label="DIS on the D435i camera (causal; band: seeds)")
-        ax.axhline(np.mean(res["zero"]), color="k", ls=":", label="zero estimator (mean over seeds)")
-        ax.set_title(f"{fam} ({res['seeds']} seed{'s' if res['seeds'] > 1 else ''})")
-        ax.set_xlabel("LC field size, FWHM (deg)")
-    axes[0][0].set_ylabel(f"velocity RMSE after {skip_s:g} s (m/s)")
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=7, frameon=False)
-    ec = fo.eye.config
-    fig.suptitle(f"Two compound eyes (Δφ = {ec.dphi_deg:g}°, Δρ = {ec.acceptance_deg:g}°, {fo.rate_hz:g} Hz): "
-                 f"photoreceptors → EMDs (τ = {1000 * cfg.circuit.emd.tau_s:g} ms) → LC fields → readout, causal",
-                 fontsize=9)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
-    save_figure(fig, out_png, dpi=150)
-    plt.close(fig)
-    from pathlib import Path
-    js = Path(str(out_png)).with_suffix(".json")
-    tmp = js.with_name(f".{js.name}.tmp")
-    tmp.write_text(json.dumps(results, indent=1))
-    tmp.replace(js)
-    return results

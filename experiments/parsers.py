@@ -213,7 +213,7 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
     v.add_argument("--accel-from-truth", action="store_true",
                    help="forward acceleration from truth.csv instead of imu.csv")
     v.add_argument("--gyro-bias-from-vision", action="store_true",
-                   help="estimate the gyro bias from the flow's residual rotation (lobula.haltere.vision_gyro_bias) "
+                   help="estimate the gyro bias from the flow's residual rotation (lobula.imu.vision_gyro_bias) "
                         "for gravity removal and the drift std; writes gyro_bias, gyro_bias_std")
     v.add_argument("--accel-scale-error", type=Number(0, 1, below=True, note="ReadoutConfig.accel_scale_error"),
                    metavar="FRACTION",

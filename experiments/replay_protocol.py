@@ -1,7 +1,7 @@
 """The ``velocity-replay`` protocol: record the velocity circuit while the model fly replays footage.
 
 Footage (a synthetic track run, or any footage folder) passes through the EMD front end
-(:mod:`lobula.emd_decoding`); the LC pathways and the readout neuron
+(:mod:`lobula.emd_front_end`); the LC pathways and the readout neuron
 (:mod:`lobula.readout_neuron`) run over trials (Poisson spikes differ per trial, seeded);
 the arithmetic readout runs on the same input for comparison. The recording is a
 self-describing Dataset (the attributes every ephys recording carries) with dims

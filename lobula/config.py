@@ -10,7 +10,7 @@ import json
 import math
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 
-from .emd_decoding import EMDFrontEndConfig
+from .emd_front_end import EMDFrontEndConfig
 from .flow import FlowConfig
 from .front_ends import FRONT_ENDS, get_front_end
 from .readout import ReadoutConfig
@@ -25,21 +25,21 @@ class VelocityConfig:
     derotated flow) or "principal" (assume the principal point, as the paper does).
     derotate: subtract gyro-predicted rotational flow when a gyroscope is present.
     gyro_bias_from_vision: with a gyroscope, estimate its bias from the rotation the
-    derotated flow still shows (lobula.haltere.vision_gyro_bias) for the attitude that
+    derotated flow still shows (lobula.imu.vision_gyro_bias) for the attitude that
     removes gravity and for the readout's gravity-drift std; else (the default) the heading and
     bias fit's estimate (lobula.epipole.HeadingBiasEstimator, its std scaled by
-    lobula.haltere.HEADING_BIAS_STD_SCALE) fused with the still-camera one
-    (lobula.haltere.fused_gyro_bias). Off by default: on frontal scenes a pitch/yaw bias is nearly
+    lobula.imu.HEADING_BIAS_STD_SCALE) fused with the still-camera one
+    (lobula.imu.fused_gyro_bias). Off by default: on frontal scenes a pitch/yaw bias is nearly
     confounded with an epipole shift, and on 2 of 7 development scenes one axis's estimate
     stayed near 0 with a std that claimed otherwise.
     gyro_scale_prior: prior std of the gyro's scale-factor and axis-misalignment error E (a 3×3
     matrix, the rate read is (I + E)·ω + b), fitted with the heading and the bias from the flow
     (lobula.epipole.HeadingBiasEstimator) and applied to the fields' attitude
-    (lobula.haltere.GyroAttitude); 0: not fitted. A residual rotation E·ω grows with the turn
+    (lobula.imu.GyroAttitude); 0: not fitted. A residual rotation E·ω grows with the turn
     rate: a MEMS gyro's 1 % scale error at 2 rad/s leaves 0.02 rad/s, ten times its bias.
     gyro_bias_prior_deg_s: prior std (°/s) of the gyro's zero-rate offset before the record measures
     it (still samples, the heading fit): a consumer data sheet's ±1°/s by default
-    (lobula.haltere.GYRO_BIAS_PRIOR); a gyro calibrated on the platform may say less. It bounds how
+    (lobula.imu.GYRO_BIAS_PRIOR); a gyro calibrated on the platform may say less. It bounds how
     fast gravity may leak into the forward axis through the integrated attitude, so a prior narrower
     than the gyro's real offset makes the readout confidently wrong.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or

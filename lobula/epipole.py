@@ -1,4 +1,4 @@
-"""The focus of expansion (epipole) and gyro derotation ("haltere" rotation signal).
+"""The focus of expansion (epipole) and derotation by the gyro.
 
 Rotation adds flow that carries no depth information; a gyroscope predicts it for a
 pinhole camera exactly (to first order in the rotation angle), so it is subtracted
@@ -254,7 +254,7 @@ def residual_rotation(x, y, flow, epipole, iters: int = 3):
     least squares on the perpendicular residuals (each equation divided by |p − e|), with
     Cauchy weights against failed flow. The variance is the fit's σ²·(AᵀWA)⁻¹; flow errors
     are correlated across pixels, so it is a lower bound (callers use the scatter of
-    successive fits instead, :class:`lobula.haltere.GyroAttitude`). NaN where too few points.
+    successive fits instead, :class:`lobula.imu.GyroAttitude`). NaN where too few points.
     """
     x, y = np.asarray(x, float).ravel(), np.asarray(y, float).ravel()
     u, v = (np.asarray(c, float).ravel() for c in flow)
@@ -322,7 +322,7 @@ class HeadingBiasEstimator(EpipoleEstimator):
     Each frame's equations (divided by its own residual scale, Cauchy-weighted about the
     running solution, the flow-noise bias of the heading block removed as in the parent) are
     added to normal equations in (e_ref, b) that start from the bias prior ``bias0`` ±
-    ``bias0_std`` (rad/s, e.g. :func:`lobula.haltere.gyro_bias`'s still-camera estimate).
+    ``bias0_std`` (rad/s, e.g. :func:`lobula.imu.gyro_bias`'s still-camera estimate).
     ``update`` needs ``attitude`` and ``applied_bias`` (the b̂ the derotation removed);
     ``bias`` is the current estimate (3,) rad/s and ``bias_std`` its formal std.
     """
@@ -370,7 +370,7 @@ class HeadingBiasEstimator(EpipoleEstimator):
     def update(self, flow, points=None, attitude=None, applied_bias=None, rate=None, iters: int = 3) -> np.ndarray:
         """Add one pair (points = (X, Y, flow (2, N)) in its middle orientation, derotated with
         ``applied_bias`` (3,) rad/s removed from the gyro's mean reading ``rate`` (3,) over the pair
-        — bias plus E·rate where E is fitted, :meth:`lobula.haltere.GyroAttitude.applied_correction`)
+        — bias plus E·rate where E is fitted, :meth:`lobula.imu.GyroAttitude.applied_correction`)
         and return the epipole seen from the camera."""
         if points is None or attitude is None or applied_bias is None or (self.n_scale and rate is None):
             raise ValueError("HeadingBiasEstimator.update needs points, attitude, applied_bias (and rate with E)")

@@ -3,7 +3,7 @@ and the dendritic subunits pairs are pooled into.
 
 One implementation of the matched-filter template serves both the LC population
 (:mod:`lobula.population`) and the EMD front end's decoding weights
-(:func:`lobula.emd_decoding.pair_pooling_weights`).
+(:func:`lobula.emd_front_end.pair_pooling_weights`).
 
 For a neighbour pair p (midpoint m_p, step Δp from A to B, unit direction u_p, all in
 normalised image coordinates) and an epipole e, forward translation at expansion rate r

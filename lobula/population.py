@@ -27,7 +27,7 @@ with ``g_p`` the gain of pair p in R per step/s. ``normalisation="gradient-ratio
 contrast difference at the pair's inputs, low-passed with ``tau_s`` — a divisive,
 contrast-normalising pool. At low temporal frequency (ωτ ≪ 1) and fine sampling
 (Δϕ = 2πΔφ/λ ≪ 1) R̄_p = 2τ·s_p·Ḡ_p exactly (for a sine, R̄/Ḡ =
-ωτ·cot(Δϕ/2)/(1+(ωτ)²), see :mod:`lobula.emd_decoding`), so C², the pattern and the
+ωτ·cot(Δϕ/2)/(1+(ωτ)²), see :mod:`lobula.emd_front_end`), so C², the pattern and the
 photoreceptor's attenuation all cancel and r̂_f is r in 1/s; faster motion is
 underestimated by 1/(1+(ωτ)²), which is why the unit's temporal-frequency tuning still
 peaks at 1/(2πτ). ``normalisation="none"`` uses ``g_p = 1``: r̂_f is then in R units

@@ -316,7 +316,7 @@ def test_eye_velocity_beats_the_zero_estimator(eye_footage):
 
     fo = open_eye_footage(eye_footage)
     # Acceleration from truth: in a 6 s record the causal gravity estimate (a running mean of the
-    # specific force, lobula.haltere) still carries the mean acceleration; the test is about the eye.
+    # specific force, lobula.imu) still carries the mean acceleration; the test is about the eye.
     ds = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True))
     assert set(["v_hat", "v_std", "observable", "accel", "r", "r2", "r_dot", "v_field", "v_true"]) <= set(ds)
     assert ds.attrs["filter"] == "causal"
@@ -361,7 +361,7 @@ def test_eye_readout_is_told_what_the_camera_readout_is_told(eye_footage):
     from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity, readout_inputs
     from experiments.velocity import score
     from lobula.velocity.inertial import START_ACCEL_PRIOR_M_S2
-    from lobula.haltere import gravity_time_constant
+    from lobula.imu import gravity_time_constant
     from stimuli.eye import open_eye_footage
 
     fo = open_eye_footage(eye_footage)
@@ -1078,7 +1078,7 @@ def test_eye_readout_is_told_the_bodys_turn_rate(eye_footage, monkeypatch):
     attitude error while the body turns, so the readout widens its acceleration noise by the
     haltere's |ω| (ReadoutConfig.accel_turn_noise). With the true acceleration nothing leaks."""
     import experiments.eye_velocity as ev
-    from lobula.haltere import resample_to
+    from lobula.imu import resample_to
     from stimuli.eye import open_eye_footage
 
     seen = []

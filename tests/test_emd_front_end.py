@@ -8,7 +8,7 @@ from lobula.velocity import estimate_velocity, field_rates
 from lobula.camera import PinholeCamera
 from lobula.config import VelocityConfig
 from lobula.readout import ReadoutConfig, readout
-from lobula.emd_decoding import EMDFrontEnd, EMDFrontEndConfig, fit_calibration
+from lobula.emd_front_end import EMDFrontEnd, EMDFrontEndConfig, fit_calibration
 from lobula.receptive_field import tile_fields
 from lobula.readers import open_footage
 from stimuli.scene import SceneConfig
@@ -133,7 +133,7 @@ def test_emd_front_end_records_what_it_runs(emd_replay, constant_run):
 def test_pooled_sums_at_any_epipole_equal_the_fixed_epipole_weights(constant_run):
     """The pooled numerator and denominator are linear and quadratic in the epipole, so nine sums per
     field give :func:`pair_pooling_weights`' exactly, wherever the epipole moves."""
-    from lobula.emd_decoding import epipole_pooling_weights, pair_pooling_weights, pooled_at_epipole
+    from lobula.emd_front_end import epipole_pooling_weights, pair_pooling_weights, pooled_at_epipole
     from lobula.lattice import Lattice, LatticeConfig
 
     cam = constant_run.camera
@@ -174,7 +174,7 @@ def test_stabilised_gaze_removes_the_turns_aliased_expansion(turning_still_run):
     ds = estimate_velocity(fo, VelocityConfig(front_end="emd"), progress=False)
     assert ds.attrs["derotation"].startswith("gaze stabilised")
     import json
-    from lobula.emd_decoding import EMDFrontEndConfig
+    from lobula.emd_front_end import EMDFrontEndConfig
     old = json.loads(json.dumps(EMDFrontEndConfig().to_dict()))
     old.pop("gaze")
     assert EMDFrontEndConfig.from_dict(old).gaze == "none"     # stored without a gaze: the camera's image

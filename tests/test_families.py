@@ -120,8 +120,8 @@ def test_offline_is_not_worse_than_online_under_a_nearly_constant_acceleration(t
 def big_gyro_bias_run(tmp_path_factory):
     """The rotation family's seed 100 with a 1°/s gyro-bias draw — a consumer MEMS gyro's uncompensated
     zero-rate offset (the suite's realistic IMU draws 0.25°/s; the real EuRoC start reads 1.7 / 0.2 /
-    4.7°/s), the data sheet's spread (lobula.haltere.GYRO_BIAS_PRIOR) and 5× the heading fit's
-    regulariser (lobula.haltere.HEADING_FIT_BIAS_PRIOR). The camera turns from the first frame, so no
+    4.7°/s), the data sheet's spread (lobula.imu.GYRO_BIAS_PRIOR) and 5× the heading fit's
+    regulariser (lobula.imu.HEADING_FIT_BIAS_PRIOR). The camera turns from the first frame, so no
     still sample ever measures the bias: the flow's heading fit has to."""
     return _small_run(tmp_path_factory.mktemp("bias"), "rotation", 100, gyro_bias_std=np.radians(1.0))
 
@@ -129,8 +129,8 @@ def big_gyro_bias_run(tmp_path_factory):
 def test_online_is_honest_with_a_gyro_bias_of_a_data_sheet_size(big_gyro_bias_run):
     """The heading fit learns the bias within ~3 s; the attitude integrated meanwhile lets gravity into
     the forward axis at up to |g|·1°/s ≈ 0.17 m/s² per second, which the readout's offset is allowed to
-    follow (the drift bound from the bias prior, lobula.haltere.gravity_drift_std, and the leak's walk,
-    lobula.haltere.leak_walk). Measured at 160×120 with the built-in and the recorded profile alike:
+    follow (the drift bound from the bias prior, lobula.imu.gravity_drift_std, and the leak's walk,
+    lobula.imu.leak_walk). Measured at 160×120 with the built-in and the recorded profile alike:
     causal RMSE 0.02–0.03 m/s against the zero estimator's 0.35, ±2σ 100 %. With the bias prior at the
     heading fit's 0.2°/s instead: 0.09 m/s, ±2σ 78 % — confidently wrong from the start."""
     causal = _scores(big_gyro_bias_run, "causal")

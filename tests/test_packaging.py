@@ -158,7 +158,7 @@ try:
     depth_tv(flow, cam, 1.0, (0.0, 0.0))
 except MissingExtraError as exc:
     errors["depth_tv"] = [str(exc), isinstance(exc, ImportError), exc.name]
-from lobula.emd_decoding import EMDFrontEnd
+from lobula.emd_front_end import EMDFrontEnd
 from lobula.receptive_field import tile_fields
 try:
     EMDFrontEnd(cam, tile_fields(cam, cfg.fields), cfg.emd)

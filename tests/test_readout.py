@@ -400,9 +400,9 @@ def test_the_accelerometer_scale_error_is_in_the_band():
 
 
 def test_an_offset_let_move_by_the_attitude_leak_is_not_taken_for_motion():
-    """Online, a gyro bias learned late leaves gravity in the forward axis (lobula.haltere.
+    """Online, a gyro bias learned late leaves gravity in the forward axis (lobula.imu.
     attitude_leak): here the accelerometer's offset grows by 0.4 m/s² over 6–8 s. Told how fast it
-    moved (offset_walk, lobula.haltere.leak_walk: |ΔL| over the last second), the causal filter
+    moved (offset_walk, lobula.imu.leak_walk: |ΔL| over the last second), the causal filter
     re-learns it (RMSE 0.05 m/s, ±2σ 95 %); not told, it takes the offset for motion: 1.5 m/s off,
     ±2σ 8 %."""
     t = np.arange(0, 16, 1 / 30)

@@ -52,7 +52,7 @@ def test_vision_gyro_bias_tracks_a_drifting_bias_from_noisy_residuals():
     """Residual rates = a random-walk bias + noise 10 mrad/s (what a 320×240 flow pair gives)
     + a few wild pairs: the filter follows the bias to well within the prior, its std covers
     the error, and the causal estimate converges too."""
-    from lobula.haltere import vision_gyro_bias
+    from lobula.imu import vision_gyro_bias
 
     rng = np.random.default_rng(3)
     t_imu = np.arange(0.0, 20.0, 0.004)
@@ -76,7 +76,7 @@ def test_vision_gyro_bias_tracks_a_drifting_bias_from_noisy_residuals():
 
 
 def test_vision_gyro_bias_without_measurements_is_the_prior():
-    from lobula.haltere import vision_gyro_bias
+    from lobula.imu import vision_gyro_bias
 
     t = np.linspace(0, 1, 11)
     b, s = vision_gyro_bias(np.zeros(0), np.zeros((0, 3)), t, np.array([1e-3, 0, 0]), 2e-3, causal=True)
@@ -89,7 +89,7 @@ def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path,
     """The rotation family's scene (realistic IMU on a rotated mount, dev seed 9, not a suite
     seed) for 4 s, with the gyro bias walking 5× faster than the BMI055 figure so that it
     drifts through the record. The camera never stops turning, so the still-camera estimate
-    (lobula.haltere.gyro_bias) has nothing and leaves the whole bias; the flow must recover it to
+    (lobula.imu.gyro_bias) has nothing and leaves the whole bias; the flow must recover it to
     within half of that, with a std that covers its error — from its residual rotation
     (``gyro_bias_from_vision``) or, by default, from the heading and bias fit fused with the
     still-camera estimate. Gravity removed through that attitude then ramps less through the
@@ -100,7 +100,7 @@ def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path,
     from lobula.velocity import estimate_velocity
     from lobula.velocity.inertial import forward_accel_at
     from lobula.config import VelocityConfig
-    from lobula.haltere import gyro_bias
+    from lobula.imu import gyro_bias
     from lobula.readers import open_footage
     from stimuli.track import build_track, make_track_run
 
@@ -161,7 +161,7 @@ def test_integrated_gyro_gives_each_pairs_rotation_exactly():
     0.2 s pair's rotation from the integrated rates matches the scene's to 0.2 mrad/s. The
     rectangle rule (each sample's rate held over the step before it) runs half a sample late
     and misses by mrad/s — as much as a MEMS gyro's bias — which is what the trapezoid fixed."""
-    from lobula.haltere import orientation_from_gyro
+    from lobula.imu import orientation_from_gyro
     from stimuli.imu import angular_velocity
 
     scene = _turning_scene(PinholeCamera().scaled(0.25))
@@ -190,7 +190,7 @@ def test_integrated_gyro_gives_each_pairs_rotation_exactly():
 def test_gyro_attitude_is_causal_and_follows_a_changed_bias():
     """GyroAttitude integrates like orientation_from_gyro, never revises what it integrated, and
     says which correction (bias + E·rate) it removed over a stretch."""
-    from lobula.haltere import GyroAttitude, orientation_from_gyro
+    from lobula.imu import GyroAttitude, orientation_from_gyro
 
     t = np.arange(0.0, 2.0, 0.004)
     w = np.stack([0.3 * np.sin(6 * t), 0.2 * np.cos(4 * t), 0.1 + 0 * t], -1)
@@ -217,7 +217,7 @@ def test_heading_and_gyro_bias_from_exact_flow_of_a_turning_camera():
     jointly (HeadingBiasEstimator, the attitude following its estimate) the bias comes out to
     within 25 % and the epipole to within a fraction of the plain one's error."""
     from lobula.epipole import EpipoleEstimator, HeadingBiasEstimator, derotate_finite
-    from lobula.haltere import GyroAttitude, orientation_from_gyro
+    from lobula.imu import GyroAttitude, orientation_from_gyro
     from stimuli.imu import angular_velocity
 
     cam = PinholeCamera().scaled(0.25)
@@ -265,7 +265,7 @@ def test_heading_and_gyro_bias_from_exact_flow_of_a_turning_camera():
 
 def test_gyro_attitude_at_the_first_sample_is_the_identity():
     """Asked first for a time at (or before) the first sample, nothing uninitialised is read."""
-    from lobula.haltere import GyroAttitude
+    from lobula.imu import GyroAttitude
 
     t = np.arange(0.0, 1.0, 0.004)
     att = GyroAttitude(t, np.tile([0.1, -0.2, 0.3], (t.size, 1)), np.zeros(3))
@@ -273,7 +273,7 @@ def test_gyro_attitude_at_the_first_sample_is_the_identity():
 
 
 def test_fused_gyro_bias_weighs_by_inverse_variance_and_uses_only_what_is_known():
-    from lobula.haltere import fused_gyro_bias
+    from lobula.imu import fused_gyro_bias
 
     t = np.linspace(0.0, 2.0, 21)
     still_b, still_s = np.zeros((21, 3)), np.full(21, 2e-3)
@@ -296,7 +296,7 @@ def test_attitude_leak_is_the_gravity_an_earlier_bias_estimate_let_in():
     right. The attitude integrated meanwhile turned 2° that never happened, so the forward axis
     keeps |g|·sin 2° of gravity after 2 s: attitude_leak says so from the estimates alone, and
     leak_walk lets the offset move by that much within the second after the estimate moved."""
-    from lobula.haltere import G, attitude_leak, leak_walk, orientation_from_gyro
+    from lobula.imu import G, attitude_leak, leak_walk, orientation_from_gyro
 
     t = np.arange(0.0, 5.0, 1 / 400)
     delta = np.radians(1.0)
@@ -352,7 +352,7 @@ def test_gyro_scale_error_is_fitted_on_a_camera_turning_fast(tmp_path):
 def test_an_attitude_integrated_once_serves_the_acceleration_and_the_axis():
     """forward_acceleration and forward_axis given orientation_from_gyro's rotations read exactly what
     they integrate themselves (the pipeline integrates the gyro once for both); a wrong shape is refused."""
-    from lobula.haltere import forward_acceleration, forward_axis, orientation_from_gyro
+    from lobula.imu import forward_acceleration, forward_axis, orientation_from_gyro
 
     t = np.arange(0, 4, 1 / 250)
     rng = np.random.default_rng(3)

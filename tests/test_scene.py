@@ -6,7 +6,7 @@ import numpy as np
 
 from lobula.camera import PinholeCamera
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
-from lobula.haltere import forward_acceleration
+from lobula.imu import forward_acceleration
 from lobula.receptive_field import gap_correction, pool_fields, tile_fields
 from lobula.readers import open_footage
 from stimuli.imu import IMUConfig, synthesize_imu

@@ -20,7 +20,7 @@ Stages
    ``ḋ = ρ·((d·ẑ)d − ẑ)``, ρ = v/D, so along pair p (unit tangent u_p from A to B) the
    image moves at ``ρ·m_p`` rad/s with the **matched-filter template** ``m_p = −ẑ·u_p``
    (magnitude sin θ·|cos| of the angle to the pair axis; θ from the focus of expansion
-   ẑ, the body axis). With the gradient-ratio decoding of :mod:`lobula.emd_decoding`,
+   ẑ, the body axis). With the gradient-ratio decoding of :mod:`lobula.emd_front_end`,
    ``R_p ≈ c_p·G_p·(ḋ·u_p)``, c_p = 2τ/Δφ_p and G_p = (x_B − x_A)², a field fits
    ρ(θ) = ρ_f + g_f·(θ − θ_f) by weighted least squares (noise variance ∝ G):
    two matched filters per field (the template, and the template weighted by θ − θ_f),

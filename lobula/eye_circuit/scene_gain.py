@@ -15,7 +15,7 @@ def natural_scene_gain(dphi_deg: float, drho_deg: float, surround: float = 1.0, 
     """The gain γ at which a pair's decoded speed reads image motion on a natural scene (dimensionless).
 
     A pair's speed LP(R)/(c·LP(G)) reads a sine of phase step k between its two ommatidia at
-    (k/2)·cot(k/2) of its true speed (:mod:`lobula.emd_decoding`), and a texture's components add in
+    (k/2)·cot(k/2) of its true speed (:mod:`lobula.emd_front_end`), and a texture's components add in
     R and G with weights ∝ their power P(k⃗) times 1 − cos k∥, so γ = Σ P·(k∥/2)·sin k∥ / Σ P·(1 − cos k∥)
     (k∥ the phase step along the pair; components beyond the Nyquist limit count with sin k∥'s sign,
     as aliasing does). P: natural scenes' isotropic 1/f^``spectrum_exponent`` power spectrum (≈ 2:

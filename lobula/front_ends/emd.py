@@ -1,5 +1,5 @@
 """The ``emd`` front end: Hassenstein–Reichardt motion detectors on the camera's image
-(:class:`lobula.emd_decoding.EMDFrontEnd`: lattice sampling, photoreceptors, EMDs, gradient-ratio fields).
+(:class:`lobula.emd_front_end.EMDFrontEnd`: lattice sampling, photoreceptors, EMDs, gradient-ratio fields).
 
 It needs torch (the ``bio`` extra), imported when it opens, so the camera pipeline never loads it.
 """
@@ -18,7 +18,7 @@ def open_emd(inp: FrontEndInput) -> FrontEndStream:
     flow and fields), ``n_ommatidia`` and ``n_saccades``; fewer than two frames raise FootageError.
     """
     from lobula._optional import require_torch
-    from lobula.emd_decoding import EMDFrontEnd
+    from lobula.emd_front_end import EMDFrontEnd
 
     require_torch("the EMD front end")
     footage, timings = inp.footage, inp.timings

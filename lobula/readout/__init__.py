@@ -87,23 +87,23 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
         The rates along the content, used by the kalman readout when given.
     gravity_tau : ndarray, (n,), optional
         s: the online gravity estimate's time constant at each frame
-        (lobula.haltere.gravity_time_constant; None offline).
+        (lobula.imu.gravity_time_constant; None offline).
     drift_std : ndarray, (n,), optional
         m/s²/s: how fast the accelerometer's offset may ramp (see :func:`kalman_velocity`).
     turn_rate : array_like, (n,), optional
         rad/s: the gyro's |ω| at those times (the acceleration errs more while turning; None: not turning).
     offset_walk : array_like, (n,), optional
         m/s²/√s: how fast the accelerometer's offset may wander at those times beyond
-        ReadoutConfig.bias_walk (lobula.haltere.leak_walk online; None: no more).
+        ReadoutConfig.bias_walk (lobula.imu.leak_walk online; None: no more).
     offset_axis : array_like, (n, 3), optional
-        The optical axis in the frame where gravity was removed (lobula.haltere.forward_axis), whose
+        The optical axis in the frame where gravity was removed (lobula.imu.forward_axis), whose
         gravity error δ the filter then tracks beside the accelerometer's own offset
         (:func:`kalman_velocity`; kalman readout only).
     offset_axis_prior : float or array_like, (3,)
         m/s² per axis: δ's prior std.
     transport : array_like, (n,), optional
         1/s: λ = ω_x·e_y − ω_y·e_x, how fast a turning camera's forward speed changes per m/s beyond
-        its forward acceleration (lobula.haltere.transport_rate; None: 0).
+        its forward acceleration (lobula.imu.transport_rate; None: 0).
 
     Returns
     -------
@@ -189,7 +189,7 @@ def finish_readout(v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> Read
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     obs = v_std <= cfg.max_std_m_s
     zp = cfg.filter == "zero-phase"
-    # The direct measurement as the filter takes it: its latency bridged with ∫a (the haltere's fast path).
+    # The direct measurement as the filter takes it: its latency bridged with ∫a (the accelerometer's fast path).
     z = inp.z + inp.ratio[3]
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
                          info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s))

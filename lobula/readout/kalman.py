@@ -46,7 +46,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
         Run the Rauch–Tung–Striebel smoother over the whole record (offline), else the forward filter.
     gravity_tau : ndarray, (n,), optional
         s: when a's gravity was estimated online by an average of time constant τ
-        (lobula.haltere.online_gravity), that average also takes in the platform's own acceleration,
+        (lobula.imu.online_gravity), that average also takes in the platform's own acceleration,
         so the offset moves as ḃ = −a/τ (a the acceleration given): a known input to the offset state,
         not noise. None: the offset only random-walks.
     ratio : tuple of ndarray, optional
@@ -83,11 +83,11 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
         low-pass's smear σ_t·|a| instead (see kalman_readout).
     offset_walk : ndarray, (n,), optional
         m/s²/√s: more random walk of the offset at each frame, beyond bias_walk — online, as fast as
-        the attitude's gravity leak moved while the gyro-bias estimate moved (lobula.haltere.leak_walk):
+        the attitude's gravity leak moved while the gyro-bias estimate moved (lobula.imu.leak_walk):
         the offset learned up to then loses that much certainty (None: none).
     offset_axis : ndarray, (n, 3), optional
         The optical axis in the frame gravity was taken in (the first sample's,
-        lobula.haltere.forward_axis), when the error of that gravity is a vector fixed there — the
+        lobula.imu.forward_axis), when the error of that gravity is a vector fixed there — the
         platform's acceleration that the gravity reference averaged in — rather than an offset of the
         accelerometer's own forward axis. Its forward part is then c(t)·δ, which changes as the camera
         turns (a camera panning 25° turns a 1 m/s² start offset's forward part by 0.4 m/s², which a

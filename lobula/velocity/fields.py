@@ -15,7 +15,7 @@ from lobula.config import VelocityConfig
 from lobula.epipole import HEADING_POINTS, EpipoleEstimator, HeadingBiasEstimator, derotate_finite, turn
 from lobula.flow import FlowSample
 from lobula.front_ends import FrontEndInput, get_front_end
-from lobula.haltere import HEADING_FIT_BIAS_PRIOR, GyroAttitude, gyro_bias, orientation_from_gyro
+from lobula.imu import HEADING_FIT_BIAS_PRIOR, GyroAttitude, gyro_bias, orientation_from_gyro
 from lobula.readers.core import Footage, FootageError
 from lobula.readers.flo import FloUnits
 from lobula.readout import MaterialRates
@@ -32,7 +32,7 @@ class FieldRates:
     None where the front end gives no consecutive pairs (flo, emd) or fields.material is off.
     gyro_residual: (t (m,) s, residual (m, 3) rad/s, rate (m, 3) rad/s): on non-overlapping
     pairs, the gyro bias the derotated flow says and the gyro's rate over the pair
-    (lobula.haltere.vision_gyro_bias's measurements and regressors), or None.
+    (lobula.imu.vision_gyro_bias's measurements and regressors), or None.
     heading_bias: (t (m,) s, bias (m, 3) rad/s, std (m, 3) rad/s): the gyro bias the heading and
     bias fit (lobula.epipole.HeadingBiasEstimator) holds after each pair, known at the pair's
     second frame t; or None (no gyro, no estimated epipole).
@@ -60,7 +60,7 @@ class PooledPair:
     r, r2: (F,) 1/s and 1/s²; epipole: (2,) normalised; material: the material fields' (r̄, r²̄, ṙ̄)
     (each (F,)) of the pair ``stagger // 2`` before this one, or None; heading_bias: (t s, bias (3,)
     rad/s, std (3,) rad/s) of the heading and bias fit after this pair, or None; residual: the pair's
-    (t s, bias (3,) rad/s, rate (3,) rad/s) for lobula.haltere.vision_gyro_bias, or None.
+    (t s, bias (3,) rad/s, rate (3,) rad/s) for lobula.imu.vision_gyro_bias, or None.
     """
 
     t: float
@@ -93,7 +93,7 @@ def slerp_orientations(time_s: np.ndarray, q: np.ndarray, t) -> np.ndarray:
 
 def attitude_track(time_s: np.ndarray, gyro: np.ndarray, causal: bool):
     """A function t (k,) -> camera orientations (k, 3, 3) (camera → the first sample's frame)
-    from the bias-corrected integrated gyro (lobula.haltere.orientation_from_gyro), slerped between samples."""
+    from the bias-corrected integrated gyro (lobula.imu.orientation_from_gyro), slerped between samples."""
     q = orientation_from_gyro(time_s, gyro, causal)
     return lambda t: slerp_orientations(time_s, q, t)
 
@@ -120,14 +120,14 @@ class FieldPooling:
         removed), or None (no gyro, or ``config.derotate`` off).
     imu_time, gyro : ndarray, (m,) and (m, 3), optional
         s and rad/s: the gyro's samples, for the heading and bias fit's own attitude
-        (:class:`lobula.haltere.GyroAttitude`; frame by frame it is extended as samples come).
+        (:class:`lobula.imu.GyroAttitude`; frame by frame it is extended as samples come).
     still_bias : callable, optional
-        t1 s -> (bias (3,) rad/s, std (3,) or scalar rad/s): the still-camera estimate (lobula.haltere.gyro_bias,
+        t1 s -> (bias (3,) rad/s, std (3,) or scalar rad/s): the still-camera estimate (lobula.imu.gyro_bias,
         with the heading fit's prior) at the first gyro sample at or after t1; with it and ``attitude``
         and ``config.epipole`` "estimate" the heading and the gyro's bias are fitted jointly.
-    residual_camera : lobula.camera.PinholeCamera, optional
-        With ``config.gyro_bias_from_vision``: the camera on which each gap-th pair's residual rotation
-        is fitted; ``residual_bias`` t -> (3,) rad/s the still-camera bias the derotation removed.
+    residual_bias : callable, optional
+        With ``config.gyro_bias_from_vision``: t s -> (3,) rad/s, the still-camera bias the derotation removed;
+        each gap-th pair's residual rotation (:func:`residual_rate`) is then fitted.
     """
 
     def __init__(self, camera, config: VelocityConfig, fields: ReceptiveFields, live: bool, attitude=None,
@@ -143,7 +143,7 @@ class FieldPooling:
         if live and attitude is not None and config.epipole == "estimate" and still_bias is not None:
             # The heading and the gyro's bias are fitted jointly (lobula.epipole.HeadingBiasEstimator)
             # and the fields' attitude follows the bias and the scale error E learned so far
-            # (lobula.haltere.GyroAttitude); the pre-warp keeps the plain attitude.
+            # (lobula.imu.GyroAttitude); the pre-warp keeps the plain attitude.
             # E (VelocityConfig.gyro_scale_prior): the suite's rotation family (±5°, to 1.5 Hz, seeds
             # 0-2) 0.011 / 0.018 m/s zero-phase / causal with it, 0.016 / 0.039 without; a camera turning
             # ±10° at up to 2 Hz with a realistic IMU reads v̂ 40-60 % slow without it (zero-phase 0.106 m/s,
@@ -243,7 +243,7 @@ def footage_pooling(footage: Footage, config: VelocityConfig, fields: ReceptiveF
     still_at = residual = None
     if attitude is not None:
         # The fit's own bias prior is its regulariser against the heading–bias confound, narrower than
-        # the data sheet's spread (lobula.haltere.HEADING_FIT_BIAS_PRIOR).
+        # the data sheet's spread (lobula.imu.HEADING_FIT_BIAS_PRIOR).
         fit_prior = min(HEADING_FIT_BIAS_PRIOR, np.radians(config.gyro_bias_prior_deg_s))
         b_still, s_still = gyro_bias(imu.time_s, gyro, causal=causal, with_std=True, prior=fit_prior)
 

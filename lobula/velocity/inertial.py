@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from lobula.config import VelocityConfig
-from lobula.haltere import fused_gyro_bias, gravity_time_constant, gyro_bias, forward_acceleration, resample_to, turn_rate, vision_gyro_bias
+from lobula.imu import fused_gyro_bias, gravity_time_constant, gyro_bias, forward_acceleration, resample_to, turn_rate, vision_gyro_bias
 from lobula.readers.core import Footage, FootageError, acceleration_from_truth
 
 from .fields import FieldRates
@@ -23,9 +23,9 @@ def gyro_bias_track(footage: Footage, rates: FieldRates, causal: bool, prior: fl
     flow-fitted bias (then the still-camera estimate alone serves).
 
     With ``gyro_bias_from_vision`` (``rates.gyro_residual``): the flow's residual rotation
-    (lobula.haltere.vision_gyro_bias), started from the still-camera estimate. Else the heading and
+    (lobula.imu.vision_gyro_bias), started from the still-camera estimate. Else the heading and
     bias fit's estimate (``rates.heading_bias``) fused with the still-camera one
-    (lobula.haltere.fused_gyro_bias). ``prior`` (rad/s): the bias's std before the record measures
+    (lobula.imu.fused_gyro_bias). ``prior`` (rad/s): the bias's std before the record measures
     it (VelocityConfig.gyro_bias_prior_deg_s). Without it a turning camera that never stops (the suite's
     rotation family) removes gravity through an attitude drifting at the whole bias: its forward
     acceleration ramps by 0.05-0.09 m/s² per second; with it ≤ 0.005. The suite's development
@@ -53,7 +53,7 @@ TRUTH_ACCEL_OFFSET_M_S2 = 0.01  # prior std of the offset of an acceleration der
 
 
 #: m/s²: prior std of the platform's acceleration at the record's start, which the online gravity
-#: reference (lobula.haltere.online_gravity, set over the first GRAVITY_INIT_S) takes in: 0.1 g,
+#: reference (lobula.imu.online_gravity, set over the first GRAVITY_INIT_S) takes in: 0.1 g,
 #: a priori (a walking or handheld camera's or a road vehicle's acceleration mostly stays under it).
 START_ACCEL_PRIOR_M_S2 = 1.0
 #: m/s²: the same where the first flow pair already shows the camera moving (:func:`start_accel_prior`):
@@ -100,7 +100,7 @@ def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig
 
     bias: gyro bias track (n_imu, 3) rad/s for the attitude that removes gravity
     (:func:`gyro_bias_track`); None: the still-camera estimate. orientation: that attitude
-    (n_imu, 3, 3) where already integrated (:func:`lobula.haltere.orientation_from_gyro`)."""
+    (n_imu, 3, 3) where already integrated (:func:`lobula.imu.orientation_from_gyro`)."""
     causal = config.readout.filter == "causal"
     if config.accel_from_truth or footage.imu is None:
         if not config.accel_from_truth and footage.kind != "d435i-sample":

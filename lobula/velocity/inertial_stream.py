@@ -1,4 +1,4 @@
-"""The IMU's side of the velocity pipeline, sample by sample: what :mod:`lobula.haltere` computes causally on a
+"""The IMU's side of the velocity pipeline, sample by sample: what :mod:`lobula.imu` computes causally on a
 whole record (the still-camera gyro bias, the attitudes, the online gravity reference, the forward
 acceleration, the gravity-drift bound and the attitude leak), carried as running state, so that a
 :class:`lobula.velocity.VelocityEstimator` fed samples in any chunks gets the same numbers as the
@@ -15,7 +15,7 @@ import numpy as np
 from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation
 
-from lobula.haltere import (G, GRAVITY_INIT_S, GRAVITY_WINDOW_S, GYRO_NOISE_DENSITY, HEADING_BIAS_STD_SCALE,
+from lobula.imu import (G, GRAVITY_INIT_S, GRAVITY_WINDOW_S, GYRO_NOISE_DENSITY, HEADING_BIAS_STD_SCALE,
                             gravity_time_constant, leak_walk, resample_to, rotation_increments)
 
 
@@ -81,14 +81,14 @@ class InertialStream:
         rad/s: the heading and bias fit's prior (its regulariser).
     fitted : bool
         The heading and bias fit runs: its estimates (:meth:`add_estimate`) are fused with the still-camera
-        one for the attitude that removes gravity (lobula.haltere.fused_gyro_bias); else the still-camera
+        one for the attitude that removes gravity (lobula.imu.fused_gyro_bias); else the still-camera
         estimate alone serves.
     interval_s : float, optional
         s: the IMU's sample interval (None: the median of its first 17 samples' intervals).
     keep_s : float
         s of samples held for the per-frame queries.
     window_s, noise_density : float
-        As lobula.haltere.gyro_bias takes them (the still test's window, s; the gyro's noise, rad/s/√Hz).
+        As lobula.imu.gyro_bias takes them (the still test's window, s; the gyro's noise, rad/s/√Hz).
     """
 
     def __init__(self, prior: float, fit_prior: float, fitted: bool, interval_s: float | None = None,
@@ -151,7 +151,7 @@ class InertialStream:
         rate = self.rate_hz
         sigma = self.noise_density * np.sqrt(rate / 2)
         k = max(3, int(round(self.window_s * rate)))
-        # The still test (lobula.haltere.gyro_bias, causal): the window of k samples ending at each.
+        # The still test (lobula.imu.gyro_bias, causal): the window of k samples ending at each.
         s1 = _accumulate(None if first else c.at("s1", prev), g)
         s2 = _accumulate(None if first else c.at("s2", prev), g ** 2)
         c.raw("s1")[sl], c.raw("s2")[sl] = s1, s2
@@ -169,7 +169,7 @@ class InertialStream:
         c.raw("still")[sl], c.raw("count")[sl], c.raw("total")[sl] = still, count, total
         bias = np.where(count[:, None] > 0, total / np.maximum(count, 1)[:, None], 0.0)
         c.raw("bias_still")[sl] = bias
-        # The plain attitude (lobula.haltere.orientation_from_gyro, causal, the still-camera bias removed).
+        # The plain attitude (lobula.imu.orientation_from_gyro, causal, the still-camera bias removed).
         c.raw("q_plain")[sl] = self._integrate(t, g - bias, None if first else prev, "q_plain", "bias_still")
 
     def _integrate(self, t, w, prev, column: str, bias_column: str) -> np.ndarray:
@@ -247,7 +247,7 @@ class InertialStream:
         rot = self._integrate(tt, g - bias, prev, "rot", "bias")
         c.raw("rot")[idx] = rot
         self._gravity(rows, idx, tt, a, rot, prev)
-        # The gravity-drift bound and the attitude leak (lobula.haltere.gravity_drift_std, attitude_leak).
+        # The gravity-drift bound and the attitude leak (lobula.imu.gravity_drift_std, attitude_leak).
         acc_sum = _accumulate(None if prev is None else c.at("accel_sum", prev), a)
         c.raw("accel_sum")[idx] = acc_sum
         gd = acc_sum / (rows + 1)[:, None]
@@ -270,7 +270,7 @@ class InertialStream:
         self._done = end
 
     def _gravity(self, rows, idx, tt, a, rot, prev) -> None:
-        """The online gravity reference (lobula.haltere.online_gravity) and the forward acceleration."""
+        """The online gravity reference (lobula.imu.online_gravity) and the forward acceleration."""
         c = self.cols
         f0 = np.einsum("nij,nj->ni", rot, a)  # specific force in the first frame
         f_sum = _accumulate(None if prev is None else c.at("f_sum", prev), f0)

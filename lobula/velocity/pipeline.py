@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from lobula.config import VelocityConfig
 from lobula.front_ends import FRONT_ENDS, get_front_end
-from lobula.haltere import (GRAVITY_WINDOW_S, attitude_leak, forward_axis, gravity_drift_std, gyro_bias, leak_walk,
+from lobula.imu import (GRAVITY_WINDOW_S, attitude_leak, forward_axis, gravity_drift_std, gyro_bias, leak_walk,
                             orientation_from_gyro, transport_rate)
 from lobula.readers.core import Footage, footage_provenance
 from lobula.readers.flo import FloUnits
@@ -100,7 +100,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
             lam = transport_rate(rates.t, footage.imu.time_s, footage.imu.gyro, None if vb is None else vb[0],
                                  rates.epipole, frame_interval(footage.times),
                                  causal=causal)
-            # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.haltere):
+            # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.imu):
             # a state of the readout's filter, offline and online alike.
             drift = np.interp(rates.t, footage.imu.time_s,
                               gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=causal,
@@ -108,7 +108,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                                                 prior=prior))
             if causal:
                 # Online the attitude took each sample's bias estimate; where that estimate moves, the
-                # gravity it let in moves the offset the filter had learned (lobula.haltere.leak_walk).
+                # gravity it let in moves the offset the filter had learned (lobula.imu.leak_walk).
                 tb = footage.imu.time_s
                 used = vb[0] if vb is not None else gyro_bias(tb, footage.imu.gyro, causal=True)
                 walk = leak_walk(rates.t, tb, attitude_leak(tb, used, footage.imu.accel))

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from lobula.config import VelocityConfig
 from lobula.flow import StaggeredFlow
 from lobula.front_ends import get_front_end
-from lobula.haltere import HEADING_FIT_BIAS_PRIOR
+from lobula.imu import HEADING_FIT_BIAS_PRIOR
 from lobula.readout import MaterialRates, kalman_inputs
 from lobula.readout.kalman import ForwardPass, filter_record
 from lobula.receptive_field import tile_fields
