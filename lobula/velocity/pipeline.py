@@ -52,72 +52,98 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     """
     config = config or VelocityConfig()
     front = get_front_end(config.front_end)
-    if config.epipole not in front.epipoles:
-        others = [f.name for f in FRONT_ENDS.values() if config.epipole in f.epipoles]
-        raise ValueError(f"the {front.name} front end has no epipole {config.epipole} (it runs with epipole "
-                         f"{' or '.join(front.epipoles)}); use epipole {front.epipoles[0]!r} (--epipole "
-                         f"{front.epipoles[0]}) or another front end ({', '.join(others)})")
+    _check_epipole(config, front)
     t_start = _time.perf_counter()
     rates = field_rates(footage, config, flo_files, flo_units, progress)
     causal = config.readout.filter == "causal"
-    prior = np.radians(config.gyro_bias_prior_deg_s)
-    vb = gyro_bias_track(footage, rates, causal, prior)
+    vb = gyro_bias_track(footage, rates, causal, np.radians(config.gyro_bias_prior_deg_s))
     # The attitude that removes gravity, integrated once for the acceleration and the axis its error turns with.
     imu = footage.imu if not config.accel_from_truth else None
     rot = (orientation_from_gyro(imu.time_s, imu.gyro, causal, None if vb is None else vb[0])
            if imu is not None and imu.gyro is not None and config.derotate else None)
     a, accel_source = forward_accel_at(footage, rates.t, config, bias=None if vb is None else vb[0], orientation=rot)
-    fields = rates.fields
     t0 = _time.perf_counter()
+    res = None
+    if len(rates.t) >= 3:
+        rcfg, axis, gravity_error = _offset_model(footage, rates, config, accel_source, vb, rot)
+        res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material,
+                      turn_rate=turn_rate_at(footage, rates.t, accel_source, config), offset_axis=axis,
+                      offset_axis_prior=gravity_error, **_imu_terms(footage, rates, config, accel_source, vb))
+    rates.timings["readout"] = _time.perf_counter() - t0
+    ds = velocity_dataset(rates, res, a, accel_source, footage, vb, rot)
+    ds.attrs.update(_run_attrs(config, front, rates, res, accel_source, footage, t_start))
+    return ds
+
+
+def _check_epipole(config: VelocityConfig, front) -> None:
+    """Raise ValueError, saying what to use, where the front end has no such epipole policy."""
+    if config.epipole not in front.epipoles:
+        others = [f.name for f in FRONT_ENDS.values() if config.epipole in f.epipoles]
+        raise ValueError(f"the {front.name} front end has no epipole {config.epipole} (it runs with epipole "
+                         f"{' or '.join(front.epipoles)}); use epipole {front.epipoles[0]!r} (--epipole "
+                         f"{front.epipoles[0]}) or another front end ({', '.join(others)})")
+
+
+def _offset_model(footage: Footage, rates, config: VelocityConfig, accel_source: str, vb, rot):
+    """How the readout models the acceleration's offset: (ReadoutConfig, offset_axis (n, 3) or None,
+    offset_axis_prior m/s²) — the gravity reference's error as a vector that turns with the camera where a
+    gyro says how, else folded into the accelerometer's own offset prior."""
+    causal = config.readout.filter == "causal"
     rcfg = config.readout
     axis, gravity_error = None, 0.0
     if not accel_source.startswith("accelerometer"):
         # A derivative of the true velocity has noise but no accelerometer offset to learn.
-        rcfg = replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2))
+        return replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2)), None, 0.0
+    if not causal:
+        # Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which
+        # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
+        span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
+        gravity_error = rcfg.v_prior_m_s / max(span, 1.0)
     else:
-        if not causal:
-            # Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which
-            # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
-            span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
-            gravity_error = rcfg.v_prior_m_s / max(span, 1.0)
-        else:
-            # Online, the gravity reference is set at the start and holds the acceleration there.
-            gravity_error = start_accel_prior(rates.r)
-        if footage.imu.gyro is not None and config.derotate:
-            # That error is a vector in the frame gravity was taken in; its forward share turns with the
-            # camera, so the readout tracks it there beside the accelerometer's own offset.
-            axis = forward_axis(footage.imu.time_s, footage.imu.gyro, causal=causal,
-                                bias=None if vb is None else vb[0], orientation=rot)
-            axis = np.stack([np.interp(rates.t, footage.imu.time_s, axis[:, j]) for j in range(3)], -1)
-            axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-        else:
-            rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, gravity_error)))
-    if len(rates.t) >= 3:
-        tau = gravity_tau(footage, rates.t, config)
-        drift = walk = lam = None
-        if accel_source.startswith("accelerometer") and footage.imu.gyro is not None and config.derotate:
-            # A turning camera's forward speed changes by −λ·v beyond its forward acceleration.
-            lam = transport_rate(rates.t, footage.imu.time_s, footage.imu.gyro, None if vb is None else vb[0],
-                                 rates.epipole, frame_interval(footage.times),
-                                 causal=causal)
-            # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.imu):
-            # a state of the readout's filter, offline and online alike.
-            drift = np.interp(rates.t, footage.imu.time_s,
-                              gravity_drift_std(footage.imu.time_s, footage.imu.gyro, causal=causal,
-                                                bias_std=None if vb is None else vb[1], accel=footage.imu.accel,
-                                                prior=prior))
-            if causal:
-                # Online the attitude took each sample's bias estimate; where that estimate moves, the
-                # gravity it let in moves the offset the filter had learned (lobula.imu.leak_walk).
-                tb = footage.imu.time_s
-                used = vb[0] if vb is not None else gyro_bias(tb, footage.imu.gyro, causal=True)
-                walk = leak_walk(rates.t, tb, attitude_leak(tb, used, footage.imu.accel))
-        res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material, gravity_tau=tau,
-                      drift_std=drift, turn_rate=turn_rate_at(footage, rates.t, accel_source, config),
-                      offset_walk=walk, offset_axis=axis, offset_axis_prior=gravity_error, transport=lam)
+        # Online, the gravity reference is set at the start and holds the acceleration there.
+        gravity_error = start_accel_prior(rates.r)
+    if footage.imu.gyro is not None and config.derotate:
+        # That error is a vector in the frame gravity was taken in; its forward share turns with the
+        # camera, so the readout tracks it there beside the accelerometer's own offset.
+        axis = forward_axis(footage.imu.time_s, footage.imu.gyro, causal=causal,
+                            bias=None if vb is None else vb[0], orientation=rot)
+        axis = np.stack([np.interp(rates.t, footage.imu.time_s, axis[:, j]) for j in range(3)], -1)
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
     else:
-        res = None
-    rates.timings["readout"] = _time.perf_counter() - t0
+        rcfg = replace(rcfg, bias_prior_m_s2=float(np.hypot(rcfg.bias_prior_m_s2, gravity_error)))
+    return rcfg, axis, gravity_error
+
+
+def _imu_terms(footage: Footage, rates, config: VelocityConfig, accel_source: str, vb) -> dict:
+    """The readout's inputs from the IMU beyond the acceleration, at the flow's times (n,):
+    gravity_tau (s), drift_std (m/s²/s), offset_walk (m/s²/√s) and transport (1/s), each None where absent."""
+    causal = config.readout.filter == "causal"
+    out = dict(gravity_tau=gravity_tau(footage, rates.t, config), drift_std=None, offset_walk=None, transport=None)
+    if not (accel_source.startswith("accelerometer") and footage.imu.gyro is not None and config.derotate):
+        return out
+    tb, gyro = footage.imu.time_s, footage.imu.gyro
+    # A turning camera's forward speed changes by −λ·v beyond its forward acceleration.
+    out["transport"] = transport_rate(rates.t, tb, gyro, None if vb is None else vb[0], rates.epipole,
+                                      frame_interval(footage.times), causal=causal)
+    # Gravity seen through a gyro-integrated attitude ramps at up to |g|·σ_b (lobula.imu):
+    # a state of the readout's filter, offline and online alike.
+    out["drift_std"] = np.interp(rates.t, tb, gravity_drift_std(tb, gyro, causal=causal,
+                                                                bias_std=None if vb is None else vb[1],
+                                                                accel=footage.imu.accel,
+                                                                prior=np.radians(config.gyro_bias_prior_deg_s)))
+    if causal:
+        # Online the attitude took each sample's bias estimate; where that estimate moves, the
+        # gravity it let in moves the offset the filter had learned (lobula.imu.leak_walk).
+        used = vb[0] if vb is not None else gyro_bias(tb, gyro, causal=True)
+        out["offset_walk"] = leak_walk(rates.t, tb, attitude_leak(tb, used, footage.imu.accel))
+    return out
+
+
+def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Footage, vb=None, rot=None) -> xr.Dataset:
+    """The velocity Dataset of a run: the readout's result ``res`` (None: too few pairs, all NaN) beside the
+    fields' rates, the acceleration a (n,) m/s², the truth, the gyro bias track vb and the attitude rot
+    ((m, 3, 3) at the IMU samples) where there are."""
+    fields = rates.fields
     n, F = rates.r.shape
     nan_nf = np.full((n, F), np.nan)
     data = dict(
@@ -157,7 +183,12 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
         data["attitude"] = (("time", "quaternion"), q, {"units": "1", "long_name":
                             "camera orientation, camera to the first IMU sample's frame, from the integrated gyro"})
         coords["quaternion"] = ("quaternion", ["x", "y", "z", "w"], {"long_name": "unit quaternion component"})
-    ds = xr.Dataset(data, coords=coords)
+    return xr.Dataset(data, coords=coords)
+
+
+def _run_attrs(config: VelocityConfig, front, rates, res, accel_source: str, footage: Footage, t_start: float) -> dict:
+    """The run's attributes: its configuration and provenance, the filter and when its estimates are known,
+    the derotation, the acceleration's source, the footage, and the seconds each stage took."""
     lag = config.readout.lag_s if config.readout.filter == "causal" else 0.0
     online = {}
     if config.readout.filter == "causal" and rates.known is not None and res is not None:
@@ -179,11 +210,10 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
                       "attitude only)")
     else:
         derotation = "exact finite rotation from the integrated gyro" if config.derotate and gyro else "none"
-    ds.attrs.update(provenance(config.to_json(), front_end=config.front_end, filter=filt, **online,
-                               derotation=derotation, epipole=config.epipole,
-                               readout=config.readout.method, acceleration_source=accel_source,
-                               footage=str(footage.path), footage_kind=footage.kind,
-                               notes="; ".join(footage.notes) or "none",
-                               timings_s=json.dumps({k: round(v, 4) for k, v in rates.timings.items()}),
-                               wall_s=round(_time.perf_counter() - t_start, 3), **footage_provenance(footage)))
-    return ds
+    return provenance(config.to_json(), front_end=config.front_end, filter=filt, **online,
+                      derotation=derotation, epipole=config.epipole,
+                      readout=config.readout.method, acceleration_source=accel_source,
+                      footage=str(footage.path), footage_kind=footage.kind,
+                      notes="; ".join(footage.notes) or "none",
+                      timings_s=json.dumps({k: round(v, 4) for k, v in rates.timings.items()}),
+                      wall_s=round(_time.perf_counter() - t_start, 3), **footage_provenance(footage))
