@@ -168,9 +168,13 @@ def add_footage_options(p) -> None:
                         "estimate it by cross-correlating the gyro with the image rotation (default: none, the "
                         "times as recorded)")
     p.add_argument("--undistort", default="same-k", choices=["same-k", "optimal"],
-                   help="EuRoC: undistort onto the same pinhole K, or onto OpenCV's optimal new K")
+                   help="a distorted lens (EuRoC's sensor.yaml, or a camera.json \"distortion\": kannala-brandt or "
+                        "radtan): resample each frame onto a pinhole camera with the same K (same-k), or with a focal "
+                        "length that keeps the whole view (optimal: OpenCV's new K for EuRoC; the whole width up to "
+                        "150° for a camera.json lens)")
     p.add_argument("--camera", metavar="FILE",
-                   help="camera.json (width, height, fx, fy, cx, cy in pixels, frame_rate_hz) with the intrinsics "
+                   help="camera.json (width, height, fx, fy, cx, cy in pixels, frame_rate_hz; optionally a lens "
+                        "\"distortion\": {\"model\": \"kannala-brandt\"|\"radtan\", \"coeffs\": [...]}) with the intrinsics "
                         "to use instead of the recording's: for a bag without usable CameraInfo, or to correct "
                         "them; for a footage folder or video it stands for their camera.json (imu_to_camera too) "
                         "(default: the recording's own)")

@@ -22,7 +22,7 @@ def scene_config_from_args(args):
     cfg = TrackRunConfig(profile=profile, start_s=args.start, duration_s=args.duration, scale=args.scale,
                          constant_velocity_m_s=args.constant_velocity, random_peak_m_s=args.peak_speed,
                          random_start=args.profile_start, profile_scale=args.speed_scale,
-                         camera_json=args.camera, scene=scene,
+                         camera_json=args.camera, lens=getattr(args, "lens", None), scene=scene,
                          imu=IMUConfig.model(args.imu, seed=args.seed, mount=args.imu_mount))
     return cfg
 
@@ -68,6 +68,10 @@ def add_parser(subparsers):
     s.add_argument("--duration", type=POSITIVE, default=30.0, help="duration (s)")
     s.add_argument("--scale", type=POSITIVE, default=0.5, help="image scale of the D435i camera (0.5 = 320x240)")
     s.add_argument("--camera", help="camera.json with other intrinsics (default: the D435i's)")
+    s.add_argument("--lens", type=_lens, metavar="MODEL:C1,C2,...",
+                   help="render through a distorted lens: kannala-brandt:k1,k2,k3,k4 (OpenCV's fisheye, equidistant) or "
+                        "radtan:k1,k2,p1,p2[,k3]; camera.json then carries the distortion, which readers remove "
+                        "(default: a pinhole)")
     s.add_argument("--seed", type=INDEX, default=0, help="seeds layout, textures, rotation, profile, noise and IMU")
     s.add_argument("--off-axis-yaw", type=FINITE, default=0.0, help="angle between optical axis and motion (deg)")
     s.add_argument("--off-axis-pitch", type=FINITE, default=0.0, help="vertical off-axis angle (deg)")
@@ -98,3 +102,16 @@ def add_parser(subparsers):
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     __import__("experiments.eye_scene").eye_scene.add_eye_scene_options(s)  # --eye fly
     s.set_defaults(func=run_scene)
+
+
+def _lens(text: str) -> str:
+    """``--lens``: checked as :meth:`lobula.lens.LensDistortion.parse` reads it; kept as given."""
+    import argparse
+
+    from lobula.lens import LensDistortion
+
+    try:
+        LensDistortion.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text

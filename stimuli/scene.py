@@ -153,8 +153,11 @@ class TrackScene:
     between two times.
     """
 
-    def __init__(self, camera: PinholeCamera, trajectory, config: SceneConfig | None = None):
+    def __init__(self, camera: PinholeCamera, trajectory, config: SceneConfig | None = None, lens=None):
+        """lens: a :class:`lobula.lens.LensDistortion` the camera sees through (None: a pinhole): each
+        pixel's rays are the lens's, so the frames come out as that lens draws them."""
         self.camera = camera
+        self.lens = lens
         self.trajectory = trajectory
         self.config = config = config or SceneConfig()
         rng = np.random.default_rng(config.seed)
@@ -234,8 +237,16 @@ class TrackScene:
         off = (np.arange(ss) + 0.5) / ss - 0.5
         u = (np.arange(cam.width)[:, None] + off[None, :]).ravel()
         v = (np.arange(cam.height)[:, None] + off[None, :]).ravel()
-        x, y = np.meshgrid((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy)
-        return x, y  # (H*ss, W*ss)
+        uu, vv = np.meshgrid(u, v)
+        if self.lens is not None:
+            from lobula.lens import pixel_rays
+
+            x, y = pixel_rays(cam, self.lens, uu, vv)
+            if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+                raise ValueError(f"the lens {self.lens.to_dict()} sees 90° or more off its axis at this camera's edge; "
+                                 f"give a longer focal length or a narrower lens")
+            return x, y  # (H*ss, W*ss)
+        return (uu - cam.cx) / cam.fx, (vv - cam.cy) / cam.fy  # (H*ss, W*ss)
 
     # ---------------------------------------------------------------- motion
     def rotation(self, t) -> np.ndarray:

@@ -95,6 +95,8 @@ class TrackRunConfig:
     seeded random smooth profile (:func:`random_profile`, seed = scene seed) with this
     peak speed, starting as random_start says ("rest" or "motion"); it overrides profile.
     profile_scale: multiplies the profile's velocity (faster runs from the real one).
+    lens: the lens the camera sees through, "MODEL:c1,c2,..." (:meth:`lobula.lens.LensDistortion.parse`;
+    None: a pinhole); camera.json then carries its "distortion".
     """
 
     profile: str | None = None
@@ -106,6 +108,7 @@ class TrackRunConfig:
     random_start: str = "rest"
     profile_scale: float = 1.0
     camera_json: str | None = None
+    lens: str | None = None
     scene: SceneConfig = field(default_factory=SceneConfig)
     imu: IMUConfig = field(default_factory=IMUConfig)
     depth_every: int = 10
@@ -130,7 +133,9 @@ def build_track(cfg: TrackRunConfig) -> tuple[TrackScene, dict]:
         traj = trajectory_from_profile(cfg.profile, cfg.start_s, cfg.duration_s, scale=k)
     else:
         traj = trajectory_from_function(lambda t: k * builtin_profile(t + cfg.start_s), cfg.duration_s)
-    scene = TrackScene(cam, traj, cfg.scene)
+    from lobula.lens import LensDistortion
+
+    scene = TrackScene(cam, traj, cfg.scene, lens=LensDistortion.parse(cfg.lens) if cfg.lens else None)
     imu = synthesize_imu(scene, cfg.duration_s, cfg.imu)
     return scene, imu
 
@@ -156,17 +161,21 @@ def make_track_run(folder, cfg: TrackRunConfig, progress: bool = True) -> Path:
         meta.update(accel_bias_end=imu["accel_bias_t"][-1].tolist(), gyro_bias_end=imu["gyro_bias_t"][-1].tolist())
     if cfg.imu.accel_scale_std or cfg.imu.accel_misalign_std or cfg.imu.gyro_scale_std or cfg.imu.gyro_misalign_std:
         meta.update(accel_matrix=imu["accel_matrix"].tolist(), gyro_matrix=imu["gyro_matrix"].tolist())
-    rotated = cfg.imu.mount != "camera"
-    # A rotated IMU adds a key to camera.json after write_footage: write into a hidden
-    # sibling and rename only when complete, so the folder never looks finished early.
-    target = folder.parent / f".{folder.name}.track-{os.getpid()}" if rotated else folder
+    extra = {}
+    if cfg.imu.mount != "camera":
+        extra["imu_to_camera"] = imu["imu_to_camera"].tolist()  # imu.csv holds the IMU frame
+    if scene.lens is not None:
+        extra["distortion"] = scene.lens.to_dict()
+    # Keys added to camera.json after write_footage: write into a hidden sibling and rename only when
+    # complete, so the folder never looks finished early.
+    target = folder.parent / f".{folder.name}.track-{os.getpid()}" if extra else folder
     with tqdm(total=len(times), desc="rendering", unit="frame", disable=not progress, leave=False, mininterval=2) as bar:
         out = write_footage(target, scene, imu, times, meta, cfg.depth_every, progress=bar.update)
-    if not rotated:
+    if not extra:
         return out
     try:
         cam = json.loads((out / "camera.json").read_text())
-        cam["imu_to_camera"] = imu["imu_to_camera"].tolist()
+        cam.update(extra)
         (out / "camera.json").write_text(json.dumps(cam, indent=1))
         if folder.exists():
             folder.rmdir()

@@ -188,8 +188,11 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
     open with ``imu=None``, as ``lobula info`` does). skip_bad_frames: leave undecodable
     frames out (counted in ``skipped_frames``) instead of stopping. clock_offset: seconds
     added to the IMU's times to put them on the frames' clock, or "auto" to estimate it
-    (:mod:`lobula.readers.clock_offset`). undistort: EuRoC: "same-k" (undistort onto the same
-    pinhole K) or "optimal" (onto OpenCV's optimal new K, all pixels valid). camera: a
+    (:mod:`lobula.readers.clock_offset`). undistort: EuRoC, and any footage whose camera.json (or
+    ``camera``) gives a lens "distortion" ({"model": "kannala-brandt" | "radtan", "coeffs": [...]},
+    :mod:`lobula.lens`): "same-k" (undistort onto the same pinhole K) or "optimal" (EuRoC: onto
+    OpenCV's optimal new K, all pixels valid; a lens: a focal length that keeps the whole width's view,
+    up to 150°). camera: a
     camera.json (width, height, fx, fy, cx, cy, frame_rate_hz; optionally imu_to_camera) to use
     instead of the recording's own intrinsics, on every layout (``--camera FILE``): for a folder
     or a video it stands for the camera.json beside the frames (its imu_to_camera too); for
@@ -213,11 +216,45 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
                           camera=cam_json, keep_nan=keep_nan, require_camera=require_camera)
     if cam_json is not None:
         footage.notes.append(f"intrinsics from {cam_json} (--camera), not the recording's own")
-    _refuse_options_for_layout(footage, stream, clock, undistort)
+    lensed = _remove_lens(footage, path, cam_json, undistort)
+    _refuse_options_for_layout(footage, stream, clock, undistort if not lensed else "same-k")
     footage.skip_bad_frames = skip_bad_frames
     if clock_offset not in (None, 0, 0.0, "0"):
         _apply_clock_offset(footage, clock_offset)
     return footage
+
+
+def _lens_file(path: Path, cam_json: Path | None) -> Path | None:
+    """The camera.json that describes the footage's lens: ``--camera``'s, else the one in or beside ``path``."""
+    for p in (cam_json, path / "camera.json" if path.is_dir() else path.parent / "camera.json"):
+        if p is not None and p.is_file():
+            return p
+    return None
+
+
+def _remove_lens(footage: Footage, path: Path, cam_json: Path | None, undistort: str) -> bool:
+    """Where the camera.json gives a lens "distortion" (and the reader has not removed one itself, as EuRoC's
+    does), resample every frame onto a pinhole camera (``undistort``: "same-k" or "optimal",
+    :func:`lobula.lens.undistortion_maps`); returns whether it did."""
+    from lobula.lens import read_lens, undistortion_maps
+
+    from .core import FootageError
+    src = _lens_file(path, cam_json)
+    if src is None or footage.camera is None or footage.kind == "euroc":
+        return False
+    try:
+        lens = read_lens(src)
+    except ValueError as exc:
+        raise FootageError(str(exc)) from None
+    if lens is None:
+        return False
+    footage.lens_maps, pinhole = undistortion_maps(footage.camera, lens, undistort)
+    footage.distortion = dict(model=lens.model, coeffs=list(lens.coeffs), removed=True, target_k=undistort,
+                              raw_camera=footage.camera.to_dict(), source=str(src))
+    footage.notes.append(f"lens distortion ({lens.model}, {list(lens.coeffs)}) from {src} removed: every frame "
+                         f"resampled onto a pinhole camera ({undistort}: fx {pinhole.fx:.2f}, fy {pinhole.fy:.2f} px)")
+    footage.camera = pinhole
+    return True
 
 
 def _refuse_options_for_layout(footage: Footage, stream, clock, undistort) -> None:
@@ -229,7 +266,7 @@ def _refuse_options_for_layout(footage: Footage, stream, clock, undistort) -> No
         unused += [f"--stream ({realsense})"] * (stream is not None)
         unused += [f"--clock ({realsense})"] * (clock not in (None, "device"))
     if footage.kind != "euroc" and undistort != "same-k":
-        unused.append("--undistort (only EuRoC/ASL folders)")
+        unused.append("--undistort (only EuRoC/ASL folders and a camera.json with a lens \"distortion\")")
     if unused:
         raise FootageError(f"{footage.path}: {'; '.join(unused)} — this is a {footage.kind} footage; drop "
                            f"{'it' if len(unused) == 1 else 'them'}")

@@ -218,7 +218,9 @@ class Footage:
     applied to the IMU on reading (None: none needed or known). ``skip_bad_frames``,
     ``skipped_frames`` and the clock offset fields are filled by :func:`lobula.readers.open_footage`;
     ``streams`` lists what the recording holds (one dict per topic or sensor: name, type, count, ...);
-    ``truth_nan_counts`` the truth log's NaN or empty values per column (filled where counted).
+    ``truth_nan_counts`` the truth log's NaN or empty values per column (filled where counted);
+    ``lens_maps`` the remap that takes a distorted lens's frames onto ``camera``, a pinhole
+    (:func:`lobula.readers.open_footage` sets it from a camera.json's "distortion").
     """
 
     path: Path
@@ -237,11 +239,24 @@ class Footage:
     clock_offset_source: str = "none"
     streams: list[dict] = field(default_factory=list)
     truth_nan_counts: dict[str, int] = field(default_factory=dict)
+    lens_maps: tuple | None = None
 
     def __len__(self) -> int:
         return len(self.files)
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
+        """(index, time s, image (H, W) float32 grey levels) of frames start..stop − 1, the lens's distortion
+        removed where the footage has one (:attr:`lens_maps`, :func:`lobula.lens.undistortion_maps`)."""
+        if self.lens_maps is None:
+            yield from self.raw_frames(start, stop)
+            return
+        from lobula.lens import undistort
+
+        for i, t, img in self.raw_frames(start, stop):
+            yield i, t, undistort(img, self.lens_maps)
+
+    def raw_frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
+        """The frames as the recording holds them (a reader's own frame loop overrides this)."""
         stop = len(self) if stop is None else min(stop, len(self))
         for i in range(start, stop):
             try:

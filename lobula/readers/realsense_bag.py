@@ -117,7 +117,7 @@ class BagFootage(Footage):
     def __len__(self) -> int:
         return len(self.times)
 
-    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
+    def raw_frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
         """Yield (index, time_s, grey float32 (H, W)) for frames start..stop-1, one message at a time."""
         yield from bag_frames(self, self.topic, self.bag_times_ns, start, stop, open_bag=lambda: (*_rosbags(), None),
                               select=lambda c: c.topic == self.topic and c.msgtype == IMAGE_TYPE,

@@ -81,7 +81,7 @@ class VideoFootage(Footage):
     def __len__(self) -> int:
         return len(self.times)
 
-    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
+    def raw_frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
         n = len(self)
         start, stop = max(0, int(start)), (n if stop is None else min(int(stop), n))
         if start >= stop:
