@@ -1,6 +1,6 @@
 """Front ends side by side: every front end on the same footage and the same readout (`lobula compare`).
 
-``compare_front_ends(footage, front_ends)`` runs :func:`experiments.velocity.estimate_velocity`
+``compare_front_ends(footage, front_ends)`` runs :func:`lobula.velocity.estimate_velocity`
 once per front end with one base :class:`~lobula.config.VelocityConfig` (only ``front_end``
 differs, so fields, readout, filter and acceleration are shared) and scores each run:
 
@@ -213,34 +213,23 @@ def _on_grid(t_native, x, t_grid, fill=np.nan):
 
 
 # ---------------------------------------------------------------------- the comparison
-def compare_front_ends(footage: Footage | str | Path, front_ends=DEFAULT_FRONT_ENDS,
-                       config: VelocityConfig | None = None, flo_files: list[Path] | None = None,
-                       flo_units: FloUnits | None = None, skip_s: float | None = None,
-                       tol_m_s: float = LOCK_TOL_M_S, hold_s: float = LOCK_HOLD_S,
-                       progress: bool = True, log=None) -> xr.Dataset:
-    """Run each front end on ``footage`` with the same readout; returns the comparison Dataset.
-
-    config: the shared configuration (default :class:`VelocityConfig`); only ``front_end`` is
-    changed per run. flo_files/flo_units: precomputed flow for ``"flo"`` (skipped with a note
-    when absent). skip_s: seconds ignored when scoring (default :func:`default_skip`).
-    log: a callable receiving progress lines (default: none).
-    """
-    from lobula.velocity import estimate_velocity
-    from lobula.velocity.inertial import forward_accel_at
-
-    if not isinstance(footage, Footage):
-        footage = open_footage(footage)
-    base = copy.deepcopy(config) if config is not None else VelocityConfig()
+def _front_end_list(front_ends) -> list[str]:
+    """The requested front ends (a comma-separated string or a sequence), checked: known, each once."""
     front_ends = [f.strip() for f in (front_ends.split(",") if isinstance(front_ends, str) else front_ends) if f.strip()]
     unknown = [f for f in front_ends if f not in FRONT_ENDS]
     if unknown or not front_ends:
         raise ValueError(f"unknown front end(s) {unknown or front_ends}; choose from {', '.join(FRONT_ENDS)}")
     if len(set(front_ends)) != len(front_ends):
         raise ValueError(f"front end listed twice: {front_ends}")
-    skip = default_skip(footage, skip_s)
-    say = log or (lambda s: None)
-    exact = exact_rates(footage, base)
-    notes = list(footage.notes)
+    return front_ends
+
+
+def _run_front_ends(footage: Footage, base: VelocityConfig, front_ends: list[str], flo_files, flo_units, progress,
+                    say, notes: list[str]) -> tuple[dict, dict]:
+    """Velocity from each front end; a front end that cannot run is noted in ``notes`` and left out.
+    Returns ({front end: velocity Dataset}, {front end: its configuration as JSON})."""
+    from lobula.velocity import estimate_velocity
+
     runs, configs = {}, {}
     for fe in front_ends:
         if fe == "flo" and not flo_files:
@@ -260,19 +249,14 @@ def compare_front_ends(footage: Footage | str | Path, front_ends=DEFAULT_FRONT_E
         configs[fe] = cfg.to_json()
     if not runs:
         raise FootageError(f"{footage.path}: no front end could run ({'; '.join(notes) or 'none requested'})")
+    return runs, configs
 
-    names = list(runs)
-    t_grid = np.asarray(footage.times, dtype=float)
-    metrics = {fe: front_end_metrics(ds, footage, skip, exact, tol_m_s, hold_s) for fe, ds in runs.items()}
-    stages_by_fe = {fe: stage_ms_per_frame(ds) for fe, ds in runs.items()}
-    stage_names = [s for s in STAGE_ORDER if any(s in st for st in stages_by_fe.values())]
-    stage_names += sorted({s for st in stages_by_fe.values() for s in st} - set(stage_names))
 
+def _stacked(runs: dict, names: list[str], t_grid: np.ndarray, stages_by_fe: dict, stage_names: list[str]) -> dict:
+    """The per-front-end variables on the frame times ``t_grid`` (s), stacked along ``front_end``."""
     def stack(fn):
         return np.stack([fn(runs[fe]) for fe in names])
 
-    first = runs[names[0]]
-    F = first.sizes["field"]
     data = {
         "v_hat": (("front_end", "time"), stack(lambda d: _on_grid(d.time.values, d.v_hat.values, t_grid)),
                   {"units": "m/s", "long_name": "estimated forward velocity (on frame times)"}),
@@ -289,6 +273,43 @@ def compare_front_ends(footage: Footage | str | Path, front_ends=DEFAULT_FRONT_E
                                np.array([[stages_by_fe[fe].get(s, np.nan) for s in stage_names] for fe in names]),
                                {"units": "ms", "long_name": "wall time per estimate of each stage"}),
     }
+    return data
+
+
+def compare_front_ends(footage: Footage | str | Path, front_ends=DEFAULT_FRONT_ENDS,
+                       config: VelocityConfig | None = None, flo_files: list[Path] | None = None,
+                       flo_units: FloUnits | None = None, skip_s: float | None = None,
+                       tol_m_s: float = LOCK_TOL_M_S, hold_s: float = LOCK_HOLD_S,
+                       progress: bool = True, log=None) -> xr.Dataset:
+    """Run each front end on ``footage`` with the same readout; returns the comparison Dataset.
+
+    config: the shared configuration (default :class:`VelocityConfig`); only ``front_end`` is
+    changed per run. flo_files/flo_units: precomputed flow for ``"flo"`` (skipped with a note
+    when absent). skip_s: seconds ignored when scoring (default :func:`default_skip`).
+    log: a callable receiving progress lines (default: none).
+    """
+    from lobula.velocity.inertial import forward_accel_at
+
+    if not isinstance(footage, Footage):
+        footage = open_footage(footage)
+    base = copy.deepcopy(config) if config is not None else VelocityConfig()
+    front_ends = _front_end_list(front_ends)
+    skip = default_skip(footage, skip_s)
+    say = log or (lambda s: None)
+    exact = exact_rates(footage, base)
+    notes = list(footage.notes)
+    runs, configs = _run_front_ends(footage, base, front_ends, flo_files, flo_units, progress, say, notes)
+
+    names = list(runs)
+    t_grid = np.asarray(footage.times, dtype=float)
+    metrics = {fe: front_end_metrics(ds, footage, skip, exact, tol_m_s, hold_s) for fe, ds in runs.items()}
+    stages_by_fe = {fe: stage_ms_per_frame(ds) for fe, ds in runs.items()}
+    stage_names = [s for s in STAGE_ORDER if any(s in st for st in stages_by_fe.values())]
+    stage_names += sorted({s for st in stages_by_fe.values() for s in st} - set(stage_names))
+
+    first = runs[names[0]]
+    F = first.sizes["field"]
+    data = _stacked(runs, names, t_grid, stages_by_fe, stage_names)
     for k in METRICS:
         data[k] = ("front_end", np.array([metrics[fe][k] for fe in names], dtype=float), METRIC_ATTRS[k])
     try:

@@ -2,7 +2,7 @@
 
 ``estimate_depth(footage, run=DepthRunConfig(...))`` runs in two passes:
 
-1. the velocity pipeline (:func:`experiments.velocity.estimate_velocity`) over the whole
+1. the velocity pipeline (:func:`lobula.velocity.estimate_velocity`) over the whole
    footage gives v̂(t) and the epipole (or pass a velocity Dataset already computed);
 2. the footage is read again (:func:`experiments.depth_pairs.ranged_pairs`) and, for every
    N-th staggered flow pair (frame k and k + gap: the *same* pairs and the same flow function
@@ -430,7 +430,7 @@ def estimate_depth(footage: Footage, method: str = "tv", every: int = 1,
 
     method / every: as :class:`DepthRunConfig` (ignored when ``run`` is given).
     velocity_config: the velocity pipeline's configuration (front end dis or farneback).
-    velocity: a velocity Dataset from :func:`experiments.velocity.estimate_velocity` on
+    velocity: a velocity Dataset from :func:`lobula.velocity.estimate_velocity` on
     this footage, to skip the first pass (its configuration, in its attrs, then fixes
     the flow). out: None (in-memory Dataset), ``*.nc`` (NetCDF, atomic) or ``*.zarr``
     (Zarr, appended in batches; returns the Dataset opened lazily from the store).

@@ -118,6 +118,17 @@ def _scale_free(d: np.ndarray, true: np.ndarray, ok: np.ndarray, max_range_m: fl
     return d * float(np.median(true[m] / d[m]))
 
 
+def _scene_results(pooled: dict, n_scored: int, n_metric: dict) -> dict:
+    """{(source, method): {"metric"|"all"|"si": (pooled ring scores, n_maps), "n_pairs", "n_metric"}} of
+    :func:`range_scene`, from its pooled scores and its counts of scored and metric pairs."""
+    out = {}
+    for s in SOURCES:
+        for m in METHODS:
+            out[(s, m)] = {w: (pooled[(s, m, w)].result(), pooled[(s, m, w)].n_maps) for w in ("metric", "all", "si")}
+            out[(s, m)].update(n_pairs=n_scored, n_metric=n_scored if m == "constant" else n_metric[s])
+    return out
+
+
 def range_scene(footage, velocity, scene, run: DepthRunConfig, depth_every: int,
                 keep_map: int | None = None, skip_s: float = 0.0, v_medium=None,
                 v_std_medium=None) -> tuple[dict, dict]:
@@ -194,12 +205,7 @@ def range_scene(footage, velocity, scene, run: DepthRunConfig, depth_every: int,
                 known = metric or m == "constant"
                 pooled[(s, m, "metric")].add(d, true, ok & known, rings)
         n_scored += 1
-    out = {}
-    for s in SOURCES:
-        for m in METHODS:
-            out[(s, m)] = {w: (pooled[(s, m, w)].result(), pooled[(s, m, w)].n_maps) for w in ("metric", "all", "si")}
-            out[(s, m)].update(n_pairs=n_scored, n_metric=n_scored if m == "constant" else n_metric[s])
-    return out, sample
+    return _scene_results(pooled, n_scored, n_metric), sample
 
 
 def run_one(out: Path, family: str, seed: int, args) -> dict:

@@ -223,7 +223,7 @@ def causal_gyro(imu, times: np.ndarray) -> np.ndarray:
 def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
     """What the readout's filter must know about the acceleration it is given, as for the camera.
 
-    The same terms :func:`experiments.velocity.estimate_velocity` gives the readout (the
+    The same terms :func:`lobula.velocity.estimate_velocity` gives the readout (the
     accelerometer is the same, so its errors are): online, the gravity reference is set over
     the first seconds and holds the platform's acceleration there, an offset of up to
     ``START_ACCEL_PRIOR_M_S2`` (measured on a panels world: −0.44 m/s², four times the
@@ -339,6 +339,96 @@ def field_halves(fields, n_outputs: int) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(x, y) for x, y in out if x.any() and y.any()]
 
 
+def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_outputs: int) -> tuple:
+    """The readout of the gated LC outputs: (v_hat, observable, r_dot, v_field, v_std, std_name, method, filter)."""
+    if cfg.readout_kind == "neuron":
+        nout = readout_neuron(t, rho_in, r2_in, a, cfg.neuron)
+        v_hat, observable, r_dot, v_field = nout["v_hat"], nout["observable"], nout["r_dot"], nout["v_field"]
+        v_std = nout["decode_std"]
+        std_name = (f"std of the readout neuron's spike decoding ({SPIKE_MODELS[cfg.neuron.spike_model]} count noise only; "
+                    "not the model error)"
+                    if cfg.neuron.spiking else "0: the rate readout neuron has no decoding noise (not the model error)")
+        method = "readout neuron (" + (f"{SPIKE_MODELS[cfg.neuron.spike_model]} spikes, causal decoding"
+                                       if cfg.neuron.spiking else "rate") + ")"
+        filt = "causal" if not cfg.neuron.spiking or cfg.neuron.decode == "causal" else "centred spike window"
+    else:
+        res = readout(t, rho_in, r2_in, a, rcfg, gravity_tau=tau, drift_std=drift, turn_rate=turn)
+        v_hat, observable, r_dot, v_field, v_std = res.v_hat, res.observable, res.r_dot, res.v_field, res.v_std
+        std_name, method, filt = "posterior std of v_hat", cfg.readout.method, cfg.readout.filter
+        if cfg.uncertainty == "halves":
+            extra = (cfg.emd_gain_error * np.nan_to_num(res.v_hat)) ** 2
+            for a_half, b_half in field_halves(fields, n_outputs):
+                # Each half through the same readout alone: their disagreement is an error the posterior misses.
+                halves = [readout(t, rho_in[:, h], r2_in[:, h], a, rcfg, gravity_tau=tau, drift_std=drift,
+                                  turn_rate=turn).v_hat for h in (a_half, b_half)]
+                extra = extra + np.nan_to_num(split_half_variance(t, *halves, cfg.split_tau_s))
+            v_std = np.sqrt(v_std ** 2 + extra)
+            std_name = ("posterior std of v_hat combined with the disagreement of the field halves (left and right "
+                        f"eye, upper and lower) and the EMD gain error ({cfg.emd_gain_error:g}·|v_hat|)")
+        if cfg.readout_kind == "spikes":
+            if cfg.readout.filter != "causal":
+                raise ValueError("spiking output neurons decode causally; use the causal readout filter")
+            # The decoder's lead τ_d·a takes the accelerometer less the offset the readout has found
+            # (its v̂ moves by a − b̂): the raw accelerometer's offset, up to 0.6 m/s² at the start of
+            # a dev world, would shift every decoded step by τ_d·b.
+            a_lead = a - readout_offset(t, res.v_hat, a, cfg.lead_offset_tau_s) if cfg.lead_offset_tau_s else a
+            enc = spiking_output(t, res.v_hat, a_lead, replace(cfg.neuron, spiking=True))
+            v_hat = np.where(observable, enc["v_dec"], np.nan)
+            v_std = np.sqrt(v_std ** 2 + enc["decode_std"] ** 2)
+            std_name = std_name.replace("posterior std of v_hat", "posterior std of the readout", 1) + \
+                f" and the {SPIKE_MODELS[cfg.neuron.spike_model]} count noise of the spike decoding"
+            method = (f"{cfg.readout.method}, carried by {cfg.neuron.population} push-pull "
+                      f"{SPIKE_MODELS[cfg.neuron.spike_model]} output neuron pairs "
+                      f"({cfg.neuron.gain_hz_per_m_s:g} Hz per m/s), causal decoding, {cfg.neuron.lead} lead")
+    return v_hat, observable, r_dot, v_field, v_std, std_name, method, filt
+
+
+def _eye_dataset(fo, cfg, rcfg, f, t, rho, r2, haltere_gain, reliability, used, a, a_source, v_hat, observable,
+                 r_dot, v_field, v_std, std_name) -> xr.Dataset:
+    """The velocity Dataset (dims time, field) of the readout's outputs and the LC fields' (no attributes)."""
+    if cfg.readout_kind == "neuron":
+        obs_definition = "the readout neuron's own confidence"
+    else:
+        # What v_std adds beyond the posterior does not gate: gating on it leaves the eye blind, so the
+        # file says which std the flag is of.
+        obs_definition = f"the readout's posterior std ≤ {rcfg.max_std_m_s:g} m/s" + (
+            "; v_std adds the field halves' disagreement and the EMD gain error, so it may exceed that"
+            if cfg.uncertainty == "halves" else "")
+    keep = np.flatnonzero(f.eye == 0) if rho.shape[1] != f.n_fields else np.arange(f.n_fields)
+    data = dict(
+        v_hat=("time", v_hat, {"units": "m/s", "long_name": "estimated forward velocity"}),
+        observable=("time", observable, {"units": "1", "long_name": "velocity observable",
+                                          "definition": obs_definition}),
+        v_std=("time", v_std, {"units": "m/s", "long_name": std_name}),
+        accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": a_source}),
+        r=(("time", "field"), rho, {"units": "1/s", "long_name": "LC field expansion rate v/D"}),
+        r2=(("time", "field"), r2, {"units": "1/s2",
+                                    "long_name": "r-squared term with the convective correction (r2_eff)"}),
+        r_dot=(("time", "field"), r_dot, {"units": "1/s2", "long_name": "time derivative of the field rate r"}),
+        haltere_gain=(("time", "field"), haltere_gain, {"units": "1", "long_name": "gain at which the field subtracts "
+                      "the haltere's predicted turn (1 + the learned α; 1: fixed; NaN: no haltere subtraction)"}),
+        reliability=(("time", "field"), reliability, {"units": "1", "long_name": "field's causal slow-to-fast power "
+                     "ratio (lobula.eye_circuit.field_reliability)"}),
+        field_used=(("time", "field"), used, {"units": "1", "long_name": "field output passed to the readout "
+                                                             f"(reliability >= {cfg.reliability_min:g})"}),
+        v_field=(("time", "field"), v_field, {"units": "m/s", "long_name": "per-field forward velocity "
+                                                                   "a·r/(r_dot − r2)"}),
+    )
+    if fo.truth is not None:
+        data["v_true"] = ("time", np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"]),
+                          {"units": "m/s", "long_name": "ground-truth forward velocity"})
+    coords = dict(time=("time", t, {"units": "s", "long_name": "time of the LC step on the footage clock"}),
+                  azimuth_deg=("field", f.centres_deg[keep, 0],
+                               {"units": "degree", "long_name": "LC field centre azimuth"}),
+                  elevation_deg=("field", f.centres_deg[keep, 1],
+                                 {"units": "degree", "long_name": "LC field centre elevation (positive down)"}),
+                  size_deg=("field", np.full(len(keep), f.size_deg),
+                            {"units": "degree", "long_name": "LC field size (Gaussian FWHM, or box side)"}),
+                  eye=("field", np.where(f.eye[keep] == 0, "right" if len(keep) == f.n_fields else "both", "left"),
+                       {"long_name": "eye of the field (both: the mirror sum of a right-eye field and its left-eye twin)"}))
+    return xr.Dataset(data, coords=coords)
+
+
 def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress: bool = False) -> xr.Dataset:
     """Velocity Dataset from an :class:`stimuli.eye.EyeFootage` (see the module docstring)."""
     from tqdm.auto import tqdm
@@ -400,92 +490,11 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         turn = turn_rate(t, fo.imu.time_s, fo.imu.gyro, dt)  # told to the readout, as the camera's is
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
     t1 = _time.perf_counter()
-    if cfg.readout_kind == "neuron":
-        nout = readout_neuron(t, rho_in, r2_in, a, cfg.neuron)
-        v_hat, observable, r_dot, v_field = nout["v_hat"], nout["observable"], nout["r_dot"], nout["v_field"]
-        v_std = nout["decode_std"]
-        std_name = (f"std of the readout neuron's spike decoding ({SPIKE_MODELS[cfg.neuron.spike_model]} count noise only; "
-                    "not the model error)"
-                    if cfg.neuron.spiking else "0: the rate readout neuron has no decoding noise (not the model error)")
-        method = "readout neuron (" + (f"{SPIKE_MODELS[cfg.neuron.spike_model]} spikes, causal decoding"
-                                       if cfg.neuron.spiking else "rate") + ")"
-        filt = "causal" if not cfg.neuron.spiking or cfg.neuron.decode == "causal" else "centred spike window"
-    else:
-        res = readout(t, rho_in, r2_in, a, rcfg, gravity_tau=tau, drift_std=drift, turn_rate=turn)
-        v_hat, observable, r_dot, v_field, v_std = res.v_hat, res.observable, res.r_dot, res.v_field, res.v_std
-        std_name, method, filt = "posterior std of v_hat", cfg.readout.method, cfg.readout.filter
-        if cfg.uncertainty == "halves":
-            extra = (cfg.emd_gain_error * np.nan_to_num(res.v_hat)) ** 2
-            for a_half, b_half in field_halves(circ.fields, rho.shape[1]):
-                # Each half through the same readout alone: their disagreement is an error the posterior misses.
-                halves = [readout(t, rho_in[:, h], r2_in[:, h], a, rcfg, gravity_tau=tau, drift_std=drift,
-                                   turn_rate=turn).v_hat
-                          for h in (a_half, b_half)]
-                extra = extra + np.nan_to_num(split_half_variance(t, *halves, cfg.split_tau_s))
-            v_std = np.sqrt(v_std ** 2 + extra)
-            std_name = ("posterior std of v_hat combined with the disagreement of the field halves (left and right "
-                        "eye, upper and lower) and the EMD gain error "
-                        f"({cfg.emd_gain_error:g}·|v_hat|)")
-        if cfg.readout_kind == "spikes":
-            if cfg.readout.filter != "causal":
-                raise ValueError("spiking output neurons decode causally; use the causal readout filter")
-            # The decoder's lead τ_d·a takes the accelerometer less the offset the readout has found
-            # (its v̂ moves by a − b̂): the raw accelerometer's offset, up to 0.6 m/s² at the start of
-            # a dev world, would shift every decoded step by τ_d·b.
-            a_lead = a - readout_offset(t, res.v_hat, a, cfg.lead_offset_tau_s) if cfg.lead_offset_tau_s else a
-            enc = spiking_output(t, res.v_hat, a_lead, replace(cfg.neuron, spiking=True))
-            v_hat = np.where(observable, enc["v_dec"], np.nan)
-            v_std = np.sqrt(v_std ** 2 + enc["decode_std"] ** 2)
-            std_name = std_name.replace("posterior std of v_hat", "posterior std of the readout", 1) + \
-                f" and the {SPIKE_MODELS[cfg.neuron.spike_model]} count noise of the spike decoding"
-            method = (f"{cfg.readout.method}, carried by {cfg.neuron.population} push-pull "
-                      f"{SPIKE_MODELS[cfg.neuron.spike_model]} output neuron pairs "
-                      f"({cfg.neuron.gain_hz_per_m_s:g} Hz per m/s), causal decoding, {cfg.neuron.lead} lead")
+    (v_hat, observable, r_dot, v_field, v_std, std_name, method,
+     filt) = _eye_readout(cfg, rcfg, circ.fields, t, rho_in, r2_in, a, tau, drift, turn, rho.shape[1])
     t_readout = _time.perf_counter() - t1
-    if cfg.readout_kind == "neuron":
-        obs_definition = "the readout neuron's own confidence"
-    else:
-        # What v_std adds beyond the posterior does not gate: gating on it leaves the eye blind, so the
-        # file says which std the flag is of.
-        obs_definition = f"the readout's posterior std ≤ {rcfg.max_std_m_s:g} m/s" + (
-            "; v_std adds the field halves' disagreement and the EMD gain error, so it may exceed that"
-            if cfg.uncertainty == "halves" else "")
-    f = circ.fields
-    keep = np.flatnonzero(f.eye == 0) if rho.shape[1] != f.n_fields else np.arange(f.n_fields)
-    data = dict(
-        v_hat=("time", v_hat, {"units": "m/s", "long_name": "estimated forward velocity"}),
-        observable=("time", observable, {"units": "1", "long_name": "velocity observable",
-                                          "definition": obs_definition}),
-        v_std=("time", v_std, {"units": "m/s", "long_name": std_name}),
-        accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": a_source}),
-        r=(("time", "field"), rho, {"units": "1/s", "long_name": "LC field expansion rate v/D"}),
-        r2=(("time", "field"), r2, {"units": "1/s2",
-                                    "long_name": "r-squared term with the convective correction (r2_eff)"}),
-        r_dot=(("time", "field"), r_dot, {"units": "1/s2", "long_name": "time derivative of the field rate r"}),
-        haltere_gain=(("time", "field"), haltere_gain,
-                      {"units": "1", "long_name": "gain at which the field subtracts the haltere's predicted turn "
-                                                  "(1 + the learned α; 1: fixed; NaN: no haltere subtraction)"}),
-        reliability=(("time", "field"), reliability,
-                     {"units": "1", "long_name": "field's causal slow-to-fast power ratio "
-                                                 "(lobula.eye_circuit.field_reliability)"}),
-        field_used=(("time", "field"), used, {"units": "1", "long_name": "field output passed to the readout "
-                                                             f"(reliability >= {cfg.reliability_min:g})"}),
-        v_field=(("time", "field"), v_field, {"units": "m/s", "long_name": "per-field forward velocity "
-                                                                   "a·r/(r_dot − r2)"}),
-    )
-    if fo.truth is not None:
-        data["v_true"] = ("time", np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"]),
-                          {"units": "m/s", "long_name": "ground-truth forward velocity"})
-    coords = dict(time=("time", t, {"units": "s", "long_name": "time of the LC step on the footage clock"}),
-                  azimuth_deg=("field", f.centres_deg[keep, 0],
-                               {"units": "degree", "long_name": "LC field centre azimuth"}),
-                  elevation_deg=("field", f.centres_deg[keep, 1],
-                                 {"units": "degree", "long_name": "LC field centre elevation (positive down)"}),
-                  size_deg=("field", np.full(len(keep), f.size_deg),
-                            {"units": "degree", "long_name": "LC field size (Gaussian FWHM, or box side)"}),
-                  eye=("field", np.where(f.eye[keep] == 0, "right" if len(keep) == f.n_fields else "both", "left"),
-                       {"long_name": "eye of the field (both: the mirror sum of a right-eye field and its left-eye twin)"}))
-    ds = xr.Dataset(data, coords=coords)
+    ds = _eye_dataset(fo, cfg, rcfg, circ.fields, t, rho, r2, haltere_gain, reliability, used, a, a_source,
+                      v_hat, observable, r_dot, v_field, v_std, std_name)
     timings = dict(circ.timings, circuit_total=t_circ, readout=t_readout, n_ommatidia=fo.eye.n,
                    n_pairs=fo.eye.n_pairs)
     ds.attrs.update(provenance(cfg.to_json(), front_end="emd-compound-eye", filter=filt,

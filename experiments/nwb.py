@@ -125,20 +125,13 @@ def _session_times(ds: xr.Dataset, lay: dict, tdim: str) -> np.ndarray:
     return lay["starts"][:, :, None] + rel[None, None, :]
 
 
-def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str | None = None,
-              institution: str | None = None, lab: str | None = None) -> Path:
-    """Write the recording ``ds`` (any ephys protocol) as an NWB file at ``path``, atomically.
-
-    experimenter ("Last, First", one or several), institution, lab: the file's general metadata
-    (left out when None)."""
-    from hdmf.common import DynamicTable, VectorData
-    from pynwb import NWBHDF5IO, NWBFile, TimeSeries
+def _nwb_file(ds: xr.Dataset, lay: dict, experimenter, institution, lab):
+    """The NWB file of ``ds`` with its general metadata, subject, virtual rig and electrode group;
+    returns (file, electrode group)."""
+    from pynwb import NWBFile
     from pynwb.file import Subject
-    from pynwb.misc import Units
 
-    path = Path(path)
-    lay = epoch_layout(ds)
-    cdims, C, K = lay["cdims"], lay["C"], lay["K"]
+    C, K = lay["C"], lay["K"]
     created = ds.attrs.get("created")
     try:
         start = datetime.fromisoformat(created) if created else datetime.now(timezone.utc)
@@ -171,8 +164,14 @@ def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str
                                        location="lobula (optic lobe), in silico",
                                        description="one virtual electrode per recorded spiking unit, "
                                                    "isolating that unit alone")
-    _stimulus_templates(nwb, ds, lay)
-    # --- trials
+    return nwb, probe
+
+
+def _add_trials(nwb, ds: xr.Dataset, lay: dict) -> None:
+    """One trials row per (condition, trial) epoch, with the condition's stimulus values (rf-map: the
+    spot passage's location and per-field response)."""
+    cdims, C, K = lay["cdims"], lay["C"], lay["K"]
+    protocol = ds.attrs.get("protocol", "unknown")
     cvals = {}
     if cdims:
         grids = np.meshgrid(*[ds[d].values for d in cdims], indexing="ij")
@@ -205,7 +204,14 @@ def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str
                 row["location_elevation_deg"] = float(ds.location_elevation_deg.values[loc[c]])
                 row["rf_response"] = resp[c]
             nwb.add_trial(**row)
-    # --- units: spike times
+
+
+def _add_units(nwb, ds: xr.Dataset, lay: dict, probe) -> list[str]:
+    """Every recorded spiking unit with its session spike times (s) and receptive field; returns the
+    spike variables written."""
+    from pynwb.misc import Units
+
+    cdims, C, K = lay["cdims"], lay["C"], lay["K"]
     spike_vars = [v for v in _SPIKES if v in ds]
     if spike_vars:
         # Spike times are known to the model step: that is the table's resolution (several spikes of a
@@ -246,7 +252,14 @@ def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str
                          rf_elevation_deg=float(ds.elevation_deg.sel(neuron=n)) if is_lc else float("nan"),
                          rf_size_deg=float(ds.size_deg.sel(neuron=n)) if is_lc else float("nan"),
                          neuron_model=f"{da.attrs.get('neuron_model', '')}@{dt:g}s")
-    # --- time series
+    return spike_vars
+
+
+def _add_time_series(nwb, ds: xr.Dataset, lay: dict, spike_vars: list[str]) -> None:
+    """Every other time-resolved variable as an acquisition TimeSeries (epoch-major time × channel)."""
+    from pynwb import TimeSeries
+
+    cdims, C, K = lay["cdims"], lay["C"], lay["K"]
     for var in ds.data_vars:
         da = ds[var]
         tdim = next((d for d in _TIME_DIMS if d in da.dims), None)
@@ -271,7 +284,12 @@ def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str
                                        unit=str(da.attrs.get("units", "n.a.")),
                                        description=str(da.attrs.get("long_name", var)),
                                        comments=json.dumps(comments, default=str)))
-    # --- analysis tables
+
+
+def _add_analysis(nwb, ds: xr.Dataset) -> None:
+    """Every variable without time as a long-form DynamicTable under processing/analysis."""
+    from hdmf.common import DynamicTable, VectorData
+
     static = [v for v in ds.data_vars if not any(d in ds[v].dims for d in _TIME_DIMS)]
     if static:
         mod = nwb.create_processing_module("analysis", "analyses of the recording (tuning curves, RF estimates, "
@@ -289,6 +307,24 @@ def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str
                 unit = src.attrs.get("units") if src is not None else None
                 cols.append(VectorData(name=c, description=f"{desc}" + (f" ({unit})" if unit else ""), data=vals))
             mod.add(DynamicTable(name=var, description=str(da.attrs.get("long_name", var)), columns=cols))
+
+
+def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str | None = None,
+              institution: str | None = None, lab: str | None = None) -> Path:
+    """Write the recording ``ds`` (any ephys protocol) as an NWB file at ``path``, atomically.
+
+    experimenter ("Last, First", one or several), institution, lab: the file's general metadata
+    (left out when None)."""
+    from pynwb import NWBHDF5IO
+
+    path = Path(path)
+    lay = epoch_layout(ds)
+    nwb, probe = _nwb_file(ds, lay, experimenter, institution, lab)
+    _stimulus_templates(nwb, ds, lay)
+    _add_trials(nwb, ds, lay)
+    spike_vars = _add_units(nwb, ds, lay, probe)
+    _add_time_series(nwb, ds, lay, spike_vars)
+    _add_analysis(nwb, ds)
     with atomic_path(path, suffix=".tmp.nwb") as tmp, NWBHDF5IO(str(tmp), "w") as io:
         io.write(nwb)
     return path

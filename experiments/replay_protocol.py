@@ -196,6 +196,70 @@ def _replay_dataset(ds: xr.Dataset, want, out: dict, ncfg: ReadoutNeuronConfig, 
     return xr.Dataset(data, coords=coords), spike_dt
 
 
+def _eye_replay_config(tau_s: float | None, field_size_deg: float | None, rotation: str | None,
+                       haltere_gain: str | float | None):
+    """The eye pipeline's configuration for a replay: EMD delay τ (s), LC field FWHM (degree), rotation
+    handling and haltere gain as ``lobula eye-velocity`` takes them (None: its defaults)."""
+    import argparse
+
+    from experiments.eye_velocity import EyeVelocityConfig, apply_eye_options
+
+    ecfg = EyeVelocityConfig()  # the rates readout; its v̂ is carried by the replay's output neurons, per trial
+    if tau_s is not None:
+        ecfg.circuit.emd = replace(ecfg.circuit.emd, tau_s=float(tau_s))
+    if field_size_deg is not None:
+        ecfg.circuit.fields = replace(ecfg.circuit.fields, size_deg=float(field_size_deg))
+    ecfg = apply_eye_options(ecfg, argparse.Namespace(rotation=rotation, haltere_gain=None if haltere_gain is None
+                                                      else str(haltere_gain)))
+    ecfg.circuit.__post_init__()
+    ecfg.__post_init__()
+    return ecfg
+
+
+def _eye_replay_run(footage_path, ecfg, duration_s: float, seed: int, dphi_deg: float | None,
+                    progress: bool) -> tuple:
+    """The eye pipeline on eye footage, or on a built-in run rendered for it (``footage_path`` None);
+    returns (velocity Dataset, the footage's description, the eye's summary)."""
+    from experiments.eye_velocity import estimate_eye_velocity
+    from lobula.compound_eye import CompoundEyeConfig
+    from stimuli.eye import make_eye_run, open_eye_footage
+    from stimuli.scene import SceneConfig
+    from stimuli.track import TrackRunConfig
+
+    with tempfile.TemporaryDirectory() as tmp:
+        if footage_path is None:
+            run = TrackRunConfig(profile=None, start_s=2.0, duration_s=duration_s, scale=0.5,
+                                 scene=SceneConfig(seed=seed))
+            eye = CompoundEyeConfig() if dphi_deg is None else CompoundEyeConfig(dphi_deg=float(dphi_deg))
+            footage_path = make_eye_run(Path(tmp) / "replay-eye", run, eye, 500.0, progress=progress, cast_every=2)
+            source = f"built-in profile, {duration_s} s, scene seed {seed}, compound eye at 500 Hz"
+        else:
+            source = str(footage_path)
+        fo = open_eye_footage(footage_path)
+        ds = estimate_eye_velocity(fo, ecfg, progress=progress)
+        eye_summary = fo.eye.summary()
+    return ds, source, eye_summary
+
+
+def _eye_replay_variables(ds: xr.Dataset, want) -> dict:
+    """The eye pipeline's own variables the recording carries: LC rates and their derivative (as asked),
+    the rates readout's v̂ and v_std, and which fields it used."""
+    data = {}
+    if "lc.r" in want:
+        data["lc_r"] = (("time", "field"), ds.r.values, {"units": "s-1", "long_name": "LC field expansion rate v/D "
+                        "(the field's fit, per readout step; what the readout takes)"})
+    if "lc.rdot" in want:
+        data["lc_r_dot"] = (("time", "field"), ds.r_dot.values, {"units": "s-2",
+                            "long_name": "rate of change of the LC field's expansion rate, as the readout takes it "
+                                         "(NaN where the field is not used)"})
+    data["arithmetic_v"] = ("time", ds.v_hat.values, {"units": "m s-1",
+                            "long_name": "readout's forward velocity (rates, causal) that the output neurons carry"})
+    data["arithmetic_v_std"] = ("time", ds.v_std.values, {"units": "m s-1", "long_name": ds.v_std.attrs["long_name"]})
+    data["lc_used"] = (("time", "field"), ds.field_used.values.astype(np.int8),
+                       {"units": "1", "long_name": ds.field_used.attrs["long_name"]})
+    return data
+
+
 def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4, seed: int = 0,
                         spike_model: str | None = "lif", duration_s: float = 10.0, progress: bool = False,
                         tau_s: float | None = None, dphi_deg: float | None = None,
@@ -214,15 +278,9 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
     haltere, natural). record: names from :data:`REPLAY_RECORDS` but readout.confidence (default: all
     of them).
     """
-    import argparse
-
     from experiments.ephys.rig import cf_describe, recording_attrs
-    from experiments.eye_velocity import EyeVelocityConfig, apply_eye_options, estimate_eye_velocity, readout_offset
-    from lobula.compound_eye import CompoundEyeConfig
+    from experiments.eye_velocity import readout_offset
     from lobula.readout_neuron import SPIKE_MODELS, spiking_output
-    from stimuli.eye import make_eye_run, open_eye_footage
-    from stimuli.scene import SceneConfig
-    from stimuli.track import TrackRunConfig
 
     spiking = spike_model is not None
     if spiking and spike_model not in SPIKE_MODELS:
@@ -235,27 +293,8 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
         raise ValueError("dphi_deg: eye footage keeps the Δφ it was rendered at (`lobula scene OUT --eye fly --dphi "
                          "…`); give it only for the built-in run")
     want = _replay_records(record, spiking, eye=True)
-    ecfg = EyeVelocityConfig()  # the rates readout; its v̂ is carried by the output neurons below, per trial
-    if tau_s is not None:
-        ecfg.circuit.emd = replace(ecfg.circuit.emd, tau_s=float(tau_s))
-    if field_size_deg is not None:
-        ecfg.circuit.fields = replace(ecfg.circuit.fields, size_deg=float(field_size_deg))
-    ecfg = apply_eye_options(ecfg, argparse.Namespace(rotation=rotation, haltere_gain=None if haltere_gain is None
-                                                      else str(haltere_gain)))
-    ecfg.circuit.__post_init__()
-    ecfg.__post_init__()
-    with tempfile.TemporaryDirectory() as tmp:
-        if footage_path is None:
-            run = TrackRunConfig(profile=None, start_s=2.0, duration_s=duration_s, scale=0.5,
-                                 scene=SceneConfig(seed=seed))
-            eye = CompoundEyeConfig() if dphi_deg is None else CompoundEyeConfig(dphi_deg=float(dphi_deg))
-            footage_path = make_eye_run(Path(tmp) / "replay-eye", run, eye, 500.0, progress=progress, cast_every=2)
-            source = f"built-in profile, {duration_s} s, scene seed {seed}, compound eye at 500 Hz"
-        else:
-            source = str(footage_path)
-        fo = open_eye_footage(footage_path)
-        ds = estimate_eye_velocity(fo, ecfg, progress=progress)
-        eye_summary = fo.eye.summary()
+    ecfg = _eye_replay_config(tau_s, field_size_deg, rotation, haltere_gain)
+    ds, source, eye_summary = _eye_replay_run(footage_path, ecfg, duration_s, seed, dphi_deg, progress)
     t = ds.time.values
     dt = float(np.median(np.diff(t)))
     ncfg = replace(ecfg.neuron, spiking=spiking, seed=seed, spike_model=spike_model or ecfg.neuron.spike_model)
@@ -266,19 +305,7 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
     out = per_trial(lambda c: spiking_output(t, v_hat, a_lead, c), trials, ncfg)
     out["v_hat"] = (np.where(ds.observable.values, out["v_dec"], np.nan) if spiking
                     else np.broadcast_to(v_hat, (trials, len(t))).copy())
-    data = {}
-    if "lc.r" in want:
-        data["lc_r"] = (("time", "field"), ds.r.values, {"units": "s-1", "long_name": "LC field expansion rate v/D "
-                        "(the field's fit, per readout step; what the readout takes)"})
-    if "lc.rdot" in want:
-        data["lc_r_dot"] = (("time", "field"), ds.r_dot.values, {"units": "s-2",
-                            "long_name": "rate of change of the LC field's expansion rate, as the readout takes it "
-                                         "(NaN where the field is not used)"})
-    data["arithmetic_v"] = ("time", ds.v_hat.values, {"units": "m s-1",
-                            "long_name": "readout's forward velocity (rates, causal) that the output neurons carry"})
-    data["arithmetic_v_std"] = ("time", ds.v_std.values, {"units": "m s-1", "long_name": ds.v_std.attrs["long_name"]})
-    data["lc_used"] = (("time", "field"), ds.field_used.values.astype(np.int8),
-                       {"units": "1", "long_name": ds.field_used.attrs["long_name"]})
+    data = _eye_replay_variables(ds, want)
     rec, spike_dt = _replay_dataset(ds, want, out, ncfg, spiking, data,
                                     f"output neurons' decoded forward velocity ({SPIKE_MODELS[ncfg.spike_model]}, "
                                     "causal; NaN where the readout is unobservable)" if spiking else

@@ -2,7 +2,7 @@
 
 Each (family, seed) scene is rendered once (``lobula scene``'s generator, exact truth, a
 realistic IMU by default) into ``OUT/scenes/``; every estimator configuration runs on it
-(:func:`experiments.velocity.estimate_velocity`), zero-phase and causal, and so do two
+(:func:`lobula.velocity.estimate_velocity`), zero-phase and causal, and so do two
 baselines that need no vision: the zero estimator (v̂ = 0) and IMU-only dead reckoning.
 Named explicitly (not in "all": each renders the scene again, onto the eye, CPU-minutes per scene),
 the fly's compound eye (:data:`EYE_CONFIGURATIONS`): the same world, trajectory and IMU ray-cast onto

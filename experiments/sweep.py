@@ -22,7 +22,7 @@ Nested frozen dataclasses are replaced, never mutated, so points never share sta
 rendered (:func:`stimuli.track.make_track_run`; renders are cached in ``SWEEP.renders/``
 keyed by a hash of the run configuration, so points that differ only in the velocity
 configuration share one render, which is deleted once all its points are done unless
-``--keep-renders``), then :func:`experiments.velocity.estimate_velocity`, then the metrics of
+``--keep-renders``), then :func:`lobula.velocity.estimate_velocity`, then the metrics of
 :mod:`experiments.compare` against the exact truth: RMSE and median |error| after
 ``skip_s``, observable fraction, lock-on time, r̄_f error against the depth maps, ms/frame
 per stage. Points whose effective configurations coincide (e.g. ``emd.*`` values on a DIS

@@ -46,7 +46,7 @@ class PinholeCamera:
 
     @classmethod
     def from_json(cls, path: str | Path) -> "PinholeCamera":
-        """Read ``camera.json`` ({"width","height","fx","fy","cx","cy","frame_rate_hz"})."""
+        """Read the ``camera.json`` at ``path`` ({"width","height","fx","fy","cx","cy" in px, "frame_rate_hz"})."""
         path = Path(path)
         try:
             d = json.loads(path.read_text())
@@ -57,6 +57,7 @@ class PinholeCamera:
             raise ValueError(f"{path}: not a valid camera.json ({exc}); it needs width, height, fx, fy, cx, cy, frame_rate_hz") from None
 
     def to_dict(self) -> dict:
+        """The fields as a dict (px, Hz), as a camera.json holds them."""
         return asdict(self)
 
     def scaled(self, scale: float) -> "PinholeCamera":
@@ -71,6 +72,7 @@ class PinholeCamera:
 
     @property
     def frame_interval_s(self) -> float:
+        """Time between frames (s)."""
         return 1.0 / self.frame_rate_hz
 
     @property
@@ -80,15 +82,17 @@ class PinholeCamera:
                 math.degrees(math.atan((self.height - 1 - self.cy) / self.fy) + math.atan(self.cy / self.fy)))
 
     def normalised_grid(self, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
-        """Normalised coordinates (x, y) of every pixel centre, each of shape (height, width)."""
+        """Normalised coordinates (x, y) of every pixel centre, each of shape (height, width) and ``dtype``."""
         u = (np.arange(self.width, dtype=dtype) - self.cx) / self.fx
         v = (np.arange(self.height, dtype=dtype) - self.cy) / self.fy
         return np.meshgrid(u, v)
 
     def pixel_to_normalised(self, u, v):
+        """Normalised coordinates (x, y) of pixels (u, v) (px, any one shape; the result has that shape)."""
         return (np.asarray(u) - self.cx) / self.fx, (np.asarray(v) - self.cy) / self.fy
 
     def normalised_to_pixel(self, x, y):
+        """Pixels (u, v) (px) of normalised coordinates (x, y) (any one shape; the result has that shape)."""
         return np.asarray(x) * self.fx + self.cx, np.asarray(y) * self.fy + self.cy
 
     def rotation_homography(self, r: np.ndarray) -> np.ndarray:
@@ -101,12 +105,14 @@ class PinholeCamera:
         return k @ np.asarray(r, float) @ np.linalg.inv(k)
 
     def flow_px_to_normalised(self, du_px, dv_px, dt_s: float):
-        """Pixel displacement over ``dt_s`` seconds -> normalised flow (1/s)."""
+        """Pixel displacement (``du_px``, ``dv_px``: px, any one shape) over ``dt_s`` seconds -> normalised
+        flow (u, v) (1/s, that shape)."""
         return np.asarray(du_px) / (self.fx * dt_s), np.asarray(dv_px) / (self.fy * dt_s)
 
 
 def normalised_to_angles(x, y):
-    """Azimuth and elevation (radians) of normalised coordinates: atan(x), atan(y / sqrt(1 + x^2)).
+    """Azimuth and elevation (radians) of normalised coordinates x, y (any one shape; the result has that
+    shape): atan(x), atan(y / sqrt(1 + x^2)).
 
     Elevation is positive downward (y down), as in the camera frame.
     """
@@ -115,13 +121,14 @@ def normalised_to_angles(x, y):
 
 
 def angles_to_normalised(azimuth, elevation):
-    """Inverse of :func:`normalised_to_angles` (radians in, normalised coordinates out)."""
+    """Inverse of :func:`normalised_to_angles`: ``azimuth``, ``elevation`` (radians, any one shape) in,
+    normalised coordinates (x, y) of that shape out."""
     az, el = np.asarray(azimuth), np.asarray(elevation)
     x = np.tan(az)
     return x, np.tan(el) * np.sqrt(1.0 + x * x)
 
 
 def ray_directions(x, y):
-    """Unit ray directions (..., 3) in the camera frame for normalised coordinates."""
+    """Unit ray directions (..., 3) in the camera frame for normalised coordinates x, y (...)."""
     d = np.stack([np.asarray(x), np.asarray(y), np.ones_like(np.asarray(x))], axis=-1)
     return d / np.linalg.norm(d, axis=-1, keepdims=True)

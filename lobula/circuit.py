@@ -35,7 +35,8 @@ class CircuitConfig:
     photoreceptor: 10 ms low-pass and an LMC-like 0.25 s high-pass (the fly's EMD inputs
         L1/L2 are transient; without it the mean luminance leaks into the correlator's
         instantaneous output). emd: τ = 35 ms (optimum 4.5 Hz, blowfly HS cells).
-    dt_s: simulation step, 1 ms (the ephys protocols' resolution). chunk_steps: time
+    population: the LC population (:class:`lobula.lc_config.LCPopulationConfig`).
+    dt_s: simulation step (s), 1 ms (the ephys protocols' resolution). chunk_steps: time
         steps processed per batch (memory and speed only; results do not depend on it).
     compile: fuse the first pooling stage (pairs → subunits, with the gain pool) with
         ``torch.compile`` (inductor; needs a C++ compiler on CPU, Triton on GPU), after a
@@ -55,6 +56,7 @@ class CircuitConfig:
             raise ValueError(f"chunk_steps must be a positive integer, got {self.chunk_steps!r}")
 
     def to_dict(self) -> dict:
+        """Every field as a dict, nested configurations as dicts."""
         return asdict(self)
 
 
@@ -96,6 +98,7 @@ class Circuit:
 
     @property
     def gradient(self) -> bool:
+        """Whether the LC pool normalises by the gradient ratio (normalisation "gradient-ratio")."""
         return self.config.population.normalisation.kind == "gradient-ratio"
 
     def available(self) -> tuple:
@@ -103,14 +106,16 @@ class Circuit:
         return FRONT_END_RECORDS + FIELD_RECORDS + UNIT_RECORDS + self.neurons.records
 
     def to_dict(self) -> dict:
+        """Configuration of the circuit, lattice and population, for the attrs of an output file."""
         return {"circuit": self.config.to_dict(), "lattice": self.lattice.to_dict(),
                 "population": self.population.to_dict()}
 
     # -- state
     def init_state(self, baseline, batch: int, trials: int = 1, dtype=torch.float32,
                    generator: torch.Generator | None = None) -> CircuitState:
-        """Every stage at rest and adapted to a static ``baseline`` luminance (scalar, (n,) or (B, n)),
-        as after a long blank at the stimulus' mean luminance."""
+        """Every stage at rest and adapted to a static ``baseline`` luminance (the stimulus' units; scalar, (n,)
+        or (B, n)), as after a long blank at the stimulus' mean luminance: ``batch`` B conditions, ``trials``
+        K, tensors in ``dtype``; ``generator``: the torch generator of the LC neurons' starting noise."""
         n = self.lattice.n
         x0 = torch.as_tensor(baseline, dtype=dtype, device=self.device)
         x0 = x0.expand(batch, n).clone() if x0.dim() < 2 else x0.clone()

@@ -114,15 +114,18 @@ class CompoundEyeConfig:
 
     @property
     def acceptance_deg(self) -> float:
+        """Δρ in degrees (Δφ when drho_deg is None)."""
         return float(self.dphi_deg if self.drho_deg is None else self.drho_deg)
 
     def to_dict(self) -> dict:
+        """Every field as a dict (the angle limits as lists)."""
         d = asdict(self)
         d["azimuth_deg"], d["elevation_deg"] = list(self.azimuth_deg), list(self.elevation_deg)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "CompoundEyeConfig":
+        """The configuration :meth:`to_dict` wrote as ``d``."""
         d = dict(d)
         for k in ("azimuth_deg", "elevation_deg"):
             if k in d:
@@ -133,14 +136,16 @@ class CompoundEyeConfig:
 # --------------------------------------------------------------------------- geometry
 
 def eye_directions(az, el) -> np.ndarray:
-    """Unit directions (..., 3) in the camera frame for azimuth/elevation (radians, el positive down)."""
+    """Unit directions (..., 3) in the camera frame for azimuth ``az`` and elevation ``el`` (radians, any one
+    shape (...); el positive down)."""
     az, el = np.asarray(az, dtype=float), np.asarray(el, dtype=float)
     ce = np.cos(el)
     return np.stack([ce * np.sin(az), np.sin(el), ce * np.cos(az)], axis=-1)
 
 
 def expected_count(config: CompoundEyeConfig) -> float:
-    """Ommatidia per eye expected from area: the region's solid angle over a hexagon's (√3/2)Δφ²."""
+    """Ommatidia per eye expected from area: the solid angle of the region ``config`` gives over a hexagon's
+    (√3/2)Δφ²."""
     a0, a1 = np.radians(config.azimuth_deg)
     e0, e1 = np.radians(config.elevation_deg)
     solid = (a1 - a0) * (np.sin(e1) - np.sin(e0))
@@ -178,7 +183,8 @@ def hex_points(rings: int) -> np.ndarray:
 
 
 def acceptance_rule(drho_rad: float, rings: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Tangent-plane offsets (m, 2) in radians and weights (m,) sampling a Gaussian of FWHM Δρ.
+    """Tangent-plane offsets (m, 2) in radians and weights (m,) (summing to 1) sampling a Gaussian of FWHM Δρ
+    (``drho_rad``, radians).
 
     A hexagonal grid reaching R = (2 + (rings − 1)/2)·σ (capped at 3σ; σ = Δρ/2.355) with
     Gaussian weights ``exp(−|q|²/2s²)`` whose width s is set by bisection so that the
@@ -205,7 +211,7 @@ def acceptance_rule(drho_rad: float, rings: int = 2) -> tuple[np.ndarray, np.nda
 
 
 def tangent_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Local (east, down) unit vectors at directions d (..., 3): east = ŷ × d normalised."""
+    """Local (east, down) unit vectors, each (..., 3), at directions d (..., 3): east = ŷ × d normalised."""
     east = np.cross(np.array([0.0, 1.0, 0.0]), d)
     norm = np.linalg.norm(east, axis=-1, keepdims=True)
     east = np.where(norm > 1e-9, east / np.where(norm > 1e-9, norm, 1.0), np.array([1.0, 0.0, 0.0]))
@@ -231,6 +237,8 @@ class CompoundEye:
     eye (n,) 0 = right, 1 = left; pairs_a, pairs_b (P,) indices (a pair never crosses
     eyes; within a pair A precedes B in index order); ray_offsets (m, 2) rad and
     ray_weights (m,).
+
+    config: the :class:`CompoundEyeConfig` (None: the default).
     """
 
     def __init__(self, config: CompoundEyeConfig | None = None):
@@ -252,10 +260,12 @@ class CompoundEye:
 
     @property
     def n(self) -> int:
+        """Number of ommatidia (both eyes)."""
         return len(self.directions)
 
     @property
     def n_pairs(self) -> int:
+        """Number of neighbour pairs, P."""
         return len(self.pairs_a)
 
     def _pairs(self) -> tuple[np.ndarray, np.ndarray]:
@@ -308,6 +318,7 @@ class CompoundEye:
                     drho_deg=np.full(self.n, self.config.acceptance_deg))
 
     def summary(self) -> str:
+        """One line: ommatidia per eye, Δφ, Δρ (degrees), pairs and rays per ommatidium."""
         per_eye = np.bincount(self.eye, minlength=2)
         return (f"{self.n} ommatidia (right {per_eye[0]}, left {per_eye[1]}), Δφ = {self.config.dphi_deg}°, "
                 f"Δρ = {self.config.acceptance_deg}°, {self.n_pairs} neighbour pairs, "

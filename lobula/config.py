@@ -23,6 +23,8 @@ class VelocityConfig:
 
     front_end: a name of :data:`lobula.front_ends.FRONT_ENDS` ("dis" | "farneback" | "flo" | "emd"). epipole: "estimate" (from the
     derotated flow) or "principal" (assume the principal point, as the paper does).
+    flow, fields: the flow stage's and the receptive fields' configurations (:class:`lobula.flow.FlowConfig`,
+    :class:`lobula.receptive_field.FieldConfig`).
     derotate: subtract gyro-predicted rotational flow when a gyroscope is present.
     gyro_bias_from_vision: with a gyroscope, estimate its bias from the rotation the
     derotated flow still shows (lobula.imu.vision_gyro_bias) for the attitude that
@@ -31,8 +33,8 @@ class VelocityConfig:
     lobula.imu.HEADING_BIAS_STD_SCALE) fused with the still-camera one
     (lobula.imu.fused_gyro_bias). Off by default: on frontal scenes a pitch/yaw bias is nearly
     confounded with an epipole shift, and on 2 of 7 development scenes one axis's estimate
-    stayed near 0 with a std that claimed otherwise.
-    gyro_scale_prior: prior std of the gyro's scale-factor and axis-misalignment error E (a 3×3
+    stays near 0 with a std that claims otherwise.
+    gyro_scale_prior: prior std (dimensionless) of the gyro's scale-factor and axis-misalignment error E (a 3×3
     matrix, the rate read is (I + E)·ω + b), fitted with the heading and the bias from the flow
     (lobula.epipole.HeadingBiasEstimator) and applied to the fields' attitude
     (lobula.imu.GyroAttitude); 0: not fitted. A residual rotation E·ω grows with the turn
@@ -51,7 +53,7 @@ class VelocityConfig:
     emd: the EMD front end (lattice, photoreceptors, EMD, decoding) when front_end is "emd".
     Its epipole is the principal point (the EMD path has no estimate: a configuration made for it
     with the default "estimate" records "principal", what runs, and asking for "estimate" with it
-    fails in :func:`experiments.velocity.estimate_velocity`). There ``derotate`` stabilises the
+    fails in :func:`lobula.velocity.estimate_velocity`). There ``derotate`` stabilises the
     frames' gaze by the integrated gyro before the lattice (``emd.gaze``: fixations and saccades,
     :func:`lobula.gaze.fixation_reference`) rather than derotating flow, and gives the gyro to the
     accelerometer's attitude as for the flow front ends (the output's ``derotation`` attribute says which).
@@ -89,7 +91,8 @@ class VelocityConfig:
     def paper(cls, front_end: str = "dis", filter: str = "zero-phase") -> "VelocityConfig":
         """The FLIVVER paper's text: 6-frame pairs stamped at their first frame, epipole at the
         principal point, per-pixel v/d averaged in 5° fields, the paper's median readout; each pair's
-        flow in one step (no gyro pre-warp, no chaining through the frames between)."""
+        flow in one step (no gyro pre-warp, no chaining through the frames between). front_end: as
+        the field; filter: the readout's (:meth:`lobula.readout.ReadoutConfig.paper`)."""
         return cls(front_end=front_end, flow=FlowConfig(gap=6, prewarp=False, chain_fraction=0.0),
                    fields=FieldConfig(size_deg=5.0, pooling="pixel-mean", gap_correction=False, material=False),
                    readout=ReadoutConfig.paper(filter), epipole="principal", timestamps="start")
@@ -107,13 +110,16 @@ class VelocityConfig:
         return d
 
     def to_dict(self) -> dict:
+        """Every field, nested configurations as dicts."""
         return asdict(self)
 
     def to_json(self) -> str:
+        """:meth:`to_dict` as one JSON string (keys sorted), as every output carries it."""
         return json.dumps(self.to_dict(), sort_keys=True)
 
     @classmethod
     def from_dict(cls, d: dict) -> "VelocityConfig":
+        """The configuration :meth:`to_dict` wrote as ``d`` (keys it does not know are ignored)."""
         kinds = {f.name: f.type for f in fields(cls)}
         sub = dict(flow=FlowConfig, fields=FieldConfig, readout=ReadoutConfig, emd=EMDFrontEndConfig.from_dict)
         return cls(**{k: (sub[k](**v) if k in sub and k != "emd" else sub[k](v) if k == "emd" else v)
@@ -121,4 +127,5 @@ class VelocityConfig:
 
     @classmethod
     def from_json(cls, text: str) -> "VelocityConfig":
+        """The configuration :meth:`to_json` wrote as ``text``."""
         return cls.from_dict(json.loads(text))

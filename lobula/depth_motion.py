@@ -33,6 +33,9 @@ def flow_noise(flow, camera: PinholeCamera, epipole, window_deg: float = 3.0):
     undefined (at the epipole) or the flow is not finite do not contribute. A floor of
     (σ_image / 2)², σ_image = 1.4826·median|n| over the image, keeps a locally lucky
     patch from claiming perfect flow. Same array kind as ``flow``.
+
+    flow (2, H, W) 1/s: derotated normalised flow (numpy or torch); camera: its (H, W) camera;
+    epipole (2,): normalised.
     """
     f, as_numpy = _check_flow(flow, camera)
     xp = _xp(f)
@@ -74,8 +77,9 @@ def _window_sum(a: np.ndarray, k: int) -> np.ndarray:
 
 
 def precision_weights(sigma, clip: float = 1e3):
-    """Relative precision c = median(σ²)/σ² of each pixel's flow (σ from :func:`flow_noise`),
-    clipped to [1/clip, clip]; the data weights of :func:`depth_tv`. Same array kind."""
+    """Relative precision c = median(σ²)/σ² (dimensionless, (H, W)) of each pixel's flow (``sigma`` (H, W)
+    1/s, from :func:`flow_noise`), clipped to [1/clip, clip]; the data weights of :func:`depth_tv`. Same
+    array kind."""
     as_numpy = not is_tensor(sigma)
     s = _as_array(sigma)
     xp = _xp(s)
@@ -101,6 +105,9 @@ def translational_snr(flow, camera: PinholeCamera, epipole, sigma):
     per second. Its ratio to the pixel's flow noise σ (1/s) is the inverse relative
     precision of the pixel's depth: σ_d/d ≈ 1/SNR. It falls to 0 at the epipole, where
     depth from flow is ill-conditioned. Same array kind as ``flow``.
+
+    flow (2, H, W) 1/s: derotated normalised flow of ``camera``; epipole (2,): normalised;
+    sigma (H, W) 1/s: the flow noise (:func:`flow_noise`).
     """
     f, as_numpy = _check_flow(flow, camera)
     xp = _xp(f)
@@ -130,8 +137,9 @@ def refine_motion(flow, camera: PinholeCamera, epipole, iters: int = 6, n_points
     rad/s against the residuals' scale) and a fresh :class:`lobula.epipole.EpipoleEstimator`
     fit of e (started at, and falling back to, the given epipole) on ``n_points`` pixels.
 
-    flow: (2, H, W) normalised flow (1/s) after the gyro's derotation; epipole: start
-    (ex, ey). Near-frontal scenes confound a rotation with an epipole shift, so the
+    flow: (2, H, W) normalised flow (1/s) of ``camera`` after the gyro's derotation; epipole: start
+    (ex, ey), normalised; iters: alternations from each start.
+    Near-frontal scenes confound a rotation with an epipole shift, so the
     alternation is started twice — at the given epipole (e.g. the gyro-stabilised
     heading) and at this flow's own epipole fit — and the motion whose flow is most
     nearly radial (the smaller median perpendicular residual) is kept.

@@ -89,6 +89,7 @@ class EMDConfig:
         return int(min(256, max(4, math.ceil(16.0 * dt / self.tau_s))))
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
@@ -110,7 +111,7 @@ class EMDCoefficients(NamedTuple):
 
 
 class EMDState(NamedTuple):
-    """Streaming state: low-pass outputs ``lp`` and last input frame ``x``, both (..., n)."""
+    """Streaming state: low-pass outputs ``lp`` and last input frame ``x``, both (..., n) in the input's units."""
 
     lp: Tensor
     x: Tensor
@@ -125,7 +126,7 @@ def _check_dt(dt: float) -> float:
 
 @functools.lru_cache(maxsize=256)
 def emd_coefficients(config: EMDConfig, dt: float) -> EMDCoefficients:
-    """Exact per-frame coefficients of the sub-stepped correlator at frame interval ``dt`` (s).
+    """Exact per-frame coefficients of the sub-stepped correlator of ``config`` at frame interval ``dt`` (s).
 
     Tracks, over the S sub-steps, each low-pass value and interpolated input as a
     linear combination of s = (l, x_prev, x); the mean product lp_j[A]·x_j[B] is then
@@ -167,7 +168,8 @@ _MIN_MEAN_RUN = 8
 
 
 def pair_runs(pairs_a, pairs_b) -> np.ndarray | None:
-    """Runs of pairs (p0, a0, b0, L): pairs p0..p0+L−1 join ommatidia a0+i and b0+i, (K, 4) int.
+    """Runs of pairs (p0, a0, b0, L): pairs p0..p0+L−1 join ommatidia a0+i and b0+i, (K, 4) int, of the
+    pairs ``pairs_a``, ``pairs_b`` ((P,) ommatidium indices).
 
     None when the mean run is shorter than 8 pairs (an irregular lattice: gather instead).
     A regular lattice numbered row by row has one run per row and axis.
@@ -190,9 +192,10 @@ def _runs_of(AB: Tensor) -> np.ndarray | None:
 
 
 def pair_difference(y: Tensor, AB: Tensor, runs: np.ndarray | None = None, out: Tensor | None = None) -> Tensor:
-    """``y[B] − y[A]`` along dim 0 for every pair: y (n, ...) → (P, ...), ommatidium-major.
+    """``y[B] − y[A]`` along dim 0 for every pair: y (n, ...) → (P, ...), ommatidium-major, in y's units.
 
-    runs: :func:`pair_runs` of the pairs (None: gather). Slices, not a gather, where the
+    AB: the pair indices A then B concatenated, (2P,) long; out: a (P, ...) buffer to write into
+    (None: a new one). runs: :func:`pair_runs` of the pairs (None: gather). Slices, not a gather, where the
     pairs run along the lattice's rows.
     """
     P = AB.shape[0] // 2
@@ -212,7 +215,7 @@ def _as_signal(x) -> Tensor:
 
 
 def emd_init(x0) -> EMDState:
-    """State at rest for a constant input x0 (..., n): low-pass settled on x0."""
+    """State at rest for a constant input x0 (..., n) (any units): low-pass settled on x0."""
     x0 = _as_signal(x0)
     return EMDState(x0.clone(), x0.clone())
 
@@ -249,7 +252,7 @@ def _correlate(l0: Tensor, xp: Tensor, xc: Tensor, AB: Tensor, c: EMDCoefficient
 def emd_run(config: EMDConfig, dt: float, x, pairs_a, pairs_b, state: EMDState | None = None,
             max_chunk: int = 4_000_000, pair_index: Tensor | None = None,
             runs: np.ndarray | None | str = "auto", out: Tensor | None = None) -> tuple[Tensor, EMDState]:
-    """Correlator outputs for a whole sequence.
+    """Correlator outputs for a whole sequence, the correlator of ``config``.
 
     x: (..., T, n) photoreceptor signals (any units u) sampled every ``dt`` seconds;
     pairs_a, pairs_b: (P,) indices into n. Returns (R (..., T, P) in u², state after
@@ -317,7 +320,8 @@ def emd_run(config: EMDConfig, dt: float, x, pairs_a, pairs_b, state: EMDState |
 
 def emd_step(config: EMDConfig, dt: float, x, pairs_a, pairs_b, state: EMDState | None = None,
              pair_index: Tensor | None = None, runs: np.ndarray | None | str = "auto") -> tuple[Tensor, EMDState]:
-    """One frame x (..., n) → (R (..., P), new state); the streaming form of :func:`emd_run`."""
+    """One frame x (..., n) → (R (..., P), new state); the streaming form of :func:`emd_run`, whose
+    parameters (``config``, ``dt`` s, ``pairs_a``, ``pairs_b``, ``pair_index``, ``runs``) and units it takes."""
     x = _as_signal(x)
     R, new = emd_run(config, dt, x.unsqueeze(-2), pairs_a, pairs_b, state, pair_index=pair_index, runs=runs)
     return R.squeeze(-2), new
@@ -327,7 +331,8 @@ def emd_sine_response(tau_s: float, temporal_freq_hz, phase_diff_rad, amplitude_
     """Continuous-time steady-state mean of R for sine inputs (the textbook formula).
 
     ``α_A·α_B·sin(Δϕ)·ωτ/(1+(ωτ)²)``, ω = 2π·TF; Δϕ > 0 when B lags A (motion A → B).
-    Arrays broadcast; amplitudes in the input's units, result in their square.
+    tau_s: τ (s); temporal_freq_hz: TF (Hz); phase_diff_rad: Δϕ (rad); amplitude_a, amplitude_b:
+    α_A, α_B (None: α_A). Arrays broadcast; amplitudes in the input's units, result in their square.
     """
     amplitude_b = amplitude_a if amplitude_b is None else amplitude_b
     wt = 2.0 * np.pi * np.asarray(temporal_freq_hz, dtype=float) * tau_s
@@ -341,7 +346,9 @@ def emd_sine_response_discrete(config: EMDConfig, dt: float, temporal_freq_hz, p
     Inputs ``x_A[k] = α_A·cos(ω k dt + φ)``, ``x_B[k] = α_B·cos(ω k dt + φ − Δϕ)``
     (plus any constant, which cancels). Exact for the time average over whole periods
     when 2·TF·dt is not an integer (otherwise the product's 2ω term aliases onto the
-    mean and the result depends on the phase φ). Arrays broadcast.
+    mean and the result depends on the phase φ). Arrays broadcast. config: the correlator; dt:
+    frame interval (s); temporal_freq_hz: TF = ω/2π (Hz); phase_diff_rad: Δϕ (rad); amplitude_a,
+    amplitude_b: α_A, α_B in the input's units (None: α_A); the result is in their product's units.
     """
     dt = _check_dt(dt)
     c = emd_coefficients(config, dt)
@@ -371,12 +378,14 @@ class EMDArray:
 
     @classmethod
     def from_lattice(cls, lattice, config: EMDConfig | None = None, dt: float | None = None) -> "EMDArray":
-        """All neighbour pairs of a :class:`lobula.lattice.Lattice`; dt defaults to its camera's frame interval."""
+        """All neighbour pairs of a :class:`lobula.lattice.Lattice`, correlators of ``config``; dt (s) defaults
+        to its camera's frame interval."""
         return cls(lattice.pairs_a, lattice.pairs_b, config,
                    lattice.camera.frame_interval_s if dt is None else dt)
 
     @property
     def coefficients(self) -> EMDCoefficients:
+        """The per-frame coefficients at this array's dt (:func:`emd_coefficients`)."""
         return emd_coefficients(self.config, self.dt)
 
     def _pairs(self, device, n: int) -> tuple[Tensor, np.ndarray | None]:
@@ -387,17 +396,18 @@ class EMDArray:
         return self._pairs_cache[key]
 
     def reset(self) -> None:
+        """Forget the stored state."""
         self.state = None
 
     def step(self, x) -> Tensor:
-        """One frame (..., n) → (..., P), continuing the stored state."""
+        """One frame x (..., n) (units u) → R (..., P) (u²), continuing the stored state."""
         x = _as_signal(x)
         AB, runs = self._pairs(x.device, x.shape[-1])
         r, self.state = emd_step(self.config, self.dt, x, None, None, self.state, pair_index=AB, runs=runs)
         return r
 
     def run(self, x) -> Tensor:
-        """A sequence (..., T, n) → (..., T, P), continuing the stored state."""
+        """A sequence x (..., T, n) (units u) → R (..., T, P) (u²), continuing the stored state."""
         x = _as_signal(x)
         AB, runs = self._pairs(x.device, x.shape[-1])
         r, self.state = emd_run(self.config, self.dt, x, None, None, self.state, pair_index=AB, runs=runs)

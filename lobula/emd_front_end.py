@@ -126,10 +126,12 @@ class EMDFrontEndConfig:
             raise ValueError(f"unknown EMD decoding {self.decoding!r}; available: 'gradient-ratio'")
 
     def to_dict(self) -> dict:
+        """Every field as a dict, nested configurations as dicts."""
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "EMDFrontEndConfig":
+        """The configuration :meth:`to_dict` wrote as ``d``."""
         d = dict(d)
         # A stored configuration without these fields describes a front end without them: no
         # surround (the mean removed in time) and the camera's own image.
@@ -141,7 +143,8 @@ class EMDFrontEndConfig:
 
 
 def field_membership(lattice: Lattice, fields: ReceptiveFields) -> np.ndarray:
-    """(F, P) bool: pair p belongs to field f when its midpoint's azimuth and elevation lie in the field's box."""
+    """(F, P) bool: pair p of ``lattice`` belongs to field f of ``fields`` when its midpoint's azimuth and
+    elevation lie in the field's box."""
     mid = lattice.pair_midpoint
     az, el = (np.degrees(a) for a in normalised_to_angles(mid[:, 0], mid[:, 1]))
     half = fields.size_deg / 2
@@ -157,6 +160,8 @@ def pair_pooling_weights(lattice: Lattice, fields: ReceptiveFields, epipole=(0.0
     field's box. m_j = ⟨p_j − e, u_j⟩ is the matched filter (normalised units),
     c_j = 2τ/s_j with s_j the pair's separation in normalised image units, so
     c_j·m_j = 2τ·t_j with t_j the expansion template of :func:`lobula.lc_geometry.expansion_templates`.
+    lattice: its pairs; fields: the fields; epipole (2,): normalised; tau_s: the EMD's τ (s). The
+    numerator's weights are in s, the denominator's in s².
     """
     inside = field_membership(lattice, fields)
     t, _ = expansion_templates(lattice, epipole)
@@ -174,7 +179,7 @@ def epipole_pooling_weights(lattice: Lattice, fields: ReceptiveFields,
     The expansion template is linear in the epipole, t_p(e) = α_p − e·β_p with α_p = ⟨m_p, Δp⟩/|Δp|²
     and β_p = Δp/|Δp|², so Σ c·R·t is three sums (α, β_x, β_y) and Σ c²·G·t² six (αα, αβ_x, αβ_y,
     β_xβ_x, β_xβ_y, β_yβ_y): an epipole that moves every frame costs no new weights.
-    Columns are grouped by term, F fields each.
+    Columns are grouped by term, F fields each. lattice, fields, tau_s (s): as for :func:`pair_pooling_weights`.
     """
     inside = field_membership(lattice, fields)                                 # (F, P)
     step = lattice.normalised[lattice.pairs_b] - lattice.normalised[lattice.pairs_a]
@@ -190,8 +195,8 @@ def epipole_pooling_weights(lattice: Lattice, fields: ReceptiveFields,
 
 
 def pooled_at_epipole(num_terms: np.ndarray, den_terms: np.ndarray, epipole: np.ndarray):
-    """Numerator and denominator (T, F) at per-frame epipoles (T, 2) from the sums (T, 3F), (T, 6F)
-    of :func:`epipole_pooling_weights`' weights."""
+    """Numerator and denominator (T, F) at per-frame epipoles ``epipole`` (T, 2) (normalised) from the sums
+    ``num_terms`` (T, 3F) and ``den_terms`` (T, 6F) of :func:`epipole_pooling_weights`' weights."""
     F = num_terms.shape[-1] // 3
     n = [num_terms[..., i * F:(i + 1) * F] for i in range(3)]
     d = [den_terms[..., i * F:(i + 1) * F] for i in range(6)]
@@ -209,6 +214,9 @@ class EMDFrontEnd:
     stabilises the gaze first (``EMDFrontEndConfig.gaze``; ``saccades`` counts the jumps).
     ``timings`` accumulates seconds per stage (sampling, which includes the gaze's warp,
     photoreceptor, emd, fields).
+
+    camera: the frames' camera; fields: the receptive fields; config: :class:`EMDFrontEndConfig`
+    (None: the default); epipole (2,): the expansion's centre, normalised; device: where torch runs.
     """
 
     def __init__(self, camera: PinholeCamera, fields: ReceptiveFields, config: EMDFrontEndConfig | None = None,
@@ -328,8 +336,9 @@ class EMDFrontEnd:
 
     def run(self, frames: Iterable[tuple[int, float, np.ndarray]],
             orientation: np.ndarray | None = None) -> Iterator[tuple[float, np.ndarray, np.ndarray]]:
-        """Stream frames; ``orientation`` (N, 3, 3), the camera's attitude at every footage frame index
-        (camera → a fixed frame, from the integrated gyro), stabilises the gaze (``config.gaze``)."""
+        """Stream frames (index, time s, grey image (H, W) in grey levels 0..255), yielding (time s, r̄ (F,)
+        1/s, r²̄ (F,) 1/s²) per frame; ``orientation`` (N, 3, 3), the camera's attitude at every footage
+        frame index (camera → a fixed frame, from the integrated gyro), stabilises the gaze (``config.gaze``)."""
         g = None if orientation is None else self.gaze(orientation)
         if g is not None and self._num_e is None:
             num, den = epipole_pooling_weights(self.lattice, self._fields, self.config.emd.tau_s)
@@ -358,7 +367,7 @@ class EMDFrontEnd:
 
 
 def fit_calibration(r_emd: np.ndarray, r_true: np.ndarray, per_field: bool = True):
-    """Least-squares gains g with r_true ≈ g·r_emd; r_emd, r_true (n, F).
+    """Least-squares gains g (dimensionless) with r_true ≈ g·r_emd; r_emd, r_true (n, F) 1/s.
 
     per_field: one gain per field (F,) (fields near the epipole see slow motion, the
     periphery fast motion, so their biases differ), else one number. Fit on one scene

@@ -26,9 +26,9 @@ def _is_tensor(a) -> bool:
 
 
 def rotational_flow(omega: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Flow (1/s), (2, ...), of a pinhole camera rotating at ω = (ωx, ωy, ωz) rad/s (camera frame).
+    """Flow (1/s), (2, ...), of a pinhole camera rotating at ``omega`` = (ωx, ωy, ωz) (3,) rad/s (camera frame).
 
-    x, y: normalised coordinates (numpy arrays or torch tensors; the result follows).
+    x, y: normalised coordinates, any one shape (numpy arrays or torch tensors; the result follows).
     Derived from Ṗ = −ω × P for static points.
     """
     wx, wy, wz = (float(w) for w in omega)
@@ -43,6 +43,8 @@ def derotate(flow: np.ndarray, omega: np.ndarray, x: np.ndarray, y: np.ndarray,
              squares: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Subtract the gyro-predicted rotational flow from flow (2, H, W), both in 1/s.
 
+    omega (3,) rad/s: the camera's rotation rate (camera frame); x, y (H, W): the pixels' normalised
+    coordinates. Returns the derotated flow (2, H, W) 1/s.
     Runs on every frame pair, so for float32 flow and grid it is done into one output with
     few temporaries; ``squares`` = (1 + x², 1 + y²) lets a caller that keeps its grid (the
     field pooling) compute those ω-free terms once. The operations and their order are
@@ -78,7 +80,8 @@ def derotate(flow: np.ndarray, omega: np.ndarray, x: np.ndarray, y: np.ndarray,
 
 def turn(r: np.ndarray, x, y):
     """Normalised coordinates of the rays (x, y, 1) after the rotation r (3, 3): the pixel
-    where a camera turned by r sees the same directions."""
+    where a camera turned by r sees the same directions. x, y: normalised coordinates, any one
+    shape; returns (x', y') of that shape."""
     qx = r[0, 0] * x + r[0, 1] * y + r[0, 2]
     qy = r[1, 0] * x + r[1, 1] * y + r[1, 2]
     qz = r[2, 0] * x + r[2, 1] * y + r[2, 2]
@@ -103,7 +106,11 @@ def derotate_finite(x, y, flow, dt: float, r_m0: np.ndarray, r_m1: np.ndarray):
 
 
 def mean_angular_velocity(gyro_t: np.ndarray, gyro: np.ndarray, t0: float, t1: float) -> np.ndarray:
-    """Mean gyro reading (rad/s, (3,)) over [t0, t1]: the rotation a frame pair saw, divided by its gap."""
+    """Mean gyro reading (rad/s, (3,)) over [t0, t1] s: the rotation a frame pair saw, divided by its gap.
+
+    gyro_t (n,) s and gyro (n, 3) rad/s: the gyro's samples; with none inside the span, the rate
+    interpolated at its middle.
+    """
     m = (gyro_t >= t0) & (gyro_t <= t1)
     if not np.any(m):
         return np.array([np.interp(0.5 * (t0 + t1), gyro_t, gyro[:, k]) for k in range(3)])
@@ -117,6 +124,11 @@ class EpipoleEstimator:
     about the current estimate, plus a weak prior at ``prior`` (default the principal
     point) so frames without motion leave the estimate there. Pixels are subsampled
     with ``stride`` because the estimate is a 2-parameter fit to thousands of pixels.
+
+    x, y (H, W): the pixels' normalised coordinates; prior (2,): normalised; prior_weight
+    ((1/s)², the units of one pixel's equation): the prior's weight in the normal equations;
+    stride: pixels. ``e`` (2,) is the running epipole (normalised, in the reference frame when
+    updates carry an attitude) and ``n_frames`` the frames that counted.
     """
 
     def __init__(self, x: np.ndarray, y: np.ndarray, prior=(0.0, 0.0), prior_weight: float = 1e-6,
@@ -131,7 +143,7 @@ class EpipoleEstimator:
         self.n_frames = 0
 
     def update(self, flow: np.ndarray, points=None, attitude: np.ndarray | None = None) -> np.ndarray:
-        """Add one derotated flow field (2, H, W) (1/s) and return the epipole (2,).
+        """Add one derotated flow field (2, H, W) (1/s) and return the epipole (2,), normalised.
 
         points: (X, Y, flow_at_points (2, N)) at the strided pixels instead, e.g. from
         :func:`derotate_finite`, whose points sit where the pair's middle orientation sees them.
@@ -243,11 +255,12 @@ def _well_posed(ata: np.ndarray) -> bool:
 
 
 def residual_rotation(x, y, flow, epipole, iters: int = 3):
-    """The rotation rate δω (3,) rad/s still in derotated flow, given the heading, and its variance (3,).
+    """The rotation rate δω (3,) rad/s still in derotated flow, given the heading, and its variance (3,) (rad/s)².
 
     x, y: normalised coordinates of points (any shape); flow (2, ...) 1/s: their flow after
     the gyro's derotation (e.g. :func:`derotate_finite`'s, in the pair's middle orientation);
-    epipole (2,): the heading seen in that orientation. What a rigid scene's translation
+    epipole (2,) normalised: the heading seen in that orientation; iters: IRLS iterations.
+    What a rigid scene's translation
     leaves is radial from the epipole, so the flow's component across the ray from it,
     (ṗ − B(p)·δω) × (p − e), must vanish: with e given that is *linear* in δω (B the
     rotational flow per unit rate, :func:`rotational_flow`) and needs no depth. Solved by
@@ -311,8 +324,8 @@ class HeadingBiasEstimator(EpipoleEstimator):
     Given the heading that is linear (:func:`residual_rotation`), but the heading is itself
     fitted to the same flow, and a frontal scene confounds the two: at speed r = v/d a
     residual rotation looks like an epipole shift of δω/r — degrees at walking speed, with
-    a BMI055's ±0.25 °/s. Fitted one after the other, each absorbs the other's error (the
-    bias settled at the wrong sign on a development scene). Fitted jointly over frames they
+    a BMI055's ±0.25 °/s. Fitted one after the other, each absorbs the other's error (on a
+    development scene the bias settles at the wrong sign). Fitted jointly over frames they
     separate, because the heading stays put in a fixed reference while r changes: a slow
     frame's flow is mostly the residual rotation (it pins b), a fast one's mostly radial (it
     pins e). Each point gives, linearised about the running estimate e₀,
@@ -325,6 +338,11 @@ class HeadingBiasEstimator(EpipoleEstimator):
     ``bias0_std`` (rad/s, e.g. :func:`lobula.imu.gyro_bias`'s still-camera estimate).
     ``update`` needs ``attitude`` and ``applied_bias`` (the b̂ the derotation removed);
     ``bias`` is the current estimate (3,) rad/s and ``bias_std`` its formal std.
+
+    x, y (H, W), prior (2,) and stride as for :class:`EpipoleEstimator`; bias0 (3,) rad/s and
+    bias0_std (rad/s, scalar or (3,)): the bias prior; heading_std (normalised): the heading
+    prior's std about ``prior``; scale_std (dimensionless): the prior std of each entry of the
+    gyro's scale-factor and misalignment error E (3, 3), which is then fitted too (None: not fitted).
     """
 
     def __init__(self, x, y, bias0, bias0_std, prior=(0.0, 0.0), stride: int = 4, heading_std: float = 1.0,
@@ -344,10 +362,12 @@ class HeadingBiasEstimator(EpipoleEstimator):
 
     @property
     def bias(self) -> np.ndarray:
+        """(3,) rad/s: the gyro bias estimate."""
         return self.theta[2:5].copy()
 
     def set_bias_prior(self, bias0, bias0_std) -> None:
-        """Replace the bias prior (e.g. by the still-camera estimate as it accrues online)."""
+        """Replace the bias prior (e.g. by the still-camera estimate as it accrues online): bias0 (3,)
+        rad/s, bias0_std rad/s (scalar or (3,))."""
         info, mean = self._bias_prior
         new_info = 1.0 / np.broadcast_to(np.asarray(bias0_std, float), (3,)) ** 2
         new_mean = np.broadcast_to(np.asarray(bias0, float), (3,)).copy()
@@ -365,13 +385,18 @@ class HeadingBiasEstimator(EpipoleEstimator):
 
     @property
     def bias_std(self) -> np.ndarray:
+        """(3,) rad/s: the bias estimate's formal std."""
         return np.sqrt(np.diag(np.linalg.inv(self.ata))[2:5])
 
     def update(self, flow, points=None, attitude=None, applied_bias=None, rate=None, iters: int = 3) -> np.ndarray:
         """Add one pair (points = (X, Y, flow (2, N)) in its middle orientation, derotated with
         ``applied_bias`` (3,) rad/s removed from the gyro's mean reading ``rate`` (3,) over the pair
         — bias plus E·rate where E is fitted, :meth:`lobula.imu.GyroAttitude.applied_correction`)
-        and return the epipole seen from the camera."""
+        and return the epipole (2,), normalised, seen from the camera.
+
+        X, Y (N,) normalised, flow 1/s; ``flow`` itself is not read. attitude (3, 3): the pair's
+        middle orientation (camera → the reference); iters: IRLS iterations per fit (at most 2).
+        """
         if points is None or attitude is None or applied_bias is None or (self.n_scale and rate is None):
             raise ValueError("HeadingBiasEstimator.update needs points, attitude, applied_bias (and rate with E)")
         x, y = np.asarray(points[0], float).ravel(), np.asarray(points[1], float).ravel()
@@ -382,6 +407,42 @@ class HeadingBiasEstimator(EpipoleEstimator):
             return self._seen_epipole(attitude)
         R = np.asarray(attitude, float)
         b_app = np.asarray(applied_bias, float)
+        a, rhs, c, e0 = self._pair_equations(R, b_app, rate, x, y, u, v)
+        xr, yr = self._seen(R, x, y)
+        iters = min(iters, 2)
+        # 1. The rotation alone, the heading held at the running estimate. Every frame says this
+        #    much; a slow or still camera's flow says little else (its flow is mostly δω's).
+        rot = slice(2, None)
+        e_cur = self.theta[:2].copy()
+        theta_b, ata_b, atb_b = self._rotation_fit(a, rhs, e_cur, iters)
+        # 2. Is what is left radial about a heading of its own (translation), beyond the flow's noise?
+        joint = None
+        own = self._radial(x, y, u, v, c, theta_b, b_app, rate, e0)
+        if own is not None:
+            theta = np.concatenate([e_cur, theta_b])
+            if np.hypot(*(own - e0)) > HEADING_TOL:
+                # This frame's own heading lies far from the running one (a heading 30° off the axis
+                # against the principal point, the prior): about that start the residuals hold the
+                # model's error, and the noise correction below, taken from them, overcorrects until
+                # the system is indefinite, which would refuse every such frame and hold the heading
+                # at the prior for the whole record. Plain steps from the frame's own heading first,
+                # as the parent's warm-up does.
+                theta = self._warm_start(a, rhs, theta, own, R)
+            joint = self._joint_fit(a, rhs, theta, xr, yr, iters)
+        if joint is not None:
+            self.ata = self.ata + joint[0]
+            self.atb = self.atb + joint[1]
+            self.n_frames += 1
+        else:  # the rotation's equations only, given the heading
+            self.ata[rot, rot] += ata_b
+            self.atb[rot] += atb_b
+        self.theta = np.linalg.solve(self.ata, self.atb)
+        self.e = self.theta[:2].copy()
+        return self._seen_epipole(R)
+
+    def _pair_equations(self, R, b_app, rate, x, y, u, v):
+        """(A (N, 5 [+ 9]), b (N,), C (N, 3), e₀ (2,)): the pair's linear equations in (e_ref, b [, E])
+        about the running heading e₀ as seen in orientation ``R`` (3, 3)."""
         # Lines along the flow, turned into the reference.
         l_ref = np.stack([-v, u, v * x - u * y], -1) @ R.T
         h = R.T @ np.array([self.theta[0], self.theta[1], 1.0])
@@ -395,12 +456,12 @@ class HeadingBiasEstimator(EpipoleEstimator):
             cols.append(s0 * (c[:, :, None] * g[None, None, :]).reshape(-1, 9))
         a = np.concatenate(cols, axis=1)
         rhs = l_ref[:, 2] + s0 * (c @ b_app)
-        xr, yr = self._seen(R, x, y)
-        iters = min(iters, 2)
-        # 1. The rotation alone, the heading held at the running estimate. Every frame says this
-        #    much; a slow or still camera's flow says little else (its flow is mostly δω's).
+        return a, rhs, c, e0
+
+    def _rotation_fit(self, a, rhs, e_cur, iters):
+        """(θ_b, AᵀWA, AᵀWb) of the rotation block alone, the heading held at ``e_cur`` (2,); this
+        frame's robust residual scale appended to the record's."""
         rot = slice(2, None)
-        e_cur = self.theta[:2].copy()
         ab, rhs_b = a[:, rot], rhs - a[:, :2] @ e_cur
         prior_b = self.atb[rot] - self.ata[rot, :2] @ e_cur
         theta_b = self.theta[rot].copy()
@@ -410,57 +471,45 @@ class HeadingBiasEstimator(EpipoleEstimator):
             ata_b, atb_b = aw.T @ ab, aw.T @ rhs_b
             theta_b = np.linalg.solve(self.ata[rot, rot] + ata_b, prior_b + atb_b)
         self._scales.append(1.4826 * float(np.median(np.abs(ab @ theta_b - rhs_b))) + 1e-12)
-        # 2. Is what is left radial about a heading of its own (translation), beyond the flow's noise?
-        joint = None
-        own = self._radial(x, y, u, v, c, theta_b, b_app, rate, e0)
-        if own is not None:
-            theta = np.concatenate([e_cur, theta_b])
-            if np.hypot(*(own - e0)) > HEADING_TOL:
-                # This frame's own heading lies far from the running one (a heading 30° off the axis
-                # against the principal point, the prior): about that start the residuals hold the
-                # model's error, and the noise correction below, taken from them, overcorrects until
-                # the system is indefinite, which would refuse every such frame and hold the heading
-                # at the prior for the whole record. Plain steps from the frame's own heading first,
-                # as the parent's warm-up does.
-                h_ref = R @ np.array([own[0], own[1], 1.0])
-                theta[:2] = h_ref[:2] / h_ref[2]
-                for _ in range(WARMUP_ITERS):
-                    w = self._weights(a @ theta - rhs)
-                    aw = a * w[:, None]
-                    step = np.linalg.solve(self.ata + aw.T @ a, self.atb + aw.T @ rhs)
-                    if not np.all(np.isfinite(step)):
-                        break  # keep the last finite start; the corrected steps below judge it
-                    moved, theta = np.hypot(*(step[:2] - theta[:2])), step
-                    if moved < WARMUP_STEP:
-                        break
-            for _ in range(iters):
-                res = a @ theta - rhs
-                w = self._weights(res)
-                aw = a * w[:, None]
-                ata, atb = aw.T @ a, aw.T @ rhs
-                # Flow noise in the heading's coefficients biases it toward the image centre (parent).
-                r2 = (xr - theta[0]) ** 2 + (yr - theta[1]) ** 2
-                s2 = np.sum(w * res ** 2) / max(np.sum(w * r2), 1e-20)
-                ata[:2, :2] -= s2 * np.sum(w) * np.eye(2)
-                atb[:2] -= s2 * np.array([np.sum(w * xr), np.sum(w * yr)])
-                if np.any(np.linalg.eigvalsh(ata[:2, :2]) <= 0):
-                    break
-                tot = self.ata + ata
-                theta = np.linalg.solve(tot, self.atb + atb)
-                if not (np.all(np.isfinite(theta)) and np.hypot(*theta[:2]) < MAX_HEADING):
-                    break
-            else:
-                joint = ata, atb
-        if joint is not None:
-            self.ata = self.ata + joint[0]
-            self.atb = self.atb + joint[1]
-            self.n_frames += 1
-        else:  # the rotation's equations only, given the heading
-            self.ata[rot, rot] += ata_b
-            self.atb[rot] += atb_b
-        self.theta = np.linalg.solve(self.ata, self.atb)
-        self.e = self.theta[:2].copy()
-        return self._seen_epipole(R)
+        return theta_b, ata_b, atb_b
+
+    def _warm_start(self, a, rhs, theta, own, R):
+        """θ after plain reweighted steps from this frame's own heading ``own`` (2,), seen in ``R``."""
+        h_ref = R @ np.array([own[0], own[1], 1.0])
+        theta[:2] = h_ref[:2] / h_ref[2]
+        for _ in range(WARMUP_ITERS):
+            w = self._weights(a @ theta - rhs)
+            aw = a * w[:, None]
+            step = np.linalg.solve(self.ata + aw.T @ a, self.atb + aw.T @ rhs)
+            if not np.all(np.isfinite(step)):
+                break  # keep the last finite start; the corrected steps below judge it
+            moved, theta = np.hypot(*(step[:2] - theta[:2])), step
+            if moved < WARMUP_STEP:
+                break
+        return theta
+
+    def _joint_fit(self, a, rhs, theta, xr, yr, iters):
+        """(AᵀWA, AᵀWb) of the joint fit in (e_ref, b [, E]) from ``theta``, the heading block's
+        flow-noise bias removed; None where the system turns indefinite or the heading runs off."""
+        for _ in range(iters):
+            res = a @ theta - rhs
+            w = self._weights(res)
+            aw = a * w[:, None]
+            ata, atb = aw.T @ a, aw.T @ rhs
+            # Flow noise in the heading's coefficients biases it toward the image centre (parent).
+            r2 = (xr - theta[0]) ** 2 + (yr - theta[1]) ** 2
+            s2 = np.sum(w * res ** 2) / max(np.sum(w * r2), 1e-20)
+            ata[:2, :2] -= s2 * np.sum(w) * np.eye(2)
+            atb[:2] -= s2 * np.array([np.sum(w * xr), np.sum(w * yr)])
+            if np.any(np.linalg.eigvalsh(ata[:2, :2]) <= 0):
+                break
+            tot = self.ata + ata
+            theta = np.linalg.solve(tot, self.atb + atb)
+            if not (np.all(np.isfinite(theta)) and np.hypot(*theta[:2]) < MAX_HEADING):
+                break
+        else:
+            return ata, atb
+        return None
 
     def _weights(self, res):
         """Cauchy weights of residuals (about this frame's robust scale), divided by the noise

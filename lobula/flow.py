@@ -47,7 +47,7 @@ class FlowConfig:
     takes 4.5 against 1.3 ms a pair (one thread).
     chain_fraction: a pair whose image moves far is computed through the frames between its two
     images and the steps composed (:func:`chained_flow`): when the previous pair's displacement
-    (:func:`far_displacement`, its 98th percentile) exceeded this fraction of the image width, in as
+    (:func:`far_displacement`, its 98th percentile) exceeds this fraction of the image width, in as
     many steps as it holds of that (up to ``gap``); and the first pair and every ``chain_check``-th
     are computed in two steps as a check, kept if they move that far, because a failed flow hides
     its own failure. Why: DIS cannot follow a fast approach. On the development fast scene
@@ -78,11 +78,13 @@ class FlowConfig:
                              f"{self.chain_fraction}, {self.chain_check}")
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
 def make_flow_fn(config: FlowConfig):
-    """A function (frame0, frame1) -> pixel displacement (2, H, W) float32 for uint8/float grey frames."""
+    """A function (frame0, frame1) -> pixel displacement (2, H, W) float32 px for uint8/float grey frames
+    (H, W), the method, preset and threads of ``config``."""
     if config.threads:
         cv2.setNumThreads(config.threads)
     if config.method == "dis":
@@ -106,8 +108,9 @@ def make_flow_fn(config: FlowConfig):
 
 
 def dis_finest_scale(preset_finest: int, width_px: int, grid_px: int) -> int:
-    """DIS's finest pyramid level (0: full resolution) for an image width_px wide: the preset's,
-    or finer while the level would be narrower than grid_px pixels (grid_px ≤ 0: the preset's)."""
+    """DIS's finest pyramid level (0: full resolution) for an image width_px wide: the preset's
+    (``preset_finest``), or finer while the level would be narrower than grid_px pixels (grid_px ≤ 0:
+    the preset's)."""
     s = int(preset_finest)
     while grid_px > 0 and s > 0 and (width_px >> s) < grid_px:
         s -= 1
@@ -119,7 +122,8 @@ def _u8(img: np.ndarray) -> np.ndarray:
 
 
 def pixel_to_angular(flow_px: np.ndarray, camera: PinholeCamera, dt_s: float) -> np.ndarray:
-    """Pixel displacement over dt_s seconds (2, H, W) -> normalised flow in 1/s (2, H, W) float32.
+    """Pixel displacement ``flow_px`` over dt_s seconds (2, H, W) px -> normalised flow in 1/s (2, H, W)
+    float32, through ``camera``'s focal lengths.
 
     Divides into one float32 output (as :meth:`PinholeCamera.flow_px_to_normalised` does, the
     same operation and rounding) instead of stacking two temporaries and copying them again.
@@ -155,8 +159,10 @@ def rotation_warp(camera: PinholeCamera, r01: np.ndarray):
 
 
 def prewarp_flow(fn, a: np.ndarray, b: np.ndarray, camera: PinholeCamera, r01: np.ndarray) -> np.ndarray:
-    """Pixel displacement (2, H, W) from image a to image b, with b first turned into a's orientation.
+    """Pixel displacement (2, H, W) px from image a to image b, with b first turned into a's orientation.
 
+    fn: the flow function, (a, b) -> (2, H, W) px (:func:`make_flow_fn`); a, b (H, W): grey images of
+    ``camera``; r01 (3, 3): as for :func:`rotation_warp`.
     Under a fast turn (0.8 rad/s over a 0.2 s pair moves the image ~30 px at 320×240) a
     coarse-to-fine flow such as DIS loses the small translational flow in the rotation's
     large one. The rotation r01 (see :func:`rotation_warp`) is known from the gyro, so b is
@@ -190,7 +196,7 @@ def compose_homography(flow_px: np.ndarray, hom: np.ndarray) -> np.ndarray:
     the flow functions' own.
 
     Each step is one OpenCV pass (the transform, the in-image test and a masked subtraction
-    into a NaN-filled output): boolean indexing of the interleaved points cost 3× the rest.
+    into a NaN-filled output): boolean indexing of the interleaved points costs 3× the rest.
     """
     h, w = flow_px.shape[1:]
     grid = _pixel_grid(h, w)
@@ -249,7 +255,8 @@ def chained_flow(flow_fn, frames: list, steps: int) -> np.ndarray:
 
 
 def far_displacement(px: np.ndarray, warp=None) -> float:
-    """98th percentile of the displacement magnitude (px) over finite pixels, on every 4th row and column
+    """98th percentile of the displacement magnitude (px) of ``px`` (2, H, W) px over finite pixels, on every
+    4th row and column
     (not a median or a 90th: where sky or a far backdrop fills most of the image, the near floor that
     moves far is a few per cent of it; chaining on the 90th instead, eight unseen scenes: zero-phase
     0.0098 against 0.0092 m/s, causal 0.0315 against 0.0307; development seeds 0.0060 / 0.0135
@@ -268,7 +275,8 @@ def far_displacement(px: np.ndarray, warp=None) -> float:
 
 @dataclass
 class FlowSample:
-    """One staggered flow: pair (i0, i0 + gap), times t0 < t1, mid time, normalised flow (2, H, W) 1/s."""
+    """One staggered flow: pair (index, index + gap) of frame indices, times t0 < t1 (s), normalised flow
+    (2, H, W) 1/s."""
 
     index: int
     t0: float
@@ -277,10 +285,12 @@ class FlowSample:
 
     @property
     def t_mid(self) -> float:
+        """The pair's middle time (s)."""
         return 0.5 * (self.t0 + self.t1)
 
     @property
     def dt(self) -> float:
+        """The pair's gap (s)."""
         return self.t1 - self.t0
 
 
@@ -312,14 +322,15 @@ class StaggeredFlow:
         return self._fn(a, b)
 
     def run(self, frames: Iterable[tuple[int, float, np.ndarray]]) -> Iterator[FlowSample]:
-        """FlowSample of every pair, from frames (index, time s, image) in order."""
+        """FlowSample of every pair, from frames (index, time s, grey image (H, W)) in order."""
         for item in frames:
             sample = self.push(item)
             if sample is not None:
                 yield sample
 
     def push(self, item: tuple[int, float, np.ndarray]) -> FlowSample | None:
-        """Take in the next frame (index, time s, image); returns the pair it completes (from ``gap`` frames
+        """Take in the next frame, ``item`` = (index, time s, grey image (H, W)); returns the pair it completes
+        (from ``gap`` frames
         before to it), or None while fewer than ``gap + 1`` frames have come."""
         cfg = self.config
         if self._buf is None:

@@ -59,11 +59,13 @@ class GazeConfig:
             raise ValueError(f"limit_deg must lie in (0, 90] degrees, got {self.limit_deg}")
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
 def head_angles(t: np.ndarray, omega_body: np.ndarray, config: GazeConfig | None = None) -> np.ndarray:
-    """Head rotation vector θ (T, 3) rad relative to the body, from the body's angular velocity (T, 3) rad/s.
+    """Head rotation vector θ (T, 3) rad relative to the body, from the body's angular velocity ``omega_body``
+    (T, 3) rad/s at times ``t`` (T,) s, the neck reflex of ``config`` (None: the default GazeConfig).
 
     Exact discretisation of dθ/dt = −gain·ω − θ/τ for ω held over each step (ω of the previous
     sample: causal), clipped to ±limit per axis. θ(t0) = 0 (the head starts on the body axis).
@@ -86,7 +88,8 @@ def head_angles(t: np.ndarray, omega_body: np.ndarray, config: GazeConfig | None
 
 
 def head_rotation(theta: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of rotation vectors θ (..., 3) (Rodrigues): head-to-body, d_body = R·d_head."""
+    """Rotation matrices (..., 3, 3) of rotation vectors θ = ``theta`` (..., 3) rad (Rodrigues): head-to-body,
+    d_body = R·d_head."""
     th = np.asarray(theta, dtype=float)
     ang = np.linalg.norm(th, axis=-1)[..., None, None]
     k = np.where(ang[..., 0] > 1e-12, th / np.maximum(ang[..., 0], 1e-12), 0.0)
@@ -100,7 +103,8 @@ def retinal_rotation(t: np.ndarray, omega_body: np.ndarray, theta: np.ndarray) -
     """The head's angular velocity (T, 3) rad/s in the head's own frame: what turns the retina.
 
     R_kᵀ·(ω_body + ω_neck), ω_neck the neck's angular velocity in the body frame from the head
-    angles (backward difference of R: causal, an efference copy), ω_body (T, 3) at the samples.
+    angles (backward difference of R: causal, an efference copy), ω_body = ``omega_body`` (T, 3) rad/s at the
+    samples ``t`` (T,) s, ``theta`` (T, 3) rad the head angles (:func:`head_angles`).
     """
     t = np.asarray(t, dtype=float)
     R = head_rotation(theta)
@@ -122,7 +126,7 @@ def fixation_reference(orientation: np.ndarray, limit_deg: float) -> tuple[np.nd
     phases, and the fly's own saccade-and-fixate flight (Schilstra & van Hateren 1999, J Exp Biol
     202:1481). Why not a reference that relaxes back to the camera, as the neck of
     :func:`head_angles` does: a residual turn of even 1–2°/s is as large as the translational
-    image motion near the focus of expansion (on development rotation worlds a 3 s return doubled
+    image motion near the focus of expansion (on development rotation worlds a 3 s return doubles
     the EMD path's error against a held fixation). Frame k uses attitudes up to k only (causal).
     """
     from scipy.spatial.transform import Rotation

@@ -104,13 +104,15 @@ class LatticeConfig:
         return float(self.dphi_deg if self.drho_deg is None else self.drho_deg)
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
 # --------------------------------------------------------------------------- optics
 
 def acceptance_sigma(drho):
-    """Standard deviation of the Gaussian acceptance function from its FWHM Δρ (same units)."""
+    """Standard deviation of the Gaussian acceptance function from its FWHM Δρ, ``drho`` (any angular unit,
+    scalar or array; the result has that unit and shape)."""
     return np.asarray(drho, dtype=float) / _FWHM_PER_SIGMA
 
 
@@ -118,8 +120,9 @@ def acceptance_attenuation(wavelength, drho):
     """Contrast transfer of a Gaussian acceptance function (FWHM Δρ) for a grating of wavelength λ.
 
     The Fourier transform of ``exp(−θ²/2σ²)`` at spatial frequency 1/λ, with
-    σ = Δρ/(2√(2 ln 2)): ``exp(−2π²σ²/λ²) = exp(−(π Δρ / λ)² / (4 ln 2))``. λ and Δρ
-    in the same angular unit (degrees or radians); arrays broadcast. A correlator
+    σ = Δρ/(2√(2 ln 2)): ``exp(−2π²σ²/λ²) = exp(−(π Δρ / λ)² / (4 ln 2))``. λ (``wavelength``) and
+    Δρ (``drho``) in the same angular unit (degrees or radians); arrays broadcast; the factor is
+    dimensionless. A correlator
     multiplies two such signals, so its mean response carries this factor squared.
     """
     wavelength = np.asarray(wavelength, dtype=float)
@@ -130,7 +133,8 @@ def acceptance_attenuation(wavelength, drho):
 # --------------------------------------------------------------------------- geometry
 
 def plane_to_directions(plane: np.ndarray, projection: str = "equidistant") -> np.ndarray:
-    """Unit viewing directions (..., 3) in the camera frame for lattice-plane angles (..., 2) in radians."""
+    """Unit viewing directions (..., 3) in the camera frame for lattice-plane angles (..., 2) in radians,
+    in ``projection`` "equidistant" or "azel" (module doc)."""
     plane = np.asarray(plane, dtype=float)
     a, b = plane[..., 0], plane[..., 1]
     if projection == "equidistant":
@@ -144,7 +148,8 @@ def plane_to_directions(plane: np.ndarray, projection: str = "equidistant") -> n
 
 
 def directions_to_plane(directions: np.ndarray, projection: str = "equidistant") -> np.ndarray:
-    """Inverse of :func:`plane_to_directions`: lattice-plane angles (..., 2), radians."""
+    """Inverse of :func:`plane_to_directions`: lattice-plane angles (..., 2), radians, of ``directions``
+    (..., 3) (any norm) in ``projection``."""
     d = np.asarray(directions, dtype=float)
     d = d / np.linalg.norm(d, axis=-1, keepdims=True)
     if projection == "equidistant":
@@ -345,6 +350,8 @@ class Lattice:
                           ``margin = truncate_sigma / 2.355`` (1.7 Δρ) makes every one unclipped.
     Optics: ``operator`` (torch sparse CSR, (n, H·W), built on first use) and
     :meth:`sample` (frames (..., H, W) → (..., n)).
+
+    camera: the camera the eye looks through (H, W px); config: its :class:`LatticeConfig` (None: the default).
     """
 
     def __init__(self, camera: PinholeCamera, config: LatticeConfig | None = None):
@@ -393,26 +400,32 @@ class Lattice:
 
     @property
     def n_axes(self) -> int:
+        """Number of lattice axes, K (3 hex, 2 rect)."""
         return len(self.axis_pairs)
 
     @property
     def n_pairs(self) -> int:
+        """Number of neighbour pairs, P."""
         return len(self.pairs_a)
 
     @property
     def azimuth_deg(self) -> np.ndarray:
+        """(n,) degrees: each ommatidium's azimuth."""
         return np.degrees(self.azimuth)
 
     @property
     def elevation_deg(self) -> np.ndarray:
+        """(n,) degrees: each ommatidium's elevation (positive down)."""
         return np.degrees(self.elevation)
 
     @property
     def dphi_deg(self) -> float:
+        """Interommatidial angle Δφ (degrees)."""
         return self.config.dphi_deg
 
     @property
     def drho_deg(self) -> float:
+        """Acceptance angle Δρ (degrees)."""
         return self.config.acceptance_deg
 
     def to_dict(self) -> dict:
@@ -431,7 +444,7 @@ class Lattice:
         return self._operator
 
     def operator_on(self, device, dtype=None) -> torch.Tensor:
-        """The acceptance operator on ``device`` in ``dtype`` (None: torch.float32; cached)."""
+        """The acceptance operator (n, H·W) on torch ``device`` in ``dtype`` (None: torch.float32; cached)."""
         dtype = torch.float32 if dtype is None else dtype   # not the default value: torch loads on first use
         key = (torch.device(device), dtype)
         if key not in self._operator_cache:
@@ -474,7 +487,8 @@ def dphi_for_count(camera: PinholeCamera, n_ommatidia: int, config: LatticeConfi
                    iterations: int = 6) -> float:
     """Interommatidial angle (degrees) that puts about ``n_ommatidia`` on ``camera``.
 
-    Keeps the other fields of ``config``; a drho_deg of None keeps following Δφ.
+    Keeps the other fields of ``config``; a drho_deg of None keeps following Δφ. iterations:
+    rescalings of Δφ by the count it gives.
     """
     cfg = config or LatticeConfig()
     if n_ommatidia < 1:

@@ -173,7 +173,9 @@ class LCNeuronConfig:
 
 @dataclass(frozen=True)
 class LCPopulationConfig:
-    """An LC population: one config per layer (fields, matched filter, normalisation, pathways, neurons)."""
+    """An LC population: one config per layer — ``fields`` (:class:`ReceptiveFieldConfig`), ``matched_filter``
+    (:class:`MatchedFilterConfig`), ``normalisation`` (:class:`NormalisationConfig`), ``pathways``
+    (:class:`PathwayConfig`), ``neurons`` (:class:`LCNeuronConfig`)."""
 
     fields: ReceptiveFieldConfig = field(default_factory=ReceptiveFieldConfig)
     matched_filter: MatchedFilterConfig = field(default_factory=MatchedFilterConfig)
@@ -182,11 +184,12 @@ class LCPopulationConfig:
     neurons: LCNeuronConfig = field(default_factory=LCNeuronConfig)
 
     def to_dict(self) -> dict:
+        """Every field as a dict, nested configurations as dicts."""
         return asdict(self)
 
 
 def config_from_dict(cls, d: dict):
-    """Rebuild a (nested, frozen) config dataclass from :func:`dataclasses.asdict` output."""
+    """Rebuild a (nested, frozen) config dataclass ``cls`` from ``d``, :func:`dataclasses.asdict` output."""
     kwargs = {}
     known = {f.name: f for f in dc_fields(cls)}
     for k, v in d.items():

@@ -22,8 +22,9 @@ __all__ = ["expansion_templates", "pair_templates", "field_centres", "field_weig
 
 
 def expansion_templates(lattice, epipole_xy=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pair expansion template t_p (P,) and radial alignment μ_p (P,) for an epipole in
-    normalised image coordinates ``epipole_xy`` (2,).
+    """Per-pair expansion template t_p (P,) and radial alignment μ_p (P,) of the pairs of ``lattice`` (a
+    :class:`lobula.lattice.Lattice` or a compound eye) for an epipole in normalised image coordinates
+    ``epipole_xy`` (2,).
 
     t_p = ⟨m_p − e, Δp⟩/|Δp|² (steps per second per unit expansion rate);
     μ_p = ⟨u_p, (m_p − e)/|m_p − e|⟩ ∈ [−1, 1] (0 at the epipole itself).
@@ -38,7 +39,8 @@ def expansion_templates(lattice, epipole_xy=(0.0, 0.0)) -> tuple[np.ndarray, np.
 
 
 def pair_templates(lattice, epipole_deg=(0.0, 0.0), template: str = "direction") -> tuple[np.ndarray, np.ndarray]:
-    """Per-pair matched-filter weight μ_p and expansion template t_p, both (P,), epipole in degrees (az, el).
+    """Per-pair matched-filter weight μ_p and expansion template t_p, both (P,), of the pairs of ``lattice``,
+    the epipole ``epipole_deg`` in degrees (az, el).
 
     μ_p: the radial alignment ("direction": the local preferred direction of an
     expansion-tuned LPTC/LC dendrite, Krapp & Hengstenberg 1996) or t_p itself ("flow":
@@ -76,9 +78,10 @@ def field_centres(lattice, config) -> np.ndarray:
 
 def field_weights(az_deg: np.ndarray, el_deg: np.ndarray, centres_deg: np.ndarray, size_deg: float,
                   shape: str) -> np.ndarray:
-    """Receptive-field weight (F, m) of each field at points (az, el) (m,), degrees, peak 1.
+    """Receptive-field weight (F, m) (dimensionless, peak 1) of each field, centres ``centres_deg`` (F, 2)
+    (az, el) in degrees, at points ``az_deg``, ``el_deg`` (m,), degrees.
 
-    "gaussian": FWHM ``size_deg``, cut at 1.5 FWHM; "box": a square of side ``size_deg``.
+    shape "gaussian": FWHM ``size_deg``, cut at 1.5 FWHM; "box": a square of side ``size_deg``.
     """
     da = az_deg[None, :] - centres_deg[:, :1]
     de = el_deg[None, :] - centres_deg[:, 1:]

@@ -43,11 +43,12 @@ class LensDistortion:
         object.__setattr__(self, "coeffs", c)
 
     def to_dict(self) -> dict:
+        """{"model": ..., "coeffs": [...]}, as a camera.json's "distortion" holds it."""
         return dict(model=self.model, coeffs=list(self.coeffs))
 
     @classmethod
     def parse(cls, text: str) -> "LensDistortion":
-        """From "MODEL:c1,c2,..." (the command line's form), e.g. "kannala-brandt:0.05,-0.01,0,0"."""
+        """From ``text`` "MODEL:c1,c2,..." (the command line's form), e.g. "kannala-brandt:0.05,-0.01,0,0"."""
         model, _, rest = str(text).partition(":")
         try:
             coeffs = [float(x) for x in rest.split(",") if x.strip()]
@@ -57,7 +58,8 @@ class LensDistortion:
 
 
 def read_lens(path: str | Path) -> LensDistortion | None:
-    """The optional "distortion" object ({"model": ..., "coeffs": [...]}) of a camera.json; None without one.
+    """The optional "distortion" object ({"model": ..., "coeffs": [...]}) of the camera.json at ``path``; None
+    without one.
     A malformed one raises ValueError naming the file."""
     path = Path(path)
     try:
@@ -75,7 +77,8 @@ def read_lens(path: str | Path) -> LensDistortion | None:
 
 
 def distort(x: np.ndarray, y: np.ndarray, lens: LensDistortion) -> tuple[np.ndarray, np.ndarray]:
-    """Distorted normalised coordinates (any shape) of the rays (x, y, 1) (normalised pinhole coordinates)."""
+    """Distorted normalised coordinates (xd, yd) through ``lens`` of the rays (x, y, 1) (normalised pinhole
+    coordinates, any one shape; the result has that shape)."""
     x, y = np.asarray(x, float), np.asarray(y, float)
     if lens.model == "kannala-brandt":
         r = np.hypot(x, y)
@@ -95,7 +98,7 @@ def distort(x: np.ndarray, y: np.ndarray, lens: LensDistortion) -> tuple[np.ndar
 
 def kb_ray_angles(xd: np.ndarray, yd: np.ndarray, lens: LensDistortion, iterations: int = 20) -> np.ndarray:
     """θ (rad, like xd) of the rays that land at distorted normalised coordinates (xd, yd) of a
-    Kannala–Brandt lens (Newton's method on θ_d = θ(1 + k1θ² + …))."""
+    Kannala–Brandt lens (``iterations`` steps of Newton's method on θ_d = θ(1 + k1θ² + …))."""
     th_d = np.hypot(np.asarray(xd, float), np.asarray(yd, float))
     k1, k2, k3, k4 = lens.coeffs
     th = th_d.copy()
@@ -109,7 +112,8 @@ def kb_ray_angles(xd: np.ndarray, yd: np.ndarray, lens: LensDistortion, iteratio
 
 def pixel_rays(camera, lens: LensDistortion | None, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised pinhole coordinates (x, y) = (X/Z, Y/Z) of the rays pixels (u, v) of ``camera`` (its K)
-    see through ``lens`` (None: a pinhole). Rays at 90° or more from the axis give NaN."""
+    see through ``lens`` (None: a pinhole). u, v: px, any one shape; x, y have that shape. Rays at 90° or
+    more from the axis give NaN."""
     xd, yd = (np.asarray(u, float) - camera.cx) / camera.fx, (np.asarray(v, float) - camera.cy) / camera.fy
     if lens is None:
         return xd, yd
@@ -133,7 +137,7 @@ def pixel_rays(camera, lens: LensDistortion | None, u: np.ndarray, v: np.ndarray
 
 
 def undistortion_maps(camera, lens: LensDistortion, target: str = "same-k"):
-    """Maps (map_x, map_y) (H, W) float32 for cv2.remap that resample a distorted image of ``camera``'s size and
+    """Maps (map_x, map_y) (H, W) float32 px for cv2.remap that resample a distorted image of ``camera``'s size and
     K onto a pinhole camera, and that pinhole camera.
 
     target: "same-k" (the same K: the centre keeps its resolution, a wide lens's periphery is cropped) or
@@ -163,7 +167,8 @@ def undistortion_maps(camera, lens: LensDistortion, target: str = "same-k"):
 
 
 def undistort(image: np.ndarray, maps) -> np.ndarray:
-    """``image`` (H, W) resampled through :func:`undistortion_maps`' maps (bilinear, edges replicated)."""
+    """``image`` (H, W) resampled through :func:`undistortion_maps`' ``maps`` (bilinear, edges replicated);
+    (H, W), its dtype and units."""
     import cv2
 
     return cv2.remap(image, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -80,11 +80,13 @@ class PhotoreceptorConfig:
             raise ValueError(f"eps must be positive, got {self.eps}")
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
 class PhotoreceptorState(NamedTuple):
-    """Low-pass states (each (..., n)); None for stages that are off."""
+    """Low-pass states (each (..., n)); None for stages that are off: lp and adapt in the input's
+    luminance units, hp in the output's units, gain in the output's units squared."""
 
     lp: Tensor
     adapt: Tensor | None
@@ -114,8 +116,8 @@ def _as_signal(x) -> Tensor:
 def lowpass_scan(x: Tensor, a: float, y0: Tensor | None = None) -> Tensor:
     """First-order low-pass along dim −2 (time) of x (..., T, n), zero-order hold.
 
-    ``y[t] = a·y[t−1] + (1 − a)·x[t]`` with ``a = exp(−dt/τ)`` and ``y[−1] = y0``
-    (default: x[0], the steady state of the first input). Returns y (..., T, n).
+    ``y[t] = a·y[t−1] + (1 − a)·x[t]`` with ``a = exp(−dt/τ)`` (dimensionless) and ``y[−1] = y0``
+    ((..., n); default: x[0], the steady state of the first input). Returns y (..., T, n) in x's units.
     """
     if a == 0.0:
         return x.clone()
@@ -130,7 +132,7 @@ def lowpass_scan(x: Tensor, a: float, y0: Tensor | None = None) -> Tensor:
 
 
 def photoreceptor_init(config: PhotoreceptorConfig, x0) -> PhotoreceptorState:
-    """Steady state of every stage for a constant input x0 (..., n)."""
+    """Steady state of every stage of ``config`` for a constant input x0 (..., n) (luminance, any units)."""
     x0 = _as_signal(x0)
     lp = x0.clone()
     adapt = lp.clone() if config.tau_adapt_s is not None else None
@@ -143,9 +145,11 @@ def photoreceptor_init(config: PhotoreceptorConfig, x0) -> PhotoreceptorState:
 
 def photoreceptor_run(config: PhotoreceptorConfig, dt: float, x, state: PhotoreceptorState | None = None
                       ) -> tuple[Tensor, PhotoreceptorState]:
-    """Photoreceptor output for a sequence x (..., T, n) sampled every ``dt`` seconds.
+    """Photoreceptor output of the chain ``config`` for a sequence x (..., T, n) (luminance, any units)
+    sampled every ``dt`` seconds.
 
-    Returns (output (..., T, n), state after the last frame). ``state`` continues a
+    Returns (output (..., T, n), state after the last frame); the output is in x's units when
+    neither adaptation nor gain control is on, else dimensionless contrast. ``state`` continues a
     stream (None: start at the steady state of x[..., 0, :]).
     """
     dt = _check_dt(dt)
@@ -174,14 +178,16 @@ def photoreceptor_run(config: PhotoreceptorConfig, dt: float, x, state: Photorec
 
 def photoreceptor_step(config: PhotoreceptorConfig, dt: float, x, state: PhotoreceptorState | None = None
                        ) -> tuple[Tensor, PhotoreceptorState]:
-    """One frame x (..., n) → (output (..., n), new state); the streaming form of :func:`photoreceptor_run`."""
+    """One frame x (..., n) → (output (..., n), new state), the frame interval ``dt`` s; the streaming form of
+    :func:`photoreceptor_run` (``config``, units as there)."""
     x = _as_signal(x)
     y, state = photoreceptor_run(config, dt, x.unsqueeze(-2), state)
     return y.squeeze(-2), state
 
 
 def photoreceptor_frequency_response(config: PhotoreceptorConfig, dt: float, freq_hz) -> np.ndarray:
-    """Complex gain of the linear stages (low-pass, high-pass) at ``freq_hz`` for frames every ``dt`` s.
+    """Complex gain (dimensionless, ``freq_hz``'s shape) of the linear stages (low-pass, high-pass) of
+    ``config`` at ``freq_hz`` (Hz) for frames every ``dt`` s.
 
     Exact for this discrete-time implementation: each low-pass is
     ``(1 − a)/(1 − a·e^{−iωdt})`` and the high-pass is 1 minus its low-pass. The
@@ -213,19 +219,23 @@ class Photoreceptors:
         self.state: PhotoreceptorState | None = None
 
     def reset(self) -> None:
+        """Forget the stored state."""
         self.state = None
 
     def step(self, x) -> Tensor:
+        """Output (..., n) for one frame x (..., n) (:func:`photoreceptor_step`)."""
         y, self.state = photoreceptor_step(self.config, self.dt, x, self.state)
         return y
 
     def run(self, x) -> Tensor:
+        """Output (..., T, n) for a sequence x (..., T, n) (:func:`photoreceptor_run`)."""
         y, self.state = photoreceptor_run(self.config, self.dt, x, self.state)
         return y
 
 
 def lattice_filter(lattice, column_pool: float = 0.0, surround: float = 0.0):
-    """Sparse (n, n) float32 matrix of the columns' spatial filtering before the EMDs; None if neither is on.
+    """Sparse (n, n) float32 matrix (dimensionless weights) of the columns' spatial filtering before the EMDs;
+    None if neither is on.
 
     lattice: anything with ``n`` ommatidia and neighbour pairs ``pairs_a``, ``pairs_b`` (a
     :class:`lobula.compound_eye.CompoundEye`, a pinhole :class:`lobula.lattice.Lattice`).
@@ -252,7 +262,8 @@ def lattice_filter(lattice, column_pool: float = 0.0, surround: float = 0.0):
 
 
 def spatial_filter(M, y: Tensor) -> Tensor:
-    """:func:`lattice_filter`'s matrix M applied to every frame of y (..., n); y unchanged when M is None."""
+    """:func:`lattice_filter`'s matrix M (n, n) applied to every frame of y (..., n), in y's units and dtype;
+    y unchanged when M is None."""
     if M is None:
         return y
     flat = y.reshape(-1, y.shape[-1])
@@ -266,7 +277,8 @@ MEAN_REMOVAL = {"space": (1.0, None), "time": (0.0, 0.25)}
 
 
 def mean_removal(name: str, photoreceptor: PhotoreceptorConfig) -> tuple[float, PhotoreceptorConfig]:
-    """(surround weight, photoreceptor configuration) of the :data:`MEAN_REMOVAL` named, the rest of
+    """(surround weight, photoreceptor configuration) of the :data:`MEAN_REMOVAL` ``name`` ("space" or "time"),
+    the rest of
     ``photoreceptor`` kept: what ``--mean-removal`` sets on either EMD front end."""
     surround, tau_hp = MEAN_REMOVAL[name]
     return surround, replace(photoreceptor, tau_hp_s=tau_hp)

@@ -104,6 +104,10 @@ class LCPopulation:
     len(types)·F, type-major): ``unit_type``, ``unit_field``, ``azimuth_deg``,
     ``elevation_deg``, ``unit_size_deg``; subunits: ``subunit_deg`` (S, 2) centres,
     ``A`` (S, F) field weights; per pair: ``mu``, ``t``, ``pair_subunit``.
+
+    lattice: the eye (a :class:`lobula.lattice.Lattice` or compound eye); config: the population's
+    :class:`LCPopulationConfig` (None: the default); emd_tau_s: the EMDs' delay τ (s), which sets the
+    gradient-ratio gain 2τ.
     """
 
     def __init__(self, lattice, config: LCPopulationConfig | None = None, emd_tau_s: float = 0.035):
@@ -156,18 +160,21 @@ class LCPopulation:
     # -- sizes and coordinates
     @property
     def n_fields(self) -> int:
+        """Number of fields, F."""
         return len(self.centres_deg)
 
     @property
     def n_units(self) -> int:
+        """Number of units, U = len(types)·F."""
         return len(self.unit_type)
 
     @property
     def n_subunits(self) -> int:
+        """Number of subunits, S."""
         return len(self.subunit_block)
 
     def units_of(self, unit_type: str) -> np.ndarray:
-        """Unit indices of one type, in field order."""
+        """Unit indices (F,) of the type ``unit_type``, in field order."""
         if unit_type not in self.types:
             raise ValueError(f"this population has no {unit_type!r} units; it has {list(self.types)}")
         return np.nonzero(self.unit_type == unit_type)[0]
@@ -183,12 +190,14 @@ class LCPopulation:
                 "size_deg": np.full(self.n_fields, self.size_deg)}
 
     def to_dict(self) -> dict:
+        """Configuration and sizes, for the attrs of an output file."""
         return {"config": self.config.to_dict(), "emd_tau_s": self.emd_tau_s, "n_fields": self.n_fields,
                 "n_units": self.n_units, "n_subunits": self.n_subunits, "subunit_block": self.block}
 
     # -- tensors on a device
     def tensors(self, device, dtype=torch.float32) -> dict:
-        """Weights as tensors on ``device`` (cached): per-pair μ and gain weights, subunit ids, A, gains."""
+        """Weights as tensors on ``device`` in ``dtype`` (cached): per-pair μ and gain weights, subunit ids, A,
+        gains."""
         key = (torch.device(device), dtype)
         if key not in self._tensors:
             mk = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=key[0])  # noqa: E731
@@ -221,8 +230,8 @@ class LCPopulation:
     def pool_pairs(self, R: Tensor, y: Tensor | None) -> tuple[Tensor, Tensor | None]:
         """Subunit sums of the matched filter (Σ μ·R) and of the gain pool (Σ 2τμt·G), (…, S) each.
 
-        R: the EMD array's responses (…, P) (:func:`lobula.emd.emd_run`); y: the
-        photoreceptor output (…, n) of the same frames, for G_p = (y_B − y_A)², or None
+        R: the EMD array's responses (…, P) (:func:`lobula.emd.emd_run`; u², u the photoreceptor
+        output's units); y: the photoreceptor output (…, n) (u) of the same frames, for G_p = (y_B − y_A)², or None
         (no normalisation pool). Each pair adds into its subunit: a sparse sum, the
         dendritic compartment on which its T4/T5 terminal converges.
         """
@@ -242,7 +251,8 @@ class LCPopulation:
 
     # -- the second stage: subunits → fields and pathways, stepped in time
     def init_state(self, den_s0: Tensor | None, batch: int, device, dtype) -> "PopulationState":
-        """Rest: no motion, the pool settled on the gradient energy ``den_s0`` (B, S) of the adapting frame."""
+        """Rest: no motion, the pool settled on the gradient energy ``den_s0`` (B, S) of the adapting frame
+        (None: the population's static gain); ``batch`` B stimuli, tensors on ``device`` in ``dtype``."""
         T = self.tensors(device, dtype)
         S, F = self.n_subunits, self.n_fields
         D = den_s0.clone() if den_s0 is not None else T["kappa_static_s"].expand(batch, S).clone()
@@ -255,7 +265,10 @@ class LCPopulation:
         """Fields and pathways for a chunk: num_s, den_s (Tc, B, S) → records (Tc, B, F or U).
 
         ``want`` ⊆ {"lc.input", "lc.r", "lc.r2", "lc.rdot", "lc.drive"} (the drive is
-        always computed when neurons follow; this only chooses what is returned).
+        always computed when neurons follow; this only chooses what is returned). state: the
+        :class:`PopulationState` before the chunk; dt: the time step (s). Returns (records: lc.r in
+        1/s, lc.r2 and lc.rdot in 1/s² (with normalisation "none": in R units), lc.drive dimensionless;
+        the state after the chunk).
         """
         cfg = self.config
         T = self.tensors(num_s.device, num_s.dtype)
@@ -303,7 +316,8 @@ class LCPopulation:
         return out, PopulationState(D, q, rf, rs)
 
     def decode_rates(self, rates: Tensor) -> dict:
-        """Invert rate units (…, U) in Hz to the signals they carry: {"r", "r2", "rdot"} (…, F).
+        """Invert rate units ``rates`` (…, U) in Hz to the signals they carry: {"r" 1/s, "r2" 1/s², "rdot"
+        1/s²} (…, F).
 
         Inverts the Naka–Rushton output (exact at steady state; the τ_m lag remains)
         and takes the push–pull difference, e.g. r = scale_r·(x_expansion − x_contraction).
@@ -362,7 +376,10 @@ class PopulationState(NamedTuple):
 # =========================================================================== LC neurons
 
 class LCNeurons:
-    """The LC units' dynamics (rate, LIF or Poisson), batched as (B, K, U)."""
+    """The LC units' dynamics (rate, LIF or Poisson), batched as (B, K, U): stimuli × trials × units.
+
+    config: the :class:`LCNeuronConfig` (None: the default).
+    """
 
     def __init__(self, config: LCNeuronConfig | None = None):
         self.config = cfg = config or LCNeuronConfig()
@@ -372,14 +389,18 @@ class LCNeurons:
 
     @property
     def records(self) -> tuple:
+        """What the model records ("lc.rate" Hz, "lc.x" dimensionless, "lc.v" V, "lc.spikes" counts)."""
         return {"rate": ("lc.rate", "lc.x"), "poisson": ("lc.rate", "lc.x", "lc.spikes"),
                 "lif": ("lc.v", "lc.spikes")}[self.config.model]
 
     @property
     def stochastic(self) -> bool:
+        """Whether trials differ (Poisson spikes, or a noisy LIF)."""
         return self.config.model == "poisson" or (self.config.model == "lif" and self.config.lif.noisy)
 
     def init_state(self, shape: tuple, device, dtype, generator=None):
+        """Rest state for ``shape`` (B, K, U), tensors on ``device`` in ``dtype``; ``generator``: the torch
+        generator of a noisy LIF's starting membrane potentials."""
         B, K, U = shape
         if self.config.model == "lif":
             s = self.lif.init_state(B * K, U, device=device, dtype=dtype, generator=generator)
@@ -394,7 +415,8 @@ class LCNeurons:
         return tuple((state.v if m == "lif" else state.x if m == "rate" else state[0].x).shape)
 
     def step(self, state, drive: Tensor, dt: float, generator=None):
-        """drive: (B, 1 or K, U) dimensionless."""
+        """The state after one step of ``dt`` s from ``state`` under ``drive`` (B, 1 or K, U) dimensionless;
+        ``generator``: the torch generator of the noise (Poisson, LIF)."""
         cfg = self.config
         if cfg.model == "lif":
             ex, inh = cfg.lif_excitation_max, cfg.lif_inhibition_max
@@ -406,6 +428,7 @@ class LCNeurons:
         return rs, self.poisson.step(state[1], rs.r, dt, generator=generator)
 
     def read(self, state, name: str) -> Tensor:
+        """The record ``name`` (one of :attr:`records`) of ``state``, (B, K, U)."""
         m = self.config.model
         if name not in self.records:
             raise ValueError(f"{m} LC units do not record {name!r}; they record {list(self.records)}")

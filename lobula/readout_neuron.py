@@ -65,9 +65,11 @@ class ReadoutNeuronConfig:
     tau_fast_s / tau_sustained_s: the two low-pass stages of every LC pathway (s).
     g_leak: leak conductance in the units of g_s (1/s²): sets where division turns off.
     kappa_max: fastest visual correction rate (1/s); g_half: shunt conductance of half-maximal trust.
-    disagreement_m_s: scale of the presynaptic inhibition of branches that disagree with the output.
-    tau_confidence_s: memory of the confidence; confidence_min: below it v̂ is unobservable.
-    gain_hz_per_m_s: output rate per m/s; spiking: spiking output instead of rates; window_s: rate-decoding window.
+    disagreement_m_s: scale (m/s) of the presynaptic inhibition of branches that disagree with the output.
+    tau_confidence_s: memory of the confidence (s); confidence_min: below it (dimensionless, 0..1) v̂ is
+    unobservable.
+    gain_hz_per_m_s: output rate per m/s (Hz per m/s); spiking: spiking output instead of rates; window_s:
+    rate-decoding window (s). seed: seeds the output neurons' spike generator.
     spike_model: how the output neurons spike. "poisson": Poisson trains at r± (count variance =
         mean, the cortical textbook case). "lif": leaky integrate-and-fire neurons
         (:class:`lobula.neurons.LIFConfig`'s Dayan & Abbott defaults) with white membrane noise,
@@ -136,6 +138,7 @@ class ReadoutNeuronConfig:
             raise ValueError(f"spike_dt_s must be a positive number of seconds, got {self.spike_dt_s!r}")
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
@@ -149,7 +152,8 @@ def _lowpass(x: torch.Tensor, tau: float, dt: float) -> torch.Tensor:
 
 
 def lc_pathways(r: torch.Tensor, r2: torch.Tensor, dt: float, cfg: ReadoutNeuronConfig):
-    """Sustained r̄, r²̄ and transient ṙ̄ pathways; inputs and outputs (trials, time, fields).
+    """Sustained r̄ (1/s), r²̄ (1/s²) and transient ṙ̄ (1/s²) pathways of ``r`` (1/s) and ``r2`` (1/s²) sampled
+    every ``dt`` s, the time constants of ``cfg``; inputs and outputs (trials, time, fields).
 
     Every signal passes the same two low-passes (τ_fast, then τ_sustained), so the terms
     of ṙ = a/d + r² stay in phase. The transient pathway is the difference between the
@@ -167,7 +171,8 @@ def shunting_division(a: torch.Tensor, r: torch.Tensor, r2: torch.Tensor, r_dot:
                       cfg: ReadoutNeuronConfig):
     """Per-field shunted velocities v_f and conductances |D_f|, (trials, time, fields) each.
 
-    a: (trials, time) m/s²; r, r2, r_dot: (trials, time, fields). Non-finite fields are silent.
+    a: (trials, time) m/s²; r (1/s), r2, r_dot (1/s²): (trials, time, fields); cfg: its g_leak. v_f in
+    m/s, |D_f| in 1/s². Non-finite fields are silent.
     v_f = a·r̄_f·sgn(D_f)/(g_L + |D_f|): the steady state of a dendritic branch with
     excitation a·r̄_f·sgn(D_f) and shunting conductance |D_f|.
     """
@@ -184,7 +189,8 @@ def pool_branches(v_f: torch.Tensor, g_s: torch.Tensor, v_now: torch.Tensor, cfg
     branches that disagree with the neuron's own output (a Cauchy weight of scale
     ``disagreement_m_s``; the neural form of the median's robustness).
 
-    v_f, g_s: (trials, fields); v_now: (trials,). Returns v_vis, total conductance (trials,).
+    v_f (m/s), g_s (1/s²): (trials, fields); v_now: (trials,) m/s; cfg: its disagreement_m_s and g_leak.
+    Returns v_vis (m/s) and the total conductance (1/s²), each (trials,).
     """
     w = g_s / (1.0 + ((v_f - v_now[:, None]) / cfg.disagreement_m_s) ** 2)
     # Mean rather than total conductance: synaptic scaling keeps the soma's operating
@@ -194,13 +200,14 @@ def pool_branches(v_f: torch.Tensor, g_s: torch.Tensor, v_now: torch.Tensor, cfg
 
 
 def spike_steps_per_frame(frame_dt: float, config: ReadoutNeuronConfig) -> int:
-    """Spike-generator steps per frame interval ``frame_dt`` (s): round(frame_dt / spike_dt_s), at least 1."""
+    """Spike-generator steps per frame interval ``frame_dt`` (s): round(frame_dt / spike_dt_s) of ``config``,
+    at least 1."""
     return max(1, int(round(frame_dt / config.spike_dt_s)))
 
 
 def output_lif(membrane_noise_mv: float) -> LIFConfig:
     """The LIF output neurons' parameters: Dayan & Abbott's defaults, white noise of
-    ``membrane_noise_mv`` free-membrane SD (R·σ_I/√2, :class:`lobula.neurons.LIFConfig`)."""
+    ``membrane_noise_mv`` (mV) free-membrane SD (R·σ_I/√2, :class:`lobula.neurons.LIFConfig`)."""
     return LIFConfig(noise="white", noise_std=membrane_noise_mv * 1e-3 * np.sqrt(2.0) / LIFConfig().R)
 
 
@@ -253,7 +260,7 @@ def phase_advance(v: torch.Tensor, tau: float, dt: float, limit: float = float("
     (trials, time; NaN: the neurons silent, decoding 0): x_0 = v_0, x_k = (v_k − α·y_{k−1})/(1 − α),
     α = e^{−dt/τ}, y the low-pass's own state — the inverse of y_k = α·y_{k−1} + (1 − α)·x_k,
     i.e. x_k = v_k + α/(1 − α)·(v_k − v_{k−1}) while nothing saturates. |x| ≤ ``limit`` (the
-    output neurons' largest rate, in the units of v); a clipped step is made up in the next
+    output neurons' largest rate, in the units of v); dt: the step (s); a clipped step is made up in the next
     ones, since y is the state the clipped drive leaves. Causal: x_k depends on v up to k."""
     alpha = float(np.exp(-dt / tau))
     target = torch.nan_to_num(v)
@@ -329,7 +336,8 @@ def _spikes(v: torch.Tensor, a: torch.Tensor, dt: float, cfg: ReadoutNeuronConfi
 
 
 def spiking_output(t, v, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:
-    """Carry a velocity estimate v (time,) m/s on push–pull spiking output neurons and decode it back.
+    """Carry a velocity estimate v (time,) m/s, sampled at ``t`` (time,) s, on push–pull spiking output neurons
+    and decode it back.
 
     The output stage of :func:`readout_neuron` on its own (steps 5–6 of the module docstring),
     for any readout's v̂ (NaN: the neurons fall silent). v may also be (trials, time): the same
@@ -354,7 +362,7 @@ def spiking_output(t, v, a, config: ReadoutNeuronConfig | None = None) -> dict[s
 
 
 def readout_neuron(t, r, r2, a, config: ReadoutNeuronConfig | None = None) -> dict[str, np.ndarray]:
-    """Run the readout neuron on field rates.
+    """Run the readout neuron of ``config`` (None: the default ReadoutNeuronConfig) on field rates.
 
     t (time,) s; r, r2 (time, fields) or (trials, time, fields) in 1/s, 1/s²; a (time,)
     or (trials, time) m/s². Returns numpy arrays (trials dim dropped if absent):

@@ -43,6 +43,7 @@ class FieldConfig:
     material: bool = True
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
@@ -50,7 +51,7 @@ class FieldConfig:
 class ReceptiveFields:
     """A tiling of fields over a camera image.
 
-    centres_deg: (F, 2) azimuth, elevation (degrees, elevation positive down);
+    camera: the camera tiled (H, W px); centres_deg: (F, 2) azimuth, elevation (degrees, elevation positive down);
     size_deg: field side; weights: scipy sparse CSR (F, H·W); x, y: normalised pixel coordinates (H, W).
     """
 
@@ -63,11 +64,13 @@ class ReceptiveFields:
 
     @property
     def n_fields(self) -> int:
+        """The number of fields, F."""
         return len(self.centres_deg)
 
 
 def tile_fields(camera: PinholeCamera, config: FieldConfig | None = None) -> ReceptiveFields:
-    """Tile the camera's field of view with square fields in (azimuth, elevation)."""
+    """Tile the camera's field of view with square fields in (azimuth, elevation), as ``config`` (default
+    :class:`FieldConfig`) says."""
     cfg = config or FieldConfig()
     x, y = camera.normalised_grid()
     az, el = (np.degrees(a) for a in normalised_to_angles(x, y))
@@ -182,7 +185,8 @@ POOL_PIXELS = 80_000
 
 
 def pool_stride(height: int, width: int) -> int:
-    """Every how many rows and columns :func:`pool_fields` reads: 1 up to ~:data:`POOL_PIXELS` pixels
+    """Every how many rows and columns :func:`pool_fields` reads in an image ``height`` × ``width`` px:
+    1 up to ~:data:`POOL_PIXELS` pixels
     (320×240 and smaller read every pixel), 2 at 640×480 and 752×480, 3 at 1280×720."""
     return max(1, int(round(np.sqrt(height * width / POOL_PIXELS))))
 
@@ -240,7 +244,8 @@ def _turn_pair(x: np.ndarray, y: np.ndarray, flow: np.ndarray, r_m0: np.ndarray,
 def pool_fields_reference(flow: np.ndarray, fields: ReceptiveFields, epipole=(0.0, 0.0),
                           valid: np.ndarray | None = None, pooling: str = "least-squares", rotation=None,
                           turns=None):
-    """:func:`pool_fields` written plainly on the whole image (the definition it is tested against)."""
+    """:func:`pool_fields` written plainly on the whole image (the definition it is tested against); the
+    parameters and the returned r̄ (F,) 1/s and r²̄ (F,) 1/s² are :func:`pool_fields`'."""
     flow = np.asarray(flow, dtype=np.float32)
     x, y = fields.x, fields.y
     if turns is not None:
@@ -283,7 +288,8 @@ def gap_correction(r_pair: np.ndarray, r2_pair: np.ndarray, dt_s: float) -> tupl
     A point at depth d0 seen again at d1 moves radially by the factor d0/d1, so the pair
     gives r_pair = (d0/d1 − 1)/Δt, whereas the mean of r = v/d over the interval is
     ln(d0/d1)/Δt. r²̄ is rescaled by the same factor squared. Entries where the
-    factor is not positive stay NaN.
+    factor is not positive stay NaN. r_pair (F,) 1/s and r2_pair (F,) 1/s², over a pair
+    dt_s s long; returns (r (F,) 1/s, r² (F,) 1/s²).
     """
     with np.errstate(invalid="ignore", divide="ignore"):
         arg = 1.0 + r_pair * dt_s
@@ -312,6 +318,9 @@ class MaterialFields:
 
     Work is done on b×b pixel blocks (b chosen so ~20,000 blocks cover the image): the
     maps are smooth at that scale and the cost does not grow with the image.
+
+    fields: the tiling; stagger: pairs between the difference's two ends s (even, ≥ 2);
+    block: b (px; None: chosen as above); gap_correction: as :attr:`FieldConfig.gap_correction`.
     """
 
     def __init__(self, fields: ReceptiveFields, stagger: int, block: int | None = None, gap_correction: bool = True):
@@ -349,7 +358,7 @@ class MaterialFields:
         q0, q1, qm: the camera's orientation (camera → a fixed reference, from the integrated
         gyro) at the pair's first frame, second frame and middle (None: not turning);
         epipole (2,): the heading seen in the middle orientation.
-        Returns None until s pairs are buffered, else (r̄, r²̄, ṙ̄), each (F,), for pair k − s/2.
+        Returns None until s pairs are buffered, else (r̄ 1/s, r²̄ 1/s², ṙ̄ 1/s²), each (F,), for pair k − s/2.
         """
         eye = np.eye(3)
         item = dict(t0=t0, T=dt_pair, uf=self._blocks(flow_full[0]), vf=self._blocks(flow_full[1]),

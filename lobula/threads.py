@@ -15,7 +15,7 @@ _END = object()
 
 
 def threaded(items: Iterable, maxsize: int = 4, name: str = "stage") -> Iterator:
-    """Iterate over ``items`` produced in a background thread, at most ``maxsize`` ahead.
+    """Iterate over ``items`` produced in a background thread (named ``lobula-<name>``), at most ``maxsize`` ahead.
 
     Order is kept. An exception raised while producing is re-raised here, at the item where it
     happened. If the consumer stops early (break, exception, garbage collection), the producer

@@ -34,14 +34,15 @@ _invocation: list[str] | None = None
 
 
 def set_command_line(argv: list[str]) -> None:
-    """Record the command being run (the ``lobula`` entry point calls this with its arguments, so a
+    """Record the command being run, ``argv`` (the ``lobula`` entry point calls this with its arguments, so a
     command run in-process from a notebook is recorded as the command, not as the notebook)."""
     global _invocation
     _invocation = list(argv)
 
 
 def command_line(argv: list[str] | None = None) -> str:
-    """The command that is running, shell-quoted (``lobula velocity …`` for the console script)."""
+    """The command that is running, shell-quoted (``lobula velocity …`` for the console script): ``argv``,
+    else the one recorded by :func:`set_command_line`, else ``sys.argv``."""
     argv = list(argv if argv is not None else _invocation if _invocation is not None else sys.argv)
     if argv and Path(argv[0]).name in ("lobula", "cli.py", "__main__.py"):
         argv[0] = "lobula"
@@ -55,7 +56,7 @@ def provenance_attrs() -> dict:
 
 
 def provenance(config_json: str, **extra) -> dict:
-    """Attributes every output carries: the full configuration (JSON), the package version, the git
+    """Attributes every output carries: the full configuration (``config_json``, JSON), the package version, the git
     commit (or "unknown"), the command line and the creation time; ``extra`` adds more (non-strings as JSON)."""
     import json
 

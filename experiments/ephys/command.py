@@ -36,26 +36,10 @@ APPLIES = {
 S = argparse.SUPPRESS
 
 
-def add_parser(subparsers):
-    """Register ``lobula ephys PROTOCOL ...`` on an argparse subparsers object."""
-    from ..parsers import COUNT, FINITE, INDEX, LATTICE_ANGLE, POSITIVE, Number, haltere_gain
+def _add_rig_options(e) -> None:
+    """The recording and rig options of ``lobula ephys`` (every protocol unless marked)."""
+    from ..parsers import COUNT, INDEX, LATTICE_ANGLE, POSITIVE, Number
 
-    e = subparsers.add_parser(
-        "ephys", help="virtual electrophysiology: record LC/EMD/photoreceptor/readout neurons",
-        description="Virtual electrophysiology: show the model fly a stimulus, record any neuron, get labelled, "
-                    "self-describing data (NetCDF with CF-1.10 attributes and/or NWB) and a figure.\n"
-                    "Options marked [tf-tuning] etc. apply to those protocols only; giving them to another "
-                    "protocol is an error.")
-    e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming | velocity-replay")
-    e.add_argument("--out", nargs="+", required=True, metavar="PATH", default=S,
-                   help="outputs, by suffix: .nc (NetCDF, CF-1.10) and/or .nwb (Neurodata Without Borders); "
-                        "each written atomically")
-    e.add_argument("--experimenter", nargs="+", metavar="'LAST, FIRST'", default=S,
-                   help="the NWB file's experimenter(s) (default: none written)")
-    e.add_argument("--institution", default=S, help="the NWB file's institution (default: none written)")
-    e.add_argument("--plot", default=S,
-                   help="the protocol's figure: PNG (200 dpi) and a vector PDF beside it (.png or .pdf) "
-                        "(default: no figure)")
     g = e.add_argument_group("recording and rig (every protocol unless marked)")
     g.add_argument("--record", nargs="+", metavar="POP.VAR", default=S,
                    help="monitors, e.g. lc.rate lc.spikes[expansion] emd.response[0:10] photoreceptor.v; "
@@ -96,6 +80,12 @@ def add_parser(subparsers):
     g.add_argument("--contrast", type=Number(0, 1, above=True), nargs="+", default=S,
                    help="stimulus contrast; several allowed for tf-tuning (default: tf-tuning: 0.5; rf-map: the "
                         "spot's 1.0; looming: the disc's 1.0)")
+
+
+def _add_protocol_options(e) -> None:
+    """The options of ``lobula ephys`` that belong to one protocol, one group each."""
+    from ..parsers import FINITE, INDEX, POSITIVE, Number, haltere_gain
+
     t = e.add_argument_group("tf-tuning")
     t.add_argument("--tf", type=Number(0, 500, above=True, below=True,
                                        note="below the 500 Hz Nyquist limit of the 1 kHz stimulus"),
@@ -136,6 +126,28 @@ def add_parser(subparsers):
     v.add_argument("--haltere-gain", type=haltere_gain, metavar="natural|G", default=S,
                    help="with --eye fly: the haltere gain's prior, as `lobula eye-velocity --haltere-gain` "
                         "(default: natural)")
+
+
+def add_parser(subparsers):
+    """Register ``lobula ephys PROTOCOL ...`` on an argparse subparsers object."""
+    e = subparsers.add_parser(
+        "ephys", help="virtual electrophysiology: record LC/EMD/photoreceptor/readout neurons",
+        description="Virtual electrophysiology: show the model fly a stimulus, record any neuron, get labelled, "
+                    "self-describing data (NetCDF with CF-1.10 attributes and/or NWB) and a figure.\n"
+                    "Options marked [tf-tuning] etc. apply to those protocols only; giving them to another "
+                    "protocol is an error.")
+    e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming | velocity-replay")
+    e.add_argument("--out", nargs="+", required=True, metavar="PATH", default=S,
+                   help="outputs, by suffix: .nc (NetCDF, CF-1.10) and/or .nwb (Neurodata Without Borders); "
+                        "each written atomically")
+    e.add_argument("--experimenter", nargs="+", metavar="'LAST, FIRST'", default=S,
+                   help="the NWB file's experimenter(s) (default: none written)")
+    e.add_argument("--institution", default=S, help="the NWB file's institution (default: none written)")
+    e.add_argument("--plot", default=S,
+                   help="the protocol's figure: PNG (200 dpi) and a vector PDF beside it (.png or .pdf) "
+                        "(default: no figure)")
+    _add_rig_options(e)
+    _add_protocol_options(e)
     e.add_argument("--quiet", action="store_true", help="no progress bars (velocity-replay's rendering and circuit)")
     e.set_defaults(func=main)
     return e

@@ -353,11 +353,78 @@ def _eye_tf_tuning(cfg: EyeEphysConfig, *, temporal_frequencies_hz=None, contras
     return cf_describe(ds)
 
 
+def _eye_rf_locations(rig: EyeRig, fields: np.ndarray, extent: float, spacing: float, dphi: float) -> tuple:
+    """Mapping locations (n, 2) (azimuth, elevation; degree) about the probed fields that the eye sees, and
+    their directions (n, 3)."""
+    from stimuli.lattice_stimuli import direction_from_angles
+
+    f = rig.fields
+    # Mapping grid: squares about each probed field, kept where the field's own eye sees.
+    pts = []
+    for k in fields:
+        g = np.arange(-extent, extent + 1e-9, spacing)
+        A, E = np.meshgrid(f.centres_deg[k, 0] + g, f.centres_deg[k, 1] + g, indexing="xy")
+        pts.append(np.stack([A.ravel(), E.ravel()], 1))
+    locs = np.unique(np.round(np.concatenate(pts) / spacing * 1e6) / 1e6 * spacing, axis=0)
+    q = direction_from_angles(locs[:, 0], locs[:, 1])
+    near = (q @ rig.eye.directions.T).max(axis=1) >= math.cos(math.radians(0.75 * dphi))
+    locs, q = locs[near], q[near]
+    if len(locs) == 0:
+        raise ValueError("no mapping location lies on the eye; use a larger --extent or other --fields")
+    return locs, q
+
+
+def _eye_rf_weights(q: np.ndarray, locs: np.ndarray, dirs: np.ndarray, resp: np.ndarray, dphi: float) -> tuple:
+    """Radial sensitivity, local preferred direction (degree) and the weight map (sensitivity over the
+    template's sin θ), each (location, field), from the responses (location, direction, field); and each
+    grid cell's relative solid angle (location,)."""
+    from stimuli.lattice_stimuli import tangent_basis
+
+    D = len(dirs)
+    east, south = tangent_basis(q)
+    rad = _radial(q)
+    rad_ang = np.arctan2((rad * south).sum(1), (rad * east).sum(1))
+    z = (resp * np.exp(1j * np.radians(dirs))[None, :, None]).sum(axis=1) * 2.0 / D       # (L, F)
+    sens = np.real(z * np.exp(-1j * rad_ang)[:, None])
+    pref = np.degrees(np.angle(z))
+    # The template's magnitude sin θ (θ from the focus of expansion ẑ) divided out: the designed weights.
+    sin_t = np.sqrt(np.clip(1.0 - q[:, 2] ** 2, 0.0, 1.0))
+    ok = sin_t > math.sin(math.radians(dphi))
+    weight = np.where(ok[:, None], sens / np.maximum(sin_t, 1e-9)[:, None], 0.0)
+    area = np.cos(np.radians(locs[:, 1]))                    # solid angle of an az/el grid cell ∝ cos el
+    return sens, pref, weight, area
+
+
+def _eye_rf_moments(rig: EyeRig, fields: np.ndarray, q: np.ndarray, weight: np.ndarray, area: np.ndarray) -> tuple:
+    """Mapped centre (F, 2) (degree), its error from the designed centre (F,) and size (F,) (degree, FWHM)
+    of each probed field's weight map; NaN for the fields not probed."""
+    f = rig.fields
+    F = f.n_fields
+    cen = np.full((F, 2), np.nan)
+    err = np.full(F, np.nan)
+    sz = np.full(F, np.nan)
+    for k in fields:  # a handful of probed fields; each a vectorised moment computation
+        w = np.clip(weight[:, k], 0.0, None) * area
+        # Keep the field's own lobe: locations within 1.5 FWHM of the strongest, as the design cuts its weights.
+        top = q[np.argmax(w)]
+        w = np.where(np.degrees(np.arccos(np.clip(q @ top, -1, 1))) <= 1.5 * f.size_deg, w, 0.0)
+        if w.sum() <= 0:
+            continue
+        m = (w[:, None] * q).sum(0)
+        m /= np.linalg.norm(m)
+        cen[k] = np.degrees([math.atan2(m[0], m[2]), math.atan2(m[1], math.hypot(m[0], m[2]))])
+        err[k] = math.degrees(math.acos(min(1.0, float(m @ f.directions[k]))))
+        ang = np.arccos(np.clip(q @ m, -1.0, 1.0))
+        var = float((w * ang ** 2).sum() / w.sum()) / 2.0                     # per-axis variance (rad²)
+        sz[k] = math.degrees(2.0 * math.sqrt(2.0 * math.log(2.0) * var))
+    return cen, err, sz
+
+
 def _eye_rf_map(cfg: EyeEphysConfig, *, fields=None, directions: int = 4, spacing_deg: float | None = None,
                 extent_deg: float | None = None, spot_size_deg: float | None = None, path_deg: float | None = None,
                 speed_deg_s: float | None = None, contrast: float = 1.0, tail_s: float = 0.12, batch: int = 128,
                 record=None) -> xr.Dataset:
-    from stimuli.lattice_stimuli import direction_from_angles, moving_spot, tangent_basis
+    from stimuli.lattice_stimuli import moving_spot
 
     rig = EyeRig(cfg)
     f = rig.fields
@@ -382,18 +449,7 @@ def _eye_rf_map(cfg: EyeEphysConfig, *, fields=None, directions: int = 4, spacin
         if not (val > 0 and math.isfinite(val)):
             raise ValueError(f"rf-map {name} must be a positive number, got {val}")
     dirs = np.arange(directions) * 360.0 / directions
-    # Mapping grid: squares about each probed field, kept where the field's own eye sees.
-    pts = []
-    for k in fields:
-        g = np.arange(-extent, extent + 1e-9, spacing)
-        A, E = np.meshgrid(f.centres_deg[k, 0] + g, f.centres_deg[k, 1] + g, indexing="xy")
-        pts.append(np.stack([A.ravel(), E.ravel()], 1))
-    locs = np.unique(np.round(np.concatenate(pts) / spacing * 1e6) / 1e6 * spacing, axis=0)
-    q = direction_from_angles(locs[:, 0], locs[:, 1])
-    near = (q @ rig.eye.directions.T).max(axis=1) >= math.cos(math.radians(0.75 * dphi))
-    locs, q = locs[near], q[near]
-    if len(locs) == 0:
-        raise ValueError("no mapping location lies on the eye; use a larger --extent or other --fields")
+    locs, q = _eye_rf_locations(rig, fields, extent, spacing, dphi)
     L, D = len(locs), len(dirs)
     pass_s = path / speed
     n_steps = int(round((pass_s + tail_s) * rig.rate_hz))
@@ -407,34 +463,8 @@ def _eye_rf_map(cfg: EyeEphysConfig, *, fields=None, directions: int = 4, spacin
         out = rig.run(stim, n_steps, {"lc.input": None}, baseline=1.0)
         resp[a:b] = out["lc.input"].sum(axis=1) * rig.dt
     resp = resp.reshape(L, D, F)
-    east, south = tangent_basis(q)
-    rad = _radial(q)
-    rad_ang = np.arctan2((rad * south).sum(1), (rad * east).sum(1))
-    z = (resp * np.exp(1j * np.radians(dirs))[None, :, None]).sum(axis=1) * 2.0 / D       # (L, F)
-    sens = np.real(z * np.exp(-1j * rad_ang)[:, None])
-    pref = np.degrees(np.angle(z))
-    # The template's magnitude sin θ (θ from the focus of expansion ẑ) divided out: the designed weights.
-    sin_t = np.sqrt(np.clip(1.0 - q[:, 2] ** 2, 0.0, 1.0))
-    ok = sin_t > math.sin(math.radians(dphi))
-    weight = np.where(ok[:, None], sens / np.maximum(sin_t, 1e-9)[:, None], 0.0)
-    area = np.cos(np.radians(locs[:, 1]))                    # solid angle of an az/el grid cell ∝ cos el
-    cen = np.full((F, 2), np.nan)
-    err = np.full(F, np.nan)
-    sz = np.full(F, np.nan)
-    for k in fields:  # a handful of probed fields; each a vectorised moment computation
-        w = np.clip(weight[:, k], 0.0, None) * area
-        # Keep the field's own lobe: locations within 1.5 FWHM of the strongest, as the design cuts its weights.
-        top = q[np.argmax(w)]
-        w = np.where(np.degrees(np.arccos(np.clip(q @ top, -1, 1))) <= 1.5 * f.size_deg, w, 0.0)
-        if w.sum() <= 0:
-            continue
-        m = (w[:, None] * q).sum(0)
-        m /= np.linalg.norm(m)
-        cen[k] = np.degrees([math.atan2(m[0], m[2]), math.atan2(m[1], math.hypot(m[0], m[2]))])
-        err[k] = math.degrees(math.acos(min(1.0, float(m @ f.directions[k]))))
-        ang = np.arccos(np.clip(q @ m, -1.0, 1.0))
-        var = float((w * ang ** 2).sum() / w.sum()) / 2.0                     # per-axis variance (rad²)
-        sz[k] = math.degrees(2.0 * math.sqrt(2.0 * math.log(2.0) * var))
+    sens, pref, weight, area = _eye_rf_weights(q, locs, dirs, resp, dphi)
+    cen, err, sz = _eye_rf_moments(rig, fields, q, weight, area)
     params = dict(eye="fly", fields=fields, directions=dirs, spacing_deg=spacing, extent_deg=extent,
                   spot_size_deg=size, path_deg=path, speed_deg_s=speed, contrast=contrast, tail_s=tail_s,
                   recorded="lc.input")

@@ -362,23 +362,11 @@ def replay_scores(rec: xr.Dataset, skip_s: float | None = None) -> dict:
                 scored_after_s=float(skip_s))
 
 
-def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
-    """Velocity (truth, arithmetic readout, readout neuron mean ± SEM over trials); the readout neurons'
-    raster (spike times at their step's start, integer trial ticks) beside their PSTH ± SEM; the LC sustained pathway
-    of every field (labelled colour bar). PNG (200 dpi) and PDF."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-
-    t = rec.time.values
-    spikes = "readout_spikes" in rec
-    fig = plt.figure(figsize=(13, 8.5), layout="constrained")
-    gs = fig.add_gridspec(3, 2, height_ratios=[2.2, 1.6, 1.5], width_ratios=[1, 1])
-    ax_v = fig.add_subplot(gs[0, :])
+def _replay_velocity_panel(fig, ax_v, rec: xr.Dataset, t: np.ndarray, eye: bool) -> None:
+    """Velocity (m/s) against time (s): truth, the arithmetic readout (with its ±2σ on the eye) and the readout
+    neurons' mean ± SEM over trials; the RMSEs in the figure's title."""
     if "v_true" in rec:
         ax_v.plot(t, rec.v_true, "k--", lw=1.2, label="truth")
-    eye = rec.attrs.get("eye") == "fly"
     if eye and "arithmetic_v_std" in rec:
         m, e = rec.arithmetic_v.values, 2 * rec.arithmetic_v_std.values
         ax_v.fill_between(t, m - e, m + e, color="tab:blue", alpha=0.15, lw=0, label="its ± 2σ (v_std)")
@@ -409,8 +397,11 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
     ax_v.set_xlabel("time (s)")
     # Above the panel, clear of the data whatever the run does.
     ax_v.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=4, frameon=False)
-    ax_r = fig.add_subplot(gs[1, 0])
-    ax_p = fig.add_subplot(gs[1, 1], sharex=ax_r)
+
+
+def _replay_neuron_panels(ax_r, ax_p, rec: xr.Dataset, t: np.ndarray, eye: bool) -> None:
+    """The readout neurons' raster (``ax_r``) beside their PSTH ± SEM (``ax_p``); rates only: their rates."""
+    spikes = "readout_spikes" in rec
     cols = {"plus": "tab:red", "minus": "tab:blue"}
     if spikes:
         st = rec.spike_time.values
@@ -450,10 +441,10 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
         ax_p.set_ylabel("firing rate (Hz)")
         ax_p.set_title("readout neurons' rates (deterministic: one trial)", fontsize=10)
         ax_r.set_axis_off()
-    ax_p.legend(fontsize=8, loc="upper left", frameon=False)
-    for a in (ax_r, ax_p):
-        a.set_xlabel("time (s)")
-    ax_h = fig.add_subplot(gs[2, :])
+
+
+def _replay_lc_panel(fig, ax_h, rec: xr.Dataset, t: np.ndarray, eye: bool) -> None:
+    """The LC fields' sustained pathway (1/s), fields by eccentricity against time, with its colour bar."""
     if "lc_r" in rec:
         order = np.argsort(np.hypot(rec.azimuth_deg.values, rec.elevation_deg.values))
         lim = float(np.nanpercentile(np.abs(rec.lc_r.values), 99)) or 1.0
@@ -461,6 +452,31 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
                          extent=(t[0], t[-1], len(order), 0), interpolation="nearest")
         ax_h.set_ylabel("LC field\n(by eccentricity)")
         fig.colorbar(im, ax=ax_h, label="field's ρ = v/D (1/s)" if eye else "sustained pathway r (1/s)")
+
+
+def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
+    """Velocity (truth, arithmetic readout, readout neuron mean ± SEM over trials); the readout neurons'
+    raster (spike times at their step's start, integer trial ticks) beside their PSTH ± SEM; the LC sustained pathway
+    of every field (labelled colour bar). PNG (200 dpi) and PDF."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+
+    t = rec.time.values
+    eye = rec.attrs.get("eye") == "fly"
+    fig = plt.figure(figsize=(13, 8.5), layout="constrained")
+    gs = fig.add_gridspec(3, 2, height_ratios=[2.2, 1.6, 1.5], width_ratios=[1, 1])
+    ax_v = fig.add_subplot(gs[0, :])
+    _replay_velocity_panel(fig, ax_v, rec, t, eye)
+    ax_r = fig.add_subplot(gs[1, 0])
+    ax_p = fig.add_subplot(gs[1, 1], sharex=ax_r)
+    _replay_neuron_panels(ax_r, ax_p, rec, t, eye)
+    ax_p.legend(fontsize=8, loc="upper left", frameon=False)
+    for a in (ax_r, ax_p):
+        a.set_xlabel("time (s)")
+    ax_h = fig.add_subplot(gs[2, :])
+    _replay_lc_panel(fig, ax_h, rec, t, eye)
     ax_h.set_xlabel("time (s)")
     return save_png_and_pdf(fig, path)
 

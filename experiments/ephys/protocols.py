@@ -126,6 +126,38 @@ def _probe_pairs(rig: Rig, kind: str, direction_deg: float, centre_deg=(0.0, 0.0
     return np.unique(good[np.argmin(d, axis=1)])
 
 
+def _add_tuning(ds: xr.Dataset, monitors, rig: Rig, tf: np.ndarray, settle_s: float) -> None:
+    """Per monitor, ``<var>_tuning`` (and ``_tuning_sem`` over trials) and ``<var>_peak_temporal_frequency_hz``
+    from the recording's steady state after ``settle_s`` (s), at the temporal frequencies ``tf`` (Hz)."""
+    t = ds.time.values
+    for mon in monitors:
+        da = ds[mon.name]
+        x = da.values
+        scale = 1.0 / rig.dt if mon.variable == "lc.spikes" else 1.0
+        units = "Hz" if mon.variable == "lc.spikes" else da.attrs["units"]
+        what = "firing rate from spike counts" if mon.variable == "lc.spikes" else da.attrs["long_name"]
+        nd = da.dims[-1]
+        if "trial" in da.dims:  # per trial, then mean and SEM across trials
+            ax = da.dims.index("trial")
+            per = steady_state_mean(np.moveaxis(x, ax, 2), t, tf[:, None, None], settle_s) * scale  # (TF, C, K, X)
+            mean = per.mean(axis=2)
+            k = per.shape[2]
+            if k > 1:
+                ds[f"{mon.name}_tuning_sem"] = (("temporal_frequency_hz", "contrast", nd),
+                                                per.std(axis=2, ddof=1) / np.sqrt(k),
+                                                {"units": units, "long_name": f"SEM across {k} trials of the "
+                                                 f"steady-state {what}"})
+        else:
+            mean = steady_state_mean(x, t, tf[:, None], settle_s) * scale
+        ds[f"{mon.name}_tuning"] = (("temporal_frequency_hz", "contrast", nd), mean,
+                                    {"units": units, "long_name": f"steady-state {what} (mean over whole "
+                                     f"periods after {settle_s} s, trial mean)"})
+        ok = np.isfinite(mean).all(axis=0)
+        peak = np.where(ok, tf[np.argmax(np.where(np.isfinite(mean), mean, -np.inf), axis=0)], np.nan)
+        ds[f"{mon.name}_peak_temporal_frequency_hz"] = (("contrast", nd), peak, {
+            "units": "Hz", "long_name": f"temporal frequency of the largest steady-state {what}"})
+
+
 def _tf_tuning(config: EphysConfig, *, temporal_frequencies_hz=None, contrasts=(0.5,),
               wavelength_deg: float = 20.0, stimulus: str = "rings", direction_deg: float = 0.0,
               duration_s: float = 2.0, settle_s: float = 0.5, tau_s: float | None = None,
@@ -177,34 +209,8 @@ def _tf_tuning(config: EphysConfig, *, temporal_frequencies_hz=None, contrasts=(
                   mean_luminance=mean_luminance, stimulus_info=src.info, monitors=_specs(monitors))
     ds = record_dataset(rig, recs, monitors, {"temporal_frequency_hz": tf, "contrast": c}, n_steps,
                         rig_attrs(rig, "tf-tuning", params))
-    t = ds.time.values
     tau = cfg.circuit.emd.tau_s
-    for mon in monitors:
-        da = ds[mon.name]
-        x = da.values
-        scale = 1.0 / rig.dt if mon.variable == "lc.spikes" else 1.0
-        units = "Hz" if mon.variable == "lc.spikes" else da.attrs["units"]
-        what = "firing rate from spike counts" if mon.variable == "lc.spikes" else da.attrs["long_name"]
-        nd = da.dims[-1]
-        if "trial" in da.dims:  # per trial, then mean and SEM across trials
-            ax = da.dims.index("trial")
-            per = steady_state_mean(np.moveaxis(x, ax, 2), t, tf[:, None, None], settle_s) * scale  # (TF, C, K, X)
-            mean = per.mean(axis=2)
-            k = per.shape[2]
-            if k > 1:
-                ds[f"{mon.name}_tuning_sem"] = (("temporal_frequency_hz", "contrast", nd),
-                                                per.std(axis=2, ddof=1) / np.sqrt(k),
-                                                {"units": units, "long_name": f"SEM across {k} trials of the "
-                                                 f"steady-state {what}"})
-        else:
-            mean = steady_state_mean(x, t, tf[:, None], settle_s) * scale
-        ds[f"{mon.name}_tuning"] = (("temporal_frequency_hz", "contrast", nd), mean,
-                                    {"units": units, "long_name": f"steady-state {what} (mean over whole "
-                                     f"periods after {settle_s} s, trial mean)"})
-        ok = np.isfinite(mean).all(axis=0)
-        peak = np.where(ok, tf[np.argmax(np.where(np.isfinite(mean), mean, -np.inf), axis=0)], np.nan)
-        ds[f"{mon.name}_peak_temporal_frequency_hz"] = (("contrast", nd), peak, {
-            "units": "Hz", "long_name": f"temporal frequency of the largest steady-state {what}"})
+    _add_tuning(ds, monitors, rig, tf, settle_s)
     pr = np.abs(photoreceptor_frequency_response(cfg.circuit.photoreceptor, rig.dt, tf)) ** 2
     pred = emd_sine_response_discrete(cfg.circuit.emd, rig.dt, tf, np.pi / 2) * pr
     ds["emd_prediction"] = ("temporal_frequency_hz", pred / pred.max(),
@@ -243,6 +249,84 @@ def _moments(w: np.ndarray, az: np.ndarray, el: np.ndarray):
         return np.full(2, np.nan), np.full(2, np.nan)
     ca, ce = (w * az).sum() / s, (w * el).sum() / s
     return np.array([ca, ce]), np.array([(w * (az - ca) ** 2).sum() / s, (w * (el - ce) ** 2).sum() / s])
+
+
+def _rf_responses(rig: Rig, mon, locs: np.ndarray, dirs: np.ndarray, n_steps: int, speed: float, path: float,
+                  t_mid: float, size: float, contrast: float, batch: int) -> np.ndarray:
+    """Time integral of the monitored field variable per spot passage, (location, direction, field)."""
+    cfg, lat, pop = rig.config, rig.lattice, rig.population
+    L, D = len(locs), len(dirs)
+    ev_loc = np.repeat(np.arange(L), D)
+    ev_dir = np.tile(dirs, L)
+    if L == 0:
+        raise ValueError("no mapping location lies inside the eye; use a larger --extent or other --fields")
+    resp = np.empty((L * D, pop.n_fields))
+    rec_mon = {mon.variable: None}
+    for a in range(0, L * D, batch):  # batches of spot passages, each a condition from rest
+        b = min(L * D, a + batch)
+        stim, _ = moving_spot(lat, n_steps, centre_deg=locs[ev_loc[a:b]], direction_deg=ev_dir[a:b],
+                              speed_deg_s=speed, path_deg=path, t_mid_s=t_mid, size_deg=size, contrast=contrast,
+                              frame_rate_hz=1.0 / rig.dt, device=cfg.device)
+        out = rig.circuit.run(stim, trials=1, record=rec_mon, baseline=1.0)
+        resp[a:b] = out[mon.variable].sum(dim=1).double().cpu().numpy() * rig.dt
+    resp = resp.reshape(L, D, pop.n_fields)
+    return resp
+
+
+def _rf_sensitivity(cfg: EphysConfig, locs: np.ndarray, dirs: np.ndarray, resp: np.ndarray):
+    """Radial (expansion-direction) sensitivity and local preferred direction (degree), each (location, field)."""
+    D = len(dirs)
+    # Local motion sensitivity along each field's preferred (radial) direction, and the
+    # local preferred direction, from the first Fourier component over directions.
+    epi = direction_from_angles(*cfg.circuit.population.matched_filter.epipole_deg)
+    q = direction_from_angles(locs[:, 0], locs[:, 1])
+    east, south = tangent_basis(q)
+    radial = q * (q @ epi)[:, None] - epi[None, :]                      # away from the epipole, ⟂ q
+    nrm = np.linalg.norm(radial, axis=1, keepdims=True)
+    radial = np.where(nrm > 1e-9, radial / np.maximum(nrm, 1e-9), 0.0)
+    rad_ang = np.arctan2(np.sum(radial * south, 1), np.sum(radial * east, 1))       # (L,) image angle
+    th = np.radians(dirs)
+    z = (resp * np.exp(1j * th)[None, :, None]).sum(axis=1) * 2.0 / D               # (L, F)
+    sens = np.real(z * np.exp(-1j * rad_ang)[:, None])
+    pref = np.degrees(np.angle(z))
+    return sens, pref
+
+
+def _rf_dataset(rig: Rig, mon, fields: np.ndarray, locs: np.ndarray, dirs: np.ndarray, resp, sens, pref, cen,
+                sz) -> xr.Dataset:
+    """The rf-map Dataset: responses, sensitivity and preferred-direction maps, mapped centres and sizes per
+    field and per push-pull LC unit (no attributes)."""
+    pop = rig.population
+    L = len(locs)
+    units, long_name = VARIABLES[mon.variable]
+    iunits = "s" if units == "1" else f"{units} s"
+    units_of = np.nonzero(np.isin(pop.unit_field, fields))[0]
+    coords = {"location": np.arange(L), "location_azimuth_deg": ("location", locs[:, 0]),
+              "location_elevation_deg": ("location", locs[:, 1]), "direction_deg": dirs,
+              **dim_coords(rig, "field", fields), **dim_coords(rig, "neuron", units_of)}
+    f = fields
+    ds = xr.Dataset({
+        "rf_response": (("location", "direction_deg", "field"), resp[:, :, f],
+                        {"units": iunits, "long_name": f"time integral of the {long_name} per spot passage",
+                         "monitor": mon.variable}),
+        "rf_sensitivity": (("location", "field"), sens[:, f], {
+            "units": iunits, "long_name": "local motion sensitivity along the radial (expansion) direction"}),
+        "rf_preferred_direction_deg": (("location", "field"), pref[:, f], {
+            "units": "degree", "long_name": "local preferred direction in the image (0 right, 90 down)"}),
+        "rf_centre_azimuth_deg": ("field", cen[f, 0], {"units": "degree", "long_name": "mapped RF centre azimuth"}),
+        "rf_centre_elevation_deg": ("field", cen[f, 1], {"units": "degree",
+                                                         "long_name": "mapped RF centre elevation (positive down)"}),
+        "rf_size_deg": ("field", sz[f], {"units": "degree", "long_name": "mapped RF size, probe deconvolved",
+                                         "note": "FWHM (gaussian fields) or side (box fields)"}),
+    }, coords=coords)
+    unit_f = pop.unit_field[units_of]
+    pushpull = np.isin(pop.unit_type[units_of], ["expansion", "contraction"])
+    for k, v in (("azimuth", cen[:, 0]), ("elevation", cen[:, 1])):
+        ds[f"neuron_rf_centre_{k}_deg"] = ("neuron", np.where(pushpull, v[unit_f], np.nan), {
+            "units": "degree", "long_name": f"mapped RF centre {k} of the unit's field (push-pull units)"})
+    ds["neuron_rf_size_deg"] = ("neuron", np.where(pushpull, sz[unit_f], np.nan), {
+        "units": "degree", "long_name": "mapped RF size of the unit's field (push-pull units)"})
+    return ds
 
 
 def _rf_map(config: EphysConfig, *, fields=None, directions: int = 4, spacing_deg: float | None = None,
@@ -293,7 +377,6 @@ def _rf_map(config: EphysConfig, *, fields=None, directions: int = 4, spacing_de
         if not (val > 0 and math.isfinite(val)):
             raise ValueError(f"rf-map {name} must be a positive number, got {val}")
     locs = _rf_locations(rig, fields, spacing, extent)
-    L, D = len(locs), len(dirs)
     pass_s = path / speed
     n_steps = int(round((pass_s + tail_s) / rig.dt))
     t_mid = pass_s / 2.0
@@ -302,35 +385,8 @@ def _rf_map(config: EphysConfig, *, fields=None, directions: int = 4, spacing_de
         raise ValueError(f"rf-map maps one whole-field variable: record one of {', '.join(FIELD_RECORDS)} "
                          f"(no subset; choose fields with --fields), got {[m.variable for m in monitors]}")
     mon = monitors[0]
-    ev_loc = np.repeat(np.arange(L), D)
-    ev_dir = np.tile(dirs, L)
-    if L == 0:
-        raise ValueError("no mapping location lies inside the eye; use a larger --extent or other --fields")
-    resp = np.empty((L * D, pop.n_fields))
-    rec_mon = {mon.variable: None}
-    for a in range(0, L * D, batch):  # batches of spot passages, each a condition from rest
-        b = min(L * D, a + batch)
-        stim, _ = moving_spot(lat, n_steps, centre_deg=locs[ev_loc[a:b]], direction_deg=ev_dir[a:b],
-                              speed_deg_s=speed, path_deg=path, t_mid_s=t_mid, size_deg=size, contrast=contrast,
-                              frame_rate_hz=1.0 / rig.dt, device=cfg.device)
-        out = rig.circuit.run(stim, trials=1, record=rec_mon, baseline=1.0)
-        resp[a:b] = out[mon.variable].sum(dim=1).double().cpu().numpy() * rig.dt
-    resp = resp.reshape(L, D, pop.n_fields)
-
-    # Local motion sensitivity along each field's preferred (radial) direction, and the
-    # local preferred direction, from the first Fourier component over directions.
-    epi = direction_from_angles(*cfg.circuit.population.matched_filter.epipole_deg)
-    q = direction_from_angles(locs[:, 0], locs[:, 1])
-    east, south = tangent_basis(q)
-    radial = q * (q @ epi)[:, None] - epi[None, :]                      # away from the epipole, ⟂ q
-    nrm = np.linalg.norm(radial, axis=1, keepdims=True)
-    radial = np.where(nrm > 1e-9, radial / np.maximum(nrm, 1e-9), 0.0)
-    rad_ang = np.arctan2(np.sum(radial * south, 1), np.sum(radial * east, 1))       # (L,) image angle
-    th = np.radians(dirs)
-    z = (resp * np.exp(1j * th)[None, :, None]).sum(axis=1) * 2.0 / D               # (L, F)
-    sens = np.real(z * np.exp(-1j * rad_ang)[:, None])
-    pref = np.degrees(np.angle(z))
-
+    resp = _rf_responses(rig, mon, locs, dirs, n_steps, speed, path, t_mid, size, contrast, batch)
+    sens, pref = _rf_sensitivity(cfg, locs, dirs, resp)
     psf_mean, psf_var = _probe_psf(rig, dirs, size, path, speed, t_mid, n_steps, contrast)
     cen = np.full((pop.n_fields, 2), np.nan)
     sz = np.full(pop.n_fields, np.nan)
@@ -344,34 +400,7 @@ def _rf_map(config: EphysConfig, *, fields=None, directions: int = 4, spacing_de
     params = dict(fields=fields, directions=dirs, spacing_deg=spacing, extent_deg=extent, spot_size_deg=size,
                   path_deg=path, speed_deg_s=speed, contrast=contrast, tail_s=tail_s, recorded=mon.variable,
                   probe_psf_mean_deg=psf_mean, probe_psf_variance_deg2=psf_var)
-    units, long_name = VARIABLES[mon.variable]
-    iunits = "s" if units == "1" else f"{units} s"
-    units_of = np.nonzero(np.isin(pop.unit_field, fields))[0]
-    coords = {"location": np.arange(L), "location_azimuth_deg": ("location", locs[:, 0]),
-              "location_elevation_deg": ("location", locs[:, 1]), "direction_deg": dirs,
-              **dim_coords(rig, "field", fields), **dim_coords(rig, "neuron", units_of)}
-    f = fields
-    ds = xr.Dataset({
-        "rf_response": (("location", "direction_deg", "field"), resp[:, :, f],
-                        {"units": iunits, "long_name": f"time integral of the {long_name} per spot passage",
-                         "monitor": mon.variable}),
-        "rf_sensitivity": (("location", "field"), sens[:, f], {
-            "units": iunits, "long_name": "local motion sensitivity along the radial (expansion) direction"}),
-        "rf_preferred_direction_deg": (("location", "field"), pref[:, f], {
-            "units": "degree", "long_name": "local preferred direction in the image (0 right, 90 down)"}),
-        "rf_centre_azimuth_deg": ("field", cen[f, 0], {"units": "degree", "long_name": "mapped RF centre azimuth"}),
-        "rf_centre_elevation_deg": ("field", cen[f, 1], {"units": "degree",
-                                                         "long_name": "mapped RF centre elevation (positive down)"}),
-        "rf_size_deg": ("field", sz[f], {"units": "degree", "long_name": "mapped RF size, probe deconvolved",
-                                         "note": "FWHM (gaussian fields) or side (box fields)"}),
-    }, coords=coords)
-    unit_f = pop.unit_field[units_of]
-    pushpull = np.isin(pop.unit_type[units_of], ["expansion", "contraction"])
-    for k, v in (("azimuth", cen[:, 0]), ("elevation", cen[:, 1])):
-        ds[f"neuron_rf_centre_{k}_deg"] = ("neuron", np.where(pushpull, v[unit_f], np.nan), {
-            "units": "degree", "long_name": f"mapped RF centre {k} of the unit's field (push-pull units)"})
-    ds["neuron_rf_size_deg"] = ("neuron", np.where(pushpull, sz[unit_f], np.nan), {
-        "units": "degree", "long_name": "mapped RF size of the unit's field (push-pull units)"})
+    ds = _rf_dataset(rig, mon, fields, locs, dirs, resp, sens, pref, cen, sz)
     ds.attrs.update(rig_attrs(rig, "rf-map", params))
     ds.attrs["dphi_deg"] = dphi
     return cf_describe(ds)

@@ -42,6 +42,7 @@ class DepthConfig:
     rings_deg: tuple = (0.0, 5.0, 10.0, 20.0, 90.0)
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
@@ -54,15 +55,15 @@ class DepthResult:
     rate: (H, W) the fitted ``z = v/d`` (1/s) before inversion (NaN where undefined).
     method: "ratio", "tv" or "parallax".
     iterations, objective, converged, solve_s: TV solver diagnostics — full-resolution
-        iterations, objective as in :func:`tv_objective`, whether the tolerance was
-        met, seconds spent; None for the closed-form methods.
+        iterations, objective as in :func:`tv_objective` ((1/s)²), whether the tolerance was
+        met, seconds spent (s); None for the closed-form methods.
     coarse_iterations: TV cold start: iterations on each pyramid level, coarsest first
         (each costs about a quarter of the one above); () for a warm start.
-    epipole: the epipole (ex, ey) the map was computed with, when the caller refined it
+    epipole: the epipole (ex, ey), normalised, the map was computed with, when the caller refined it
         (:func:`refine_motion`); None otherwise.
-    dual, step: (2, H, W) the TV solver's dual variable and its adapted primal step,
-        for warm starts (pass the whole result as ``init`` to :func:`depth_tv`); None
-        otherwise.
+    dual, step: the TV solver's dual variable ((2, H, W), in γ's units) and its adapted primal
+        step τ (a float, 1/(normalised length)²), for warm starts (pass the whole result as ``init``
+        to :func:`depth_tv`); None otherwise.
     """
 
     depth: object

@@ -96,7 +96,8 @@ def _offsets(camera: PinholeCamera, epipole, like):
 
 
 def angle_from_epipole(camera: PinholeCamera, epipole) -> np.ndarray:
-    """Angle (degrees) between each pixel's ray (x, y, 1) and the epipole's ray, (H, W)."""
+    """Angle (degrees) between the ray (x, y, 1) of each pixel of ``camera`` and the epipole's ray, (H, W);
+    epipole (ex, ey) normalised."""
     ex, ey = _epipole(epipole)
     x, y = camera.normalised_grid(np.float64)
     # atan2(|a×b|, a·b) stays accurate for small angles, unlike acos of the dot product.
@@ -114,8 +115,9 @@ def _speed(v) -> float:
 def rate_to_depth(rate, v: float, max_depth_m: float, extra_valid=None) -> tuple[object, object]:
     """d = v / z with validity: z finite, of the sign of v (approach: expansion), d ≤ max_depth_m.
 
-    rate: (H, W) z in 1/s; v: forward speed (m/s). Returns depth (m, NaN where invalid)
-    and the bool mask. v = 0 or non-finite makes every pixel invalid: depth is then
+    rate: (H, W) z in 1/s; v: forward speed (m/s); max_depth_m: m; extra_valid: (H, W) bool, ANDed
+    into the mask (None: none). Returns depth ((H, W), m, NaN where invalid) and the (H, W) bool mask.
+    v = 0 or non-finite makes every pixel invalid: depth is then
     unobservable from flow, and saying so beats returning 0 or inf. Tensors or numpy arrays.
     """
     xp = _xp(rate)

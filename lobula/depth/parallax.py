@@ -38,7 +38,8 @@ def _rotation_matrix(omega, dt: float) -> np.ndarray:
 
 
 def derotate_flow(flow, camera: PinholeCamera, omega, dt: float | None = None):
-    """Remove the camera rotation (gyro ω, rad/s, camera frame) from flow (2, H, W), 1/s.
+    """Remove the camera rotation (gyro ω = ``omega`` (3,), rad/s, camera frame) from flow (2, H, W), 1/s,
+    of ``camera``; returns the translational flow (2, H, W), 1/s.
 
     dt None: instantaneous model, ṗ_t = ṗ − (rotational flow of ω).
     dt given: the flow is a displacement over dt seconds (ṗ·dt), static points move as
@@ -78,7 +79,8 @@ def depth_parallax(flow, camera: PinholeCamera, v: float, epipole, gyro=None,
     dt: seconds between the frames the flow came from; given, the finite rotation is
     undone exactly and the depth is that at the later frame (add v·dt for the earlier).
     Invalid (NaN) within ``min_radius_deg`` of the epipole, for the wrong sign, and
-    beyond ``config.max_depth_m``.
+    beyond ``config.max_depth_m``. flow (2, H, W) 1/s of ``camera``; v: forward speed (m/s);
+    epipole (ex, ey): normalised; gyro (3,) rad/s; min_radius_deg: degrees (None: ``config``'s).
     """
     f, as_numpy = _check_flow(flow, camera)
     ft = f if gyro is None else derotate_flow(f, camera, gyro, dt=dt)

@@ -11,7 +11,8 @@ from lobula.camera import PinholeCamera
 def radial_rate(flow, camera: PinholeCamera, epipole) -> object:
     """Per-pixel least-squares radial rate r = ⟨ṗ, p−e⟩ / |p−e|² (1/s), shape (H, W).
 
-    NaN where |p−e| = 0 or the flow is not finite. Same array kind as ``flow``.
+    NaN where |p−e| = 0 or the flow is not finite. Same array kind as ``flow``. flow (2, H, W) 1/s:
+    normalised flow of ``camera``; epipole (ex, ey): normalised.
     """
     f, as_numpy = _check_flow(flow, camera)
     xp = _xp(f)
@@ -27,8 +28,9 @@ def depth_ratio(flow, camera: PinholeCamera, v: float, epipole,
                 min_radius_deg: float | None = None, config: DepthConfig | None = None) -> DepthResult:
     """Ratio depth d = v / r with r = ⟨ṗ, p−e⟩ / |p−e|² per pixel.
 
-    flow: (2, H, W) normalised flow (1/s); v: forward speed (m/s, > 0 approaching);
-    epipole: (ex, ey) normalised. Pixels within ``min_radius_deg`` of the epipole, with r
+    flow: (2, H, W) normalised flow (1/s) of ``camera``; v: forward speed (m/s, > 0 approaching);
+    epipole: (ex, ey) normalised; min_radius_deg: degrees (None: ``config``'s).
+    Pixels within ``min_radius_deg`` of the epipole, with r
     non-finite, of the wrong sign for v (contraction while approaching), or beyond
     ``config.max_depth_m`` are invalid (NaN) — the per-pixel ratio has no pooling to
     fall back on, so near the epipole it reports nothing rather than nonsense.

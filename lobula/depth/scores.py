@@ -13,7 +13,7 @@ from lobula.camera import PinholeCamera
 
 
 def scorable(true, max_depth_m: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Which pixels of an exact depth map (H, W) are scored: (scored, sky, far) bool masks.
+    """Which pixels of an exact depth map ``true`` (H, W), m, are scored: (scored, sky, far) (H, W) bool masks.
 
     sky: no surface (true depth non-finite or ≤ 0); far: finite but beyond
     ``max_depth_m`` (the stated range of the scores); scored: the rest.
@@ -25,9 +25,10 @@ def scorable(true, max_depth_m: float = math.inf) -> tuple[np.ndarray, np.ndarra
 
 
 def error_stats(pred: np.ndarray, true: np.ndarray) -> dict:
-    """Depth errors over paired 1-D arrays of estimated and exact depth (m, both > 0).
+    """Depth errors over paired 1-D arrays ``pred`` (n,) and ``true`` (n,) of estimated and exact depth
+    (m, both > 0).
 
-    abs_rel (mean |d̂−d|/d), median_abs_rel, rmse_m, rmse_log (RMS of ln d̂ − ln d),
+    abs_rel (mean |d̂−d|/d), median_abs_rel, rmse_m (m), rmse_log (RMS of ln d̂ − ln d),
     delta_1_25 (fraction with max(d̂/d, d/d̂) < 1.25); NaN for empty input.
     """
     if pred.size == 0:
@@ -44,8 +45,9 @@ def depth_metrics(pred, true, mask, epipole, camera: PinholeCamera,
                   rings_deg=(0.0, 5.0, 10.0, 20.0, 90.0), max_depth_m: float = math.inf) -> dict:
     """Score a depth map against exact depth, overall and in rings around the epipole.
 
-    pred, true: (H, W) forward depth (m); mask: (H, W) bool validity of ``pred`` (None:
-    finite pred). Pixels are scored where ``true`` is finite, > 0 and ≤ ``max_depth_m``
+    pred, true: (H, W) forward depth (m), ``camera``'s size; mask: (H, W) bool validity of ``pred`` (None:
+    finite pred); epipole (ex, ey): normalised; max_depth_m: m.
+    Pixels are scored where ``true`` is finite, > 0 and ≤ ``max_depth_m``
     (:func:`scorable`; the others are counted as n_sky and n_far). rings_deg: ring
     edges in degrees of angle between the pixel's ray and the epipole's ray; ring i is
     [rings_deg[i], rings_deg[i+1]).

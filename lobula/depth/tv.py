@@ -48,9 +48,11 @@ def _tv(z: torch.Tensor, fx: float, fy: float) -> torch.Tensor:
 
 
 def tv_objective(z, flow, camera: PinholeCamera, epipole, gamma: float, weights=None) -> float:
-    """The TV depth objective Σ c·|ṗ − z(p−e)|² + γ·Σ|∇z| (∇ in normalised units) at ``z`` (H, W).
+    """The TV depth objective Σ c·|ṗ − z(p−e)|² + γ·Σ|∇z| (∇ in normalised units) at ``z`` (H, W) 1/s,
+    a float in (1/s)².
 
-    c: per-pixel data weights (``weights``, (H, W), default 1). Non-finite flow pixels
+    flow (2, H, W) 1/s of ``camera``; epipole (ex, ey): normalised; gamma: γ (1/s · normalised
+    length). c: per-pixel data weights (``weights``, (H, W), default 1). Non-finite flow pixels
     carry no data term (as in :func:`depth_tv`).
     """
     f, _ = _check_flow(flow, camera)
@@ -70,7 +72,7 @@ def depth_tv(flow, camera: PinholeCamera, v: float, epipole, gamma: float | None
              config: DepthConfig | None = None, weights=None) -> DepthResult:
     """TV-regularised depth: minimise Σ c·|ṗ − z(p−e)|² + γ·TV(z) over z = v/d, then d = v/z.
 
-    flow: (2, H, W) normalised flow (1/s); pixels with non-finite flow get no data term
+    flow: (2, H, W) normalised flow (1/s) of ``camera``; pixels with non-finite flow get no data term
     (TV fills them in). v: forward speed (m/s); epipole: (ex, ey) normalised.
     gamma: TV weight (1/s · normalised length; the gradient is in normalised units, so it
     is resolution independent); default ``config.gamma``.

@@ -27,6 +27,9 @@ class EyeCircuit:
     the haltere subtracted, as ρ at the learned gain; 0 without haltere subtraction),
     ``haltere_gain`` (K, F') the gain it was subtracted at (1 + α; 1 fixed; NaN without), with
     F' = F fields, or the mirror groups (F/2) under wide-field rotation cancelling.
+
+    eye: the :class:`lobula.compound_eye.CompoundEye`; rate_hz: the rate (Hz) the luminance and gyro
+    arrive at; config: the :class:`EyeCircuitConfig` (None: the default).
     """
 
     #: haltere gain regression: running-mean time constant and memory (readout steps), prior std of α
@@ -89,6 +92,7 @@ class EyeCircuit:
 
     @property
     def n_outputs(self) -> int:
+        """F': the number of output columns (fields, or mirror groups under wide-field cancelling)."""
         F = self.fields.n_fields
         return F // 2 if self.config.rotation in ("wide-field", "both") and F > 1 and \
             (self.fields.mirror != np.arange(F)).all() else F
@@ -213,11 +217,13 @@ class EyeCircuit:
         return dict(sums=sums, **{k: v for k, v in keep.items() if v is not None})
 
     def solve_blocks(self, block_sums: np.ndarray, t_end: np.ndarray) -> dict:
-        """ρ, g and r2_eff from block sums (..., K, 5F) (the readout's 2×2 solve; continues the floor)."""
+        """ρ, g and r2_eff (the dict of :class:`EyeCircuit`'s results) from ``block_sums`` (..., K, 5F) of blocks
+        ending at ``t_end`` (K,) s (the readout's 2×2 solve; continues the floor)."""
         return self._solve(np.asarray(block_sums, dtype=float), np.asarray(t_end, dtype=float))
 
     def process(self, luminance, gyro) -> dict:
-        """Feed (T, n) luminance and (T, 3) angular velocity (rad/s, camera frame) at the eye's rate."""
+        """Feed (T, n) luminance (any units) and ``gyro`` (T, 3) angular velocity (rad/s, camera frame) at the
+        eye's rate; returns the readout steps completed (the dict of :class:`EyeCircuit`'s results)."""
         lum = torch.as_tensor(np.array(luminance, dtype=np.float32))
         gyr = torch.as_tensor(np.array(gyro, dtype=np.float32))
         if lum.dim() != 2 or lum.shape[1] != self.eye.n:
@@ -239,7 +245,7 @@ class EyeCircuit:
         return self._solve(blocks, t_end)
 
     def finish(self) -> dict:
-        """The final partial block, if any."""
+        """The final partial block, if any, as :meth:`process` returns steps (K = 0 or 1)."""
         if not self._carry:
             return self._solve(np.zeros((0, 5 * self.fields.n_fields)), np.zeros(0))
         s = self._carry.pop()

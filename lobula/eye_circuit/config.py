@@ -39,9 +39,11 @@ class EyeFieldConfig:
 
     @property
     def spacing(self) -> float:
+        """Centre spacing (degrees): spacing_deg, or 2/3 of the size."""
         return float(self.spacing_deg if self.spacing_deg is not None else 2.0 * self.size_deg / 3.0)
 
     def to_dict(self) -> dict:
+        """Every field as a dict (the angle ranges as lists)."""
         d = asdict(self)
         d["azimuth_deg"], d["elevation_deg"] = list(self.azimuth_deg), list(self.elevation_deg)
         return d
@@ -113,6 +115,7 @@ class EyeCircuitConfig:
             raise ValueError(f"readout_rate_hz must be positive, got {self.readout_rate_hz}")
 
     def to_dict(self) -> dict:
+        """Every field as a dict, nested configurations as dicts."""
         return dict(photoreceptor=self.photoreceptor.to_dict(), emd=self.emd.to_dict(),
                     fields=self.fields.to_dict(), rotation=self.rotation, normaliser=self.normaliser,
                     r2_term=self.r2_term,
@@ -122,6 +125,7 @@ class EyeCircuitConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "EyeCircuitConfig":
+        """The configuration :meth:`to_dict` wrote as ``d``."""
         d = dict(d)
         # A stored configuration without these fields describes a circuit without them: no surround
         # and the haltere gain's prior at unit gain.

@@ -14,8 +14,9 @@ from .config import EyeFieldConfig
 
 @dataclass
 class EyeFields:
-    """LC fields: centres (F, 2) deg (az, el), eye (F,), unit centre directions (F, 3), theta (F,) rad
-    from ẑ, the (F, P) pair weights, and ``mirror`` (F,): the index of each field's mirror field."""
+    """LC fields: ``centres_deg`` (F, 2) deg (az, el), ``eye`` (F,) (0 right, 1 left), unit centre
+    ``directions`` (F, 3), ``theta`` (F,) rad from ẑ, the (F, P) pair ``weights`` (dimensionless, peak 1),
+    ``mirror`` (F,): the index of each field's mirror field, and ``size_deg``, the fields' FWHM (degrees)."""
 
     centres_deg: np.ndarray
     eye: np.ndarray
@@ -27,6 +28,7 @@ class EyeFields:
 
     @property
     def n_fields(self) -> int:
+        """Number of fields, F."""
         return len(self.eye)
 
 
@@ -36,7 +38,8 @@ def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def eye_fields(eye: CompoundEye, config: EyeFieldConfig) -> EyeFields:
-    """Tile both eyes with mirror-symmetric Gaussian fields; weights over the eye's own pairs."""
+    """Tile both eyes of ``eye`` with mirror-symmetric Gaussian fields as ``config`` says; weights over the
+    eye's own pairs."""
     from ..compound_eye import eye_directions
 
     sp = config.spacing

@@ -21,7 +21,8 @@ def natural_scene_gain(dphi_deg: float, drho_deg: float, surround: float = 1.0, 
     as aliasing does). P: natural scenes' isotropic 1/f^``spectrum_exponent`` power spectrum (≈ 2:
     Field 1987, J Opt Soc Am A 4:2379; van der Schaaf & van Hateren 1996, Vision Res 36:2759), times the
     Gaussian acceptance's squared MTF (FWHM ``drho_deg``) and the squared transfer of the lattice
-    filters, ((1 − α) + α·N(k⃗))·(1 − s·N(k⃗)) with N the six-neighbour mean on the hexagonal lattice of
+    filters, ((1 − α) + α·N(k⃗))·(1 − s·N(k⃗)) (α ``column_pool``, s ``surround``)
+    with N the six-neighbour mean on the hexagonal lattice of
     spacing ``dphi_deg`` (:func:`lobula.photoreceptor.lattice_filter`). Averaged over the lattice's
     three pair orientations on an n × n grid of k⃗ up to ``k_max`` rad per Δφ.
 

@@ -4,7 +4,7 @@
 it needs torch, what it yields, its epipole policy, its readout defaults, how the gyro derotates
 it, and ``open``, the factory that, given the footage, the :class:`~lobula.config.VelocityConfig`
 and the rest of a :class:`~lobula.front_ends.base.FrontEndInput`, yields the samples
-:func:`experiments.velocity.field_rates` consumes:
+:func:`lobula.velocity.field_rates` consumes:
 
 * ``dis``, ``farneback``: dense optical flow on the camera's frames (:mod:`lobula.front_ends.optic_flow`);
 * ``flo``: precomputed flow from ``.flo`` files (:mod:`lobula.front_ends.flo`);

@@ -1,7 +1,7 @@
 """What a front end is given and what it yields, shared by the front-end modules (which import this
 module, never :mod:`lobula.front_ends` itself).
 
-A front end turns footage into one of two kinds of sample, which :func:`experiments.velocity.field_rates`
+A front end turns footage into one of two kinds of sample, which :func:`lobula.velocity.field_rates`
 consumes: :class:`lobula.flow.FlowSample` (a pair's dense flow, (2, H, W) 1/s, that the pipeline
 derotates and pools into the receptive fields) or :class:`FieldSample` (the fields' rates at one
 frame, pooled by the front end itself).

@@ -6,5 +6,6 @@ from .optic_flow import dense_flow
 
 
 def open_farneback(inp: FrontEndInput) -> FrontEndStream:
-    """Farnebäck flow pairs on the footage's frames (:func:`lobula.front_ends.optic_flow.dense_flow`)."""
+    """Farnebäck flow pairs (1/s) on the frames of ``inp`` (a FrontEndInput;
+    :func:`lobula.front_ends.optic_flow.dense_flow`)."""
     return dense_flow(inp, "farneback")

@@ -13,8 +13,9 @@ from .base import FrontEndInput, FrontEndStream, timed
 
 
 def flo_samples(footage, flo_files: list[Path], units: FloUnits):
-    """FlowSamples (normalised flow, 1/s) from .flo files named ``*_<i0>_to_<i1>.flo`` (raw frame numbers
-    or indices) on ``footage`` (a :class:`lobula.readers.core.Footage`)."""
+    """FlowSamples (normalised flow (2, H, W), 1/s) from ``flo_files``, .flo files named ``*_<i0>_to_<i1>.flo``
+    (raw frame numbers or indices), in ``units`` (:class:`lobula.readers.flo.FloUnits`), on ``footage`` (a
+    :class:`lobula.readers.core.Footage`)."""
     by_name = {int(f.stem): i for i, f in enumerate(footage.files) if f.stem.isdigit()}
     for path in flo_files:
         m = re.search(r"(\d+)_to_(\d+)\.flo$", path.name)

@@ -20,6 +20,7 @@ def gravity_time_constant(time_s: np.ndarray, t0: float, tau_s: float = GRAVITY_
                           init_s: float = GRAVITY_INIT_S) -> np.ndarray:
     """Time constant (s, like time_s) of the online gravity estimate (:func:`online_gravity`) at each time.
 
+    time_s (n,) s; t0: the record's start, s; tau_s, init_s: s.
     Over the first ``init_s`` after ``t0`` it is a growing mean (τ = elapsed time), then an
     exponential average of time constant ``tau_s``. Its error b (the offset it leaves in
     the forward acceleration) then obeys ḃ = −a_m/τ with a_m the forward acceleration it
@@ -31,8 +32,9 @@ def gravity_time_constant(time_s: np.ndarray, t0: float, tau_s: float = GRAVITY_
 
 def online_gravity(time_s: np.ndarray, f: np.ndarray, tau_s: float = GRAVITY_WINDOW_S,
                    init_s: float = GRAVITY_INIT_S) -> np.ndarray:
-    """Causal estimate of −gravity as specific force (n, 3) from the stabilised specific force f (n, 3).
+    """Causal estimate of −gravity as specific force (n, 3) m/s² from the stabilised specific force f (n, 3) m/s².
 
+    time_s (n,) s: the samples' times; tau_s, init_s: s.
     A mean over the record's first ``init_s`` seconds (growing until then), then an
     exponential average with time constant ``tau_s``: the reference is set at the start and
     moves only slowly after, so its error is nearly a constant offset (the platform's mean
@@ -61,12 +63,13 @@ def local_linear(time_s: np.ndarray, values: np.ndarray, window_s: float, causal
                  slope_std: np.ndarray | float = np.inf, correlation_s: float = ACCEL_CORRELATION_S) -> np.ndarray:
     """A straight line in time fitted to ``values`` (n, k) over a sliding window, evaluated at each sample.
 
+    time_s (n,) s: the samples' times; window_s: the window's length, s; correlation_s: s.
     Zero-phase: the window is centred on each sample (clipped to the record); causal: it
     ends at the sample. The slope has a zero-mean Gaussian prior of std ``slope_std``
     (per sample, (n,) or scalar; units of values per second) against the residual
     variance in the window, whose samples count as independent once per
     ``correlation_s``: a slope the data cannot tell from their own wander stays near 0.
-    Vectorised with cumulative sums; returns (n, k).
+    Vectorised with cumulative sums; returns (n, k) in the units of values.
     """
     t = np.asarray(time_s, float) - float(np.mean(time_s))
     y = np.asarray(values, float)
@@ -97,9 +100,10 @@ def local_linear(time_s: np.ndarray, values: np.ndarray, window_s: float, causal
 def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None,
                          causal: bool = False, window_s: float = GRAVITY_WINDOW_S,
                          bias: np.ndarray | None = None, orientation: np.ndarray | None = None) -> np.ndarray:
-    """Gravity-free acceleration along the optical axis (m/s², (n,)) from specific force (n, 3).
+    """Gravity-free acceleration along the optical axis (m/s², (n,)) from specific force ``accel`` (n, 3) m/s²
+    sampled at ``time_s`` (n,) s.
 
-    Raises ValueError for non-finite input. With ``gyro`` (n, 3) rad/s the gravity
+    window_s: s. Raises ValueError for non-finite input. With ``gyro`` (n, 3) rad/s the gravity
     direction follows the camera's rotation; without it the orientation is taken as fixed.
     Gravity in the gyro-stabilised frame is, offline, the mean specific force there over
     ``window_s`` centred on each sample (a bounded track's acceleration averages out);
@@ -141,7 +145,8 @@ def forward_axis(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False,
     gravity reference averaged in), so its share of the forward acceleration is axis(t)·δ, which
     changes as the camera turns; the readout tracks δ (lobula.readout.kalman_velocity's offset_axis).
     orientation: :func:`orientation_from_gyro`'s rotations where already integrated (as for
-    :func:`forward_acceleration`); else integrated here.
+    :func:`forward_acceleration`); else integrated here. time_s (n,) s, gyro (n, 3) rad/s, bias
+    (n, 3) rad/s.
     """
     rot = orientation_from_gyro(time_s, gyro, causal, bias) if orientation is None else np.asarray(orientation, float)
     return rot[:, :, 2]
@@ -149,12 +154,12 @@ def forward_axis(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False,
 
 def transport_rate(times: np.ndarray, time_s: np.ndarray, gyro: np.ndarray, bias: np.ndarray | None,
                    heading: np.ndarray, window_s: float, causal: bool = False) -> np.ndarray:
-    """λ = ω_x·e_y − ω_y·e_x (1/s, (n,)) at ``times``: how fast the velocity along the optical axis
+    """λ = ω_x·e_y − ω_y·e_x (1/s, (n,)) at ``times`` (n,) s: how fast the velocity along the optical axis
     changes, per m/s of it, beyond the forward acceleration, in a camera that turns.
 
     In the camera's (turning) frame dv/dt = a − ω × v, and with the heading e = (v_x, v_y)/v_z the
     forward part of ω × v is λ·v_z. gyro (m, 3) rad/s in the camera frame at ``time_s`` (m,), bias
-    (m, 3) rad/s removed where given (else the still-camera estimate, causal or not), averaged over ``window_s``
+    (m, 3) rad/s removed where given (else the still-camera estimate, causal or not), averaged over ``window_s`` (s)
     about each time (:func:`resample_to`); heading (n, 2) normalised (the epipole), NaN read as 0.
     """
     w = gyro - (gyro_bias(time_s, gyro, causal) if bias is None else np.asarray(bias, float))
@@ -168,10 +173,11 @@ def gravity_drift_std(time_s: np.ndarray, gyro: np.ndarray, causal: bool = True,
                       prior: float = GYRO_BIAS_PRIOR) -> np.ndarray:
     """How fast (m/s²/s, (n,)) gravity may drift through the forward axis: |g|·σ_b.
 
+    time_s (n,) s and gyro (n, 3) rad/s: the gyro's samples.
     σ_b: that of :func:`gyro_bias` (its prior ``prior``, rad/s) — causal: from the still samples seen
     so far (online); else from the whole record's — or ``bias_std`` (n, 3) rad/s per camera axis where given
     (e.g. :func:`vision_gyro_bias`'s). A bias error δb turns gravity g at δb × g, whose
-    forward (z) part is δb_x·g_y − δb_y·g_x: with ``accel`` (n, 3), the specific force whose
+    forward (z) part is δb_x·g_y − δb_y·g_x: with ``accel`` (n, 3) m/s², the specific force whose
     mean (expanding, causal; whole record, offline) gives g's direction in the camera,
     the std is |g|·√(σ_x²ĝ_y² + σ_y²ĝ_x²); without it, |g|·max σ (any orientation).
     """
@@ -185,7 +191,7 @@ def gravity_drift_std(time_s: np.ndarray, gyro: np.ndarray, causal: bool = True,
 
 
 def gravity_direction(accel: np.ndarray, causal: bool = True) -> np.ndarray:
-    """Unit vectors (n, 3) along the specific force's mean, accel (n, 3): expanding (causal) or the whole
+    """Unit vectors (n, 3) along the specific force's mean, accel (n, 3) m/s²: expanding (causal) or the whole
     record's — the direction gravity takes in the camera, near enough for its leak through small angles."""
     f = np.asarray(accel, float)
     g = np.cumsum(f, 0) / np.arange(1, len(f) + 1)[:, None] if causal else np.broadcast_to(f.mean(0), f.shape)
@@ -196,11 +202,11 @@ def attitude_leak(time_s: np.ndarray, bias: np.ndarray, accel: np.ndarray) -> np
     """Gravity that an online attitude has let into the forward axis, by the newest gyro-bias
     estimate (m/s², (n,)).
 
-    Online, the attitude at each sample s was integrated with the bias known then, b̂(s) (``bias``
-    (n, 3) rad/s, camera frame, e.g. :func:`fused_gyro_bias`'s causal track). By the estimate
+    Online, the attitude at each sample s is integrated with the bias known then, b̂(s) (``bias``
+    (n, 3) rad/s, camera frame, e.g. :func:`fused_gyro_bias`'s causal track, at ``time_s`` (n,) s). By the estimate
     at t that attitude is off by ε(t) = ∫_{t0}^{t} (b̂(t) − b̂(s)) ds, which turns gravity into the
     forward (z) axis by |g|·(ε_x·ĝ_y − ε_y·ĝ_x) (ĝ: the specific force's expanding mean direction,
-    ``accel`` (n, 3), as in :func:`gravity_drift_std`). It stays 0 while the estimate stays put and
+    ``accel`` (n, 3) m/s², as in :func:`gravity_drift_std`). It stays 0 while the estimate stays put and
     grows when the estimate moves — a bias outside the prior being learned. A 1°/s pitch bias
     learned over ~3 s leaves ~0.4 m/s² (rotation family, 160×120); the suite's 0.25°/s, ≤ 0.15.
     """
@@ -216,9 +222,9 @@ LEAK_WINDOW_S = 1.0  # s: how far back leak_walk looks at the attitude leak's ch
 
 
 def leak_walk(times: np.ndarray, time_s: np.ndarray, leak: np.ndarray, window_s: float = LEAK_WINDOW_S) -> np.ndarray:
-    """Random-walk density (m/s²/√s, like ``times``) that lets the readout's accelerometer offset move
-    as fast as the attitude leak (:func:`attitude_leak`, at ``time_s``) moved over the last
-    ``window_s``: |L(t) − L(t − window_s)|/√window_s (so over that window the offset's variance grows
+    """Random-walk density (m/s²/√s, like ``times``, s) that lets the readout's accelerometer offset move
+    as fast as the attitude leak (``leak`` (m,) m/s², :func:`attitude_leak`, at ``time_s`` (m,) s) moves
+    over the last ``window_s`` (s): |L(t) − L(t − window_s)|/√window_s (so over that window the offset's variance grows
     by the leak's change squared).
 
     The leak is not subtracted from the acceleration: the flow-fitted bias also wanders on its own,

@@ -26,15 +26,16 @@ def gyro_bias(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False, window
               prior: float = GYRO_BIAS_PRIOR):
     """Gyroscope bias (rad/s, (n, 3)) estimated where the camera is still — the one implementation.
 
+    time_s (n,) s and gyro (n, 3) rad/s: the gyro's samples.
     A sample is still when, over a window of ``window_s`` around it (causal: ending at it),
     the rate's standard deviation on every axis stays within 1.5× the white noise the
     sensor's ``noise_density`` allows, i.e. the camera is not turning. The bias is the
     mean rate over the still samples: online, those seen so far (0 before the first,
     the bias's expected value); offline, all of the record's. A camera that keeps turning
     gives no estimate rather than a wrong one: a mean rate over motion is the net angle
-    turned divided by the time, not the bias. with_std: also return the estimate's
-    standard deviation (rad/s, (n,)): the prior ``prior`` (rad/s; default ``GYRO_BIAS_PRIOR``)
-    narrowed by the still samples' white noise.
+    turned divided by the time, not the bias. window_s: s; noise_density: rad/s/√Hz.
+    with_std: also return the estimate's standard deviation (rad/s, (n,)): the prior ``prior``
+    (rad/s; default ``GYRO_BIAS_PRIOR``) narrowed by the still samples' white noise.
     """
     time_s, gyro = np.asarray(time_s, float), np.asarray(gyro, float)
     n = len(time_s)
@@ -68,15 +69,16 @@ def orientation_from_gyro(time_s: np.ndarray, gyro: np.ndarray, causal: bool = F
                           bias: np.ndarray | None = None) -> np.ndarray:
     """Rotations (n, 3, 3) taking camera-frame vectors at each sample into the first sample's frame.
 
+    time_s (n,) s and gyro (n, 3) rad/s: the gyro's samples.
     The gyro bias is removed first: ``bias`` (n, 3) rad/s where given (e.g.
     :func:`vision_gyro_bias`'s), else the still-camera estimate of :func:`gyro_bias`.
     Each sample is the rate *at* its time stamp, so the rotation between samples k − 1 and
     k is integrated with the rate taken linear in between (:func:`rotation_increments`:
     the trapezoid plus the coning term), which needs nothing after sample k (causal). The
-    rectangle rule ω_k·Δt it replaces runs half a sample (2 ms at 250 Hz) late: under a
-    3-axis turn that left a residual rotation of the order of a MEMS gyro's bias in every
-    flow pair, which biased vision's κ = a/v by 2–6 % low and the low-speed epipole by
-    degrees (rotation family, development seeds, exact rate integrated both ways).
+    rectangle rule ω_k·Δt runs half a sample (2 ms at 250 Hz) late: under a 3-axis turn it
+    leaves a residual rotation of the order of a MEMS gyro's bias in every flow pair, which
+    biases vision's κ = a/v by 2–6 % low and the low-speed epipole by degrees (rotation
+    family, development seeds, exact rate integrated both ways).
     """
     n = len(time_s)
     w = gyro - (gyro_bias(time_s, gyro, causal) if bias is None else np.asarray(bias, float))
@@ -92,7 +94,7 @@ def orientation_from_gyro(time_s: np.ndarray, gyro: np.ndarray, causal: bool = F
 
 def rotation_increments(time_s: np.ndarray, rate: np.ndarray) -> np.ndarray:
     """Rotation vectors (n − 1, 3) rad of the body frame from sample k − 1 to k, for rates
-    (n, 3) rad/s sampled at ``time_s`` (n,) s and taken linear in between.
+    ``rate`` (n, 3) rad/s sampled at ``time_s`` (n,) s and taken linear in between.
 
     For ω(τ) linear from ω₀ to ω₁ over Δt the rotation vector is, to third order in the
     angle, (ω₀ + ω₁)/2·Δt + (ω₀ × ω₁)·Δt²/12 (the trapezoid plus the coning correction;
@@ -118,12 +120,12 @@ HEADING_BIAS_STD_SCALE = 6.0
 def fused_gyro_bias(time_s: np.ndarray, still_bias: np.ndarray, still_std: np.ndarray, t_est: np.ndarray,
                     est_bias: np.ndarray, est_std: np.ndarray, causal: bool,
                     est_std_scale: float = HEADING_BIAS_STD_SCALE) -> tuple[np.ndarray, np.ndarray]:
-    """The gyro bias (rad/s, (n, 3)) and its std at the IMU samples ``time_s`` (n,): the still-camera
+    """The gyro bias and its std (rad/s, both (n, 3)) at the IMU samples ``time_s`` (n,) s: the still-camera
     estimate (still_bias (n, 3), still_std (n,) or (n, 3); :func:`gyro_bias`) and the flow's
     (est_bias, est_std (m, 3), known at t_est (m,) s; :class:`lobula.epipole.HeadingBiasEstimator`,
-    its std times ``est_std_scale``) combined by inverse variance.
+    its std times ``est_std_scale``, dimensionless) combined by inverse variance; biases and stds rad/s.
 
-    Causal: each sample takes the flow's newest estimate known by then (the still one alone before
+    causal: each sample takes the flow's newest estimate known by then (the still one alone before
     the first); offline: the flow's last, which has seen the whole record. A camera that never stops
     has no still estimate (std the prior, GYRO_BIAS_PRIOR), and its attitude then drifts at the whole bias,
     turning gravity into the forward axis at up to |g|·1°/s ≈ 0.17 m/s² per second.
@@ -172,8 +174,9 @@ def vision_gyro_bias(t_meas: np.ndarray, residual: np.ndarray, time_s: np.ndarra
     pair, the regressor of E (None: E·ω is left in the noise, where it is not white).
 
     Per camera axis i, a Kalman filter on (b_i, E_i·) — b a random walk (``walk``
-    rad/s²/√Hz) started at ``prior_bias`` (3,) ± ``prior_std`` (the still-camera estimate
-    and its std at the start), the row E_i· constant with prior std ``scale_std``. Its
+    rad/s²/√Hz) started at ``prior_bias`` (3,) ± ``prior_std`` (rad/s, scalar or (3,); the
+    still-camera estimate and its std at the start), the row E_i· constant with prior std
+    ``scale_std`` (dimensionless). Its
     measurement noise is the residuals' own scatter, 1.4826·MAD of successive differences
     / √2 (robust to the slow drift and to outlying pairs; it also holds the part of E·ω that
     changes between pairs, so it errs wide), from the pairs seen so far (causal) or all of
@@ -193,7 +196,24 @@ def vision_gyro_bias(t_meas: np.ndarray, residual: np.ndarray, time_s: np.ndarra
     m = len(t_meas)
     if m == 0:
         return np.broadcast_to(b0, (n, 3)).copy(), np.broadcast_to(np.sqrt(p0), (n, 3)).copy()
-    # Measurement variance per pair (m, 3).
+    r = _residual_variance(z, causal)
+    q_rate = walk ** 2
+    xf, xp, Pf, Pp = _bias_filter(t_meas, z, w, r, time_s, b0, p0, q_rate, scale_std)
+    if causal:
+        j = np.searchsorted(t_meas, time_s, side="right") - 1
+        before = j < 0
+        jj = np.maximum(j, 0)
+        gap = np.where(before, time_s - time_s[0], time_s - t_meas[jj])
+        bias = np.where(before[:, None], b0, xf[jj, :, 0])
+        var = np.where(before[:, None], p0, Pf[jj, :, 0, 0]) + q_rate * np.maximum(gap, 0.0)[:, None]
+        return bias, np.sqrt(var)
+    return _smoothed_bias(t_meas, time_s, xf, xp, Pf, Pp, q_rate)
+
+
+def _residual_variance(z: np.ndarray, causal: bool) -> np.ndarray:
+    """Measurement variance (m, 3) (rad/s)² of each residual ``z`` (m, 3) rad/s: the prior until
+    ``MIN_RESIDUALS`` are seen, then their successive differences' robust scatter."""
+    m = len(z)
     dz = np.abs(np.diff(z, axis=0)) if m > 1 else np.zeros((0, 3))
     r = np.full((m, 3), RESIDUAL_RATE_PRIOR_STD ** 2)
     if causal:
@@ -201,9 +221,14 @@ def vision_gyro_bias(t_meas: np.ndarray, residual: np.ndarray, time_s: np.ndarra
             r[k] = (1.4826 * np.median(dz[:k], axis=0) / np.sqrt(2)) ** 2
     elif m > MIN_RESIDUALS:
         r[:] = (1.4826 * np.median(dz, axis=0) / np.sqrt(2)) ** 2
-    r = np.maximum(r, 1e-12)
+    return np.maximum(r, 1e-12)
+
+
+def _bias_filter(t_meas, z, w, r, time_s, b0, p0, q_rate, scale_std):
+    """The Kalman filter's filtered and predicted states (m, 3, 4) and covariances (m, 3, 4, 4) at
+    the pairs ``t_meas`` (m,) s."""
+    m, n = len(t_meas), len(time_s)
     # State per axis (3 axes batched): [b, E_i0, E_i1, E_i2]; measurement h = [1, ω].
-    q_rate = walk ** 2
     x = np.zeros((3, 4))
     x[:, 0] = b0
     P = np.zeros((3, 4, 4))
@@ -225,14 +250,12 @@ def vision_gyro_bias(t_meas: np.ndarray, residual: np.ndarray, time_s: np.ndarra
         x = x + g * innov[:, None]
         P = P - np.einsum("ai,j,ajk->aik", g, h, P)
         xf[k], Pf[k], t_prev = x, P, t_meas[k]
-    if causal:
-        j = np.searchsorted(t_meas, time_s, side="right") - 1
-        before = j < 0
-        jj = np.maximum(j, 0)
-        gap = np.where(before, time_s - time_s[0], time_s - t_meas[jj])
-        bias = np.where(before[:, None], b0, xf[jj, :, 0])
-        var = np.where(before[:, None], p0, Pf[jj, :, 0, 0]) + q_rate * np.maximum(gap, 0.0)[:, None]
-        return bias, np.sqrt(var)
+    return xf, xp, Pf, Pp
+
+
+def _smoothed_bias(t_meas, time_s, xf, xp, Pf, Pp, q_rate):
+    """(bias (n, 3), std (n, 3)) rad/s at ``time_s`` (n,) s from the RTS-smoothed filter."""
+    m = len(t_meas)
     xs, Ps = xf.copy(), Pf.copy()
     for k in range(m - 2, -1, -1):  # Rauch–Tung–Striebel smoother (transition: identity)
         c = Pf[k] @ np.linalg.inv(Pp[k + 1])
@@ -259,7 +282,11 @@ class GyroAttitude:
     when a sample is first needed, up to the latest time asked, and never revises what it has
     integrated (causal: nothing after t is used). Orientations are camera → the first sample's
     frame, slerped between samples; times before the latest asked are served from what is
-    integrated. :meth:`applied_bias` says which bias a stretch was integrated with.
+    integrated. :meth:`applied_correction` says which correction a stretch is integrated with.
+
+    time_s (n,) s and gyro (n, 3) rad/s: the gyro's samples (at least two; :meth:`extend` adds
+    more); bias0 (3,) rad/s: the starting bias; scale (3, 3) dimensionless: the starting
+    scale-factor and misalignment error E (None: zero).
     """
 
     def __init__(self, time_s: np.ndarray, gyro: np.ndarray, bias0, scale=None):
@@ -288,7 +315,8 @@ class GyroAttitude:
         return self._w[:self._n]
 
     def extend(self, time_s: np.ndarray, gyro: np.ndarray) -> None:
-        """Append gyro samples (k,) s after the last one and (k, 3) rad/s (frame-by-frame use)."""
+        """Append gyro samples, ``time_s`` (k,) s after the last one and ``gyro`` (k, 3) rad/s
+        (frame-by-frame use)."""
         time_s, gyro = np.asarray(time_s, float).reshape(-1), np.asarray(gyro, float).reshape(-1, 3)
         k, n = len(time_s), self._n
         if not k:
@@ -330,7 +358,7 @@ class GyroAttitude:
         return q0 @ Rotation.from_rotvec(step).as_matrix()
 
     def applied_correction(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
-        """(c (3,), w (3,)) rad/s: the mean correction removed from the gyro over [t0, t1] (bias plus
+        """(c (3,), w (3,)) rad/s: the mean correction removed from the gyro over [t0, t1] s (bias plus
         E·rate) and its mean reading there. Call for t1 first, so the stretch is integrated."""
         lo, hi = np.searchsorted(self.t, [t0, t1], side="left")
         lo, hi = min(lo, self._done), min(max(hi, lo + 1), self._done + 1)

@@ -15,7 +15,8 @@ def turn_rate(times: np.ndarray, sample_t: np.ndarray, gyro: np.ndarray, window_
 def resample_to(times: np.ndarray, sample_t: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:
     """Mean of ``values`` over [t − window/2, t + window/2] for each t in ``times``.
 
-    Uses the integral of the linearly interpolated signal, so it works for any
+    times (n,) s; values (m,) sampled at ``sample_t`` (m,) s, in any units (the result's, (n,));
+    window_s: s. Uses the integral of the linearly interpolated signal, so it works for any
     sample rate relative to the window and never reads outside the recording
     (times beyond it get the edge value).
     """

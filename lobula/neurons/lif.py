@@ -22,7 +22,8 @@ class LIFConfig:
     """Leaky integrate-and-fire neuron driven by a current.
 
     ``tau_m dV/dt = -(V - V_rest) + R (I(t) + I_noise(t))``; a spike when V reaches
-    V_threshold, then V is clamped at V_reset for t_ref.
+    V_threshold, then V is clamped at V_reset for t_ref. SI units: V_rest, V_threshold,
+    V_reset in V; t_ref, tau_m, noise_tau in s; R in Ω; noise_std in A.
 
     Defaults are the integrate-and-fire example of Dayan & Abbott (2001, §5.4):
     V_rest = V_reset = -65 mV, V_threshold = -50 mV, tau_m = 10 ms, R = 10 MΩ
@@ -70,6 +71,7 @@ class LIFConfig:
 
     @property
     def noisy(self) -> bool:
+        """Whether the neuron has noise (a noise kind other than "none" and noise_std > 0)."""
         return self.noise != "none" and self.noise_std > 0
 
     @property
@@ -78,6 +80,7 @@ class LIFConfig:
         return (self.V_threshold - self.V_rest) / self.R
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
@@ -140,7 +143,9 @@ def _lif_segment(v0: Tensor, v_inf: Tensor, h: Tensor, c: LIFConfig, sd_inf: flo
 
 def lif_step(state: LIFState, current: Tensor, dt: float, config: LIFConfig,
              generator: torch.Generator | None = None) -> LIFState:
-    """One step of ``dt`` (s) of an LIF population with ``current`` (A) held constant.
+    """One step of ``dt`` (s) of an LIF population in ``state`` (:class:`LIFState`, (trials, neurons)) with
+    ``current`` (A, (trials, neurons)) held constant, the neuron of ``config``; ``generator``: the torch
+    generator of the noise (required where ``config`` has noise). Returns the new state.
 
     Between events the membrane relaxes exactly toward ``V_inf = V_rest + R·I``; a
     threshold crossing inside the step is found in closed form,
@@ -200,7 +205,7 @@ def lif_step(state: LIFState, current: Tensor, dt: float, config: LIFConfig,
 
 
 class LIFNeuron:
-    """A population of leaky integrate-and-fire neurons (see :class:`LIFConfig`)."""
+    """A population of leaky integrate-and-fire neurons of ``config`` (see :class:`LIFConfig`; None: the default)."""
 
     records = ("v", "refractory", "noise", "spikes", "spike_offset")
 
@@ -210,9 +215,9 @@ class LIFNeuron:
     def init_state(self, trials: int, neurons: int, *, device=None,
                    dtype: torch.dtype | None = None, generator: torch.Generator | None = None,
                    v0: float | None = None) -> LIFState:
-        """Resting state (V = V_rest unless ``v0``), not refractory. With OU noise and
-        a generator, the noise current starts from its stationary distribution so a
-        run has no noise transient."""
+        """Resting state (trials, neurons) (V = V_rest unless ``v0``, V), not refractory, tensors on ``device``
+        in ``dtype`` (None: torch's default). With OU noise and a ``generator``, the noise current starts
+        from its stationary distribution so a run has no noise transient."""
         shape = (trials, neurons)
         dtype = dtype or torch.get_default_dtype()
         c = self.config
@@ -226,7 +231,8 @@ class LIFNeuron:
     def step(self, state: LIFState | None, current, dt: float, *,
              generator: torch.Generator | None = None) -> LIFState:
         """Advance by ``dt`` (s) with ``current`` (A, trials × neurons) held constant.
-        ``state=None`` starts from rest with the current's shape, device and dtype."""
+        ``state=None`` starts from rest with the current's shape, device and dtype. ``generator``: the torch
+        generator of the noise (required where the neuron has noise)."""
         dt = _check_dt(dt)
         if state is None:
             current = _as_float(current)

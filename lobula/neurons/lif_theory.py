@@ -13,7 +13,8 @@ def lif_fi_curve(current, config: LIFConfig | None = None):
     ``f = 1 / (t_ref + tau_m · ln((R I + V_rest - V_reset) / (R I - (V_th - V_rest))))``
     for ``R I > V_th - V_rest``, else 0. With V_reset = V_rest (the default) this is
     ``1 / (t_ref + tau_m · ln(R I / (R I - (V_th - V_rest))))``.
-    Works on floats, numpy arrays and tensors (returns the same kind).
+    Works on floats, numpy arrays and tensors (returns the same kind and shape). config: the neuron
+    (:class:`LIFConfig`; None: the default).
     """
     c = config or LIFConfig()
     if is_tensor(current):
@@ -66,6 +67,7 @@ def lif_rate(current, config: LIFConfig | None = None, nodes: int = 600):
     ``1/ν = t_ref + τ√π ∫_{y_r}^{y_θ} e^{u²}(1 + erf u) du`` with y = (V − μ)/σ, μ = V_rest + R·I
     and σ = R·noise_std (:class:`LIFConfig`'s white-noise convention). Without noise it is
     :func:`lif_fi_curve`; "ou" noise is not white and is refused. ``nodes``: trapezoid points.
+    config: the neuron (None: the default LIFConfig). Returns ``current``'s shape.
     """
     import numpy as np
     from scipy.special import erfcx
@@ -85,7 +87,8 @@ def lif_isi_cv(current, config: LIFConfig | None = None, nodes: int = 600):
     ``current`` (A, float or array) plus its white noise (Brunel 2000, Appendix A):
     ``CV² = 2π(ντ)² ∫_{y_r}^{y_θ} e^{x²} ∫_{−∞}^{x} e^{y²}(1 + erf y)² dy dx``, ν = :func:`lif_rate`.
     A renewal train's spike count over a long window has Fano factor CV². 0 without noise;
-    1 where the neuron cannot fire. ``nodes``: trapezoid points of the outer integral.
+    1 where the neuron cannot fire. ``nodes``: trapezoid points of the outer integral. config: the
+    neuron (None: the default LIFConfig). Returns the dimensionless CV, ``current``'s shape.
     """
     import numpy as np
     from scipy.special import erfcx
@@ -119,7 +122,8 @@ def lif_current_for_rate(rate, config: LIFConfig | None = None, points: int = 80
     the inverse of :func:`lif_rate` (noise included), by interpolation on its curve.
 
     Rates must lie in [ν(I = 0), 1/t_ref); ValueError otherwise. Without noise ν(0) = 0 and
-    rate 0 maps to the rheobase (the edge of firing).
+    rate 0 maps to the rheobase (the edge of firing). config: the neuron (None: the default
+    LIFConfig); points: the currents the curve is evaluated at. Returns ``rate``'s shape.
     """
     import numpy as np
     c = config or LIFConfig()

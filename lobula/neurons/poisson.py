@@ -32,6 +32,7 @@ class PoissonConfig:
             raise ValueError(f"PoissonConfig.mode must be one of {_POISSON_MODES}, got {self.mode!r}")
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
@@ -44,7 +45,8 @@ class PoissonState(NamedTuple):
 def poisson_spikes(rate: Tensor, dt: float, generator: torch.Generator, *, mode: str = "count") -> Tensor:
     """Spikes in one step of ``dt`` (s) from ``rate`` (Hz, any shape; negative rates are
     rectified to 0, as a firing rate cannot be negative). Returns the spike counts as a
-    float tensor of the rate's shape, dtype and device; see :class:`PoissonConfig`."""
+    float tensor of the rate's shape, dtype and device; ``generator``: the torch generator drawn from;
+    ``mode``: "count" or "bernoulli", see :class:`PoissonConfig`."""
     if generator is None:
         raise ValueError("poisson_spikes needs generator=make_generator(seed, device)")
     lam = rate.clamp_min(0) * dt
@@ -57,7 +59,8 @@ def poisson_spikes(rate: Tensor, dt: float, generator: torch.Generator, *, mode:
 
 
 class PoissonNeuron:
-    """Poisson spike generators driven by a rate (Hz), e.g. a :class:`RateNeuron`'s r."""
+    """Poisson spike generators driven by a rate (Hz), e.g. a :class:`RateNeuron`'s r; ``config``: the
+    :class:`PoissonConfig` (None: the default)."""
 
     records = ("spikes",)
 
@@ -66,12 +69,15 @@ class PoissonNeuron:
 
     def init_state(self, trials: int, neurons: int, *, device=None,
                    dtype: torch.dtype | None = None) -> PoissonState:
+        """No spikes, shape (trials, neurons), on ``device`` in ``dtype`` (None: torch's default)."""
         return PoissonState(torch.zeros((trials, neurons), device=device,
                                         dtype=dtype or torch.get_default_dtype()))
 
     def step(self, state: PoissonState | None, rate, dt: float, *,
              generator: torch.Generator | None = None) -> PoissonState:
-        """Spikes for one step; the state carries no memory (Poisson), only the output."""
+        """Spikes (trials, neurons) for one step of ``dt`` (s) at ``rate`` (Hz, (trials, neurons) or
+        broadcastable to the state), drawn with ``generator``; the state carries no memory (Poisson), only
+        the output."""
         dt = _check_dt(dt)
         rate = _as_float(rate) if state is None else _as_float(rate, state.spikes.dtype)
         if state is not None:
@@ -81,9 +87,10 @@ class PoissonNeuron:
 
     def run(self, rate, dt: float, *, seed: int = 0, state: PoissonState | None = None,
             record: Sequence[str] = ("spikes",), return_state: bool = False):
-        """Whole run. rate: (trials, time, neurons) in Hz. Returns ``{"spikes": (time,
-        trials, neurons)}``. Steps over time like the streaming API, so a run and the
-        same steps with the same seed give identical spikes."""
+        """Whole run. rate: (trials, time, neurons) in Hz, steps of ``dt`` (s). Returns ``{"spikes": (time,
+        trials, neurons)}`` (``record``: only "spikes"). Steps over time like the streaming API, so a run and
+        the same steps with the same seed give identical spikes. ``state`` continues a stream; with
+        ``return_state=True`` returns ``(records, final_state)``."""
         dt = _check_dt(dt)
         rate = _check_run_input(rate, "rate")
         record = _record(record, self.records, "PoissonNeuron")

@@ -41,6 +41,7 @@ class RateNeuronConfig:
                 raise ValueError(f"RateNeuronConfig.{name} must be a positive number, got {v!r}")
 
     def to_dict(self) -> dict:
+        """Every field as a dict."""
         return asdict(self)
 
 
@@ -68,7 +69,8 @@ def rate_step(state: RateState, drive: Tensor, dt: float, config: RateNeuronConf
     """One exact step of the leaky integrator for a drive held constant over ``dt`` (s).
 
     ``x(t+dt) = x + (1 - e^{-dt/τ})·(u - x)``; ``expm1`` keeps ``1 - e^{-dt/τ}``
-    accurate when dt ≪ τ. drive: (trials, neurons), or broadcastable to the state.
+    accurate when dt ≪ τ. drive: (trials, neurons) (dimensionless), or broadcastable to the state;
+    config: the neuron. Returns the new state.
     """
     gain = -math.expm1(-dt / config.tau_m)
     x = torch.lerp(state.x, drive.expand_as(state.x), gain)    # x + gain·(u − x), one kernel
@@ -76,7 +78,7 @@ def rate_step(state: RateState, drive: Tensor, dt: float, config: RateNeuronConf
 
 
 class RateNeuron:
-    """A population of rate neurons (see :class:`RateNeuronConfig`)."""
+    """A population of rate neurons of ``config`` (see :class:`RateNeuronConfig`; None: the default)."""
 
     records = ("x", "r")
 
@@ -85,7 +87,8 @@ class RateNeuron:
 
     def init_state(self, trials: int, neurons: int, *, device=None,
                    dtype: torch.dtype | None = None, x0: float = 0.0) -> RateState:
-        """Resting state (x = x0, default 0) of shape (trials, neurons)."""
+        """Resting state (x = x0, default 0) of shape (trials, neurons), on ``device`` in ``dtype`` (None:
+        torch's default)."""
         x = torch.full((trials, neurons), float(x0), device=device,
                        dtype=dtype or torch.get_default_dtype())
         c = self.config
@@ -107,8 +110,8 @@ class RateNeuron:
     def run(self, drive, dt: float, *, state: RateState | None = None,
             record: Sequence[str] = ("x", "r"), seed: int | None = None,
             return_state: bool = False):
-        """Whole run. drive: (trials, time, neurons). Returns ``{name: (time, trials,
-        neurons)}`` for ``record`` ⊆ {"x", "r"}; entry k is the state at (k+1)·dt.
+        """Whole run. drive: (trials, time, neurons), dimensionless, steps of ``dt`` (s).
+        Returns ``{name: (time, trials, neurons)}`` for ``record`` ⊆ {"x", "r"}; entry k is the state at (k+1)·dt.
         ``seed`` is accepted for a uniform interface and unused. With
         ``return_state=True`` returns ``(records, final_state)`` to continue a stream."""
         dt = _check_dt(dt)

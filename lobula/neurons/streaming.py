@@ -13,7 +13,7 @@ if TYPE_CHECKING:
 
 
 def make_generator(seed: int, device: torch.device | str = "cpu") -> torch.Generator:
-    """A seeded ``torch.Generator`` on ``device`` (it must live where the tensors live)."""
+    """A ``torch.Generator`` seeded with the integer ``seed`` on ``device`` (it must live where the tensors live)."""
     if not isinstance(seed, int) or isinstance(seed, bool):
         raise TypeError(f"seed must be an int, got {seed!r}")
     g = torch.Generator(device=torch.device(device))

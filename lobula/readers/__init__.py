@@ -52,6 +52,7 @@ class Reader:
     layout: str = ""
 
     def describe(self) -> str:
+        """The reader's name and, where given, its layout, for messages."""
         return f"{self.name} ({self.layout})" if self.layout else self.name
 
 

@@ -22,7 +22,9 @@ from .core import FootageError
 
 @dataclass
 class ClockOffset:
-    """offset_s: add to IMU times to put them on the camera's clock; correlation at the peak; pairs used."""
+    """offset_s (s): add to IMU times to put them on the camera's clock; correlation (dimensionless) at the
+    peak; n_pairs: frame pairs used; lags_s (k,) s: the offsets tried; scores (k,): the correlation at each
+    (NaN where the IMU does not cover the frames)."""
 
     offset_s: float
     correlation: float
@@ -32,7 +34,8 @@ class ClockOffset:
 
 
 def image_rotation_rates(footage, max_frames: int = 900, width: int = 160) -> tuple[np.ndarray, np.ndarray]:
-    """(mid times (n,), ω_img (n, 3) rad/s) from consecutive frames, flow computed at ``width`` pixels."""
+    """(mid times (n,) s, ω_img (n, 3) rad/s) from consecutive frames of ``footage`` (the first ``max_frames``),
+    flow computed at ``width`` pixels."""
     from lobula.epipole import rotational_flow
 
     cam = footage.camera
@@ -60,7 +63,12 @@ def image_rotation_rates(footage, max_frames: int = 900, width: int = 160) -> tu
 
 def estimate_clock_offset(footage, max_offset_s: float = 0.25, resolution_s: float = 0.001,
                           min_correlation: float = 0.5, max_frames: int = 900) -> ClockOffset:
-    """Estimate the camera–IMU clock offset (see the module doc); FootageError when not identifiable."""
+    """Estimate the camera–IMU clock offset of ``footage`` (see the module doc); FootageError when not identifiable.
+
+    max_offset_s, resolution_s: the offsets tried, ±max_offset_s s in steps of resolution_s s;
+    min_correlation: the peak correlation (dimensionless) below which the offset is refused;
+    max_frames: the frames read.
+    """
     imu = footage.imu
     if imu is None or imu.gyro is None:
         raise FootageError(f"{footage.path}: --clock-offset auto needs a gyroscope; give --clock-offset S")

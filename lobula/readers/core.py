@@ -41,8 +41,8 @@ CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy", "frame_rate_hz")
 
 
 def read_camera_json(path: str | Path) -> PinholeCamera:
-    """The intrinsics of a camera.json (width, height, fx, fy, cx, cy in pixels; frame_rate_hz),
-    each field checked: a FootageError names the file, the field, what it must be and what it is."""
+    """The intrinsics of the camera.json at ``path`` (width, height, fx, fy, cx, cy in pixels; frame_rate_hz
+    in Hz), each field checked: a FootageError names the file, the field, what it must be and what it is."""
     path = Path(path)
     need = ", ".join(CAMERA_FIELDS)
     try:
@@ -74,7 +74,8 @@ def read_camera_json(path: str | Path) -> PinholeCamera:
 
 
 def read_csv_columns(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """A CSV with a header row as {column: array} (float where every value parses); clear errors."""
+    """The CSV at ``path`` (a header row) as {column: (n,) array} (float where every value parses);
+    clear errors, among them a missing column of ``required`` (names)."""
     try:
         with open(path, newline="") as fh:
             reader = csv.DictReader(fh)
@@ -99,7 +100,8 @@ def read_csv_columns(path: Path, required: tuple[str, ...]) -> dict[str, np.ndar
 
 
 def check_times(path: Path, t: np.ndarray, what: str = "time_s") -> None:
-    """Times must be finite and strictly increasing; the error names the first bad row."""
+    """Times ``t`` (n,) s must be finite and strictly increasing; the FootageError names ``path``, the
+    column ``what`` and the first bad row."""
     if not np.all(np.isfinite(t)):
         raise FootageError(f"{path}: {what} has NaN or infinite values; remove those rows")
     bad = np.flatnonzero(np.diff(t) <= 0)
@@ -124,7 +126,7 @@ def opencv_quiet() -> Iterator[None]:
 
 
 def read_frame(path: Path) -> np.ndarray:
-    """Decode one frame as grey float32 (H, W) in grey levels 0..255; clear error if corrupt."""
+    """Decode the image file at ``path`` as grey float32 (H, W) in grey levels 0..255; clear error if corrupt."""
     if not path.exists():
         raise FootageError(f"{path}: frame file is missing")
     with opencv_quiet():
@@ -135,7 +137,8 @@ def read_frame(path: Path) -> np.ndarray:
 
 
 def to_grey(img: np.ndarray) -> np.ndarray:
-    """OpenCV-decoded image (BGR, BGRA or grey; 8 or 16 bit) -> grey float32 in 0..255."""
+    """OpenCV-decoded image ``img`` ((H, W) grey, or (H, W, 1|3|4) grey, BGR or BGRA; 8 or 16 bit) -> grey
+    float32 (H, W) in 0..255."""
     if img.ndim == 3:
         if img.shape[2] == 1:
             img = img[..., 0]
@@ -147,11 +150,11 @@ def to_grey(img: np.ndarray) -> np.ndarray:
 
 
 def frame_gaps(times: np.ndarray, nominal_dt: float | None = None) -> dict:
-    """Dropped frames judged from the time stamps: intervals over 1.5 nominal frame intervals.
+    """Dropped frames judged from the time stamps ``times`` (n,) s: intervals over 1.5 nominal frame intervals.
 
     nominal_dt: the frame interval (s); default the median interval. Returns
     {"gaps": number of long intervals, "missing": frames missing in them (each interval
-    counts round(Δt/dt) − 1), "largest_s": the longest interval, "first_at_s": time of the
+    counts round(Δt/dt) − 1), "largest_s": the longest interval (s), "first_at_s": time (s) of the
     first gap or None}.
     """
     t = np.asarray(times, float)
@@ -165,7 +168,8 @@ def frame_gaps(times: np.ndarray, nominal_dt: float | None = None) -> dict:
 
 
 def rotation_from_json(value, where: str) -> np.ndarray:
-    """A 3×3 rotation matrix from a list of lists; clear error unless it is orthonormal with det +1."""
+    """A rotation matrix (3, 3) from ``value``, a list of 3 lists of 3 numbers; a FootageError naming
+    ``where`` unless it is orthonormal with det +1."""
     try:
         r = np.asarray(value, float)
     except (TypeError, ValueError):
@@ -179,13 +183,14 @@ def rotation_from_json(value, where: str) -> np.ndarray:
 
 
 def rotation_deg(r: np.ndarray) -> float:
-    """Angle (degrees) of a rotation matrix."""
+    """Angle (degrees) of the rotation matrix ``r`` (3, 3)."""
     return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
 
 
 @dataclass
 class IMU:
-    """IMU samples in the camera optical frame: time_s (n,), accel (n, 3) m/s², gyro (n, 3) rad/s or None.
+    """IMU samples in the camera optical frame: time_s (n,) s, accel (n, 3) m/s², gyro (n, 3) rad/s or None;
+    source: where they were read from (a path, or path:topic).
 
     nan_counts: {column of the file: rows with NaN or no value there}, filled only where the
     samples were read keeping such rows (``lobula info``, which reports them); empty otherwise.
@@ -198,12 +203,12 @@ class IMU:
     nan_counts: dict[str, int] = field(default_factory=dict)
 
     def rotated(self, r: np.ndarray) -> "IMU":
-        """The same samples with every vector rotated by r (v' = r @ v)."""
+        """The same samples with every vector rotated by r (3, 3) (v' = r @ v)."""
         return IMU(self.time_s, self.accel @ r.T, None if self.gyro is None else self.gyro @ r.T, self.source,
                    self.nan_counts)
 
     def shifted(self, offset_s: float) -> "IMU":
-        """The same samples on a clock ``offset_s`` later (t' = t + offset)."""
+        """The same samples on a clock ``offset_s`` (s) later (t' = t + offset)."""
         return IMU(self.time_s + offset_s, self.accel, self.gyro, self.source, self.nan_counts)
 
 
@@ -212,11 +217,14 @@ class Footage:
     """A streamed recording: camera intrinsics, frame times and files, IMU and truth.
 
     Iterate :meth:`frames` for (index, time_s, image (H, W) float32 grey levels).
-    ``imu`` may be None (then velocity needs ``accel_from_truth``); ``truth`` maps
+    ``path``: the recording; ``kind``: its layout's name; ``times`` (n,) s and ``files`` (n): each
+    frame's time and file (placeholders where frames live inside a container); ``notes``: what the
+    reader chose, one line each. ``imu`` may be None (then velocity needs ``accel_from_truth``); ``truth`` maps
     column name -> array at ``truth['time_s']``. ``distortion`` describes lens distortion
     the reader removed or ignored (None: none reported); ``imu_to_camera`` the rotation
     applied to the IMU on reading (None: none needed or known). ``skip_bad_frames``,
-    ``skipped_frames`` and the clock offset fields are filled by :func:`lobula.readers.open_footage`;
+    ``skipped_frames`` and the clock offset fields (``clock_offset_s``, s added to the IMU's times;
+    ``clock_offset_source``, where it came from) are filled by :func:`lobula.readers.open_footage`;
     ``streams`` lists what the recording holds (one dict per topic or sensor: name, type, count, ...);
     ``truth_nan_counts`` the truth log's NaN or empty values per column (filled where counted);
     ``lens_maps`` the remap that takes a distorted lens's frames onto ``camera``, a pinhole
@@ -256,7 +264,8 @@ class Footage:
             yield i, t, undistort(img, self.lens_maps)
 
     def raw_frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
-        """The frames as the recording holds them (a reader's own frame loop overrides this)."""
+        """(index, time s, image (H, W) float32 grey levels) of frames start..stop − 1 as the recording
+        holds them (a reader's own frame loop overrides this)."""
         stop = len(self) if stop is None else min(stop, len(self))
         for i in range(start, stop):
             try:
@@ -273,18 +282,20 @@ class Footage:
         return img
 
     def check_size(self, img: np.ndarray, where) -> None:
+        """FootageError naming ``where`` unless ``img`` is (H, W) as the camera says."""
         if img.shape != (self.camera.height, self.camera.width):
             raise FootageError(f"{where}: image is {img.shape[1]}x{img.shape[0]}, the intrinsics say "
                                f"{self.camera.width}x{self.camera.height}")
 
     def bad_frame(self, i: int, exc: Exception) -> None:
-        """Frame i could not be decoded: raise, or (skip_bad_frames) remember it and go on."""
+        """Frame i could not be decoded (``exc``, why): raise, or (skip_bad_frames) remember it and go on."""
         if not self.skip_bad_frames:
             raise exc if isinstance(exc, FootageError) else FootageError(str(exc))
         if i not in self.skipped_frames:
             self.skipped_frames.append(i)
 
     def depth_map(self, index: int) -> np.ndarray | None:
+        """Frame ``index``'s forward depth (H, W), camera z in m, from ``depth/<index>.npy``, or None."""
         p = self.path / "depth" / f"{index:06d}.npy"
         return np.load(p) if p.exists() else None
 
@@ -303,7 +314,8 @@ class Footage:
 
 
 def imu_to_camera(path: Path) -> np.ndarray | None:
-    """camera.json's optional "imu_to_camera" rotation (v_cam = R @ v_imu), checked."""
+    """The optional "imu_to_camera" rotation (3, 3) of the camera.json at ``path`` (v_cam = R @ v_imu),
+    checked; None where it has none."""
     try:
         d = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
@@ -314,7 +326,7 @@ def imu_to_camera(path: Path) -> np.ndarray | None:
 
 
 def numeric_column(values: np.ndarray) -> np.ndarray:
-    """A CSV column as float, empty cells and "nan" as NaN; ValueError on any other text."""
+    """A CSV column ``values`` (n,) as float (n,), empty cells and "nan" as NaN; ValueError on any other text."""
     if values.dtype.kind == "f":
         return values
     return np.array([float(v) if str(v).strip() else np.nan for v in values], float)
@@ -334,7 +346,8 @@ def nan_counts(columns: dict[str, np.ndarray]) -> dict[str, int]:
 
 
 def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None, keep_nan: bool = False) -> IMU:
-    """imu.csv (time_s, accel_x..z m/s², gyro_x..z rad/s) as an IMU, rotated by ``rotation`` if given.
+    """The imu.csv at ``imu_path`` (time_s s, accel_x..z m/s², gyro_x..z rad/s) as an IMU, rotated by
+    ``rotation`` (3, 3) if given.
 
     A NaN, infinite or empty value is a FootageError naming its row, unless ``keep_nan``: then
     rows without a time are left out, other NaNs kept, and every column's count of them is in
@@ -363,7 +376,8 @@ def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None, keep_nan: b
 
 
 def read_truth_csv(path: Path, keep_nan: bool = False) -> tuple[dict[str, np.ndarray], dict[str, int]]:
-    """truth.csv (time_s, v_forward_m_s, other columns) and its NaN count per column.
+    """The truth.csv at ``path`` (time_s s, v_forward_m_s m/s, other columns; each (n,)) and its NaN count per
+    column.
 
     Rows without a time are a FootageError naming the file, unless ``keep_nan`` (then they are
     left out and counted); NaN velocities are kept either way (counted).
@@ -394,7 +408,9 @@ def footage_provenance(footage) -> dict:
 def acceleration_from_truth(truth: dict[str, np.ndarray], smoothing_s: float = 0.15) -> tuple[np.ndarray, np.ndarray]:
     """Forward acceleration (m/s²) as the derivative of Gaussian-smoothed ground-truth velocity.
 
-    Returns (time_s, a). Used where a recording has no accelerometer (the D435i sample),
+    truth: {"time_s": (n,) s, "v_forward_m_s": (n,) m/s, optionally "a_forward_m_s2"};
+    smoothing_s: the Gaussian's std, s. Returns (time_s (n,) s, a (n,) m/s²).
+    Used where a recording has no accelerometer (the D435i sample),
     and always labelled as such in outputs.
     """
     from scipy.ndimage import gaussian_filter1d  # here: SciPy is slow to load, and only this needs it

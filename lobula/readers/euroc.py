@@ -120,7 +120,11 @@ def _quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
 
 
 class EurocFootage(Footage):
-    """EuRoC/ASL footage: frames are undistorted with a map made once at opening."""
+    """EuRoC/ASL footage: frames are undistorted with a map made once at opening.
+
+    maps: OpenCV's remap maps (x, y), each (H, W) float32 px, or None (frames used as read);
+    time_origin_ns: the first frame's time stamp (ns), which ``times`` (s) count from.
+    """
 
     def __init__(self, *args, maps=None, time_origin_ns: int = 0, **kwargs):
         super().__init__(*args, **kwargs)
@@ -128,6 +132,7 @@ class EurocFootage(Footage):
         self.time_origin_ns = time_origin_ns
 
     def decode(self, i: int) -> np.ndarray:
+        """Frame i as grey float32 (H, W), undistorted; FootageError if its size is not sensor.yaml's."""
         img = read_frame(self.files[i])
         raw_size = (self.distortion or {}).get("raw_size")
         want = tuple(raw_size) if raw_size else (self.camera.width, self.camera.height)
@@ -139,10 +144,12 @@ class EurocFootage(Footage):
         return img
 
     def depth_map(self, index: int) -> np.ndarray | None:
+        """None: the ASL layout has no depth maps."""
         return None
 
 
 def find_mav0(path: Path) -> Path:
+    """The ``mav0/`` folder of an ASL/EuRoC sequence at ``path`` (the sequence folder, or ``mav0/`` itself)."""
     path = Path(path)
     if (path / "mav0").is_dir():
         return path / "mav0"
@@ -155,6 +162,9 @@ def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", requir
                undistort: str = "same-k", intrinsics: PinholeCamera | None = None) -> EurocFootage:
     """Open an ASL/EuRoC sequence folder as footage (see the module doc for the conventions).
 
+    path: the sequence folder holding ``mav0/``, or ``mav0/`` itself; camera, imu: the sensor
+    folders to read; require_imu: stop when there is no IMU (False: ``imu=None``); undistort:
+    "same-k", "optimal" or "none" (module doc).
     intrinsics: the raw camera's size, focal lengths, principal point and rate to use instead of
     sensor.yaml's (``--camera``); its distortion model and coefficients still apply.
     """
@@ -166,24 +176,7 @@ def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", requir
     if not (cam_dir / "data.csv").exists():
         raise FootageError(f"{cam_dir / 'data.csv'}: not found; an EuRoC folder needs {camera}/data.csv "
                            f"(#timestamp [ns],filename)")
-    # ---- camera
-    sy = _read_yaml(cam_dir / "sensor.yaml")
-    try:
-        fu, fv, cu, cv = (float(x) for x in sy["intrinsics"])
-        w, h = (int(x) for x in sy["resolution"])
-    except (KeyError, TypeError, ValueError):
-        raise FootageError(f"{cam_dir / 'sensor.yaml'}: needs intrinsics [fu, fv, cu, cv] and resolution "
-                           f"[width, height]") from None
-    model = str(sy.get("distortion_model", "none"))
-    coeffs = np.asarray(sy.get("distortion_coefficients", []) or [], float)
-    rate = float(sy.get("rate_hz", 0) or 0)
-    if intrinsics is not None:
-        c = intrinsics
-        fu, fv, cu, cv, w, h, rate = c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.frame_rate_hz
-    elif min(fu, fv) <= 0 or min(w, h) <= 0:
-        raise FootageError(f"{cam_dir / 'sensor.yaml'}: intrinsics {[fu, fv, cu, cv]} and resolution {[w, h]} must "
-                           f"have positive focal lengths and size; repair it, or give them with --camera FILE")
-    t_bc = _t_bs(sy, cam_dir / "sensor.yaml")
+    fu, fv, cu, cv, w, h, model, coeffs, rate, t_bc = _camera_yaml(cam_dir, intrinsics)
 
     # ---- frames
     ns, cols = _ns_csv(cam_dir / "data.csv", 2, f"{camera}/data.csv")
@@ -201,6 +194,46 @@ def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", requir
              f"{origin} ns"]
 
     k = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
+    maps, new_k, distortion = _undistortion(k, model, coeffs, undistort, w, h, notes)
+    camera_model = PinholeCamera(width=w, height=h, fx=float(new_k[0, 0]), fy=float(new_k[1, 1]),
+                                 cx=float(new_k[0, 2]), cy=float(new_k[1, 2]), frame_rate_hz=rate)
+
+    streams = [dict(sensor=camera, type="camera", messages=len(files), rate_hz=rate)]
+    imu_obj, r_ci = _euroc_imu(imu_dir, camera, imu, require_imu, t_bc, origin, times, notes, streams)
+    truth = _euroc_truth(mav, t_bc, origin, notes, streams)
+
+    return EurocFootage(path, camera_model, times, files, imu_obj, truth, kind=EUROC_KIND, notes=notes,
+                        distortion=distortion, imu_to_camera=r_ci, streams=streams, maps=maps,
+                        time_origin_ns=origin)
+
+
+def _camera_yaml(cam_dir: Path, intrinsics: PinholeCamera | None):
+    """(fu, fv, cu, cv px, width, height px, distortion model, coefficients, rate Hz (0: not given),
+    T_BC (4, 4)) from the camera's sensor.yaml, size, focal lengths, principal point and rate
+    replaced by ``intrinsics`` where given."""
+    sy = _read_yaml(cam_dir / "sensor.yaml")
+    try:
+        fu, fv, cu, cv = (float(x) for x in sy["intrinsics"])
+        w, h = (int(x) for x in sy["resolution"])
+    except (KeyError, TypeError, ValueError):
+        raise FootageError(f"{cam_dir / 'sensor.yaml'}: needs intrinsics [fu, fv, cu, cv] and resolution "
+                           f"[width, height]") from None
+    model = str(sy.get("distortion_model", "none"))
+    coeffs = np.asarray(sy.get("distortion_coefficients", []) or [], float)
+    rate = float(sy.get("rate_hz", 0) or 0)
+    if intrinsics is not None:
+        c = intrinsics
+        fu, fv, cu, cv, w, h, rate = c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.frame_rate_hz
+    elif min(fu, fv) <= 0 or min(w, h) <= 0:
+        raise FootageError(f"{cam_dir / 'sensor.yaml'}: intrinsics {[fu, fv, cu, cv]} and resolution {[w, h]} must "
+                           f"have positive focal lengths and size; repair it, or give them with --camera FILE")
+    t_bc = _t_bs(sy, cam_dir / "sensor.yaml")
+    return fu, fv, cu, cv, w, h, model, coeffs, rate, t_bc
+
+
+def _undistortion(k: np.ndarray, model: str, coeffs: np.ndarray, undistort: str, w: int, h: int, notes: list):
+    """(remap maps or None, the K (3, 3) the frames are then in, distortion dict or None) for the raw
+    camera matrix ``k`` (3, 3) and a ``w``×``h`` px image; a note appended where there is distortion."""
     maps, new_k = None, k
     distortion = None
     if model in ("radial-tangential", "radtan", "plumb_bob", "equidistant") and np.any(coeffs != 0) \
@@ -224,12 +257,14 @@ def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", requir
     elif np.any(coeffs != 0):
         distortion = dict(model=model, coeffs=coeffs.tolist(), removed=False, raw_size=[w, h])
         notes.append(f"lens distortion ({model}) NOT removed ({'undistort=none' if undistort == 'none' else 'unknown model'})")
-    camera_model = PinholeCamera(width=w, height=h, fx=float(new_k[0, 0]), fy=float(new_k[1, 1]),
-                                 cx=float(new_k[0, 2]), cy=float(new_k[1, 2]), frame_rate_hz=rate)
+    return maps, new_k, distortion
 
-    # ---- IMU into the camera frame: v_C = R_BCᵀ R_BS v_S
+
+def _euroc_imu(imu_dir: Path, camera: str, imu: str, require_imu: bool, t_bc: np.ndarray, origin: int,
+               times: np.ndarray, notes: list, streams: list):
+    """(IMU or None, R_CI (3, 3) or None): the IMU around the frames (``times`` (n,) s after ``origin`` ns)
+    into the camera frame, v_C = R_BCᵀ R_BS v_S; notes and streams appended."""
     imu_obj, r_ci = None, None
-    streams = [dict(sensor=camera, type="camera", messages=len(files), rate_hz=rate)]
     if (imu_dir / "data.csv").exists():
         t_bs = _t_bs(_read_yaml(imu_dir / "sensor.yaml"), imu_dir / "sensor.yaml") \
             if (imu_dir / "sensor.yaml").exists() else np.eye(4)
@@ -260,8 +295,12 @@ def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", requir
                            f"sequence with its {imu}/ folder (timestamp, w_RS_S_x..z, a_RS_S_x..z)")
     else:
         notes.append(f"no {imu}/data.csv: no IMU")
+    return imu_obj, r_ci
 
-    # ---- truth
+
+def _euroc_truth(mav: Path, t_bc: np.ndarray, origin: int, notes: list, streams: list) -> dict | None:
+    """The ground truth's velocity in the camera frame (m/s; times s after ``origin`` ns), or None;
+    notes and streams appended."""
     truth = None
     gt = mav / "state_groundtruth_estimate0" / "data.csv"
     if gt.exists():
@@ -279,7 +318,4 @@ def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", requir
                      "(v_C = R_BCᵀ R_RSᵀ v_R); lever arm ignored")
     elif (mav / "state_groundtruth_estimate0").is_dir():
         notes.append("state_groundtruth_estimate0/ has no data.csv: no truth")
-
-    return EurocFootage(path, camera_model, times, files, imu_obj, truth, kind=EUROC_KIND, notes=notes,
-                        distortion=distortion, imu_to_camera=r_ci, streams=streams, maps=maps,
-                        time_origin_ns=origin)
+    return truth

@@ -19,7 +19,7 @@ FLO_TAG = 202021.25
 
 
 def read_flo(path: str | Path) -> np.ndarray:
-    """Read a Middlebury .flo file: returns (2, H, W) float32 (u, v) in the file's own units."""
+    """Read the Middlebury .flo file at ``path``: returns (2, H, W) float32 (u, v) in the file's own units."""
     path = Path(path)
     with open(path, "rb") as fh:
         head = fh.read(12)
@@ -56,6 +56,7 @@ class FloUnits:
 def flo_to_normalised(flow: np.ndarray, camera: PinholeCamera, units: FloUnits) -> np.ndarray:
     """Convert a .flo field to normalised flow (1/s) on the camera's full-size pixel grid, (2, H, W).
 
+    flow (2, h, w): the file's numbers (:func:`read_flo`), in ``units`` (:class:`FloUnits`).
     The flow is resized to the camera image, its vectors rescaled by the change of pixel
     size, and divided by the focal lengths and the frame gap.
     """

@@ -22,7 +22,7 @@ from .core import (Footage, FootageError, check_times as _check_times, imu_to_ca
 
 
 def open_folder(path: Path, cam_json: Path | None = None, keep_nan: bool = False) -> Footage:
-    """A footage folder (frames.csv, frames/, camera.json or ``cam_json``, imu.csv, truth.csv).
+    """The footage folder at ``path`` (frames.csv, frames/, camera.json or ``cam_json``, imu.csv, truth.csv).
 
     keep_nan: open IMU and truth logs with NaN or empty values, counting them per column.
     """
@@ -50,7 +50,8 @@ def open_folder(path: Path, cam_json: Path | None = None, keep_nan: bool = False
 
 
 def open_d435i_sample(path: Path, cam_json: Path | None = None) -> Footage:
-    """The D435i sample folder (frames/ named by raw frame number, velocity.csv; no IMU)."""
+    """The D435i sample folder at ``path`` (frames/ named by raw frame number, velocity.csv; no IMU), its
+    intrinsics from ``cam_json`` or the camera.json in it."""
     camera = read_camera_json(cam_json or path / "camera.json")
     vel = _read_csv(path / "velocity.csv", ("sample", "raw_frame", "time_s", "v_true_m_s"))
     _check_times(path / "velocity.csv", vel["time_s"])

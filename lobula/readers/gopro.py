@@ -70,8 +70,9 @@ def quaternion_angle_deg(q: np.ndarray) -> np.ndarray:
 
 
 def gps_samples(streams: dict[str, Stream]) -> dict[str, np.ndarray] | None:
-    """The GPS samples of GPS9 (preferred: per-sample fix and DOP) or GPS5 (the packet's GPSF/GPSP):
-    {time_s, lat_deg, lon_deg, alt_m, speed_2d_m_s, speed_3d_m_s, fix, dop, source}; None without GPS."""
+    """The GPS samples of GPS9 (preferred: per-sample fix and DOP) or GPS5 (the packet's GPSF/GPSP) in
+    ``streams`` (:func:`~lobula.readers.gopro_telemetry.read_telemetry`'s): {time_s, lat_deg, lon_deg, alt_m,
+    speed_2d_m_s, speed_3d_m_s, fix, dop: each (n,), in the units their names end in; source}; None without GPS."""
     s = streams.get("GPS9") or streams.get("GPS5")
     if s is None or s.data.shape[1] < 5:
         return None
@@ -85,7 +86,8 @@ def gps_samples(streams: dict[str, Stream]) -> dict[str, np.ndarray] | None:
 
 
 def stabilisation(settings: dict, streams: dict[str, Stream]) -> dict:
-    """Electronic stabilisation (HyperSmooth/EIS) as the metadata tell it:
+    """Electronic stabilisation (HyperSmooth/EIS) as the metadata tell it (``settings``: the camera settings,
+    :func:`~lobula.readers.gpmf.decode_settings`; ``streams``: the GPMF streams by key):
     {electronic: True/False/None (unknown), setting: EISA text or None, source: where it was read,
     image_orientation_max_deg / _mean_deg: IORI's angle from the camera body where the file has IORI}."""
     out = dict(electronic=None, setting=None, source="none in the file", image_orientation_max_deg=None,
@@ -124,6 +126,7 @@ class GoProFootage(VideoFootage):
     nominal_fps: float
 
     def provenance(self) -> dict:
+        """The footage's provenance attrs plus the truth source, model, firmware and stabilisation."""
         out = super().provenance()
         stab = self.telemetry.get("stabilisation", {})
         out.update(truth_source=self.telemetry.get("truth_source", "none"),
@@ -148,7 +151,7 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
                require_camera: bool = True) -> GoProFootage:
     """Open a GoPro MP4 as the camera wrote it (module doc): frames, IMU in the camera frame, GPS truth.
 
-    camera_json: intrinsics (``--camera FILE``); else ``CLIP.camera.json`` or ``camera.json`` beside
+    path: the MP4. camera_json: intrinsics (``--camera FILE``); else ``CLIP.camera.json`` or ``camera.json`` beside
     the clip. Its optional imu_to_camera is applied after the GPMF axis mapping, as a correction in
     the camera frame. require_imu: FootageError when the telemetry has no accelerometer (False:
     ``imu=None``). require_camera: FootageError without a camera file (False: ``camera=None``,

@@ -78,9 +78,11 @@ def packet_sample_times(t_in: float, t_out: float, n: int) -> np.ndarray:
 
 @dataclass
 class Stream:
-    """One GPMF stream over the whole file: times (n,) s on the video's clock, data (n, m) as
-    gpmf-parser scaled it, the channel order the data is in (ACCL/GYRO: e.g. "ZXY"), its name and
-    units, and the properties of its first packet."""
+    """One GPMF stream over the whole file: ``key`` (the GPMF four-character code), ``time_s`` (n,) s on
+    the video's clock, ``data`` (n, m) as gpmf-parser scaled it (in ``units``), the channel ``order``
+    the data is in (ACCL/GYRO: e.g. "ZXY"), its ``name`` and ``units``, and ``props``, the properties
+    of its first packet. GPS5 only: ``per_packet_fix`` (n,), each sample's packet fix (GPSF: 0 none,
+    2 2D, 3 3D) and ``per_packet_dop`` (n,), its packet's dilution of precision (GPSP / 100)."""
 
     key: str
     time_s: np.ndarray
@@ -94,6 +96,7 @@ class Stream:
 
     @property
     def rate_hz(self) -> float | None:
+        """Mean sample rate (Hz) over the file; None for fewer than two samples."""
         t = self.time_s
         return float((len(t) - 1) / (t[-1] - t[0])) if len(t) > 1 and t[-1] > t[0] else None
 
@@ -122,8 +125,9 @@ def _stored_order(props: dict, key: str, model: str, path: Path) -> str:
 
 
 def read_telemetry(path: str | Path, index: Mp4Index | None = None) -> tuple[dict[str, Stream], dict, tuple]:
-    """All kept GPMF streams of a GoPro MP4, on the video's clock.
+    """All kept GPMF streams of the GoPro MP4 at ``path``, on the video's clock.
 
+    index: the MP4's box index (:func:`~lobula.readers.mp4_index.read_mp4_index`), read here when None.
     Returns ({key: :class:`Stream`}, settings (:func:`decode_settings`), (first packet start s,
     last packet end s, packet count)). FootageError naming the file for an MP4 without a ``gpmd``
     track, a damaged container or a damaged telemetry packet.

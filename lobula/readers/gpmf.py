@@ -100,7 +100,8 @@ def decode_gpmf(payload: bytes, keys=DATA_KEYS) -> list[dict]:
 
 
 def decode_settings(payload: bytes | None) -> dict:
-    """The camera's settings from the ``udta`` GPMF block: {four-character key: text or number}
+    """The camera's settings from ``payload``, the ``udta`` GPMF block (bytes, or None): {four-character key:
+    text or number}
     (MINF model, FMWR firmware, EISE/EISA stabilisation, VFOV/ZFOV lens, OREN orientation, ...);
     {} where there is none or it cannot be read (the settings are informative only)."""
     if not payload or payload[:4] != b"DEVC":

@@ -17,8 +17,8 @@ GPMF_SAMPLE_TYPE = b"gpmd"
 
 @dataclass
 class Mp4Index:
-    """What the MP4's box headers say: the track IDs whose sample type is ``gpmd`` and the GPMF
-    settings block of ``moov/udta`` (bytes, or None where the file has none)."""
+    """What the MP4's box headers say: ``gpmd_tracks``, the track IDs whose sample type is ``gpmd``, and
+    ``udta_gpmf``, the GPMF settings block of ``moov/udta`` (bytes, or None where the file has none)."""
 
     gpmd_tracks: list[int] = field(default_factory=list)
     udta_gpmf: bytes | None = None
@@ -53,7 +53,7 @@ def _child(buf: bytes, start: int, end: int, path: tuple[bytes, ...]):
 
 
 def read_mp4_index(path: str | Path) -> Mp4Index | None:
-    """The GPMF-relevant part of an MP4/MOV's index (see :class:`Mp4Index`); None where the file
+    """The GPMF-relevant part of the index of the MP4/MOV at ``path`` (see :class:`Mp4Index`); None where the file
     does not start like an ISO-BMFF file (not an MP4: another reader's business).
 
     FootageError naming the file where it is an MP4 without its index (``moov``) — a recording cut

@@ -78,7 +78,8 @@ class FramePlaceholders(Sequence):
     """Stand-ins for frame files: ``<bag>/<topic>/<index:06d>``, made on demand (no per-frame storage).
 
     The names end in the frame index so code that maps file stems to frames (the .flo
-    reader) works; they are not files on disk.
+    reader) works; they are not files on disk. bag: the recording's path; topic: the image
+    topic; n: the number of frames.
     """
 
     def __init__(self, bag: Path, topic: str, n: int):
@@ -103,8 +104,8 @@ class BagFootage(Footage):
 
     Extra fields: ``topic`` (the image topic read), ``encoding`` (its pixel encoding),
     ``time_origin_s`` (absolute time of ``times == 0``), ``time_source`` ("header" stamps
-    or "bag" record times) and the per-frame bag record and source stamps (ns) used to
-    find and check frames while streaming.
+    or "bag" record times) and the per-frame bag record and source stamps (``bag_times_ns``,
+    ``stamps_ns``: (n,) int64 ns) used to find and check frames while streaming.
     """
 
     topic: str = ""
@@ -154,6 +155,7 @@ class BagFootage(Footage):
             return None
 
     def depth_map(self, index: int) -> np.ndarray | None:
+        """None: no depth is read from a bag."""
         return None
 
 
@@ -188,7 +190,8 @@ def _image_rank(topic: str, stream_name=None) -> int | None:
 def choose_image_topic(path, image_topics: list[str], stream: str | None, stream_name=None) -> str:
     """The image topic to read as footage: the one ``stream`` names ("Color_0", "Infrared_1" or part of
     a topic), else colour, then infrared; never depth. ``stream_name`` maps a topic to its stream's
-    name (the ROS1 Viewer layout by default). Raises FootageError naming the topics there are."""
+    name (the ROS1 Viewer layout by default). image_topics: the recording's image topics; ``path``
+    is named in errors. Raises FootageError naming the topics there are."""
     name = stream_name or _stream_name
     if stream is not None:
         chosen = [t for t in image_topics if name(t).lower() == stream.lower() or stream in t]

@@ -96,7 +96,12 @@ def _stream_prefix(topic: str) -> str:
 
 
 class Rosbag2Footage(Footage):
-    """Footage streamed out of a rosbag2 ``.db3``; see the module doc for the conventions."""
+    """Footage streamed out of a rosbag2 ``.db3``; see the module doc for the conventions.
+
+    topic, msgtype: the image topic and its message type; record_ns (n,) int64 ns: each frame's
+    record time in the bag; clock: the stamps ``times`` are on ("device", "header" or "record");
+    time_origin_ns: the first frame's stamp (ns) on that clock, which ``times`` (s) count from.
+    """
 
     def __init__(self, *args, topic: str = "", msgtype: str = "", record_ns=None, clock: str = "device",
                  time_origin_ns: int = 0, **kwargs):
@@ -109,8 +114,8 @@ class Rosbag2Footage(Footage):
     def __len__(self) -> int:
         return len(self.times)
 
-    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
-        """Yield (index, time_s, grey float32 (H, W)) for frames start..stop-1, one message at a time."""
+    def raw_frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
+        """Yield (index, time_s s, grey float32 (H, W)) for frames start..stop-1, one message at a time."""
         yield from bag_frames(self, self.topic, self.record_ns, start, stop, open_bag=_rosbags,
                               select=lambda c: c.topic == self.topic, decode=self._decode_recorded,
                               corrupt=_CORRUPT, fix="the bag is damaged or changed: re-record it")
@@ -152,6 +157,7 @@ class Rosbag2Footage(Footage):
             return None
 
     def depth_map(self, index: int) -> np.ndarray | None:
+        """None: no depth is read from a bag."""
         return None
 
 
@@ -288,7 +294,34 @@ def _open(path, reader, ts, stream, clock, require_imu, camera) -> Rosbag2Footag
     counts = {t: sum(c.msgcount for c in cs) for t, cs in topics.items()}
     streams = [dict(topic=t, type=", ".join(sorted(types[t])), messages=int(counts[t])) for t in sorted(topics)]
 
-    # ---- image topic
+    topic, msgtype, prefix, rec, fmt, meta, stamps = _image_stream(path, reader, ts, topics, types, counts,
+                                                                   stream, clock)
+    origin = int(stamps[0])
+    times = (stamps - origin) / 1e9
+
+    notes, distortion = [], None
+    fps = _stream_fps(reader, topics, prefix, ts, times)
+    if camera is None:
+        camera, distortion, note = _bag_camera(path, reader, topics, prefix, ts, topic, fps)
+        if note:
+            notes.append(note)
+
+    accel_topic, gyro_topic, raw = _imu_streams(path, reader, ts, topics, types, counts, clock, require_imu)
+    imu, r = _bag_imu(path, reader, ts, topics, raw, accel_topic, gyro_topic, clock, topic, prefix, meta,
+                      origin, notes)
+    clock_word = {"device": f"device time stamps from the metadata ({meta['domain'] or 'domain not given'})",
+                  "header": "message header stamps", "record": "bag record times"}[clock]
+    notes.insert(0, f"rosbag2 .db3: {len(times)} frames from {topic} ({fmt} -> grey), {camera.frame_rate_hz:g} Hz; "
+                    f"times are {clock_word}, relative to the first frame's ({origin / 1e9:.6f} s)")
+    return Rosbag2Footage(path, camera, times, FramePlaceholders(path, topic, len(times)),
+                          imu, None, kind="realsense-db3", notes=notes, distortion=distortion, imu_to_camera=r,
+                          streams=streams, topic=topic, msgtype=msgtype, record_ns=rec, clock=clock,
+                          time_origin_ns=origin)
+
+
+def _image_stream(path, reader, ts, topics, types, counts, stream, clock):
+    """The image topic, its message type and stream prefix, its record times (ns), its format, its
+    metadata times and its stamps (ns, int64) on ``clock``."""
     image_topics = [t for t, ty in types.items() if ty & {COMPRESSED_TYPE, IMAGE_TYPE} and counts[t] > 0]
     topic = choose_image_topic(path, image_topics, stream, _stream_name)
     msgtype = COMPRESSED_TYPE if COMPRESSED_TYPE in types[topic] else IMAGE_TYPE
@@ -303,11 +336,11 @@ def _open(path, reader, ts, stream, clock, require_imu, camera) -> Rosbag2Footag
     meta = _device_times(reader, topics, prefix, "image", ts)
     stamps = _pick_times(path, topic, clock, rec, hdr, meta)
     _check_increasing(path, topic, stamps, "image")
-    origin = int(stamps[0])
-    times = (stamps - origin) / 1e9
+    return topic, msgtype, prefix, rec, fmt, meta, stamps
 
-    # ---- intrinsics: CameraInfo, else librealsense's camera_info string
-    notes, distortion = [], None
+
+def _stream_fps(reader, topics, prefix, ts, times) -> float:
+    """The stream's frame rate (Hz): its info string's fps, else from the frame times (s)."""
     fps = None
     for t in (f"{prefix}/info",):
         for _, msg in _messages(reader, [c for c in topics.get(t, []) if c.msgtype == STRING_TYPE], ts, STRING_TYPE):
@@ -315,43 +348,52 @@ def _open(path, reader, ts, stream, clock, require_imu, camera) -> Rosbag2Footag
             break
     if fps is None:
         fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else 30.0
-    if camera is None:
-        info = None
-        for t in (f"{prefix}/image/camera_info", f"{prefix}/info/camera_info"):
-            conns = [c for c in topics.get(t, []) if c.msgtype == CAMERA_INFO_TYPE]
-            for _, msg in _messages(reader, conns, ts, CAMERA_INFO_TYPE):
-                info = dict(w=int(msg.width), h=int(msg.height), fx=float(msg.k[0]), fy=float(msg.k[4]),
-                            cx=float(msg.k[2]), cy=float(msg.k[5]), model=msg.distortion_model,
-                            coeffs=np.asarray(msg.d, float).tolist(), source=t)
-                break
-            if info:
-                break
-        if info is None:
-            conns = [c for c in topics.get(f"{prefix}/camera_info", []) if c.msgtype == STRING_TYPE]
-            for _, msg in _messages(reader, conns, ts, STRING_TYPE):
-                kv = _kv(msg.data)
-                try:
-                    info = dict(w=int(kv["width"]), h=int(kv["height"]), fx=float(kv["fx"]), fy=float(kv["fy"]),
-                                cx=float(kv["ppx"]), cy=float(kv["ppy"]), model=kv.get("model", ""),
-                                coeffs=[float(x) for x in kv.get("coeffs", "").split(",") if x],
-                                source=f"{prefix}/camera_info")
-                except (KeyError, ValueError):
-                    info = None
-                break
-        if info is None or info["fx"] <= 0 or info["fy"] <= 0 or info["w"] <= 0 or info["h"] <= 0:
-            what = ("no intrinsics (no CameraInfo or camera_info string)" if info is None else
-                    f"unusable intrinsics in {info['source']} ({info['w']}x{info['h']}, fx {info['fx']:g}, "
-                    f"fy {info['fy']:g})")
-            raise FootageError(f"{path}: {topic} has {what}; give them with --camera FILE, a camera.json with "
-                               f"width, height, fx, fy, cx, cy, frame_rate_hz of this stream")
-        camera = PinholeCamera(width=info["w"], height=info["h"], fx=info["fx"], fy=info["fy"], cx=info["cx"],
-                               cy=info["cy"], frame_rate_hz=float(fps))
-        if any(abs(x) > 1e-9 for x in info["coeffs"]):
-            distortion = dict(model=info["model"], coeffs=info["coeffs"], removed=False)
-            notes.append(f"lens distortion ({info['model']}, {np.round(info['coeffs'], 5).tolist()}) ignored: "
-                         f"pinhole model")
+    return fps
 
-    # ---- IMU
+
+def _bag_camera(path, reader, topics, prefix, ts, topic, fps):
+    """(camera, distortion or None, note or None) from the bag's intrinsics: CameraInfo, else
+    librealsense's camera_info string."""
+    info = None
+    for t in (f"{prefix}/image/camera_info", f"{prefix}/info/camera_info"):
+        conns = [c for c in topics.get(t, []) if c.msgtype == CAMERA_INFO_TYPE]
+        for _, msg in _messages(reader, conns, ts, CAMERA_INFO_TYPE):
+            info = dict(w=int(msg.width), h=int(msg.height), fx=float(msg.k[0]), fy=float(msg.k[4]),
+                        cx=float(msg.k[2]), cy=float(msg.k[5]), model=msg.distortion_model,
+                        coeffs=np.asarray(msg.d, float).tolist(), source=t)
+            break
+        if info:
+            break
+    if info is None:
+        conns = [c for c in topics.get(f"{prefix}/camera_info", []) if c.msgtype == STRING_TYPE]
+        for _, msg in _messages(reader, conns, ts, STRING_TYPE):
+            kv = _kv(msg.data)
+            try:
+                info = dict(w=int(kv["width"]), h=int(kv["height"]), fx=float(kv["fx"]), fy=float(kv["fy"]),
+                            cx=float(kv["ppx"]), cy=float(kv["ppy"]), model=kv.get("model", ""),
+                            coeffs=[float(x) for x in kv.get("coeffs", "").split(",") if x],
+                            source=f"{prefix}/camera_info")
+            except (KeyError, ValueError):
+                info = None
+            break
+    if info is None or info["fx"] <= 0 or info["fy"] <= 0 or info["w"] <= 0 or info["h"] <= 0:
+        what = ("no intrinsics (no CameraInfo or camera_info string)" if info is None else
+                f"unusable intrinsics in {info['source']} ({info['w']}x{info['h']}, fx {info['fx']:g}, "
+                f"fy {info['fy']:g})")
+        raise FootageError(f"{path}: {topic} has {what}; give them with --camera FILE, a camera.json with "
+                           f"width, height, fx, fy, cx, cy, frame_rate_hz of this stream")
+    camera = PinholeCamera(width=info["w"], height=info["h"], fx=info["fx"], fy=info["fy"], cx=info["cx"],
+                           cy=info["cy"], frame_rate_hz=float(fps))
+    distortion, note = None, None
+    if any(abs(x) > 1e-9 for x in info["coeffs"]):
+        distortion = dict(model=info["model"], coeffs=info["coeffs"], removed=False)
+        note = (f"lens distortion ({info['model']}, {np.round(info['coeffs'], 5).tolist()}) ignored: "
+                f"pinhole model")
+    return camera, distortion, note
+
+
+def _imu_streams(path, reader, ts, topics, types, counts, clock, require_imu):
+    """(accelerometer topic, gyroscope topic, {role: (stamps ns, values (n, 3), time domain)})."""
     imu_topics = [t for t, ty in types.items() if IMU_TYPE in ty and counts[t] > 0]
     accel_topic = next((t for t in sorted(imu_topics) if "accel" in t.lower()), None)
     gyro_topic = next((t for t in sorted(imu_topics) if "gyro" in t.lower()), None)
@@ -379,48 +421,44 @@ def _open(path, reader, ts, stream, clock, require_imu, camera) -> Rosbag2Footag
             raise FootageError(f"{path}: NaN or infinite values on {t}; re-record")
         _check_increasing(path, t, st, role)
         raw[role] = (st, vals, m["domain"])
+    return accel_topic, gyro_topic, raw
 
-    imu = None
-    if "accel" in raw:
-        acc_t, acc, _ = raw["accel"]
-        gyro = None
-        note = f"IMU: accelerometer {accel_topic} is the time base"
-        if "gyro" in raw:
-            g_t, g, _ = raw["gyro"]
-            keep = (acc_t >= g_t[0]) & (acc_t <= g_t[-1])
-            if keep.sum() < 2:
-                raise FootageError(f"{path}: accelerometer and gyroscope stamps do not overlap on the {clock} "
-                                   f"clock; try --clock header")
-            acc_t, acc = acc_t[keep], acc[keep]
-            gyro = np.stack([np.interp((acc_t - g_t[0]) / 1e9, (g_t - g_t[0]) / 1e9, g[:, j]) for j in range(3)], -1)
-            note += f"; gyroscope {gyro_topic} linearly interpolated onto it"
-            if (~keep).any():
-                note += f", {int((~keep).sum())} accelerometer samples outside its span dropped"
-        ext_img = _extrinsics(reader, topics, prefix, ts)
-        ext_acc = _extrinsics(reader, topics, _stream_prefix(accel_topic), ts)
-        r = None
-        if ext_img and ext_acc and ext_img[0] == ext_acc[0]:
-            r = ext_img[1] @ ext_acc[1].T
-            acc, gyro = acc @ r.T, (None if gyro is None else gyro @ r.T)
-            note += f"; rotated {rotation_deg(r):.2f} deg into {topic}'s optical frame with the bag's extrinsics"
-        else:
-            note += ("; no IMU extrinsics in the bag (librealsense ≥ 2.58 writes none for motion streams): axes "
-                     "as librealsense reports them for the D435i, already in the camera optical convention "
-                     "(x right, y down, z forward); no rotation applied")
-        notes.append(note)
-        if meta["domain"] and raw["accel"][2] and meta["domain"] != raw["accel"][2] and clock == "device":
-            notes.append(f"warning: image stamps are {meta['domain']} but IMU stamps are {raw['accel'][2]}; "
-                         f"the clocks may be offset (see --clock-offset)")
-        imu = IMU((acc_t - origin) / 1e9, acc, gyro, source=f"{path}:{accel_topic}"
-                  + (f" + {gyro_topic}" if gyro_topic else ""))
-    else:
+
+def _bag_imu(path, reader, ts, topics, raw, accel_topic, gyro_topic, clock, topic, prefix, meta, origin, notes):
+    """(IMU or None, IMU-to-camera rotation (3, 3) or None): the gyroscope onto the accelerometer's
+    times, both into the image's optical frame where the bag has the extrinsics; notes appended."""
+    if "accel" not in raw:
         notes.append("no IMU in this bag: velocity cannot be estimated from it")
-        r = None
-    clock_word = {"device": f"device time stamps from the metadata ({meta['domain'] or 'domain not given'})",
-                  "header": "message header stamps", "record": "bag record times"}[clock]
-    notes.insert(0, f"rosbag2 .db3: {len(times)} frames from {topic} ({fmt} -> grey), {camera.frame_rate_hz:g} Hz; "
-                    f"times are {clock_word}, relative to the first frame's ({origin / 1e9:.6f} s)")
-    return Rosbag2Footage(path, camera, times, FramePlaceholders(path, topic, len(times)),
-                          imu, None, kind="realsense-db3", notes=notes, distortion=distortion, imu_to_camera=r,
-                          streams=streams, topic=topic, msgtype=msgtype, record_ns=rec, clock=clock,
-                          time_origin_ns=origin)
+        return None, None
+    acc_t, acc, _ = raw["accel"]
+    gyro = None
+    note = f"IMU: accelerometer {accel_topic} is the time base"
+    if "gyro" in raw:
+        g_t, g, _ = raw["gyro"]
+        keep = (acc_t >= g_t[0]) & (acc_t <= g_t[-1])
+        if keep.sum() < 2:
+            raise FootageError(f"{path}: accelerometer and gyroscope stamps do not overlap on the {clock} "
+                               f"clock; try --clock header")
+        acc_t, acc = acc_t[keep], acc[keep]
+        gyro = np.stack([np.interp((acc_t - g_t[0]) / 1e9, (g_t - g_t[0]) / 1e9, g[:, j]) for j in range(3)], -1)
+        note += f"; gyroscope {gyro_topic} linearly interpolated onto it"
+        if (~keep).any():
+            note += f", {int((~keep).sum())} accelerometer samples outside its span dropped"
+    ext_img = _extrinsics(reader, topics, prefix, ts)
+    ext_acc = _extrinsics(reader, topics, _stream_prefix(accel_topic), ts)
+    r = None
+    if ext_img and ext_acc and ext_img[0] == ext_acc[0]:
+        r = ext_img[1] @ ext_acc[1].T
+        acc, gyro = acc @ r.T, (None if gyro is None else gyro @ r.T)
+        note += f"; rotated {rotation_deg(r):.2f} deg into {topic}'s optical frame with the bag's extrinsics"
+    else:
+        note += ("; no IMU extrinsics in the bag (librealsense ≥ 2.58 writes none for motion streams): axes "
+                 "as librealsense reports them for the D435i, already in the camera optical convention "
+                 "(x right, y down, z forward); no rotation applied")
+    notes.append(note)
+    if meta["domain"] and raw["accel"][2] and meta["domain"] != raw["accel"][2] and clock == "device":
+        notes.append(f"warning: image stamps are {meta['domain']} but IMU stamps are {raw['accel'][2]}; "
+                     f"the clocks may be offset (see --clock-offset)")
+    imu = IMU((acc_t - origin) / 1e9, acc, gyro, source=f"{path}:{accel_topic}"
+              + (f" + {gyro_topic}" if gyro_topic else ""))
+    return imu, r

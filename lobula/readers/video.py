@@ -52,7 +52,8 @@ def _packet_time(packet, path: Path) -> float | None:
 
 
 def container_times(path: Path) -> tuple[np.ndarray, int, int, float, str]:
-    """(frame times s (n,) ascending, width, height, nominal frames/s, codec) from the packets' time stamps.
+    """(frame times s (n,) ascending, width px, height px, nominal frames/s, codec) from the time stamps of
+    the packets of the video at ``path``.
 
     Packets arrive in decoding order (B-frames come before the pictures they refer to), so
     the presentation times are sorted.
@@ -82,6 +83,7 @@ class VideoFootage(Footage):
         return len(self.times)
 
     def raw_frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
+        """Yield (index, time_s s, grey float32 (H, W)) for frames start..stop-1, decoding one packet at a time."""
         n = len(self)
         start, stop = max(0, int(start)), (n if stop is None else min(int(stop), n))
         if start >= stop:
@@ -133,12 +135,13 @@ class VideoFootage(Footage):
         return i
 
     def depth_map(self, index: int) -> np.ndarray | None:
+        """None: a video has no depth maps."""
         return None
 
 
 def check_presentation_times(path: Path, times: np.ndarray) -> None:
     """FootageError naming the video, the frames and the fix where two frames share a presentation
-    time stamp (``times`` sorted, s): each frame's time then is not known."""
+    time stamp (``times`` (n,) sorted, s): each frame's time then is not known."""
     if not np.all(np.isfinite(times)):
         raise FootageError(f"{path}: some packets have no usable presentation time stamp; remux the video with "
                            f"fresh time stamps (ffmpeg -i IN -c copy OUT.mkv)")
@@ -157,6 +160,7 @@ def open_video(path: str | Path, require_imu: bool = True, camera_json: str | Pa
                keep_nan: bool = False) -> VideoFootage:
     """Open a video with its camera.json and imu.csv (see the module doc); clear errors for anything missing.
 
+    path: the video file; require_imu: stop when there is no imu.csv beside it (False: ``imu=None``);
     camera_json: a camera.json to use instead of the one beside the video (``--camera``);
     keep_nan: count NaN IMU and truth values instead of stopping (``lobula info``)."""
     from .core import read_truth_csv
