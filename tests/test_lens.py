@@ -99,3 +99,16 @@ def test_a_malformed_lens_names_its_file(fisheye_run, tmp_path):
     bad.write_text(json.dumps(d))
     with pytest.raises(FootageError, match=f"{bad}: its \"distortion\" must be"):
         open_footage(fisheye_run, camera=bad)
+
+
+def test_gopro_hint_is_an_equidistant_lens_whose_diagonal_sees_the_stated_view():
+    """The GoPro reader's error offers a camera.json: its corner pixel's ray is half the diagonal view off the axis."""
+    from lobula.readers.gopro import equidistant_hint
+
+    hint = equidistant_hint(848, 480, 29.97, 137.4)
+    cam_d = json.loads(hint[hint.index("{"):])
+    cam = PinholeCamera(**{k: cam_d[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "frame_rate_hz")})
+    lens = LensDistortion(**cam_d["distortion"])
+    x, y = pixel_rays(cam, lens, np.array([-0.5]), np.array([-0.5]))
+    assert np.degrees(np.arctan(np.hypot(x, y)))[0] == pytest.approx(137.4 / 2, abs=0.05)
+    assert equidistant_hint(848, 480, 29.97, None) == ""

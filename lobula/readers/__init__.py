@@ -227,7 +227,9 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
 
 def _lens_file(path: Path, cam_json: Path | None) -> Path | None:
     """The camera.json that describes the footage's lens: ``--camera``'s, else the one in or beside ``path``."""
-    for p in (cam_json, path / "camera.json" if path.is_dir() else path.parent / "camera.json"):
+    beside = ([path / "camera.json"] if path.is_dir()
+              else [path.parent / f"{path.stem}.camera.json", path.parent / "camera.json"])
+    for p in (cam_json, *beside):
         if p is not None and p.is_file():
             return p
     return None

@@ -43,6 +43,9 @@ stabilisation, the telemetry summary) and re-exports the parts' public names.
 """
 from __future__ import annotations
 
+import json
+import math
+
 from pathlib import Path
 
 import numpy as np
@@ -179,7 +182,8 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
         raise FootageError(f"{path}: a GoPro MP4 does not carry its lens intrinsics (fx, fy, cx, cy; the lens is a "
                            f"wide-angle fisheye), and none is assumed; pass --camera FILE with a camera.json from a "
                            f"calibration of this camera at {w}x{h}" + (f" in lens mode {fov!r}" if fov else "")
-                           + f", or put {path.stem}.camera.json beside the clip")
+                           + f", or put {path.stem}.camera.json beside the clip"
+                           + equidistant_hint(w, h, fps, settings.get("ZFOV")))
     notes = [("" if model.upper().startswith("GOPRO") else "GoPro ") + (model or "camera")
              + (f" (firmware {firmware})" if firmware else "")
              + f": video {len(times)} frames ({w}x{h}, {codec}) with its GPMF telemetry track: {packets} packets "
@@ -324,3 +328,15 @@ def describe_telemetry(telemetry: dict) -> list[str]:
                       if isinstance(lens.get("diagonal_fov_deg"), float) else "") + "; no intrinsics in the file")
     out.append(f"  truth:    {t['truth_source']}")
     return out
+
+
+def equidistant_hint(width: int, height: int, fps: float, diagonal_fov_deg) -> str:
+    """The error's last clause: a camera.json for an equidistant fisheye (Kannala–Brandt, no coefficients) whose
+    diagonal sees the lens mode's stated field of view (deg), as a first approximation; "" where none is stated."""
+    if not isinstance(diagonal_fov_deg, (int, float)) or not 0 < diagonal_fov_deg < 360:
+        return ""
+    f = 0.5 * math.hypot(width, height) / math.radians(0.5 * diagonal_fov_deg)
+    cam = dict(width=width, height=height, fx=round(f, 1), fy=round(f, 1), cx=(width - 1) / 2, cy=(height - 1) / 2,
+               frame_rate_hz=round(fps, 3), distortion=dict(model="kannala-brandt", coeffs=[0, 0, 0, 0]))
+    return (f"; without a calibration, an equidistant fisheye whose diagonal sees the stated {diagonal_fov_deg:.1f}° "
+            f"approximates it: {json.dumps(cam)}")
