@@ -128,6 +128,13 @@ class GoProFootage(VideoFootage):
     orientation: dict
     nominal_fps: float
 
+    def _index(self, t: float) -> int | None:
+        """The frame whose time stamp is t (s); None for a picture after the frames kept (the video runs on
+        past the telemetry's end)."""
+        if len(self.times) and t > self.times[-1] + 1e-6:
+            return None
+        return super()._index(t)
+
     def provenance(self) -> dict:
         """The footage's provenance attrs plus the truth source, model, firmware and stabilisation."""
         out = super().provenance()
@@ -188,9 +195,16 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
              + (f" (firmware {firmware})" if firmware else "")
              + f": video {len(times)} frames ({w}x{h}, {codec}) with its GPMF telemetry track: {packets} packets "
              f"covering {t0:.3f}..{t1:.3f} s of the video's clock"]
-    if times[-1] > t1 + 0.5 / max(fps, 1.0) or times[0] < t0 - 1e-6:
+    if times[-1] > t1 + 0.5 / max(fps, 1.0) and times[0] <= t1:
+        # The last telemetry packet can end before the video (a clip cut or transcoded): those frames have no
+        # IMU samples around them, so they are left out rather than refused with the whole clip.
+        n_all, last = len(times), float(times[-1])
+        times = times[times <= t1 + 0.5 / max(fps, 1.0)]
+        notes.append(f"the telemetry ends at {t1:.3f} s, before the video's last {n_all - len(times)} frames "
+                     f"(to {last:.3f} s): they are left out (no IMU samples around them)")
+    if times[0] < t0 - 1e-6:
         notes.append(f"the telemetry covers {t0:.3f}..{t1:.3f} s and the frames {times[0]:.3f}..{times[-1]:.3f} s: "
-                     f"frames outside it have no IMU samples around them")
+                     f"frames before it have no IMU samples around them")
     imu, r_extra = _gopro_imu(path, streams, cam_path, require_imu, notes)
     gps = gps_samples(streams)
     truth = _gps_truth(gps, notes)
