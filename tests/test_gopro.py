@@ -391,6 +391,18 @@ def test_real_clip_streams_gravity_and_gps(clip):
     assert want["orin"] in fo.telemetry["streams"]["ACCL"]["axes"]
 
 
+@needs_gpmf
+def test_real_clip_frames_stop_where_the_telemetry_does(clip):
+    """The HERO7's telemetry ends 0.7 s before its video: those frames are left out with a note, and the rest
+    all have IMU samples around them (the MAX's telemetry spans its video: nothing left out)."""
+    path, want, fo = clip
+    left = [n for n in fo.notes if "left out (no IMU samples around them)" in n]
+    assert fo.times[-1] <= fo.imu.time_s[-1] + 1 / 29.97
+    assert (len(left) == 1) == (want["model"] == "HERO7 Black")
+    if left:
+        assert len(fo) == len(list(fo.frames())) < 351
+
+
 def _payloads_by_gopros_reader(path: Path):
     """(t_in, t_out, bytes) of every GPMF packet through GoPro's own MP4 reader (not FFmpeg)."""
     pg = pytest.importorskip("py_gpmf_parser")
