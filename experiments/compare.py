@@ -308,7 +308,6 @@ def compare_front_ends(footage: Footage | str | Path, front_ends=DEFAULT_FRONT_E
     stage_names += sorted({s for st in stages_by_fe.values() for s in st} - set(stage_names))
 
     first = runs[names[0]]
-    F = first.sizes["field"]
     data = _stacked(runs, names, t_grid, stages_by_fe, stage_names)
     for k in METRICS:
         data[k] = ("front_end", np.array([metrics[fe][k] for fe in names], dtype=float), METRIC_ATTRS[k])

@@ -23,7 +23,7 @@ from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig, field_reliability
 from lobula.gaze import retinal_rotation
 from lobula.imu import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
                             resample_to, turn_rate)
-from lobula.photoreceptor import MEAN_REMOVAL, mean_removal
+from lobula.photoreceptor import mean_removal
 from lobula.readout import ReadoutConfig, readout
 from lobula.readout_neuron import SPIKE_MODELS, ReadoutNeuronConfig, readout_neuron, spiking_output
 
