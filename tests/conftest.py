@@ -105,6 +105,27 @@ def real_profile() -> str:
 
 
 @pytest.fixture(scope="session")
+def family_footage(tmp_path_factory):
+    """make(family, duration_s, scale, seed=0): a scene of one of the suite's families
+    (experiments.suite.family_config), rendered once per test session, opened."""
+    from experiments import suite
+    from lobula.readers import open_footage
+    from stimuli.track import make_track_run
+
+    cache = {}
+
+    def make(family, duration_s, scale, seed=0):
+        key = (family, duration_s, scale, seed)
+        if key not in cache:
+            folder = tmp_path_factory.mktemp(f"{family}{seed}") / "run"
+            make_track_run(folder, suite.family_config(family, seed, duration_s, scale), progress=False)
+            cache[key] = open_footage(folder)
+        return cache[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
 def make_replay(tmp_path_factory, real_profile):
     """Render (once per test session) a replay of the real trajectory: make_replay(start, duration, **scene)."""
     cache = {}

@@ -18,17 +18,8 @@ DURATION_S, SCALE, SKIP_S = 6.0, 0.5, 1.5
 
 
 @pytest.fixture(scope="module")
-def family_run(tmp_path_factory):
-    cache = {}
-
-    def make(family):
-        if family not in cache:
-            folder = tmp_path_factory.mktemp(family) / "run"
-            make_track_run(folder, suite.family_config(family, 0, DURATION_S, SCALE), progress=False)
-            cache[family] = open_footage(folder)
-        return cache[family]
-
-    return make
+def family_run(family_footage):
+    return lambda family: family_footage(family, DURATION_S, SCALE)
 
 
 _SCORED = {}  # (footage folder, filter, skip) -> scores: a footage is estimated once whatever tests ask

@@ -2,12 +2,9 @@
 import numpy as np
 import pytest
 
-from experiments import suite
 from experiments.families import FAMILIES
 from lobula.config import VelocityConfig
-from lobula.readers import open_footage
 from lobula.velocity import VelocityEstimator, estimate_velocity
-from stimuli.track import make_track_run
 
 DURATION_S, SCALE = 4.0, 0.25
 
@@ -47,24 +44,15 @@ def whole_record_intervals(fo, ds):
 
 
 @pytest.fixture(scope="module")
-def family_footage(tmp_path_factory):
-    cache = {}
-
-    def make(family):
-        if family not in cache:
-            folder = tmp_path_factory.mktemp(family) / "run"
-            make_track_run(folder, suite.family_config(family, 0, DURATION_S, SCALE), progress=False)
-            cache[family] = open_footage(folder)
-        return cache[family]
-
-    return make
+def family_footage_small(family_footage):
+    return lambda family: family_footage(family, DURATION_S, SCALE)
 
 
 @pytest.mark.parametrize("family", sorted(FAMILIES))
-def test_frame_by_frame_equals_the_whole_record_causal_run(family_footage, family):
+def test_frame_by_frame_equals_the_whole_record_causal_run(family_footage_small, family):
     """Same v̂, σ, observability and time stamps to 1e-9 on every suite family (a realistic IMU on a
     rotated mount, the gyro bias fitted from the flow), given the record's own intervals."""
-    fo = family_footage(family)
+    fo = family_footage_small(family)
     cfg = causal_config()
     ds = estimate_velocity(fo, cfg, progress=False)
     states, _ = stream(fo, cfg, intervals=whole_record_intervals(fo, ds))
@@ -81,10 +69,10 @@ def test_frame_by_frame_equals_the_whole_record_causal_run(family_footage, famil
     np.testing.assert_allclose(np.array([s.accel for s in states]), ds.accel.values, rtol=0, atol=1e-9)
 
 
-def test_imu_chunking_does_not_change_the_estimate(family_footage):
+def test_imu_chunking_does_not_change_the_estimate(family_footage_small):
     """Samples one at a time, in odd chunks, or with each frame: the same estimates; and without the record's
     intervals (taken from the first pair and the first samples) within 1e-4 m/s of the record's."""
-    fo = family_footage("rotation")
+    fo = family_footage_small("rotation")
     cfg = causal_config()
     ds = estimate_velocity(fo, cfg, progress=False)
     iv = whole_record_intervals(fo, ds)
@@ -96,8 +84,8 @@ def test_imu_chunking_does_not_change_the_estimate(family_footage):
     np.testing.assert_allclose([s.v_std for s in own], ds.v_std.values, rtol=0, atol=1e-4)
 
 
-def test_state_gives_the_3d_velocity_along_the_heading_and_memory_stays_bounded(family_footage):
-    fo = family_footage("offaxis")
+def test_state_gives_the_3d_velocity_along_the_heading_and_memory_stays_bounded(family_footage_small):
+    fo = family_footage_small("offaxis")
     states, est = stream(fo, causal_config())
     seen = [s for s in states if s.observable]
     assert seen and all(np.allclose(s.velocity, s.v * np.array([*s.heading, 1.0])) for s in seen)
