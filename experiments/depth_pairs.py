@@ -12,8 +12,6 @@ import math
 import time as _time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -22,9 +20,6 @@ from lobula.config import VelocityConfig
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
 from lobula.imu import orientation_from_gyro
 from lobula.readers.core import Footage, FootageError
-
-if TYPE_CHECKING:
-    from .depth_stream import DepthRunConfig
 
 __all__ = ["Pair", "attitude_track", "pair_rotation", "metric_scale", "mean_truth_velocity", "flow_config",
            "depth_flow_fn", "stabilised_average", "frames_averaged", "footage_attitude", "ranged_pairs"]
@@ -158,8 +153,8 @@ def stabilised_average(read, i: int, half: int, n_frames: int, times: np.ndarray
     return total / count
 
 
-def frames_averaged(run: "DepthRunConfig", attitude) -> int:
-    """The half-width of :func:`stabilised_average` a run uses (DepthRunConfig.average_frames)."""
+def frames_averaged(run, attitude) -> int:
+    """The half-width of :func:`stabilised_average` a run (an :class:`experiments.depth_stream.DepthRunConfig`) uses (its average_frames)."""
     if run.average_frames is None:
         return 2 if attitude is not None else 0
     if run.average_frames > 0 and attitude is None:
@@ -188,7 +183,7 @@ class _FrameReader:
         return img
 
 
-def _heading_at_first_frames(footage: Footage, velocity, vcfg: VelocityConfig, run: DepthRunConfig,
+def _heading_at_first_frames(footage: Footage, velocity, vcfg: VelocityConfig, run,
                              attitude, starts: list[int], gap: int) -> np.ndarray:
     """Epipole (normalised, (len(starts), 2)) of each selected pair, seen from its first frame.
 
@@ -222,12 +217,12 @@ def footage_attitude(footage: Footage, vcfg: VelocityConfig):
     return attitude_track(imu.time_s, imu.gyro, causal=vcfg.readout.filter == "causal")
 
 
-def ranged_pairs(footage: Footage, velocity, run: DepthRunConfig, timings: dict | None = None,
+def ranged_pairs(footage: Footage, velocity, run, timings: dict | None = None,
                  starts: list[int] | None = None):
     """The selected flow pairs of a depth run, in order, each with its flow when ranged.
 
     velocity: the velocity Dataset of this footage (its configuration fixes the flow and
-    the attitude's causality). starts: first-frame indices of the pairs (default every
+    the attitude's causality); run: the :class:`experiments.depth_stream.DepthRunConfig`. starts: first-frame indices of the pairs (default every
     ``run.every``-th). Yields :class:`Pair`; ``timings`` (dict) gains read/flow seconds.
     """
     vcfg = VelocityConfig.from_json(velocity.attrs["config"])

@@ -12,17 +12,12 @@ import shutil
 import warnings
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING
-
 import numpy as np
 import xarray as xr
 
 from .compare import METRIC_ATTRS, METRICS
 from .store import provenance
 from .sweep_params import Param, jsonable
-
-if TYPE_CHECKING:
-    from .sweep import Point, SweepSpec
 
 
 # ---------------------------------------------------------------------- records
@@ -88,8 +83,12 @@ def _param_attrs(p: Param, values: np.ndarray) -> dict:
     return attrs
 
 
-def assemble(spec: SweepSpec, grid: list[Point], points_dir: Path, series: bool = True) -> xr.Dataset:
-    """The grid Dataset from the point records (NaN where a point has no record)."""
+def assemble(spec, grid: list, points_dir: Path, series: bool = True) -> xr.Dataset:
+    """The grid Dataset from the point records (NaN where a point has no record).
+
+    spec: the sweep's :class:`experiments.sweep.SweepSpec`; grid: its :class:`experiments.sweep.Point` list;
+    points_dir: the folder of the point records.
+    """
     shape, dims = spec.shape, spec.dims
     records = {}
     for p in grid:

@@ -3,15 +3,12 @@ bounds, and vision's κ = a/v against the accelerometer, each a linear update of
 (:mod:`lobula.readout.kalman`), gated where the posterior is sure the measurement cannot hold."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 from scipy.special import log_ndtr
 
 from .config import ReadoutConfig
 
-if TYPE_CHECKING:
-    from .kalman import FilterRecord
+from .record import FilterRecord
 
 #: a reversal or rest bound whose innovation exceeds this many of its standard deviations is taken for the front
 #: end's fault, not a fact about v (kalman_velocity): an expansion read with the wrong sign for a moment gives two
