@@ -32,6 +32,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "scene": ("experiments.render:add_parser", "render a synthetic track run (footage folder with exact truth)"),
     "suite": ("experiments.suite:add_parser", "accuracy suite: scene families x seeds, all configurations, baselines"),
     "velocity": ("experiments.velocity_command:add_parser", "estimate forward velocity from footage"),
+    "calibrate-camera": ("experiments.parsers:add_calibrate_camera_parser",
+                         "measure a footage's focal length from its gyro against the image's rotation"),
     "calibrate-emd": ("experiments.parsers:add_calibrate_parser",
                       "fit the EMD front end's per-field gains on a synthetic run"),
     "depth": ("experiments.parsers:add_depth_parser", "dense forward depth from flow and v̂ (ratio, TV, parallax)"),
@@ -151,7 +153,7 @@ FOLDER_OUTPUTS = frozenset({"scene", "suite", "depth-suite", "figures"})
 OUTPUT_OPTIONS = ("out", "plot", "csv", "tum")
 #: commands whose few outputs appear together when the run ends, or none of them
 #: (experiments.store.all_or_nothing); the others keep what they finish, to resume from it
-ALL_OR_NOTHING = frozenset({"velocity", "eye-velocity", "compare", "depth", "ephys", "calibrate-emd"})
+ALL_OR_NOTHING = frozenset({"velocity", "eye-velocity", "compare", "depth", "ephys", "calibrate-emd", "calibrate-camera"})
 
 
 def _outputs(args) -> list[tuple[str, str]]:

@@ -47,20 +47,6 @@ def test_bad_lens_descriptions_are_refused():
         LensDistortion.parse("kannala-brandt:0.1,0.2")
 
 
-@pytest.fixture(scope="module")
-def fisheye_run(tmp_path_factory):
-    """A 131° equidistant fisheye turning on three axes, heading 8° off its axis: where the lens matters."""
-    from stimuli.scene import SceneConfig
-    from stimuli.track import TrackRunConfig, make_track_run
-
-    tmp = tmp_path_factory.mktemp("fisheye")
-    cam = tmp / "cam.json"
-    cam.write_text(json.dumps(dict(width=640, height=480, fx=280.0, fy=280.0, cx=319.5, cy=239.5, frame_rate_hz=30.0)))
-    cfg = TrackRunConfig(start_s=3.0, duration_s=6.0, scale=0.5, camera_json=str(cam), lens="kannala-brandt:0,0,0,0",
-                         scene=SceneConfig(seed=2, rotation3_amp_deg=(5.0, 5.0, 5.0), off_axis_yaw_deg=8.0))
-    return make_track_run(tmp / "run", cfg, progress=False)
-
-
 def test_a_fisheye_footage_is_read_through_its_lens(fisheye_run, tmp_path):
     """The lens in camera.json is removed on reading (the same K, or a wider pinhole keeping 131°); read as a
     pinhole instead, the same footage's velocity errs ≥ 4× more."""

@@ -33,9 +33,10 @@ class ClockOffset:
     scores: np.ndarray
 
 
-def image_rotation_rates(footage, max_frames: int = 900, width: int = 160) -> tuple[np.ndarray, np.ndarray]:
+def image_rotation_rates(footage, max_frames: int = 900, width: int = 160,
+                         preset: int = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST) -> tuple[np.ndarray, np.ndarray]:
     """(mid times (n,) s, ω_img (n, 3) rad/s) from consecutive frames of ``footage`` (the first ``max_frames``),
-    flow computed at ``width`` pixels."""
+    DIS flow (OpenCV ``preset``) computed at ``width`` pixels."""
     from lobula.epipole import rotational_flow
 
     cam = footage.camera
@@ -45,7 +46,7 @@ def image_rotation_rates(footage, max_frames: int = 900, width: int = 160) -> tu
     step = max(1, int(np.sqrt(small.width * small.height / 3000)))
     xs, ys = x[::step, ::step].ravel(), y[::step, ::step].ravel()
     basis = np.stack([rotational_flow(e, xs, ys).reshape(-1) for e in np.eye(3)], -1)   # (2P, 3)
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST)
+    dis = cv2.DISOpticalFlow_create(preset)
     prev, out_t, out_w = None, [], []
     for _, t, img in footage.frames(0, max_frames):
         g = cv2.resize(img, (small.width, small.height), interpolation=cv2.INTER_AREA) if scale < 1 else img
