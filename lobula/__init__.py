@@ -46,6 +46,9 @@ _API = {
     "natural_scene_gain": "eye_circuit",
     "GazeConfig": "gaze", "head_angles": "gaze", "head_rotation": "gaze", "retinal_rotation": "gaze",
     "fixation_reference": "gaze",
+    "OnOffConfig": "motion_pathways", "lamina_on_off": "motion_pathways", "t4_t5": "motion_pathways",
+    "cardinal_neighbours": "motion_pathways",
+    "TangentialConfig": "tangential_cells", "hs_vs": "tangential_cells", "tangential_fields": "tangential_cells",
 }
 __all__ = ["__version__", "git_commit", *sorted(_API)]
 

@@ -1,0 +1,205 @@
+"""Lobula-plate tangential cells: HS and VS cells integrating T4/T5 with dendritic gain control.
+
+HS cells (horizontal system) collect, on their dendrites in lobula-plate layer 1, the T4 and T5
+cells tuned to front-to-back motion (excitatory, cholinergic) and, through inhibitory lobula-plate
+interneurons from layer 2, those tuned to back-to-front motion (Mauss et al. 2015, Cell 162:351).
+VS cells (vertical system) do the same with downward (layer 4, excitatory) and upward (layer 3,
+inhibitory) motion. Each cell here pools over a receptive field on the lattice:
+
+- HS: ``n_hs`` elevation bands of equal height spanning the lattice, dorsal to ventral (three:
+  HSN, HSE, HSS);
+- VS: ``n_vs`` azimuth stripes of equal width, in order of increasing azimuth (left to right in the
+  image).
+
+Membrane (one compartment, potentials in mV relative to rest, conductances in units of the leak
+conductance g_leak):
+
+    g_e(t) = g_exc · Σ_A w_A (T4 + T5)_pref[t, A] / Σ_A w_A
+    g_i(t) = g_inh · Σ_A w_A (T4 + T5)_null[t, A] / Σ_A w_A
+    τ_m dV/dt = −V − g_e (V − E_exc) − g_i (V − E_inh)
+
+w the receptive field (1 inside, 0 outside), so each conductance grows with the number of columns
+a pattern covers and equals g_exc (g_inh) times the drive when the whole field carries the same drive.
+The steady state is the shunting (divisive) form
+
+    V∞ = (E_exc·g_e + E_inh·g_i) / (1 + g_e + g_i),
+
+which saturates as a pattern grows — at a level between the reversal potentials set by the ratio
+g_e/g_i, so the sign still follows the direction of motion. This is the dendritic gain control of
+Borst, Egelhaaf & Haag 1995 (J Comput Neurosci 2:5): it needs only the imperfect direction
+selectivity of the inputs (the null direction still drives some excitation). The same imperfection
+makes motion orthogonal to a cell's axis drive its excitatory and inhibitory layers alike (the
+rectified channels' mean), which depolarises it since E_exc > −E_inh: with the defaults a vertical
+grating that gives HS +27 mV front-to-back and −12 mV back-to-front gives it about +9 mV. Between frames the
+conductances are held constant and V relaxes exactly: ``V ← V∞ + (V − V∞)·exp(−dt·(1 + g_e + g_i)/τ_m)``
+(the effective time constant shortens as the conductances open).
+
+Shapes: T4/T5 (..., T, n, 4) as :func:`lobula.motion_pathways.t4_t5` returns them; HS (..., T, n_hs),
+VS (..., T, n_vs), mV. torch tensors, device and dtype of the input; the time loop is the only
+Python loop, each step vectorised over trials and cells.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+from ._optional import torch
+from .motion_pathways import direction_index
+
+if TYPE_CHECKING:
+    from torch import Tensor
+
+__all__ = ["TangentialConfig", "HSVS", "tangential_fields", "hs_vs", "shunting_potential"]
+
+
+@dataclass(frozen=True)
+class TangentialConfig:
+    """Receptive fields and membrane of the HS and VS cells (mV relative to rest; seconds).
+
+    n_hs: number of HS cells, elevation bands dorsal to ventral (3: HSN, HSE, HSS).
+    n_vs: number of VS cells, azimuth stripes in order of increasing azimuth.
+    tau_m_s: membrane time constant τ_m = C/g_leak. 4 ms: HS and VS cells' passive cut-off of
+        40–80 Hz (Borst & Haag 1996, J Comput Neurosci 3:313).
+    e_exc_mv, e_inh_mv: reversal potentials of the excitatory (T4/T5, cholinergic: a cation
+        conductance near 0 mV) and inhibitory (lobula-plate interneurons, glutamate-gated chloride
+        near −80 mV) synapses, relative to a rest near −50 mV: model values +50 and −30 mV.
+    g_exc, g_inh: excitatory and inhibitory conductance, in units of g_leak, per unit of T4 + T5
+        output (the photoreceptor signal's units u to the power −2) carried by the whole receptive
+        field. 100 makes a contrast-0.5 grating at the correlators' optimum on a mean luminance of 1
+        (or in contrast units) open g_e ≈ 2–3 across the whole field: well into saturation.
+    """
+
+    n_hs: int = 3
+    n_vs: int = 6
+    tau_m_s: float = 0.004
+    e_exc_mv: float = 50.0
+    e_inh_mv: float = -30.0
+    g_exc: float = 100.0
+    g_inh: float = 100.0
+
+    def __post_init__(self):
+        for name in ("n_hs", "n_vs"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if not (self.tau_m_s > 0 and math.isfinite(self.tau_m_s)):
+            raise ValueError(f"tau_m_s must be a positive number of seconds, got {self.tau_m_s}")
+        if not (self.e_exc_mv > 0 > self.e_inh_mv):
+            raise ValueError(f"need e_exc_mv > 0 > e_inh_mv (relative to rest), got {self.e_exc_mv}, {self.e_inh_mv}")
+        for name in ("g_exc", "g_inh"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ValueError(f"{name} must be a non-negative number, got {v}")
+
+    def to_dict(self) -> dict:
+        """Every field as a dict."""
+        return asdict(self)
+
+
+class HSVS(NamedTuple):
+    """Membrane potentials (mV relative to rest): hs (..., T, n_hs), vs (..., T, n_vs)."""
+
+    hs: Tensor
+    vs: Tensor
+
+
+def _bands(values: np.ndarray, k: int) -> np.ndarray:
+    """Membership (k, n) float64 of n values in k equal-width bands spanning their range."""
+    lo, hi = float(values.min()), float(values.max())
+    edges = np.linspace(lo, hi, k + 1)
+    band = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, k - 1)  # the maximum joins the last band
+    return (band[None, :] == np.arange(k)[:, None]).astype(float)
+
+
+def tangential_fields(lattice, config: TangentialConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Receptive-field weights of the HS and VS cells on ``lattice``.
+
+    Parameters
+    ----------
+    lattice : lobula.lattice.Lattice
+        Its ``elevation`` and ``azimuth`` (n,), radians (elevation positive down).
+    config : TangentialConfig, optional
+        Numbers of cells (default :class:`TangentialConfig`).
+
+    Returns
+    -------
+    (numpy.ndarray, numpy.ndarray)
+        HS weights (n_hs, n): equal elevation bands, row 0 the most dorsal (most negative
+        elevation); VS weights (n_vs, n): equal azimuth stripes, row 0 the smallest azimuth. 1 inside
+        a field, 0 outside; each ommatidium belongs to exactly one HS and one VS field.
+    """
+    cfg = config or TangentialConfig()
+    return _bands(np.asarray(lattice.elevation, float), cfg.n_hs), _bands(np.asarray(lattice.azimuth, float), cfg.n_vs)
+
+
+def shunting_potential(g_e, g_i, e_exc_mv: float, e_inh_mv: float):
+    """Steady-state potential ``(E_exc·g_e + E_inh·g_i)/(1 + g_e + g_i)`` (mV relative to rest).
+
+    g_e, g_i: excitatory and inhibitory conductances in units of g_leak (arrays or tensors, broadcast);
+    e_exc_mv, e_inh_mv: reversal potentials (mV relative to rest).
+    """
+    return (e_exc_mv * g_e + e_inh_mv * g_i) / (1.0 + g_e + g_i)
+
+
+def _integrate(g_e: Tensor, g_i: Tensor, cfg: TangentialConfig, dt: float) -> Tensor:
+    """Exact relaxation of the one-compartment membrane under conductances held over each frame:
+    g_e, g_i (..., T, c) → V (..., T, c) mV, starting at the first frame's steady state."""
+    g_tot = 1.0 + g_e + g_i
+    v_inf = (cfg.e_exc_mv * g_e + cfg.e_inh_mv * g_i) / g_tot
+    keep = torch.exp(-dt * g_tot / cfg.tau_m_s)
+    v_inf_t, keep_t = v_inf.movedim(-2, 0).contiguous(), keep.movedim(-2, 0).contiguous()
+    v = torch.empty_like(v_inf_t)
+    prev = v_inf_t[0]
+    for t in range(v.shape[0]):  # the recursion is sequential in time only
+        prev = torch.lerp(v_inf_t[t], prev, keep_t[t], out=v[t])
+    return v.movedim(0, -2)
+
+
+def hs_vs(t4, t5, lattice, config: TangentialConfig | None = None, dt: float | None = None) -> HSVS:
+    """HS and VS membrane potentials from the T4 and T5 layers.
+
+    Parameters
+    ----------
+    t4, t5 : Tensor, (..., T, n, 4)
+        Half-correlator outputs of :func:`lobula.motion_pathways.t4_t5` (last dim in
+        :data:`lobula.motion_pathways.DIRECTIONS` order), ≥ 0, units u².
+    lattice : lobula.lattice.Lattice
+        The lattice they were computed on (its azimuth and elevation set the receptive fields).
+    config : TangentialConfig, optional
+        Receptive fields and membrane (default :class:`TangentialConfig`).
+    dt : float, optional
+        Frame interval (s); default the lattice camera's.
+
+    Returns
+    -------
+    HSVS
+        ``hs`` (..., T, n_hs): excited by front-to-back, inhibited by back-to-front T4 + T5 over each
+        elevation band; ``vs`` (..., T, n_vs): excited by downward, inhibited by upward over each
+        azimuth stripe. mV relative to rest, positive = depolarised; the first frame starts at its
+        own steady state.
+    """
+    cfg = config or TangentialConfig()
+    dt = float(lattice.camera.frame_interval_s if dt is None else dt)
+    if not (dt > 0 and math.isfinite(dt)):
+        raise ValueError(f"frame interval dt must be a positive number of seconds, got {dt}")
+    t4 = torch.as_tensor(t4)
+    t5 = torch.as_tensor(t5).to(t4.dtype)
+    if t4.shape != t5.shape or t4.dim() < 3 or t4.shape[-1] != 4:
+        raise ValueError(f"t4 and t5 must both be (..., T, n, 4), got {tuple(t4.shape)} and {tuple(t5.shape)}")
+    if t4.shape[-2] != lattice.n:
+        raise ValueError(f"the T4/T5 layers have {t4.shape[-2]} ommatidia, the lattice {lattice.n}")
+    drive = t4 + t5                                                            # (..., T, n, 4)
+    w_hs, w_vs = tangential_fields(lattice, cfg)
+    # Each field's mean over all of its columns (unstimulated ones count as 0): g grows with pattern size.
+    m_hs = torch.as_tensor(w_hs / w_hs.sum(1, keepdims=True), dtype=drive.dtype, device=drive.device)
+    m_vs = torch.as_tensor(w_vs / w_vs.sum(1, keepdims=True), dtype=drive.dtype, device=drive.device)
+
+    def pooled(name: str, m: Tensor) -> Tensor:
+        return drive[..., direction_index(name)] @ m.t()                       # (..., T, cells)
+
+    hs = _integrate(cfg.g_exc * pooled("front_to_back", m_hs), cfg.g_inh * pooled("back_to_front", m_hs), cfg, dt)
+    vs = _integrate(cfg.g_exc * pooled("downward", m_vs), cfg.g_inh * pooled("upward", m_vs), cfg, dt)
+    return HSVS(hs, vs)
