@@ -8,8 +8,19 @@ def scene_config_from_args(args):
     from stimuli.scene import SceneConfig
     from stimuli.track import TrackRunConfig, recorded_profile
 
+    flight = getattr(args, "flight", "track")
+    if flight != "track":
+        # The flight plan draws its own speed: a velocity-profile option would be silently ignored.
+        given = [flag for flag, on in (("--profile", args.profile is not None), ("--builtin-profile", args.builtin_profile),
+                                       ("--constant-velocity", args.constant_velocity is not None),
+                                       ("--peak-speed", args.peak_speed is not None),
+                                       ("--profile-start", args.profile_start != "rest"),
+                                       ("--speed-scale", args.speed_scale != 1.0), ("--start", args.start != 0.0)) if on]
+        if given:
+            raise ValueError(f"{', '.join(given)} {'sets' if len(given) == 1 else 'set'} the track's velocity profile; "
+                             f"--flight {flight} draws its own speed: drop {'it' if len(given) == 1 else 'them'}")
     profile = args.profile
-    if (profile is None and not args.builtin_profile and args.constant_velocity is None
+    if (flight == "track" and profile is None and not args.builtin_profile and args.constant_velocity is None
             and args.peak_speed is None and recorded_profile() is not None):
         profile = str(recorded_profile())
     mipmap = {"auto": None, "on": True, "off": False}[args.mipmap]
@@ -23,7 +34,7 @@ def scene_config_from_args(args):
                          constant_velocity_m_s=args.constant_velocity, random_peak_m_s=args.peak_speed,
                          random_start=args.profile_start, profile_scale=args.speed_scale,
                          camera_json=args.camera, lens=getattr(args, "lens", None), scene=scene,
-                         imu=IMUConfig.model(args.imu, seed=args.seed, mount=args.imu_mount))
+                         imu=IMUConfig.model(args.imu, seed=args.seed, mount=args.imu_mount), flight=flight)
     return cfg
 
 
@@ -39,6 +50,8 @@ def run_scene(args) -> int:
     out = make_track_run(args.out, cfg, progress=not args.quiet)
     src = ("random, peak %g m/s, from %s" % (cfg.random_peak_m_s, cfg.random_start)
            if cfg.random_peak_m_s is not None else cfg.profile or "built-in")
+    if cfg.flight != "track":
+        src = f"{cfg.flight} flight"
     print(f"wrote {out} ({int(args.duration * 30)} frames; world: {args.world}; profile: {src}; "
           f"IMU: {args.imu}, mounted {args.imu_mount})")
     return 0
@@ -53,6 +66,10 @@ def add_parser(subparsers):
     s.add_argument("--world", default="panels", choices=["panels", "corridor", "ground"],
                    help="panels: frontal textured panels, backdrop, floor; corridor: floor, ceiling, side walls "
                         "and end wall; ground: ground plane to the horizon, objects, a backdrop 50-200 m away, sky")
+    s.add_argument("--flight", default="track", choices=["track", "saccadic"],
+                   help="track: along the straight track at the profile's velocity; saccadic: a seeded fly-like "
+                        "flight, straight segments of 0.2-2 s joined by 20-90° body saccades of 50-100 ms, heading "
+                        "within ±60° of the track, speed 0.1-1 m/s (stimuli.flight) (default: track)")
     s.add_argument("--profile", help="velocity CSV (time_s, v_true_m_s) (default: the real FLIVVER run if "
                                      "../shared is present, else a built-in profile)")
     s.add_argument("--builtin-profile", action="store_true", help="use the built-in profile")

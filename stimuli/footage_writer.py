@@ -117,8 +117,16 @@ def write_footage(folder: str | Path, scene, imu: dict, times: np.ndarray, metad
 
     Everything is written to a hidden sibling folder that is renamed into place only
     when complete, so an interrupted run leaves no folder that looks finished.
+
+    truth.csv: v_forward_m_s is the camera-frame z velocity (m/s), a_forward_m_s2 the world
+    acceleration's camera-frame z component (m/s²), position_m the distance along the track or,
+    in flight, along the path (m). A scene flying a :class:`stimuli.flight.FlightPlan` adds its
+    saccades to scene.json: ``saccades`` ([[start_s, end_s], ...]) and ``saccade_amplitudes_deg``.
     """
     folder = Path(folder)
+    flight = getattr(scene, "flight", None)
+    if flight is not None:
+        metadata = {**metadata, **flight.metadata()}
     with atomic_folder(folder) as tmp:
         (tmp / "frames").mkdir()
         (tmp / "depth").mkdir()
@@ -145,9 +153,12 @@ def write_footage(folder: str | Path, scene, imu: dict, times: np.ndarray, metad
         with open(tmp / "truth.csv", "w", newline="") as fh:
             wr = csv.writer(fh)
             wr.writerow(["time_s", "v_forward_m_s", "a_forward_m_s2", "position_m"])
-            acc = scene.trajectory.acceleration(times)
-            # Forward (optical-axis) acceleration: the track acceleration projected on z_cam.
-            a_fwd = acc * np.einsum("nji,j->ni", scene.rotation(times), np.array([0, 0, 1.0]))[:, 2]
+            if flight is not None:  # the 3-D world acceleration in the camera frame, its z
+                a_fwd = np.einsum("nji,nj->ni", scene.rotation(times), scene.world_acceleration(times))[:, 2]
+            else:
+                acc = scene.trajectory.acceleration(times)
+                # Forward (optical-axis) acceleration: the track acceleration projected on z_cam.
+                a_fwd = acc * np.einsum("nji,j->ni", scene.rotation(times), np.array([0, 0, 1.0]))[:, 2]
             for t, v, a, s in zip(times, vel[:, 2], a_fwd, scene.trajectory.position(times)):
                 wr.writerow([f"{t:.6f}", f"{v:.6f}", f"{a:.6f}", f"{s:.6f}"])
         (tmp / "scene.json").write_text(json.dumps(metadata, indent=1, default=str))

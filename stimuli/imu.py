@@ -138,6 +138,10 @@ def bias_random_walk(rng: np.random.Generator, n: int, rate_hz: float, walk: flo
 def synthesize_imu(scene, duration_s: float, config: IMUConfig | None = None) -> dict[str, np.ndarray]:
     """Accelerometer and gyroscope samples for a :class:`~stimuli.scene.TrackScene`.
 
+    On the straight track the world acceleration is the trajectory's, along z; a scene flying a
+    :class:`stimuli.flight.FlightPlan` gives its 3-D world acceleration (with the saccades'
+    centripetal part) and its exact angular velocity (:meth:`~stimuli.scene.TrackScene.angular_velocity`).
+
     Returns time_s (n,), accel (n, 3) m/s², gyro (n, 3) rad/s in the IMU frame (the
     camera optical frame when config.mount == "camera"), the exact camera-frame
     specific force and angular velocity (accel_true, gyro_true), the biases
@@ -149,11 +153,15 @@ def synthesize_imu(scene, duration_s: float, config: IMUConfig | None = None) ->
     rng = np.random.default_rng([cfg.seed, 2])
     t = np.arange(0.0, duration_s + 1e-9, 1.0 / cfg.rate_hz)
     rot = scene.rotation(t)
-    a_world = np.zeros((t.size, 3))
-    a_world[:, 2] = scene.trajectory.acceleration(t)
+    flight = getattr(scene, "flight", None)
+    if flight is not None:  # a 3-D path: the world acceleration and the exact body rates
+        a_world = scene.world_acceleration(t)
+    else:
+        a_world = np.zeros((t.size, 3))
+        a_world[:, 2] = scene.trajectory.acceleration(t)
     # Specific force in the camera frame: Rᵀ(a − g).
     f = np.einsum("nji,nj->ni", rot, a_world - scene.gravity_world)
-    omega = angular_velocity(scene.rotation, t)
+    omega = scene.angular_velocity(t) if flight is not None else angular_velocity(scene.rotation, t)
     # The ideal model's draws come first and in the same order as before (same bytes).
     accel_bias = rng.normal(0.0, cfg.accel_bias_std, 3)
     gyro_bias = rng.normal(0.0, cfg.gyro_bias_std, 3)

@@ -5,7 +5,8 @@ y down, x right. Gravity may be tilted in it (a sloped track or a tilted mount),
 which is what makes gravity leak into the forward accelerometer axis. The camera
 sits at ``s(t)·ẑ`` looking along z, optionally yawed/pitched off the track
 direction by a fixed angle (the epipole then leaves the principal point) and
-optionally rotating (yaw/pitch oscillation, for derotation tests).
+optionally rotating (yaw/pitch oscillation, for derotation tests). Or it flies a
+:class:`stimuli.flight.FlightPlan`: a fly-like path of straight segments and body saccades.
 
 Worlds (``SceneConfig.world``):
 
@@ -153,15 +154,24 @@ class TrackScene:
     between two times.
     """
 
-    def __init__(self, camera: PinholeCamera, trajectory, config: SceneConfig | None = None, lens=None):
+    def __init__(self, camera: PinholeCamera, trajectory, config: SceneConfig | None = None, lens=None,
+                 flight=None):
         """lens: a :class:`lobula.lens.LensDistortion` the camera sees through (None: a pinhole): each
-        pixel's rays are the lens's, so the frames come out as that lens draws them."""
+        pixel's rays are the lens's, so the frames come out as that lens draws them.
+
+        flight: a :class:`stimuli.flight.FlightPlan` the camera flies (None: along the straight track,
+        at ``s(t)·ẑ``). With a plan the camera centre is the plan's position, its rotation the plan's
+        body rotation times the configured one (off-axis mount, oscillations), the world is laid out
+        over the path's z range, and ``trajectory`` is the speed along the path
+        (:meth:`stimuli.flight.FlightPlan.trajectory`).
+        """
         self.camera = camera
         self.lens = lens
         self.trajectory = trajectory
+        self.flight = flight
         self.config = config = config or SceneConfig()
         rng = np.random.default_rng(config.seed)
-        s_min, s_max = trajectory.position_range()
+        s_min, s_max = trajectory.position_range() if flight is None else flight.z_range()
         self.position_range = (s_min, s_max)
         self.base_rotation = rotation_y(np.radians(config.off_axis_yaw_deg)) @ rotation_x(
             -np.radians(config.off_axis_pitch_deg))
@@ -251,6 +261,13 @@ class TrackScene:
     # ---------------------------------------------------------------- motion
     def rotation(self, t) -> np.ndarray:
         """Camera-to-track rotation matrices, shape (..., 3, 3) for times t (s)."""
+        if self.flight is not None:
+            return self.flight.rotation(t) @ self._mount_rotation(t)
+        return self._mount_rotation(t)
+
+    def _mount_rotation(self, t) -> np.ndarray:
+        """The configured rotation (off-axis mount, oscillations), shape (..., 3, 3): the camera-to-track
+        rotation on the straight track, the camera-to-body rotation in flight."""
         t = np.asarray(t, dtype=float)
         cfg = self.config
         a = np.radians(cfg.rotation_amp_deg) * np.sin(2 * np.pi * cfg.rotation_hz * t)
@@ -288,17 +305,54 @@ class TrackScene:
 
     def position(self, t) -> np.ndarray:
         """Camera centre in the track frame, shape (..., 3) (m)."""
+        if self.flight is not None:
+            return self.flight.position(t)
         s = self.trajectory.position(t)
         return np.stack([np.zeros_like(s), np.zeros_like(s), s], axis=-1)
 
+    def world_velocity(self, t) -> np.ndarray:
+        """Camera velocity in the track frame, shape (..., 3) (m/s)."""
+        if self.flight is not None:
+            return self.flight.velocity_world(t)
+        v = self.trajectory.velocity(t)
+        return np.stack([np.zeros_like(v), np.zeros_like(v), v], axis=-1)
+
+    def world_acceleration(self, t) -> np.ndarray:
+        """Camera acceleration in the track frame, shape (..., 3) (m/s²); in flight it holds the
+        centripetal part of the saccades."""
+        if self.flight is not None:
+            return self.flight.acceleration_world(t)
+        a = self.trajectory.acceleration(t)
+        return np.stack([np.zeros_like(a), np.zeros_like(a), a], axis=-1)
+
+    def angular_velocity(self, t) -> np.ndarray:
+        """Camera-frame angular velocity ω (rad/s), the vee of Rᵀ·dR/dt of :meth:`rotation`, shape (n, 3)
+        for times t (n,) (s).
+
+        In flight, ω = Mᵀ·ω_body + ω_mount for R = R_body·M: the plan's exact body rate, carried into
+        the camera by the mount rotation M, plus the mount's own rate (a central difference).
+        """
+        from .imu import angular_velocity
+
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        if self.flight is None:
+            return angular_velocity(self.rotation, t)
+        w_mount = angular_velocity(self._mount_rotation, t)
+        return np.einsum("nji,nj->ni", self._mount_rotation(t), self.flight.angular_velocity(t)) + w_mount
+
     def camera_velocity(self, t) -> np.ndarray:
         """Camera velocity in its own frame, shape (..., 3) (m/s); index 2 is the forward velocity."""
+        if self.flight is not None:
+            return np.einsum("...ji,...j->...i", self.rotation(t), self.flight.velocity_world(t))
         v = self.trajectory.velocity(t)
         vw = np.stack([np.zeros_like(v), np.zeros_like(v), v], axis=-1)
         return np.einsum("...ji,...j->...i", self.rotation(t), vw)
 
     def epipole(self, t=0.0) -> tuple[float, float]:
         """Focus of expansion (normalised coordinates) of the translation at time t."""
+        if self.flight is not None:
+            d = self.camera_velocity(float(t))
+            return float(d[0] / d[2]), float(d[1] / d[2])
         r = self.rotation(t)
         d = r.T @ np.array([0.0, 0.0, 1.0])
         return float(d[0] / d[2]), float(d[1] / d[2])

@@ -4,7 +4,8 @@
 default the real FLIVVER trajectory when ``../shared`` is present (:func:`recorded_profile`), else a built-in
 profile with rests, accelerations and reversals, or a seeded random smooth profile with
 a given peak speed) through a :class:`TrackScene`, and synthesises the IMU from the same
-trajectory and rotation.
+trajectory and rotation. With ``flight="saccadic"`` the camera flies a seeded fly-like path instead
+(:mod:`stimuli.flight`), whose own speed replaces the profile.
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ import numpy as np
 from lobula import __version__
 from lobula.camera import PinholeCamera
 
+from .flight import FlightConfig, saccadic_flight
 from .footage_writer import write_footage
 from .imu import IMUConfig, synthesize_imu
 from .scene import SceneConfig, TrackScene
@@ -97,6 +99,11 @@ class TrackRunConfig:
     profile_scale: multiplies the profile's velocity (faster runs from the real one).
     lens: the lens the camera sees through, "MODEL:c1,c2,..." (:meth:`lobula.lens.LensDistortion.parse`;
     None: a pinhole); camera.json then carries its "distortion".
+    flight: "track" (the camera moves along the straight track at the profile's velocity) or
+    "saccadic" (it flies a seeded saccadic flight plan, :func:`stimuli.flight.saccadic_flight`, seed
+    = scene seed, with flight_config's parameters (None: the defaults); the profile options are then
+    not used). :meth:`to_dict` leaves both out on the track, so a track run's configuration reads
+    as it does without them.
     """
 
     profile: str | None = None
@@ -112,15 +119,36 @@ class TrackRunConfig:
     scene: SceneConfig = field(default_factory=SceneConfig)
     imu: IMUConfig = field(default_factory=IMUConfig)
     depth_every: int = 10
+    flight: str = "track"
+    flight_config: FlightConfig | None = None
+
+    FLIGHTS = ("track", "saccadic")
+
+    def __post_init__(self):
+        if self.flight not in self.FLIGHTS:
+            raise ValueError(f"unknown flight {self.flight!r}; choose track or saccadic")
+        if isinstance(self.flight_config, dict):  # read back from a to_dict()
+            self.flight_config = FlightConfig(**{k: tuple(v) if isinstance(v, list) else v
+                                                 for k, v in self.flight_config.items()})
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if self.flight == "track" and self.flight_config is None:
+            del d["flight"], d["flight_config"]
+        return d
 
 
 def build_track(cfg: TrackRunConfig) -> tuple[TrackScene, dict]:
     """The scene (camera, trajectory, world) and its IMU recording for a run configuration."""
     cam = PinholeCamera.from_json(cfg.camera_json) if cfg.camera_json else PinholeCamera()
     cam = cam.scaled(cfg.scale) if cfg.scale != 1 else cam
+    from lobula.lens import LensDistortion
+
+    lens = LensDistortion.parse(cfg.lens) if cfg.lens else None
+    if cfg.flight == "saccadic":
+        plan = saccadic_flight(cfg.scene.seed, cfg.duration_s, cfg.flight_config)
+        scene = TrackScene(cam, plan.trajectory(), cfg.scene, lens=lens, flight=plan)
+        return scene, synthesize_imu(scene, cfg.duration_s, cfg.imu)
     k = float(cfg.profile_scale)
     if cfg.constant_velocity_m_s is not None:
         v0 = float(cfg.constant_velocity_m_s)
@@ -133,9 +161,7 @@ def build_track(cfg: TrackRunConfig) -> tuple[TrackScene, dict]:
         traj = trajectory_from_profile(cfg.profile, cfg.start_s, cfg.duration_s, scale=k)
     else:
         traj = trajectory_from_function(lambda t: k * builtin_profile(t + cfg.start_s), cfg.duration_s)
-    from lobula.lens import LensDistortion
-
-    scene = TrackScene(cam, traj, cfg.scene, lens=LensDistortion.parse(cfg.lens) if cfg.lens else None)
+    scene = TrackScene(cam, traj, cfg.scene, lens=lens)
     imu = synthesize_imu(scene, cfg.duration_s, cfg.imu)
     return scene, imu
 
