@@ -19,6 +19,16 @@ FAMILIES = {
 }
 
 
+#: families run only when named (``--families saccadic``), not in "all": fly flight, where the camera's
+#: pipeline is still being built for it
+EXTRA_FAMILIES = {
+    "saccadic": ("fly flight (lobula scene --flight saccadic): straight segments of 0.2-2 s, body saccades of "
+                 "20-90° in 50-100 ms, 0.1-1 m/s; panels on even seeds, the corridor on odd ones"),
+}
+#: every family a suite can run
+ALL_FAMILIES = {**FAMILIES, **EXTRA_FAMILIES}
+
+
 def parse_seeds(text: str) -> int | list[int]:
     """``--seeds``: "3" means seeds 0, 1, 2; "100,101" means exactly those seeds; "7," seed 7 alone."""
     try:

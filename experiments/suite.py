@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .families import FAMILIES, parse_seeds  # the suite's families and --seeds syntax (light: its parser shares them)
+from .families import ALL_FAMILIES, EXTRA_FAMILIES, FAMILIES, parse_seeds  # the families and --seeds syntax (light: the parser shares them)
 # The scores and the scenes live in their own modules; their public names are named from here as well.
 from .suite_metrics import METRIC_UNITS, METRICS, WINDOWS, Z95_TARGET, lock_on_time, score_series, window_metrics
 from .suite_scene import (BASELINES, CONFIGURATIONS, EYE_CONFIGURATIONS, EYE_RATE_HZ, SceneJob, dead_reckoning,
@@ -70,8 +70,8 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
     if bad:
         raise ValueError(f"unknown configuration(s) {bad}; choose from {known}")
     for f in families:
-        if f not in FAMILIES:
-            raise ValueError(f"unknown family {f!r}; choose from {', '.join(FAMILIES)}")
+        if f not in ALL_FAMILIES:
+            raise ValueError(f"unknown family {f!r}; choose from {', '.join(ALL_FAMILIES)}")
     if duration_s <= skip_s:
         raise ValueError(f"--duration ({duration_s} s) must exceed --skip ({skip_s} s)")
     out = Path(out)
@@ -201,7 +201,7 @@ def collect(results, families, seeds, configurations, settings):
                     metric=("metric", list(METRICS), {"long_name": "metric"}),
                     metric_units=("metric", [METRIC_UNITS[m] for m in METRICS],
                                   {"long_name": "UDUNITS units of the metric's values"}),
-                    family_description=("family", [FAMILIES[f] for f in families],
+                    family_description=("family", [ALL_FAMILIES[f] for f in families],
                                         {"long_name": "what the scene family is"})))
     ds.attrs.update(provenance(VelocityConfig().to_json(), suite=settings,
                                configurations={c: _what_runs(c) for c in configurations},
@@ -337,7 +337,8 @@ def add_parser(subparsers):
     s.add_argument("--out", required=True, help="output folder (scenes, per-scene results, suite.nc, table, figure)")
     s.add_argument("--families", default="all",
                    help="comma-separated families, or all: " + "; ".join(f"{k}: {v}" for k, v in FAMILIES.items())
-                   .replace("%", "%%"))
+                   .replace("%", "%%") + ". Run only when named: " + "; ".join(
+                       f"{k}: {v}" for k, v in EXTRA_FAMILIES.items()).replace("%", "%%"))
     s.add_argument("--seeds", type=seeds, default="3",
                    help="seeds per family: a count N (seeds 0..N-1) or a comma-separated list (e.g. 100,101 "
                         "for development seeds that the reported 0..N-1 never see; 7, for seed 7 alone)")

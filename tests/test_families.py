@@ -169,3 +169,16 @@ def test_a_still_camera_that_turns_fast_is_known_still(tmp_path):
         print(f"\n{filt}: {sc}")
         assert sc["observable"] >= 0.9, filt
         assert sc["rmse"] <= 0.01 and sc["cover"] >= 0.85, filt
+
+
+def test_the_saccadic_family_is_fly_flight_and_runs_only_when_named():
+    """`--families saccadic` flies the fly's flight (panels on even seeds, the corridor on odd ones); "all"
+    keeps the ten families the results are reported on."""
+    from experiments.families import ALL_FAMILIES, FAMILIES
+
+    assert "saccadic" in ALL_FAMILIES and "saccadic" not in FAMILIES
+    even, odd = suite.family_config("saccadic", 0, 2.0, 0.25), suite.family_config("saccadic", 1, 2.0, 0.25)
+    assert even.flight == odd.flight == "saccadic"
+    assert (even.scene.world, odd.scene.world) == ("panels", "corridor")
+    with pytest.raises(ValueError, match="unknown family"):
+        suite.family_config("saccades", 0, 2.0, 0.25)
