@@ -9,7 +9,9 @@ The package follows the physiologist's workflow, one module per stage:
   coordinate; configuration, version, commit, command line, creation time).
 - :mod:`.protocols` — ``tf-tuning`` (known answer: the optimum 1/(2πτ)), ``rf-map``
   (local-motion spot mapping: centre, size, preferred directions), ``looming``
-  (approach vs recession, time relative to collision); :func:`psth`, :func:`psth_sem`,
+  (approach vs recession, time relative to collision), ``edges`` (ON and OFF edges or bars in four
+  directions through T4/T5 to HS/VS, with direction-selectivity indices; :mod:`.edges`);
+  :func:`psth`, :func:`psth_sem`,
   :func:`raster`. ``velocity-replay`` lives in :mod:`experiments.replay_protocol`.
 - :mod:`.figures` — each protocol's figure (PNG + PDF), drawn from the stored data.
 - :mod:`.command` — ``lobula ephys`` (NetCDF and/or NWB via :mod:`experiments.nwb`).
@@ -30,7 +32,7 @@ from .command import PROTOCOLS, add_parser, main, run_protocol, summary
 #: the protocols need torch, and `lobula ephys --help` (which needs only .command) should not
 _API = {
     "bench_tuning_sweep": "bench",
-    "plot_looming": "figures", "plot_recording": "figures", "plot_rf_map": "figures", "plot_tf_tuning": "figures",
+    "edges": "edges", "edges_summary": "edges", "plot_edges": "edges", "plot_looming": "figures", "plot_recording": "figures", "plot_rf_map": "figures", "plot_tf_tuning": "figures",
     "TF_GRID_HZ": "protocols", "looming": "protocols", "psth": "protocols", "psth_sem": "protocols",
     "raster": "protocols", "rf_map": "protocols", "steady_state_mean": "protocols", "tf_tuning": "protocols",
     "EphysConfig": "rig", "Monitor": "rig", "Rig": "rig", "cf_describe": "rig", "parse_monitor": "rig",
@@ -39,7 +41,7 @@ _API = {
 
 __all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "record_dataset", "recording_attrs", "cf_describe",
            "torch_threads", "tf_tuning", "rf_map", "looming", "psth", "psth_sem", "raster", "steady_state_mean",
-           "TF_GRID_HZ", "plot_tf_tuning", "plot_rf_map", "plot_looming", "plot_recording", "bench_tuning_sweep",
+           "TF_GRID_HZ", "edges", "edges_summary", "plot_edges", "plot_tf_tuning", "plot_rf_map", "plot_looming", "plot_recording", "bench_tuning_sweep",
            "add_parser", "main", "run_protocol", "summary", "PROTOCOLS"]
 
 

@@ -13,24 +13,26 @@ from pathlib import Path
 
 import numpy as np
 
-PROTOCOLS = ("tf-tuning", "rf-map", "looming", "velocity-replay")
+PROTOCOLS = ("tf-tuning", "rf-map", "looming", "velocity-replay", "edges")
 ALL = PROTOCOLS
-LC_RIG = ("tf-tuning", "rf-map", "looming")
-NEURONS = ("tf-tuning", "looming", "velocity-replay")
+LC_RIG = ("tf-tuning", "rf-map", "looming", "edges")
+NEURONS = ("tf-tuning", "looming", "velocity-replay", "edges")
 
 #: option dest → protocols it applies to
 APPLIES = {
     # rf-map maps LC field variables, before the neurons: trials, seed and the neuron model do not apply
     "record": ALL, "trials": NEURONS, "seed": NEURONS, "neuron_model": NEURONS, "tau": ALL, "dphi": ALL,
     "field_size": ALL,
-    "device": LC_RIG, "duration": ("tf-tuning", "looming", "velocity-replay"), "contrast": LC_RIG,
+    "device": LC_RIG, "duration": ("tf-tuning", "looming", "velocity-replay", "edges"), "contrast": LC_RIG,
     "tf": ("tf-tuning",), "wavelength": ("tf-tuning",), "stimulus": ("tf-tuning",), "settle": ("tf-tuning",),
     "direction": ("tf-tuning",),
     "fields": ("rf-map",), "directions": ("rf-map",), "spacing": ("rf-map",), "extent": ("rf-map",),
     "spot_size": ("rf-map",), "spot_path": ("rf-map",), "spot_speed": ("rf-map",),
     "l_over_v": ("looming",), "max_size": ("looming",), "collision_time": ("looming",),
     "footage": ("velocity-replay",), "rotation": ("velocity-replay",), "haltere_gain": ("velocity-replay",),
-    "eye": ALL,
+    "speed": ("edges",), "bar_width": ("edges",),
+    # the compound eye's rig has no lobula plate
+    "eye": ("tf-tuning", "rf-map", "looming", "velocity-replay"),
 }
 
 S = argparse.SUPPRESS
@@ -42,25 +44,27 @@ def _add_rig_options(e) -> None:
 
     g = e.add_argument_group("recording and rig (every protocol unless marked)")
     g.add_argument("--record", nargs="+", metavar="POP.VAR", default=S,
-                   help="monitors, e.g. lc.rate lc.spikes[expansion] emd.response[0:10] photoreceptor.v; "
+                   help="monitors, e.g. lc.rate lc.spikes[expansion] emd.response[0:10] photoreceptor.v "
+                        "t4.response[front-to-back] t5.response[0:20] hs.v vs.v; "
                         "velocity-replay: readout.v readout.rate readout.spikes readout.confidence lc.r lc.rdot "
                         "(default: tf-tuning: probe EMD pairs + the neuron model's variables; rf-map: lc.input; "
                         "looming: the neuron model's variables (rate: lc.rate; poisson: lc.rate lc.spikes; "
-                        "lif: lc.v lc.spikes); velocity-replay: all readout variables)")
+                        "lif: lc.v lc.spikes); velocity-replay: all readout variables; edges: T4 and T5 of the "
+                        "central column and its neighbours, hs.v, vs.v)")
     g.add_argument("--trials", type=COUNT, default=S,
-                   help="[tf-tuning, looming, velocity-replay] repeats per condition (default: 4 for spiking models; "
-                        "1 for the deterministic rate model, which refuses more: its trials would be identical)")
+                   help="[tf-tuning, looming, velocity-replay, edges] repeats per condition (default: 4 for "
+                        "spiking models; 1 for the deterministic rate model, which refuses more: its trials would "
+                        "be identical)")
     g.add_argument("--seed", type=INDEX, default=S,
-                   help="[tf-tuning, looming, velocity-replay] seed of the neurons' noise and of the built-in "
+                   help="[tf-tuning, looming, velocity-replay, edges] seed of the neurons' noise and of the built-in "
                         "replay scene (default: 0)")
     g.add_argument("--neuron-model", choices=["rate", "lif", "poisson"], default=S,
-                   help="[tf-tuning, looming, velocity-replay] LC units: rate (Naka-Rushton), poisson (spikes from "
-                        "rates), lif (integrate-and-fire) (default: rate; velocity-replay's readout neuron: "
-                        "poisson, or rate; with --eye fly its "
-                        "output neurons: lif, or poisson, or rate)")
+                   help="[tf-tuning, looming, velocity-replay, edges] LC units: rate (Naka-Rushton), poisson "
+                        "(spikes from rates), lif (integrate-and-fire) (default: rate; velocity-replay's readout "
+                        "neuron: poisson, or rate; with --eye fly its output neurons: lif, or poisson, or rate)")
     g.add_argument("--tau", type=POSITIVE, default=S,
-                   help="EMD delay τ (s) (default: 0.035; velocity-replay's EMD front end: 0.01; --eye fly: 0.035 "
-                        "everywhere)")
+                   help="EMD delay τ (s); edges: also T4's and T5's (default: 0.035; velocity-replay's EMD front "
+                        "end: 0.01; --eye fly: 0.035 everywhere)")
     g.add_argument("--dphi", type=LATTICE_ANGLE, default=S,
                    help="interommatidial angle Δφ (degree) (default: 2; velocity-replay's front end: 0.75; "
                         "--eye fly: 5)")
@@ -73,13 +77,13 @@ def _add_rig_options(e) -> None:
                         "tf-tuning, rf-map and looming record photoreceptor.v, emd.response, lc.input, lc.pool, lc.r, "
                         "lc.grad, lc.r2; velocity-replay replays eye footage (--footage, from `lobula scene OUT --eye "
                         "fly`) and records lc.r, lc.rdot and the spiking output neurons over trials) (default: pinhole)")
-    g.add_argument("--device", default=S, help="[tf-tuning, rf-map, looming] torch device (default: cpu)")
+    g.add_argument("--device", default=S, help="[tf-tuning, rf-map, looming, edges] torch device (default: cpu)")
     g.add_argument("--duration", type=POSITIVE, default=S,
                    help="stimulus duration (s); velocity-replay: the built-in run's only (default: tf-tuning: 2; "
-                        "looming: 1; velocity-replay: 10)")
+                        "looming: 1; velocity-replay: 10; edges: until the edge has left the eye, plus 0.3)")
     g.add_argument("--contrast", type=Number(0, 1, above=True), nargs="+", default=S,
                    help="stimulus contrast; several allowed for tf-tuning (default: tf-tuning: 0.5; rf-map: the "
-                        "spot's 1.0; looming: the disc's 1.0)")
+                        "spot's 1.0; looming: the disc's 1.0; edges: 0.5)")
 
 
 def _add_protocol_options(e) -> None:
@@ -118,6 +122,12 @@ def _add_protocol_options(e) -> None:
     lo.add_argument("--collision-time", type=POSITIVE, default=S,
                     help="collision time after stimulus onset (s); the stored time is relative to it "
                          "(default: 0.8 × duration)")
+    ed = e.add_argument_group("edges")
+    ed.add_argument("--speed", type=POSITIVE, default=S,
+                    help="edge (or bar) speed across the eye (degree/s) (default: 50)")
+    ed.add_argument("--bar-width", type=POSITIVE, default=S,
+                    help="move bars of this width (degree; bright for ON, dark for OFF) instead of edges "
+                         "(default: edges)")
     v = e.add_argument_group("velocity-replay")
     v.add_argument("--footage", default=S, help="footage folder (default: render a built-in run of --duration)")
     v.add_argument("--rotation", choices=["none", "haltere", "wide-field", "both"], default=S,
@@ -136,7 +146,7 @@ def add_parser(subparsers):
                     "self-describing data (NetCDF with CF-1.10 attributes and/or NWB) and a figure.\n"
                     "Options marked [tf-tuning] etc. apply to those protocols only; giving them to another "
                     "protocol is an error.")
-    e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming | velocity-replay")
+    e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming | velocity-replay | edges")
     e.add_argument("--out", nargs="+", required=True, metavar="PATH", default=S,
                    help="outputs, by suffix: .nc (NetCDF, CF-1.10) and/or .nwb (Neurodata Without Borders); "
                         "each written atomically")
@@ -255,9 +265,10 @@ def run_protocol(protocol: str, opts: dict, progress: bool = False):
         from .eye_rig import run_eye_protocol
 
         return run_eye_protocol(protocol, opts, kw)
+    from .edges import edges
     from .protocols import looming, rf_map, tf_tuning
 
-    run = {"tf-tuning": tf_tuning, "rf-map": rf_map, "looming": looming}[protocol]
+    run = {"tf-tuning": tf_tuning, "rf-map": rf_map, "looming": looming, "edges": edges}[protocol]
     return run(rig_config(protocol, opts), record=opts.get("record"), **kw)
 
 
@@ -293,11 +304,12 @@ _STIMULUS_OPTIONS = {
                ("spot_speed", "speed_deg_s")),
     "looming": (("l_over_v", "l_over_v_s"), ("duration", "duration_s"), ("max_size", "max_size_deg"),
                 ("collision_time", "t_collision_s")),
+    "edges": (("speed", "speed_deg_s"), ("bar_width", "bar_width_deg"), ("duration", "duration_s")),
 }
 
 
 def stimulus_kwargs(protocol: str, opts: dict) -> dict:
-    """The stimulus keywords of tf-tuning, rf-map or looming from the given options (checked)."""
+    """The stimulus keywords of tf-tuning, rf-map, looming or edges from the given options (checked)."""
     kw = {k2: opts[k] for k, k2 in _STIMULUS_OPTIONS[protocol] if k in opts}
     if protocol == "tf-tuning" and "direction" in opts and opts.get("stimulus", "rings") != "grating":
         raise ValueError("--direction moves the drum grating; rings expand about the epipole "
@@ -374,6 +386,9 @@ def summary(ds) -> list[str]:
                 ex = ds[v].isel(neuron=np.nonzero(ds.neuron_type.sel(neuron=ds[v].neuron).values == "expansion")[0])
                 lines.append(f"{v} (s relative to collision), expansion units, approach, per l/|v|: " + "; ".join(
                     f"{lv:g} s: {_med(ex.sel(l_over_v_s=lv, motion='approach'))}" for lv in ds.l_over_v_s.values))
+    elif p == "edges":
+        from .edges import edges_summary
+        lines.extend(edges_summary(ds))
     elif p == "velocity-replay":
         from .figures import replay_scores
         for k, val in replay_scores(ds).items():
@@ -403,6 +418,11 @@ def main(args) -> int:
     plot = getattr(args, "plot", None)
     if plot and Path(plot).suffix.lower() not in (".png", ".pdf"):
         raise ValueError(f"--plot {plot}: use a .png or .pdf file name (both are written)")
+    plate = [r for r in opts.get("record", []) if r.split("[")[0].strip() in ("t4.response", "t5.response", "hs.v",
+                                                                               "vs.v")]
+    if any(o.suffix.lower() == ".nwb" for o in outs) and (args.protocol == "edges" or plate):
+        raise ValueError("the NWB writer has no layout for the lobula plate's dims (preferred_direction, hs_cell, "
+                         "vs_cell): write the edges protocol and T4/T5/HS/VS monitors to a .nc file")
     ds = run_protocol(args.protocol, opts, progress=not args.quiet)
     meta = {k: getattr(args, k) for k in ("experimenter", "institution") if hasattr(args, k)}
     for path in write_outputs(ds, outs, **meta):

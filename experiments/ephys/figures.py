@@ -570,6 +570,9 @@ def plot_recording(ds: xr.Dataset, path) -> list[Path]:
             raise ValueError(f"no figure for {p} on the compound eye (--eye fly) yet; drop --plot")
     if p == "velocity-replay":
         return plot_velocity_replay(ds, path)
+    if p == "edges":
+        from .edges import plot_edges
+        return plot_edges(ds, path)
     fn = {"tf-tuning": plot_tf_tuning, "rf-map": plot_rf_map, "looming": plot_looming}.get(p)
     if fn is None:
         raise ValueError(f"no figure for protocol {p!r}")

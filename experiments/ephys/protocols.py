@@ -17,6 +17,7 @@ import xarray as xr
 from lobula._optional import torch
 from lobula.camera import normalised_to_angles
 from lobula.emd import emd_sine_response_discrete
+from lobula.motion_pathways import DIRECTIONS
 from lobula.lc_geometry import pair_templates
 from lobula.photoreceptor import photoreceptor_frequency_response
 from lobula.population import FIELD_RECORDS
@@ -107,7 +108,9 @@ def raster(ds: xr.Dataset, neuron: int, var: str = "lc_spikes", **sel) -> tuple[
 
 def _specs(monitors) -> list[str]:
     """The monitors as the strings that would request them (written to the recording's parameters)."""
-    return [m.variable + ("" if m.neurons is None else f"[{','.join(map(str, m.neurons))}]") for m in monitors]
+    return [m.variable + ("" if m.neurons is None else f"[{','.join(map(str, m.neurons))}]")
+            + ("" if m.layers is None else f"[{','.join(DIRECTIONS[i].replace('_', '-') for i in m.layers)}]")
+            for m in monitors]
 
 
 def _probe_pairs(rig: Rig, kind: str, direction_deg: float, centre_deg=(0.0, 0.0)) -> np.ndarray:
@@ -132,29 +135,32 @@ def _add_tuning(ds: xr.Dataset, monitors, rig: Rig, tf: np.ndarray, settle_s: fl
     t = ds.time.values
     for mon in monitors:
         da = ds[mon.name]
-        x = da.values
+        # T4/T5 carry a layer dim after their ommatidia: it joins the leading dims, so time is second to last.
+        extra = ["preferred_direction"] if "preferred_direction" in da.dims else []
+        nd = [d for d in da.dims if d not in ("time", "trial", *extra)][-1]
+        x = da.transpose(..., *extra, "time", nd).values
+        f = tf.reshape((-1,) + (1,) * (x.ndim - 3))
         scale = 1.0 / rig.dt if mon.variable == "lc.spikes" else 1.0
         units = "Hz" if mon.variable == "lc.spikes" else da.attrs["units"]
         what = "firing rate from spike counts" if mon.variable == "lc.spikes" else da.attrs["long_name"]
-        nd = da.dims[-1]
+        out_dims = ("temporal_frequency_hz", "contrast", *extra, nd)
         if "trial" in da.dims:  # per trial, then mean and SEM across trials
             ax = da.dims.index("trial")
             per = steady_state_mean(np.moveaxis(x, ax, 2), t, tf[:, None, None], settle_s) * scale  # (TF, C, K, X)
             mean = per.mean(axis=2)
             k = per.shape[2]
             if k > 1:
-                ds[f"{mon.name}_tuning_sem"] = (("temporal_frequency_hz", "contrast", nd),
-                                                per.std(axis=2, ddof=1) / np.sqrt(k),
+                ds[f"{mon.name}_tuning_sem"] = (out_dims, per.std(axis=2, ddof=1) / np.sqrt(k),
                                                 {"units": units, "long_name": f"SEM across {k} trials of the "
                                                  f"steady-state {what}"})
         else:
-            mean = steady_state_mean(x, t, tf[:, None], settle_s) * scale
-        ds[f"{mon.name}_tuning"] = (("temporal_frequency_hz", "contrast", nd), mean,
+            mean = steady_state_mean(x, t, f, settle_s) * scale
+        ds[f"{mon.name}_tuning"] = (out_dims, mean,
                                     {"units": units, "long_name": f"steady-state {what} (mean over whole "
                                      f"periods after {settle_s} s, trial mean)"})
         ok = np.isfinite(mean).all(axis=0)
         peak = np.where(ok, tf[np.argmax(np.where(np.isfinite(mean), mean, -np.inf), axis=0)], np.nan)
-        ds[f"{mon.name}_peak_temporal_frequency_hz"] = (("contrast", nd), peak, {
+        ds[f"{mon.name}_peak_temporal_frequency_hz"] = (out_dims[1:], peak, {
             "units": "Hz", "long_name": f"temporal frequency of the largest steady-state {what}"})
 
 
@@ -480,6 +486,9 @@ def _looming(config: EphysConfig, *, l_over_v_s=LOOMING_L_OVER_V_S, duration_s: 
         if mon.neurons is not None:  # only the monitor's own neurons: the rest of a shared dim is NaN
             dim = _neuron_dim(mon.variable)
             da = da.sel({dim: list(mon.neurons)})
+        if mon.layers is not None:  # and only its own T4/T5 layers
+            da = da.isel(preferred_direction=np.isin(ds.preferred_direction.values,
+                                                     np.array(DIRECTIONS)[list(mon.layers)]))
         x = da.mean("trial") if "trial" in da.dims else da
         units, what = da.attrs["units"], da.attrs["long_name"]
         if mon.variable == "lc.spikes":  # smooth spike counts into a rate before taking the peak

@@ -23,10 +23,13 @@ from lobula._optional import torch
 from lobula.camera import PinholeCamera, normalised_to_angles
 from lobula.circuit import Circuit, CircuitConfig
 from lobula.lattice import Lattice, LatticeConfig
+from lobula.motion_pathways import DIRECTIONS, OnOffConfig
 from lobula.population import FIELD_RECORDS, NEURON_RECORDS, UNIT_RECORDS, config_from_dict
+from lobula.tangential_cells import TangentialConfig
 
 __all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "monitors_for", "record_dataset", "dim_coords",
-           "recording_attrs", "cf_describe", "torch_threads", "VARIABLES", "neuron_model_attrs", "trial_seed"]
+           "recording_attrs", "cf_describe", "torch_threads", "VARIABLES", "neuron_model_attrs", "trial_seed",
+           "PATHWAY_RECORDS", "LAYER_RECORDS", "direction_layer"]
 
 #: what each monitor variable is: (units (UDUNITS), long_name). Spike counts are per model step.
 VARIABLES = {
@@ -41,7 +44,16 @@ VARIABLES = {
     "lc.x": ("1", "LC rate unit integrated drive"),
     "lc.v": ("V", "LC unit membrane potential"),
     "lc.spikes": ("1", "LC unit spike count per model time step"),
+    "t4.response": ("1", "T4 (ON x ON) half-correlator output per preferred direction, photoreceptor output squared"),
+    "t5.response": ("1", "T5 (OFF x OFF) half-correlator output per preferred direction, photoreceptor output squared"),
+    "hs.v": ("mV", "HS cell membrane potential relative to rest"),
+    "vs.v": ("mV", "VS cell membrane potential relative to rest"),
 }
+
+#: the lobula-plate variables the rig computes from the photoreceptor output, only when monitored
+PATHWAY_RECORDS = ("t4.response", "t5.response", "hs.v", "vs.v")
+#: the variables with a T4/T5 layer (preferred-direction) dim after the ommatidium dim
+LAYER_RECORDS = ("t4.response", "t5.response")
 
 #: which neuron model records which neuron variable (the fix to name when one is asked for in vain)
 _MODEL_FOR = {"lc.spikes": "poisson or lif", "lc.v": "lif", "lc.rate": "rate or poisson", "lc.x": "rate or poisson"}
@@ -59,6 +71,9 @@ class EphysConfig:
     camera_scale: the D435i intrinsics scaled by this (only the field of view matters;
         stimuli are rendered on the lattice, never as frames).
     circuit: photoreceptors, EMD (τ = 35 ms), LC population, step dt = 1 ms.
+    on_off: the lamina ON/OFF split and the T4/T5 correlators (:class:`lobula.motion_pathways.OnOffConfig`);
+        tangential: the HS/VS cells (:class:`lobula.tangential_cells.TangentialConfig`). Both act only
+        when a monitor records t4.response, t5.response, hs.v or vs.v.
     trials: repeats per condition (a deterministic neuron model stores one: its trials
         would be identical); seed: the neurons' noise; device: "cpu" or "cuda".
     threads: torch CPU threads while a protocol runs (None: torch's default). 1 by
@@ -69,6 +84,8 @@ class EphysConfig:
     lattice: LatticeConfig = field(default_factory=lambda: LatticeConfig(dphi_deg=2.0))
     camera_scale: float = 0.5
     circuit: CircuitConfig = field(default_factory=CircuitConfig)
+    on_off: OnOffConfig = field(default_factory=OnOffConfig)
+    tangential: TangentialConfig = field(default_factory=TangentialConfig)
     trials: int = 4
     seed: int = 0
     device: str = "cpu"
@@ -169,14 +186,38 @@ class Rig:
         return {"rate": ("lc.rate",), "poisson": ("lc.rate", "lc.spikes"),
                 "lif": ("lc.v", "lc.spikes")}[self.neuron_model]
 
+    def available(self) -> tuple:
+        """Names this rig records: the circuit's and the lobula plate's (:data:`PATHWAY_RECORDS`)."""
+        return self.circuit.available() + PATHWAY_RECORDS
+
     def run(self, stimulus, n_steps, monitors, *, baseline=None) -> dict:
         """Run the circuit on a stimulus, recording the monitors; trials as :attr:`stored_trials`.
 
         The front end (deterministic) runs once; the LC units then run once per trial, trial k
         on its own random stream :func:`trial_seed` (seed, k), so trial k holds the same spikes
-        whatever the number of trials. Returns {variable: tensor}: (B, T, X), neuron
-        variables (B, K, T, U)."""
+        whatever the number of trials. The lobula plate (T4/T5, HS/VS:
+        :func:`experiments.ephys.edges.plate_records`) runs on the same photoreceptor output,
+        only when a monitor records it. Returns {variable: tensor}:
+        (B, T, X); neuron variables (B, K, T, U); T4/T5 (B, T, X, L), L their layers."""
         rec = {m.variable: m.neurons for m in monitors}
+        plate = [m for m in monitors if m.variable in PATHWAY_RECORDS]
+        if not plate:
+            return self._run_circuit(stimulus, n_steps, rec, baseline)
+        for m in plate:
+            del rec[m.variable]
+        own = rec.get("photoreceptor.v", ())                 # () : photoreceptor.v not monitored itself
+        rec["photoreceptor.v"] = None
+        out = self._run_circuit(stimulus, n_steps, rec, baseline)
+        y = out.pop("photoreceptor.v") if own == () else out["photoreceptor.v"]
+        if own:
+            out["photoreceptor.v"] = y.index_select(-1, torch.as_tensor(own, dtype=torch.long, device=y.device))
+        from .edges import plate_records  # the lobula plate's module imports this one
+
+        out.update(plate_records(self, y, plate))
+        return out
+
+    def _run_circuit(self, stimulus, n_steps, rec: dict, baseline) -> dict:
+        """:meth:`run` for the circuit's own variables, ``rec`` {variable: indices or None}."""
         if not self.stochastic:
             return self.circuit.run(stimulus, n_steps, trials=1, record=rec, seed=self.config.seed,
                                     baseline=baseline)
@@ -223,42 +264,56 @@ def trial_seed(seed: int, trial: int) -> int:
 
 @dataclass(frozen=True)
 class Monitor:
-    """What to record: ``variable`` ("lc.rate", …) and an optional subset ``neurons`` (indices)."""
+    """What to record: ``variable`` ("lc.rate", …), an optional subset ``neurons`` (indices: units, fields,
+    pairs, ommatidia or HS/VS cells) and, for T4/T5, ``layers`` (indices into
+    :data:`lobula.motion_pathways.DIRECTIONS`; None: all four)."""
 
     variable: str
     neurons: tuple | None = None
+    layers: tuple | None = None
 
     @property
     def name(self) -> str:
         return self.variable.replace(".", "_")
 
 
-_MONITOR = re.compile(r"^\s*([a-z_]+\.[a-z_0-9]+)\s*(?:\[(.*)\])?\s*$")
+_MONITOR = re.compile(r"^\s*([a-z_][a-z_0-9]*\.[a-z_0-9]+)\s*(?:\[(.*)\])?\s*$")
 
 
 def _size(rig: Rig, var: str) -> int:
-    pop = rig.population
-    return {"photoreceptor.v": rig.lattice.n, "emd.response": rig.lattice.n_pairs}.get(
+    pop, n = rig.population, rig.lattice.n
+    return {"photoreceptor.v": n, "emd.response": rig.lattice.n_pairs, "t4.response": n, "t5.response": n,
+            "hs.v": rig.config.tangential.n_hs, "vs.v": rig.config.tangential.n_vs}.get(
         var, pop.n_fields if var in FIELD_RECORDS else pop.n_units)
 
 
 def _valid(rig: Rig) -> str:
-    return (f"this rig ({rig.neuron_model} LC units) records {', '.join(rig.circuit.available())}; subsets: "
-            f"[i:j], [i,j,k], or for LC unit variables a unit type [{', '.join(rig.population.types)}]")
+    return (f"this rig ({rig.neuron_model} LC units) records {', '.join(rig.available())}; subsets: "
+            f"[i:j], [i,j,k], for LC unit variables a unit type [{', '.join(rig.population.types)}], for "
+            f"T4/T5 preferred directions [{', '.join(d.replace('_', '-') for d in DIRECTIONS)}]")
+
+
+def direction_layer(name: str) -> int | None:
+    """The T4/T5 layer of a direction name (front-to-back or front_to_back, …), or None if it is none."""
+    key = name.strip().replace("-", "_")
+    return DIRECTIONS.index(key) if key in DIRECTIONS else None
 
 
 def parse_monitor(spec: str | Monitor, rig: Rig) -> Monitor:
     """``"POP.VAR"``, ``"POP.VAR[i:j]"``, ``"POP.VAR[i,j,k]"`` or ``"lc.VAR[TYPE]"`` → :class:`Monitor`.
 
     Variables: photoreceptor.v, emd.response, lc.input, lc.r, lc.r2, lc.rdot, lc.drive,
-    lc.rate, lc.x (rate/Poisson units), lc.v (LIF), lc.spikes (Poisson/LIF). A type name
-    (expansion, contraction, r2, rdot+, rdot-) selects LC units of that type. Errors name
-    the fix (the neuron model that records a variable, the valid names and subsets).
+    lc.rate, lc.x (rate/Poisson units), lc.v (LIF), lc.spikes (Poisson/LIF), t4.response,
+    t5.response (ommatidium × preferred direction), hs.v, vs.v (one per cell). A type name
+    (expansion, contraction, r2, rdot+, rdot-) selects LC units of that type; direction names
+    (front-to-back, back-to-front, upward, downward; comma-separated) select T4/T5 layers, an
+    index subset their ommatidia. Errors name the fix (the neuron model that records a
+    variable, the valid names and subsets).
     """
     if isinstance(spec, Monitor):
         return spec
     m = _MONITOR.match(spec)
-    available = rig.circuit.available()
+    available = rig.available()
     if m and m.group(1) in _MODEL_FOR and m.group(1) not in available:
         raise ValueError(f"cannot record {spec!r}: {rig.neuron_model} LC units have no {m.group(1)}; use "
                          f"--neuron-model {_MODEL_FOR[m.group(1)]} (EphysConfig.with_neurons); {_valid(rig)}")
@@ -269,6 +324,15 @@ def parse_monitor(spec: str | Monitor, rig: Rig) -> Monitor:
         return Monitor(var, None)
     sub = sub.strip()
     pop = rig.population
+    layers = [direction_layer(p) for p in sub.split(",")]
+    if any(x is not None for x in layers):
+        if var not in LAYER_RECORDS:
+            raise ValueError(f"{spec!r}: a direction selects T4/T5 layers, and {var} has none; record "
+                             f"t4.response[{sub}] or t5.response[{sub}], or give {var} an index subset [i:j]")
+        if None in layers:
+            raise ValueError(f"{spec!r}: give directions only ({', '.join(DIRECTIONS)}, with - or _), or an "
+                             f"index subset of ommatidia [i:j], not both")
+        return Monitor(var, None, tuple(sorted(set(layers))))
     if sub in pop.types:
         if var not in UNIT_RECORDS + NEURON_RECORDS:
             raise ValueError(f"{spec!r}: a unit type selects LC units, and {var} is not a per-unit variable; "
@@ -282,7 +346,8 @@ def parse_monitor(spec: str | Monitor, rig: Rig) -> Monitor:
         else:
             idx = tuple(int(p) for p in sub.split(","))
     except (ValueError, TypeError):
-        raise ValueError(f"{spec!r}: the subset must be i:j, i,j,k or a unit type {list(pop.types)}") from None
+        raise ValueError(f"{spec!r}: the subset must be i:j, i,j,k, a unit type {list(pop.types)} or, for T4/T5, "
+                         f"directions {[d.replace('_', '-') for d in DIRECTIONS]}") from None
     if not idx or min(idx) < -size or max(idx) >= size:
         raise ValueError(f"{spec!r}: indices must lie in [0, {size}) for {var}")
     return Monitor(var, tuple(i % size for i in idx))
@@ -302,17 +367,25 @@ def monitors_for(rig: Rig, record, default) -> list[Monitor]:
 # =========================================================================== recording → Dataset
 
 def _neuron_dim(var: str) -> str:
-    if var == "photoreceptor.v":
+    if var in ("photoreceptor.v",) + LAYER_RECORDS:
         return "ommatidium"
+    if var in ("hs.v", "vs.v"):
+        return var[:2] + "_cell"
     if var == "emd.response":
         return "pair"
     return "field" if var in FIELD_RECORDS else "neuron"
 
 
 def dim_coords(rig: Rig, dim: str, idx) -> dict:
-    """Coordinates of one neuron-like dim ("ommatidium", "pair", "field", "neuron") for indices idx (None: all)."""
+    """Coordinates of one neuron-like dim ("ommatidium", "pair", "field", "neuron", "hs_cell", "vs_cell")
+    for indices idx (None: all)."""
     lat, pop = rig.lattice, rig.population
     sel = (lambda a: a) if idx is None else (lambda a: np.asarray(a)[np.asarray(idx)])
+    if dim in ("hs_cell", "vs_cell"):
+        from .edges import cell_coords
+
+        return {k: (v[0], sel(v[1]), *v[2:]) if isinstance(v, tuple) else sel(v)
+                for k, v in cell_coords(rig, dim).items()}
     if dim == "ommatidium":
         return {"ommatidium": sel(np.arange(lat.n)), "ommatidium_azimuth_deg": ("ommatidium", sel(lat.azimuth_deg)),
                 "ommatidium_elevation_deg": ("ommatidium", sel(lat.elevation_deg))}
@@ -340,14 +413,28 @@ def neuron_model_attrs(rig: Rig) -> dict:
                                             else str(o), sort_keys=True)}
 
 
+def _spread(arr: np.ndarray, axis: int, own, idx, size: int) -> np.ndarray:
+    """``arr`` holding indices ``own`` (None: all ``size``) along ``axis``, placed on the dim's union
+    ``idx`` (None: all), NaN where the monitor did not record."""
+    if (own is None and idx is None) or (own is not None and idx is not None and np.array_equal(own, idx)):
+        return arr
+    where = np.searchsorted(idx, np.asarray(own)) if idx is not None else np.asarray(own)
+    shape = list(arr.shape)
+    shape[axis] = len(idx) if idx is not None else size
+    filled = np.full(shape, np.nan, dtype=arr.dtype)
+    np.moveaxis(filled, axis, -1)[..., where] = np.moveaxis(arr, axis, -1)
+    return filled
+
+
 def record_dataset(rig: Rig, records: dict, monitors: list, cond: dict, n_steps: int, attrs: dict,
                    time_offset_s: float = 0.0) -> xr.Dataset:
     """Labelled arrays from :meth:`Circuit.run` output.
 
-    records: {variable: tensor (B, T, X) or (B, K, T, X)}; cond: ordered {dim: values}
-    whose product of lengths is B (the conditions, row-major); n_steps: T. Monitors that
-    record different subsets of one dim share it: its coordinate is the union of their
-    indices, and a variable is NaN where its monitor did not record. time_offset_s: the
+    records: {variable: tensor (B, T, X) or (B, K, T, X), T4/T5 (B, T, X, L)}; cond: ordered
+    {dim: values} whose product of lengths is B (the conditions, row-major); n_steps: T.
+    Monitors that record different subsets of one dim share it: its coordinate is the union
+    of their indices, and a variable is NaN where its monitor did not record (T4/T5 layers
+    alike, dim ``preferred_direction``). time_offset_s: the
     time coordinate is ``step·dt − time_offset_s`` (looming: relative to collision).
     """
     cdims = list(cond)
@@ -355,33 +442,34 @@ def record_dataset(rig: Rig, records: dict, monitors: list, cond: dict, n_steps:
     t = np.arange(n_steps) * rig.dt - time_offset_s
     coords = {"time": ("time", t), **{k: (k, np.asarray(v)) for k, v in cond.items()}}
     union: dict = {}
-    for mon in monitors:
-        dim = _neuron_dim(mon.variable)
-        full = mon.neurons is None
-        prev = union.get(dim, set())
-        union[dim] = None if full or prev is None else prev | set(mon.neurons)
+    for mon in monitors:  # (dim, the monitor's indices along it): its neuron-like dim, and T4/T5 layers
+        for dim, own in [(_neuron_dim(mon.variable), mon.neurons)] + (
+                [("preferred_direction", mon.layers)] if mon.variable in LAYER_RECORDS else []):
+            prev = union.get(dim, set())
+            union[dim] = None if own is None or prev is None else prev | set(own)
     index = {d: (None if u is None else np.array(sorted(u))) for d, u in union.items()}
     for d, idx in index.items():
-        coords.update(dim_coords(rig, d, idx))
+        coords.update({d: np.array(DIRECTIONS)[idx if idx is not None else slice(None)]}
+                      if d == "preferred_direction" else dim_coords(rig, d, idx))
     data = {}
     for mon in monitors:
         arr = records[mon.variable].detach().to("cpu").numpy()
         dim = _neuron_dim(mon.variable)
         arr = arr.reshape(cshape + list(arr.shape[1:]))
-        idx = index[dim]
+        layered = mon.variable in LAYER_RECORDS
         own = None if mon.neurons is None else np.asarray(mon.neurons)
-        if not (own is None and idx is None) and not (idx is not None and own is not None and np.array_equal(own, idx)):
-            size = len(idx) if idx is not None else _size(rig, mon.variable)
-            where = np.searchsorted(idx, own) if idx is not None else own
-            filled = np.full(arr.shape[:-1] + (size,), np.nan, dtype=arr.dtype)
-            filled[..., where] = arr
-            arr = filled
+        arr = _spread(arr, -2 if layered else -1, own, index[dim], _size(rig, mon.variable))
+        if layered:
+            arr = _spread(arr, -1, mon.layers, index["preferred_direction"], len(DIRECTIONS))
         if mon.variable == "lc.spikes" and np.isfinite(arr).all():
             arr = arr.astype(np.uint16)  # whole counts per step: 2 bytes, not 4 (a 1 ms step holds < 65536)
-        dims = cdims + (["trial"] if mon.variable in NEURON_RECORDS else []) + ["time", dim]
+        dims = (cdims + (["trial"] if mon.variable in NEURON_RECORDS else []) + ["time", dim]
+                + (["preferred_direction"] if layered else []))
         units, long_name = VARIABLES[mon.variable]
         a = {"units": units, "long_name": long_name, "monitor": mon.variable,
              "recorded": "all" if own is None else json.dumps(own.tolist())}
+        if layered:
+            a["recorded_layers"] = "all" if mon.layers is None else json.dumps([DIRECTIONS[i] for i in mon.layers])
         if mon.variable in NEURON_RECORDS:
             a.update(neuron_model_attrs(rig))
         if mon.variable == "lc.spikes":
@@ -426,6 +514,9 @@ DESCRIPTIONS = {
     "location_azimuth_deg": ("degree", "spot-passage centre azimuth"),
     "location_elevation_deg": ("degree", "spot-passage centre elevation (positive down)"),
     "direction_deg": ("degree", "spot motion direction in the image (0 right, 90 down)"),
+    "preferred_direction": (None, "preferred direction of the T4/T5 cells (their lobula-plate layer)"),
+    "hs_cell": ("1", "HS cell index (elevation bands, dorsal to ventral)"),
+    "vs_cell": ("1", "VS cell index (azimuth stripes, in order of increasing azimuth)"),
 }
 
 
