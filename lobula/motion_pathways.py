@@ -66,6 +66,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from ._optional import torch
+from .emd import _check_dt
 from .photoreceptor import lowpass_scan
 
 if TYPE_CHECKING:
@@ -128,13 +129,6 @@ class T4T5(NamedTuple):
 
     t4: Tensor
     t5: Tensor
-
-
-def _check_dt(dt: float) -> float:
-    dt = float(dt)
-    if not (dt > 0 and math.isfinite(dt)):
-        raise ValueError(f"frame interval dt must be a positive number of seconds, got {dt}")
-    return dt
 
 
 def _as_signal(x, name: str) -> Tensor:
