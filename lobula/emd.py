@@ -52,6 +52,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from ._optional import torch
+from .photoreceptor import _check_dt
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -115,13 +116,6 @@ class EMDState(NamedTuple):
 
     lp: Tensor
     x: Tensor
-
-
-def _check_dt(dt: float) -> float:
-    dt = float(dt)
-    if not (dt > 0 and math.isfinite(dt)):
-        raise ValueError(f"frame interval dt must be a positive number of seconds, got {dt}")
-    return dt
 
 
 @functools.lru_cache(maxsize=256)

@@ -66,8 +66,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from ._optional import torch
-from .emd import _check_dt
-from .photoreceptor import lowpass_scan
+from .photoreceptor import _check_dt, lowpass_scan
 
 if TYPE_CHECKING:
     from torch import Tensor

@@ -48,6 +48,7 @@ import numpy as np
 
 from ._optional import torch
 from .motion_pathways import direction_index
+from .photoreceptor import _check_dt
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -182,9 +183,7 @@ def hs_vs(t4, t5, lattice, config: TangentialConfig | None = None, dt: float | N
         own steady state.
     """
     cfg = config or TangentialConfig()
-    dt = float(lattice.camera.frame_interval_s if dt is None else dt)
-    if not (dt > 0 and math.isfinite(dt)):
-        raise ValueError(f"frame interval dt must be a positive number of seconds, got {dt}")
+    dt = _check_dt(lattice.camera.frame_interval_s if dt is None else dt)
     t4 = torch.as_tensor(t4)
     t5 = torch.as_tensor(t5).to(t4.dtype)
     if t4.shape != t5.shape or t4.dim() < 3 or t4.shape[-1] != 4:
