@@ -74,18 +74,56 @@ def _stimulus_templates(nwb, ds: xr.Dataset, lay: dict) -> None:
         cv = dict(zip(cdims, (a.ravel() for a in g)))
         t_abs = ds.time.values
         x = 1.0 + cv["contrast"][None, :] * np.sin(2 * np.pi * cv["temporal_frequency_hz"][None, :] * t_abs[:, None])
+        x[t_abs < 0] = 1.0  # the mean-luminance baseline before the grating's onset at time 0
         nwb.add_stimulus_template(TimeSeries(
             name="grating_luminance", data=x, unit="1", rate=rate, starting_time=0.0,
             description="drifting grating's luminance at one point of the eye relative to the mean "
-                        "(1 + contrast·sin 2πft); every point sees it phase-shifted", comments=comments))
+                        "(1 + contrast·sin 2πft from the grating's onset, 1 before it); every point sees it "
+                        "phase-shifted", comments=comments))
 
 
 def _condition_dims(ds: xr.Dataset) -> list[str]:
-    """Stimulus dims: every dim that is neither time, trial nor a channel (LC units, fields, …)."""
+    """Stimulus dims, the conditions simulated side by side.
+
+    The recording layer puts them first: a time-resolved variable is (conditions…, [trial], time,
+    channels…). So the condition dims are the dims every time-resolved variable has before its trial
+    or time dim, in the first one's order; whatever follows time is a channel (LC units, ommatidia,
+    T4/T5 layers, HS/VS cells, …). Without a time-resolved variable: every dim that is neither
+    time, trial nor a known channel dim.
+    """
     if ds.attrs.get("protocol") == "rf-map":
         return ["location", "direction_deg"]
+    lead = []
+    for v in ds.data_vars:
+        dims = ds[v].dims
+        tdim = next((d for d in _TIME_DIMS if d in dims), None)
+        if tdim is None:
+            continue
+        stop = min(dims.index(tdim), dims.index("trial") if "trial" in dims else len(dims))
+        lead.append(list(dims[:stop]))
+    if lead:
+        return [d for d in lead[0] if all(d in other for other in lead[1:])]
     skip = set(_TIME_DIMS) | {"trial"} | set(_CHANNEL_DIMS)
     return [d for d in ds.dims if d not in skip]
+
+
+def _channel_dims(da: xr.DataArray, cdims: list[str], tdim: str) -> list[str]:
+    """A time-resolved variable's channel dims: every dim that is not a condition, trial or its time."""
+    return [d for d in da.dims if d not in cdims and d not in ("trial", tdim)]
+
+
+def _channel_labels(ds: xr.Dataset, chans: list[str]) -> dict:
+    """The channels of a (flattened, row-major) channel grid: each channel dim's coordinates, and every
+    coordinate along one of them (e.g. ``hs_cell_name``), one entry per channel."""
+    if not chans:
+        return {}
+    grids = np.meshgrid(*[np.arange(ds.sizes[d]) for d in chans], indexing="ij")
+    out = {}
+    for d, g in zip(chans, grids):
+        for name, c in ds.coords.items():
+            if c.dims == (d,):
+                out[name] = c.values[g.ravel()].tolist()
+    return out
 
 
 def _epoch_duration(ds: xr.Dataset) -> float:
@@ -265,9 +303,8 @@ def _add_time_series(nwb, ds: xr.Dataset, lay: dict, spike_vars: list[str]) -> N
         tdim = next((d for d in _TIME_DIMS if d in da.dims), None)
         if var in spike_vars or tdim is None or var in _STIMULUS_VARS:
             continue
-        chans = [d for d in da.dims if d in _CHANNEL_DIMS]
-        ch = chans[0] if chans else None
-        x = _condition_major(da, cdims, ["trial", tdim] + ([ch] if ch else []))
+        chans = _channel_dims(da, cdims, tdim)
+        x = _condition_major(da, cdims, ["trial", tdim] + chans)
         T = ds.sizes[tdim]
         kk = K if "trial" in da.dims else 1
         x = x.reshape(C, kk, T, -1)
@@ -276,14 +313,45 @@ def _add_time_series(nwb, ds: xr.Dataset, lay: dict, spike_vars: list[str]) -> N
         ts = times.reshape(-1)
         if data.shape[1] == 1:
             data = data[:, 0]
-        comments = {"dims": ["epoch-major time"] + ([ch] if ch else []), "trials": "all" if kk == K else
-                    "first epoch of each condition (no trial dim: deterministic)"}
-        if ch:
-            comments[ch] = ds[ch].values.tolist()
+        # Several channel dims (T4/T5: ommatidium × layer) are one channel axis, row-major; each channel's
+        # labels say which it is.
+        comments = {"dims": ["epoch-major time"] + (["channel (" + " x ".join(chans) + ", row-major)"] if chans
+                                                    else []),
+                    "trials": "all" if kk == K else "first epoch of each condition (no trial dim: deterministic)"}
+        comments.update(_channel_labels(ds, chans))
         nwb.add_acquisition(TimeSeries(name=var, data=data.astype(np.float64), timestamps=ts,
                                        unit=str(da.attrs.get("units", "n.a.")),
                                        description=str(da.attrs.get("long_name", var)),
                                        comments=json.dumps(comments, default=str)))
+
+
+def _add_channel_tables(nwb, ds: xr.Dataset, lay: dict) -> None:
+    """One DynamicTable per channel dim of the time-resolved variables under processing/channels: a row per
+    channel (LC unit, ommatidium, T4/T5 layer, HS or VS cell, …) with every coordinate along that dim, so
+    that a TimeSeries' channel labels (its ``comments``) have a table to look up."""
+    from hdmf.common import DynamicTable, VectorData
+
+    dims = []
+    for v in ds.data_vars:
+        tdim = next((d for d in _TIME_DIMS if d in ds[v].dims), None)
+        if tdim is not None:
+            dims += [d for d in _channel_dims(ds[v], lay["cdims"], tdim) if d not in dims]
+    if not dims:
+        return
+    mod = nwb.create_processing_module("channels", "the recorded channels of each time-resolved variable, one "
+                                                   "table per channel dim, with every coordinate along it")
+    for d in dims:
+        cols = []
+        for name, c in ds.coords.items():
+            if c.dims != (d,):
+                continue
+            vals = c.values.astype(str) if c.values.dtype.kind in "OUS" else c.values
+            desc = c.attrs.get("long_name", name) + (f" ({c.attrs['units']})" if c.attrs.get("units") else "")
+            cols.append(VectorData(name=name, description=desc, data=vals))
+        if not cols:
+            cols = [VectorData(name=d, description=f"{d} index", data=np.arange(ds.sizes[d]))]
+        desc = ds[d].attrs.get("long_name", d) if d in ds.coords else d
+        mod.add(DynamicTable(name=d, description=f"channels along {d}: {desc}", columns=cols))
 
 
 def _add_analysis(nwb, ds: xr.Dataset) -> None:
@@ -296,7 +364,10 @@ def _add_analysis(nwb, ds: xr.Dataset) -> None:
                                                        "looming peaks), long form")
         for var in static:
             da = ds[var]
-            flat = da.to_dataframe(name="value").reset_index()
+            # a scalar analysis (no dim) is a one-row table
+            flat = (da.to_dataframe(name="value") if da.ndim else da.expand_dims("_").to_dataframe(name="value")
+                    .drop(columns=[c for c in da.coords], errors="ignore")).reset_index()
+            flat = flat.drop(columns=["_"], errors="ignore")
             cols = []
             for c in flat.columns:
                 vals = flat[c].values
@@ -324,6 +395,7 @@ def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str
     _add_trials(nwb, ds, lay)
     spike_vars = _add_units(nwb, ds, lay, probe)
     _add_time_series(nwb, ds, lay, spike_vars)
+    _add_channel_tables(nwb, ds, lay)
     _add_analysis(nwb, ds)
     with atomic_path(path, suffix=".tmp.nwb") as tmp, NWBHDF5IO(str(tmp), "w") as io:
         io.write(nwb)

@@ -71,8 +71,8 @@ from .photoreceptor import _check_dt, lowpass_scan
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["DIRECTIONS", "OnOffConfig", "OnOff", "T4T5", "lamina_on_off", "cardinal_neighbours", "t4_t5",
-           "direction_index"]
+__all__ = ["DIRECTIONS", "OnOffConfig", "OnOff", "T4T5", "lamina_on_off", "contrast_gain", "cardinal_neighbours",
+           "t4_t5", "direction_index"]
 
 #: the four preferred directions of T4/T5, in the order of their output's last dim
 DIRECTIONS = ("front_to_back", "back_to_front", "upward", "downward")
@@ -90,6 +90,18 @@ class OnOffConfig:
         the temporal-frequency optimum 1/(2πτ) at 4.5 Hz, as :class:`lobula.emd.EMDConfig`.
     eye: "right" or "left": which side of the head the lattice looks from; it sets which image
         direction is front-to-back (rightward for a right eye).
+    contrast_c50: semi-saturation contrast c₅₀ (Michelson, dimensionless) of the lamina's divisive
+        contrast gain; None (default) switches the stage off. On, each channel carries the lamina's
+        Weber contrast k = HP(x)/LP(x) (x a luminance > 0, LP the high-pass's own running mean)
+        divided by √(σ² + c₅₀²), σ² = 2·LP_τc(k²) the running contrast energy (Michelson-calibrated:
+        σ = C for a sinusoid of contrast C). A sinusoid of contrast C then leaves the lamina with
+        amplitude C/√(C² + c₅₀²), and each T4/T5 half-correlator (a product of two such channels) answers
+        ∝ C²/(C² + c₅₀²): a Naka–Rushton function with exponent 2 and semi-saturation c₅₀, C the
+        contrast reaching the lamina. The channels are then in normalised contrast units (≤ 1 at
+        steady state) and θ with them.
+    contrast_tau_s: time constant τc (s) of the running contrast energy σ² (used only with
+        contrast_c50). 0.2 s: slow beside the correlators' 35 ms delay, so σ² ripples little at
+        the TF optimum, and within the ~0.1–0.5 s of contrast adaptation in fly LMCs.
     """
 
     tau_hp_on_s: float = 0.25
@@ -99,6 +111,8 @@ class OnOffConfig:
     tau_delay_t4_s: float = 0.035
     tau_delay_t5_s: float = 0.035
     eye: str = "right"
+    contrast_c50: float | None = None
+    contrast_tau_s: float = 0.2
 
     def __post_init__(self):
         for name in ("tau_hp_on_s", "tau_hp_off_s", "tau_delay_t4_s", "tau_delay_t5_s"):
@@ -110,6 +124,10 @@ class OnOffConfig:
                 raise ValueError(f"{name} must be a finite number, got {getattr(self, name)}")
         if self.eye not in ("right", "left"):
             raise ValueError(f"eye must be 'right' or 'left', got {self.eye!r}")
+        if self.contrast_c50 is not None and not (self.contrast_c50 > 0 and math.isfinite(self.contrast_c50)):
+            raise ValueError(f"contrast_c50 must be a positive contrast or None (off), got {self.contrast_c50}")
+        if not (self.contrast_tau_s > 0 and math.isfinite(self.contrast_tau_s)):
+            raise ValueError(f"contrast_tau_s must be a positive number of seconds, got {self.contrast_tau_s}")
 
     def to_dict(self) -> dict:
         """Every field as a dict."""
@@ -164,18 +182,63 @@ def lamina_on_off(photoreceptor_signal, dt: float, config: OnOffConfig | None = 
     OnOff
         ``on = max(x − LP_τon(x) − θ_on, 0)`` and ``off = max(LP_τoff(x) − x − θ_off, 0)``, each
         (..., T, n) in u, ≥ 0. The low-passes start at x[..., 0, :] (no switch-on transient).
+        With ``config.contrast_c50`` set, the high-passed signal first passes :func:`contrast_gain`
+        (x must then be a luminance > 0) and the channels are in normalised contrast units.
     """
     cfg = config or OnOffConfig()
     dt = _check_dt(dt)
     x = _as_signal(photoreceptor_signal, "photoreceptor_signal")
-    hp_on = x - lowpass_scan(x, math.exp(-dt / cfg.tau_hp_on_s))
+    mean_on = lowpass_scan(x, math.exp(-dt / cfg.tau_hp_on_s))
+    hp_on = x - mean_on
     if cfg.tau_hp_off_s == cfg.tau_hp_on_s:
         hp_off = hp_on
+        if cfg.contrast_c50 is not None:
+            hp_on = hp_off = contrast_gain(hp_on, mean_on, dt, cfg)
     else:
-        hp_off = x - lowpass_scan(x, math.exp(-dt / cfg.tau_hp_off_s))
+        mean_off = lowpass_scan(x, math.exp(-dt / cfg.tau_hp_off_s))
+        hp_off = x - mean_off
+        if cfg.contrast_c50 is not None:
+            hp_on, hp_off = contrast_gain(hp_on, mean_on, dt, cfg), contrast_gain(hp_off, mean_off, dt, cfg)
     on = torch.clamp(hp_on - cfg.offset_on, min=0.0)
     off = torch.clamp(-hp_off - cfg.offset_off, min=0.0)
     return OnOff(on, off)
+
+
+def contrast_gain(hp: Tensor, mean: Tensor, dt: float, config: OnOffConfig) -> Tensor:
+    """The lamina's divisive contrast gain: Weber contrast over the running contrast energy plus c₅₀².
+
+    Parameters
+    ----------
+    hp : Tensor, (..., T, n)
+        The high-passed signal x − LP_τhp(x), in the luminance units u of x.
+    mean : Tensor, (..., T, n)
+        LP_τhp(x), the running mean luminance (u, > 0).
+    dt : float
+        Frame interval (s).
+    config : OnOffConfig
+        ``contrast_c50`` (c₅₀, not None) and ``contrast_tau_s`` (τc).
+
+    Returns
+    -------
+    Tensor, (..., T, n)
+        ``k / √(σ² + c₅₀²)``, dimensionless, with k = hp/mean the Weber contrast and
+        σ²[t] = LP_τc(2k²) (the low-pass starts at 2k[0]², 0 for a first frame at steady state). For a
+        sinusoid of amplitude C in k, σ² → C², so the output's amplitude is C/√(C² + c₅₀²).
+
+    Raises
+    ------
+    ValueError
+        If the mean luminance is not positive anywhere: the stage needs x in luminance units.
+    """
+    if not bool((mean > 0).all()):
+        raise ValueError("the lamina's contrast gain (contrast_c50) divides by the mean luminance, so it needs the "
+                         "photoreceptor signal in luminance units (> 0); the rig's circuit output has its adapted "
+                         "level removed: record it with `lobula ephys contrast`, `flicker` or `adaptation` "
+                         "(experiments.ephys.contrast), which feed the lamina the photoreceptor's low-pass stage, "
+                         "or set contrast_c50 None")
+    k = hp / mean
+    energy = lowpass_scan(2.0 * k * k, math.exp(-dt / config.contrast_tau_s))
+    return k * torch.rsqrt(energy + config.contrast_c50 ** 2)
 
 
 def _direction_vectors(eye: str) -> np.ndarray:

@@ -48,12 +48,13 @@ import numpy as np
 
 from ._optional import torch
 from .motion_pathways import direction_index
-from .photoreceptor import _check_dt
+from .photoreceptor import _check_dt, lowpass_scan
 
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["TangentialConfig", "HSVS", "tangential_fields", "hs_vs", "shunting_potential"]
+__all__ = ["TangentialConfig", "HSVS", "Conductances", "tangential_fields", "conductances", "hs_vs",
+           "shunting_potential"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,16 @@ class TangentialConfig:
         output (the photoreceptor signal's units u to the power −2) carried by the whole receptive
         field. 100 makes a contrast-0.5 grating at the correlators' optimum on a mean luminance of 1
         (or in contrast units) open g_e ≈ 2–3 across the whole field: well into saturation.
+    channel_noise_mv: channel noise, a white Gaussian current on each membrane, stated as the standard
+        deviation (mV) of the potential it gives at rest (g_e = g_i = 0); open conductances shunt it
+        to σ/√(1 + g_e + g_i). 0 (default): no noise.
+    adapt_tau_s: motion adaptation, a slow divisive gain on each cell's excitatory and inhibitory
+        conductance driven by that conductance itself: ``g' = G·g``, ``G = LP_τa(1/(1 + g/g½))``
+        (G = 1 unadapted, 1/2 after long drive at g = g½). Once the drive stops, 1 − G decays as
+        exp(−t/τa) exactly (per frame, exp(−dt/τa)). None (default): off. 1–3 s: the recovery of
+        blowfly HS/VS cells after prolonged motion (Harris et al. 2000, Nature 405:1073; Kurtz et al.
+        2000, J Neurosci 20:5945).
+    adapt_half_g: g½, the conductance (units of g_leak) that halves the gain at steady state.
     """
 
     n_hs: int = 3
@@ -80,6 +91,9 @@ class TangentialConfig:
     e_inh_mv: float = -30.0
     g_exc: float = 100.0
     g_inh: float = 100.0
+    channel_noise_mv: float = 0.0
+    adapt_tau_s: float | None = None
+    adapt_half_g: float = 1.0
 
     def __post_init__(self):
         for name in ("n_hs", "n_vs"):
@@ -94,6 +108,12 @@ class TangentialConfig:
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a non-negative number, got {v}")
+        if not (self.channel_noise_mv >= 0 and math.isfinite(self.channel_noise_mv)):
+            raise ValueError(f"channel_noise_mv must be a non-negative number of mV, got {self.channel_noise_mv}")
+        if self.adapt_tau_s is not None and not (self.adapt_tau_s > 0 and math.isfinite(self.adapt_tau_s)):
+            raise ValueError(f"adapt_tau_s must be a positive number of seconds or None (off), got {self.adapt_tau_s}")
+        if not (self.adapt_half_g > 0 and math.isfinite(self.adapt_half_g)):
+            raise ValueError(f"adapt_half_g must be a positive conductance (units of g_leak), got {self.adapt_half_g}")
 
     def to_dict(self) -> dict:
         """Every field as a dict."""
@@ -145,42 +165,76 @@ def shunting_potential(g_e, g_i, e_exc_mv: float, e_inh_mv: float):
     return (e_exc_mv * g_e + e_inh_mv * g_i) / (1.0 + g_e + g_i)
 
 
-def _integrate(g_e: Tensor, g_i: Tensor, cfg: TangentialConfig, dt: float) -> Tensor:
+def _integrate(g_e: Tensor, g_i: Tensor, cfg: TangentialConfig, dt: float, current_mv=None, noise=None) -> Tensor:
     """Exact relaxation of the one-compartment membrane under conductances held over each frame:
-    g_e, g_i (..., T, c) → V (..., T, c) mV, starting at the first frame's steady state."""
+    g_e, g_i (..., T, c) → V (..., T, c) mV, starting at the first frame's steady state. current_mv:
+    an injected current over the leak conductance, I/g_leak (mV, broadcast to (..., T, c); None: none).
+    noise: standard normal draws (..., T, c) for the channel noise of ``cfg.channel_noise_mv`` (None or σ = 0:
+    none). With noise the relaxation is the exact Ornstein–Uhlenbeck step under the held conductances,
+    ``V ← V∞ + (V − V∞)·k + σ·√((1 − k²)/g_tot)·ξ`` with k = exp(−dt·g_tot/τ_m), g_tot = 1 + g_e + g_i,
+    and the first frame draws from its stationary spread σ/√g_tot."""
     g_tot = 1.0 + g_e + g_i
     v_inf = (cfg.e_exc_mv * g_e + cfg.e_inh_mv * g_i) / g_tot
+    if current_mv is not None:
+        # τ_m dV/dt = −V − g_e(V − E_exc) − g_i(V − E_inh) + I/g_leak: the current adds I/g_leak to the
+        # numerator of V∞, so at rest (g_e = g_i = 0) V∞ = I/g_leak.
+        v_inf = v_inf + torch.as_tensor(current_mv, dtype=v_inf.dtype, device=v_inf.device) / g_tot
     keep = torch.exp(-dt * g_tot / cfg.tau_m_s)
     v_inf_t, keep_t = v_inf.movedim(-2, 0).contiguous(), keep.movedim(-2, 0).contiguous()
     v = torch.empty_like(v_inf_t)
+    if noise is not None and cfg.channel_noise_mv > 0:
+        xi = torch.as_tensor(noise, dtype=v_inf.dtype, device=v_inf.device).expand_as(v_inf)
+        g_t = g_tot.expand_as(v_inf).movedim(-2, 0)
+        kick = (cfg.channel_noise_mv * torch.sqrt((1.0 - keep_t * keep_t) / g_t) * xi.movedim(-2, 0)).contiguous()
+        prev = v_inf_t[0] + cfg.channel_noise_mv * torch.rsqrt(g_t[0]) * xi.movedim(-2, 0)[0]
+        v[0] = prev
+        for t in range(1, v.shape[0]):  # the recursion is sequential in time only
+            prev = torch.lerp(v_inf_t[t], prev, keep_t[t], out=v[t]).add_(kick[t])
+        return v.movedim(0, -2)
     prev = v_inf_t[0]
     for t in range(v.shape[0]):  # the recursion is sequential in time only
         prev = torch.lerp(v_inf_t[t], prev, keep_t[t], out=v[t])
     return v.movedim(0, -2)
 
 
-def hs_vs(t4, t5, lattice, config: TangentialConfig | None = None, dt: float | None = None) -> HSVS:
-    """HS and VS membrane potentials from the T4 and T5 layers.
+class Conductances(NamedTuple):
+    """Synaptic conductances (units of g_leak), after motion adaptation: HS (..., T, n_hs), VS (..., T, n_vs)."""
+
+    hs_exc: Tensor
+    hs_inh: Tensor
+    vs_exc: Tensor
+    vs_inh: Tensor
+
+
+def _adapt(g: Tensor, cfg: TangentialConfig, dt: float) -> Tensor:
+    """Motion adaptation of a conductance g (..., T, c): ``g·LP_τa(1/(1 + g/g½))`` (:class:`TangentialConfig`'s
+    adapt_tau_s), the gain starting at the first frame's steady state; g unchanged when off."""
+    if cfg.adapt_tau_s is None:
+        return g
+    gain = lowpass_scan(1.0 / (1.0 + g / cfg.adapt_half_g), math.exp(-dt / cfg.adapt_tau_s))
+    return g * gain
+
+
+def conductances(t4, t5, lattice, config: TangentialConfig | None = None, dt: float | None = None) -> Conductances:
+    """The excitatory and inhibitory conductances of every HS and VS cell from the T4 and T5 layers.
 
     Parameters
     ----------
     t4, t5 : Tensor, (..., T, n, 4)
-        Half-correlator outputs of :func:`lobula.motion_pathways.t4_t5` (last dim in
-        :data:`lobula.motion_pathways.DIRECTIONS` order), ≥ 0, units u².
+        Half-correlator outputs (:func:`lobula.motion_pathways.t4_t5`), units u².
     lattice : lobula.lattice.Lattice
-        The lattice they were computed on (its azimuth and elevation set the receptive fields).
+        The lattice they were computed on (its receptive fields).
     config : TangentialConfig, optional
-        Receptive fields and membrane (default :class:`TangentialConfig`).
+        Fields, synaptic gains and motion adaptation (default :class:`TangentialConfig`).
     dt : float, optional
         Frame interval (s); default the lattice camera's.
 
     Returns
     -------
-    HSVS
-        ``hs`` (..., T, n_hs): excited by front-to-back, inhibited by back-to-front T4 + T5 over each
-        elevation band; ``vs`` (..., T, n_vs): excited by downward, inhibited by upward over each
-        azimuth stripe. mV relative to rest, positive = depolarised; the first frame starts at its
-        own steady state.
+    Conductances
+        ``g_exc·`` (``g_inh·``) the mean over each field of the preferred (null) layers' T4 + T5
+        (HS: front-to-back (back-to-front); VS: downward (upward)), each (..., T, cells) in units of
+        g_leak, times the adaptation gain when ``config.adapt_tau_s`` is set.
     """
     cfg = config or TangentialConfig()
     dt = _check_dt(lattice.camera.frame_interval_s if dt is None else dt)
@@ -199,6 +253,47 @@ def hs_vs(t4, t5, lattice, config: TangentialConfig | None = None, dt: float | N
     def pooled(name: str, m: Tensor) -> Tensor:
         return drive[..., direction_index(name)] @ m.t()                       # (..., T, cells)
 
-    hs = _integrate(cfg.g_exc * pooled("front_to_back", m_hs), cfg.g_inh * pooled("back_to_front", m_hs), cfg, dt)
-    vs = _integrate(cfg.g_exc * pooled("downward", m_vs), cfg.g_inh * pooled("upward", m_vs), cfg, dt)
+    return Conductances(*(_adapt(g, cfg, dt) for g in (
+        cfg.g_exc * pooled("front_to_back", m_hs), cfg.g_inh * pooled("back_to_front", m_hs),
+        cfg.g_exc * pooled("downward", m_vs), cfg.g_inh * pooled("upward", m_vs))))
+
+
+def hs_vs(t4, t5, lattice, config: TangentialConfig | None = None, dt: float | None = None, *,
+          hs_current_mv=None, vs_current_mv=None, noise=None) -> HSVS:
+    """HS and VS membrane potentials from the T4 and T5 layers.
+
+    Parameters
+    ----------
+    t4, t5 : Tensor, (..., T, n, 4)
+        Half-correlator outputs of :func:`lobula.motion_pathways.t4_t5` (last dim in
+        :data:`lobula.motion_pathways.DIRECTIONS` order), ≥ 0, units u².
+    lattice : lobula.lattice.Lattice
+        The lattice they were computed on (its azimuth and elevation set the receptive fields).
+    config : TangentialConfig, optional
+        Receptive fields and membrane (default :class:`TangentialConfig`).
+    dt : float, optional
+        Frame interval (s); default the lattice camera's.
+    hs_current_mv, vs_current_mv : Tensor or array, optional
+        Current injected into each HS (VS) cell divided by its leak conductance, I/g_leak (mV; the
+        potential it holds at rest), broadcast to (..., T, n_hs) ((..., T, n_vs)); held over each frame.
+        The steady state becomes ``V∞ = (E_exc·g_e + E_inh·g_i + I/g_leak)/(1 + g_e + g_i)``. None: no
+        current (the cells' own membrane).
+    noise : (Tensor, Tensor), optional
+        Standard normal draws (..., T, n_hs) and (..., T, n_vs) for the channel noise of
+        ``config.channel_noise_mv`` (the caller seeds them, e.g. per trial); None: no noise.
+
+    Returns
+    -------
+    HSVS
+        ``hs`` (..., T, n_hs): excited by front-to-back, inhibited by back-to-front T4 + T5 over each
+        elevation band; ``vs`` (..., T, n_vs): excited by downward, inhibited by upward over each
+        azimuth stripe. mV relative to rest, positive = depolarised; the first frame starts at its
+        own steady state.
+    """
+    cfg = config or TangentialConfig()
+    dt = _check_dt(lattice.camera.frame_interval_s if dt is None else dt)
+    g = conductances(t4, t5, lattice, cfg, dt)
+    xi_hs, xi_vs = (None, None) if noise is None else noise
+    hs = _integrate(g.hs_exc, g.hs_inh, cfg, dt, hs_current_mv, xi_hs)
+    vs = _integrate(g.vs_exc, g.vs_inh, cfg, dt, vs_current_mv, xi_vs)
     return HSVS(hs, vs)

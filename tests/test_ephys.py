@@ -90,7 +90,7 @@ def test_looming_drives_expansion_units_more_than_receding():
     t = ds.time.values
     tc = 0.0
     lv = float(ds.l_over_v_s[0])
-    early = t < tc - 0.2
+    early = (t < tc - 0.2) & (t >= -ds.attrs["t_collision_s"])  # from the disc's appearance, after the baseline
     np.testing.assert_allclose(ds.angular_size_deg.sel(motion="approach").isel(l_over_v_s=0).values[early],
                                np.degrees(2 * np.arctan(lv / (tc - t[early]))), rtol=1e-12)
 

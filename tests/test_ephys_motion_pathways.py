@@ -170,8 +170,8 @@ def test_command_line_writes_cf_clean_netcdf_and_the_figure(tmp_path):
     assert ds.polarity.values.tolist() == ["on", "off"] and ds.direction.values.tolist() == list(DIRECTIONS)
     assert {"t4_response", "t5_response", "hs_v", "vs_v", "t4_dsi", "t5_dsi", "hs_v_peak", "vs_v_trough"} <= set(ds)
     assert float(ds.t4_dsi.sel(preferred_direction="front_to_back")) > 0.0
-    # NWB has no layout for the lobula plate's dims: refused before anything runs, naming the fix
-    assert cli_main(["ephys", "edges", "--out", str(tmp_path / "edges.nwb")]) == 2
+    # NWB holds the lobula plate's dims too (tests/test_nwb.py checks the file)
+    assert cli_main(["ephys", "edges", "--dphi", "4", "--speed", "100", "--out", str(tmp_path / "edges.nwb")]) == 0
 
 
 def test_edges_options_bars_and_refusals():

@@ -24,7 +24,9 @@ VARIANTS = {
         "tau": (0.07, lambda ds: ds.attrs["emd_tau_s"] == 0.07, True),
         "dphi": (5.0, lambda ds: json.loads(ds.attrs["config"])["ephys"]["lattice"]["dphi_deg"] == 5.0, True),
         "field_size": (24.0, lambda ds: float(ds.size_deg[0]) == 24.0, True),
-        "duration": (0.4, lambda ds: ds.sizes["time"] == 400, True),
+        "duration": (0.4, lambda ds: ds.sizes["time"] == 400 + 300, True),  # after the 0.3 s baseline
+        "baseline": (0.1, lambda ds: _par(ds)["baseline_s"] == 0.1 and float(ds.time[0]) == pytest.approx(-0.1),
+                     False),  # the steady state after onset does not depend on the rest before it
         "contrast": ([0.2, 0.8], lambda ds: list(ds.contrast.values) == [0.2, 0.8], True),
         "tf": ([2.0, 8.0], lambda ds: list(ds.temporal_frequency_hz.values) == [2.0, 8.0], True),
         "wavelength": (30.0, lambda ds: _par(ds)["wavelength_deg"] == 30.0, True),
@@ -41,12 +43,14 @@ VARIANTS = {
         "tau": (0.07, lambda ds: ds.attrs["emd_tau_s"] == 0.07, True),
         "dphi": (5.0, lambda ds: json.loads(ds.attrs["config"])["ephys"]["lattice"]["dphi_deg"] == 5.0, True),
         "field_size": (24.0, lambda ds: float(ds.size_deg[0]) == 24.0, True),
-        "duration": (0.4, lambda ds: ds.sizes["time"] == 400, True),
+        "duration": (0.4, lambda ds: ds.sizes["time"] == 400 + 300, True),  # after the 0.3 s baseline
+        "baseline": (0.1, lambda ds: _par(ds)["baseline_s"] == 0.1 and float(ds.time[0]) == pytest.approx(-0.1 - 0.24),
+                     False),  # nor the peaks, after the disc appears
         "contrast": ([0.5], lambda ds: _par(ds)["contrast"] == 0.5, True),
         "l_over_v": ([0.02, 0.08], lambda ds: list(ds.l_over_v_s.values) == [0.02, 0.08], True),
         "max_size": (20.0, lambda ds: float(ds.angular_size_deg.max()) == pytest.approx(20.0), True),
         "eye": ("fly", lambda ds: ds.attrs["eye"] == "fly" and "lc_r" in ds, True),
-        "collision_time": (0.2, lambda ds: ds.attrs["t_collision_s"] == 0.2 and float(ds.time[0]) == -0.2, True),
+        "collision_time": (0.2, lambda ds: ds.attrs["t_collision_s"] == 0.2 and float(ds.time[0]) == pytest.approx(-0.2 - 0.3), True),
         "neuron_model": ("lif", lambda ds: ds.attrs["neuron_model"] == "lif" and "lc_spikes" in ds, True),
         "record": (["lc.r2"], lambda ds: "lc_r2" in ds and "lc_rate" not in ds, True),
     },
@@ -176,7 +180,7 @@ def test_recordings_are_self_describing_with_the_same_attributes(baselines, caps
         assert common <= set(ds.attrs), (p, common - set(ds.attrs))
     # Looming: one time convention (relative to collision) for the coordinate and the peak times.
     lo = baselines["looming"]
-    assert "collision" in lo.time.attrs["long_name"] and float(lo.time[0]) == pytest.approx(-0.8 * 0.3)
+    assert "collision" in lo.time.attrs["long_name"] and float(lo.time[0]) == pytest.approx(-0.8 * 0.3 - 0.3)
     tp = lo.lc_rate_time_of_peak_s
     assert np.all((tp.values >= lo.time.values[0]) & (tp.values <= lo.time.values[-1]))
     # Printed summaries: the contrast's value (not the dim's size) and selections named.

@@ -182,3 +182,49 @@ def test_command_line_writes_experimenter_and_institution(tmp_path):
     with NWBHDF5IO(str(out), "r") as io:
         f = io.read()
         assert list(f.experimenter) == ["Borst, Alexander"] and f.institution == "MPI BI"
+
+
+def test_lobula_plate_nwb_passes_the_inspector_and_holds_the_numbers(tmp_path):
+    """edges (T4/T5 layers × ommatidia, HS/VS cells, condition dims polarity × direction) and the plate's
+    monitors on a looming run (Poisson LC spikes beside HS/VS) write NWB with no best-practice violation;
+    every channel is labelled, and the numbers read back."""
+    from pynwb import NWBHDF5IO
+
+    from experiments.ephys.command import parse_command
+
+    ds = run_protocol("edges", dict(TINY, speed=200.0))
+    path = write_nwb(ds, tmp_path / "edges.nwb")
+    assert critical_findings(path) == []
+    lay = epoch_layout(ds)
+    assert lay["cdims"] == ["polarity", "direction"] and (lay["C"], lay["K"]) == (8, 1)
+    for var in ("hs_v", "t4_response"):
+        data, ts, unit = read_nwb_series(path, var)
+        da = ds[var]
+        chans = [d for d in da.dims if d not in ("polarity", "direction", "time")]
+        ref = da.transpose("polarity", "direction", "time", *chans).values.reshape(8 * ds.sizes["time"], -1)
+        np.testing.assert_array_equal(data.reshape(ref.shape), ref)
+        assert unit == da.attrs["units"]
+    with NWBHDF5IO(str(path), "r") as io:
+        f = io.read()
+        labels = json.loads(f.acquisition["hs_v"].comments)
+        assert labels["hs_cell_name"] == ds.hs_cell_name.values.tolist()
+        t4 = json.loads(f.acquisition["t4_response"].comments)
+        # ommatidium × layer, row-major: the second channel is the first ommatidium's second layer
+        assert t4["ommatidium"][:2] == [int(ds.ommatidium[0])] * 2
+        assert t4["preferred_direction"][:2] == ds.preferred_direction.values[:2].tolist()
+        cells = f.processing["channels"]["vs_cell"].to_dataframe()
+        assert cells.vs_cell_name.tolist() == ds.vs_cell_name.values.tolist()
+        assert set(f.trials.to_dataframe().direction) == set(ds.direction.values)
+        dsi = f.processing["analysis"]["t4_dsi"].to_dataframe()
+        np.testing.assert_array_equal(dsi.value.values, ds.t4_dsi.values)
+
+    mixed = run_protocol("looming", dict(TINY, l_over_v=[0.04], duration=0.2, neuron_model="poisson", trials=2,
+                                         record=["lc.spikes", "hs.v", "t5.response[front-to-back]"]))
+    assert epoch_layout(mixed)["cdims"] == ["l_over_v_s", "motion"]
+    p2 = write_nwb(mixed, tmp_path / "mixed.nwb")
+    assert critical_findings(p2) == []
+    np.testing.assert_array_equal(read_nwb_spike_counts(p2, mixed).sum(), mixed.lc_spikes.sum())
+    # the command line writes the plate to NWB too
+    args = parse_command(["ephys", "edges", "--dphi", "4", "--field-size", "20", "--speed", "200",
+                          "--out", str(tmp_path / "cli.nwb")])
+    assert args.func(args) == 0 and (tmp_path / "cli.nwb").is_file()

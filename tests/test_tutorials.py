@@ -55,26 +55,44 @@ def check_01(out: Path) -> None:
 
 
 def check_02(out: Path) -> None:
-    """The LC expansion units' tuning peaks at the grid's frequency nearest the EMD optimum 1/(2πτ);
-    the receptive-field map finds field 0 within half its size of its centre; the NWB file holds every
-    unit and trial of the NetCDF."""
+    """The LC expansion units' tuning peaks at the grid's frequency nearest the EMD optimum 1/(2πτ), and their
+    PSTH rises from the baseline before the grating's onset; the receptive-field map finds field 0 within half
+    its size of its centre; every T4 and T5 layer is direction selective and HS depolarises most for
+    front-to-back ON edges; the NWB files hold every unit and trial of the NetCDF, and the HS cells."""
+    from experiments.ephys import psth
+
     with xr.open_dataset(out / "tf.nc") as tf:
         assert tf.attrs["optimum_hz"] == pytest.approx(1 / (2 * np.pi * 0.035))
+        assert tf.attrs["command_line"].startswith("lobula ephys tf-tuning")
         curve = tf.lc_spikes_tuning.sel(contrast=0.5).where(tf.neuron_type == "expansion", drop=True)
         grid = tf.temporal_frequency_hz.values
         best = grid[int(curve.mean("neuron").argmax("temporal_frequency_hz"))]
         assert best == grid[np.argmin(abs(np.log(grid / tf.attrs["optimum_hz"])))]
+        assert float(tf.time[0]) == pytest.approx(-0.3)
+        rate = psth(tf.load(), "lc_spikes", 0.02).sel(temporal_frequency_hz=best, contrast=0.5)
+        rate = rate.where(tf.neuron_type == "expansion", drop=True).mean("neuron")
+        assert float(rate.where(rate.time > 0.1).mean()) > 10 * float(rate.where(rate.time < -0.02).mean()) + 5
         n_units, n_trials = tf.sizes["neuron"], tf.sizes["temporal_frequency_hz"] * tf.sizes["trial"]
     with xr.open_dataset(out / "rf.nc") as rf:
         offset = np.hypot(float(rf.rf_centre_azimuth_deg[0] - rf.field_azimuth_deg[0]),
                           float(rf.rf_centre_elevation_deg[0] - rf.field_elevation_deg[0]))
         assert offset < float(rf.field_size_deg[0]) / 2
+    with xr.open_dataset(out / "edges.nc") as edges:
+        assert (edges.t4_dsi.values > 0).all() and (edges.t5_dsi.values > 0).all()
+        hs = edges.hs_v_mean.sel(polarity="on").mean("hs_cell")
+        assert str(hs.direction.values[int(hs.argmax("direction"))]) == "front_to_back"
+        hs_names = edges.hs_cell_name.values.tolist()
     from pynwb import NWBHDF5IO
 
     with NWBHDF5IO(str(out / "tf.nwb"), "r") as io:
         nwb = io.read()
         assert len(nwb.units) == n_units and len(nwb.trials) == n_trials
-    for name in ("tutorial2_tuning.png", "tutorial2_raster.png", "tf.png", "rf.png"):
+    with NWBHDF5IO(str(out / "edges.nwb"), "r") as io:
+        nwb = io.read()
+        assert nwb.processing["channels"]["hs_cell"].to_dataframe().hs_cell_name.tolist() == hs_names
+        assert {"hs_v", "vs_v", "t4_response", "t5_response"} <= set(nwb.acquisition)
+    assert (out / "tf_shared.nwb").is_file()
+    for name in ("tutorial2_tuning.png", "tutorial2_raster.png", "tf.png", "rf.png", "edges.png"):
         _png_ok(out / name)
 
 

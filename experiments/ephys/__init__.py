@@ -13,8 +13,13 @@ The package follows the physiologist's workflow, one module per stage:
   directions through T4/T5 to HS/VS, with direction-selectivity indices; :mod:`.edges`);
   :func:`psth`, :func:`psth_sem`,
   :func:`raster`. ``velocity-replay`` lives in :mod:`experiments.replay_protocol`.
+- :mod:`.injection` — ``current-injection`` (current steps into the LC units with the eye at rest:
+  f–I curve against the LIF theory, rheobase, ISI CV); :mod:`.white_noise` — ``white-noise``
+  (spatiotemporal white noise and reverse correlation: each recorded cell's receptive field).
 - :mod:`.figures` — each protocol's figure (PNG + PDF), drawn from the stored data.
 - :mod:`.command` — ``lobula ephys`` (NetCDF and/or NWB via :mod:`experiments.nwb`).
+- :mod:`.api` — the same as Python: :func:`run` (protocol, circuit, options → Dataset),
+  :func:`to_nwb`, :func:`options`; :mod:`.published` — published physiology beside the model.
 - :mod:`.bench` — the tuning-sweep benchmark (a 5,000-ommatidia eye).
 
 Recordings have dims ``trial``, ``time`` (s), ``neuron`` (LC units; coords ``neuron_type``,
@@ -32,6 +37,11 @@ from .command import PROTOCOLS, add_parser, main, run_protocol, summary
 #: the protocols need torch, and `lobula ephys --help` (which needs only .command) should not
 _API = {
     "bench_tuning_sweep": "bench",
+    "run": "api", "to_nwb": "api", "options": "api",
+    "current_injection": "injection", "injection_summary": "injection", "plot_current_injection": "injection",
+    "white_noise": "white_noise", "white_noise_summary": "white_noise", "plot_white_noise": "white_noise",
+    "contrast": "contrast", "flicker": "contrast", "plot_contrast": "contrast", "plot_flicker": "contrast",
+    "adaptation": "adaptation", "plot_adaptation": "adaptation",
     "edges": "edges", "edges_summary": "edges", "plot_edges": "edges", "plot_looming": "figures", "plot_recording": "figures", "plot_rf_map": "figures", "plot_tf_tuning": "figures",
     "TF_GRID_HZ": "protocols", "looming": "protocols", "psth": "protocols", "psth_sem": "protocols",
     "raster": "protocols", "rf_map": "protocols", "steady_state_mean": "protocols", "tf_tuning": "protocols",
@@ -42,7 +52,10 @@ _API = {
 __all__ = ["EphysConfig", "Rig", "Monitor", "parse_monitor", "record_dataset", "recording_attrs", "cf_describe",
            "torch_threads", "tf_tuning", "rf_map", "looming", "psth", "psth_sem", "raster", "steady_state_mean",
            "TF_GRID_HZ", "edges", "edges_summary", "plot_edges", "plot_tf_tuning", "plot_rf_map", "plot_looming", "plot_recording", "bench_tuning_sweep",
-           "add_parser", "main", "run_protocol", "summary", "PROTOCOLS"]
+           "contrast", "flicker", "adaptation", "plot_contrast", "plot_flicker", "plot_adaptation",
+           "current_injection", "injection_summary", "plot_current_injection", "white_noise", "white_noise_summary",
+           "plot_white_noise",
+           "add_parser", "main", "run_protocol", "summary", "PROTOCOLS", "run", "to_nwb", "options"]
 
 
 # Lazy public API: importing the package stays light, so the command line starts fast.

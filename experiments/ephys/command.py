@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-PROTOCOLS = ("tf-tuning", "rf-map", "looming", "velocity-replay", "edges")
+PROTOCOLS = ("tf-tuning", "rf-map", "looming", "velocity-replay", "edges", "current-injection", "white-noise")
 ALL = PROTOCOLS
 LC_RIG = ("tf-tuning", "rf-map", "looming", "edges")
 NEURONS = ("tf-tuning", "looming", "velocity-replay", "edges")
@@ -21,19 +21,40 @@ NEURONS = ("tf-tuning", "looming", "velocity-replay", "edges")
 #: option dest → protocols it applies to
 APPLIES = {
     # rf-map maps LC field variables, before the neurons: trials, seed and the neuron model do not apply
-    "record": ALL, "trials": NEURONS, "seed": NEURONS, "neuron_model": NEURONS, "tau": ALL, "dphi": ALL,
-    "field_size": ALL,
-    "device": LC_RIG, "duration": ("tf-tuning", "looming", "velocity-replay", "edges"), "contrast": LC_RIG,
+    # current-injection holds the eye at rest (no EMD, lattice or field option acts on it); white-noise's
+    # trials are noise segments and it records no LC unit
+    "record": ALL, "trials": NEURONS + ("current-injection", "white-noise"),
+    "seed": NEURONS + ("current-injection", "white-noise"), "neuron_model": NEURONS + ("current-injection",),
+    "tau": tuple(p for p in ALL if p != "current-injection"), "dphi": tuple(p for p in ALL if p != "current-injection"),
+    "field_size": tuple(p for p in ALL if p not in ("current-injection", "white-noise")),
+    "device": LC_RIG + ("current-injection", "white-noise"),
+    "duration": ("tf-tuning", "looming", "velocity-replay", "edges", "current-injection", "white-noise"),
+    "contrast": LC_RIG + ("white-noise",),
     "tf": ("tf-tuning",), "wavelength": ("tf-tuning",), "stimulus": ("tf-tuning",), "settle": ("tf-tuning",),
     "direction": ("tf-tuning",),
     "fields": ("rf-map",), "directions": ("rf-map",), "spacing": ("rf-map",), "extent": ("rf-map",),
     "spot_size": ("rf-map",), "spot_path": ("rf-map",), "spot_speed": ("rf-map",),
     "l_over_v": ("looming",), "max_size": ("looming",), "collision_time": ("looming",),
+    "baseline": ("tf-tuning", "looming"),
     "footage": ("velocity-replay",), "rotation": ("velocity-replay",), "haltere_gain": ("velocity-replay",),
     "speed": ("edges",), "bar_width": ("edges",),
+    "amplitudes": ("current-injection",), "membrane_noise": ("current-injection",), "noise_std": ("current-injection",),
+    "noise": ("white-noise",), "pixel": ("white-noise",), "frame": ("white-noise",), "max_lag": ("white-noise",),
+    "strf_extent": ("white-noise",),
     # the compound eye's rig has no lobula plate
     "eye": ("tf-tuning", "rf-map", "looming", "velocity-replay"),
 }
+
+#: the lobula plate's physiology protocols (experiments.ephys.contrast, experiments.ephys.adaptation): no LC units
+PLATE = ("contrast", "flicker", "adaptation")
+PROTOCOLS = PROTOCOLS + PLATE
+APPLIES.update({"photon_rate": PLATE, "channel_noise": PLATE, "c50": PLATE, "adapter": ("adaptation",),
+                "gaps": ("adaptation",), "test_duration": ("adaptation",), "adapt_tau": ("adaptation",),
+                "adapt_half_g": ("adaptation",)})
+for _opt, _which in (("record", PLATE), ("trials", PLATE), ("seed", PLATE), ("tau", PLATE), ("dphi", PLATE),
+                     ("device", PLATE), ("contrast", PLATE), ("tf", PLATE), ("wavelength", PLATE),
+                     ("duration", ("contrast", "flicker")), ("settle", ("contrast", "flicker"))):
+    APPLIES[_opt] = APPLIES[_opt] + _which
 
 S = argparse.SUPPRESS
 
@@ -52,24 +73,29 @@ def _add_rig_options(e) -> None:
                         "lif: lc.v lc.spikes); velocity-replay: all readout variables; edges: T4 and T5 of the "
                         "central column and its neighbours, hs.v, vs.v)")
     g.add_argument("--trials", type=COUNT, default=S,
-                   help="[tf-tuning, looming, velocity-replay, edges] repeats per condition (default: 4 for "
-                        "spiking models; 1 for the deterministic rate model, which refuses more: its trials would "
-                        "be identical)")
+                   help="[tf-tuning, looming, velocity-replay, edges, current-injection, white-noise] repeats per "
+                        "condition; white-noise: noise segments, each its own noise (default: 4 for "
+                        "spiking models and white-noise; 1 for the deterministic rate model, which refuses more: its "
+                        "trials would be identical)")
     g.add_argument("--seed", type=INDEX, default=S,
-                   help="[tf-tuning, looming, velocity-replay, edges] seed of the neurons' noise and of the built-in "
-                        "replay scene (default: 0)")
+                   help="[tf-tuning, looming, velocity-replay, edges, current-injection, white-noise] seed of the "
+                        "neurons' noise, of the built-in replay scene and of white-noise's stimulus (default: 0)")
     g.add_argument("--neuron-model", choices=["rate", "lif", "poisson"], default=S,
-                   help="[tf-tuning, looming, velocity-replay, edges] LC units: rate (Naka-Rushton), poisson "
+                   help="[tf-tuning, looming, velocity-replay, edges, current-injection] LC units: rate "
+                        "(Naka-Rushton), poisson "
                         "(spikes from rates), lif (integrate-and-fire) (default: rate; velocity-replay's readout "
                         "neuron: poisson, or rate; with --eye fly its output neurons: lif, or poisson, or rate)")
     g.add_argument("--tau", type=POSITIVE, default=S,
-                   help="EMD delay τ (s); edges: also T4's and T5's (default: 0.035; velocity-replay's EMD front "
+                   help="[all but current-injection] EMD delay τ (s); edges, white-noise: also T4's and T5's "
+                        "(default: 0.035; velocity-replay's EMD front "
                         "end: 0.01; --eye fly: 0.035 everywhere)")
     g.add_argument("--dphi", type=LATTICE_ANGLE, default=S,
-                   help="interommatidial angle Δφ (degree) (default: 2; velocity-replay's front end: 0.75; "
+                   help="[all but current-injection] interommatidial angle Δφ (degree) (default: 2; "
+                        "velocity-replay's front end: 0.75; "
                         "--eye fly: 5)")
     g.add_argument("--field-size", type=POSITIVE, default=S,
-                   help="LC receptive-field size (degree) (default: 10; velocity-replay's fields: 5; --eye fly: 30)")
+                   help="[all but current-injection, white-noise] LC receptive-field size (degree) (default: 10; "
+                        "velocity-replay's fields: 5; --eye fly: 30)")
     g.add_argument("--eye", choices=["pinhole", "fly"], default=S,
                    help="the eye recorded: pinhole (the lattice over the D435i's field "
                         "of view and its LC population) or fly (the two compound eyes and the very circuit "
@@ -77,13 +103,16 @@ def _add_rig_options(e) -> None:
                         "tf-tuning, rf-map and looming record photoreceptor.v, emd.response, lc.input, lc.pool, lc.r, "
                         "lc.grad, lc.r2; velocity-replay replays eye footage (--footage, from `lobula scene OUT --eye "
                         "fly`) and records lc.r, lc.rdot and the spiking output neurons over trials) (default: pinhole)")
-    g.add_argument("--device", default=S, help="[tf-tuning, rf-map, looming, edges] torch device (default: cpu)")
+    g.add_argument("--device", default=S, help="[tf-tuning, rf-map, looming, edges, current-injection, white-noise] "
+                                               "torch device (default: cpu)")
     g.add_argument("--duration", type=POSITIVE, default=S,
-                   help="stimulus duration (s); velocity-replay: the built-in run's only (default: tf-tuning: 2; "
-                        "looming: 1; velocity-replay: 10; edges: until the edge has left the eye, plus 0.3)")
+                   help="stimulus duration (s); velocity-replay: the built-in run's only; current-injection: the "
+                        "step's; white-noise: each trial's (default: tf-tuning: 2; looming: 1; velocity-replay: 10; "
+                        "edges: until the edge has left the eye, plus 0.3; current-injection: 1; white-noise: 5)")
     g.add_argument("--contrast", type=Number(0, 1, above=True), nargs="+", default=S,
                    help="stimulus contrast; several allowed for tf-tuning (default: tf-tuning: 0.5; rf-map: the "
-                        "spot's 1.0; looming: the disc's 1.0; edges: 0.5)")
+                        "spot's 1.0; looming: the disc's 1.0; edges: 0.5; white-noise: 0.5, binary ±c or the "
+                        "Gaussian's SD over the mean)")
 
 
 def _add_protocol_options(e) -> None:
@@ -103,6 +132,10 @@ def _add_protocol_options(e) -> None:
                    help="time (s) left out before the steady-state mean (default: 0.5)")
     t.add_argument("--direction", type=FINITE, default=S,
                    help="drum grating's motion direction (degree, image: 0 right, 90 down) (default: 0)")
+    t.add_argument("--baseline", type=Number(0), default=S,
+                   help="[tf-tuning, looming] uniform luminance (no grating, no disc) before stimulus onset (s), "
+                        "the PSTH's pre-stimulus baseline; stored times stay relative to onset (looming: "
+                        "collision) (default: 0.3)")
     r = e.add_argument_group("rf-map")
     r.add_argument("--fields", type=INDEX, nargs="+", default=S, help="LC field indices to map (default: all)")
     r.add_argument("--directions", type=Number(3, integer=True), default=S,
@@ -128,6 +161,52 @@ def _add_protocol_options(e) -> None:
     ed.add_argument("--bar-width", type=POSITIVE, default=S,
                     help="move bars of this width (degree; bright for ON, dark for OFF) instead of edges "
                          "(default: edges)")
+    ci = e.add_argument_group("current-injection")
+    ci.add_argument("--amplitudes", type=FINITE, nargs="+", default=S,
+                    help="current steps into the LC units, the eye at rest: nA for lif units, drive (lc.drive's "
+                         "units) for rate and poisson units (default: lif: 0 to 3 nA in 0.25 nA steps; rate, "
+                         "poisson: 0 to 3 in steps of 0.25)")
+    ci.add_argument("--membrane-noise", choices=["none", "white", "ou"], default=S,
+                    help="lif units' membrane noise: none, white (the f-I curve then has Siegert's theory), ou "
+                         "(Ornstein-Uhlenbeck, 5 ms) (default: ou, the LC units' own)")
+    ci.add_argument("--noise-std", type=Number(0), default=S,
+                    help="lif units' membrane noise SD (nA) (default: 0.2)")
+    wn = e.add_argument_group("white-noise")
+    wn.add_argument("--noise", choices=["binary", "gaussian"], default=S,
+                    help="luminance L0(1 + c·ξ) per pixel and frame, ξ = ±1 or a standard normal (default: binary)")
+    wn.add_argument("--pixel", type=POSITIVE, default=S,
+                    help="square noise pixels on the lattice plane (degree) (default: one per ommatidium)")
+    wn.add_argument("--frame", type=POSITIVE, default=S,
+                    help="noise frame duration (s), a whole number of the 1 ms model steps (default: 0.001)")
+    wn.add_argument("--max-lag", type=POSITIVE, default=S,
+                    help="longest lag of the receptive fields (s) (default: 0.15)")
+    wn.add_argument("--strf-extent", type=POSITIVE, default=S,
+                    help="receptive fields' offsets reach ± this along each cell's axis (degree) (default: 4Δφ)")
+    pl = e.add_argument_group(
+        "contrast, flicker, adaptation (the lobula plate: lamina, T4/T5, HS/VS; no LC units)",
+        "Shared options here: --contrast (contrast: 13 log-spaced from 0.01 to 1; flicker, adaptation: one, 0.5), "
+        "--tf (contrast, adaptation: one, 1/(2πτ) of T4's delay; flicker: 1 2 4 8 16), --wavelength (the "
+        "grating's, degree: contrast: 60; adaptation: 40; flicker's motion: 20), --duration (contrast: 2; flicker: 3), --settle (contrast: "
+        "1; flicker: 1.5), --tau (T4's and T5's delay: 0.035), --trials (with noise: 4; without: 1), --seed (the "
+        "noise's: 0)")
+    pl.add_argument("--c50", type=Number(0, 1, above=True), default=S,
+                    help="the lamina's contrast gain: semi-saturation contrast c50 of the T4/T5 drive, at the "
+                         "lamina (default: off)")
+    pl.add_argument("--photon-rate", type=POSITIVE, default=S,
+                    help="photon shot noise: photons per ommatidium per second at the mean luminance 1 "
+                         "(default: no photon noise)")
+    pl.add_argument("--channel-noise", type=Number(0), default=S,
+                    help="channel noise on the HS/VS membranes: SD of the potential at rest (mV) (default: 0)")
+    pl.add_argument("--adapter", type=POSITIVE, default=S,
+                    help="[adaptation] adapter duration (s) (default: 3)")
+    pl.add_argument("--gaps", type=Number(0), nargs="+", default=S,
+                    help="[adaptation] blank gaps between adapter and test (s) (default: 0 0.5 1 1.5 2 3 4 6)")
+    pl.add_argument("--test-duration", type=POSITIVE, default=S,
+                    help="[adaptation] test duration (s) (default: 0.3)")
+    pl.add_argument("--adapt-tau", type=POSITIVE, default=S,
+                    help="[adaptation] the HS/VS cells' adaptation time constant τa (s) (default: 1.5)")
+    pl.add_argument("--adapt-half-g", type=POSITIVE, default=S,
+                    help="[adaptation] conductance (units of g_leak) that halves the adaptation gain (default: 1)")
     v = e.add_argument_group("velocity-replay")
     v.add_argument("--footage", default=S, help="footage folder (default: render a built-in run of --duration)")
     v.add_argument("--rotation", choices=["none", "haltere", "wide-field", "both"], default=S,
@@ -146,7 +225,9 @@ def add_parser(subparsers):
                     "self-describing data (NetCDF with CF-1.10 attributes and/or NWB) and a figure.\n"
                     "Options marked [tf-tuning] etc. apply to those protocols only; giving them to another "
                     "protocol is an error.")
-    e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming | velocity-replay | edges")
+    e.add_argument("protocol", choices=PROTOCOLS, help="tf-tuning | rf-map | looming | velocity-replay | edges | "
+                                                        "current-injection | white-noise | contrast | flicker | "
+                                                        "adaptation")
     e.add_argument("--out", nargs="+", required=True, metavar="PATH", default=S,
                    help="outputs, by suffix: .nc (NetCDF, CF-1.10) and/or .nwb (Neurodata Without Borders); "
                         "each written atomically")
@@ -260,9 +341,22 @@ def run_protocol(protocol: str, opts: dict, progress: bool = False):
                                duration_s=opts.get("duration", 10.0), tau_s=opts.get("tau"),
                                dphi_deg=opts.get("dphi"), field_size_deg=opts.get("field_size"),
                                record=opts.get("record"))
+    if protocol == "current-injection":
+        from .injection import run_from_options
+        return run_from_options(opts)
+    if protocol == "white-noise":
+        from .white_noise import run_from_options
+        return run_from_options(opts)
+    if protocol in PLATE:
+        from .contrast import run_plate_protocol
+        return run_plate_protocol(protocol, opts)
     kw = stimulus_kwargs(protocol, opts)
     if opts.get("eye", "pinhole") == "fly":
         from .eye_rig import run_eye_protocol
+
+        if "baseline" in opts:
+            raise ValueError("--baseline: the compound eye's protocols start at stimulus onset; drop it, or "
+                             "record the pinhole eye")
 
         return run_eye_protocol(protocol, opts, kw)
     from .edges import edges
@@ -298,12 +392,12 @@ def _eye_replay(opts: dict, progress: bool = False):
 _STIMULUS_OPTIONS = {
     "tf-tuning": (("tf", "temporal_frequencies_hz"), ("contrast", "contrasts"), ("duration", "duration_s"),
                   ("wavelength", "wavelength_deg"), ("stimulus", "stimulus"), ("settle", "settle_s"),
-                  ("direction", "direction_deg")),
+                  ("direction", "direction_deg"), ("baseline", "baseline_s")),
     "rf-map": (("fields", "fields"), ("directions", "directions"), ("spacing", "spacing_deg"),
                ("extent", "extent_deg"), ("spot_size", "spot_size_deg"), ("spot_path", "path_deg"),
                ("spot_speed", "speed_deg_s")),
     "looming": (("l_over_v", "l_over_v_s"), ("duration", "duration_s"), ("max_size", "max_size_deg"),
-                ("collision_time", "t_collision_s")),
+                ("collision_time", "t_collision_s"), ("baseline", "baseline_s")),
     "edges": (("speed", "speed_deg_s"), ("bar_width", "bar_width_deg"), ("duration", "duration_s")),
 }
 
@@ -336,7 +430,7 @@ def summary(ds) -> list[str]:
             vals = ds[d].values
             lines.append(f"{d} values: " + ", ".join(f"{v:g}" if np.issubdtype(vals.dtype, np.number) else str(v)
                                                      for v in vals))
-    if p != "rf-map":  # rf-map maps field variables, before any neuron
+    if p not in ("rf-map", "white-noise"):  # rf-map maps field variables, before any neuron; white-noise records none
         lines.append(f"neuron model {ds.attrs.get('neuron_model')}, {ds.attrs.get('trials')} trial(s) stored"
                      + (f" ({ds.attrs['trials_note']})" if ds.attrs.get("trials_note") else ""))
     if p == "tf-tuning":
@@ -386,9 +480,28 @@ def summary(ds) -> list[str]:
                 ex = ds[v].isel(neuron=np.nonzero(ds.neuron_type.sel(neuron=ds[v].neuron).values == "expansion")[0])
                 lines.append(f"{v} (s relative to collision), expansion units, approach, per l/|v|: " + "; ".join(
                     f"{lv:g} s: {_med(ex.sel(l_over_v_s=lv, motion='approach'))}" for lv in ds.l_over_v_s.values))
+                from .published import looming_agreement
+                mean = np.nanmean(ex.sel(motion="approach").transpose("l_over_v_s", ...).values.reshape(
+                    ds.sizes["l_over_v_s"], -1), axis=1) if np.isfinite(ex.values).any() else ex.values[:0]
+                a = looming_agreement(ds.l_over_v_s.values, mean) if mean.size else None
+                if a is not None:
+                    lines.append(f"{v}: slope of peak time vs l/|v| {a['model_slope']:.3g} (angular threshold "
+                                 f"{a['model_theta_threshold_deg']:.3g} degree); locust LGMD (Gabbiani et al. 1999) "
+                                 f"{a['published_slope']:.3g} ({a['published_theta_threshold_deg']:g} degree): "
+                                 f"ratio {a['slope_ratio']:.3g}")
     elif p == "edges":
         from .edges import edges_summary
         lines.extend(edges_summary(ds))
+    elif p == "current-injection":
+        from .injection import injection_summary
+        lines.extend(injection_summary(ds))
+    elif p == "white-noise":
+        from .white_noise import white_noise_summary
+        lines.extend(white_noise_summary(ds))
+    elif p in PLATE:
+        from .adaptation import adaptation_summary
+        from .contrast import contrast_summary, flicker_summary
+        lines.extend({"contrast": contrast_summary, "flicker": flicker_summary, "adaptation": adaptation_summary}[p](ds))
     elif p == "velocity-replay":
         from .figures import replay_scores
         for k, val in replay_scores(ds).items():
@@ -418,11 +531,6 @@ def main(args) -> int:
     plot = getattr(args, "plot", None)
     if plot and Path(plot).suffix.lower() not in (".png", ".pdf"):
         raise ValueError(f"--plot {plot}: use a .png or .pdf file name (both are written)")
-    plate = [r for r in opts.get("record", []) if r.split("[")[0].strip() in ("t4.response", "t5.response", "hs.v",
-                                                                               "vs.v")]
-    if any(o.suffix.lower() == ".nwb" for o in outs) and (args.protocol == "edges" or plate):
-        raise ValueError("the NWB writer has no layout for the lobula plate's dims (preferred_direction, hs_cell, "
-                         "vs_cell): write the edges protocol and T4/T5/HS/VS monitors to a .nc file")
     ds = run_protocol(args.protocol, opts, progress=not args.quiet)
     meta = {k: getattr(args, k) for k in ("experimenter", "institution") if hasattr(args, k)}
     for path in write_outputs(ds, outs, **meta):

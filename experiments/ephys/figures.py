@@ -80,25 +80,83 @@ def _neuron_var(ds: xr.Dataset) -> str | None:
     return None
 
 
-def _raster_psth(fig, a_r, a_p, ds, neuron, colour, t_label, t_shift=0.0, bin_s=0.02, **sel):
-    """A raster (integer trial ticks) of one unit and, beside it, its PSTH ± SEM across trials."""
+#: the longest stretch of a raster (s): longer, a row's ticks merge into a bar
+RASTER_MAX_S = 3.0
+#: spikes per trial in the raster's window above which the ticks form a solid block: an ISI histogram instead
+RASTER_MAX_SPIKES = 300
+
+
+def _shade_baseline(a, t0: float, onset: float) -> None:
+    """Grey band over the pre-stimulus baseline [t0, onset) and a line at stimulus onset."""
+    if t0 < onset:
+        a.axvspan(t0, onset, color="0.9", lw=0, zorder=0)
+    a.axvline(onset, color="0.4", lw=0.8, ls=":", zorder=1)
+
+
+def _isi_histogram(a, ts, tr, k: int, colour, t_from: float) -> None:
+    """Inter-spike intervals after ``t_from`` (s) per trial, binned in ms: mean count per trial ± SEM across
+    trials (the raster of a unit firing this fast would be a solid block)."""
+    isis = []
+    for j in range(k):
+        t = np.sort(ts[(tr == j) & (ts >= t_from)])
+        isis.append(np.diff(t) * 1e3)
+    allv = np.concatenate(isis) if isis else np.zeros(0)
+    top = float(np.percentile(allv, 99)) if allv.size else 1.0
+    edges = np.linspace(0.0, max(top, 1.0), 31)
+    h = np.stack([np.histogram(x, edges)[0] for x in isis]).astype(float)             # (trial, bin)
+    m = h.mean(0)
+    mid = 0.5 * (edges[1:] + edges[:-1])
+    a.step(mid, m, where="mid", color=colour, lw=1.2, label=f"mean over {k} trials")
+    if k >= 2:
+        e = h.std(0, ddof=1) / np.sqrt(k)
+        a.fill_between(mid, m - e, m + e, step="mid", color=colour, alpha=0.3, lw=0, label="± SEM across trials")
+    a.set_xlabel("inter-spike interval (ms)")
+    a.set_ylabel(f"intervals per trial ({edges[1]:.2g} ms bins)")
+    a.set_xlim(0, edges[-1])
+    a.legend(fontsize=7, loc="upper right", frameon=False)
+
+
+def _raster_psth(fig, a_r, a_p, ds, neuron, colour, t_label, t_shift=0.0, bin_s=0.02, onset=0.0, **sel):
+    """A raster (integer trial ticks) of one unit over at most :data:`RASTER_MAX_S` from the recording's
+    start, or its ISI histogram where the raster would be a solid block, and beside it the PSTH ± SEM
+    across trials with its pre-stimulus baseline (before ``onset``, s, on the plotted axis) shaded and its
+    mean drawn. Returns "raster" or "isi", the panel drawn on ``a_r``."""
     ts, tr = raster(ds, neuron, **sel)
-    a_r.vlines(ts - t_shift, tr - 0.4, tr + 0.4, color=colour, lw=0.8)
+    ts = ts - t_shift
     k = ds.sizes["trial"]
-    a_r.set_yticks(range(k) if k <= 10 else np.linspace(0, k - 1, 6).astype(int))
-    a_r.set_ylim(-0.6, k - 0.4)
-    a_r.set_ylabel("trial")
-    a_r.set_xlabel(t_label)
+    t = ds.time.values - t_shift
+    t_end = min(float(t[-1]), float(t[0]) + RASTER_MAX_S)
+    shown = ts <= t_end
+    per_trial = shown.sum() / max(k, 1)
+    kind = "isi" if per_trial > RASTER_MAX_SPIKES else "raster"
+    if kind == "raster":
+        a_r.vlines(ts[shown], tr[shown] - 0.4, tr[shown] + 0.4, color=colour, lw=0.8)
+        a_r.set_yticks(range(k) if k <= 10 else np.linspace(0, k - 1, 6).astype(int))
+        a_r.set_ylim(-0.6, k - 0.4)
+        a_r.set_xlim(float(t[0]), t_end)
+        a_r.set_ylabel("trial")
+        a_r.set_xlabel(t_label)
+        _shade_baseline(a_r, float(t[0]), onset)
+    else:
+        _isi_histogram(a_r, ts, tr, k, colour, onset)
     one = ds[["lc_spikes"]].sel(neuron=[neuron]).sel(**sel)
     p = psth(one, bin_s=bin_s).squeeze()
     tt = p.time.values - t_shift
+    _shade_baseline(a_p, float(t[0]), onset)
     a_p.plot(tt, p.values, color=colour, lw=1.2, label="PSTH (trial mean)")
     if k >= 2:
         e = psth_sem(one, bin_s=bin_s).squeeze().values
         a_p.fill_between(tt, p.values - e, p.values + e, color=colour, alpha=0.3, lw=0, label=f"± SEM ({k} trials)")
+    pre = tt < onset
+    if pre.any():
+        a_p.axhline(float(np.mean(p.values[pre])), color="0.3", lw=0.9, ls="--",
+                    label=f"baseline mean ({float(np.mean(p.values[pre])):.3g} Hz)")
     a_p.set_xlabel(t_label)
     a_p.set_ylabel(f"firing rate (Hz, {p.attrs['bin_s'] * 1e3:.0f} ms bins)")
-    a_p.legend(fontsize=7, loc="upper left", frameon=False)
+    a_p.set_xlim(float(t[0]), float(t[-1]))
+    a_p.set_ylim(bottom=0)
+    a_p.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False, ncol=2)
+    return kind
 
 
 # =========================================================================== tf-tuning
@@ -171,10 +229,11 @@ def plot_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
         n = live[0] if live else int(ds.neuron.values[0])
         c0 = ds.contrast.values[-1]
         dur = float(ds.time[-1] - ds.time[0])
-        _raster_psth(fig, ax["raster"], ax["psth"], ds, n, cols[-1], "time since stimulus onset (s)",
-                     bin_s=max(0.02, round(dur / 30, 2)), temporal_frequency_hz=tf[k], contrast=c0)
-        ax["raster"].set_title(f"unit {n} (expansion), {tf[k]:.2f} Hz, contrast {c0:g}: raster", fontsize=10)
-        ax["psth"].set_title("PSTH ± SEM across trials", fontsize=10)
+        kind = _raster_psth(fig, ax["raster"], ax["psth"], ds, n, cols[-1], "time since grating onset (s)",
+                            bin_s=max(0.02, round(dur / 30, 2)), temporal_frequency_hz=tf[k], contrast=c0)
+        what = "raster" if kind == "raster" else "inter-spike intervals after onset"
+        ax["raster"].set_title(f"unit {n} (expansion), {tf[k]:.2f} Hz, contrast {c0:g}: {what}", fontsize=10)
+        ax["psth"].set_title("PSTH ± SEM across trials (grey: baseline)", fontsize=10)
     return save_png_and_pdf(fig, path)
 
 
@@ -270,6 +329,26 @@ def _peak_time_fit(ax, lvs, t_peak, scale: float, color) -> bool:
     return True
 
 
+def _lgmd_overlay(ax, lvs, t_peak) -> dict:
+    """The locust LGMD's peak time against l/|v| (:data:`experiments.ephys.published.LGMD_PEAK_TIME`) on ``ax``
+    (s), beside the model's ``t_peak`` (s); returns :func:`~experiments.ephys.published.looming_agreement`."""
+    from .published import LGMD_PEAK_TIME, lgmd_peak_time_s, looming_agreement
+
+    xx = np.linspace(0, max(float(np.max(lvs)), max(LGMD_PEAK_TIME["values"]["l_over_v_s"])) * 1.05, 50)
+    v = LGMD_PEAK_TIME["values"]
+    ax.plot(xx, lgmd_peak_time_s(xx), color="tab:orange", lw=2, alpha=0.8,
+            label=f"locust LGMD (Gabbiani et al. 1999, Fig. 5): θ_thres {v['theta_threshold_deg']:g}°, "
+                  f"δ {v['delta_s'] * 1e3:g} ms")
+    return looming_agreement(lvs, t_peak)
+
+
+def _write_sidecar(path, record: dict) -> Path:
+    """A JSON file beside the figure ``path`` (same name, .json) with what the figure compares and how well."""
+    from experiments.store import write_text
+
+    return write_text(Path(path).with_suffix(".json"), json.dumps(record, indent=2, default=float) + "\n")
+
+
 def looming_unit_traces(ds: xr.Dataset, var: str) -> tuple[xr.DataArray, str]:
     """The expansion units' trial-mean traces the looming figure averages, and their axis label.
 
@@ -318,6 +397,12 @@ def plot_looming(ds: xr.Dataset, path) -> list[Path]:
                 if nd and np.isfinite(e).any():
                     ax["units"].fill_between(tt, m - e, m + e, color=col, alpha=0.2, lw=0)
         n_units = da.sizes.get("neuron", 1)
+        onset = -float(ds.attrs.get("t_collision_s", -float(ds.time[0])))
+        if float(ds.time[0]) < onset:  # the bare background before the disc appears
+            ax["units"].axvspan(float(ds.time[0]), onset, color="0.9", lw=0, zorder=0)
+            ax["units"].axvline(onset, color="0.4", lw=0.8, ls=":")
+            ax["units"].text(onset, 1.0, " disc appears", transform=ax["units"].get_xaxis_transform(),
+                             fontsize=7, va="top", color="0.3")
         ax["units"].set_ylabel(ylab)
         ax["units"].set_title(f"LC expansion units (n = {n_units}; mean ± SEM over units)", fontsize=10)
     _looming_stimulus(ax["stimulus"], [ax[k] for k in ("units", "stimulus") if k in ax], ds, cols)
@@ -328,11 +413,14 @@ def plot_looming(ds: xr.Dataset, path) -> list[Path]:
         m, e = nanmean(y, 1), sem(y, 1)
         for lv, mm, ee, col in zip(lvs, m, e, cols):
             a.errorbar([lv], [mm], yerr=[ee] if np.isfinite(ee) else None, color=col, marker="o", capsize=3)
-        if _peak_time_fit(a, lvs, m, 1.0, color="k"):
-            a.legend(fontsize=8, loc="lower left", frameon=False)
+        _peak_time_fit(a, lvs, m, 1.0, color="k")
+        agreement = _lgmd_overlay(a, lvs, m)
+        a.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)
         a.set_xlabel("l/|v| (s)")
         a.set_ylabel("time of peak relative to collision (s)")
-        a.set_title("approach: peak time (mean ± SEM over units)", fontsize=10)
+        a.set_title("approach: peak time (model: mean ± SEM over units)\n"
+                    f"slope / LGMD's = {agreement['slope_ratio']:.2f}", fontsize=10)
+        _write_sidecar(path, {"published": "lgmd_peak_time", "agreement": agreement})
     handles = [Line2D([], [], color=c, lw=2, label=f"l/|v| = {lv * 1e3:g} ms") for lv, c in zip(lvs, cols)]
     handles += [Line2D([], [], color="k", ls="-", label="approach"), Line2D([], [], color="k", ls="--", label="recede")]
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8, frameon=False)
@@ -573,6 +661,18 @@ def plot_recording(ds: xr.Dataset, path) -> list[Path]:
     if p == "edges":
         from .edges import plot_edges
         return plot_edges(ds, path)
+    if p in ("contrast", "flicker"):
+        from .contrast import plot_contrast, plot_flicker
+        return (plot_contrast if p == "contrast" else plot_flicker)(ds, path)
+    if p == "adaptation":
+        from .adaptation import plot_adaptation
+        return plot_adaptation(ds, path)
+    if p == "current-injection":
+        from .injection import plot_current_injection
+        return plot_current_injection(ds, path)
+    if p == "white-noise":
+        from .white_noise import plot_white_noise
+        return plot_white_noise(ds, path)
     fn = {"tf-tuning": plot_tf_tuning, "rf-map": plot_rf_map, "looming": plot_looming}.get(p)
     if fn is None:
         raise ValueError(f"no figure for protocol {p!r}")

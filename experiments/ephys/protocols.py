@@ -27,7 +27,7 @@ from .rig import (VARIABLES, EphysConfig, Rig, _neuron_dim, cf_describe, dim_coo
                   record_dataset, rig_attrs)
 
 __all__ = ["tf_tuning", "rf_map", "looming", "psth", "psth_sem", "raster", "steady_state_mean", "TF_GRID_HZ",
-           "LOOMING_L_OVER_V_S"]
+           "LOOMING_L_OVER_V_S", "BASELINE_S"]
 
 #: tf-tuning's default temporal frequencies (Hz): 16 log-spaced from 0.5 to 32 (steps of 32 %)
 TF_GRID_HZ = np.geomspace(0.5, 32.0, 16)
@@ -106,6 +106,34 @@ def raster(ds: xr.Dataset, neuron: int, var: str = "lc_spikes", **sel) -> tuple[
 
 # =========================================================================== protocols
 
+#: seconds of uniform luminance before a tf-tuning or looming stimulus starts (the PSTH's baseline)
+BASELINE_S = 0.3
+
+
+def _check_baseline(baseline_s: float) -> None:
+    if not (baseline_s >= 0 and math.isfinite(baseline_s)):
+        raise ValueError(f"the pre-stimulus baseline must be a non-negative number of seconds, got {baseline_s}")
+
+
+class _AfterBaseline:
+    """A streaming stimulus ``src(start, stop)`` (conditions, time, n) preceded by ``n_pre`` frames of
+    uniform luminance ``level``: the eye sees the mean luminance, then the stimulus appears."""
+
+    def __init__(self, src, n_pre: int, level: float):
+        self.src, self.n_pre, self.level = src, int(n_pre), float(level)
+
+    def __call__(self, start: int, stop: int):
+        parts = []
+        if start < self.n_pre:
+            first = self.src(0, 1)
+            shape = list(first.shape)
+            shape[-2] = min(stop, self.n_pre) - start
+            parts.append(torch.full(shape, self.level, dtype=first.dtype, device=first.device))
+        if stop > self.n_pre:
+            parts.append(self.src(max(start, self.n_pre) - self.n_pre, stop - self.n_pre))
+        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-2)
+
+
 def _specs(monitors) -> list[str]:
     """The monitors as the strings that would request them (written to the recording's parameters)."""
     return [m.variable + ("" if m.neurons is None else f"[{','.join(map(str, m.neurons))}]")
@@ -166,8 +194,8 @@ def _add_tuning(ds: xr.Dataset, monitors, rig: Rig, tf: np.ndarray, settle_s: fl
 
 def _tf_tuning(config: EphysConfig, *, temporal_frequencies_hz=None, contrasts=(0.5,),
               wavelength_deg: float = 20.0, stimulus: str = "rings", direction_deg: float = 0.0,
-              duration_s: float = 2.0, settle_s: float = 0.5, tau_s: float | None = None,
-              record=None, mean_luminance: float = 1.0) -> xr.Dataset:
+              duration_s: float = 2.0, settle_s: float = 0.5, baseline_s: float = BASELINE_S,
+              tau_s: float | None = None, record=None, mean_luminance: float = 1.0) -> xr.Dataset:
     """Temporal-frequency tuning: drifting sine gratings at every (TF, contrast).
 
     stimulus: "rings" (concentric rings expanding about the epipole: every pair of an
@@ -178,6 +206,10 @@ def _tf_tuning(config: EphysConfig, *, temporal_frequencies_hz=None, contrasts=(
     periods after settle_s, trial-averaged, per TF and contrast), ``peak_temporal_frequency_hz``
     per recorded unit, and ``emd_prediction`` (the exact discrete EMD tuning times the
     photoreceptor transfer, normalised), with attrs ``optimum_hz`` = 1/(2πτ).
+
+    baseline_s: seconds of uniform mean luminance before the grating appears (the PSTH's
+    pre-stimulus baseline); the stored time is relative to the grating's onset (negative during
+    the baseline) and the steady state is taken after ``settle_s`` past onset.
     """
     cfg = (config or EphysConfig()).with_tau(tau_s)
     rig = Rig(cfg)
@@ -195,6 +227,7 @@ def _tf_tuning(config: EphysConfig, *, temporal_frequencies_hz=None, contrasts=(
                          f"{1.0 / rig.dt:g} Hz stimulus, got {tf[tf >= nyquist].tolist()}")
     if not np.all((c > 0) & (c <= 1)):
         raise ValueError(f"contrasts must lie in (0, 1], got {c.tolist()}")
+    _check_baseline(baseline_s)
     if not 0 <= settle_s < duration_s:
         raise ValueError(f"settle_s must lie in [0, duration_s = {duration_s}) s, got {settle_s}; "
                          f"use a longer --duration or a shorter --settle")
@@ -209,12 +242,16 @@ def _tf_tuning(config: EphysConfig, *, temporal_frequencies_hz=None, contrasts=(
                         wavelength_deg=wavelength_deg, direction_deg=direction_deg, centre_deg=epi,
                         mean_luminance=mean_luminance, frame_rate_hz=1.0 / rig.dt,
                         device=cfg.device)
-    recs = rig.run(src, n_steps, monitors, baseline=mean_luminance)
+    n_pre = int(round(baseline_s / rig.dt))
+    recs = rig.run(_AfterBaseline(src, n_pre, mean_luminance), n_pre + n_steps, monitors, baseline=mean_luminance)
     params = dict(temporal_frequencies_hz=tf, contrasts=c, wavelength_deg=wavelength_deg, stimulus=stimulus,
-                  direction_deg=direction_deg, duration_s=duration_s, settle_s=settle_s,
+                  direction_deg=direction_deg, duration_s=duration_s, settle_s=settle_s, baseline_s=n_pre * rig.dt,
                   mean_luminance=mean_luminance, stimulus_info=src.info, monitors=_specs(monitors))
-    ds = record_dataset(rig, recs, monitors, {"temporal_frequency_hz": tf, "contrast": c}, n_steps,
-                        rig_attrs(rig, "tf-tuning", params))
+    ds = record_dataset(rig, recs, monitors, {"temporal_frequency_hz": tf, "contrast": c}, n_pre + n_steps,
+                        rig_attrs(rig, "tf-tuning", params), time_offset_s=n_pre * rig.dt)
+    ds["time"].attrs.update(long_name="time since the grating's onset (negative: the mean-luminance baseline)",
+                            units="s")
+    ds.attrs["baseline_s"] = n_pre * rig.dt
     tau = cfg.circuit.emd.tau_s
     _add_tuning(ds, monitors, rig, tf, settle_s)
     pr = np.abs(photoreceptor_frequency_response(cfg.circuit.photoreceptor, rig.dt, tf)) ** 2
@@ -441,7 +478,7 @@ def _probe_psf(rig: Rig, dirs, size, path, speed, t_mid, n_steps, contrast):
 
 def _looming(config: EphysConfig, *, l_over_v_s=LOOMING_L_OVER_V_S, duration_s: float = 1.0,
             t_collision_s: float | None = None, centre_deg=None, max_size_deg: float = 60.0, contrast: float = 1.0,
-            record=None, tau_s: float | None = None) -> xr.Dataset:
+            baseline_s: float = BASELINE_S, record=None, tau_s: float | None = None) -> xr.Dataset:
     """Looming: a dark disc approaching (``2·atan((l/v)/(t_c − t))``) or receding (the time reversal).
 
     Conditions: dims ``l_over_v_s`` × ``motion`` ∈ {approach, recede}; the disc is
@@ -449,6 +486,10 @@ def _looming(config: EphysConfig, *, l_over_v_s=LOOMING_L_OVER_V_S, duration_s: 
     (default 0.8·duration), capped at ``max_size_deg``. Adds ``angular_size_deg``
     (l_over_v_s, motion, time), and per recorded neuron variable ``<var>_peak`` (the
     trial-averaged maximum) and ``<var>_time_of_peak_s`` (relative to collision).
+
+    baseline_s: seconds of the bare background (no disc) before stimulus onset (the PSTH's
+    pre-stimulus baseline); the stored time stays relative to collision, so the baseline spans
+    ``[−t_collision_s − baseline_s, −t_collision_s)``.
     """
     cfg = (config or EphysConfig()).with_tau(tau_s)
     rig = Rig(cfg)
@@ -460,6 +501,7 @@ def _looming(config: EphysConfig, *, l_over_v_s=LOOMING_L_OVER_V_S, duration_s: 
     if not 0 < tc <= duration_s:
         raise ValueError(f"the collision time must lie in (0, duration = {duration_s}] s after stimulus onset, "
                          f"got {tc}; use a longer --duration or an earlier --collision-time")
+    _check_baseline(baseline_s)
     if not 0 < max_size_deg <= 180:
         raise ValueError(f"the disc's size cap must lie in (0, 180] degrees, got {max_size_deg}")
     centre = cfg.circuit.population.matched_filter.epipole_deg if centre_deg is None else tuple(centre_deg)
@@ -470,14 +512,17 @@ def _looming(config: EphysConfig, *, l_over_v_s=LOOMING_L_OVER_V_S, duration_s: 
     rec, info_r = looming_disc(rig.lattice, n_steps, l_over_v_s=lv, receding=True, **kw)
     stim = torch.stack([app.reshape(len(lv), n_steps, -1), rec.reshape(len(lv), n_steps, -1)], dim=1)
     stim = stim.reshape(2 * len(lv), n_steps, -1)
-    recs = rig.run(stim, n_steps, monitors, baseline=1.0)
+    n_pre = int(round(baseline_s / rig.dt))
+    stim = torch.cat([torch.ones_like(stim[:, :1]).expand(-1, n_pre, -1), stim], dim=1)  # background, no disc
+    recs = rig.run(stim, n_pre + n_steps, monitors, baseline=1.0)
     params = dict(l_over_v_s=lv, duration_s=duration_s, t_collision_s=tc, centre_deg=centre,
-                  max_size_deg=max_size_deg, contrast=contrast, monitors=_specs(monitors))
+                  max_size_deg=max_size_deg, contrast=contrast, baseline_s=n_pre * rig.dt, monitors=_specs(monitors))
     ds = record_dataset(rig, recs, monitors, {"l_over_v_s": lv, "motion": np.array(["approach", "recede"])},
-                        n_steps, rig_attrs(rig, "looming", params), time_offset_s=tc)
+                        n_pre + n_steps, rig_attrs(rig, "looming", params), time_offset_s=tc + n_pre * rig.dt)
     ds["time"].attrs.update(long_name="time relative to collision (negative before; the receding disc "
                                       "is the approach reversed in time)", units="s")
     sizes = np.stack([np.atleast_2d(info["angular_size_deg"]), np.atleast_2d(info_r["angular_size_deg"])], axis=1)
+    sizes = np.concatenate([np.zeros(sizes.shape[:-1] + (n_pre,)), sizes], axis=-1)  # no disc in the baseline
     ds["angular_size_deg"] = (("l_over_v_s", "motion", "time"), sizes, {
         "units": "degree", "long_name": f"disc angular size (capped at {max_size_deg:g} degrees)"})
     t = ds.time.values
@@ -499,7 +544,9 @@ def _looming(config: EphysConfig, *, l_over_v_s=LOOMING_L_OVER_V_S, duration_s: 
         ds[f"{mon.name}_time_of_peak_s"].attrs.update(units="s", long_name=f"time of the peak trial-mean {what}, "
                                                                           "relative to collision")
     ds.attrs["t_collision_s"] = tc
-    ds.attrs["time_reference"] = "collision: time coordinate = time since stimulus onset - t_collision_s"
+    ds.attrs["baseline_s"] = n_pre * rig.dt
+    ds.attrs["time_reference"] = ("collision: time coordinate = time since stimulus onset - t_collision_s; the "
+                                  "baseline (no disc) lies before -t_collision_s")
     return cf_describe(ds)
 
 
