@@ -30,6 +30,7 @@ from lobula.readout_neuron import SPIKE_MODELS, ReadoutNeuronConfig, readout_neu
 from .store import provenance
 
 __all__ = ["EyeVelocityConfig", "estimate_eye_velocity", "causal_gyro", "readout_inputs", "split_half_variance",
+           "suppressed_readout",
            "readout_offset", "reliability_gate",
            "field_halves",
            "add_parser", "run_eye_velocity"]
@@ -210,12 +211,28 @@ class EyeVelocityConfig:
         return json.dumps(self.to_dict(), sort_keys=True)
 
 
-def causal_gyro(imu, times: np.ndarray) -> np.ndarray:
-    """Angular velocity (T, 3) at ``times``: the latest IMU sample at or before each time (no
+def causal_gyro(imu, times: np.ndarray, saccade_deg_s: float | None = None, hold_s: float = 0.0) -> np.ndarray:
+    """Angular velocity (T, 3) rad/s at ``times`` (T,) s: the latest IMU sample at or before each time (no
     look-ahead), minus the running mean of the samples so far (the gyro bias, since a
-    track's heading returns; lobula.imu does the same)."""
+    track's heading returns; lobula.imu does the same).
+
+    saccade_deg_s: samples whose |ω| exceeds this (°/s), and those within ``hold_s`` s after one, are left
+    out of that mean (None: none are). A fly's heading also returns, but in body saccades: the mean over
+    the samples so far is then the net angle turned over the time, 45° over the first 0.34 s ≈ 130 °/s after a
+    first saccade (saccadic flight seed 0), against a bias of tenths of a °/s; between saccades the rate is
+    intersaccadic drift and wobble, which average out. Before the first sample outside a saccade the bias
+    is 0 (its expected value).
+    """
     g = imu.gyro
-    bias = np.cumsum(g, 0) / np.arange(1, len(g) + 1)[:, None]
+    if saccade_deg_s is None:
+        bias = np.cumsum(g, 0) / np.arange(1, len(g) + 1)[:, None]
+    else:
+        ti = np.asarray(imu.time_s, float)
+        fast = np.linalg.norm(g, axis=1) > np.radians(saccade_deg_s)
+        last = np.maximum.accumulate(np.where(fast, ti, -np.inf))
+        calm = (ti - last) > hold_s
+        n = np.cumsum(calm)
+        bias = np.cumsum(g * calm[:, None], 0) / np.maximum(n, 1)[:, None]
     k = np.clip(np.searchsorted(imu.time_s, times, side="right") - 1, 0, len(g) - 1)
     return (g - bias)[k]
 
@@ -339,8 +356,33 @@ def field_halves(fields, n_outputs: int) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(x, y) for x, y in out if x.any() and y.any()]
 
 
-def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_outputs: int) -> tuple:
-    """The readout of the gated LC outputs: (v_hat, observable, r_dot, v_field, v_std, std_name, method, filter)."""
+def suppressed_readout(t, rho, r2, a, rcfg, saccade=None, **kw):
+    """:func:`lobula.readout.readout` of LC outputs with saccadic suppression: a :class:`ReadoutResult`.
+
+    t (n,) s; rho, r2 (n, F) 1/s, 1/s², NaN at the steps ``saccade`` (n,) bool flags (a body saccade and the
+    circuit's hold after it); a (n,) m/s²; rcfg a ReadoutConfig; kw: :func:`readout`'s other arguments.
+    Without a flagged step this is :func:`readout` itself. With one, the readout is given ṙ as well as ρ and
+    r²̄ (as material rates), ṙ the same centred difference over ``rcfg.stagger`` steps the readout takes of
+    its low-passed ρ — NaN wherever it would span a flagged step — so that no difference is taken across a
+    saccade: a saccade turns every field onto other surfaces, and ρ jumps by what they are, not by a/D.
+    Through the flagged steps the readout's causal low-pass holds ρ and ṙ at their last values, its terms
+    are NaN wherever their centre falls in a flagged step, and there the filter predicts from the
+    acceleration alone and its σ grows.
+    """
+    if saccade is None or not np.any(saccade):
+        return readout(t, rho, r2, a, rcfg, **kw)
+    from lobula.readout import MaterialRates, staggered_difference
+
+    dt = float(np.median(np.diff(t)))
+    stagger = max(2, rcfg.stagger + rcfg.stagger % 2)
+    r_dot = staggered_difference(np.asarray(rho, float), stagger, dt, centred=True)
+    return readout(t, rho, r2, a, rcfg, material=MaterialRates(rho, r2, r_dot), **kw)
+
+
+def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_outputs: int,
+                 saccade: np.ndarray | None = None) -> tuple:
+    """The readout of the gated LC outputs: (v_hat, observable, r_dot, v_field, v_std, std_name, method, filter);
+    ``saccade`` (n,) bool: the steps whose visual update is suppressed (their rho_in, r2_in are NaN)."""
     if cfg.readout_kind == "neuron":
         nout = readout_neuron(t, rho_in, r2_in, a, cfg.neuron)
         v_hat, observable, r_dot, v_field = nout["v_hat"], nout["observable"], nout["r_dot"], nout["v_field"]
@@ -352,15 +394,15 @@ def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_out
                                        if cfg.neuron.spiking else "rate") + ")"
         filt = "causal" if not cfg.neuron.spiking or cfg.neuron.decode == "causal" else "centred spike window"
     else:
-        res = readout(t, rho_in, r2_in, a, rcfg, gravity_tau=tau, drift_std=drift, turn_rate=turn)
+        res = suppressed_readout(t, rho_in, r2_in, a, rcfg, saccade, gravity_tau=tau, drift_std=drift, turn_rate=turn)
         v_hat, observable, r_dot, v_field, v_std = res.v_hat, res.observable, res.r_dot, res.v_field, res.v_std
         std_name, method, filt = "posterior std of v_hat", cfg.readout.method, cfg.readout.filter
         if cfg.uncertainty == "halves":
             extra = (cfg.emd_gain_error * np.nan_to_num(res.v_hat)) ** 2
             for a_half, b_half in field_halves(fields, n_outputs):
                 # Each half through the same readout alone: their disagreement is an error the posterior misses.
-                halves = [readout(t, rho_in[:, h], r2_in[:, h], a, rcfg, gravity_tau=tau, drift_std=drift,
-                                  turn_rate=turn).v_hat for h in (a_half, b_half)]
+                halves = [suppressed_readout(t, rho_in[:, h], r2_in[:, h], a, rcfg, saccade, gravity_tau=tau,
+                                             drift_std=drift, turn_rate=turn).v_hat for h in (a_half, b_half)]
                 extra = extra + np.nan_to_num(split_half_variance(t, *halves, cfg.split_tau_s))
             v_std = np.sqrt(v_std ** 2 + extra)
             std_name = ("posterior std of v_hat combined with the disagreement of the field halves (left and right "
@@ -442,7 +484,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         raise FootageError(f"{fo.path / 'imu.csv'}: missing; the eye's readout needs the accelerometer and gyro")
     t_start = _time.perf_counter()
     circ = EyeCircuit(fo.eye, fo.rate_hz, cfg.circuit)
-    gyro = causal_gyro(fo.imu, fo.times)
+    gyro = causal_gyro(fo.imu, fo.times, cfg.circuit.saccade_gate_deg_s, cfg.circuit.saccade_hold_s())
     if getattr(fo, "head", None) is not None:
         # Gaze stabilised: the retina turns with the head; the haltere's prediction adds the neck's
         # own rotation (an efference copy: the head angles) to the body's, in the head's frame.
@@ -460,6 +502,7 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     rho = np.concatenate([o["rho"] for o in outs])
     r2 = np.concatenate([o["r2_eff"] for o in outs])
     haltere_gain = np.concatenate([o["haltere_gain"] for o in outs])
+    saccade = np.concatenate([o["saccade"] for o in outs])
     # The circuit starts at rest (the EMD delay lines and the photoreceptors' filters set to
     # the first sample, as if nothing had moved), so the LC outputs climb to their moving level
     # over the first few time constants: a ṙ that is the circuit's, not the world's (measured on
@@ -471,10 +514,14 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
         raise FootageError(f"{fo.path}: too short for a readout ({len(t)} LC steps)")
     # Each field reaches the readout only while its output is mostly slow (the flight's expansion),
     # not the correlators' fast noise and rotation residue (EyeVelocityConfig.reliability_min); causal.
-    reliability = field_reliability(t, rho, tau_s=cfg.reliability_tau_s)
-    used = reliability_gate(reliability, np.isfinite(rho), cfg.reliability_min,
+    # Saccadic suppression: the steps the haltere's gate flags (a body saccade and the circuit's hold after it)
+    # reach neither the fields' reliability nor the readout, whose filter then carries v̂ on the acceleration
+    # alone (see suppressed_readout).
+    rho_vis = np.where(saccade[:, None], np.nan, rho)
+    reliability = field_reliability(t, rho_vis, tau_s=cfg.reliability_tau_s)
+    used = reliability_gate(reliability, np.isfinite(rho_vis), cfg.reliability_min,
                             max(3, int(np.ceil(cfg.readout.min_valid_fraction * rho.shape[1]))))
-    rho_in, r2_in = np.where(used, rho, np.nan), np.where(used, r2, np.nan)
+    rho_in, r2_in = np.where(used, rho_vis, np.nan), np.where(used, r2, np.nan)
     t_circ = _time.perf_counter() - t_start
     dt = float(np.median(np.diff(t)))
     if cfg.accel_from_truth:
@@ -491,10 +538,14 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
     t1 = _time.perf_counter()
     (v_hat, observable, r_dot, v_field, v_std, std_name, method,
-     filt) = _eye_readout(cfg, rcfg, circ.fields, t, rho_in, r2_in, a, tau, drift, turn, rho.shape[1])
+     filt) = _eye_readout(cfg, rcfg, circ.fields, t, rho_in, r2_in, a, tau, drift, turn, rho.shape[1], saccade)
     t_readout = _time.perf_counter() - t1
     ds = _eye_dataset(fo, cfg, rcfg, circ.fields, t, rho, r2, haltere_gain, reliability, used, a, a_source,
                       v_hat, observable, r_dot, v_field, v_std, std_name)
+    gate = cfg.circuit.saccade_gate_deg_s
+    ds["saccade"] = ("time", saccade, {"units": "1", "long_name": "saccadic suppression, no visual update: " + (
+        f"the haltere's rate above {gate:g} deg/s or within {cfg.circuit.saccade_hold_s():.3g} s after"
+        if gate is not None else "none (no saccade gate)")})
     timings = dict(circ.timings, circuit_total=t_circ, readout=t_readout, n_ommatidia=fo.eye.n,
                    n_pairs=fo.eye.n_pairs)
     ds.attrs.update(provenance(cfg.to_json(), front_end="emd-compound-eye", filter=filt,

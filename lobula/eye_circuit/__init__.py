@@ -108,6 +108,15 @@ Rotation, two hypotheses (``rotation``):
   filters). Pitch is symmetric left–right and does not cancel.
 - ``"both"`` applies the two; ``"none"`` neither.
 
+**Saccadic suppression** (``saccade_gate_deg_s``, 300 °/s). While the haltere's |ω| exceeds the gate and
+for a hold after (three times the sum of the circuit's time constants, 0.24 s by default: the saccade's
+residue down to e⁻³), the readout steps are flagged ``saccade``: the haltere gain and the pools' floor do not
+learn from them, and the readout (:func:`experiments.eye_velocity.suppressed_readout`) skips their visual
+update. A body saccade moves the image far past the EMDs' temporal-frequency optimum, where the haltere's
+linear prediction fails, and turns every field onto other surfaces, so ρ jumps by what they are, not by
+a/D; flies suppress motion vision during course-changing turns (Kim, Fitzgerald & Maimon 2015, Nat Neurosci
+18:1247; Fenk, Kim & Maimon 2021, Curr Biol 31). A flight that never turns that fast is unchanged.
+
 Causality: every stage is a causal filter; the readout step is a block sum over the
 last ``1/readout_rate_hz`` s. Outputs are stamped ``latency_s`` earlier (photoreceptor
 τ + EMD τ + half a block, and τ_EMD more for the per-pair decoding's low-pass), the same convention as the pinhole EMD front end: an estimate

@@ -26,7 +26,8 @@ class EyeCircuit:
     ``grad`` (K, F') 1/s per rad, ``r2_eff`` (K, F') 1/s², ``rot`` (K, F') 1/s (the rotation
     the haltere subtracted, as ρ at the learned gain; 0 without haltere subtraction),
     ``haltere_gain`` (K, F') the gain it was subtracted at (1 + α; 1 fixed; NaN without), with
-    F' = F fields, or the mirror groups (F/2) under wide-field rotation cancelling.
+    F' = F fields, or the mirror groups (F/2) under wide-field rotation cancelling, and ``saccade`` (K,)
+    bool: the step saw a body saccade or the hold after it (:attr:`EyeCircuitConfig.saccade_gate_deg_s`).
 
     eye: the :class:`lobula.compound_eye.CompoundEye`; rate_hz: the rate (Hz) the luminance and gyro
     arrive at; config: the :class:`EyeCircuitConfig` (None: the default).
@@ -85,6 +86,7 @@ class EyeCircuit:
         self._n_steps = 0
         self._floor = None
         self._rot_state = None
+        self._last_saccade = -math.inf   # s (circuit clock): the latest sample above the saccade gate
         self.gain_prior = (cfg.rotation_gain_prior if cfg.rotation_gain_prior is not None else
                            natural_scene_gain(eye.config.dphi_deg, eye.config.acceptance_deg, cfg.surround,
                                               cfg.column_pool))
@@ -216,10 +218,30 @@ class EyeCircuit:
         sums = self._sums(lum, gyr, keep)
         return dict(sums=sums, **{k: v for k, v in keep.items() if v is not None})
 
-    def solve_blocks(self, block_sums: np.ndarray, t_end: np.ndarray) -> dict:
+    def solve_blocks(self, block_sums: np.ndarray, t_end: np.ndarray, saccade: np.ndarray | None = None) -> dict:
         """ρ, g and r2_eff (the dict of :class:`EyeCircuit`'s results) from ``block_sums`` (..., K, 5F) of blocks
-        ending at ``t_end`` (K,) s (the readout's 2×2 solve; continues the floor)."""
-        return self._solve(np.asarray(block_sums, dtype=float), np.asarray(t_end, dtype=float))
+        ending at ``t_end`` (K,) s (the readout's 2×2 solve; continues the floor). saccade: (K,) bool, the blocks
+        the saccade gate flags (None: none, as for a stimulus without a haltere signal)."""
+        return self._solve(np.asarray(block_sums, dtype=float), np.asarray(t_end, dtype=float),
+                           None if saccade is None else np.asarray(saccade, dtype=bool))
+
+    def saccade_samples(self, gyro: np.ndarray) -> np.ndarray:
+        """Which of the next samples the saccade gate flags, (T,) bool; continues the circuit's clock.
+
+        gyro (T, 3) rad/s, the haltere's angular velocity at the eye's rate, for the samples that follow
+        those already processed. A sample is flagged while |ω| exceeds ``saccade_gate_deg_s`` and for
+        :meth:`EyeCircuitConfig.saccade_hold_s` after the last sample that did (causal: the hold runs
+        across calls). All False without a gate.
+        """
+        cfg = self.config
+        g = np.asarray(gyro, dtype=float)
+        if cfg.saccade_gate_deg_s is None or not len(g):
+            return np.zeros(len(g), dtype=bool)
+        t = (self._n_steps + np.arange(len(g))) * self.dt
+        fast = np.linalg.norm(g, axis=-1) > math.radians(cfg.saccade_gate_deg_s)
+        last = np.maximum(np.maximum.accumulate(np.where(fast, t, -math.inf)), self._last_saccade)
+        self._last_saccade = float(last[-1])
+        return (t - last) <= cfg.saccade_hold_s() + 1e-9
 
     def process(self, luminance, gyro) -> dict:
         """Feed (T, n) luminance (any units) and ``gyro`` (T, 3) angular velocity (rad/s, camera frame) at the
@@ -231,6 +253,9 @@ class EyeCircuit:
         if gyr.shape != (lum.shape[0], 3):
             raise ValueError(f"gyro must be (time, 3) matching the luminance, got {tuple(gyr.shape)}")
         s = self._sums(lum, gyr, with_rotation=self.config.rotation_gain == "adaptive").double()
+        # The saccade gate's flag travels with the sums as one more column: a block is flagged if any sample is.
+        flag = torch.as_tensor(self.saccade_samples(gyr.numpy()), dtype=s.dtype)
+        s = torch.cat([s, flag[:, None]], dim=1)
         if self._carry:
             s = torch.cat([self._carry.pop(), s])
         start = self._n_steps - (len(s) - lum.shape[0])
@@ -239,10 +264,10 @@ class EyeCircuit:
         if len(s) > nb * self.block:
             self._carry.append(s[nb * self.block:])
         if nb == 0:
-            return self._solve(np.zeros((0, s.shape[1])), np.zeros(0))
+            return self._solve(np.zeros((0, s.shape[1] - 1)), np.zeros(0))
         blocks = s[:nb * self.block].reshape(nb, self.block, -1).sum(1).numpy()
         t_end = (start + self.block * np.arange(1, nb + 1) - 1) * self.dt
-        return self._solve(blocks, t_end)
+        return self._solve(blocks[:, :-1], t_end, blocks[:, -1] > 0)
 
     def finish(self) -> dict:
         """The final partial block, if any, as :meth:`process` returns steps (K = 0 or 1)."""
@@ -250,9 +275,10 @@ class EyeCircuit:
             return self._solve(np.zeros((0, 5 * self.fields.n_fields)), np.zeros(0))
         s = self._carry.pop()
         t_end = np.array([(self._n_steps - 1) * self.dt])
-        return self._solve(s.sum(0, keepdim=True).numpy() * (self.block / len(s)), t_end)
+        flag = np.array([bool(s[:, -1].sum() > 0)])
+        return self._solve(s[:, :-1].sum(0, keepdim=True).numpy() * (self.block / len(s)), t_end, flag)
 
-    def _rotation_gain(self, rho: np.ndarray, q: np.ndarray) -> np.ndarray:
+    def _rotation_gain(self, rho: np.ndarray, q: np.ndarray, gate: np.ndarray | None = None) -> np.ndarray:
         """Causal per-field estimate of α = γ − 1, the field's gain γ less the haltere's unit gain, (K, F').
 
         The decoded image motion is γ·(true motion) with γ = (Δϕ/2)·cot(Δϕ/2) averaged
@@ -266,7 +292,10 @@ class EyeCircuit:
         the config's ``rotation_gain_prior`` or :func:`natural_scene_gain`) against ρ̂'s own running
         variance s² as the noise: the posterior mean (Σ δρ·δq + α₀·s²/σ₀²) / (Σ δq² + s²/σ₀²), α₀ until
         the field has learned (no rotation seen: the prior's gain). α is held in [−1, 0.5] (γ between 0
-        and 1.5) and the estimate at step k uses steps before k only.
+        and 1.5) and the estimate at step k uses steps before k only. Steps flagged in ``gate`` (K,) bool (a
+        saccade and its hold) teach it nothing: at a saccade's rates the EMDs are far past their
+        temporal-frequency optimum and report the turn at another gain than in the intersaccadic flight
+        that α serves.
         """
         K, Fo = rho.shape[-2], rho.shape[-1]
         st = self._rot_state
@@ -282,6 +311,8 @@ class EyeCircuit:
             with np.errstate(invalid="ignore", divide="ignore"):
                 a = np.where(den > 0, (st["sxy"] + a0 * st["vr"] * w0) / den, a0)
             alpha[..., k, :] = np.clip(np.nan_to_num(a, nan=a0), -1.0, 0.5)
+            if gate is not None and gate[k]:
+                continue   # saccadic suppression: α and its running means hold (see the docstring)
             r, qk = rho[..., k, :], q[..., k, :]
             ok = np.isfinite(r)
             dr, dq = np.where(ok, r - st["mr"], 0.0), np.where(ok, qk - st["mq"], 0.0)
@@ -295,8 +326,10 @@ class EyeCircuit:
         self._rot_state = st
         return alpha
 
-    def _solve(self, sums: np.ndarray, t_end: np.ndarray) -> dict:
-        """Per-block 2×2 weighted least squares for (ρ_f, g_f) and r2_eff."""
+    def _solve(self, sums: np.ndarray, t_end: np.ndarray, gate: np.ndarray | None = None) -> dict:
+        """Per-block 2×2 weighted least squares for (ρ_f, g_f) and r2_eff; ``gate`` (K,) bool: the blocks the
+        saccade gate flags, from which the floor and the haltere gain do not learn (None: none)."""
+        gate = np.zeros(sums.shape[-2], dtype=bool) if gate is None else gate
         F = self.fields.n_fields
         parts = [sums[..., i * F:(i + 1) * F] for i in range(sums.shape[-1] // F)]
         theta = self.fields.theta
@@ -315,7 +348,8 @@ class EyeCircuit:
             floors = np.empty_like(A11)
             level = A11[..., 0, :] if self._floor is None else self._floor
             for k in range(A11.shape[-2]):  # a loop over readout steps, vectorised over fields
-                level = 0.99 * level + 0.01 * A11[..., k, :]
+                if not gate[k]:   # a saccade's pools are the turn's, not the flight's: the floor holds
+                    level = 0.99 * level + 0.01 * A11[..., k, :]
                 floors[..., k, :] = level
             self._floor = level
             A11 = A11 + cfg.floor * floors
@@ -329,7 +363,7 @@ class EyeCircuit:
                 c1, c2 = parts[5:]
                 q = np.where(det > 0, (A22 * c1 - A12 * c2) / det, 0.0)
                 qg = np.where(det > 0, (A11 * c2 - A12 * c1) / det, 0.0)
-                alpha = self._rotation_gain(rho, q)
+                alpha = self._rotation_gain(rho, q, gate)
                 rho, grad = rho - alpha * q, grad - alpha * qg
                 q, gain = (1.0 + alpha) * q, 1.0 + alpha
             rho, grad = rho * self.config.calibration, grad * self.config.calibration
@@ -337,4 +371,4 @@ class EyeCircuit:
         r2_eff = (rho ** 2 * np.cos(theta) - rho * np.sin(theta) * grad if mode == "convective"
                   else rho ** 2 * np.cos(theta) if mode == "point" else np.zeros_like(rho))
         return dict(t=t_end - self.latency_s, rho=rho, grad=grad, r2_eff=r2_eff, rot=q * self.config.calibration,
-                    haltere_gain=gain)
+                    haltere_gain=gain, saccade=gate.copy())

@@ -78,6 +78,12 @@ class EyeCircuitConfig:
     unit gain, which over-subtracts a turn by half, a residue ~10× the fields' own signal in their first
     second (docs/fly-eye.md).
     calibration: gain on ρ (1 = none).
+    saccade_gate_deg_s: saccadic suppression (see "Saccadic suppression" in :mod:`lobula.eye_circuit`):
+    while the haltere's |ω| exceeds this (°/s), and for :meth:`saccade_hold_s` after, the readout steps
+    are flagged ``saccade`` and the circuit's learned state (the haltere gain, the pools' floor) does not
+    learn from them; the readout skips their visual update. 300 (default): above the intersaccadic yaw
+    rates of flies and below the peaks of their body saccades; None: no gate. A flight without saccades
+    never reaches it, so there the gate changes nothing.
     latency_s: stamp shift; None = τ_photoreceptor + τ_EMD + half a block (+ τ_EMD more for the
     "pair" normaliser, whose per-pair decoding low-passes once more).
     """
@@ -95,6 +101,7 @@ class EyeCircuitConfig:
     readout_rate_hz: float = 50.0
     calibration: float = 1.0
     latency_s: float | None = None
+    saccade_gate_deg_s: float | None = 300.0
 
     def __post_init__(self):
         if self.rotation not in ROTATION_MODES:
@@ -113,6 +120,16 @@ class EyeCircuitConfig:
             raise ValueError(f"surround must lie in [0, 1], got {self.surround}")
         if not self.readout_rate_hz > 0:
             raise ValueError(f"readout_rate_hz must be positive, got {self.readout_rate_hz}")
+        if self.saccade_gate_deg_s is not None and not self.saccade_gate_deg_s > 0:
+            raise ValueError(f"saccade_gate_deg_s must be positive (°/s) or None, got {self.saccade_gate_deg_s}")
+
+    def saccade_hold_s(self) -> float:
+        """s the saccade gate holds after the haltere's rate falls below ``saccade_gate_deg_s``: three times the
+        sum of the circuit's own time constants (photoreceptor low-pass and high-pass, the EMD delay, and the
+        per-pair decoding's low-pass for the "pair" normaliser), by when a saccade's residue in the LC
+        outputs has decayed to e⁻³ (5 %) of its size; 0.24 s for the default circuit."""
+        n_lp = 2 if self.normaliser == "pair" else 1
+        return 3.0 * (self.photoreceptor.tau_s + n_lp * self.emd.tau_s + (self.photoreceptor.tau_hp_s or 0.0))
 
     def to_dict(self) -> dict:
         """Every field as a dict, nested configurations as dicts."""
@@ -121,7 +138,8 @@ class EyeCircuitConfig:
                     r2_term=self.r2_term,
                     column_pool=self.column_pool, surround=self.surround, rotation_gain=self.rotation_gain,
                     rotation_gain_prior=self.rotation_gain_prior, readout_rate_hz=self.readout_rate_hz,
-                    calibration=self.calibration, latency_s=self.latency_s)
+                    calibration=self.calibration, latency_s=self.latency_s,
+                    saccade_gate_deg_s=self.saccade_gate_deg_s)
 
     @classmethod
     def from_dict(cls, d: dict) -> "EyeCircuitConfig":
@@ -131,6 +149,7 @@ class EyeCircuitConfig:
         # and the haltere gain's prior at unit gain.
         d.setdefault("surround", 0.0)
         d.setdefault("rotation_gain_prior", 1.0)
+        d.setdefault("saccade_gate_deg_s", None)
         f = dict(d.pop("fields", {}))
         for k in ("azimuth_deg", "elevation_deg"):
             if k in f:
