@@ -102,6 +102,13 @@ def never_observable_reason(ds: xr.Dataset) -> str | None:
         return ("never observable: no receptive field measured an expansion rate (r is NaN throughout: too "
                 "little texture in view, or the flow failed) — without it vision says nothing of speed; v̂ is NaN "
                 "throughout")
+    if "vision_locked" in ds and not bool(ds.vision_locked.values.astype(bool).any()):
+        z = ds.vision_coupling.values.astype(float)
+        return (f"never observable: the image's expansion never followed the accelerometer (the fields' ṙ − r² "
+                f"against the forward acceleration: Fisher z at most {np.nanmax(z, initial=0.0):.1f}, "
+                f"{float(ro.get('coupling_z', 3.0)):g} needed; lobula.readout.coupling) — vision's κ = a/v is noise "
+                f"here (an image stabilised against the body, a scene that moves, or a steady pace with nothing to "
+                f"follow), so the speed cannot be told; v̂ is NaN throughout")
     std = ds.v_std.values.astype(float) if "v_std" in ds else np.full(1, np.nan)
     low = float(np.nanmin(std)) if np.isfinite(std).any() else float("nan")
     return (f"never observable: the posterior std of v̂ never fell below the readout's max_std ({max_std:g} m/s; "
@@ -151,9 +158,13 @@ def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | No
         # Drawn over v̂, thinner and dashed, so it stays visible where the two agree.
         ax.plot(t, ds.v_true.values, color="k", ls="--", lw=1.2, label="truth", zorder=4)
     unobs = ~ds.observable.values.astype(bool)
-    if unobs.any():
-        ax.fill_between(t, 0, 1, where=unobs, transform=ax.get_xaxis_transform(), color="0.85", lw=0,
-                        label="unobservable (std too large: no v̂)")
+    unlocked = ~ds.vision_locked.values.astype(bool) if "vision_locked" in ds else np.zeros(len(t), bool)
+    if (unobs & unlocked).any():
+        ax.fill_between(t, 0, 1, where=unobs & unlocked, transform=ax.get_xaxis_transform(), color="0.75", lw=0,
+                        label="unobservable: expansion not following a (no v̂)")
+    if (unobs & ~unlocked).any():
+        ax.fill_between(t, 0, 1, where=unobs & ~unlocked, transform=ax.get_xaxis_transform(), color="0.85", lw=0,
+                        label="unobservable: std too large (no v̂)")
     if skip > 0 and "v_true" in ds:
         ax.axvspan(t[0], t[0] + skip, color="0.5", alpha=0.08, lw=0, label=f"not scored (first {skip:.3g} s)")
     ax.axhline(0, color="0.4", lw=0.8, zorder=1)
@@ -273,6 +284,8 @@ def run_velocity(args) -> int:
     print(f"wrote {args.out}: {ds.sizes['time']} frames x {ds.sizes['field']} fields "
           f"[{ds.attrs['front_end']}, {ds.attrs['readout']} readout, {ds.attrs['filter']}; "
           f"acceleration: {ds.attrs['acceleration_source']}]")
+    for line in calibration_lines(getattr(footage, "calibration", None)):
+        print(line)
     e = ds.epipole_x.values[-1], ds.epipole_y.values[-1]
     print(f"epipole: ({np.degrees(np.arctan(e[0])):+.2f}°, {np.degrees(np.arctan(e[1])):+.2f}°) from the principal point")
     print(f"observable: {100 * float(ds.observable.mean()):.1f} % of all {ds.sizes['time']} estimates")
@@ -292,6 +305,17 @@ def run_velocity(args) -> int:
         n = write_tum(ds, args.tum)
         print(f"wrote {args.tum}: {n} poses (TUM: timestamp tx ty tz qx qy qz qw)")
     return 0
+
+
+def calibration_lines(cal: dict | None) -> list[str]:
+    """The lens and clock offset a self-calibrated camera used (:mod:`lobula.readers.self_calibration`), in words."""
+    if not cal:
+        return []
+    out = [f"lens: {cal['lens']}, fx {cal['focal_length_px']:.1f} px ± {100 * cal['focal_length_rel_std']:.0f} % "
+           f"({cal['focal_length_source']})"]
+    if "clock_offset_s" in cal:
+        out.append(f"clock offset: {1e3 * cal['clock_offset_s']:+.1f} ms ({cal['clock_offset_source']})")
+    return out
 
 
 def write_tum(ds: xr.Dataset, path) -> int:

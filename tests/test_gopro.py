@@ -9,6 +9,7 @@ mp4reader) for the packets and their times, and a KLV walk written here for the 
 from __future__ import annotations
 
 import fractions
+import json
 import importlib.util
 import re
 import sys
@@ -18,6 +19,7 @@ import av
 import cv2
 import numpy as np
 import pytest
+import xarray as xr
 from scipy.ndimage import uniform_filter1d
 
 from experiments.cli import main
@@ -290,16 +292,22 @@ def test_info_prints_the_telemetry(synthetic, capsys):
 
 # ------------------------------------------------------------------ bad input: one line, no output
 @needs_gpmf
-def test_no_camera_file_is_one_line_naming_the_fix(synthetic, tmp_path, capsys):
+def test_without_a_camera_file_the_lens_is_assumed_measured_and_said(synthetic, tmp_path):
+    """No camera file and no stated field of view: an equidistant fisheye of the nominal diagonal, whose focal length
+    and clock offset the gyro cannot measure on a clip that does not turn — said, and stored."""
+    from lobula.readers.gopro import NOMINAL_DIAGONAL_FOV_DEG, equidistant_camera
+
     clip = tmp_path / "bare.mp4"
     clip.write_bytes(synthetic.read_bytes())
-    code, out, _ = cli(capsys, "info", clip)  # info reads it without intrinsics
-    assert code == 0 and "intrinsics: none in the recording; velocity needs them: --camera FILE" in out
-    o = tmp_path / "v.nc"
-    code, _, err = cli(capsys, "velocity", clip, "--out", o, "--quiet")
-    one_line_error(code, err, "bare.mp4: a GoPro MP4 does not carry its lens intrinsics", "--camera FILE",
-                   "bare.camera.json")
-    assert not o.exists()
+    fo = open_footage(clip)
+    cal = fo.calibration
+    raw = fo.distortion["raw_camera"]
+    guess = equidistant_camera(raw["width"], raw["height"], 30.0, NOMINAL_DIAGONAL_FOV_DEG)
+    assert raw["fx"] == pytest.approx(guess.fx) and cal["focal_length_px"] == pytest.approx(guess.fx)
+    assert "nominal" in cal["focal_length_source"] and "not measured" in cal["focal_length_source"]
+    assert cal["clock_offset_s"] == 0.0 and "not identifiable" in cal["clock_offset_source"]
+    assert fo.distortion["model"] == "kannala-brandt" and fo.distortion["removed"]
+    assert json.loads(fo.provenance()["camera_calibration"]) == cal
 
 
 @needs_gpmf
@@ -508,3 +516,22 @@ def test_real_clip_info(clip, capsys):
     assert code == 0 and f"gopro:      {want['model']}" in out
     speed = float(re.search(r"mean 2D speed ([0-9.]+) m/s", out).group(1))
     assert abs(speed - want["speed"]) < 0.01 and "stabilisation: electronic on" in out
+
+
+@needs_gpmf
+def test_real_clip_without_a_camera_file_says_it_cannot_know(tmp_path, capsys):
+    """`lobula velocity CLIP.mp4` with nothing else: the lens from the stated field of view (the gyro cannot measure it
+    through the stabilised image), the clock offset said, and — vision's expansion not following the accelerometer
+    on a walk — no speed claimed, with the reason."""
+    path = GOPRO / "gopro_max_walk.mp4"
+    if not path.exists():
+        pytest.skip(f"GoPro clip not found at {path} (../shared/data is beside the repo in CI)")
+    o = tmp_path / "run.nc"
+    code, out, _ = cli(capsys, "velocity", path, "--out", o, "--quiet")
+    assert code == 0
+    assert "lens: equidistant fisheye" in out and "ZFOV 137.4" in out and "clock offset:" in out
+    assert "never observable: the image's expansion never followed the accelerometer" in out
+    ds = xr.open_dataset(o)
+    assert not ds.observable.values.any() and not ds.vision_locked.values.any()
+    assert ds.vision_coupling.max() < 3.0
+    assert "camera_calibration" in ds.attrs

@@ -813,3 +813,56 @@ def test_the_sign_of_the_expansion_keeps_vhat_off_the_wrong_side():
         assert out[True][0] < out[False][0] - 0.05, (seed, out)
         wrong_fraction.append((out[False][1], out[True][1]))
     assert np.mean([w[1] for w in wrong_fraction]) <= 0.25 * np.mean([w[0] for w in wrong_fraction]), wrong_fraction
+
+
+# ------------------------------------------------------------------ vision's coupling to the accelerometer
+def test_expansion_coupling_is_fishers_z_over_the_window():
+    """A known correlation over a whole window: z = atanh(ρ)·√(n_eff − 3), n_eff = 2·cutoff per second."""
+    from lobula.readout.coupling import expansion_coupling, window_full
+
+    dt, w_s, fc = 0.02, 4.0, 1.0
+    t = np.arange(0, 10, dt)
+    a = np.sin(2 * np.pi * 0.3 * t)
+    g = a + 0.8 * np.cos(2 * np.pi * 1.7 * t)
+    w = int(round(w_s / dt))
+    z = expansion_coupling(g, a, dt, w_s, fc, causal=True)
+    rho = np.corrcoef(g[-w:], a[-w:])[0, 1]
+    assert z[-1] == pytest.approx(np.arctanh(rho) * np.sqrt(w * dt * 2 * fc - 3), rel=1e-9)
+    assert expansion_coupling(g, -a, dt, w_s, fc, causal=True)[-1] == pytest.approx(-z[-1])  # one-sided: negative
+    assert z[0] == 0.0  # a window of one frame cannot tell
+    full = window_full(len(t), dt, w_s, causal=True)
+    assert not full[:w - 1].any() and full[w - 1:].all()
+    assert not window_full(w - 1, dt, w_s, causal=False).any()
+
+
+def test_expansion_that_does_not_follow_the_accelerometer_is_not_read_as_a_speed():
+    """A camera walking at 1.2 m/s with a gait's acceleration (its mean 0), whose fields' ṙ carries a noise that
+    does not follow a (an image stabilised against the body, or a flow in error): κ = a/v is noise, and a readout
+    that takes it at its stated error settles on v ≈ 0 with a confident σ — the truth outside ±2σ on nearly every
+    frame. The coupling test finds no coupling once its window is whole and reports no speed there; the same
+    readout on fields that do follow a still answers."""
+    rng = np.random.default_rng(0)
+    dt = 1 / 30
+    t = np.arange(0, 10, dt)
+    a = 0.5 * np.sin(2 * np.pi * 0.4 * t + 1.0) + 0.3 * np.sin(2 * np.pi * 0.23 * t)
+    v = 1.2 + np.cumsum(a) * dt - np.mean(np.cumsum(a) * dt)
+    from lobula.readout import MaterialRates
+
+    depths = np.linspace(3.0, 8.0, 30)
+    r = v[:, None] / depths
+    r_dot = a[:, None] / depths + r ** 2
+    # an error all fields share, slow like the acceleration but not following it, and each field's own
+    junk = 0.2 * np.sin(2 * np.pi * 0.3 * t + 2.0)[:, None] + 0.05 * rng.standard_normal(r.shape)
+    noisy = MaterialRates(r, r ** 2, r_dot - a[:, None] / depths + junk)  # ṙ without a/d, an error in its place
+    for filt in ("zero-phase", "causal"):
+        cfg = ReadoutConfig(filter=filt)
+        bad = readout(t, r, r ** 2, a, cfg, material=noisy)
+        blind = readout(t, r, r ** 2, a, ReadoutConfig(filter=filt, coupling_z=0.0), material=noisy)
+        good = readout(t, r, r ** 2, a, cfg, material=MaterialRates(r, r ** 2, r_dot))
+        after = t >= cfg.coupling_window_s
+        _, cover_blind, obs_blind = _score(blind, v, t)
+        assert obs_blind > 0.3 and cover_blind < 0.5, (filt, cover_blind, obs_blind)  # confidently wrong
+        assert not bad.observable[after].any(), filt
+        rmse, cover, obs = _score(good, v, t)
+        # obs: of all frames, scored from 2 s; online the lock-on comes some seconds in
+        assert obs >= (0.75 if filt == "zero-phase" else 0.55) and rmse < 0.05 and cover > 0.9, (filt, rmse, cover, obs)

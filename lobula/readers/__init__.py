@@ -222,6 +222,9 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
     footage.skip_bad_frames = skip_bad_frames
     if clock_offset not in (None, 0, 0.0, "0"):
         _apply_clock_offset(footage, clock_offset)
+    if getattr(footage, "lens_guess", None) is not None and footage.imu is not None:
+        from .self_calibration import self_calibrate
+        self_calibrate(footage, clock=clock_offset is None)
     return footage
 
 
@@ -243,12 +246,17 @@ def _remove_lens(footage: Footage, path: Path, cam_json: Path | None, undistort:
 
     from .core import FootageError
     src = _lens_file(path, cam_json)
-    if src is None or footage.camera is None or footage.kind == "euroc":
+    guess = getattr(footage, "lens_guess", None)
+    if (src is None and guess is None) or footage.camera is None or footage.kind == "euroc":
         return False
-    try:
-        lens = read_lens(src)
-    except ValueError as exc:
-        raise FootageError(str(exc)) from None
+    if src is None:
+        from lobula.lens import LensDistortion
+        lens, src = LensDistortion(guess["model"], tuple(guess["coeffs"])), guess["source"]
+    else:
+        try:
+            lens = read_lens(src)
+        except ValueError as exc:
+            raise FootageError(str(exc)) from None
     if lens is None:
         return False
     footage.lens_maps, pinhole = undistortion_maps(footage.camera, lens, undistort)

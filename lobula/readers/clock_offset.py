@@ -20,6 +20,15 @@ import numpy as np
 from .core import FootageError
 
 
+#: s: how far either side of the best lag the correlation must have fallen (a distinct peak)
+PEAK_SIDE_S = 0.1
+
+
+def _side_steps(resolution_s: float) -> int:
+    """Steps of resolution_s (s) in PEAK_SIDE_S."""
+    return max(1, int(round(PEAK_SIDE_S / resolution_s)))
+
+
 @dataclass
 class ClockOffset:
     """offset_s (s): add to IMU times to put them on the camera's clock; correlation (dimensionless) at the
@@ -110,4 +119,13 @@ def estimate_clock_offset(footage, max_offset_s: float = 0.25, resolution_s: flo
     if k in (0, len(lags) - 1):
         raise FootageError(f"{footage.path}: the best clock offset is at the edge of ±{max_offset_s} s; "
                            f"give --clock-offset S")
+    # A lag that lines the rotations up stands out: a tenth of a second either side the correlation loses more
+    # than what even the best lag leaves unexplained (1 − peak). A flat ridge of middling correlation (a gait's
+    # periodic rotation, an image partly stabilised) says nothing of the lag.
+    side = [scores[j] for j in (k - _side_steps(resolution_s), k + _side_steps(resolution_s))
+            if 0 <= j < len(lags) and np.isfinite(scores[j])]
+    if side and peak - max(side) < 1.0 - peak:
+        raise FootageError(f"{footage.path}: gyro and image rotation correlate {peak:.2f} at {best * 1e3:+.0f} ms but "
+                           f"still {max(side):.2f} {PEAK_SIDE_S * 1e3:.0f} ms away: no distinct lag, so the clock offset "
+                           f"is not identifiable here; give --clock-offset S")
     return ClockOffset(best, peak, int(len(t_img)), lags, scores)

@@ -110,8 +110,10 @@ def estimate_focal_length(footage, iterations: int = 4, tolerance: float = 0.002
         slope, slope_std, corr, n, by_roll = _slope(footage, max_frames)
         steps.append(round(slope, 5))
         if corr < min_correlation or not 0.2 < slope < 5.0:
-            raise FootageError(f"{footage.path}: the image's pan and tilt rates correlate only {corr:.2f} with the "
-                               f"gyro's (< {min_correlation}; slope {slope:.3f}); the focal length is not identifiable here "
+            what = (f"correlate only {corr:.2f} with the gyro's (< {min_correlation})" if corr < min_correlation
+                    else f"follow the gyro's with a slope of {slope:.3f} (outside 0.2-5)")
+            raise FootageError(f"{footage.path}: the image's pan and tilt rates {what}; the focal length is not "
+                               f"identifiable here "
                                f"(too much translation, electronic stabilisation, or a clock offset): give it in a "
                                f"camera.json")
         scale *= slope

@@ -120,13 +120,17 @@ class GoProFootage(VideoFootage):
     model, firmware, stabilisation, lens, streams), ``gps`` (every GPS sample, with or without a fix;
     :func:`gps_samples`) and ``orientation`` ({"CORI", "IORI", "GRAV": (time_s (n,), values)} where
     the file has them, in GoPro's own frame, unrotated). ``camera`` is None only where the footage
-    was opened without intrinsics (``lobula info``).
+    was opened without intrinsics (``lobula info``). ``lens_guess``: where no camera file was given, the
+    equidistant lens assumed (model, coeffs, diagonal_fov_deg, source, rel_std: the focal length's 1σ
+    fraction), which :func:`lobula.readers.self_calibration.self_calibrate` measures against the gyro; None
+    with a camera file.
     """
 
     telemetry: dict
     gps: dict | None
     orientation: dict
     nominal_fps: float
+    lens_guess: dict | None
 
     def _index(self, t: float) -> int | None:
         """The frame whose time stamp is t (s); None for a picture after the frames kept (the video runs on
@@ -145,6 +149,8 @@ class GoProFootage(VideoFootage):
                    electronic_stabilisation={True: "on", False: "off"}.get(stab.get("electronic"), "unknown")
                    + (f" ({stab['setting']})" if stab.get("setting") else "")
                    + f"; from {stab.get('source', 'none')}")
+        if getattr(self, "calibration", None):
+            out["camera_calibration"] = json.dumps(self.calibration)
         return out
 
 
@@ -184,13 +190,19 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
         if (w, h) != (camera.width, camera.height):
             raise FootageError(f"{path}: video is {w}x{h} but {cam_path} says {camera.width}x{camera.height}; give "
                                f"the intrinsics of this resolution")
-    elif require_camera:
-        fov = settings.get("VFOV")
-        raise FootageError(f"{path}: a GoPro MP4 does not carry its lens intrinsics (fx, fy, cx, cy; the lens is a "
-                           f"wide-angle fisheye), and none is assumed; pass --camera FILE with a camera.json from a "
-                           f"calibration of this camera at {w}x{h}" + (f" in lens mode {fov!r}" if fov else "")
-                           + f", or put {path.stem}.camera.json beside the clip"
-                           + equidistant_hint(w, h, fps, settings.get("ZFOV")))
+    lens_guess = None
+    if cam_path is None and require_camera:
+        # No calibration: an equidistant fisheye (what a GoPro's wide lenses are close to) whose diagonal sees
+        # the field of view the file states, else a nominal one; its focal length is then measured against the
+        # gyro where the footage allows (lobula.readers.self_calibration), and said either way.
+        zfov = settings.get("ZFOV")
+        stated = isinstance(zfov, (int, float)) and 0 < zfov < 360
+        fov = float(zfov) if stated else NOMINAL_DIAGONAL_FOV_DEG
+        camera = equidistant_camera(w, h, fps, fov)
+        lens_guess = dict(model="kannala-brandt", coeffs=[0.0, 0.0, 0.0, 0.0], diagonal_fov_deg=round(fov, 3),
+                          source=(f"the file's stated diagonal field of view (ZFOV {fov:.1f}°)" if stated else
+                                  f"a nominal {fov:g}° diagonal (the file states no field of view)"),
+                          rel_std=STATED_FOV_REL_STD if stated else NOMINAL_FOV_REL_STD)
     notes = [("" if model.upper().startswith("GOPRO") else "GoPro ") + (model or "camera")
              + (f" (firmware {firmware})" if firmware else "")
              + f": video {len(times)} frames ({w}x{h}, {codec}) with its GPMF telemetry track: {packets} packets "
@@ -229,6 +241,7 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
                            imu_to_camera=(GOPRO_XYZ_TO_CAMERA if r_extra is None else r_extra @ GOPRO_XYZ_TO_CAMERA)
                            if imu is not None else None, streams=stream_list)
     footage.telemetry, footage.gps, footage.orientation, footage.nominal_fps = telemetry, gps, orientation, fps
+    footage.lens_guess = lens_guess
     return footage
 
 
@@ -342,6 +355,24 @@ def describe_telemetry(telemetry: dict) -> list[str]:
                       if isinstance(lens.get("diagonal_fov_deg"), float) else "") + "; no intrinsics in the file")
     out.append(f"  truth:    {t['truth_source']}")
     return out
+
+
+#: degree: the diagonal field of view assumed for a GoPro file that states none, before the gyro measures the focal
+#: length (GoPro's wide modes see 120-155° across the diagonal; the MAX's "W" file states 137.4°)
+NOMINAL_DIAGONAL_FOV_DEG = 135.0
+#: 1σ fraction of the focal length: a stated field of view (the lens mode's, not this unit's calibration) and a
+#: nominal one
+STATED_FOV_REL_STD = 0.05
+NOMINAL_FOV_REL_STD = 0.15
+
+
+def equidistant_camera(width: int, height: int, fps: float, diagonal_fov_deg: float):
+    """The pinhole parameters of an equidistant fisheye (Kannala–Brandt, no coefficients) whose diagonal sees
+    ``diagonal_fov_deg`` (deg): f = half the diagonal (px) / half the angle (rad); principal point at the centre."""
+    from lobula.camera import PinholeCamera
+
+    f = 0.5 * math.hypot(width, height) / math.radians(0.5 * diagonal_fov_deg)
+    return PinholeCamera(width, height, f, f, (width - 1) / 2, (height - 1) / 2, fps)
 
 
 def equidistant_hint(width: int, height: int, fps: float, diagonal_fov_deg) -> str:

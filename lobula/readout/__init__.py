@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import ReadoutConfig, ReadoutResult
+from .coupling import expansion_coupling, vision_locked, window_full
 from .filters import _fill_nan, _integral, _lag, butterworth, gaussian_lowpass, hold_gaps, staggered_difference
 from .kalman import ForwardPass, FilterRecord, _accel_density2, _axis_terms, filter_record, kalman_velocity, predict  # noqa: F401
 from .updates import OUTLIER_GATE, _gated_update, _sign_update, _update, ratio_update  # noqa: F401
@@ -187,12 +188,14 @@ def finish_readout(v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> Read
     """The :class:`ReadoutResult` of the filter's posterior v, v_std ((n,) m/s): v_std widened by the
     accelerometer's scale error (ReadoutConfig.accel_scale_error), v̂ NaN where v_std exceeds max_std_m_s."""
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
-    obs = v_std <= cfg.max_std_m_s
     zp = cfg.filter == "zero-phase"
+    locked = vision_locked(inp.coupling, inp.still, cfg.coupling_z, causal=not zp, decided=inp.decided)
+    obs = (v_std <= cfg.max_std_m_s) & locked
     # The direct measurement as the filter takes it: its latency bridged with ∫a (the accelerometer's fast path).
     z = inp.z + inp.ratio[3]
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
-                         info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s))
+                         info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s,
+                                   vision_coupling=inp.coupling, vision_locked=locked))
 
 
 @dataclass
@@ -202,7 +205,9 @@ class KalmanInputs:
     measurements, ratio, rest_accel, reversal, sign: :func:`kalman_velocity`'s arguments of those names
     (arrays (n,)); delay: s, the measurements' latency; corr_frames: frames over which their errors are
     correlated; v_field (n, F) m/s, r_dot (n, F) 1/s², z and z_std (n,) m/s: the per-field velocities, ṙ̄ and
-    the direct vision measurement (of the low-passed v one ``delay`` ago) with its std, for the result.
+    the direct vision measurement (of the low-passed v one ``delay`` ago) with its std, for the result;
+    coupling (n,): :func:`lobula.readout.coupling.expansion_coupling`'s z; still (n,) bool: frames the rest
+    bound holds at 0 or a reversal shows v passing 0; decided (n,) bool: frames whose coupling window is whole (:func:`~lobula.readout.coupling.window_full`).
     """
 
     measurements: list
@@ -216,6 +221,9 @@ class KalmanInputs:
     r_dot: np.ndarray
     z: np.ndarray
     z_std: np.ndarray
+    coupling: np.ndarray
+    still: np.ndarray
+    decided: np.ndarray
 
 
 def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, offset_axis=None,
@@ -275,10 +283,16 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     zr, sr = _rest_bound(r, rf, a, terms[3], cfg, dt, sigma_t, offset_prior)
     kap, skap, e_lp, n_corr = _kappa_measurement(terms, v_f, cfg, dt, sigma_t, offset_prior)
     min_fields = int(np.ceil(cfg.min_valid_fraction * r.shape[1]))  # for the reversals and the sign
-    return KalmanInputs(
+    coupling = expansion_coupling(_field_median(terms[2] - terms[1]), terms[3], dt, cfg.coupling_window_s,
+                                  cfg.cutoff_hz, causal=not zp)
+    reversal = reversal_measurement(t, r, a, min_fields, cfg.stamp_error_s) if cfg.reversal else None
+    # Frames where vision gives v directly, without κ: the rest bound (v = 0) and the reversals (v passed 0).
+    direct = np.isfinite(zr) | (np.isfinite(reversal[0]) if reversal is not None else False)
+    return KalmanInputs(coupling=coupling, still=direct,
+        decided=window_full(len(t), dt, cfg.coupling_window_s, causal=not zp),
         measurements=[(zr, sr, 0.0)], ratio=(kap, skap, terms[3], shift, e_lp),
         rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True),
-        reversal=reversal_measurement(t, r, a, min_fields, cfg.stamp_error_s) if cfg.reversal else None,
+        reversal=reversal,
         sign=expansion_sign(t, rf if zp else r, min_fields) if cfg.sign else None,
         delay=delay, corr_frames=n_corr, v_field=v_f, r_dot=r_dot, z=z, z_std=s)
 
@@ -331,6 +345,15 @@ def _rest_bound(r, rf, a, a_lp, cfg: ReadoutConfig, dt: float, sigma_t: float, o
         sr = np.hypot(sr, sigma_t * np.maximum(np.abs(a_lp) - 2.0 * offset_prior, 0.0))
         zr = np.where(sr <= 0.5 * cfg.max_std_m_s, zr, np.nan)
     return zr, sr
+
+
+def _field_median(x: np.ndarray) -> np.ndarray:
+    """The median over fields of x (n, F), NaN where a frame has no finite field."""
+    ok = np.isfinite(x).any(axis=1)
+    out = np.full(len(x), np.nan)
+    if ok.any():
+        out[ok] = np.nanmedian(x[ok], axis=1)
+    return out
 
 
 def _kappa_measurement(terms, v_f, cfg: ReadoutConfig, dt: float, sigma_t: float, offset_prior: float):

@@ -92,6 +92,12 @@ class ReadoutConfig:
         exists.
     max_std_m_s : float
         m/s: posterior std above which v̂ is reported unobservable (NaN).
+    coupling_z, coupling_window_s : float
+        Vision fixes the speed only once the fields' ṙ̄ − r²̄ has followed the accelerometer
+        (:mod:`lobula.readout.coupling`): Fisher's z of their correlation over ``coupling_window_s``
+        (s) must reach ``coupling_z`` (one-sided; 3 is a 0.13 % chance of a coupling in noise), or the
+        rest bound or a reversal give v without κ; once a whole window has passed without that, v̂ is
+        reported unobservable, with the reason (before it, the posterior's std decides alone). 0: off.
     shared_error_frac, shared_error_s : float
         Vision's a_m = κ·v + b also carries an error all fields share that persists for seconds
         (fast family: +0.07–0.11 m/s² for seconds on end), which per-frame white noise cannot
@@ -168,6 +174,8 @@ class ReadoutConfig:
     adapt_s: float = 0.0
     accel_scale_error: float = 0.01
     max_std_m_s: float = 0.1
+    coupling_z: float = 3.0
+    coupling_window_s: float = 4.0
     shared_error_frac: float = 0.5
     shared_error_s: float = 3.0
     r2_term: str = "field"

@@ -160,6 +160,11 @@ def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Foot
         epipole_x=("time", rates.epipole[:, 0], {"units": "1", "long_name": "epipole, normalised x"}),
         epipole_y=("time", rates.epipole[:, 1], {"units": "1", "long_name": "epipole, normalised y"}),
     )
+    if res is not None and "vision_coupling" in res.info:
+        data["vision_coupling"] = ("time", res.info["vision_coupling"], {"units": "1", "long_name":
+                                   "Fisher z of the fields' r_dot - r2 against the acceleration (lobula.readout.coupling)"})
+        data["vision_locked"] = ("time", res.info["vision_locked"], {"units": "1", "long_name":
+                                 "vision has fixed the speed: coupling reached readout.coupling_z, or the camera held still"})
     if footage.truth is not None:
         data["v_true"] = ("time", np.interp(rates.t, footage.truth["time_s"], footage.truth["v_forward_m_s"]),
                           {"units": "m/s", "long_name": "ground-truth forward velocity"})

@@ -127,6 +127,7 @@ class VelocityEstimator:
         self.gravity_error: float | None = None
         self._todo: list[int] = []
         self._filter: ForwardPass | None = None
+        self._locked = self.config.readout.coupling_z <= 0  # vision has fixed the speed (lobula.readout.coupling)
         self._out: list[VelocityState] = []
 
     # ---------------------------------------------------------------- input
@@ -251,10 +252,18 @@ class VelocityEstimator:
                                  inp.sign)[3:]
         v = float(x[0])
         v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
-        obs = v_std <= cfg.max_std_m_s
+        self._locked |= bool(inp.coupling[i] >= cfg.coupling_z or inp.still[i])
+        gate = self._locked or not inp.decided[i]
+        obs = v_std <= cfg.max_std_m_s and gate
         e = col("epipole")[i]
-        reason = "" if obs else (f"posterior std {v_std:.3f} m/s above the readout's max_std {cfg.max_std_m_s:g} m/s: "
-                                 f"the expansion and the acceleration have not yet fixed the speed")
+        if not gate:
+            reason = (f"the image's expansion has not followed the accelerometer (coupling z "
+                      f"{inp.coupling[i]:.1f} < {cfg.coupling_z:g} over {cfg.coupling_window_s:g} s): vision cannot "
+                      f"fix the speed")
+        else:
+            reason = "" if obs else (f"posterior std {v_std:.3f} m/s above the readout's max_std "
+                                     f"{cfg.max_std_m_s:g} m/s: the expansion and the acceleration have not yet "
+                                     f"fixed the speed")
         return VelocityState(float(t[i]), float(col("known")[i]), v if obs else np.nan, v_std, bool(obs), e.copy(),
                              (v * np.array([e[0], e[1], 1.0])) if obs else np.full(3, np.nan), float(a[i]),
                              col("bias")[i].copy(), col("attitude")[i].copy(), reason)
