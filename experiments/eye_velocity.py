@@ -433,7 +433,8 @@ def _eye_dataset(fo, cfg, rcfg, f, t, rho, r2, haltere_gain, reliability, used, 
     else:
         # What v_std adds beyond the posterior does not gate: gating on it leaves the eye blind, so the
         # file says which std the flag is of.
-        obs_definition = f"the readout's posterior std ≤ {rcfg.max_std_m_s:g} m/s" + (
+        obs_definition = (f"the readout's posterior std ≤ max({rcfg.max_std_m_s:g} m/s, {rcfg.max_rel_std:g}·|v̂|) and "
+                          f"vision coupled to the accelerometer (lobula.readout.coupling)") + (
             "; v_std adds the field halves' disagreement and the EMD gain error, so it may exceed that"
             if cfg.uncertainty == "halves" else "")
     keep = np.flatnonzero(f.eye == 0) if rho.shape[1] != f.n_fields else np.arange(f.n_fields)

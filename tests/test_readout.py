@@ -866,3 +866,21 @@ def test_expansion_that_does_not_follow_the_accelerometer_is_not_read_as_a_speed
         rmse, cover, obs = _score(good, v, t)
         # obs: of all frames, scored from 2 s; online the lock-on comes some seconds in
         assert obs >= (0.75 if filt == "zero-phase" else 0.55) and rmse < 0.05 and cover > 0.9, (filt, rmse, cover, obs)
+
+
+def test_the_std_that_is_reported_scales_with_the_speed():
+    """Reported where σ ≤ max(max_std_m_s, max_rel_std·|v̂|): 0.1 m/s at walking speeds, 5 % of v̂ beyond 2 m/s."""
+    from lobula.readout.config import std_allowed
+
+    cfg = ReadoutConfig()
+    np.testing.assert_allclose(std_allowed(np.array([0.0, -0.2, 2.0, 8.0, -20.0]), cfg), [0.1, 0.1, 0.1, 0.4, 1.0])
+    dt = 1 / 30
+    t = np.arange(0, 10, dt)
+    a = 2.0 * np.cos(2 * np.pi * 0.2 * t)              # a car surging by ±1.6 m/s about 8 m/s
+    v = 8.0 + 2.0 * np.sin(2 * np.pi * 0.2 * t) / (2 * np.pi * 0.2)
+    depths = np.linspace(10.0, 60.0, 30)
+    r = v[:, None] / depths  # fixed depths: ṙ = a/d, no r² term
+    res = readout(t, r, np.zeros_like(r), a, ReadoutConfig(filter="zero-phase", depth_max_m=100.0))
+    rmse, cover, obs = _score(res, v, t)
+    assert obs >= 0.75 and cover > 0.9 and rmse < 0.2, (rmse, cover, obs)
+    assert np.nanmax(res.v_std[res.observable]) > 0.1  # reported although beyond the absolute 0.1 m/s

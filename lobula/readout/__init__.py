@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import ReadoutConfig, ReadoutResult
+from .config import ReadoutConfig, ReadoutResult, std_allowed
 from .coupling import expansion_coupling, vision_locked, window_full
 from .filters import _fill_nan, _integral, _lag, butterworth, gaussian_lowpass, hold_gaps, staggered_difference
 from .kalman import ForwardPass, FilterRecord, _accel_density2, _axis_terms, filter_record, kalman_velocity, predict  # noqa: F401
@@ -172,7 +172,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     inp = kalman_inputs(t, r, r2, a, cfg, material, offset_axis, offset_axis_prior)
     if cfg.fusion == "vision-only":
         z, s = inp.z, inp.z_std
-        obs = np.isfinite(z) & (s <= cfg.max_std_m_s)
+        obs = np.isfinite(z) & (s <= std_allowed(z, cfg))
         return ReadoutResult(np.where(obs, z, np.nan), obs, np.where(obs, s, np.nan), inp.v_field, inp.r_dot, z, s, a,
                              info=dict(measurement_delay_s=inp.delay))
     v, v_std = kalman_velocity(t, a, inp.measurements, cfg, smooth=zp, gravity_tau=gravity_tau,
@@ -186,11 +186,12 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
 
 def finish_readout(v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> ReadoutResult:
     """The :class:`ReadoutResult` of the filter's posterior v, v_std ((n,) m/s): v_std widened by the
-    accelerometer's scale error (ReadoutConfig.accel_scale_error), v̂ NaN where v_std exceeds max_std_m_s."""
+    accelerometer's scale error (ReadoutConfig.accel_scale_error), v̂ NaN where v_std exceeds
+    :func:`~lobula.readout.config.std_allowed` or vision has not fixed the speed (:mod:`lobula.readout.coupling`)."""
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     zp = cfg.filter == "zero-phase"
     locked = vision_locked(inp.coupling, inp.still, cfg.coupling_z, causal=not zp, decided=inp.decided)
-    obs = (v_std <= cfg.max_std_m_s) & locked
+    obs = (v_std <= std_allowed(v, cfg)) & locked
     # The direct measurement as the filter takes it: its latency bridged with ∫a (the accelerometer's fast path).
     z = inp.z + inp.ratio[3]
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,

@@ -38,7 +38,9 @@ class ReadoutConfig:
         m/s²: |a| below this carries no depth information (the noise floor of a filtered
         accelerometer).
     depth_min_m, depth_max_m : float
-        m: the physical range of depths a field may imply.
+        m: the physical range of depths a field may imply. 20 m is an indoor scene's: outdoors and fast
+        raise it (on the suite's families 20 m and 2 km read the same to 0.0006 m/s, and the fields of
+        a car at 8 m/s seeing 10–60 m need it).
     min_valid_fraction : float
         Fraction of the fields that must agree on a physical depth.
     rest_depth_max_m : float
@@ -90,8 +92,10 @@ class ReadoutConfig:
         consumer MEMS accelerometer such as the D435i's BMI055, and what the realistic synthetic
         IMU draws per axis (stimuli.imu.IMUConfig.realistic); set it from a calibration where one
         exists.
-    max_std_m_s : float
-        m/s: posterior std above which v̂ is reported unobservable (NaN).
+    max_std_m_s, max_rel_std : float
+        v̂ is reported (else unobservable, NaN) where its posterior std is at most ``max_std_m_s`` (m/s)
+        or ``max_rel_std`` of |v̂|, whichever is larger: a camera at 8 m/s known to ±0.3 m/s is known
+        (the accelerometer's 1 % scale error alone is 0.08 m/s there), one at 0.2 m/s is not.
     coupling_z, coupling_window_s : float
         Vision fixes the speed only once the fields' ṙ̄ − r²̄ has followed the accelerometer
         (:mod:`lobula.readout.coupling`): Fisher's z of their correlation over ``coupling_window_s``
@@ -174,6 +178,7 @@ class ReadoutConfig:
     adapt_s: float = 0.0
     accel_scale_error: float = 0.01
     max_std_m_s: float = 0.1
+    max_rel_std: float = 0.05
     coupling_z: float = 3.0
     coupling_window_s: float = 4.0
     shared_error_frac: float = 0.5
@@ -252,6 +257,11 @@ class ReadoutConfig:
     def to_dict(self) -> dict:
         """The fields as a plain dict (name: value)."""
         return asdict(self)
+
+
+def std_allowed(v, cfg: "ReadoutConfig"):
+    """m/s: the largest posterior std at which v̂ (m/s, any shape) is reported: max(max_std_m_s, max_rel_std·|v̂|)."""
+    return np.maximum(cfg.max_std_m_s, cfg.max_rel_std * np.abs(v))
 
 
 @dataclass

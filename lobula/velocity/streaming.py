@@ -22,6 +22,7 @@ from lobula.flow import StaggeredFlow
 from lobula.front_ends import get_front_end
 from lobula.imu import HEADING_FIT_BIAS_PRIOR
 from lobula.readout import MaterialRates, kalman_inputs
+from lobula.readout.config import std_allowed
 from lobula.readout.kalman import ForwardPass, filter_record
 from lobula.receptive_field import tile_fields
 
@@ -45,7 +46,7 @@ class VelocityState:
     v_std : float
         m/s: its posterior std (1σ), also where not observable.
     observable : bool
-        v_std within the readout's max_std_m_s.
+        v_std within lobula.readout.config.std_allowed, and vision has fixed the speed (lobula.readout.coupling).
     heading : ndarray, (2,)
         The epipole (v_x/v_z, v_y/v_z), normalised image coordinates.
     velocity : ndarray, (3,)
@@ -254,7 +255,7 @@ class VelocityEstimator:
         v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
         self._locked |= bool(inp.coupling[i] >= cfg.coupling_z or inp.still[i])
         gate = self._locked or not inp.decided[i]
-        obs = v_std <= cfg.max_std_m_s and gate
+        obs = v_std <= float(std_allowed(v, cfg)) and gate
         e = col("epipole")[i]
         if not gate:
             reason = (f"the image's expansion has not followed the accelerometer (coupling z "
@@ -262,7 +263,7 @@ class VelocityEstimator:
                       f"fix the speed")
         else:
             reason = "" if obs else (f"posterior std {v_std:.3f} m/s above the readout's max_std "
-                                     f"{cfg.max_std_m_s:g} m/s: the expansion and the acceleration have not yet "
+                                     f"{float(std_allowed(v, cfg)):.3g} m/s: the expansion and the acceleration have not yet "
                                      f"fixed the speed")
         return VelocityState(float(t[i]), float(col("known")[i]), v if obs else np.nan, v_std, bool(obs), e.copy(),
                              (v * np.array([e[0], e[1], 1.0])) if obs else np.full(3, np.nan), float(a[i]),
