@@ -55,3 +55,22 @@ def test_footage_without_rotation_is_refused_in_one_line(tmp_path):
     run = make_track_run(tmp_path / "still", TrackRunConfig(start_s=3.0, duration_s=2.0, scale=0.25), progress=False)
     with pytest.raises(FootageError, match="too little pan and tilt"):
         estimate_focal_length(open_footage(run))
+
+
+def test_self_calibration_keeps_what_the_gyro_measures(fisheye_run, tmp_path):
+    """A camera opened with a lens guess 22 % short (as a GoPro file without intrinsics is): self_calibrate
+    measures the focal length, remakes the lens's map at it, and says where it came from; the clock offset it
+    estimates is ~0 (the synthetic IMU shares the frames' clock)."""
+    from lobula.readers.self_calibration import self_calibrate
+
+    true_fx = json.loads((fisheye_run / "camera.json").read_text())["fx"]
+    fo = open_footage(fisheye_run, camera=_guess(fisheye_run, tmp_path, 0.78))
+    fo.lens_guess = dict(model="kannala-brandt", coeffs=[0.0, 0.0, 0.0, 0.0], source="a test's short guess",
+                         rel_std=0.15)
+    cal = self_calibrate(fo)
+    assert cal["focal_length_px"] == pytest.approx(true_fx, rel=0.05), cal
+    assert "measured against the gyro" in cal["focal_length_source"] and cal["focal_length_rel_std"] < 0.05
+    assert fo.distortion["raw_camera"]["fx"] == pytest.approx(cal["focal_length_px"], rel=1e-4)  # stored to 0.01 px
+    # the map is the measured lens's: the pinhole it resamples onto keeps the measured focal length (same-k)
+    assert fo.camera.fx == pytest.approx(cal["focal_length_px"], rel=1e-4)
+    assert abs(cal["clock_offset_s"]) < 0.01 and "estimated" in cal["clock_offset_source"]
