@@ -17,7 +17,7 @@ duration plus a 0.5 s gap, in the Dataset's order (conditions row-major, then tr
   (NaN where a unit has no receptive field).
 - **acquisition**: every other time-resolved variable (rates, membrane potentials,
   photoreceptor and EMD signals, LC pathways) as a TimeSeries (time × channel) with
-  explicit timestamps; a variable without a trial dim (the deterministic front end)
+  explicit timestamps (starting_time and rate where the recording is one epoch); a variable without a trial dim (the deterministic front end)
   covers each condition's first epoch.
 - **processing/analysis**: every variable without time (tuning curves, RF estimates,
   looming peaks) as a long-form DynamicTable (one column per dim coordinate, plus value).
@@ -319,7 +319,13 @@ def _add_time_series(nwb, ds: xr.Dataset, lay: dict, spike_vars: list[str]) -> N
                                                     else []),
                     "trials": "all" if kk == K else "first epoch of each condition (no trial dim: deterministic)"}
         comments.update(_channel_labels(ds, chans))
-        nwb.add_acquisition(TimeSeries(name=var, data=data.astype(np.float64), timestamps=ts,
+        # One epoch (a single condition and trial) is sampled at a constant rate: NWB's best practice is
+        # starting_time and rate then; several epochs have the gaps between them, so explicit timestamps.
+        step = np.diff(ts)
+        regular = ts.size > 2 and np.unique(step.round(9)).size == 1 and step[0] > 0
+        timing = (dict(starting_time=float(ts[0]), rate=1.0 / float(np.median(step))) if regular
+                  else dict(timestamps=ts))
+        nwb.add_acquisition(TimeSeries(name=var, data=data.astype(np.float64), **timing,
                                        unit=str(da.attrs.get("units", "n.a.")),
                                        description=str(da.attrs.get("long_name", var)),
                                        comments=json.dumps(comments, default=str)))
@@ -429,9 +435,15 @@ def read_nwb_spike_counts(path, ds: xr.Dataset, var: str = "lc_spikes") -> np.nd
 
 
 def read_nwb_series(path, name: str) -> tuple[np.ndarray, np.ndarray, str]:
-    """(data, timestamps, unit) of an acquisition TimeSeries."""
+    """(data, timestamps, unit) of an acquisition TimeSeries: data (samples, [channels]), timestamps (samples,)
+    in s on the session timeline (from starting_time and rate where the series has no explicit timestamps)."""
     from pynwb import NWBHDF5IO
 
     with NWBHDF5IO(str(path), "r") as io:
         ts = io.read().acquisition[name]
-        return np.asarray(ts.data[:]), np.asarray(ts.timestamps[:]), ts.unit
+        data = np.asarray(ts.data[:])
+        if ts.timestamps is None:
+            times = ts.starting_time + np.arange(len(data)) / ts.rate
+        else:
+            times = np.asarray(ts.timestamps[:])
+        return data, times, ts.unit

@@ -23,7 +23,9 @@ import pytest
 from experiments.cli import main as cli_main
 from experiments.ephys.adaptation import adaptation
 from experiments.ephys.command import run_protocol
-from experiments.ephys.contrast import contrast, flicker, hs_tf_prediction, plate_chain, shot_noise
+from experiments.ephys.contrast import contrast, hs_tf_prediction
+from experiments.ephys.flicker import flicker
+from experiments.ephys.plate import plate_chain, shot_noise
 from experiments.ephys.edges import edges
 from experiments.ephys.protocols import tf_tuning
 from experiments.ephys.rig import EphysConfig, Rig, parse_monitor

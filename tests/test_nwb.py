@@ -1,8 +1,8 @@
 """NWB export: every ephys protocol writes a file that pynwb reads back and nwbinspector passes with no
 critical finding, and the NWB file holds the same numbers as the NetCDF recording (round trip).
 
-Tiny rig (Δφ = 4°, 20° fields), short stimuli: ~20 s. velocity-replay's NWB is checked in
-test_replay_protocol.py (it needs footage).
+Tiny rig (Δφ = 4°, 20° fields), short stimuli: ~20 s; every protocol through the public API at test size
+(Δφ 6–8°): ~30 s. velocity-replay's round trip on footage is checked in test_replay_protocol.py.
 """
 import json
 
@@ -228,3 +228,54 @@ def test_lobula_plate_nwb_passes_the_inspector_and_holds_the_numbers(tmp_path):
     args = parse_command(["ephys", "edges", "--dphi", "4", "--field-size", "20", "--speed", "200",
                           "--out", str(tmp_path / "cli.nwb")])
     assert args.func(args) == 0 and (tmp_path / "cli.nwb").is_file()
+
+
+#: every protocol of ``lobula ephys`` at test size on the pinhole rig (Δφ 6–8°; a few tenths of a second of
+#: stimulus); white-noise is one trial, so its series are one epoch sampled at a constant rate
+EVERY_PROTOCOL = {
+    "tf-tuning": dict(dphi=6.0, field_size=24.0, tf=[2.0, 6.0], contrast=[0.5], duration=0.2, settle=0.05,
+                      baseline=0.05),
+    "rf-map": dict(dphi=6.0, field_size=24.0, fields=[0], directions=3, spot_speed=600.0),
+    "looming": dict(dphi=6.0, field_size=24.0, l_over_v=[0.02, 0.04], duration=0.25, baseline=0.05,
+                    neuron_model="poisson", trials=2),
+    "velocity-replay": dict(dphi=8.0, field_size=30.0, duration=1.0, neuron_model="rate"),
+    "edges": dict(dphi=6.0, field_size=24.0, speed=300.0, duration=0.3),
+    "contrast": dict(dphi=6.0, contrast=[0.05, 0.1, 0.3, 0.9], duration=0.2, settle=0.05),
+    "flicker": dict(dphi=6.0, tf=[2.0, 8.0], duration=0.2, settle=0.05),
+    "adaptation": dict(dphi=8.0, adapter=0.3, gaps=[0.0, 1.0, 1.1, 1.2], test_duration=0.1),
+    "current-injection": dict(neuron_model="lif", amplitudes=[0.0, 1.0], duration=0.2),
+    "white-noise": dict(dphi=6.0, duration=0.8, trials=1, max_lag=0.05),
+}
+
+
+def test_every_protocol_is_covered():
+    from experiments.ephys.command import PROTOCOLS
+    assert set(EVERY_PROTOCOL) == set(PROTOCOLS)
+
+
+@pytest.mark.parametrize("protocol", list(EVERY_PROTOCOL))
+def test_every_protocols_nwb_has_no_error_or_best_practice_violation(protocol, tmp_path):
+    """Each protocol's file through the public API (``run``, ``to_nwb``): nwbinspector finds nothing at
+    CRITICAL or BEST_PRACTICE_VIOLATION, and every acquisition series reads back on the recording's grid."""
+    from pynwb import NWBHDF5IO
+
+    from experiments.ephys import run, to_nwb
+
+    ds = run(protocol, **EVERY_PROTOCOL[protocol])
+    path = to_nwb(ds, tmp_path / f"{protocol}.nwb")
+    findings = critical_findings(path)
+    assert findings == [], [(m.importance.name, m.check_function_name, m.location, m.message) for m in findings]
+    lay = epoch_layout(ds)
+    with NWBHDF5IO(str(path), "r") as io:
+        names = list(io.read().acquisition)
+    assert names or protocol == "rf-map", "no time-resolved variable written"  # rf-map's passages are trials
+    for name in names:
+        data, ts, _ = read_nwb_series(path, name)
+        da = ds[name]
+        tdim = next(d for d in ("time", "spike_time") if d in da.dims)
+        kk = lay["K"] if "trial" in da.dims else 1
+        assert len(data) == len(ts) == lay["C"] * kk * ds.sizes[tdim]
+        # each epoch's start + the recording's own time since its first sample, whether the file stores
+        # timestamps (several epochs) or starting_time and rate (one epoch)
+        t = ds[tdim].values - lay["t0"]
+        np.testing.assert_allclose(ts.reshape(lay["C"], kk, -1), lay["starts"][:, :kk, None] + t, atol=1e-9)

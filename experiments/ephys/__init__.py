@@ -40,7 +40,7 @@ _API = {
     "run": "api", "to_nwb": "api", "options": "api",
     "current_injection": "injection", "injection_summary": "injection", "plot_current_injection": "injection",
     "white_noise": "white_noise", "white_noise_summary": "white_noise", "plot_white_noise": "white_noise",
-    "contrast": "contrast", "flicker": "contrast", "plot_contrast": "contrast", "plot_flicker": "contrast",
+    "contrast": "contrast", "flicker": "flicker", "plot_contrast": "contrast", "plot_flicker": "flicker",
     "adaptation": "adaptation", "plot_adaptation": "adaptation",
     "edges": "edges", "edges_summary": "edges", "plot_edges": "edges", "plot_looming": "figures", "plot_recording": "figures", "plot_rf_map": "figures", "plot_tf_tuning": "figures",
     "TF_GRID_HZ": "protocols", "looming": "protocols", "psth": "protocols", "psth_sem": "protocols",

@@ -23,7 +23,7 @@ import xarray as xr
 from lobula._optional import torch
 from stimuli.lattice_stimuli import GratingSource
 
-from .contrast import (_check_common, _dataset, _describe, _noisy_config, _plate_monitors, _suptitle, _trials,
+from .plate import (_check_common, _dataset, _describe, _noisy_config, _plate_monitors, _suptitle, _trials,
                        noise_attrs, plate_chain)
 from .edges import _image_angles
 from .protocols import _specs
@@ -118,7 +118,6 @@ def _adaptation(config: EphysConfig, *, adapter_s: float = 3.0, gaps_s=GAPS_S, t
     dt = rig.dt
     n_steps = int(round(duration / dt))
     i_test = int(round(onset / dt))
-    t = np.arange(n_steps) * dt
     G = len(gaps)
     on = np.zeros((G + 1, n_steps), dtype=bool)                                     # the grating's on-times
     for j, gap in enumerate(gaps):

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import difflib
-import shlex
 from pathlib import Path
 
 __all__ = ["run", "to_nwb", "options", "command_argv"]

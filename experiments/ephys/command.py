@@ -45,7 +45,7 @@ APPLIES = {
     "eye": ("tf-tuning", "rf-map", "looming", "velocity-replay"),
 }
 
-#: the lobula plate's physiology protocols (experiments.ephys.contrast, experiments.ephys.adaptation): no LC units
+#: the lobula plate's physiology protocols (experiments.ephys.contrast, .flicker, .adaptation): no LC units
 PLATE = ("contrast", "flicker", "adaptation")
 PROTOCOLS = PROTOCOLS + PLATE
 APPLIES.update({"photon_rate": PLATE, "channel_noise": PLATE, "c50": PLATE, "adapter": ("adaptation",),
@@ -348,7 +348,7 @@ def run_protocol(protocol: str, opts: dict, progress: bool = False):
         from .white_noise import run_from_options
         return run_from_options(opts)
     if protocol in PLATE:
-        from .contrast import run_plate_protocol
+        from .plate import run_plate_protocol
         return run_plate_protocol(protocol, opts)
     kw = stimulus_kwargs(protocol, opts)
     if opts.get("eye", "pinhole") == "fly":
@@ -430,7 +430,10 @@ def summary(ds) -> list[str]:
             vals = ds[d].values
             lines.append(f"{d} values: " + ", ".join(f"{v:g}" if np.issubdtype(vals.dtype, np.number) else str(v)
                                                      for v in vals))
-    if p not in ("rf-map", "white-noise"):  # rf-map maps field variables, before any neuron; white-noise records none
+    # Only a recording of neurons (LC units, readout neurons) has a neuron model: rf-map maps field variables,
+    # before any neuron; the plate's protocols, white-noise and edges' default monitors record none.
+    neurons = any("neuron" in ds[v].dims or "unit" in ds[v].dims for v in ds.data_vars)
+    if p != "rf-map" and neurons:
         lines.append(f"neuron model {ds.attrs.get('neuron_model')}, {ds.attrs.get('trials')} trial(s) stored"
                      + (f" ({ds.attrs['trials_note']})" if ds.attrs.get("trials_note") else ""))
     if p == "tf-tuning":
@@ -491,7 +494,14 @@ def summary(ds) -> list[str]:
                                  f"ratio {a['slope_ratio']:.3g}")
     elif p == "edges":
         from .edges import edges_summary
+        from .published import edges_agreement
         lines.extend(edges_summary(ds))
+        a = edges_agreement(ds)
+        lines.append("published T4/T5 selectivity (Maisak et al. 2013; T4 ON, T5 OFF, every layer direction selective): "
+                     + "; ".join(f"{c.upper()} polarity index {a[f'{c}_polarity_index']:+.3g} (+1: "
+                                 f"{a[f'{c}_published_polarity'].upper()} only), DSI > 0 in "
+                                 f"{a[f'{c}_selective_fraction']:.0%} of layers" for c in ("t4", "t5"))
+                     + f"; polarity agrees: {'yes' if a['polarity_agrees'] else 'no'}")
     elif p == "current-injection":
         from .injection import injection_summary
         lines.extend(injection_summary(ds))
@@ -500,7 +510,8 @@ def summary(ds) -> list[str]:
         lines.extend(white_noise_summary(ds))
     elif p in PLATE:
         from .adaptation import adaptation_summary
-        from .contrast import contrast_summary, flicker_summary
+        from .contrast import contrast_summary
+        from .flicker import flicker_summary
         lines.extend({"contrast": contrast_summary, "flicker": flicker_summary, "adaptation": adaptation_summary}[p](ds))
     elif p == "velocity-replay":
         from .figures import replay_scores

@@ -307,8 +307,9 @@ def plot_edges(ds: xr.Dataset, path) -> list:
     cols = _colours(len(DIRECTIONS))
     ang = np.radians(np.append(ds.direction_image_deg.values, ds.direction_image_deg.values[0]))
     top = max(float(ds.t4_mean_response.max()), float(ds.t5_mean_response.max()))
+    polar = {}
     for i, cell in enumerate(("t4", "t5")):
-        a = fig.add_subplot(2, 2, i + 1, projection="polar")
+        a = polar[cell] = fig.add_subplot(2, 2, i + 1, projection="polar")
         a.set_theta_zero_location("E")
         a.set_theta_direction(-1)                                  # image angles: 90 degrees points down
         for name in ds.preferred_direction.values:
@@ -331,6 +332,8 @@ def plot_edges(ds: xr.Dataset, path) -> list:
                     f"mean over layers and directions: ON {on:.3g}, OFF {off:.3g})", fontsize=9)
         if i == 0:
             a.legend(fontsize=7, loc="upper left", bbox_to_anchor=(-0.25, 1.12), frameon=False)
+    from .figures import edges_overlay
+    edges_overlay(polar, ds, path)
     t = ds.time.values
     for i, cell in enumerate(("hs", "vs")):
         a = fig.add_subplot(2, 2, 3 + i)

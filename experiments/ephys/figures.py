@@ -342,6 +342,25 @@ def _lgmd_overlay(ax, lvs, t_peak) -> dict:
     return looming_agreement(lvs, t_peak)
 
 
+def edges_overlay(axes: dict, ds: xr.Dataset, path) -> dict:
+    """The published T4/T5 selectivity (:data:`experiments.ephys.published.T4_T5_SELECTIVITY`) on the edges
+    figure's polar panels ``axes`` ({"t4": ax, "t5": ax}): the published preferred polarity beside the model's
+    agreement; writes the figure's JSON sidecar. Returns :func:`~experiments.ephys.published.edges_agreement`."""
+    from .published import edges_agreement
+
+    a = edges_agreement(ds)
+    n = ds.sizes["preferred_direction"]
+    for cell, ax in axes.items():
+        pol = a[f"{cell}_published_polarity"].upper()
+        k = int(round(a[f"{cell}_selective_fraction"] * n))
+        # a caption under the panel: the source states the finding in words, so it is text, not a curve
+        ax.set_xlabel(f"published (Maisak et al. 2013, in Haag et al. 2017's words):\n{cell.upper()} prefers {pol} "
+                      f"edges, every layer direction selective\nmodel: polarity index {a[f'{cell}_polarity_index']:+.2f} (+1: {pol} only), "
+                      f"DSI > 0 in {k}/{n} layers", fontsize=7.5, color="tab:orange", labelpad=14)
+    _write_sidecar(path, {"published": "t4_t5_selectivity", "agreement": a})
+    return a
+
+
 def _write_sidecar(path, record: dict) -> Path:
     """A JSON file beside the figure ``path`` (same name, .json) with what the figure compares and how well."""
     from experiments.store import write_text
@@ -662,7 +681,8 @@ def plot_recording(ds: xr.Dataset, path) -> list[Path]:
         from .edges import plot_edges
         return plot_edges(ds, path)
     if p in ("contrast", "flicker"):
-        from .contrast import plot_contrast, plot_flicker
+        from .contrast import plot_contrast
+        from .flicker import plot_flicker
         return (plot_contrast if p == "contrast" else plot_flicker)(ds, path)
     if p == "adaptation":
         from .adaptation import plot_adaptation
