@@ -20,10 +20,21 @@ FAMILIES = {
 
 
 #: families run only when named (``--families saccadic``), not in "all": fly flight, where the camera's
-#: pipeline is still being built for it
+#: pipeline is still being built for it, and the real-world platforms (stimuli.platforms), where the
+#: estimator's indoor priors are being adapted to them
 EXTRA_FAMILIES = {
     "saccadic": ("fly flight (lobula scene --flight saccadic): straight segments of 0.2-2 s, body saccades of "
                  "20-90° in 50-100 ms, 0.1-1 m/s; panels on even seeds, the corridor on odd ones"),
+    "drone": ("drone flight, named only (the estimator is being adapted to it): from near rest to 5-15 m/s in "
+              "2-6 s, then cruise; 3-30 m above ground with objects, backdrop 100-2,000 m, sky; gimbal camera "
+              "tilted 0-20° down, residual rotation 0.1-0.4°; propeller vibration 0.3-1 m/s² rms at 50-200 Hz, "
+              "aliased by the IMU's 250 Hz sampling"),
+    "road": ("road vehicle, named only (the estimator is being adapted to it): 5-25 m/s with stop-and-go "
+             "(braking at 2.5-8 m/s² to 0-0.3 m/s, 0.5-2 s stopped, off again at 1.5-3.5 m/s²), pitch with the "
+             "acceleration, bounce and lane wander; ground world with roadside objects, camera 1-2 m up"),
+    "walking": ("hand-held walking, named only (the estimator is being adapted to it): 1-2 m/s from rest or in "
+                "stride, gait surge 5-15% at 1.7-2.2 Hz, bounce 1.5-4 cm, sway 1-4 cm, hand rotation 1-4° per "
+                "axis at 0.2-2.5 Hz (tens of °/s); the ground world on even seeds, the corridor on odd ones"),
 }
 #: every family a suite can run
 ALL_FAMILIES = {**FAMILIES, **EXTRA_FAMILIES}

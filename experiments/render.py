@@ -29,7 +29,8 @@ def scene_config_from_args(args):
                         rotation3_amp_deg=tuple(args.rotation3), rotation3_band_hz=tuple(args.rotation3_band),
                         noise_grey=args.noise, brightness=args.brightness, contrast=args.contrast,
                         exposure_s=args.exposure, floor=not args.no_floor, side_walls=args.side_walls,
-                        n_panels=args.panels, sky_luminance=args.sky, mipmap=mipmap)
+                        n_panels=args.panels, sky_luminance=args.sky, mipmap=mipmap,
+                        rolling_shutter_s=getattr(args, "rolling_shutter", 0.0))
     cfg = TrackRunConfig(profile=profile, start_s=args.start, duration_s=args.duration, scale=args.scale,
                          constant_velocity_m_s=args.constant_velocity, random_peak_m_s=args.peak_speed,
                          random_start=args.profile_start, profile_scale=args.speed_scale,
@@ -45,6 +46,9 @@ def run_scene(args) -> int:
     from experiments.eye_scene import refuse_eye_options_for_pinhole, run_eye_scene
 
     if args.eye == "fly":  # compound-eye footage
+        if cfg.scene.rolling_shutter_s:
+            raise ValueError("--rolling-shutter is a camera sensor's row readout; the compound eye (--eye fly) "
+                             "sees every ommatidium at once: drop it")
         return run_eye_scene(args, cfg)
     refuse_eye_options_for_pinhole(args)
     out = make_track_run(args.out, cfg, progress=not args.quiet)
@@ -105,6 +109,10 @@ def add_parser(subparsers):
     s.add_argument("--mipmap", default="auto", choices=["auto", "on", "off"],
                    help="texture mip-mapping by ray footprint (auto: on for corridor and ground)")
     s.add_argument("--exposure", type=NONNEGATIVE, default=0.0, help="motion-blur exposure (s)")
+    s.add_argument("--rolling-shutter", type=NONNEGATIVE, default=0.0, metavar="SECONDS",
+                   help="rolling shutter: the readout time from the top row to the bottom; row r of a frame "
+                        "stamped t is seen at t + r/height·SECONDS, and camera.json records it as "
+                        "rolling_shutter_s (default: 0, a global shutter)")
     s.add_argument("--panels", type=Number(1, integer=True), default=10, help="number of frontal panels (panels world)")
     s.add_argument("--no-floor", action="store_true", help="no floor (panels world)")
     s.add_argument("--side-walls", action="store_true", help="add side walls (panels world)")

@@ -14,6 +14,11 @@ Two error models (:class:`IMUConfig`):
   off-diagonal), and a camera–IMU rotation: samples are written in the IMU's own frame
   and ``imu_to_camera`` (v_cam = R @ v_imu) goes to camera.json.
 
+Either model can add a platform's vibration (``vibration_rms_m_s2``: a drone's propellers): each of
+``vibration_rotors`` rotors shakes the sensor at its blade-pass rate, near ``vibration_hz``. The sensor
+samples it at its own rate with no anti-alias filter in front, so a vibration above half the sample rate
+folds down into the recorded band (250 Hz sampling records 200 Hz as 50 Hz), as on a real flight controller.
+
 Figures are BMI055-like (the IMU of the Intel RealSense D435i). White noise from the
 Bosch BMI055 data sheet (BST-BMI055-DS000): accelerometer 150 µg/√Hz, gyroscope
 0.014 °/s/√Hz; per-sample standard deviation is density·√(rate/2). The data sheet gives
@@ -44,6 +49,9 @@ class IMUConfig:
     or "rotated" (the IMU is mounted with its x forward, y left, z up — a ROS body frame —
     plus a mount error of mount_error_deg std per axis; imu.csv is then in the IMU frame
     and camera.json carries imu_to_camera). seed: the IMU's random stream.
+    vibration_rms_m_s2: rms of the platform's vibration on each accelerometer axis (m/s²; 0 = none);
+    vibration_hz: its frequency (Hz), the rotors' rates spread by ±vibration_spread (a fraction) around
+    it; vibration_rotors: how many rotors (module doc).
     """
 
     rate_hz: float = 250.0
@@ -60,6 +68,14 @@ class IMUConfig:
     mount: str = "camera"
     mount_error_deg: float = 1.0
     seed: int = 0
+    vibration_rms_m_s2: float = 0.0                    # m/s² rms per axis
+    vibration_hz: float = 100.0                        # Hz
+    vibration_spread: float = 0.03
+    vibration_rotors: int = 4
+
+    #: the vibration's fields: left out of :meth:`to_dict` when there is no vibration, so the configuration
+    #: of an IMU without one reads as it does without these fields
+    VIBRATION_FIELDS = ("vibration_rms_m_s2", "vibration_hz", "vibration_spread", "vibration_rotors")
 
     MODELS = ("ideal", "realistic")
     MOUNTS = ("camera", "rotated")
@@ -69,6 +85,8 @@ class IMUConfig:
             raise ValueError(f"unknown IMU mount {self.mount!r}; choose camera or rotated")
         if self.rate_hz <= 0:
             raise ValueError(f"IMU rate must be positive, got {self.rate_hz}")
+        if self.vibration_rms_m_s2 < 0 or self.vibration_hz <= 0 or self.vibration_rotors < 1:
+            raise ValueError("vibration_rms_m_s2 must be >= 0, vibration_hz > 0 and vibration_rotors >= 1")
 
     @classmethod
     def realistic(cls, seed: int = 0, mount: str = "camera", **kw) -> "IMUConfig":
@@ -87,7 +105,11 @@ class IMUConfig:
         raise ValueError(f"unknown IMU model {name!r}; choose ideal or realistic")
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if not self.vibration_rms_m_s2:
+            for k in self.VIBRATION_FIELDS:
+                del d[k]
+        return d
 
 
 #: IMU axes (x forward, y left, z up) in the camera optical frame (x right, y down, z forward):
@@ -135,6 +157,23 @@ def bias_random_walk(rng: np.random.Generator, n: int, rate_hz: float, walk: flo
     return b0 + np.cumsum(steps, axis=0)
 
 
+def vibration(cfg: IMUConfig, t: np.ndarray) -> np.ndarray:
+    """The platform's vibration (m/s²) at the sample times t (n,) (s), shape (n, 3), camera axes.
+
+    Each rotor r runs at f_r = vibration_hz·(1 + vibration_spread·u_r), u_r uniform in [-1, 1], and shakes
+    every axis with its own phase; each axis's share of the rotors is drawn (weights summing to one) so
+    that every axis's rms is vibration_rms_m_s2. Evaluated at t itself: no filter before the sampling.
+    """
+    if not cfg.vibration_rms_m_s2:
+        return np.zeros((np.size(t), 3))
+    rng = np.random.default_rng([cfg.seed, 6])  # its own stream: the other draws do not move
+    k = cfg.vibration_rotors
+    freq = cfg.vibration_hz * (1.0 + cfg.vibration_spread * rng.uniform(-1.0, 1.0, k))  # (k,)
+    phase = rng.uniform(0.0, 2 * np.pi, (3, k))
+    amp = cfg.vibration_rms_m_s2 * np.sqrt(2.0 * rng.dirichlet(np.ones(k), 3))  # (3, k): Σ A²/2 = rms²
+    return np.sum(amp * np.sin(2 * np.pi * freq * np.asarray(t, float)[:, None, None] + phase), axis=-1)
+
+
 def synthesize_imu(scene, duration_s: float, config: IMUConfig | None = None) -> dict[str, np.ndarray]:
     """Accelerometer and gyroscope samples for a :class:`~stimuli.scene.TrackScene`.
 
@@ -147,7 +186,9 @@ def synthesize_imu(scene, duration_s: float, config: IMUConfig | None = None) ->
     specific force and angular velocity (accel_true, gyro_true), the biases
     (accel_bias, gyro_bias: (3,) initial values, the ideal model's constants;
     accel_bias_t, gyro_bias_t: (n, 3) over time), the sensor matrices (accel_matrix,
-    gyro_matrix: IMU-frame reading = M @ true + bias + noise) and imu_to_camera (3, 3).
+    gyro_matrix: IMU-frame reading = M @ true + bias + noise) and imu_to_camera (3, 3); with a vibration
+    (IMUConfig.vibration_rms_m_s2), accel_vibration (n, 3): the sensor's own shaking in the camera frame
+    (:func:`vibration`), in the readings but not in accel_true (the camera's motion).
     """
     cfg = config or IMUConfig()
     rng = np.random.default_rng([cfg.seed, 2])
@@ -178,10 +219,14 @@ def synthesize_imu(scene, duration_s: float, config: IMUConfig | None = None) ->
     m_g = sensor_matrix(rng2, cfg.gyro_scale_std, cfg.gyro_misalign_std)
     ba = bias_random_walk(rng2, t.size, cfg.rate_hz, cfg.accel_bias_walk, accel_bias)
     bg = bias_random_walk(rng2, t.size, cfg.rate_hz, cfg.gyro_bias_walk, gyro_bias)
+    # The sensor's specific force: the camera's plus the vibration of the board it sits on (micrometres of
+    # motion at these frequencies: the camera's truth does not see it).
+    vib = vibration(cfg, t)
+    f_sensor = f + vib if cfg.vibration_rms_m_s2 else f
     # True quantities in the IMU frame: v_imu = Rᵀ v_cam.
-    f_imu, w_imu = f @ r_ic, omega @ r_ic
+    f_imu, w_imu = f_sensor @ r_ic, omega @ r_ic
     if cfg.mount == "camera" and not (cfg.accel_scale_std or cfg.accel_misalign_std):
-        accel = f + ba + noise_a
+        accel = f_sensor + ba + noise_a
     else:
         accel = f_imu @ m_a.T + ba + noise_a
     if cfg.mount == "camera" and not (cfg.gyro_scale_std or cfg.gyro_misalign_std):
@@ -190,4 +235,4 @@ def synthesize_imu(scene, duration_s: float, config: IMUConfig | None = None) ->
         gyro = w_imu @ m_g.T + bg + noise_g
     return dict(time_s=t, accel=accel, gyro=gyro, accel_true=f, gyro_true=omega,
                 accel_bias=accel_bias, gyro_bias=gyro_bias, accel_bias_t=ba, gyro_bias_t=bg,
-                accel_matrix=m_a, gyro_matrix=m_g, imu_to_camera=r_ic)
+                accel_matrix=m_a, gyro_matrix=m_g, imu_to_camera=r_ic, accel_vibration=vib)

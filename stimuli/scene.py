@@ -19,6 +19,11 @@ Worlds (``SceneConfig.world``):
   line / hills band 50-200 m away), scattered upright panels on the ground and a sky
   (no surface; background luminance).
 
+A rolling shutter (``SceneConfig.rolling_shutter_s``, the readout time from the top row to the bottom)
+renders each pixel row at its own time: row r of the frame stamped t at t + r/height·readout, so a
+turning or moving camera's frames shear and stretch as a CMOS sensor's do; the depth maps follow the
+same row times (0: a global shutter, every row at t).
+
 Camera rotation: a yaw/pitch oscillation (``rotation_amp_deg``) and a seeded
 3-axis rotation (yaw, pitch, roll) made of several incommensurate sinusoids
 (``rotation3_amp_deg``). Distant and grazing surfaces are sampled from a mip-map of
@@ -179,9 +184,12 @@ class TrackScene:
             -np.radians(config.gravity_pitch_deg)) @ np.array([0.0, 9.80665, 0.0])
         self.gravity_world = g
         self.surfaces = world_surfaces(config, camera, rng, s_min, s_max)
+        # Each surface shows its texture tile (Surface.texture): its own, or one a row of roadside objects
+        # shares (cv2.remap reads atlases under 32767 rows: some 30 mip-mapped tiles of 512).
+        self._tile = np.array([s.texture for s in self.surfaces])
         self.textures = [band_limited_texture(rng, config.texture_size, config.texture_texel_m,
                                               config.texture_wavelengths_m)
-                         for _ in range(len(self.surfaces))]
+                         for _ in range(int(self._tile.max()) + 1)]
         self._atlas = self._build_atlas()
         self._texel_scale = np.array([s.texel_scale for s in self.surfaces])  # (surfaces,), gathered per ray
         if config.use_mipmap:
@@ -369,6 +377,7 @@ class TrackScene:
         tested only there; the result is the same to the bit.
         """
         shape = d_world.shape[:-1]
+        # origin: one camera centre (3,), or one per ray ((..., 3), broadcast against d_world; windows None)
         best = np.full(shape, np.inf)
         idx = np.full(shape, -1, dtype=np.int32)
         tex_a = np.zeros(shape)
@@ -380,9 +389,9 @@ class TrackScene:
                 if w is None:
                     continue
                 d = d_world[w]
-                lam = (s.offset - c[s.axis]) / d[..., s.axis]
-                a = c[s.in_plane[0]] + lam * d[..., s.in_plane[0]]
-                b = c[s.in_plane[1]] + lam * d[..., s.in_plane[1]]
+                lam = (s.offset - c[..., s.axis]) / d[..., s.axis]
+                a = c[..., s.in_plane[0]] + lam * d[..., s.in_plane[0]]
+                b = c[..., s.in_plane[1]] + lam * d[..., s.in_plane[1]]
                 (a0, a1), (b0, b1) = s.bounds
                 hit = (lam > 1e-6) & (lam < best[w]) & (a >= a0) & (a <= a1) & (b >= b0) & (b <= b1)
                 best[w] = np.where(hit, lam, best[w])
@@ -437,7 +446,7 @@ class TrackScene:
             # at grazing incidence than the long axis, less aliasing than the short one.
             return np.where(idx >= 0, rng_m * footprint_rad / np.sqrt(np.maximum(cos_inc, 1e-6)), 0.0)
 
-    def _cast(self, x, y, t, unit=None):
+    def _cast(self, x, y, t, unit=None, rolling: bool = True):
         """Nearest surface hit for the rays of an image grid at time t.
 
         x, y (H, W): normalised coordinates, a meshgrid (x constant down each column, y along each
@@ -445,9 +454,31 @@ class TrackScene:
         coordinates (m), each (H, W): the rays (x, y, 1) have unit forward component, so the ray
         parameter λ is the forward depth. unit: the grid's rays (x, y, 1) normalised, (H, W, 3), cast
         instead (λ is then the range, m); their track-frame directions are then returned too.
+        rolling: each pixel row at its own time under a rolling shutter (:meth:`_row_bands`); False: every
+        row at t.
         """
-        _, *hits = next(self._cast_bands(x, y, t, unit, band_rows=len(y)))
+        cast = self._row_bands if rolling and self.config.rolling_shutter_s > 0 else self._cast_bands
+        _, *hits = next(cast(x, y, t, unit, band_rows=len(y)))
         return tuple(hits) if unit is not None else tuple(hits[:4])
+
+    def row_times(self, t: float, n_rows: int | None = None) -> np.ndarray:
+        """The time (s) each grid row of a frame stamped t is seen at, shape (n_rows,): grid row i lies in
+        pixel row r = i·height // n_rows (n_rows: a multiple of the image height, height·supersample for
+        the sub-pixel grid; None: the pixel rows), seen at t + r/height·rolling_shutter_s."""
+        h = self.camera.height
+        n_rows = h if n_rows is None else int(n_rows)
+        return t + (np.arange(n_rows) * h // n_rows) / h * self.config.rolling_shutter_s
+
+    def _row_bands(self, x, y, t, rays=None, band_rows: int = 1):
+        """:meth:`_cast_bands` under a rolling shutter: every grid row cast from the pose at its own time
+        (:meth:`row_times`). No surface is culled to a window (a window holds for one pose)."""
+        times = self.row_times(t, len(y))
+        rot, origin = self.rotation(times), self.position(times)  # (n, 3, 3), (n, 3)
+        for r0 in range(0, len(y), band_rows):
+            rows = slice(r0, min(len(y), r0 + band_rows))
+            d = rays[rows] if rays is not None else np.stack([x[rows], y[rows], np.ones_like(x[rows])], axis=-1)
+            d_world = np.einsum("rwj,rij->rwi", d, rot[rows])
+            yield rows, *self._intersect(d_world, origin[rows][:, None, :]), d_world
 
     def _cast_bands(self, x, y, t, rays=None, band_rows: int = 1):
         """:meth:`_cast` a band of ``band_rows`` grid rows at a time: yields (rows, λ, surface, tex_a,
@@ -470,7 +501,7 @@ class TrackScene:
             if np.any(self._texel_scale != 1.0):
                 texel = texel * self._texel_scale[safe]
             u = self._mod(tex_a / texel, float(n)) + 1.0
-            v = self._mod(tex_b / texel, float(n)) + 1.0 + safe * (n + 2)
+            v = self._mod(tex_b / texel, float(n)) + 1.0 + self._tile[safe] * (n + 2)
             tex = _bilinear(self._atlas, u, v)
         else:
             tex = self._mip_sample(safe, tex_a, tex_b, footprint_m)
@@ -499,7 +530,7 @@ class TrackScene:
             m = self._mip_sizes[k]
             tx = texel * self._mip_scale[k]
             u = self._mod(tex_a / tx, m) + 1.0
-            v = self._mod(tex_b / tx, m) + 1.0 + self._mip_rows[k * len(self.surfaces) + safe]
+            v = self._mod(tex_b / tx, m) + 1.0 + self._mip_rows[k * len(self.textures) + self._tile[safe]]
             out += wgt * _bilinear(self._mip_atlas, u, v)
         return out * np.minimum(1.0, 2.0 ** top / np.maximum(footprint_m / texel, 1e-12))
 
@@ -513,7 +544,8 @@ class TrackScene:
         band = ss * max(1, self.RENDER_BAND_SAMPLES // (ss * ss * w))
         mip = self.config.use_mipmap
         rays = self._unit_rays if mip else self._forward_rays
-        for rows, rng_m, idx, a, b, d_world in self._cast_bands(x, y, t, rays, band):
+        cast = self._row_bands if self.config.rolling_shutter_s > 0 else self._cast_bands
+        for rows, rng_m, idx, a, b, d_world in cast(x, y, t, rays, band):
             if mip:  # luminance() on the grid's unit rays
                 lum = self._shade(idx, a, b, self._footprint_m(d_world, rng_m, idx, 1.0 / (self.camera.fx * ss)))
             else:
@@ -522,7 +554,8 @@ class TrackScene:
         return img
 
     def render(self, t: float, frame_index: int = 0) -> np.ndarray:
-        """The 8-bit grey frame (H, W) seen at time t (s), with blur and seeded pixel noise."""
+        """The 8-bit grey frame (H, W) seen at time t (s), with blur and seeded pixel noise; under a
+        rolling shutter t is the top row's time (:meth:`row_times`)."""
         cfg = self.config
         if cfg.exposure_s > 0 and cfg.blur_samples > 1:
             times = t + cfg.exposure_s * (np.arange(cfg.blur_samples) / (cfg.blur_samples - 1) - 0.5)
@@ -536,7 +569,8 @@ class TrackScene:
         return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
     def depth(self, t: float) -> np.ndarray:
-        """Forward depth (camera z, m) at each pixel centre, (H, W) float32."""
+        """Forward depth (camera z, m) at each pixel centre, (H, W) float32; under a rolling shutter each
+        row's at its own time, as the frame stamped t sees it."""
         x, y = self.camera.normalised_grid()
         return self._cast(x, y, t)[0].astype(np.float32)
 
@@ -545,14 +579,16 @@ class TrackScene:
 
         Divide by (t1 - t0) for flow in 1/s. Occlusions are ignored (a point keeps
         its identity even if hidden at t1). NaN where no surface is hit (the ground world's sky).
+        The flow between the poses at t0 and t1, every row at those instants (a global shutter's).
         """
         x, y = self.camera.normalised_grid()
-        lam = self._cast(x, y, t0)[0]
+        lam = self._cast(x, y, t0, rolling=False)[0]
         with np.errstate(invalid="ignore"):  # sky: an infinite depth has no scene point to follow
             p_world = self.position(t0) + (np.stack([x, y, np.ones_like(x)], -1) @ self.rotation(t0).T) * lam[..., None]
             pc = (p_world - self.position(t1)) @ self.rotation(t1)
             return np.stack([pc[..., 0] / pc[..., 2] - x, pc[..., 1] / pc[..., 2] - y])
 
     def r_exact(self, t: float) -> np.ndarray:
-        """r = v_forward / d at each pixel (1/s), (H, W)."""
-        return self.camera_velocity(t)[2] / self.depth(t)
+        """r = v_forward / d at each pixel (1/s), (H, W), every row at t (a global shutter's)."""
+        x, y = self.camera.normalised_grid()
+        return self.camera_velocity(t)[2] / self._cast(x, y, t, rolling=False)[0].astype(np.float32)

@@ -5,7 +5,8 @@ default the real FLIVVER trajectory when ``../shared`` is present (:func:`record
 profile with rests, accelerations and reversals, or a seeded random smooth profile with
 a given peak speed) through a :class:`TrackScene`, and synthesises the IMU from the same
 trajectory and rotation. With ``flight="saccadic"`` the camera flies a seeded fly-like path instead
-(:mod:`stimuli.flight`), whose own speed replaces the profile.
+(:mod:`stimuli.flight`), whose own speed replaces the profile; with ``flight`` "drone", "road" or
+"walking" it moves as that platform does (:mod:`stimuli.platforms`).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from lobula.camera import PinholeCamera
 from .flight import FlightConfig, saccadic_flight
 from .footage_writer import write_footage
 from .imu import IMUConfig, synthesize_imu
+from .platforms import CONFIGS as PLATFORM_CONFIGS, PLATFORMS, platform_plan
 from .scene import SceneConfig, TrackScene
 from .trajectory import trajectory_from_function, trajectory_from_profile
 
@@ -102,8 +104,11 @@ class TrackRunConfig:
     flight: "track" (the camera moves along the straight track at the profile's velocity) or
     "saccadic" (it flies a seeded saccadic flight plan, :func:`stimuli.flight.saccadic_flight`, seed
     = scene seed, with flight_config's parameters (None: the defaults); the profile options are then
-    not used). :meth:`to_dict` leaves both out on the track, so a track run's configuration reads
-    as it does without them.
+    not used), or "drone", "road" or "walking" (it moves as that platform does,
+    :func:`stimuli.platforms.platform_plan`, seed = scene seed, flight_config its
+    :class:`~stimuli.platforms.DroneConfig`, :class:`~stimuli.platforms.RoadConfig` or
+    :class:`~stimuli.platforms.WalkConfig`; the profile options are not used either). :meth:`to_dict`
+    leaves both out on the track, so a track run's configuration reads as it does without them.
     """
 
     profile: str | None = None
@@ -122,17 +127,20 @@ class TrackRunConfig:
     flight: str = "track"
     flight_config: FlightConfig | None = None
 
-    FLIGHTS = ("track", "saccadic")
+    FLIGHTS = ("track", "saccadic", *PLATFORMS)
 
     def __post_init__(self):
         if self.flight not in self.FLIGHTS:
-            raise ValueError(f"unknown flight {self.flight!r}; choose track or saccadic")
+            raise ValueError(f"unknown flight {self.flight!r}; choose one of {', '.join(self.FLIGHTS)}")
         if isinstance(self.flight_config, dict):  # read back from a to_dict()
-            self.flight_config = FlightConfig(**{k: tuple(v) if isinstance(v, list) else v
-                                                 for k, v in self.flight_config.items()})
+            kind = PLATFORM_CONFIGS.get(self.flight, FlightConfig)
+            self.flight_config = kind(**{k: tuple(v) if isinstance(v, list) else v
+                                         for k, v in self.flight_config.items()})
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        # The scene's and the IMU's own forms, which leave out the fields they hold at a quiet default.
+        d["scene"], d["imu"] = self.scene.to_dict(), self.imu.to_dict()
         if self.flight == "track" and self.flight_config is None:
             del d["flight"], d["flight_config"]
         return d
@@ -147,6 +155,10 @@ def build_track(cfg: TrackRunConfig) -> tuple[TrackScene, dict]:
     lens = LensDistortion.parse(cfg.lens) if cfg.lens else None
     if cfg.flight == "saccadic":
         plan = saccadic_flight(cfg.scene.seed, cfg.duration_s, cfg.flight_config)
+        scene = TrackScene(cam, plan.trajectory(), cfg.scene, lens=lens, flight=plan)
+        return scene, synthesize_imu(scene, cfg.duration_s, cfg.imu)
+    if cfg.flight in PLATFORMS:
+        plan = platform_plan(cfg.flight, cfg.scene.seed, cfg.duration_s, cfg.flight_config)
         scene = TrackScene(cam, plan.trajectory(), cfg.scene, lens=lens, flight=plan)
         return scene, synthesize_imu(scene, cfg.duration_s, cfg.imu)
     k = float(cfg.profile_scale)
@@ -170,7 +182,9 @@ def make_track_run(folder, cfg: TrackRunConfig, progress: bool = True) -> Path:
     """Render a run into a footage folder (atomically) and return its path.
 
     With the IMU mounted rotated (IMUConfig.mount = "rotated"), imu.csv holds the IMU
-    frame and camera.json gains "imu_to_camera" (v_cam = R @ v_imu, a list of 3 lists).
+    frame and camera.json gains "imu_to_camera" (v_cam = R @ v_imu, a list of 3 lists); with a rolling
+    shutter (SceneConfig.rolling_shutter_s) it gains "rolling_shutter_s", the readout time (s) from the
+    top row to the bottom, the frame's time stamp being its top row's.
     """
     from tqdm.auto import tqdm
 
@@ -192,6 +206,9 @@ def make_track_run(folder, cfg: TrackRunConfig, progress: bool = True) -> Path:
         extra["imu_to_camera"] = imu["imu_to_camera"].tolist()  # imu.csv holds the IMU frame
     if scene.lens is not None:
         extra["distortion"] = scene.lens.to_dict()
+    if cfg.scene.rolling_shutter_s > 0:
+        # s: top-to-bottom readout; each frame's time stamp is its top row's (stimuli.scene.TrackScene.row_times)
+        extra["rolling_shutter_s"] = float(cfg.scene.rolling_shutter_s)
     # Keys added to camera.json after write_footage: write into a hidden sibling and rename only when
     # complete, so the folder never looks finished early.
     target = folder.parent / f".{folder.name}.track-{os.getpid()}" if extra else folder

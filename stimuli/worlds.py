@@ -44,6 +44,12 @@ class SceneConfig:
     sky_luminance: luminance where no surface is hit (None: 0.8 for the ground world,
     else 0). mipmap: sample textures from a mip-map chosen by each ray's footprint
     (None: on for corridor and ground, off for panels, which stays point-sampled).
+    roadside_spacing_m: ground world: upright objects line both sides of the path every
+    roadside_spacing_m metres on average (0 = none), from 5 m past the start to roadside_ahead_m beyond
+    the farthest camera position, roadside_lateral_m off the path (m, (lo, hi)), roadside_width_m wide
+    and roadside_height_m tall (m, (lo, hi)): a road's posts, trees and buildings, or what a drone
+    flies over. rolling_shutter_s: the sensor's readout time from the top row to the bottom (s; 0 = a
+    global shutter): row r of a frame stamped t is seen at t + r/height·rolling_shutter_s.
     """
 
     seed: int = 0
@@ -84,8 +90,18 @@ class SceneConfig:
     ground_objects: int = 8
     sky_luminance: float | None = None
     mipmap: bool | None = None
+    roadside_spacing_m: float = 0.0
+    roadside_ahead_m: float = 100.0
+    roadside_lateral_m: tuple = (3.0, 15.0)
+    roadside_width_m: tuple = (0.5, 8.0)
+    roadside_height_m: tuple = (1.0, 10.0)
+    rolling_shutter_s: float = 0.0
 
     WORLDS = ("panels", "corridor", "ground")
+    #: fields :meth:`to_dict` leaves out while they hold these defaults, so a scene without roadside
+    #: objects or a rolling shutter reads (and is cached) as it does without the fields
+    QUIET_DEFAULTS = dict(roadside_spacing_m=0.0, roadside_ahead_m=100.0, roadside_lateral_m=(3.0, 15.0),
+                          roadside_width_m=(0.5, 8.0), roadside_height_m=(1.0, 10.0), rolling_shutter_s=0.0)
 
     def __post_init__(self):
         if self.world not in self.WORLDS:
@@ -99,6 +115,9 @@ class SceneConfig:
             raise ValueError("rotation3_components must be >= 1")
         if self.brightness <= 0 or self.contrast < 0:
             raise ValueError(f"brightness must be > 0 and contrast >= 0, got {self.brightness}, {self.contrast}")
+        if self.roadside_spacing_m < 0 or self.rolling_shutter_s < 0:
+            raise ValueError(f"roadside_spacing_m and rolling_shutter_s must be >= 0, got "
+                             f"{self.roadside_spacing_m}, {self.rolling_shutter_s}")
 
     @property
     def sky(self) -> float:
@@ -109,7 +128,11 @@ class SceneConfig:
         return self.world != "panels" if self.mipmap is None else bool(self.mipmap)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        for k, v in self.QUIET_DEFAULTS.items():
+            if d[k] == v or (isinstance(v, tuple) and tuple(d[k]) == v):
+                del d[k]
+        return d
 
 
 @dataclass
@@ -152,7 +175,8 @@ def world_surfaces(config: SceneConfig, camera: PinholeCamera, rng: np.random.Ge
     """The surfaces of ``config.world`` for a camera whose track positions span [s_min, s_max] (m).
 
     rng: the scene's seeded stream (:class:`SceneConfig` ``seed``), which draws the layout here and the
-    textures after it. Surface i shows texture tile i.
+    textures after it. Surface i shows texture tile i (Surface.texture), but for roadside objects, which
+    share ROADSIDE_TILES tiles.
     """
     layout = {"panels": _panels, "corridor": _corridor, "ground": _ground}
     return layout[config.world](config, camera, rng, s_min, s_max)
@@ -223,5 +247,39 @@ def _ground(cfg: SceneConfig, camera: PinholeCamera, rng: np.random.Generator, s
         wd, ht = rng.uniform(0.5, 3.0), rng.uniform(0.8, 4.0)
         surf.append(Surface(2, float(z), (0, 1), ((x - wd / 2, x + wd / 2), (h - ht, h)), len(surf),
                             float(rng.uniform(0.5, 1.0)), texel_scale=float(rng.uniform(1.0, 3.0))))
+    if cfg.roadside_spacing_m > 0:
+        surf += _roadside(cfg, np.random.default_rng([cfg.seed, 8]), h, s_min, min(s_max + cfg.roadside_ahead_m, zb),
+                          len(surf))
     # Nearest first among equal ranges does not matter: the ray caster keeps the nearest hit.
+    return surf
+
+
+#: texture tiles the roadside objects share (the renderer's atlas holds some 30 mip-mapped tiles)
+ROADSIDE_TILES = 12
+
+
+def _roadside(cfg: SceneConfig, rng: np.random.Generator, h: float, s_min: float, z_end: float,
+              first: int) -> list[Surface]:
+    """Upright objects on the ground (at y = h, m) along both sides of the path (SceneConfig roadside_*),
+    from s_min + 5 m to z_end (m: roadside_ahead_m beyond the farthest camera position, or the backdrop
+    if nearer); surface indices from ``first``.
+
+    Their own random stream: the world's other surfaces and the textures drawn after them stay as they
+    are without roadside objects. Spacings are jittered ±50 % around roadside_spacing_m; the inner edge
+    of each object lies roadside_lateral_m off the path; each faces along the track, so it is seen while
+    ahead and leaves the image at its side as it is passed. They share ROADSIDE_TILES texture tiles
+    (from tile ``first`` on), each at its own texel scale and place on the tile.
+    """
+    surf = []
+    for side in (-1, 1):
+        z = s_min + 5.0 + rng.uniform(0.0, cfg.roadside_spacing_m)
+        while z < z_end:
+            inner = rng.uniform(*cfg.roadside_lateral_m)
+            wd, ht = rng.uniform(*cfg.roadside_width_m), rng.uniform(*cfg.roadside_height_m)
+            x = side * (inner + wd / 2)
+            surf.append(Surface(2, float(z), (0, 1), ((x - wd / 2, x + wd / 2), (h - ht, h)),
+                                first + len(surf) % ROADSIDE_TILES,
+                                float(rng.uniform(0.5, 1.0)),
+                                texel_scale=float(rng.uniform(1.0, 3.0) * max(1.0, ht / 4))))  # coarser on big ones
+            z += cfg.roadside_spacing_m * rng.uniform(0.5, 1.5)
     return surf

@@ -182,3 +182,204 @@ def test_the_saccadic_family_is_fly_flight_and_runs_only_when_named():
     assert (even.scene.world, odd.scene.world) == ("panels", "corridor")
     with pytest.raises(ValueError, match="unknown family"):
         suite.family_config("saccades", 0, 2.0, 0.25)
+
+
+# ------------------------------------------------------------- real-world platforms
+def _plan_and_world(family, seed, duration_s=10.0):
+    """The family's seed: its run configuration, platform plan and world surfaces (no textures, no frames)."""
+    from lobula.camera import PinholeCamera
+    from stimuli.platforms import platform_plan
+    from stimuli.worlds import world_surfaces
+
+    cfg = suite.family_config(family, seed, duration_s, 0.25)
+    plan = platform_plan(cfg.flight, cfg.scene.seed, duration_s, cfg.flight_config)
+    surfaces = world_surfaces(cfg.scene, PinholeCamera().scaled(0.25), np.random.default_rng(cfg.scene.seed),
+                              *plan.z_range())
+    return cfg, plan, surfaces
+
+
+def test_the_platform_families_are_drone_road_and_walking_and_run_only_when_named():
+    from experiments.families import ALL_FAMILIES, EXTRA_FAMILIES, FAMILIES
+
+    for family in ("drone", "road", "walking"):
+        assert family in EXTRA_FAMILIES and family in ALL_FAMILIES and family not in FAMILIES
+        assert "named only" in EXTRA_FAMILIES[family]
+        assert suite.family_config(family, 0, 2.0, 0.25).flight == family
+    assert [suite.family_config("walking", s, 2.0, 0.25).scene.world for s in range(4)] == ["ground", "corridor"] * 2
+    assert {suite.family_config(f, 0, 2.0, 0.25).scene.world for f in ("drone", "road")} == {"ground"}
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_drone_accelerates_from_near_rest_to_its_cruise_over_the_ground(seed):
+    """From ≤ 0.5 m/s to a cruise of 5-15 m/s, the change taking 2-6 s, then cruising within 3 %; 3-30 m
+    above the ground, a backdrop 100-2,000 m beyond the farthest position, objects along the way; the
+    gimbal leaves under 0.4° per axis; the IMU vibrates at 0.3-1 m/s² rms, 50-200 Hz."""
+    cfg, plan, surfaces = _plan_and_world("drone", seed)
+    t = np.arange(0.0, 10.0, 0.002)
+    v = plan.speed(t)
+    assert v[0] <= 0.5 and v.min() >= 0
+    cruise = float(np.median(v[t > 8.0]))
+    assert 5.0 * 0.97 <= cruise <= 15.0 * 1.03
+    assert np.all(np.abs(v[t > 8.0] / cruise - 1) <= 0.03)
+    dv = cruise - v[0]
+    began, done = t[np.argmax(v > v[0] + 0.05 * dv)], t[np.argmax(v >= v[0] + 0.95 * dv)]
+    assert 1.0 <= done - began <= 6.0  # 5 % to 95 % of a change taking 2-6 s
+    assert v[t < began - 1.0].max() <= 0.5 * 1.03  # hovering before it sets off
+    ground, backdrop = surfaces[0], surfaces[1]
+    s_max = plan.z_range()[1]
+    assert ground.axis == 1 and 3.0 <= ground.offset <= 30.0
+    assert backdrop.axis == 2 and 100.0 <= backdrop.offset - s_max <= 2000.0
+    s_min = plan.z_range()[0]
+    along = surfaces[2 + 8:]  # beyond the ground world's 8 objects: those along the way, every ~30 m a side
+    assert len(along) >= 2 * (s_max + 300.0 - s_min - 5.0) / 30.0 * 0.5
+    assert min(s.offset for s in along) < s_max  # some the drone flies past
+    assert np.degrees(np.abs(plan.angles(t)).max()) <= 0.4 + 1e-9
+    assert 0.3 <= cfg.imu.vibration_rms_m_s2 <= 1.0 and 50.0 <= cfg.imu.vibration_hz <= 200.0
+
+
+def test_drone_vibration_is_in_the_accelerometer_at_its_rms_and_aliased_by_the_sample_rate():
+    """The propellers shake the accelerometer at the drawn rms per axis; sampled at 250 Hz with no filter
+    before it, a vibration at f Hz shows at |f − 250·round(f/250)| Hz; the camera's truth has none of it."""
+    from dataclasses import replace
+
+    from stimuli.imu import vibration
+
+    cfg = suite.family_config("drone", 1, 10.0, 0.25).imu
+    t = np.arange(0.0, 20.0, 1.0 / cfg.rate_hz)
+    np.testing.assert_allclose(np.sqrt(np.mean(vibration(cfg, t) ** 2, axis=0)), cfg.vibration_rms_m_s2, rtol=0.05)
+    vib = vibration(replace(cfg, vibration_hz=180.0, vibration_spread=0.0), t)  # one rate: one spectral line
+    spectrum = np.abs(np.fft.rfft(vib[:, 0]))
+    peak = np.fft.rfftfreq(len(t), 1.0 / cfg.rate_hz)[np.argmax(spectrum)]
+    assert abs(peak - 70.0) <= 0.1  # 180 Hz folded about the 125 Hz Nyquist frequency
+    # In the readings (the IMU frame), not in the camera's specific force.
+    from stimuli.track import build_track
+
+    run = suite.family_config("drone", 1, 2.0, 0.1)
+    scene, imu = build_track(run)
+    assert np.allclose(np.sqrt(np.mean(imu["accel_vibration"] ** 2, axis=0)), run.imu.vibration_rms_m_s2, rtol=0.15)
+    reading = (imu["accel"] - imu["accel_bias_t"]) @ np.linalg.inv(imu["accel_matrix"]).T @ imu["imu_to_camera"].T
+    resid = reading - imu["accel_true"]
+    assert np.sqrt(np.mean(resid ** 2)) > 0.8 * run.imu.vibration_rms_m_s2
+    assert np.sqrt(np.mean((resid - imu["accel_vibration"]) ** 2)) < 0.05  # what is left is white noise
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_road_vehicle_stops_and_goes_within_its_speeds(seed):
+    """5-25 m/s, never backwards; within a 10 s run it brakes to ≤ 0.3 m/s before half the run and sets
+    off again (and a 40 s run is back at a road speed); the camera rides 1-2 m above the road; objects line it."""
+    cfg, plan, surfaces = _plan_and_world("road", seed)
+    t = np.arange(0.0, 10.0, 0.002)
+    v = plan.speed(t)
+    assert v.min() >= -1e-9 and v.max() <= 25.0
+    stop = int(np.argmax(v <= 0.3))
+    assert v[stop] <= 0.3 and t[stop] <= 5.0 + 1e-9
+    assert v[:stop].max() >= 5.0  # it was at a road speed before braking
+    assert v[-1] >= v[stop:].min() + 1.5  # and is off again by the end
+    assert np.abs(plan.speed(t, 1)).max() <= 8.0 + 1e-6  # braking no harder than a car brakes
+    from stimuli.platforms import platform_plan
+
+    v40 = platform_plan("road", cfg.scene.seed, 40.0).speed(np.arange(0.0, 40.0, 0.01))
+    stop40 = int(np.argmax(v40 <= 0.3))
+    assert 0 < stop40 and v40[stop40:].max() >= 5.0 and v40.max() <= 25.0  # back to a road speed after it
+    ground = surfaces[0]
+    assert ground.axis == 1 and 1.0 <= ground.offset <= 2.0
+    s_min, s_max = plan.z_range()
+    roadside = [s for s in surfaces[2 + 8:]]
+    assert len(roadside) >= 2 * (s_max - s_min) / 15.0 * 0.5
+    for s in roadside:
+        assert min(abs(s.bounds[0][0]), abs(s.bounds[0][1])) >= 2.5 - 1e-9  # off the road
+        assert s.bounds[1][1] == pytest.approx(ground.offset)  # standing on it
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_walking_has_a_gait_surge_bounce_sway_and_a_turning_hand(seed):
+    """Walking at 1-2 m/s on average, the forward speed surging at the step rate (1.7-2.2 Hz), the camera
+    bouncing 1.5-4 cm at the step rate and swaying 1-4 cm at half of it, the hand turning it at a few to
+    tens of °/s."""
+    cfg, plan, _ = _plan_and_world("walking", seed, 12.0)
+    t = np.arange(6.0, 12.0, 0.002)  # in stride whether it started from rest or not
+    v = plan.speed(t)
+    assert 1.0 <= v.mean() <= 2.0
+    f = np.fft.rfftfreq(len(t), 0.002)
+    for signal, band in ((v - v.mean(), (1.7, 2.2)), (plan.offsets(t)[:, 1], (1.7, 2.2)),
+                         (plan.offsets(t)[:, 0], (0.85, 1.1))):
+        spectrum = np.abs(np.fft.rfft(signal - signal.mean()))
+        peak = f[np.argmax(spectrum * (f > 0.5))]
+        assert band[0] - 0.2 <= peak <= band[1] + 0.2
+    bounce, sway = np.ptp(plan.offsets(t), axis=0)[::-1] / 2
+    assert 0.015 * 0.95 <= bounce <= 0.04 * 1.05 and 0.01 * 0.9 <= sway <= 0.04 * 1.05
+    rate = np.degrees(np.sqrt(np.mean(plan.angular_velocity(t) ** 2, axis=0)))
+    assert np.all(rate >= 1.0) and rate.max() >= 3.0 and np.degrees(np.abs(plan.angular_velocity(t)).max()) <= 120.0
+
+
+@pytest.mark.parametrize("family", ["drone", "road", "walking"])
+def test_platform_families_are_reproducible_from_the_seed(family):
+    a, b, c = (suite.family_config(family, s, 10.0, 0.25) for s in (0, 0, 1))
+    assert a.to_dict() == b.to_dict()
+    from stimuli.platforms import platform_plan
+
+    t = np.linspace(0.0, 10.0, 501)
+    pa, pb, pc = (platform_plan(x.flight, x.scene.seed, 10.0) for x in (a, b, c))
+    assert np.array_equal(pa.position(t), pb.position(t)) and np.array_equal(pa.rotation(t), pb.rotation(t))
+    assert not np.allclose(pa.speed(t), pc.speed(t))
+
+
+@pytest.mark.parametrize("family", ["drone", "road", "walking"])
+def test_platform_families_render_through_a_fisheye_with_exact_truth(tmp_path, family):
+    """Each family's seed through a 131° equidistant fisheye: the footage opens with the lens, and the
+    truth is the camera-frame velocity of the platform's motion."""
+    import json
+    from dataclasses import replace
+
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps(dict(width=640, height=480, fx=280.0, fy=280.0, cx=319.5, cy=239.5, frame_rate_hz=30.0)))
+    cfg = replace(suite.family_config(family, 0, 0.5, 0.2), camera_json=str(cam), lens="kannala-brandt:0,0,0,0",
+                  depth_every=1000)
+    make_track_run(tmp_path / "run", cfg, progress=False)
+    fo = open_footage(tmp_path / "run")
+    assert json.loads((tmp_path / "run" / "camera.json").read_text())["distortion"]["model"] == "kannala-brandt"
+    frames = [img for _, _, img in fo.frames()]
+    assert len(frames) == 15 and all(f.std() > 5 for f in frames)
+    from stimuli.platforms import platform_plan
+
+    plan = platform_plan(family, cfg.scene.seed, 0.5)
+    tt = fo.truth["time_s"]
+    scene_rot = plan.rotation(tt) @ np.asarray(
+        __import__("stimuli.scene", fromlist=["TrackScene"]).rotation_x(-np.radians(cfg.scene.off_axis_pitch_deg)))
+    v_cam = np.einsum("nji,nj->ni", scene_rot, plan.velocity_world(tt))[:, 2]
+    np.testing.assert_allclose(fo.truth["v_forward_m_s"], v_cam, atol=2e-6)
+
+
+@pytest.mark.parametrize("family", ["drone", "road", "walking"])
+def test_platform_imu_integrates_to_the_motion_the_frames_are_rendered_from(family):
+    """An ideal, noiseless IMU (camera axes, 2 kHz, no vibration) on each family's seed 0: the gyro
+    integrated from the true start attitude stays on the scene's rotation and the specific force, rotated
+    into the track frame with gravity added back, integrates to the world velocity (bounce, sway and
+    hand turns included) within 2 mm/s over 3 s."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    from stimuli.imu import IMUConfig
+    from stimuli.track import build_track
+
+    ideal = IMUConfig(rate_hz=2000.0, accel_noise_density=0.0, gyro_noise_density=0.0, accel_bias_std=0.0,
+                      gyro_bias_std=0.0)
+    cfg = replace(suite.family_config(family, 0, 3.0, 0.1), imu=ideal)
+    scene, imu = build_track(cfg)
+    t, g, f = imu["time_s"], imu["gyro"], imu["accel"]
+    dt = np.diff(t)
+    r = [scene.rotation(t[0])]
+    for k in range(len(t) - 1):
+        phi = 0.5 * (g[k] + g[k + 1]) * dt[k] + dt[k] ** 2 / 12 * np.cross(g[k], g[k + 1])
+        r.append(r[-1] @ Rotation.from_rotvec(phi).as_matrix())
+    r = np.array(r)
+    assert Rotation.from_matrix(np.einsum("nji,njk->nik", scene.rotation(t), r)).magnitude().max() < 1e-4
+    a_world = np.einsum("nij,nj->ni", r, f) + scene.gravity_world
+    v = scene.world_velocity(t[:1]) + np.concatenate([np.zeros((1, 3)),
+                                                      np.cumsum(0.5 * (a_world[1:] + a_world[:-1]) * dt[:, None], 0)])
+    v_true = scene.world_velocity(t)
+    assert np.abs(v - v_true).max() < 2e-3
+    # and the position the frames are cast from is that velocity's integral
+    p = scene.position(t)
+    np.testing.assert_allclose(np.diff(p, axis=0) / dt[:, None], 0.5 * (v_true[1:] + v_true[:-1]), atol=1e-4)

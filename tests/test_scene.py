@@ -178,3 +178,130 @@ def test_culling_each_surface_to_its_image_block_changes_no_hit():
                 w = _grid_window(s, x[0], y[:, 0], rot, pos)
                 culled += w is None or (w != (Ellipsis,) and x[w].size < x.size)
     assert culled > 0  # the blocks are smaller than the image: the test compares two different computations
+
+
+# ------------------------------------------------------------- rolling shutter
+def test_rolling_shutter_rows_are_the_global_frames_at_their_row_times():
+    """Row r of a frame stamped t under a readout of T seconds is row r of the global-shutter frame at
+    t + r/height·T, and so is its depth: here a camera moving at 2 m/s and turning on three axes."""
+    from dataclasses import replace
+
+    kw = dict(v=2.0, duration=2.0, rotation3_amp_deg=(5.0, 4.0, 3.0), rotation3_band_hz=(2.0, 4.0))
+    glob, rolling = constant_scene(**kw), constant_scene(rolling_shutter_s=0.03, **kw)
+    assert replace(rolling.config, rolling_shutter_s=0.0) == glob.config
+    t, h = 0.7, CAM.height
+    img, dep = rolling._render_clean(t), rolling.depth(t)
+    assert not np.allclose(img, glob._render_clean(t), atol=1e-3)  # the rows do differ from the frame at t
+    for r in (0, 37, h // 2, h - 1):
+        tr = t + r / h * 0.03
+        np.testing.assert_allclose(img[r], glob._render_clean(tr)[r], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(dep[r], glob.depth(tr)[r], rtol=1e-6)
+    np.testing.assert_allclose(rolling.row_times(t), t + np.arange(h) / h * 0.03)
+
+
+def _yawing_edge_scene(readout_s: float, rate_rad_s: float):
+    """A still camera (160×120) yawing right at a constant rate (rad/s) before a vertical edge straight
+    ahead at t = 0: a dark surface right of it, a lighter wall behind (no texture, no noise)."""
+    from dataclasses import replace
+
+    from stimuli.scene import _rot_stack
+
+    class Yawing(TrackScene):
+        def _mount_rotation(self, t):
+            return _rot_stack(rate_rad_s * np.asarray(t, dtype=float), 1)
+
+    cam = PinholeCamera().scaled(0.25)
+    scene = Yawing(cam, trajectory_from_function(np.zeros_like, 1.0),
+                   SceneConfig(seed=0, n_panels=1, floor=False, contrast=0.0, noise_grey=0.0, supersample=8,
+                               rolling_shutter_s=readout_s))
+    # The one panel made a half-plane x ≥ 0 from top to bottom, darker than the backdrop (gain 0.8).
+    scene.surfaces[0] = replace(scene.surfaces[0], bounds=((0.0, 50.0), (-50.0, 50.0)), gain=0.5)
+    return scene, cam
+
+
+def _edge_columns(lum: np.ndarray) -> np.ndarray:
+    """The column (px) of a vertical light-to-dark edge in each row of lum (H, W): where the box-filtered
+    pixels say the lighter side ends (pixel j spans j − ½ .. j + ½)."""
+    light, dark = lum[:, 0:1], lum[:, -1:]
+    return ((lum - dark) / (light - dark)).sum(axis=1) - 0.5
+
+
+def test_rolling_shutter_shears_vertical_edges_by_the_rate_times_the_readout():
+    """Yawing at 1 rad/s with a 30 ms readout, the edge in row r is where the camera points at
+    t + r/H·30 ms: u = cx − fx·tan(ω·t_r), a shear of fx·tan(ω·T·(H−1)/H) ≈ 4.6 px from top to bottom;
+    with a global shutter every row shows it at u = cx − fx·tan(ω·t)."""
+    rate, readout, t = 1.0, 0.03, 0.01
+    for t_read in (readout, 0.0):
+        scene, cam = _yawing_edge_scene(t_read, rate)
+        cols = _edge_columns(scene._render_clean(t))
+        tr = t + np.arange(cam.height) / cam.height * t_read
+        np.testing.assert_allclose(cols, cam.cx - cam.fx * np.tan(rate * tr), atol=0.08)
+    scene, cam = _yawing_edge_scene(readout, rate)
+    cols = _edge_columns(scene._render_clean(0.0))
+    shear = cols[0] - cols[-1]
+    assert abs(shear - cam.fx * np.tan(rate * readout * (cam.height - 1) / cam.height)) < 0.1
+    assert shear > 4.0
+
+
+def test_rolling_shutter_is_recorded_in_camera_json_and_set_from_the_command_line(tmp_path):
+    import json
+
+    from experiments.cli import build_parser
+    from experiments.render import scene_config_from_args
+
+    parser = build_parser(["scene"])
+    cfg = scene_config_from_args(parser.parse_args(["scene", "out", "--builtin-profile", "--rolling-shutter", "0.02"]))
+    assert cfg.scene.rolling_shutter_s == 0.02
+    assert scene_config_from_args(parser.parse_args(["scene", "out", "--builtin-profile"])).scene.rolling_shutter_s == 0
+    import pytest
+
+    from experiments.render import run_scene
+
+    with pytest.raises(ValueError, match="--rolling-shutter .* compound eye"):  # it has no rows to read out
+        run_scene(parser.parse_args(["scene", str(tmp_path / "eye"), "--eye", "fly", "--rolling-shutter", "0.03"]))
+    assert not (tmp_path / "eye").exists()
+    cfg = TrackRunConfig(duration_s=0.2, scale=0.1, imu=IMUConfig(), scene=SceneConfig(rolling_shutter_s=0.02))
+    cam = json.loads((make_track_run(tmp_path / "rs", cfg, progress=False) / "camera.json").read_text())
+    assert cam["rolling_shutter_s"] == 0.02
+    glob = TrackRunConfig(duration_s=0.2, scale=0.1, imu=IMUConfig())
+    assert "rolling_shutter_s" not in json.loads((make_track_run(tmp_path / "gs", glob, progress=False)
+                                                  / "camera.json").read_text())
+    assert "rolling_shutter_s" not in glob.to_dict()["scene"]  # a global shutter's scene reads as before
+
+
+# ------------------------------------------------------------- kilometres away
+def test_a_backdrop_two_kilometres_away_is_rendered_at_its_depth():
+    """No far clip and no fighting where the ground meets the backdrop: a drone 25 m up before a backdrop
+    1,990-2,000 m beyond its farthest position sees, down a column of the image, the sky, the backdrop
+    and the ground each at its analytic depth (float32), and the backdrop's face rendered, not the sky."""
+    from dataclasses import replace
+
+    from experiments.suite_scene import family_config
+    from stimuli.track import build_track
+
+    cfg = family_config("drone", 0, 2.0, 0.25)
+    cfg = replace(cfg, scene=replace(cfg.scene, ground_height_m=(25.0, 25.0), ground_backdrop_m=(1990.0, 2000.0),
+                                     ground_backdrop_height_m=(300.0, 300.0), noise_grey=0.0, roadside_spacing_m=0.0,
+                                     ground_objects=0))
+    scene, _ = build_track(cfg)
+    ground, back = scene.surfaces
+    assert ground.axis == 1 and back.axis == 2 and back.offset > 1990
+    t, cam = 1.0, scene.camera
+    pos, rot = scene.position(t), scene.rotation(t)
+    c = int(round(cam.cx))
+    y = (np.arange(cam.height) - cam.cy) / cam.fy
+    d = np.stack([np.full_like(y, (c - cam.cx) / cam.fx), y, np.ones_like(y)], -1) @ rot.T  # track frame
+    with np.errstate(divide="ignore"):
+        lam_g = np.where(d[:, 1] > 0, (ground.offset - pos[1]) / d[:, 1], np.inf)
+        lam_b = (back.offset - pos[2]) / d[:, 2]
+    y_b = pos[1] + lam_b * d[:, 1]
+    lam_b = np.where((y_b >= back.bounds[1][0]) & (y_b <= back.bounds[1][1]), lam_b, np.inf)
+    lam_g = np.where(pos[2] + lam_g * d[:, 2] <= back.offset, lam_g, np.inf)
+    expected = np.minimum(lam_g, lam_b)
+    on_back = np.isfinite(lam_b) & (lam_b < lam_g)
+    assert on_back.sum() >= 3 and np.isfinite(lam_g).sum() >= 3 and np.isinf(expected).sum() >= 3
+    depth = scene.depth(t)[:, c]
+    np.testing.assert_allclose(depth, expected, rtol=2e-6)
+    assert expected[on_back].min() > 1900
+    sky = 255 * scene.config.sky
+    assert np.all(np.abs(scene.render(t)[on_back, c].astype(float) - sky) > 40)
