@@ -45,7 +45,7 @@ from lobula.readers import open_footage
 FIGURES = ("replay_emd_vs_dis", "rmse_vs_field_size", "rmse_vs_dphi", "rmse_vs_tau_contrast_noise",
            "error_vs_acceleration", "rate_vs_spiking", "replay_velocity")
 #: made only when asked for by name (``--only eye_rmse``): it renders 9 fly-eye runs (CPU-minutes each)
-EXTRA_FIGURES = ("eye_rmse", "eye_rate_vs_spiking", "eye_rmse_vs_dphi_fov", "emd_gaze")
+EXTRA_FIGURES = ("eye_rmse", "eye_rate_vs_spiking", "eye_rmse_vs_dphi_fov", "emd_gaze", "fly_flight")
 #: the fly-eye figures of experiments.eye_figures: name -> (function, what the record says it shows)
 EYE_FIGURES = {
     "eye_rate_vs_spiking": ("figure_eye_rate_vs_spiking", "causal fly-eye RMSE: rate readout, spiking output neurons "
@@ -273,6 +273,14 @@ def _figures_of_their_own_worlds(which, out: Path, cache: Path, base: dict, seed
                                    "panels; 3 seeds, 10 s, 320×240)", results=numbers,
                                    seconds=round(time.perf_counter() - t0, 1))
         _save_record("emd_gaze", out, records["emd_gaze"])
+
+    if "fly_flight" in which:  # three figures, each with its own record (experiments.fly_flight_figures)
+        from experiments.fly_flight_figures import write_fly_flight
+
+        t0 = time.perf_counter()
+        for name, record in write_fly_flight(out, workdir=cache / "fly_flight_runs", seeds=(seed, seed + 1),
+                                             progress=progress).items():
+            records[name] = dict(record, seconds=round(time.perf_counter() - t0, 1))
 
     if "rmse_vs_tau_contrast_noise" in which:
         from experiments.contrast_figure import figure_contrast_noise

@@ -533,7 +533,7 @@ def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
 #: experiments.figures.FIGURES and EXTRA_FIGURES (made only when named)
 FIGURES = ("replay_emd_vs_dis", "rmse_vs_field_size", "rmse_vs_dphi", "rmse_vs_tau_contrast_noise",
            "error_vs_acceleration", "rate_vs_spiking", "replay_velocity")
-EXTRA_FIGURES = ("eye_rmse", "eye_rate_vs_spiking", "eye_rmse_vs_dphi_fov", "emd_gaze")
+EXTRA_FIGURES = ("eye_rmse", "eye_rate_vs_spiking", "eye_rmse_vs_dphi_fov", "emd_gaze", "fly_flight")
 
 
 def add_figures_parser(subparsers) -> argparse.ArgumentParser:

@@ -117,6 +117,13 @@ linear prediction fails, and turns every field onto other surfaces, so ρ jumps 
 a/D; flies suppress motion vision during course-changing turns (Kim, Fitzgerald & Maimon 2015, Nat Neurosci
 18:1247; Fenk, Kim & Maimon 2021, Curr Biol 31). A flight that never turns that fast is unchanged.
 
+**The motion detector** (``detector``, "hr" by default). ``"three-arm"`` replaces the correlator along every
+pair by :mod:`lobula.three_arm`'s detector at the same delay τ: on ON and OFF pathways (T4, T5), a delayed
+preferred-side arm multiplies the centre (HR enhancement) and a delayed null-side arm, one ommatidium
+beyond the pair, shunts it (Barlow–Levick suppression; Haag et al. 2016, eLife 5:e17421; Leong et al. 2016,
+J Neurosci 36:8078). The decoding, pools, fields and rotation handling are unchanged; with "hr" the circuit
+is the correlator's, bit for bit.
+
 Causality: every stage is a causal filter; the readout step is a block sum over the
 last ``1/readout_rate_hz`` s. Outputs are stamped ``latency_s`` earlier (photoreceptor
 τ + EMD τ + half a block, and τ_EMD more for the per-pair decoding's low-pass), the same convention as the pinhole EMD front end: an estimate

@@ -12,6 +12,7 @@ from .._optional import torch
 from ..compound_eye import CompoundEye
 from ..emd import EMDArray
 from ..photoreceptor import Photoreceptors, lattice_filter, lowpass_scan, spatial_filter
+from ..three_arm import ThreeArmArray, ThreeArmConfig
 from .config import EyeCircuitConfig
 from .fields import _angle, eye_fields
 from .scene_gain import natural_scene_gain
@@ -44,6 +45,9 @@ class EyeCircuit:
         self.fields = fields = eye_fields(eye, cfg.fields)
         self.photoreceptors = Photoreceptors(cfg.photoreceptor, self.dt)
         self.emds = EMDArray(eye.pairs_a, eye.pairs_b, cfg.emd, self.dt)
+        # The three-arm detector (an option) replaces the correlator along the same pairs, at the same delay.
+        self.arms = (ThreeArmArray.from_eye(eye, ThreeArmConfig(tau_s=cfg.emd.tau_s, weight=cfg.three_arm_weight),
+                                            self.dt) if cfg.detector == "three-arm" else None)
         # The per-pair decoding low-passes R and G once more with the EMD's τ (see _pair_speeds): a
         # first-order lag of τ more on the decoded speed (stamping without it put vision ~τ behind the
         # accelerometer: on the dev worlds, seeds 7, 8, 100, the causal RMSE fell 0.005–0.04 m/s with it).
@@ -164,7 +168,7 @@ class EyeCircuit:
         y = self.photoreceptors.run(lum)
         y = spatial_filter(self._pool, y)
         t1 = _time.perf_counter()
-        R = self.emds.run(y)                                                    # (..., T, P)
+        R = self.emds.run(y) if self.arms is None else self.arms.run(y)        # (..., T, P)
         t2 = _time.perf_counter()
         if keep is not None:
             if "photoreceptor.v" in keep:

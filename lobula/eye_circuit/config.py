@@ -3,6 +3,7 @@
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 from ..emd import EMDConfig
@@ -10,6 +11,8 @@ from ..photoreceptor import PhotoreceptorConfig
 
 
 ROTATION_MODES = ("none", "haltere", "wide-field", "both")
+#: motion detectors along the neighbour pairs (EyeCircuitConfig.detector)
+DETECTORS = ("hr", "three-arm")
 
 
 @dataclass
@@ -86,6 +89,12 @@ class EyeCircuitConfig:
     never reaches it, so there the gate changes nothing.
     latency_s: stamp shift; None = τ_photoreceptor + τ_EMD + half a block (+ τ_EMD more for the
     "pair" normaliser, whose per-pair decoding low-passes once more).
+    detector: the motion detector along every neighbour pair — "hr" (default: the Hassenstein–Reichardt
+    correlator of :mod:`lobula.emd`) or "three-arm" (:mod:`lobula.three_arm`: HR enhancement by the
+    preferred-side arm and Barlow–Levick shunting by the null-side arm on ON and OFF pathways, as T4/T5;
+    its delay is ``emd.tau_s``); the decoding, pools and rotation handling are the same for both.
+    three_arm_weight: the three-arm detector's null-side shunting weight w (dimensionless; 0: the
+    two-quadrant HR correlator).
     """
 
     photoreceptor: PhotoreceptorConfig = field(default_factory=lambda: PhotoreceptorConfig(tau_s=0.010))
@@ -102,8 +111,14 @@ class EyeCircuitConfig:
     calibration: float = 1.0
     latency_s: float | None = None
     saccade_gate_deg_s: float | None = 300.0
+    detector: str = "hr"
+    three_arm_weight: float = 1.0
 
     def __post_init__(self):
+        if self.detector not in DETECTORS:
+            raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
+        if not (self.three_arm_weight >= 0.0 and math.isfinite(self.three_arm_weight)):
+            raise ValueError(f"three_arm_weight must be a finite number >= 0, got {self.three_arm_weight}")
         if self.rotation not in ROTATION_MODES:
             raise ValueError(f"rotation must be one of {ROTATION_MODES}, got {self.rotation!r}")
         if self.r2_term not in ("convective", "point", "none"):
@@ -139,7 +154,8 @@ class EyeCircuitConfig:
                     column_pool=self.column_pool, surround=self.surround, rotation_gain=self.rotation_gain,
                     rotation_gain_prior=self.rotation_gain_prior, readout_rate_hz=self.readout_rate_hz,
                     calibration=self.calibration, latency_s=self.latency_s,
-                    saccade_gate_deg_s=self.saccade_gate_deg_s)
+                    saccade_gate_deg_s=self.saccade_gate_deg_s, detector=self.detector,
+                    three_arm_weight=self.three_arm_weight)
 
     @classmethod
     def from_dict(cls, d: dict) -> "EyeCircuitConfig":
