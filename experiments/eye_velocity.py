@@ -36,6 +36,11 @@ __all__ = ["EyeVelocityConfig", "estimate_eye_velocity", "causal_gyro", "readout
            "add_parser", "run_eye_velocity"]
 
 
+#: m/s: the eye's speed prior (1σ): Drosophila cruises at 0.1-1 m/s, where a camera's readout allows for cars
+#: and drones (lobula.readout.ReadoutConfig.v_prior_m_s)
+FLY_SPEED_PRIOR_M_S = 1.0
+
+
 @dataclass
 class EyeVelocityConfig:
     """The eye velocity pipeline: circuit, readout (causal by default), streaming chunk (samples).
@@ -48,7 +53,7 @@ class EyeVelocityConfig:
         The estimator's readout, causal, with the noise the eye's κ = a/v carries:
         :meth:`ReadoutConfig.emd` (kappa_rel_error 0.5, shared_error_frac 0.8), min_valid_fraction
         0.1 (8 of the 80 fields, so that a few reliable fields suffice), online_window_sigma 2.5,
-        reversal off, sign on. Why each:
+        reversal off, sign on, the speed prior a fly's (:data:`FLY_SPEED_PRIOR_M_S`). Why each:
 
         * κ's errors. The eye's κ errs more and for longer than DIS flow's (dev worlds, seeds
           100–103, gated fields, κ against lp(a)/lp(v) of truth where |v| > 0.1 m/s: rms relative
@@ -159,7 +164,7 @@ class EyeVelocityConfig:
     circuit: EyeCircuitConfig = field(default_factory=EyeCircuitConfig)
     readout: ReadoutConfig = field(default_factory=lambda: ReadoutConfig.emd(filter="causal", min_valid_fraction=0.1,
                                                                             online_window_sigma=2.5, reversal=False,
-                                                                            sign=True))
+                                                                            sign=True, v_prior_m_s=FLY_SPEED_PRIOR_M_S))
     chunk: int = 500
     accel_from_truth: bool = False
     readout_kind: str = "kalman"

@@ -322,7 +322,7 @@ def test_eye_velocity_beats_the_zero_estimator(eye_footage):
     assert ds.attrs["filter"] == "causal"
     # the flag says which std it is of: the posterior's, not v_std's (which adds the halves' disagreement)
     definition = ds.observable.attrs["definition"]
-    assert "posterior std ≤ 0.1 m/s" in definition and "halves" in definition
+    assert "posterior std ≤ max(0.1 m/s, 0.05·|v̂|)" in definition and "halves" in definition
     sc = score(ds, skip_s=1.0)
     keep = (ds.time.values >= ds.time.values[0] + 1.0) & ds.observable.values
     v_true, v_hat = ds.v_true.values[keep], ds.v_hat.values[keep]
