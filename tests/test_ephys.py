@@ -216,7 +216,7 @@ def test_figures_have_no_blank_margins_when_a_panel_has_no_data(tmp_path):
 
 
 def test_replay_scores_score_a_short_replay_after_a_quarter_of_it():
-    from experiments.ephys.figures import replay_scores
+    from experiments.ephys.replay_figures import replay_scores
 
     t = np.arange(0.0, 1.9, 1 / 30)                             # shorter than the 2 s default skip
     v = 0.2 * np.sin(t)

@@ -514,7 +514,7 @@ def summary(ds) -> list[str]:
         from .flicker import flicker_summary
         lines.extend({"contrast": contrast_summary, "flicker": flicker_summary, "adaptation": adaptation_summary}[p](ds))
     elif p == "velocity-replay":
-        from .figures import replay_scores
+        from .replay_figures import replay_scores
         for k, val in replay_scores(ds).items():
             lines.append(f"{k}: {val:.4f}")
     return lines
