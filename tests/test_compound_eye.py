@@ -1079,18 +1079,19 @@ def test_eye_readout_is_told_the_bodys_turn_rate(eye_footage, monkeypatch):
     """As the camera's readout is: gravity leaks into the accelerometer's forward axis through
     attitude error while the body turns, so the readout widens its acceleration noise by the
     haltere's |ω| (ReadoutConfig.accel_turn_noise). With the true acceleration nothing leaks."""
+    import experiments.eye_readout as er
     import experiments.eye_velocity as ev
     from lobula.imu import resample_to
     from stimuli.eye import open_eye_footage
 
     seen = []
-    real = ev.readout
+    real = er.readout
 
     def spy(*args, **kwargs):
         seen.append(kwargs.get("turn_rate"))
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(ev, "readout", spy)
+    monkeypatch.setattr(er, "readout", spy)  # the eye's readout stage calls the library's readout
     fo = open_eye_footage(eye_footage)
     ds = ev.estimate_eye_velocity(fo, ev.EyeVelocityConfig(uncertainty="posterior"))
     t = ds.time.values
