@@ -224,6 +224,11 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
                    help="the accelerometer's scale-factor error (1σ fraction), added to v_std as FRACTION·|v̂| "
                         "(vision cannot see it; lobula.readout.ReadoutConfig.accel_scale_error; set it from your "
                         "IMU's calibration) (default: 0.01, a consumer MEMS sensitivity tolerance)")
+    v.add_argument("--speed-prior", type=POSITIVE, metavar="M_S",
+                   help="prior std (1σ, m/s) of the forward speed before vision fixes it "
+                        "(lobula.readout.ReadoutConfig.v_prior_m_s): your platform's — about 1 for a walker or a "
+                        "hand-held camera, 15 for a car or a drone; a narrower prior answers sooner on short clips "
+                        "(default: 15)")
     v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo) "
                                  "(default: none)")
     _flo_options(v)

@@ -226,6 +226,11 @@ def apply_velocity_options(cfg, args):
         cfg.gyro_bias_from_vision = True
     if opt("lag") is not None:
         cfg.readout = replace(cfg.readout, lag_s=args.lag)  # validated there (causal kalman readout only)
+    if opt("speed_prior") is not None:
+        if cfg.readout.method != "kalman":
+            raise ValueError("--speed-prior is the kalman readout's prior on v; the paper's median readout (--paper) "
+                             "has none: drop one of them")
+        cfg.readout = replace(cfg.readout, v_prior_m_s=args.speed_prior)
     if opt("accel_scale_error") is not None:
         cfg.readout = replace(cfg.readout, accel_scale_error=args.accel_scale_error)  # validated there
         if cfg.readout.method != "kalman":

@@ -120,7 +120,8 @@ def test_accel_scale_error_option_widens_the_band_by_its_share(small_run, tmp_pa
     posterior std is stated (--paper) and out of range."""
     out = {}
     for frac in ("0", "0.1"):
-        assert run_cli(small_run, tmp_path / f"s{frac}.nc", capsys, "--accel-scale-error", frac)[0] == 0
+        assert run_cli(small_run, tmp_path / f"s{frac}.nc", capsys, "--accel-scale-error", frac,
+                       "--speed-prior", "1")[0] == 0  # a walking pace's prior answers on a short clip
         with xr.open_dataset(tmp_path / f"s{frac}.nc") as ds:
             out[frac] = ds.load()
             assert VelocityConfig.from_json(ds.attrs["config"]).readout.accel_scale_error == float(frac)
@@ -144,7 +145,8 @@ def test_lag_option_smooths_with_look_ahead_online_and_is_refused_offline(small_
     measurements are (11 frames, the online low-pass cut at 1.5σ plus half the material stagger)."""
     out = {}
     for lag in ("0", "0.5"):
-        assert run_cli(small_run, tmp_path / f"l{lag}.nc", capsys, "--filter", "causal", "--lag", lag)[0] == 0
+        assert run_cli(small_run, tmp_path / f"l{lag}.nc", capsys, "--filter", "causal", "--lag", lag,
+                       "--speed-prior", "1")[0] == 0
         with xr.open_dataset(tmp_path / f"l{lag}.nc") as ds:
             out[lag] = ds.load()
             assert VelocityConfig.from_json(ds.attrs["config"]).readout.lag_s == float(lag)
@@ -225,3 +227,17 @@ def test_zero_acceleration_is_all_unobservable(tmp_path, capsys):
 def test_existing_scene_folder_is_not_overwritten(small_run, capsys):
     code = main(["scene", str(small_run), "--duration", "0.2", "--quiet"])
     assert code == 2 and "exists" in capsys.readouterr().err
+
+
+def test_speed_prior_option_sets_the_readouts_prior(small_run, tmp_path, capsys):
+    """--speed-prior sets ReadoutConfig.v_prior_m_s (written to the file's config); the narrower prior answers
+    sooner on a short clip; refused with --paper (whose median readout has no prior)."""
+    obs = {}
+    for prior in ("1", "15"):
+        assert run_cli(small_run, tmp_path / f"p{prior}.nc", capsys, "--speed-prior", prior)[0] == 0
+        with xr.open_dataset(tmp_path / f"p{prior}.nc") as ds:
+            assert VelocityConfig.from_json(ds.attrs["config"]).readout.v_prior_m_s == float(prior)
+            obs[prior] = float(ds.observable.mean())
+    assert obs["1"] > obs["15"], obs
+    code, err = run_cli(small_run, tmp_path / "pp.nc", capsys, "--paper", "--speed-prior", "1")
+    assert code == 2 and "--paper" in err and not (tmp_path / "pp.nc").exists()
