@@ -13,6 +13,7 @@ from lobula.velocity import estimate_velocity
 from lobula.config import VelocityConfig
 from lobula.readers import open_footage
 from stimuli.track import make_track_run
+from tests.imu_helpers import integrate_gyro
 
 DURATION_S, SCALE, SKIP_S = 6.0, 0.5, 1.5
 
@@ -369,11 +370,7 @@ def test_platform_imu_integrates_to_the_motion_the_frames_are_rendered_from(fami
     scene, imu = build_track(cfg)
     t, g, f = imu["time_s"], imu["gyro"], imu["accel"]
     dt = np.diff(t)
-    r = [scene.rotation(t[0])]
-    for k in range(len(t) - 1):
-        phi = 0.5 * (g[k] + g[k + 1]) * dt[k] + dt[k] ** 2 / 12 * np.cross(g[k], g[k + 1])
-        r.append(r[-1] @ Rotation.from_rotvec(phi).as_matrix())
-    r = np.array(r)
+    r = integrate_gyro(t, g, scene.rotation(t[0]))
     assert Rotation.from_matrix(np.einsum("nji,njk->nik", scene.rotation(t), r)).magnitude().max() < 1e-4
     a_world = np.einsum("nij,nj->ni", r, f) + scene.gravity_world
     v = scene.world_velocity(t[:1]) + np.concatenate([np.zeros((1, 3)),

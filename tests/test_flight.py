@@ -13,6 +13,7 @@ from stimuli.flight import FlightConfig, saccadic_flight
 from stimuli.imu import IMUConfig, angular_velocity
 from stimuli.scene import SceneConfig
 from stimuli.track import TrackRunConfig, build_track, make_track_run
+from tests.imu_helpers import integrate_gyro
 
 SEEDS = range(6)
 CFG = FlightConfig()
@@ -175,11 +176,7 @@ def test_saccadic_run_imu_recovers_the_world_velocity(run):
     _, footage, scene = run
     t, g, f = footage.imu.time_s, footage.imu.gyro, footage.imu.accel
     dt = np.diff(t)
-    r = [scene.rotation(t[0])]
-    for k in range(len(t) - 1):
-        phi = 0.5 * (g[k] + g[k + 1]) * dt[k] + dt[k] ** 2 / 12 * np.cross(g[k], g[k + 1])
-        r.append(r[-1] @ Rotation.from_rotvec(phi).as_matrix())
-    r = np.array(r)
+    r = integrate_gyro(t, g, scene.rotation(t[0]))
     ang = Rotation.from_matrix(np.einsum("nji,njk->nik", scene.rotation(t), r)).magnitude()
     assert ang.max() < 1e-4
     a_world = np.einsum("nij,nj->ni", r, f) + scene.gravity_world
