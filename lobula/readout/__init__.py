@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import ReadoutConfig, ReadoutResult, std_allowed
-from .coupling import expansion_coupling, held_still, vision_locked, window_full
+from .coupling import expansion_coupling, vision_locked, window_full
 from .filters import _fill_nan, _integral, _lag, butterworth, gaussian_lowpass, hold_gaps, staggered_difference
 from .kalman import ForwardPass, FilterRecord, _accel_density2, _axis_terms, filter_record, kalman_velocity, predict  # noqa: F401
 from .updates import OUTLIER_GATE, _gated_update, _sign_update, _update, ratio_update  # noqa: F401
@@ -287,10 +287,8 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     coupling = expansion_coupling(_field_median(terms[2] - terms[1]), terms[3], dt, cfg.coupling_window_s,
                                   cfg.cutoff_hz, causal=not zp)
     reversal = reversal_measurement(t, r, a, min_fields, cfg.stamp_error_s) if cfg.reversal else None
-    # Frames where vision gives v directly, without κ: the rest bound held for a whole window (v = 0) and the
-    # reversals (v passed 0).
-    direct = (held_still(np.isfinite(zr), dt, cfg.coupling_window_s, causal=not zp)
-              | (np.isfinite(reversal[0]) if reversal is not None else False))
+    # Frames where vision gives v directly, without κ: the rest bound (v = 0) and the reversals (v passed 0).
+    direct = np.isfinite(zr) | (np.isfinite(reversal[0]) if reversal is not None else False)
     return KalmanInputs(coupling=coupling, still=direct,
         decided=window_full(len(t), dt, cfg.coupling_window_s, causal=not zp),
         measurements=[(zr, sr, 0.0)], ratio=(kap, skap, terms[3], shift, e_lp),

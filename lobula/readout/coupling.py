@@ -15,14 +15,13 @@ z = atanh(ρ)·√(n_eff − 3). Vision informs v once z has reached ``coupling_
 negative slope is not a depth); once a whole window has passed without it, the readout reports no
 speed, whatever its posterior says, and tells the user why (before that — the first ``window`` of an
 online run, or a record shorter than it — the test cannot tell, and the posterior's std decides
-alone). A camera the rest bound holds at 0 for a whole window, or whose expansion reverses sign (v
-passed 0), needs no coupling.
+alone). A still camera that the rest bound holds at 0 needs no coupling.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["expansion_coupling", "window_full", "held_still", "vision_locked"]
+__all__ = ["expansion_coupling", "window_full", "vision_locked"]
 
 
 def _window_sums(x: np.ndarray, w: int, causal: bool) -> np.ndarray:
@@ -80,16 +79,6 @@ def expansion_coupling(g, a, dt: float, window_s: float, cutoff_hz: float, causa
     return np.where(good, np.arctanh(rho) * np.sqrt(np.maximum(n_eff - 3.0, 0.0)), 0.0)
 
 
-def held_still(rest: np.ndarray, dt: float, window_s: float, causal: bool) -> np.ndarray:
-    """Frames (n,) whose whole window of ``window_s`` (s) the rest bound held (``rest`` (n,) bool): a camera seen
-    still for that long. One frame without expansion says little — a far scene, or an image stabilised against
-    the body, shows none while the camera moves — so the lock it gives needs the whole window."""
-    rest = np.asarray(rest, bool)
-    w = max(2, int(round(window_s / dt)))
-    n = _window_sums(np.ones(len(rest)), w, causal)
-    return (_window_sums(rest.astype(float), w, causal) == n) & (n >= w)
-
-
 def window_full(n: int, dt: float, window_s: float, causal: bool) -> np.ndarray:
     """Frames (n,) whose coupling window holds a whole ``window_s`` (s) of record: before that (online, the first
     seconds; offline, a record shorter than the window) the test cannot yet tell coupling from noise, and the
@@ -109,8 +98,8 @@ def vision_locked(z, still, threshold: float, causal: bool, decided=None) -> np.
     z : ndarray, (n,)
         :func:`expansion_coupling`'s z.
     still : ndarray of bool, (n,)
-        Frames where vision gives v without κ: a reversal (v passed 0), or the rest bound held for a
-        whole window (:func:`held_still`).
+        Frames where the rest bound holds v at 0 (the image shows no expansion while the accelerometer
+        is steady).
     threshold : float
         z needed; 0 or less: every frame.
     causal : bool
