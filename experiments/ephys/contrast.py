@@ -23,8 +23,8 @@ from stimuli.lattice_stimuli import GratingSource
 from .edges import _image_angles
 from .protocols import _specs
 from .rig import EphysConfig, Rig, protocol
-from .plate import (_check_common, _dataset, _describe, _noisy_config, _optics, _plate_monitors, _suptitle,
-                    _time_mean, _trials, _window, noise_attrs, plate_chain)
+from .plate import (_check_common, _dataset, _describe, log_panel, noise_attrs, _noisy_config, _optics, plate_chain,
+                    _plate_monitors, _suptitle, _time_mean, _trials, _window)
 
 __all__ = ["contrast", "naka_rushton", "naka_rushton_fit", "hs_tf_prediction", "plot_contrast", "contrast_summary", "CONTRASTS"]
 
@@ -262,11 +262,8 @@ def plot_contrast(ds: xr.Dataset, path) -> list:
     exp = float(ds.c50_expected)
     if np.isfinite(exp):
         ax[0].axvline(exp, color="0.4", ls="--", lw=1, label=f"configured c50 in stimulus contrast ({exp:.3g})")
-    ax[0].set_xscale("log")
-    ax[0].set_xlabel("grating contrast (Michelson)")
-    ax[0].set_ylabel("mean response (photoreceptor output squared)")
-    ax[0].set_title("T4/T5: the motion detectors' contrast response", fontsize=9)
-    ax[0].legend(fontsize=7, frameon=False)
+    log_panel(ax[0], "grating contrast (Michelson)", "mean response (photoreceptor output squared)",
+              "T4/T5: the motion detectors' contrast response")
     v = ds.hs_v_mean.mean("hs_cell")
     ax[1].errorbar(c, v.mean("trial"), yerr=sem(v.values, 1) if v.sizes["trial"] > 1 else None, fmt="o", color="C2",
                    ms=4, label="HS potential (cell mean)")
@@ -278,11 +275,8 @@ def plot_contrast(ds: xr.Dataset, path) -> list:
         ax[1].axvline(pred, color="C2", ls=":", lw=1.2, label=f"c50 predicted by the shunting membrane ({pred:.3g})")
     if np.isfinite(exp):
         ax[1].axvline(exp, color="0.4", ls="--", lw=1, label=f"configured c50 in stimulus contrast ({exp:.3g})")
-    ax[1].set_xscale("log")
-    ax[1].set_xlabel("grating contrast (Michelson)")
-    ax[1].set_ylabel("HS potential re rest (mV)")
-    ax[1].set_title("HS cells: the shunting membrane saturates on top of the lamina", fontsize=9)
-    ax[1].legend(fontsize=7, frameon=False)
+    log_panel(ax[1], "grating contrast (Michelson)", "HS potential re rest (mV)",
+              "HS cells: the shunting membrane saturates on top of the lamina")
     fig.suptitle(f"Contrast response: grating front-to-back at {ds.attrs['temporal_frequency_hz']:.3g} Hz; "
                  + _suptitle(ds), fontsize=10)
     return save_png_and_pdf(fig, path)

@@ -22,8 +22,8 @@ from stimuli.lattice_stimuli import GratingSource
 from .edges import _image_angles
 from .protocols import _specs
 from .rig import EphysConfig, Rig, protocol
-from .plate import (_check_common, _dataset, _describe, _noisy_config, _plate_monitors, _suptitle, _time_mean,
-                    _trials, _window, noise_attrs, plate_chain, sine_fit)
+from .plate import (_check_common, _dataset, _describe, log_panel, noise_attrs, _noisy_config, plate_chain,
+                    _plate_monitors, sine_fit, _suptitle, _time_mean, _trials, _window)
 
 __all__ = ["flicker", "plot_flicker", "flicker_summary", "FLICKER_HZ"]
 
@@ -223,11 +223,8 @@ def plot_flicker(ds: xr.Dataset, path) -> list:
         ax[2].plot(f, o * (float(v.max()) / max(float(ds.hs_opponent_drive.max()), 1e-30)), ls=ls, marker="s",
                    ms=3, color="0.4", label=f"opponent drive (pref − null, scaled), {kind}")
     ax[2].axhline(0, color="0.7", lw=0.8)
-    ax[2].set_xscale("log")
-    ax[2].set_xlabel("temporal frequency (Hz)")
-    ax[2].set_ylabel("HS potential re rest (mV, cell mean)")
-    ax[2].set_title("HS: flicker (dashed) against front-to-back motion (solid)", fontsize=9)
-    ax[2].legend(fontsize=7, frameon=False)
+    log_panel(ax[2], "temporal frequency (Hz)", "HS potential re rest (mV, cell mean)",
+              "HS: flicker (dashed) against front-to-back motion (solid)")
     fig.suptitle(f"Flicker vs motion, contrast {json.loads(ds.attrs['parameters'])['contrast']:g}; "
                  + _suptitle(ds), fontsize=10)
     return save_png_and_pdf(fig, path)

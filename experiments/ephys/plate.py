@@ -296,6 +296,15 @@ def _suptitle(ds: xr.Dataset) -> str:
             + (f", {', '.join(noise)}" if noise else ", no noise"))
 
 
+def log_panel(ax, xlabel: str, ylabel: str, title: str) -> None:
+    """Finish a panel of the lobula-plate figures: a log x axis, its labels, a small title and a frameless legend."""
+    ax.set_xscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7, frameon=False)
+
+
 #: the lobula-plate physiology protocols of ``lobula ephys`` (:mod:`.contrast`, :mod:`.flicker`, :mod:`.adaptation`)
 PLATE_PROTOCOLS = ("contrast", "flicker", "adaptation")
 
