@@ -229,6 +229,11 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
                         "(lobula.readout.ReadoutConfig.v_prior_m_s): your platform's — about 1 for a walker or a "
                         "hand-held camera, 15 for a car or a drone; a narrower prior answers sooner on short clips "
                         "(default: 15)")
+    v.add_argument("--coupling", type=NONNEGATIVE, metavar="Z",
+                   help="Fisher z the image's expansion must reach against the accelerometer over 4 s before vision "
+                        "fixes the speed (lobula.readout.coupling, ReadoutConfig.coupling_z); 0 turns the test off and "
+                        "the posterior's std decides alone — a clip of 2-3 s rarely shows enough to reach 3, and a "
+                        "stabilised or moving image shows a κ that is noise (default: 3)")
     v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo) "
                                  "(default: none)")
     _flo_options(v)

@@ -158,13 +158,19 @@ def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | No
         # Drawn over v̂, thinner and dashed, so it stays visible where the two agree.
         ax.plot(t, ds.v_true.values, color="k", ls="--", lw=1.2, label="truth", zorder=4)
     unobs = ~ds.observable.values.astype(bool)
-    unlocked = ~ds.vision_locked.values.astype(bool) if "vision_locked" in ds else np.zeros(len(t), bool)
-    if (unobs & unlocked).any():
-        ax.fill_between(t, 0, 1, where=unobs & unlocked, transform=ax.get_xaxis_transform(), color="0.75", lw=0,
-                        label="unobservable: expansion not following a (no v̂)")
-    if (unobs & ~unlocked).any():
-        ax.fill_between(t, 0, 1, where=unobs & ~unlocked, transform=ax.get_xaxis_transform(), color="0.85", lw=0,
-                        label="unobservable: std too large (no v̂)")
+    # Runs stored without the coupling test's flags read as never refuted, locked and informed.
+    flag = lambda name, absent: ds[name].values.astype(bool) if name in ds else np.full(len(t), absent)
+    refuted, unlocked = flag("vision_refuted", False), ~flag("vision_locked", True)
+    carried = ~unobs & ~flag("vision_informing", True)
+    for where, grey, words in ((unobs & refuted, "0.7", "unobservable: expansion not following a (no v̂)"),
+                               (unobs & unlocked & ~refuted, "0.8", "unobservable: vision has not fixed v (no v̂)"),
+                               (unobs & ~unlocked, "0.88", "unobservable: std too large (no v̂)")):
+        if where.any():
+            ax.fill_between(t, 0, 1, where=where, transform=ax.get_xaxis_transform(), color=grey, lw=0, label=words,
+                            step="mid")
+    if carried.any():
+        ax.fill_between(t, 0, 0.04, where=carried, transform=ax.get_xaxis_transform(), color="tab:cyan", lw=0,
+                        label="v̂ carried by the accelerometer (vision not informing)", step="mid")
     if skip > 0 and "v_true" in ds:
         ax.axvspan(t[0], t[0] + skip, color="0.5", alpha=0.08, lw=0, label=f"not scored (first {skip:.3g} s)")
     ax.axhline(0, color="0.4", lw=0.8, zorder=1)
@@ -231,6 +237,11 @@ def apply_velocity_options(cfg, args):
             raise ValueError("--speed-prior is the kalman readout's prior on v; the paper's median readout (--paper) "
                              "has none: drop one of them")
         cfg.readout = replace(cfg.readout, v_prior_m_s=args.speed_prior)
+    if opt("coupling") is not None:
+        if cfg.readout.method != "kalman":
+            raise ValueError("--coupling gates the kalman readout on vision's coupling to the accelerometer; the "
+                             "paper's median readout (--paper) has no such test: drop one of them")
+        cfg.readout = replace(cfg.readout, coupling_z=args.coupling)
     if opt("accel_scale_error") is not None:
         cfg.readout = replace(cfg.readout, accel_scale_error=args.accel_scale_error)  # validated there
         if cfg.readout.method != "kalman":

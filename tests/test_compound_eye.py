@@ -327,9 +327,9 @@ def test_eye_velocity_beats_the_zero_estimator(eye_footage):
     keep = (ds.time.values >= ds.time.values[0] + 1.0) & ds.observable.values
     v_true, v_hat = ds.v_true.values[keep], ds.v_hat.values[keep]
     zero = float(np.sqrt(np.mean(v_true ** 2)))
-    # Measured: observable 1.0 of the steps, RMSE 0.005 against 0.318 for v̂ = 0 (Δφ = 8°, 6 s, a causal
-    # start from rest); with the mean removed in time instead of space, observable 0.79, RMSE 0.032.
-    assert sc["observable_fraction"] > 0.9
+    # Measured: observable 0.80 of the steps after 1 s (answered from the coupling test's lock-on, some 2 s
+    # in), RMSE 0.005 against 0.318 for v̂ = 0 (Δφ = 8°, 6 s, a causal start from rest).
+    assert sc["observable_fraction"] > 0.75
     assert sc["rmse_m_s"] < 0.05 * zero, (sc, zero)
     # It follows the trajectory's shape (measured r = 1.00); a sign error or a stalled estimate gives r ≤ 0.
     assert np.corrcoef(v_hat, v_true)[0, 1] > 0.95
@@ -338,9 +338,10 @@ def test_eye_velocity_beats_the_zero_estimator(eye_footage):
 def test_lateral_inhibition_beats_the_temporal_high_pass_with_the_accelerometer(eye_footage):
     """The surround in place of the 0.25 s high-pass, end to end from the accelerometer (no truth).
 
-    The high-pass's memory drifts every field's gain after each change of speed, and the readout
-    learns that drift as an accelerometer offset. Measured here (Δφ = 8°, 6 s from rest, causal, after
-    1 s): high-pass 0.149 m/s, observable 0.53; surround 0.013 m/s, observable 0.99; v̂ = 0 0.32."""
+    The high-pass's memory drifts every field's gain after each change of speed, so its fields' expansion
+    does not follow the accelerometer and the coupling test withholds v̂ on nearly every frame. Measured
+    here (Δφ = 8°, 6 s from rest, causal, after 1 s): high-pass observable 0.04; surround 0.013 m/s,
+    observable 0.80 (from its lock-on); v̂ = 0 0.32."""
     from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
     from experiments.velocity import score
     from stimuli.eye import open_eye_footage
@@ -348,8 +349,8 @@ def test_lateral_inhibition_beats_the_temporal_high_pass_with_the_accelerometer(
     fo = open_eye_footage(eye_footage)
     sc = {name: score(estimate_eye_velocity(fo, EyeVelocityConfig(circuit=EyeCircuitConfig(**extra))), skip_s=1.0)
           for name, extra in (("space", {}), ("time", TEMPORAL_MEAN))}
-    assert sc["space"]["rmse_m_s"] < 0.3 * sc["time"]["rmse_m_s"], sc
-    assert sc["space"]["observable_fraction"] > sc["time"]["observable_fraction"] + 0.2, sc
+    assert sc["space"]["rmse_m_s"] < 0.03, sc
+    assert sc["space"]["observable_fraction"] > sc["time"]["observable_fraction"] + 0.5, sc
 
 
 def test_eye_readout_is_told_what_the_camera_readout_is_told(eye_footage):
@@ -679,12 +680,15 @@ def test_spiking_readout_on_the_eye_is_causal_and_close_to_the_rate_readout(eye_
     spk = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True, readout_kind="spikes",
                                                       neuron=ReadoutNeuronConfig(spiking=True, population=10)))
     assert "Poisson" in spk.attrs["readout"] and spk.attrs["filter"] == "causal"
-    r, s = score(rate, 1.0)["rmse_m_s"], score(spk, 1.0)["rmse_m_s"]
+    # Scored on the frames both answer (each answers from its own lock-on).
+    late = (spk.time.values > 1.0) & spk.observable.values & rate.observable.values
+    rmse = lambda ds: float(np.sqrt(np.mean((ds.v_hat.values[late] - ds.v_true.values[late]) ** 2)))  # noqa: E731
+    r, s = rmse(rate), rmse(spk)
     # 10 output pairs at 200 Hz per m/s add the Poisson noise the decoder states (its share of v_std,
-    # ~0.025 m/s here) and a little lag: the spikes err by the rates' error and that noise, no more.
-    late = (spk.time.values > 1.0) & spk.observable.values
+    # ~0.025 m/s here) and a little lag: the spikes err by the rates' error and that noise, and a catch-up
+    # after the gap between the first provisional answers and the lock-on (lobula.readout.coupling).
     decode = np.sqrt(np.mean(np.maximum(spk.v_std.values[late] ** 2 - rate.v_std.values[late] ** 2, 0.0)))
-    assert 0.8 * r < s < 1.3 * np.hypot(r, decode), (r, s, decode)
+    assert 0.8 * r < s < 1.4 * np.hypot(r, decode), (r, s, decode)
     # Its std adds the decoding noise to the readout's posterior std.
     assert np.all(spk.v_std.values[spk.observable.values] >= rate.v_std.values[spk.observable.values] - 1e-12)
     # The eye's default output neurons are leaky integrate-and-fire: nearly regular when driven,

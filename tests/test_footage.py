@@ -120,8 +120,9 @@ def test_accel_scale_error_option_widens_the_band_by_its_share(small_run, tmp_pa
     posterior std is stated (--paper) and out of range."""
     out = {}
     for frac in ("0", "0.1"):
+        # a walking pace's prior and no coupling test: a 2 s clip is answered (see the --coupling test)
         assert run_cli(small_run, tmp_path / f"s{frac}.nc", capsys, "--accel-scale-error", frac,
-                       "--speed-prior", "1")[0] == 0  # a walking pace's prior answers on a short clip
+                       "--speed-prior", "1", "--coupling", "0")[0] == 0
         with xr.open_dataset(tmp_path / f"s{frac}.nc") as ds:
             out[frac] = ds.load()
             assert VelocityConfig.from_json(ds.attrs["config"]).readout.accel_scale_error == float(frac)
@@ -146,7 +147,7 @@ def test_lag_option_smooths_with_look_ahead_online_and_is_refused_offline(small_
     out = {}
     for lag in ("0", "0.5"):
         assert run_cli(small_run, tmp_path / f"l{lag}.nc", capsys, "--filter", "causal", "--lag", lag,
-                       "--speed-prior", "1")[0] == 0
+                       "--speed-prior", "1", "--coupling", "0")[0] == 0
         with xr.open_dataset(tmp_path / f"l{lag}.nc") as ds:
             out[lag] = ds.load()
             assert VelocityConfig.from_json(ds.attrs["config"]).readout.lag_s == float(lag)
@@ -229,12 +230,30 @@ def test_existing_scene_folder_is_not_overwritten(small_run, capsys):
     assert code == 2 and "exists" in capsys.readouterr().err
 
 
+def test_coupling_option_sets_the_test_vision_must_pass(small_run, tmp_path, capsys):
+    """--coupling sets ReadoutConfig.coupling_z (written to the file's config): a 2 s clip holds about 4 effective
+    samples, too few for the default z of 3 beyond its first 1.5 s, so only its start is answered; with 0 the
+    posterior decides alone. Refused with --paper (no such test) and below 0."""
+    obs = {}
+    for z in ("3", "0"):
+        assert run_cli(small_run, tmp_path / f"c{z}.nc", capsys, "--coupling", z, "--speed-prior", "1")[0] == 0
+        with xr.open_dataset(tmp_path / f"c{z}.nc") as ds:
+            assert VelocityConfig.from_json(ds.attrs["config"]).readout.coupling_z == float(z)
+            obs[z] = ds.observable.values.astype(bool)
+            late = ds.time.values > ds.time.values[0] + 1.6
+    assert not obs["3"][late].any() and obs["0"][late].mean() > 0.5, {k: v.mean() for k, v in obs.items()}
+    code, err = run_cli(small_run, tmp_path / "cp.nc", capsys, "--paper", "--coupling", "0")
+    assert code == 2 and "--paper" in err and not (tmp_path / "cp.nc").exists()
+    code, err = run_cli(small_run, tmp_path / "cn.nc", capsys, "--coupling", "-1")
+    assert code == 2 and "--coupling" in err and not (tmp_path / "cn.nc").exists()
+
+
 def test_speed_prior_option_sets_the_readouts_prior(small_run, tmp_path, capsys):
     """--speed-prior sets ReadoutConfig.v_prior_m_s (written to the file's config); the narrower prior answers
     sooner on a short clip; refused with --paper (whose median readout has no prior)."""
     obs = {}
     for prior in ("1", "15"):
-        assert run_cli(small_run, tmp_path / f"p{prior}.nc", capsys, "--speed-prior", prior)[0] == 0
+        assert run_cli(small_run, tmp_path / f"p{prior}.nc", capsys, "--speed-prior", prior, "--coupling", "0")[0] == 0
         with xr.open_dataset(tmp_path / f"p{prior}.nc") as ds:
             assert VelocityConfig.from_json(ds.attrs["config"]).readout.v_prior_m_s == float(prior)
             obs[prior] = float(ds.observable.mean())

@@ -535,3 +535,25 @@ def test_real_clip_without_a_camera_file_says_it_cannot_know(tmp_path, capsys):
     assert not ds.observable.values.any() and not ds.vision_locked.values.any()
     assert ds.vision_coupling.max() < 3.0
     assert "camera_calibration" in ds.attrs
+
+
+@needs_gpmf
+@pytest.mark.parametrize("name, filt", [("gopro_hero7_walk", "zero-phase"), ("gopro_max_walk", "causal"),
+                                        ("gopro_hero7_walk", "causal")])
+def test_real_clip_is_never_confidently_wrong(tmp_path, capsys, name, filt):
+    """On both walks, offline and online, with nothing but the clip: where a speed is claimed, the GPS speed lies
+    inside ±2σ on at least 80 % of those frames; a flow whose expansion reverses its sign on a steady walk (the
+    HERO7's) does not lock vision on."""
+    path = GOPRO / f"{name}.mp4"
+    if not path.exists():
+        pytest.skip(f"GoPro clip not found at {path} (../shared/data is beside the repo in CI)")
+    o = tmp_path / "run.nc"
+    code, out, _ = cli(capsys, "velocity", path, "--out", o, "--filter", filt, "--quiet")
+    assert code == 0
+    ds = xr.open_dataset(o)
+    obs = ds.observable.values.astype(bool)
+    if obs.any():
+        e = np.abs(ds.v_hat.values[obs] - ds.v_true.values[obs])
+        assert np.mean(e <= 2 * ds.v_std.values[obs]) >= 0.8
+    else:
+        assert "never observable" in out

@@ -65,7 +65,7 @@ rc = {}
 rc["scene"] = main(["scene", "track", "--duration", "2", "--scale", "0.25", "--builtin-profile", "--start", "4",
                     "--quiet"])
 rc["velocity"] = main(["velocity", "track", "--front-end", "dis", "--out", "run.nc", "--plot", "run.png", "--quiet",
-                       "--speed-prior", "1"])
+                       "--speed-prior", "1", "--coupling", "0"])
 rc["compare"] = main(["compare", "track", "--front-ends", "farneback", "--out", "compare.nc", "--quiet"])
 rc["depth"] = main(["depth", "track", "--method", "ratio", "--velocity", "truth", "--every", "20",
                     "--out", "depth.nc", "--quiet"])

@@ -115,15 +115,17 @@ def test_a_shared_error_of_vision_is_covered_offline_and_adaptation_only_widens(
     v = lambda t: 0.3 * np.sin(2 * np.pi * t / 5) + 0.35
     a = lambda t: 0.3 * 2 * np.pi / 5 * np.cos(2 * np.pi * t / 5)
     t = np.arange(0, 20, 1 / 30)
-    r, r2, acc = analytic_rates(v, a, t, np.linspace(4, 8, 40))
+    r, r2, acc = analytic_rates(v, a, t, np.linspace(9, 13, 40))  # 7 m travelled: the fields stay ahead
     rng = np.random.default_rng(1)
     shared = butterworth(rng.normal(0, 1, t.shape), 0.05, 2, True)
     shared *= 0.08 / shared.std()
     noise = rng.normal(0, 0.003, r.shape)
     acc = acc + rng.normal(0, 0.02, t.shape)
     out = {}
+    # The shared error is larger than a/d here, so over many 4 s windows the expansion barely follows a and
+    # the coupling test withholds v̂ there; it is off, to see the band over the whole record.
     for key, kw in (("default", {}), ("adapt", dict(adapt_s=2.0))):
-        res = readout(t, r + noise, r2 + shared[:, None] + 2 * r * noise, acc, ReadoutConfig(**kw))
+        res = readout(t, r + noise, r2 + shared[:, None] + 2 * r * noise, acc, ReadoutConfig(coupling_z=0.0, **kw))
         m = res.observable & (t > 2)
         assert m.mean() > 0.8
         e = np.abs(res.v_hat - v(t))[m]
@@ -142,7 +144,7 @@ def test_the_band_widens_while_the_camera_turns():
     t = np.arange(0, 20, 1 / 30)
     v = lambda x: 0.3 * np.sin(2 * np.pi * x / 5) + 0.35
     a = lambda x: 0.3 * 2 * np.pi / 5 * np.cos(2 * np.pi * x / 5)
-    r, r2, acc = analytic_rates(v, a, t, np.linspace(4, 8, 40))
+    r, r2, acc = analytic_rates(v, a, t, np.linspace(9, 13, 40))  # 7 m travelled: the fields stay ahead
     rng = np.random.default_rng(0)
     noise = rng.normal(0, 0.01, r.shape)
     turn = np.where((t > 6) & (t < 14), 1.0, 0.0)
@@ -269,7 +271,7 @@ def test_a_small_accelerometer_reading_is_not_taken_for_a_small_offset():
     t = np.arange(0, 20, 1 / 30)
     v = lambda x: 0.3 * np.sin(2 * np.pi * x / 5) + 0.35
     a = lambda x: 0.3 * 2 * np.pi / 5 * np.cos(2 * np.pi * x / 5)
-    r, r2, acc = analytic_rates(v, a, t, np.linspace(4, 8, 40))
+    r, r2, acc = analytic_rates(v, a, t, np.linspace(9, 13, 40))  # 7 m travelled: the fields stay ahead
     r_dot = acc[:, None] / (v(t)[:, None] / r) + r2
     acc = acc + 0.2 + np.random.default_rng(0).normal(0, 0.02, t.shape)
     res = readout(t, r, r2, acc, ReadoutConfig(filter=filt, bias_prior_m_s2=0.3),
@@ -335,10 +337,10 @@ def test_online_rest_bound_waits_for_a_camera_that_does_not_accelerate():
     v = lambda x: 0.6 * np.sin(w * x)
     a = lambda x: 0.6 * w * np.cos(w * x)
     r, r2, acc = analytic_rates(v, a, t, np.concatenate([np.linspace(3, 6, 10), np.linspace(60, 150, 30)]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_dot = acc[:, None] / (v(t)[:, None] / r) + r2  # exact: a/d + r²
     rng = np.random.default_rng(0)
     r = r + rng.normal(0, 0.01, r.shape)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r_dot = acc[:, None] / (v(t)[:, None] / r) + r2
     zr, _ = rest_measurement(r, ReadoutConfig())
     assert (np.isfinite(zr) & (np.abs(v(t)) > 0.1)).sum() > 100   # the bound is wrong on those frames
     acc = acc + 0.1 + rng.normal(0, 0.01, t.shape)
@@ -523,12 +525,14 @@ def test_a_frame_is_asked_of_vision_while_the_velocity_is_still_unknown(kappa_re
         res = readout(t, mat.r, mat.r2, a + 0.05, ReadoutConfig(filter="causal", kappa_rel_error=kappa_rel_error),
                       material=MaterialRates(mat.r, mat.r2, r_dot))
         e = np.abs(res.v_hat - v_t)
-        first = res.observable & (t < 2)
-        assert first.sum() >= 0.35 * (t < 2).sum(), (noise, first.sum())
+        # Vision locks on once the coupling test has its evidence (z ≥ 3, some 2.2 s in): its first answers.
+        first = res.observable & (t < 3)
+        assert first.sum() >= 0.2 * (t < 3).sum(), (noise, first.sum())
         assert np.mean(e[first] <= 2 * res.v_std[first]) >= 0.95, noise
         rmse, cover, obs = _score(res, v_t, t)
         bound = 0.015 if kappa_rel_error < 0.5 else 0.025  # a κ claimed twice as noisy is trusted less
-        assert rmse <= bound and cover >= 0.95 and obs >= 0.65, (noise, rmse, cover, obs)  # after 2 s of 6; zero estimator: 0.29
+        # obs: of all frames, answered from the lock-on (2.2 s) on; zero estimator: 0.29
+        assert rmse <= bound and cover >= 0.95 and obs >= 0.6, (noise, rmse, cover, obs)
 
 
 def test_fixed_lag_is_the_smoother_of_the_record_cut_a_lag_after_each_frame():
@@ -646,7 +650,7 @@ def test_a_camera_seen_moving_at_the_start_gets_a_wider_start_acceleration_prior
         res = readout(t, mat.r, mat.r2, acc, ReadoutConfig(filter="causal", v_prior_m_s=1.0),
                       material=MaterialRates(mat.r, mat.r2, r_dot),
                       offset_axis=np.tile([0.0, 0.0, 1.0], (len(t), 1)), offset_axis_prior=p)
-        first = (t < 2) & res.observable
+        first = (t < 3) & res.observable  # vision locks on some 2.2 s in: its first answers
         out[p] = _score(res, v_t, t) + (float(np.mean(np.abs(res.v_hat - v_t)[first] <= 2 * res.v_std[first])),)
     rmse0, _, obs0, _ = out[START_ACCEL_PRIOR_M_S2]
     rmse, cover, obs, cover_first = out[prior]
@@ -695,7 +699,9 @@ def test_velocity_from_the_reversals_alone(filt, bound):
     """With no κ at all (no ṙ: every field's derivative missing) and an accelerometer offset of 0.05 m/s²,
     nothing but the reversals speaks of v: the readout without them knows nothing (every frame NaN);
     with them v̂ follows ∫a from each crossing, the offset learned between crossings: RMSE 0.015–0.022 m/s
-    online, 0.003–0.005 offline (seeds 0–2; the zero estimator 0.35), the truth inside ±2σ on every frame."""
+    online, 0.003–0.005 offline (seeds 0–2; the zero estimator 0.35), the truth inside ±2σ on every frame.
+    Online a crossing locks vision on once a whole coupling window (4 s) has let it stand: answered on
+    53–75 % of the frames after 2 s."""
     from lobula.readout import MaterialRates
 
     t = np.arange(0, 10, 1 / 30)
@@ -707,7 +713,7 @@ def test_velocity_from_the_reversals_alone(filt, bound):
         assert not res[False].observable[t >= 2].any()
         rmse, cover, obs = _score(res[True], v_t, t)
         assert rmse <= bound and rmse <= 0.1 * np.sqrt(np.mean(v_t[t >= 2] ** 2)), (seed, rmse)
-        assert cover >= 0.9 and obs >= 0.6, (seed, cover, obs)
+        assert cover >= 0.9 and obs >= 0.5, (seed, cover, obs)
 
 
 def test_a_sign_fault_of_the_front_end_is_not_taken_for_a_reversal(monkeypatch):
@@ -835,6 +841,52 @@ def test_expansion_coupling_is_fishers_z_over_the_window():
     full = window_full(len(t), dt, w_s, causal=True)
     assert not full[:w - 1].any() and full[w - 1:].all()
     assert not window_full(w - 1, dt, w_s, causal=False).any()
+
+
+def test_coupling_is_refuted_only_where_the_acceleration_gave_the_expansion_something_to_follow():
+    """Over a whole window an expansion that falls as the acceleration rises (z < 0) refutes vision; a steady
+    pace (the low-passed acceleration flat within coupling_power) refutes nothing, whatever the correlation."""
+    from lobula.readout.coupling import coupling_test
+
+    dt = 1 / 30
+    t = np.arange(0, 12, dt)
+    rng = np.random.default_rng(0)
+    surge = np.where(t < 6, 0.5 * np.sin(2 * np.pi * 0.3 * t), 0.0)        # then a cruise
+    a = surge + 0.01 * rng.standard_normal(t.size)
+    g = -surge / 5.0 + 0.002 * rng.standard_normal(t.size)                 # the image against a
+    c = coupling_test(g, a, dt, 4.0, 1.0, True, 3.0, 0.0, 0.05)
+    assert not c.refuted[:119].any()                                       # the window is not yet whole
+    assert c.refuted[119:180].all() and (c.z[119:180] < 0).all()
+    assert not c.refuted[t >= 10.1].any() and (c.accel_std[t >= 10.1] < 0.05).all()
+    assert not c.coupled.any()
+    c = coupling_test(-g, a, dt, 4.0, 1.0, True, 3.0, 0.0, 0.05)           # the image following a
+    assert c.coupled[60:180].all() and not c.refuted.any()
+
+
+def test_vision_locks_on_then_carries_until_refuted():
+    """Causal: locked from the first coupled frame (or rest bound) until a refuted frame, then again from the next
+    hit; a reversal locks only once a whole window has let it stand. Offline: every stretch between refuted
+    frames that holds a hit."""
+    from lobula.readout.coupling import CouplingTest, vision_locked
+
+    n = 12
+    f = np.zeros(n, bool)
+    coupled, refuted, still, passed = f.copy(), f.copy(), f.copy(), f.copy()
+    coupled[2], refuted[6], still[9] = True, True, True
+    full = np.arange(n) >= 4
+    test = CouplingTest(np.zeros(n), coupled, refuted, np.zeros(n), full, f)
+    on = vision_locked(test, still, passed, causal=True)
+    np.testing.assert_array_equal(on, [0, 0, 1, 1, 1, 1, 0, 0, 0, 1, 1, 1])
+    off = vision_locked(test, still, passed, causal=False)
+    np.testing.assert_array_equal(off, [1, 1, 1, 1, 1, 1, 0, 1, 1, 1, 1, 1])
+    passed[1] = True  # a reversal before the window is whole: locks once it is
+    test = CouplingTest(np.zeros(n), f, f, np.zeros(n), full, f)
+    np.testing.assert_array_equal(vision_locked(test, f, passed, causal=True), [0, 0, 0, 0] + [1] * 8)
+    refuted = f.copy()
+    refuted[3] = True  # refuted before it could stand: no lock
+    test = CouplingTest(np.zeros(n), f, refuted, np.zeros(n), full, f)
+    assert not vision_locked(test, f, passed, causal=True).any()
+    assert not vision_locked(test, f, passed, causal=False)[:3].any()
 
 
 def test_expansion_that_does_not_follow_the_accelerometer_is_not_read_as_a_speed():

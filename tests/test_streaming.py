@@ -63,7 +63,7 @@ def test_frame_by_frame_equals_the_whole_record_causal_run(family_footage_small,
     obs = np.array([s.observable for s in states])
     assert np.array_equal(t, ds.time.values)
     assert np.array_equal(obs, ds.observable.values)
-    assert obs.mean() > 0.3, "too few observable estimates for the comparison to mean anything"
+    assert obs.mean() > 0.2, "too few observable estimates for the comparison to mean anything"
     np.testing.assert_allclose(v[obs], ds.v_hat.values[obs], rtol=0, atol=1e-9)
     np.testing.assert_allclose(sd, ds.v_std.values, rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.array([s.accel for s in states]), ds.accel.values, rtol=0, atol=1e-9)
@@ -89,7 +89,8 @@ def test_state_gives_the_3d_velocity_along_the_heading_and_memory_stays_bounded(
     states, est = stream(fo, causal_config())
     seen = [s for s in states if s.observable]
     assert seen and all(np.allclose(s.velocity, s.v * np.array([*s.heading, 1.0])) for s in seen)
-    assert all(np.all(np.isnan(s.velocity)) and s.reason.startswith("posterior std")
+    # unanswered until the coupling test locks vision on, then while σ is too wide; never refuted here
+    assert all(np.all(np.isnan(s.velocity)) and s.reason.startswith(("posterior std", "vision has not yet fixed"))
                for s in states if not s.observable)
     # the readout holds history_s of rows, the IMU its last few seconds, whatever the record's length
     assert est.rows.n - est.rows.first <= int(np.ceil(est.history_s / est.dt)) + 2

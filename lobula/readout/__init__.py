@@ -29,7 +29,9 @@ Two readouts share this arithmetic:
   grows while the camera turns (``accel_turn_noise``), and offline every error of a low-passed
   term counts once per correlation time of the low-pass, not once per frame.
   v̂ is NaN (``observable`` False) wherever the posterior standard deviation exceeds
-  ``max_std_m_s``: the readout says when it does not know.
+  :func:`~lobula.readout.config.std_allowed`, or vision has not fixed the speed or was seen not to
+  follow the accelerometer (:mod:`lobula.readout.coupling`): the readout says when it does not know.
+  Between the moments vision informs it, the accelerometer carries v̂ and σ grows as its errors allow.
 
 The package, one module per concept: :mod:`lobula.readout.config` (:class:`ReadoutConfig`,
 :class:`ReadoutResult`), :mod:`lobula.readout.filters` (low-passes and differences),
@@ -45,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import ReadoutConfig, ReadoutResult, std_allowed
-from .coupling import expansion_coupling, vision_locked, window_full
+from .coupling import CouplingTest, coupling_test, vision_locked
 from .filters import _fill_nan, _integral, _lag, butterworth, gaussian_lowpass, hold_gaps, staggered_difference
 from .kalman import ForwardPass, FilterRecord, _accel_density2, _axis_terms, filter_record, kalman_velocity, predict  # noqa: F401
 from .updates import OUTLIER_GATE, _gated_update, _sign_update, _update, ratio_update  # noqa: F401
@@ -190,13 +192,15 @@ def finish_readout(v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> Read
     :func:`~lobula.readout.config.std_allowed` or vision has not fixed the speed (:mod:`lobula.readout.coupling`)."""
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     zp = cfg.filter == "zero-phase"
-    locked = vision_locked(inp.coupling, inp.still, cfg.coupling_z, causal=not zp, decided=inp.decided)
-    obs = (v_std <= std_allowed(v, cfg)) & locked
+    locked = vision_locked(inp.coupling, inp.still, inp.passed_zero, causal=not zp)
+    obs = (v_std <= std_allowed(v, cfg)) & (locked | inp.coupling.provisional)
     # The direct measurement as the filter takes it: its latency bridged with ∫a (the accelerometer's fast path).
     z = inp.z + inp.ratio[3]
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
                          info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s,
-                                   vision_coupling=inp.coupling, vision_locked=locked))
+                                   vision_coupling=inp.coupling.z, vision_locked=locked,
+                                   vision_informing=(inp.coupling.coupled | inp.still) & ~inp.coupling.refuted,
+                                   vision_refuted=inp.coupling.refuted))
 
 
 @dataclass
@@ -207,8 +211,8 @@ class KalmanInputs:
     (arrays (n,)); delay: s, the measurements' latency; corr_frames: frames over which their errors are
     correlated; v_field (n, F) m/s, r_dot (n, F) 1/s², z and z_std (n,) m/s: the per-field velocities, ṙ̄ and
     the direct vision measurement (of the low-passed v one ``delay`` ago) with its std, for the result;
-    coupling (n,): :func:`lobula.readout.coupling.expansion_coupling`'s z; still (n,) bool: frames the rest
-    bound holds at 0 or a reversal shows v passing 0; decided (n,) bool: frames whose coupling window is whole (:func:`~lobula.readout.coupling.window_full`).
+    coupling: :func:`lobula.readout.coupling.coupling_test`'s verdicts; still, passed_zero (n,) bool: frames the
+    rest bound holds at 0, and frames a reversal (taken by the filter) was seen at.
     """
 
     measurements: list
@@ -222,9 +226,9 @@ class KalmanInputs:
     r_dot: np.ndarray
     z: np.ndarray
     z_std: np.ndarray
-    coupling: np.ndarray
+    coupling: CouplingTest
     still: np.ndarray
-    decided: np.ndarray
+    passed_zero: np.ndarray
 
 
 def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, offset_axis=None,
@@ -284,13 +288,19 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     zr, sr = _rest_bound(r, rf, a, terms[3], cfg, dt, sigma_t, offset_prior)
     kap, skap, e_lp, n_corr = _kappa_measurement(terms, v_f, cfg, dt, sigma_t, offset_prior)
     min_fields = int(np.ceil(cfg.min_valid_fraction * r.shape[1]))  # for the reversals and the sign
-    coupling = expansion_coupling(_field_median(terms[2] - terms[1]), terms[3], dt, cfg.coupling_window_s,
-                                  cfg.cutoff_hz, causal=not zp)
+    coupling = coupling_test(_field_median(terms[2] - terms[1]), terms[3], dt, cfg.coupling_window_s, cfg.cutoff_hz,
+                             not zp, cfg.coupling_z, cfg.coupling_refute_z, cfg.coupling_power_m_s2)
+    # A frame the rest bound holds is a still camera's: the accelerometer's changes there are its own errors
+    # (gravity leaking through a gyro bias), nothing the image should have followed.
+    coupling.refuted &= ~np.isfinite(zr)
     reversal = reversal_measurement(t, r, a, min_fields, cfg.stamp_error_s) if cfg.reversal else None
-    # Frames where vision gives v directly, without κ: the rest bound (v = 0) and the reversals (v passed 0).
-    direct = np.isfinite(zr) | (np.isfinite(reversal[0]) if reversal is not None else False)
-    return KalmanInputs(coupling=coupling, still=direct,
-        decided=window_full(len(t), dt, cfg.coupling_window_s, causal=not zp),
+    # Where the expansion was seen not to follow the acceleration, neither its κ nor its changes of sign
+    # speak of v (lobula.readout.coupling): the filter carries v̂ with the accelerometer there.
+    kap = np.where(coupling.refuted, np.nan, kap)
+    if reversal is not None:
+        reversal = (np.where(coupling.refuted, np.nan, reversal[0]),) + tuple(reversal[1:])
+    return KalmanInputs(coupling=coupling, still=np.isfinite(zr),
+        passed_zero=np.isfinite(reversal[0]) if reversal is not None else np.zeros(len(t), bool),
         measurements=[(zr, sr, 0.0)], ratio=(kap, skap, terms[3], shift, e_lp),
         rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True),
         reversal=reversal,

@@ -100,12 +100,15 @@ class ReadoutConfig:
         v̂ is reported (else unobservable, NaN) where its posterior std is at most ``max_std_m_s`` (m/s)
         or ``max_rel_std`` of |v̂|, whichever is larger: a camera at 8 m/s known to ±0.3 m/s is known
         (the accelerometer's 1 % scale error alone is 0.08 m/s there), one at 0.2 m/s is not.
-    coupling_z, coupling_window_s : float
+    coupling_z, coupling_window_s, coupling_refute_z, coupling_power_m_s2 : float
         Vision fixes the speed only once the fields' ṙ̄ − r²̄ has followed the accelerometer
         (:mod:`lobula.readout.coupling`): Fisher's z of their correlation over ``coupling_window_s``
         (s) must reach ``coupling_z`` (one-sided; 3 is a 0.13 % chance of a coupling in noise), or the
-        rest bound or a reversal give v without κ; once a whole window has passed without that, v̂ is
-        reported unobservable, with the reason (before it, the posterior's std decides alone). 0: off.
+        rest bound must hold v at 0. From then on the filter carries v̂ with the accelerometer, reported
+        while its σ allows, until a whole window over which the low-passed acceleration varied by at
+        least ``coupling_power_m_s2`` (m/s², std) shows z below ``coupling_refute_z``: vision is then
+        refuted, takes no part in the filter, and v̂ is reported unobservable, with the reason.
+        ``coupling_z`` 0: off.
     shared_error_frac, shared_error_s : float
         Vision's a_m = κ·v + b also carries an error all fields share that persists for seconds
         (fast family: +0.07–0.11 m/s² for seconds on end), which per-frame white noise cannot
@@ -185,6 +188,8 @@ class ReadoutConfig:
     max_rel_std: float = 0.05
     coupling_z: float = 3.0
     coupling_window_s: float = 4.0
+    coupling_refute_z: float = 0.0
+    coupling_power_m_s2: float = 0.05
     shared_error_frac: float = 0.5
     shared_error_s: float = 3.0
     r2_term: str = "field"

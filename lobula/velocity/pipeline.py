@@ -164,7 +164,13 @@ def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Foot
         data["vision_coupling"] = ("time", res.info["vision_coupling"], {"units": "1", "long_name":
                                    "Fisher z of the fields' r_dot - r2 against the acceleration (lobula.readout.coupling)"})
         data["vision_locked"] = ("time", res.info["vision_locked"], {"units": "1", "long_name":
-                                 "vision has fixed the speed: coupling reached readout.coupling_z, or the camera held still"})
+                                 "vision has fixed the speed (coupling reached readout.coupling_z, or the camera held "
+                                 "still) and has not since been refuted; between, the accelerometer carries v_hat"})
+        data["vision_informing"] = ("time", res.info["vision_informing"], {"units": "1", "long_name":
+                                    "vision informs v_hat at this frame: the expansion follows the acceleration, or "
+                                    "the rest bound holds"})
+        data["vision_refuted"] = ("time", res.info["vision_refuted"], {"units": "1", "long_name":
+                                  "the acceleration varied over the coupling window and the expansion did not follow"})
     if footage.truth is not None:
         data["v_true"] = ("time", np.interp(rates.t, footage.truth["time_s"], footage.truth["v_forward_m_s"]),
                           {"units": "m/s", "long_name": "ground-truth forward velocity"})

@@ -129,6 +129,7 @@ class VelocityEstimator:
         self._todo: list[int] = []
         self._filter: ForwardPass | None = None
         self._locked = self.config.readout.coupling_z <= 0  # vision has fixed the speed (lobula.readout.coupling)
+        self._passed_zero = False  # a reversal not yet let stand by a whole window
         self._out: list[VelocityState] = []
 
     # ---------------------------------------------------------------- input
@@ -253,18 +254,25 @@ class VelocityEstimator:
                                  inp.sign)[3:]
         v = float(x[0])
         v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
-        self._locked |= bool(inp.coupling[i] >= cfg.coupling_z or inp.still[i])
-        gate = self._locked or not inp.decided[i]
-        obs = v_std <= float(std_allowed(v, cfg)) and gate
+        c = inp.coupling
+        refuted = bool(c.refuted[i])
+        # As lobula.readout.coupling.vision_locked, a frame at a time.
+        self._passed_zero = (self._passed_zero or bool(inp.passed_zero[i])) and not refuted
+        hit = bool(c.coupled[i] or inp.still[i]) or (self._passed_zero and bool(c.full[i]))
+        self._locked = (self._locked or hit) and not refuted
+        obs = v_std <= float(std_allowed(v, cfg)) and (self._locked or bool(c.provisional[i]))
         e = col("epipole")[i]
-        if not gate:
-            reason = (f"the image's expansion has not followed the accelerometer (coupling z "
-                      f"{inp.coupling[i]:.1f} < {cfg.coupling_z:g} over {cfg.coupling_window_s:g} s): vision cannot "
-                      f"fix the speed")
+        if refuted:
+            reason = (f"the image's expansion has not followed the accelerometer (coupling z {c.z[i]:.1f} < "
+                      f"{cfg.coupling_refute_z:g} over {cfg.coupling_window_s:g} s while the acceleration varied by "
+                      f"{c.accel_std[i]:.2f} m/s²): vision cannot fix the speed")
+        elif not (self._locked or c.provisional[i]):
+            reason = (f"vision has not yet fixed the speed: the image's expansion has not followed the accelerometer "
+                      f"(coupling z {c.z[i]:.1f}, {cfg.coupling_z:g} needed)")
         else:
             reason = "" if obs else (f"posterior std {v_std:.3f} m/s above the readout's max_std "
-                                     f"{float(std_allowed(v, cfg)):.3g} m/s: the expansion and the acceleration have not yet "
-                                     f"fixed the speed")
+                                     f"{float(std_allowed(v, cfg)):.3g} m/s: the expansion and the acceleration have not "
+                                     f"fixed the speed, or the accelerometer has carried it too long")
         return VelocityState(float(t[i]), float(col("known")[i]), v if obs else np.nan, v_std, bool(obs), e.copy(),
                              (v * np.array([e[0], e[1], 1.0])) if obs else np.full(3, np.nan), float(a[i]),
                              col("bias")[i].copy(), col("attitude")[i].copy(), reason)
