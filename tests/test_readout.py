@@ -889,6 +889,22 @@ def test_vision_locks_on_then_carries_until_refuted():
     assert not vision_locked(test, f, passed, causal=False)[:3].any()
 
 
+def test_lock_state_steps_as_the_whole_record_rule():
+    """Frame by frame (the streaming estimator's LockState) gives vision_locked's causal answer on every frame."""
+    from lobula.readout.coupling import CouplingTest, LockState, vision_locked
+
+    rng = np.random.default_rng(4)
+    n = 400
+    for _ in range(20):
+        coupled, still, passed, refuted = (rng.random(n) < p for p in rng.uniform(0.0, 0.15, 4))
+        full = np.arange(n) >= rng.integers(0, 100)
+        test = CouplingTest(np.zeros(n), coupled, refuted, np.zeros(n), full, np.zeros(n, bool))
+        want = vision_locked(test, still, passed, causal=True)
+        state = LockState()
+        got = [state.step(*(bool(x[k]) for x in (coupled, still, passed, full, refuted))) for k in range(n)]
+        np.testing.assert_array_equal(got, want)
+
+
 def test_expansion_that_does_not_follow_the_accelerometer_is_not_read_as_a_speed():
     """A camera walking at 1.2 m/s with a gait's acceleration (its mean 0), whose fields' ṙ carries a noise that
     does not follow a (an image stabilised against the body, or a flow in error): κ = a/v is noise, and a readout

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CouplingTest", "coupling_test", "expansion_coupling", "window_full", "vision_locked"]
+__all__ = ["CouplingTest", "coupling_test", "expansion_coupling", "window_full", "vision_locked", "LockState"]
 
 
 def _window_sums(x: np.ndarray, w: int, causal: bool) -> np.ndarray:
@@ -211,3 +211,26 @@ def vision_locked(test: CouplingTest, still, passed_zero, causal: bool) -> np.nd
     stretch = np.cumsum(refuted)  # stretches between refuted frames
     has_hit = np.bincount(stretch, weights=hit.astype(float), minlength=int(stretch[-1]) + 1) > 0
     return has_hit[stretch] & ~refuted
+
+
+@dataclass
+class LockState:
+    """:func:`vision_locked`'s causal rule a frame at a time, for an estimator that sees frames as they come.
+
+    Parameters
+    ----------
+    locked : bool
+        Vision has fixed the speed.
+    passed_zero : bool
+        A reversal was seen that no refuted frame has since undone, waiting for a whole window.
+    """
+
+    locked: bool = False
+    passed_zero: bool = False
+
+    def step(self, coupled: bool, still: bool, passed_zero: bool, full: bool, refuted: bool) -> bool:
+        """Take one frame's verdicts (as :func:`vision_locked` takes them) and return whether vision is locked."""
+        self.passed_zero = (self.passed_zero or passed_zero) and not refuted
+        hit = coupled or still or (self.passed_zero and full)
+        self.locked = (self.locked or hit) and not refuted
+        return self.locked

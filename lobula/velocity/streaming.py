@@ -23,6 +23,7 @@ from lobula.front_ends import get_front_end
 from lobula.imu import HEADING_FIT_BIAS_PRIOR
 from lobula.readout import MaterialRates, kalman_inputs
 from lobula.readout.config import std_allowed
+from lobula.readout.coupling import LockState
 from lobula.readout.kalman import ForwardPass, filter_record
 from lobula.receptive_field import tile_fields
 
@@ -128,8 +129,7 @@ class VelocityEstimator:
         self.gravity_error: float | None = None
         self._todo: list[int] = []
         self._filter: ForwardPass | None = None
-        self._locked = self.config.readout.coupling_z <= 0  # vision has fixed the speed (lobula.readout.coupling)
-        self._passed_zero = False  # a reversal not yet let stand by a whole window
+        self._lock = LockState(locked=self.config.readout.coupling_z <= 0)  # lobula.readout.coupling
         self._out: list[VelocityState] = []
 
     # ---------------------------------------------------------------- input
@@ -256,17 +256,15 @@ class VelocityEstimator:
         v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
         c = inp.coupling
         refuted = bool(c.refuted[i])
-        # As lobula.readout.coupling.vision_locked, a frame at a time.
-        self._passed_zero = (self._passed_zero or bool(inp.passed_zero[i])) and not refuted
-        hit = bool(c.coupled[i] or inp.still[i]) or (self._passed_zero and bool(c.full[i]))
-        self._locked = (self._locked or hit) and not refuted
-        obs = v_std <= float(std_allowed(v, cfg)) and (self._locked or bool(c.provisional[i]))
+        locked = self._lock.step(bool(c.coupled[i]), bool(inp.still[i]), bool(inp.passed_zero[i]), bool(c.full[i]),
+                                 refuted)
+        obs = v_std <= float(std_allowed(v, cfg)) and (locked or bool(c.provisional[i]))
         e = col("epipole")[i]
         if refuted:
             reason = (f"the image's expansion has not followed the accelerometer (coupling z {c.z[i]:.1f} < "
                       f"{cfg.coupling_refute_z:g} over {cfg.coupling_window_s:g} s while the acceleration varied by "
                       f"{c.accel_std[i]:.2f} m/s²): vision cannot fix the speed")
-        elif not (self._locked or c.provisional[i]):
+        elif not (locked or c.provisional[i]):
             reason = (f"vision has not yet fixed the speed: the image's expansion has not followed the accelerometer "
                       f"(coupling z {c.z[i]:.1f}, {cfg.coupling_z:g} needed)")
         else:
