@@ -170,7 +170,7 @@ def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | No
                             step="mid")
     if carried.any():
         ax.fill_between(t, 0, 0.04, where=carried, transform=ax.get_xaxis_transform(), color="tab:cyan", lw=0,
-                        label="v̂ carried by the accelerometer (vision not informing)", step="mid")
+                        label="v̂ carried by the accelerometer alone (no vision measurement)", step="mid")
     if skip > 0 and "v_true" in ds:
         ax.axvspan(t[0], t[0] + skip, color="0.5", alpha=0.08, lw=0, label=f"not scored (first {skip:.3g} s)")
     ax.axhline(0, color="0.4", lw=0.8, zorder=1)

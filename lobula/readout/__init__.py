@@ -199,7 +199,7 @@ def finish_readout(v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> Read
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
                          info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s,
                                    vision_coupling=inp.coupling.z, vision_locked=locked,
-                                   vision_informing=(inp.coupling.coupled | inp.still) & ~inp.coupling.refuted,
+                                   vision_informing=np.isfinite(inp.ratio[0]) | inp.still | inp.passed_zero,
                                    vision_refuted=inp.coupling.refuted))
 
 

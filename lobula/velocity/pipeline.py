@@ -167,8 +167,8 @@ def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Foot
                                  "vision has fixed the speed (coupling reached readout.coupling_z, or the camera held "
                                  "still) and has not since been refuted; between, the accelerometer carries v_hat"})
         data["vision_informing"] = ("time", res.info["vision_informing"], {"units": "1", "long_name":
-                                    "vision informs v_hat at this frame: the expansion follows the acceleration, or "
-                                    "the rest bound holds"})
+                                    "a measurement of vision (kappa, the rest bound or a reversal) entered the filter "
+                                    "at this frame; elsewhere the accelerometer alone carries v_hat"})
         data["vision_refuted"] = ("time", res.info["vision_refuted"], {"units": "1", "long_name":
                                   "the acceleration varied over the coupling window and the expansion did not follow"})
     if footage.truth is not None:
