@@ -104,11 +104,14 @@ def never_observable_reason(ds: xr.Dataset) -> str | None:
                 "throughout")
     if "vision_locked" in ds and not bool(ds.vision_locked.values.astype(bool).any()):
         z = ds.vision_coupling.values.astype(float)
+        refuted = float(ds.vision_refuted.values.astype(bool).mean()) if "vision_refuted" in ds else 0.0
+        seen = (f"; refuted on {100 * refuted:.0f} % of the frames, where the acceleration varied and the expansion "
+                f"showed no positive correlation" if refuted > 0 else "")
         return (f"never observable: the image's expansion never followed the accelerometer (the fields' ṙ − r² "
                 f"against the forward acceleration: Fisher z at most {np.nanmax(z, initial=0.0):.1f}, "
-                f"{float(ro.get('coupling_z', 3.0)):g} needed; lobula.readout.coupling) — vision's κ = a/v is noise "
-                f"here (an image stabilised against the body, a scene that moves, or a steady pace with nothing to "
-                f"follow), so the speed cannot be told; v̂ is NaN throughout")
+                f"{float(ro.get('coupling_z', 3.0)):g} needed{seen}; lobula.readout.coupling) — vision's κ = a/v is "
+                f"noise here (an image stabilised against the body, a scene that moves, or a steady pace with nothing "
+                f"to follow), so the speed cannot be told; v̂ is NaN throughout")
     std = ds.v_std.values.astype(float) if "v_std" in ds else np.full(1, np.nan)
     low = float(np.nanmin(std)) if np.isfinite(std).any() else float("nan")
     return (f"never observable: the posterior std of v̂ never fell below the readout's max_std ({max_std:g} m/s; "

@@ -554,6 +554,10 @@ def test_never_observable_reason_is_read_from_the_stored_run(run2, tmp_path, cap
         assert why.startswith(f"never observable: the posterior std of v̂ never fell below the readout's max_std "
                               f"({cfg['readout']['max_std_m_s']:g} m/s; at best 0.500 m/s)")
         ds["vision_locked"] = ds.vision_locked & False             # vision never locked on
+        ds["vision_refuted"] = ds.vision_refuted & False
         assert "the image's expansion never followed the accelerometer" in never_observable_reason(ds)
+        assert "refuted" not in never_observable_reason(ds)
+        ds["vision_refuted"] = ds.vision_refuted | (ds.time >= ds.time[ds.sizes["time"] // 2])  # the second half
+        assert "refuted on 50 % of the frames" in never_observable_reason(ds)
         ds["r"] = ds.r * np.nan
         assert "no receptive field measured an expansion rate" in never_observable_reason(ds)
