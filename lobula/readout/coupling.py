@@ -29,8 +29,8 @@ where the correlation so far is as strong as a whole window needs, atanh(ρ)·�
 :func:`vision_locked` turns that into where vision has fixed the speed: from a coupled frame (or one
 the rest bound holds at v = 0) on, until a refuted one. In between v̂ is reported while σ stays within
 bounds; where no measurement of vision enters the filter, the integrated accelerometer alone carries it,
-its σ growing as the accelerometer's errors allow. Where vision is refuted the filter takes no κ and no reversal from it, and the
-readout reports no speed, whatever its posterior says, and tells the user why.
+its σ growing as the accelerometer's errors allow. Where vision is refuted the filter takes no κ and no
+reversal from it, and the readout reports no speed, whatever its posterior says, and tells the user why.
 """
 from __future__ import annotations
 
