@@ -269,8 +269,8 @@ class VelocityEstimator:
                       f"(coupling z {c.z[i]:.1f}, {cfg.coupling_z:g} needed)")
         else:
             reason = "" if obs else (f"posterior std {v_std:.3f} m/s above the readout's max_std "
-                                     f"{float(std_allowed(v, cfg)):.3g} m/s: the expansion and the acceleration have not "
-                                     f"fixed the speed, or the accelerometer has carried it too long")
+                                     f"{float(std_allowed(v, cfg)):.3g} m/s: the expansion and the acceleration have "
+                                     f"not fixed the speed, or the accelerometer has carried it too long")
         return VelocityState(float(t[i]), float(col("known")[i]), v if obs else np.nan, v_std, bool(obs), e.copy(),
                              (v * np.array([e[0], e[1], 1.0])) if obs else np.full(3, np.nan), float(a[i]),
                              col("bias")[i].copy(), col("attitude")[i].copy(), reason)
