@@ -244,24 +244,24 @@ class PlatformPlan:
             return self.base(t, order)
         return _product(lambda o: self.base(t, o), lambda o: (o == 0) + self._gait(t, o)[..., 0], order)
 
+    def _gait_and_free(self, t, order: int, width: int, gait, free) -> np.ndarray:
+        """A gait term scaled by the stride's envelope plus a free term, shape (..., width), or their derivatives;
+        either term may be None (none)."""
+        out = np.zeros(t.shape + (width,))
+        if gait is not None:
+            out = out + _product(lambda o: self.envelope(t, o)[..., None], lambda o: gait(t, o), order)
+        if free is not None:
+            out = out + free(t, order)
+        return out
+
     def offsets(self, t, order: int = 0) -> np.ndarray:
         """Lateral and vertical offset (x, y) of the camera (m), shape (..., 2), or its derivatives."""
-        t = np.asarray(t, dtype=float)
-        out = np.zeros(t.shape + (2,))
-        if self._sway is not None:
-            out = out + _product(lambda o: self.envelope(t, o)[..., None], lambda o: self._sway(t, o), order)
-        if self._drift is not None:
-            out = out + self._drift(t, order)
-        return out
+        return self._gait_and_free(np.asarray(t, dtype=float), order, 2, self._sway, self._drift)
 
     def angles(self, t, order: int = 0) -> np.ndarray:
         """Camera (yaw, pitch, roll) (rad), shape (..., 3); order 1 gives their rates (rad/s)."""
         t = np.asarray(t, dtype=float)
-        out = np.zeros(t.shape + (3,))
-        if self._gait_angles is not None:
-            out = out + _product(lambda o: self.envelope(t, o)[..., None], lambda o: self._gait_angles(t, o), order)
-        if self._free_angles is not None:
-            out = out + self._free_angles(t, order)
+        out = self._gait_and_free(t, order, 3, self._gait_angles, self._free_angles)
         if self.pitch_per_accel:
             out[..., 1] += self.pitch_per_accel * self.speed(t, order + 1)
         return out
