@@ -139,15 +139,15 @@ class EyeVelocityConfig:
         within ±0.02.
     rest_bound : bool
         Whether the readout may take "no detectable expansion" as a bound on the speed
-        (:func:`lobula.readout.rest_measurement`, |v| ≤ d_max·(|r̄| + 2·SE)). The bound assumes
-        fields that measure r̄ = v/d at gain 1; the fly's EMDs at Δφ = 5° decode γ·v/D with
-        γ = 0.28–0.37 in a corridor at every speed (dev seed 100, pooled over the fields against
-        the exact v/D) and 0.9–1.0 on panels, so "no detectable expansion" bounds |v| by d_max/γ
-        and the bound calls slow flight rest. False (default): the bound only where the image is
-        frozen (depth bound 10⁶ m); elsewhere at rest v̂ rests on the accelerometer and the readout
-        says when it cannot tell (NaN). On dev seeds 100–103 (causal, accelerometer, both eyes'
-        fields) the corridor's mean RMSE is 0.054 m/s without the bound against 0.111 with it,
-        panels and rotation the same. True: the bound as for the camera.
+        (:func:`lobula.readout.rest_measurement`, |v| ≤ D·(|r̄| + 2·SE)). The fly's EMDs at Δφ = 5°
+        decode γ·v/D with γ = 0.28–0.37 in a corridor at every speed (dev seed 100, pooled over the
+        fields against the exact v/D) and 0.9–1.0 on panels, so a depth given in metres
+        (``readout.rest_depth_max_m``) bounds |v| by D/γ and calls slow flight rest (on dev seeds
+        100–103, causal, a 5 m depth: corridor RMSE 0.111 m/s against 0.054 without the bound). The
+        depth the readout learns, a/(ṙ̄ − r²̄), carries the same 1/γ, so the bound on it holds at any
+        gain. False (default): the bound only where the image is frozen (depth bound 10⁶ m);
+        elsewhere at rest v̂ rests on the accelerometer and the readout says when it cannot tell (NaN).
+        True: the bound as for the camera.
     reliability_min : float
         A field's output reaches the readout only at steps where its causal slow-to-fast power
         ratio (:func:`lobula.eye_circuit.field_reliability`, running means over

@@ -234,6 +234,11 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
                         "fixes the speed (lobula.readout.coupling, ReadoutConfig.coupling_z); 0 turns the test off and "
                         "the posterior's std decides alone — a clip of 2-3 s rarely shows enough to reach 3, and a "
                         "stabilised or moving image shows a κ that is noise (default: 3)")
+    v.add_argument("--rest-depth", type=POSITIVE, metavar="M",
+                   help="the farthest the scene's typical (median) surface lies, in metres, when no expansion is "
+                        "taken to mean the camera is still (ReadoutConfig.rest_depth_max_m): about 5 in a room. "
+                        "Without it the depth is learned from the footage while vision measures it, and no flow in a "
+                        "scene not yet measured (a still start, a distant view) bounds nothing (default: learned)")
     v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo) "
                                  "(default: none)")
     _flo_options(v)

@@ -98,25 +98,33 @@ def test_euroc_frames_are_undistorted(euroc):
 
 @pytest.mark.parametrize("filt", ["causal", "zero-phase"])
 def test_euroc_stationary_reports_no_motion(euroc, tmp_path, capsys, filt):
-    out = tmp_path / f"{filt}.nc"
-    code, _, err = cli(capsys, "velocity", euroc, "--out", out, "--filter", filt, "--quiet")
-    assert code == 0, err
-    ds = xr.open_dataset(out)
-    v, s, obs = ds.v_hat.values, ds.v_std.values, ds.observable.values
-    rms = float(np.sqrt(np.nanmean(np.where(np.isfinite(v), v, 0.0) ** 2)))
-    assert rms <= 0.01, rms
-    # never confidently moving: wherever it claims a speed, zero is inside ±2σ — while the platform is
-    # still. Its last 0.8 s hold a −0.1 → −0.29 m/s² step in the forward specific force (rotors spinning
-    # up, or the take-off beginning; the copy has no ground truth to tell): there v̂ leans to −0.015 m/s,
-    # at 2.0003σ, so those 0.8 s are left out.
-    t = ds.time.values - ds.time.values[0]
-    still = obs & (t <= t[-1] - 0.8)
-    assert np.all(np.abs(v[still]) <= 2 * s[still]), np.nanmax(np.abs(v[still]) / s[still])
-    assert np.all(np.abs(v[obs]) <= 2.5 * s[obs]), np.nanmax(np.abs(v) / s)
-    # a still camera in a room is *known* to be still (no expansion anywhere, depths bounded),
-    # not unobservable: both filters say so for most frames (online after its first latency)
-    assert obs.mean() >= 0.8, obs.mean()
-    assert ds.attrs["footage_layout"] == "euroc" and "radial-tangential" in ds.attrs["lens_distortion"]
+    """The MAV stands still all through: no expansion, but no depth measured either. By default no speed
+    is claimed (nothing has shown how far the room is); told the room's depth (--rest-depth 5), a still
+    camera in it is known to be still."""
+    for depth in (None, 5.0):
+        out = tmp_path / f"{filt}-{depth}.nc"
+        code, _, err = cli(capsys, "velocity", euroc, "--out", out, "--filter", filt, "--quiet",
+                           *(["--rest-depth", str(depth)] if depth else []))
+        assert code == 0, err
+        ds = xr.open_dataset(out)
+        v, s, obs = ds.v_hat.values, ds.v_std.values, ds.observable.values
+        if depth is None:
+            assert obs.mean() <= 0.1, obs.mean()   # the first provisional frames at most
+            assert np.all(np.abs(v[obs]) <= 2 * s[obs])
+            continue
+        rms = float(np.sqrt(np.nanmean(np.where(np.isfinite(v), v, 0.0) ** 2)))
+        assert rms <= 0.01, rms
+        # never confidently moving: wherever it claims a speed, zero is inside ±2σ — while the platform is
+        # still. Its last 0.8 s hold a −0.1 → −0.29 m/s² step in the forward specific force (rotors spinning
+        # up, or the take-off beginning; the copy has no ground truth to tell): there v̂ leans to −0.015 m/s,
+        # at 2.0003σ, so those 0.8 s are left out.
+        t = ds.time.values - ds.time.values[0]
+        still = obs & (t <= t[-1] - 0.8)
+        assert np.all(np.abs(v[still]) <= 2 * s[still]), np.nanmax(np.abs(v[still]) / s[still])
+        assert np.all(np.abs(v[obs]) <= 2.5 * s[obs]), np.nanmax(np.abs(v) / s)
+        # no expansion anywhere in a room of known depth: both filters say so for most frames
+        assert obs.mean() >= 0.8, obs.mean()
+        assert ds.attrs["footage_layout"] == "euroc" and "radial-tangential" in ds.attrs["lens_distortion"]
 
 
 def _euroc_copy(euroc, dst: Path, imu=True) -> Path:

@@ -63,7 +63,8 @@ def test_frame_by_frame_equals_the_whole_record_causal_run(family_footage_small,
     obs = np.array([s.observable for s in states])
     assert np.array_equal(t, ds.time.values)
     assert np.array_equal(obs, ds.observable.values)
-    assert obs.mean() > 0.2, "too few observable estimates for the comparison to mean anything"
+    # rotation's 4 s answer least (14 %, 16 frames): v passes 0 at 2 s, before which vision has not locked on
+    assert obs.mean() > 0.1, "too few observable estimates for the comparison to mean anything"
     np.testing.assert_allclose(v[obs], ds.v_hat.values[obs], rtol=0, atol=1e-9)
     np.testing.assert_allclose(sd, ds.v_std.values, rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.array([s.accel for s in states]), ds.accel.values, rtol=0, atol=1e-9)

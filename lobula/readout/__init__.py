@@ -54,7 +54,7 @@ from .updates import OUTLIER_GATE, _gated_update, _sign_update, _update, ratio_u
 from .measurements import (NO_EXPANSION_SE, REVERSAL_MAX_GAP_S, SIGN_PERSIST_S, MaterialRates,
                            accelerometer_level, accelerometer_steady, clear_expansion, expansion_sign,
                            field_velocity, median_and_error, physical_kappa, ratio_measurement, readout_lag,
-                           readout_terms, rest_measurement, reversal_measurement, signed_expansion,
+                           readout_terms, rest_measurement, reversal_measurement, scene_depth, signed_expansion,
                            vision_measurement)
 from .paper import paper_readout
 from .smoothers import fixed_lag_smooth, rts_smooth
@@ -62,7 +62,7 @@ from .smoothers import fixed_lag_smooth, rts_smooth
 __all__ = [
     "ReadoutConfig", "ReadoutResult", "MaterialRates", "readout", "kalman_readout", "paper_readout",
     "readout_terms", "readout_lag", "vision_measurement", "ratio_measurement", "physical_kappa",
-    "rest_measurement", "reversal_measurement", "expansion_sign", "clear_expansion", "signed_expansion",
+    "rest_measurement", "scene_depth", "reversal_measurement", "expansion_sign", "clear_expansion", "signed_expansion",
     "field_velocity", "median_and_error", "accelerometer_level", "accelerometer_steady",
     "kalman_velocity", "predict", "ratio_update", "rts_smooth", "fixed_lag_smooth",
     "butterworth", "gaussian_lowpass", "staggered_difference", "hold_gaps",
@@ -200,7 +200,7 @@ def finish_readout(v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> Read
                          info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s,
                                    vision_coupling=inp.coupling.z, vision_locked=locked,
                                    vision_informing=np.isfinite(inp.ratio[0]) | inp.still | inp.passed_zero,
-                                   vision_refuted=inp.coupling.refuted))
+                                   vision_refuted=inp.coupling.refuted, scene_depth=inp.scene_depth))
 
 
 @dataclass
@@ -212,7 +212,9 @@ class KalmanInputs:
     correlated; v_field (n, F) m/s, r_dot (n, F) 1/s², z and z_std (n,) m/s: the per-field velocities, ṙ̄ and
     the direct vision measurement (of the low-passed v one ``delay`` ago) with its std, for the result;
     coupling: :func:`lobula.readout.coupling.coupling_test`'s verdicts; still, passed_zero (n,) bool: frames the
-    rest bound holds at 0, and frames a reversal (taken by the filter) was seen at.
+    rest bound holds at 0, and frames a reversal (taken by the filter) was seen at; scene_depth (n,) m: the scene's depth
+    as learned so far (:func:`~lobula.readout.measurements.scene_depth`; NaN: none yet, inf: too far to bound), which
+    the rest bound takes × ``rest_depth_margin`` unless ``rest_depth_max_m`` gives one.
     """
 
     measurements: list
@@ -229,10 +231,11 @@ class KalmanInputs:
     coupling: CouplingTest
     still: np.ndarray
     passed_zero: np.ndarray
+    scene_depth: np.ndarray
 
 
 def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, offset_axis=None,
-                  offset_axis_prior=0.0, dt: float | None = None) -> KalmanInputs:
+                  offset_axis_prior=0.0, dt: float | None = None, rest_depth_seen: float = np.nan) -> KalmanInputs:
     """The kalman readout's measurements from the fields' rates and the forward acceleration.
 
     Online (``cfg.filter`` "causal") each frame's inputs depend on that frame and those before it only,
@@ -254,6 +257,8 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         As :func:`readout` takes them.
     dt : float, optional
         s: the frame interval (None: the median of t's differences).
+    rest_depth_seen : float
+        m: the scene depth learned before ``t[0]`` (online, a stream's earlier frames; NaN: none).
 
     Returns
     -------
@@ -285,11 +290,15 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     # The prior std of the acceleration's whole forward offset: the accelerometer's own, and the
     # start frame's gravity error where the filter tracks it apart (offset_axis).
     offset_prior = float(np.hypot(cfg.bias_prior_m_s2, np.max(offset_axis_prior) if offset_axis is not None else 0.0))
-    zr, sr = _rest_bound(r, rf, a, terms[3], cfg, dt, sigma_t, offset_prior)
     kap, skap, e_lp, n_corr = _kappa_measurement(terms, v_f, cfg, dt, sigma_t, offset_prior)
     min_fields = int(np.ceil(cfg.min_valid_fraction * r.shape[1]))  # for the reversals and the sign
     coupling = coupling_test(_field_median(terms[2] - terms[1]), terms[3], dt, cfg.coupling_window_s, cfg.cutoff_hz,
                              not zp, cfg.coupling_z, cfg.coupling_refute_z, cfg.coupling_power_m_s2)
+    seen = scene_depth(terms[0], v_f, np.isfinite(z), coupling.coupled, dt, 1.0 / cfg.cutoff_hz, not zp,
+                       rest_depth_seen)
+    depth = (cfg.rest_depth_margin * seen if cfg.rest_depth_max_m is None  # the footage's own depth, or the user's
+             else np.full(len(t), float(cfg.rest_depth_max_m)))
+    zr, sr = _rest_bound(r, rf, a, terms[3], depth, cfg, dt, sigma_t, offset_prior)
     # A frame the rest bound holds is a still camera's: the accelerometer's changes there are its own errors
     # (gravity leaking through a gyro bias), nothing the image should have followed.
     coupling.refuted &= ~np.isfinite(zr)
@@ -299,7 +308,7 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     kap = np.where(coupling.refuted, np.nan, kap)
     if reversal is not None:
         reversal = (np.where(coupling.refuted, np.nan, reversal[0]),) + tuple(reversal[1:])
-    return KalmanInputs(coupling=coupling, still=np.isfinite(zr),
+    return KalmanInputs(coupling=coupling, still=np.isfinite(zr), scene_depth=seen,
         passed_zero=np.isfinite(reversal[0]) if reversal is not None else np.zeros(len(t), bool),
         measurements=[(zr, sr, 0.0)], ratio=(kap, skap, terms[3], shift, e_lp),
         rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True),
@@ -308,7 +317,7 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         delay=delay, corr_frames=n_corr, v_field=v_f, r_dot=r_dot, z=z, z_std=s)
 
 
-def _rest_bound(r, rf, a, a_lp, cfg: ReadoutConfig, dt: float, sigma_t: float, offset_prior: float):
+def _rest_bound(r, rf, a, a_lp, depth, cfg: ReadoutConfig, dt: float, sigma_t: float, offset_prior: float):
     """The kalman readout's rest bound (:func:`rest_measurement`), where the accelerometer allows it.
 
     Parameters
@@ -321,6 +330,8 @@ def _rest_bound(r, rf, a, a_lp, cfg: ReadoutConfig, dt: float, sigma_t: float, o
         m/s²: the forward acceleration as read.
     a_lp : ndarray, (n,)
         m/s²: the low-passed acceleration, as the readout's terms have it.
+    depth : ndarray, (n,)
+        m: the farthest the fields' median depth may be (NaN or inf: unknown, no bound).
     cfg : ReadoutConfig
     dt : float
         s: the frame interval.
@@ -340,7 +351,7 @@ def _rest_bound(r, rf, a, a_lp, cfg: ReadoutConfig, dt: float, sigma_t: float, o
     # Whether the image expands needs no derivative and no band-limiting: online it is judged
     # on the newest fields' r̄ (no latency to bridge with an offset-laden ∫a), offline on the
     # low-passed r̄ like everything else.
-    zr, sr = rest_measurement(rf if zp else r, cfg)
+    zr, sr = rest_measurement(rf if zp else r, cfg, depth)
     # A far backdrop or the sky can fill most fields and show no expansion while the camera
     # moves (suite ground family, seed 0: with a 160-px DIS grid the bound alone holds v at 0
     # ± 0.02 m/s while it reaches −0.2 and pins a wrong offset for the whole record, 0.40 m/s

@@ -44,8 +44,15 @@ class ReadoutConfig:
         rather than biasing v̂.
     min_valid_fraction : float
         Fraction of the fields that must agree on a physical depth.
-    rest_depth_max_m : float
-        m: the farthest depth assumed in view when judging that no flow means no motion.
+    rest_depth_max_m : float or None
+        m: the farthest the fields' median depth may be when judging that no flow means no motion
+        (:func:`~lobula.readout.measurements.rest_measurement`). None (the default): the footage's own,
+        learned where vision has fixed the speed (:func:`~lobula.readout.measurements.scene_depth`)
+        — no bound before any is learned, and none in a scene mostly beyond what the acceleration
+        reveals. A number is the user's knowledge of the scene (a room: about 5).
+    rest_depth_margin : float
+        The learned depth is widened by this factor: a camera may stop where the scene is deeper than
+        anything it showed while accelerating (backing away from a wall).
     rest_accel_change_m_s2 : float
         m/s²: that judgement is made only where the accelerometer's forward reading (smoothed over
         5 frames) stays within this of a line (an offset and its ramp) over the last second
@@ -172,7 +179,8 @@ class ReadoutConfig:
     depth_min_m: float = 0.1
     depth_max_m: float = 2000.0
     min_valid_fraction: float = 0.25
-    rest_depth_max_m: float = 5.0
+    rest_depth_max_m: float | None = None
+    rest_depth_margin: float = 2.0
     rest_accel_change_m_s2: float = 0.05
     accel_noise: float = 0.01
     accel_turn_noise: float = 0.1
@@ -217,6 +225,10 @@ class ReadoutConfig:
             raise ValueError(f"online_window_sigma must be a positive number of σ, got {self.online_window_sigma}")
         if not (np.isfinite(self.stamp_error_s) and self.stamp_error_s >= 0):
             raise ValueError(f"stamp_error_s must be a finite number of seconds >= 0, got {self.stamp_error_s}")
+        if self.rest_depth_max_m is not None and not self.rest_depth_max_m > 0:
+            raise ValueError(f"rest_depth_max_m must be a depth in metres > 0 or None (learned), got {self.rest_depth_max_m}")
+        if not (np.isfinite(self.rest_depth_margin) and self.rest_depth_margin >= 1.0):
+            raise ValueError(f"rest_depth_margin must be a finite factor >= 1, got {self.rest_depth_margin}")
         if not 0.0 <= self.accel_scale_error < 1.0:
             raise ValueError(f"accel_scale_error is a fraction in [0, 1), got {self.accel_scale_error}")
 

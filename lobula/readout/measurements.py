@@ -258,26 +258,84 @@ def expansion_sign(t: np.ndarray, r: np.ndarray, min_fields: int, persist_s: flo
     return out
 
 
-def rest_measurement(r, cfg: ReadoutConfig):
-    """v = r·d with 0 < d ≤ rest_depth_max: no detectable expansion bounds |v|.
+def scene_depth(r, v_f, informative, coupled, dt: float, window_s: float, causal: bool, seen: float = np.nan):
+    """m: the depth the rest bound takes, learned from the footage while vision measured it.
 
-    Translation makes every field's r̄ = v/d_f of one sign (v's), while flow noise and residual
+    Where translation makes the fields' r̄_f = v/d_f, their signed median is r̄_m = v/D with D the
+    median of the fields' depths (1/x keeps the median's place), so |v| = |r̄_m|·D. Each frame on
+    which vision has fixed the speed (``coupled``) and measures (``informative``) gives every field's
+    depth d_f = v_f/r̄_f = a/(ṙ̄ − r²̄) (no v needed); a field that implies no physical depth (the
+    sky, a far town, noise) counts as infinitely far, so a scene mostly beyond what the
+    acceleration reveals has D = ∞ and no bound. D is each frame's median over fields, then the
+    median over the last ``window_s`` (a frame whose ṙ̄ − r²̄ crosses zero says nothing), then the
+    largest so far (online) or over the record (offline): the farthest the scene has been seen to be.
+    Before any such frame there is no depth and no bound: "no flow" in a scene of unknown depth
+    bounds nothing (a drone hovering 20 m up drifting at 0.3 m/s shows less flow than a still camera's
+    noise).
+
+    Parameters
+    ----------
+    r : ndarray, (n, F)
+        1/s: the fields' r̄, NaN where a field has none.
+    v_f : ndarray, (n, F)
+        m/s: the fields' velocities a·r̄/(ṙ̄ − r²̄), NaN where rejected (:func:`vision_measurement`).
+    informative, coupled : ndarray of bool, (n,)
+        Frames with a vision measurement, and frames where it follows the accelerometer
+        (:mod:`lobula.readout.coupling`).
+    dt, window_s : float
+        s: the frame interval and the window of the per-frame medians' median.
+    causal : bool
+        Online: the largest depth up to each frame (trailing windows); offline: over the record.
+    seen : float
+        m: the largest depth learned before the first frame (online, a stream's earlier rows; NaN: none).
+
+    Returns
+    -------
+    ndarray, (n,)
+        m: NaN where no depth has been learned, inf where the scene was too far to bound.
+    """
+    n = len(r)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = v_f / r
+    d = np.where(np.isfinite(r), np.where(np.isfinite(d) & (d > 0), d, np.inf), np.nan)
+    use = np.asarray(informative, bool) & np.asarray(coupled, bool) & (np.isfinite(r).sum(1) >= 3)
+    per_frame = np.full(n, np.nan)
+    if use.any():
+        per_frame[use] = np.nanmedian(d[use], axis=1)
+    w = max(1, int(round(window_s / dt)))
+    padded = np.concatenate([np.full(w - 1, np.nan), per_frame])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # windows without a frame that measured
+        windowed = np.nanmedian(np.lib.stride_tricks.sliding_window_view(padded, w), axis=1)
+    windowed = np.where(np.isfinite(windowed) | np.isinf(windowed), windowed, np.nan)
+    if causal:
+        return np.fmax.accumulate(np.concatenate([[seen], windowed]))[1:]
+    return np.full(n, np.fmax(np.nanmax(windowed) if np.any(~np.isnan(windowed)) else np.nan, seen))
+
+
+def rest_measurement(r, cfg: ReadoutConfig, depth_m=None):
+    """v = r·d with 0 < d ≤ the scene's depth: no detectable expansion bounds |v|.
+
+    Translation makes every field's r̄ = v/d of one sign (v's), while flow noise and residual
     rotation scatter the fields' r̄ about zero (rotation's divergence is odd across the image).
     So the fields' *signed* median r̄_m, known to within its standard error SE
     (1.253·1.4826·MAD/√n), tells: where |r̄_m| ≤ 3·SE no expansion is detected (3·SE, not 2·SE:
     r̄ also carries small non-translational biases — an epipole that wanders while nothing
     moves, a derotation with a biased gyro — which on the real still EuRoC sequence 2·SE calls
     motion on a third of the frames), and the speed
-    is bounded by |v| ≤ d_max·(|r̄_m| + 2·SE) at 95%, that bound being the measurement's 2σ.
+    is bounded by |v| ≤ D·(|r̄_m| + 2·SE) at 95%, that bound being the measurement's 2σ, with D
+    the fields' median depth (:func:`scene_depth`).
     (The median of |r̄| would count the noise as motion: a still camera's DIS flow noise alone
     is ~0.02 1/s per field, which at 5 m is 0.1 m/s.) Where expansion is detected the camera
-    moves, and a bound resting on an assumed depth would only pull v̂ toward 0: not used.
+    moves, and a bound resting on a depth would only pull v̂ toward 0: not used.
 
     Parameters
     ----------
     r : ndarray, (n, F)
         1/s, NaN where a field has none.
     cfg : ReadoutConfig
+    depth_m : float or ndarray, (n,), optional
+        m: D, NaN or inf where unknown or unbounded (no bound); None: ``cfg.rest_depth_max_m``.
 
     Returns
     -------
@@ -286,11 +344,16 @@ def rest_measurement(r, cfg: ReadoutConfig):
     std : ndarray, (n,)
         m/s, NaN where the bound is not used.
     """
+    if depth_m is None:
+        if cfg.rest_depth_max_m is None:
+            raise ValueError("rest_measurement needs the scene's depth: depth_m, or ReadoutConfig.rest_depth_max_m")
+        depth_m = cfg.rest_depth_max_m
     r_med, se, n = signed_expansion(r)
-    std = np.maximum(0.5 * cfg.rest_depth_max_m * (np.abs(r_med) + 2.0 * se), cfg.meas_floor_m_s)
+    with np.errstate(invalid="ignore"):
+        std = np.maximum(0.5 * np.asarray(depth_m, float) * (np.abs(r_med) + 2.0 * se), cfg.meas_floor_m_s)
     # It is a bound, not a noisy sample: repeating a loose bound frame after frame must
     # not add up to confidence, so it only counts where it alone would be decisive.
-    use = (np.isfinite(r_med) & (n >= max(3, cfg.min_valid_fraction * r.shape[1]))
+    use = (np.isfinite(r_med) & np.isfinite(std) & (n >= max(3, cfg.min_valid_fraction * r.shape[1]))
            & (np.abs(r_med) <= NO_EXPANSION_SE * se) & (std <= 0.5 * cfg.max_std_m_s))
     return np.where(use, 0.0, np.nan), np.where(use, std, np.nan)
 

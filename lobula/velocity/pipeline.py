@@ -171,6 +171,10 @@ def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Foot
                                     "at this frame; elsewhere the accelerometer alone carries v_hat"})
         data["vision_refuted"] = ("time", res.info["vision_refuted"], {"units": "1", "long_name":
                                   "the acceleration varied over the coupling window and the expansion did not follow"})
+        data["scene_depth"] = ("time", res.info["scene_depth"], {"units": "m", "long_name":
+                               "the fields' median depth as the footage has shown it while vision followed the "
+                               "accelerometer (lobula.readout.scene_depth): the rest bound's depth; NaN: none yet, "
+                               "inf: a scene too far to bound the speed by"})
     if footage.truth is not None:
         data["v_true"] = ("time", np.interp(rates.t, footage.truth["time_s"], footage.truth["v_forward_m_s"]),
                           {"units": "m/s", "long_name": "ground-truth forward velocity"})

@@ -130,6 +130,7 @@ class VelocityEstimator:
         self._todo: list[int] = []
         self._filter: ForwardPass | None = None
         self._lock = LockState(locked=self.config.readout.coupling_z <= 0)  # lobula.readout.coupling
+        self._rest_depth = np.nan  # m: the scene depth learned so far (lobula.readout.scene_depth)
         self._out: list[VelocityState] = []
 
     # ---------------------------------------------------------------- input
@@ -245,11 +246,13 @@ class VelocityEstimator:
         t, a, axis = col("t"), col("a"), col("axis")
         material = (MaterialRates(col("m_r"), col("m_r2"), col("m_rdot")) if self.pooling.material is not None
                     else None)
-        inp = kalman_inputs(t, col("r"), col("r2"), a, cfg, material, axis, self.gravity_error, dt=self.dt)
+        inp = kalman_inputs(t, col("r"), col("r2"), a, cfg, material, axis, self.gravity_error, dt=self.dt,
+                            rest_depth_seen=self._rest_depth)
         rec = filter_record(t, a, axis, col("lam"), col("tau"), col("drift"), col("turn"), col("walk"))
         if self._filter is None:
             self._filter = ForwardPass(cfg, 3, col("drift"), self.gravity_error, False, inp.corr_frames)
         i = k - lo
+        self._rest_depth = float(np.fmax(self._rest_depth, inp.scene_depth[i]))
         x, P = self._filter.step(i, rec, inp.delay, inp.measurements, inp.ratio, inp.rest_accel, inp.reversal,
                                  inp.sign)[3:]
         v = float(x[0])
