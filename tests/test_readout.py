@@ -1021,3 +1021,35 @@ def test_the_std_that_is_reported_scales_with_the_speed():
     rmse, cover, obs = _score(res, v, t)
     assert obs >= 0.75 and cover > 0.9 and rmse < 0.2, (rmse, cover, obs)
     assert np.nanmax(res.v_std[res.observable]) > 0.1  # reported although beyond the absolute 0.1 m/s
+
+
+@pytest.mark.parametrize("filt", ["zero-phase", "causal"])
+def test_vision_enters_the_filter_only_once_it_has_fixed_the_speed(filt):
+    """A camera at a steady 1 m/s past fields 3-8 m away whose ṙ̄ − r²̄ is noise (an image that does not
+    follow the body's small accelerations): κ scatters about 0 and nothing couples or refutes. Taken at its
+    stated error, that noise settles the filter on a confident v; left out until vision locks on, the
+    offline filter's σ says how little is known and covers the truth. Online the first 4 s, before the
+    coupling window is whole, still take κ (lobula.readout.gate_by_lock), and what they settled is carried."""
+    from lobula.readout import kalman_inputs, kalman_velocity
+
+    t = np.arange(0, 12, 1 / 30)
+    rng = np.random.default_rng(5)
+    d = rng.uniform(3, 8, 30)
+    r = np.tile(1.0 / d, (len(t), 1)) + rng.normal(0, 0.01, (len(t), 30))
+    a = rng.normal(0, 0.01, t.shape)
+    cfg = ReadoutConfig(filter=filt)
+    out = {}
+    for gate in (True, False):
+        inp = kalman_inputs(t, r, r ** 2, a, cfg, gate=gate)
+        v, sd = kalman_velocity(t, a, inp.measurements, cfg, smooth=filt == "zero-phase", ratio=inp.ratio,
+                                delay=inp.delay, corr_frames=inp.corr_frames, rest_accel=inp.rest_accel,
+                                reversal=inp.reversal)
+        late = t >= 4.0
+        out[gate] = (float(np.mean(np.abs(v[late] - 1.0) <= 2 * sd[late])), float(np.median(sd[late])),
+                     int(np.isfinite(inp.ratio[0][late]).sum()))
+    assert out[True][2] == 0, out          # never locked: no κ once the window is whole
+    assert out[False][2] > 100, out        # the κ the gate leaves out is there
+    if filt == "zero-phase":
+        assert out[True][0] == 1.0, out
+        assert out[False][0] < 0.5, out
+    assert not readout(t, r, r ** 2, a, cfg).observable[t >= 4.0].any()

@@ -64,7 +64,7 @@ __all__ = [
     "readout_terms", "readout_lag", "vision_measurement", "ratio_measurement", "physical_kappa",
     "rest_measurement", "scene_depth", "reversal_measurement", "expansion_sign", "clear_expansion", "signed_expansion",
     "field_velocity", "median_and_error", "accelerometer_level", "accelerometer_steady",
-    "kalman_velocity", "predict", "ratio_update", "rts_smooth", "fixed_lag_smooth",
+    "kalman_inputs", "gate_by_lock", "kalman_velocity", "predict", "ratio_update", "rts_smooth", "fixed_lag_smooth",
     "butterworth", "gaussian_lowpass", "staggered_difference", "hold_gaps",
     "NO_EXPANSION_SE", "SIGN_PERSIST_S", "REVERSAL_MAX_GAP_S", "OUTLIER_GATE",
 ]
@@ -235,7 +235,8 @@ class KalmanInputs:
 
 
 def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, offset_axis=None,
-                  offset_axis_prior=0.0, dt: float | None = None, rest_depth_seen: float = np.nan) -> KalmanInputs:
+                  offset_axis_prior=0.0, dt: float | None = None, rest_depth_seen: float = np.nan,
+                  gate: bool = True) -> KalmanInputs:
     """The kalman readout's measurements from the fields' rates and the forward acceleration.
 
     Online (``cfg.filter`` "causal") each frame's inputs depend on that frame and those before it only,
@@ -259,6 +260,9 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         s: the frame interval (None: the median of t's differences).
     rest_depth_seen : float
         m: the scene depth learned before ``t[0]`` (online, a stream's earlier frames; NaN: none).
+    gate : bool
+        Leave κ and the reversals out where vision has not fixed the speed (:func:`gate_by_lock`), as this
+        stretch's verdicts say; a stream, whose lock holds from before the stretch, gates each row itself.
 
     Returns
     -------
@@ -308,13 +312,38 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     kap = np.where(coupling.refuted, np.nan, kap)
     if reversal is not None:
         reversal = (np.where(coupling.refuted, np.nan, reversal[0]),) + tuple(reversal[1:])
+    passed_zero = np.isfinite(reversal[0]) if reversal is not None else np.zeros(len(t), bool)
+    if gate:
+        kap, reversal = gate_by_lock(kap, reversal,
+                                     vision_locked(coupling, np.isfinite(zr), passed_zero, causal=not zp)
+                                     | coupling.provisional | ~coupling.full)
     return KalmanInputs(coupling=coupling, still=np.isfinite(zr), scene_depth=seen,
-        passed_zero=np.isfinite(reversal[0]) if reversal is not None else np.zeros(len(t), bool),
+        passed_zero=passed_zero,
         measurements=[(zr, sr, 0.0)], ratio=(kap, skap, terms[3], shift, e_lp),
         rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True),
         reversal=reversal,
         sign=expansion_sign(t, rf if zp else r, min_fields) if cfg.sign else None,
         delay=delay, corr_frames=n_corr, v_field=v_f, r_dot=r_dot, z=z, z_std=s)
+
+
+def gate_by_lock(kappa, reversal, trusted):
+    """κ (n,) and the reversals (:func:`reversal_measurement`'s arrays, or None) left out where vision has not
+    fixed the speed (``trusted`` (n,) bool; :mod:`lobula.readout.coupling`).
+
+    :func:`kalman_inputs` trusts frames that are locked, answered provisionally, or whose coupling window is
+    not yet whole: a lock needs a whole window (4 s), and a filter that waited for it would start from nothing
+    then (the eye's noisier κ, locked 4-5 s in: one draw of four never answered).
+
+    Before vision follows the accelerometer its κ is as likely noise — an image stabilised against the body, a
+    hovering drone's expansion at the noise floor, a walk's gait — and a filter that takes noise at its stated
+    error settles on v ≈ 0 with a confident σ and pins the accelerometer's offset there. Left out, the
+    accelerometer carries v̂ from the prior, and its σ says how little is known (offline, on the walking and
+    drone scenes: the truth inside the filter's ±2σ on 96–100 % of the unlocked frames, against 0–20 % taking κ).
+    """
+    kappa = np.where(trusted, kappa, np.nan)
+    if reversal is not None:
+        reversal = (np.where(trusted, reversal[0], np.nan),) + tuple(reversal[1:])
+    return kappa, reversal
 
 
 def _rest_bound(r, rf, a, a_lp, depth, cfg: ReadoutConfig, dt: float, sigma_t: float, offset_prior: float):

@@ -21,7 +21,7 @@ from lobula.config import VelocityConfig
 from lobula.flow import StaggeredFlow
 from lobula.front_ends import get_front_end
 from lobula.imu import HEADING_FIT_BIAS_PRIOR
-from lobula.readout import MaterialRates, kalman_inputs
+from lobula.readout import MaterialRates, gate_by_lock, kalman_inputs
 from lobula.readout.config import std_allowed
 from lobula.readout.coupling import LockState
 from lobula.readout.kalman import ForwardPass, filter_record
@@ -247,20 +247,24 @@ class VelocityEstimator:
         material = (MaterialRates(col("m_r"), col("m_r2"), col("m_rdot")) if self.pooling.material is not None
                     else None)
         inp = kalman_inputs(t, col("r"), col("r2"), a, cfg, material, axis, self.gravity_error, dt=self.dt,
-                            rest_depth_seen=self._rest_depth)
+                            rest_depth_seen=self._rest_depth, gate=False)
         rec = filter_record(t, a, axis, col("lam"), col("tau"), col("drift"), col("turn"), col("walk"))
         if self._filter is None:
             self._filter = ForwardPass(cfg, 3, col("drift"), self.gravity_error, False, inp.corr_frames)
         i = k - lo
         self._rest_depth = float(np.fmax(self._rest_depth, inp.scene_depth[i]))
-        x, P = self._filter.step(i, rec, inp.delay, inp.measurements, inp.ratio, inp.rest_accel, inp.reversal,
-                                 inp.sign)[3:]
-        v = float(x[0])
-        v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
         c = inp.coupling
         refuted = bool(c.refuted[i])
         locked = self._lock.step(bool(c.coupled[i]), bool(inp.still[i]), bool(inp.passed_zero[i]), bool(c.full[i]),
                                  refuted)
+        # The filter reads row i only: gated by the lock as it stands there (lobula.readout.gate_by_lock).
+        trusted = np.zeros(len(t), bool)
+        trusted[i] = locked or bool(c.provisional[i]) or not bool(c.full[i])
+        kappa, reversal = gate_by_lock(inp.ratio[0], inp.reversal, trusted)
+        x, P = self._filter.step(i, rec, inp.delay, inp.measurements, (kappa,) + tuple(inp.ratio[1:]),
+                                 inp.rest_accel, reversal, inp.sign)[3:]
+        v = float(x[0])
+        v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
         obs = v_std <= float(std_allowed(v, cfg)) and (locked or bool(c.provisional[i]))
         e = col("epipole")[i]
         if refuted:
