@@ -74,6 +74,26 @@ def _no_depth(ds: xr.Dataset, ro: dict) -> str:
             "know how far the scene lies (a room: about 5 m), give it with --rest-depth M")
 
 
+def scene_depth_line(ds: xr.Dataset) -> str | None:
+    """One line on the depth the rest bound took, from the stored ``scene_depth`` (m), or None where the run
+    stores none or was given a depth (``readout.rest_depth_max_m``)."""
+    try:
+        ro = json.loads(ds.attrs.get("config", "{}")).get("readout", {})
+    except (TypeError, ValueError):
+        ro = {}
+    if "scene_depth" not in ds or ro.get("rest_depth_max_m") is not None:
+        return None
+    d = ds.scene_depth.values.astype(float)
+    if np.isnan(d).all():
+        return ("scene depth: none measured (vision never followed the accelerometer), so no flow is not read as "
+                "standing still; --rest-depth M gives one")
+    last = float(d[np.isfinite(d) | np.isinf(d)][-1])
+    if np.isinf(last):
+        return "scene depth: the fields' median lies beyond what the acceleration shows; no flow bounds no speed"
+    return (f"scene depth: the fields' median {last:.1f} m as measured (the rest bound takes "
+            f"{float(ro.get('rest_depth_margin', 2.0)):g}× that)")
+
+
 def never_observable_reason(ds: xr.Dataset) -> str | None:
     """One sentence saying why a run's v̂ is never observable, or None where it is observable somewhere.
 
@@ -321,6 +341,8 @@ def run_velocity(args) -> int:
     e = ds.epipole_x.values[-1], ds.epipole_y.values[-1]
     print(f"epipole: ({np.degrees(np.arctan(e[0])):+.2f}°, {np.degrees(np.arctan(e[1])):+.2f}°) from the principal point")
     print(f"observable: {100 * float(ds.observable.mean()):.1f} % of all {ds.sizes['time']} estimates")
+    if (line := scene_depth_line(ds)) is not None:
+        print(line)
     if sc:
         print(score_line(sc, skip))
     why = never_observable_reason(ds) if ds.sizes["time"] >= 3 else None

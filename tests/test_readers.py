@@ -103,9 +103,10 @@ def test_euroc_stationary_reports_no_motion(euroc, tmp_path, capsys, filt):
     camera in it is known to be still."""
     for depth in (None, 5.0):
         out = tmp_path / f"{filt}-{depth}.nc"
-        code, _, err = cli(capsys, "velocity", euroc, "--out", out, "--filter", filt, "--quiet",
-                           *(["--rest-depth", str(depth)] if depth else []))
+        code, printed, err = cli(capsys, "velocity", euroc, "--out", out, "--filter", filt, "--quiet",
+                                 *(["--rest-depth", str(depth)] if depth else []))
         assert code == 0, err
+        assert ("scene depth: none measured" in printed) == (depth is None), printed
         ds = xr.open_dataset(out)
         v, s, obs = ds.v_hat.values, ds.v_std.values, ds.observable.values
         if depth is None:
