@@ -66,14 +66,6 @@ def score_line(sc: dict, skip_s: float) -> str:
             f"{sc['median_abs_error_m_s']:.4f} m/s, {obs}")
 
 
-def _no_depth(ds: xr.Dataset, ro: dict) -> str:
-    """The clause that says no depth was learned for the rest bound (none was given), or ''."""
-    if ro.get("rest_depth_max_m") is not None or "scene_depth" not in ds or np.isfinite(ds.scene_depth.values).any():
-        return ""
-    return (". No depth of the scene was measured either, so no flow cannot be read as standing still: where you "
-            "know how far the scene lies (a room: about 5 m), give it with --rest-depth M")
-
-
 def scene_depth_line(ds: xr.Dataset) -> str | None:
     """One line on the depth the rest bound took, from the stored ``scene_depth`` (m), or None where the run
     stores none or was given a depth (``readout.rest_depth_max_m``)."""
@@ -139,7 +131,7 @@ def never_observable_reason(ds: xr.Dataset) -> str | None:
                 f"against the forward acceleration: Fisher z at most {np.nanmax(z, initial=0.0):.1f}, "
                 f"{float(ro.get('coupling_z', 3.0)):g} needed{seen}; lobula.readout.coupling) — vision's κ = a/v is "
                 f"noise here (an image stabilised against the body, a scene that moves, or a steady pace with nothing "
-                f"to follow), so the speed cannot be told; v̂ is NaN throughout{_no_depth(ds, ro)}")
+                f"to follow), so the speed cannot be told; v̂ is NaN throughout")
     std = ds.v_std.values.astype(float) if "v_std" in ds else np.full(1, np.nan)
     low = float(np.nanmin(std)) if np.isfinite(std).any() else float("nan")
     return (f"never observable: the posterior std of v̂ never fell below the readout's max_std ({max_std:g} m/s; "

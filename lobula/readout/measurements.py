@@ -307,7 +307,6 @@ def scene_depth(r, v_f, informative, coupled, dt: float, window_s: float, causal
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # windows without a frame that measured
         windowed = np.nanmedian(np.lib.stride_tricks.sliding_window_view(padded, w), axis=1)
-    windowed = np.where(np.isfinite(windowed) | np.isinf(windowed), windowed, np.nan)
     if causal:
         return np.fmax.accumulate(np.concatenate([[seen], windowed]))[1:]
     return np.full(n, np.fmax(np.nanmax(windowed) if np.any(~np.isnan(windowed)) else np.nan, seen))
