@@ -305,11 +305,17 @@ sys.exit(main(sys.argv[2:]))
 """
 
 
+def _interruptible():
+    """In the child: SIGINT as a terminal gives it. A suite started in the background (``make test &``) runs
+    with SIGINT ignored, which the CLI, like any program, leaves ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_held(run2, tmp_path):
     marker, out = tmp_path / "marker", tmp_path / "o" / "v.nc"
     p = subprocess.Popen([sys.executable, "-c", HELD_AT_FIGURE, str(marker), "velocity", str(run2), "--out", str(out),
                           "--plot", str(out.with_suffix(".png")), "--quiet"], cwd=REPO, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+                         stderr=subprocess.PIPE, text=True, preexec_fn=_interruptible)
     deadline = time.monotonic() + 240
     while not marker.exists():
         assert p.poll() is None, p.communicate()
