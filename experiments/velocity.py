@@ -66,13 +66,18 @@ def score_line(sc: dict, skip_s: float) -> str:
             f"{sc['median_abs_error_m_s']:.4f} m/s, {obs}")
 
 
+def _stored_readout_config(ds: xr.Dataset) -> dict:
+    """The readout's configuration as the run stored it (``attrs["config"]``, JSON), {} where unreadable."""
+    try:
+        return json.loads(ds.attrs.get("config", "{}")).get("readout", {})
+    except (TypeError, ValueError):
+        return {}
+
+
 def scene_depth_line(ds: xr.Dataset) -> str | None:
     """One line on the depth the rest bound took, from the stored ``scene_depth`` (m), or None where the run
     stores none or was given a depth (``readout.rest_depth_max_m``)."""
-    try:
-        ro = json.loads(ds.attrs.get("config", "{}")).get("readout", {})
-    except (TypeError, ValueError):
-        ro = {}
+    ro = _stored_readout_config(ds)
     if "scene_depth" not in ds or ro.get("rest_depth_max_m") is not None:
         return None
     d = ds.scene_depth.values.astype(float)
@@ -96,10 +101,7 @@ def never_observable_reason(ds: xr.Dataset) -> str | None:
     """
     if "observable" not in ds or bool(ds.observable.values.astype(bool).any()):
         return None
-    try:
-        ro = json.loads(ds.attrs.get("config", "{}")).get("readout", {})
-    except (TypeError, ValueError):
-        ro = {}
+    ro = _stored_readout_config(ds)
     accel_min = float(ro.get("accel_min_m_s2", 0.03))
     max_std = float(ro.get("max_std_m_s", 0.1))
     t, a = ds.time.values.astype(float), ds.accel.values.astype(float)

@@ -192,13 +192,12 @@ def finish_readout(v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> Read
     :func:`~lobula.readout.config.std_allowed` or vision has not fixed the speed (:mod:`lobula.readout.coupling`)."""
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     zp = cfg.filter == "zero-phase"
-    locked = vision_locked(inp.coupling, inp.still, inp.passed_zero, causal=not zp)
-    obs = (v_std <= std_allowed(v, cfg)) & (locked | inp.coupling.provisional)
+    obs = (v_std <= std_allowed(v, cfg)) & (inp.locked | inp.coupling.provisional)
     # The direct measurement as the filter takes it: its latency bridged with ∫a (the accelerometer's fast path).
     z = inp.z + inp.ratio[3]
     return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
                          info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s,
-                                   vision_coupling=inp.coupling.z, vision_locked=locked,
+                                   vision_coupling=inp.coupling.z, vision_locked=inp.locked,
                                    vision_informing=np.isfinite(inp.ratio[0]) | inp.still | inp.passed_zero,
                                    vision_refuted=inp.coupling.refuted, scene_depth=inp.scene_depth))
 
@@ -214,7 +213,8 @@ class KalmanInputs:
     coupling: :func:`lobula.readout.coupling.coupling_test`'s verdicts; still, passed_zero (n,) bool: frames the
     rest bound holds at 0, and frames a reversal (taken by the filter) was seen at; scene_depth (n,) m: the scene's depth
     as learned so far (:func:`~lobula.readout.measurements.scene_depth`; NaN: none yet, inf: too far to bound), which
-    the rest bound takes × ``rest_depth_margin`` unless ``rest_depth_max_m`` gives one.
+    the rest bound takes × ``rest_depth_margin`` unless ``rest_depth_max_m`` gives one; locked (n,) bool: where vision
+    has fixed the speed over this stretch (:func:`lobula.readout.coupling.vision_locked`).
     """
 
     measurements: list
@@ -232,6 +232,7 @@ class KalmanInputs:
     still: np.ndarray
     passed_zero: np.ndarray
     scene_depth: np.ndarray
+    locked: np.ndarray
 
 
 def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, offset_axis=None,
@@ -313,11 +314,10 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     if reversal is not None:
         reversal = (np.where(coupling.refuted, np.nan, reversal[0]),) + tuple(reversal[1:])
     passed_zero = np.isfinite(reversal[0]) if reversal is not None else np.zeros(len(t), bool)
+    locked = vision_locked(coupling, np.isfinite(zr), passed_zero, causal=not zp)
     if gate:
-        kap, reversal = gate_by_lock(kap, reversal,
-                                     vision_locked(coupling, np.isfinite(zr), passed_zero, causal=not zp)
-                                     | coupling.provisional | ~coupling.full)
-    return KalmanInputs(coupling=coupling, still=np.isfinite(zr), scene_depth=seen,
+        kap, reversal = gate_by_lock(kap, reversal, locked | coupling.provisional | ~coupling.full)
+    return KalmanInputs(coupling=coupling, still=np.isfinite(zr), scene_depth=seen, locked=locked,
         passed_zero=passed_zero,
         measurements=[(zr, sr, 0.0)], ratio=(kap, skap, terms[3], shift, e_lp),
         rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True),
