@@ -82,7 +82,7 @@ def scene_depth_line(ds: xr.Dataset) -> str | None:
         return None
     d = ds.scene_depth.values.astype(float)
     if np.isnan(d).all():
-        return ("scene depth: none measured (vision never followed the accelerometer), so no flow is not read as "
+        return ("scene depth: none measured (vision never locked on to the accelerometer), so no flow is not read as "
                 "standing still; --rest-depth M gives one")
     last = float(d[np.isfinite(d) | np.isinf(d)][-1])
     if np.isinf(last):
