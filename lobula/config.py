@@ -44,6 +44,13 @@ class VelocityConfig:
     (lobula.imu.GYRO_BIAS_PRIOR); a gyro calibrated on the platform may say less. It bounds how
     fast gravity may leak into the forward axis through the integrated attitude, so a prior narrower
     than the gyro's real offset makes the readout confidently wrong.
+    saccade_gate_deg_s: a frame pair over which the gyro turned faster than this (°/s, on average)
+    is not read: its flow is left out of the fields (NaN rates, and every material difference
+    spanning it) and of the heading fit, and the heading is re-learned after it, since a vehicle's
+    velocity turns with its body (:meth:`lobula.epipole.EpipoleEstimator.forget_heading`). 300 °/s,
+    as the compound eye's saccadic suppression (:attr:`lobula.eye_circuit.EyeCircuitConfig.saccade_gate_deg_s`):
+    above a fly's intersaccadic wobble and a hand-held camera's or a drone's turns, below a body
+    saccade's 800-1800 °/s; 10° a frame at 30 frames/s. None: every pair is read.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
@@ -68,6 +75,7 @@ class VelocityConfig:
     gyro_bias_from_vision: bool = False
     gyro_scale_prior: float = 0.02
     gyro_bias_prior_deg_s: float = 1.0
+    saccade_gate_deg_s: float | None = 300.0
     timestamps: str = "mid"
     accel_from_truth: bool = False
     emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)
@@ -86,6 +94,8 @@ class VelocityConfig:
             raise ValueError(f"gyro_scale_prior must be a finite std >= 0, got {self.gyro_scale_prior}")
         if not (self.gyro_bias_prior_deg_s > 0 and math.isfinite(self.gyro_bias_prior_deg_s)):
             raise ValueError(f"gyro_bias_prior_deg_s must be a finite std > 0, got {self.gyro_bias_prior_deg_s}")
+        if self.saccade_gate_deg_s is not None and not (self.saccade_gate_deg_s > 0 and math.isfinite(self.saccade_gate_deg_s)):
+            raise ValueError(f"saccade_gate_deg_s must be a finite rate > 0 (°/s) or None, got {self.saccade_gate_deg_s}")
 
     @classmethod
     def paper(cls, front_end: str = "dis", filter: str = "zero-phase") -> "VelocityConfig":

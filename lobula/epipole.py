@@ -129,6 +129,10 @@ class EpipoleEstimator:
     ((1/s)², the units of one pixel's equation): the prior's weight in the normal equations;
     stride: pixels. ``e`` (2,) is the running epipole (normalised, in the reference frame when
     updates carry an attitude) and ``n_frames`` the frames that counted.
+
+    A vehicle's velocity turns with its body (a fly's saccade, a car's bend); a hand-held camera's
+    need not. The heading is held fixed in the reference between turns and re-learned after a fast
+    one (:meth:`forget_heading`).
     """
 
     def __init__(self, x: np.ndarray, y: np.ndarray, prior=(0.0, 0.0), prior_weight: float = 1e-6,
@@ -140,7 +144,10 @@ class EpipoleEstimator:
         self.atb = np.asarray(prior, float) * prior_weight
         self.e = np.asarray(prior, float)
         self.prior = np.asarray(prior, float)
+        self.prior_weight = float(prior_weight)
         self.n_frames = 0
+        #: (3, 3): the orientation (camera → the updates' reference) the heading is held in
+        self.anchor = np.eye(3)
 
     def update(self, flow: np.ndarray, points=None, attitude: np.ndarray | None = None) -> np.ndarray:
         """Add one derotated flow field (2, H, W) (1/s) and return the epipole (2,), normalised.
@@ -152,6 +159,8 @@ class EpipoleEstimator:
         stays put while the camera turns, and the returned epipole is the heading seen from
         the camera now; without it the camera is taken as not turning.
         """
+        if attitude is not None:
+            attitude = self.anchor.T @ np.asarray(attitude, float)
         if points is None:
             u = flow[0, ::self.stride, ::self.stride].ravel().astype(float)
             v = flow[1, ::self.stride, ::self.stride].ravel().astype(float)
@@ -184,6 +193,21 @@ class EpipoleEstimator:
             h = np.asarray(attitude, float).T @ np.array([self.e[0], self.e[1], 1.0])
             return h[:2] / h[2]
         return self.e.copy()
+
+    def forget_heading(self, attitude, seen) -> None:
+        """Start the heading afresh after the camera turned fast (a saccade, a bend).
+
+        Whether the velocity turned with the body is for the flow after the turn to tell: the
+        heading's information so far is dropped, its prior mean becomes ``seen`` (2,), normalised,
+        the epipole as the camera saw it before the turn (a vehicle's velocity follows its body),
+        and from now on it is held in the camera's orientation ``attitude`` (3, 3, camera → the
+        updates' reference): a heading 90° off the start's axis has no normalised coordinates there.
+        """
+        self.anchor = np.asarray(attitude, float).copy()
+        self.e = np.asarray(seen, float).copy()
+        self.ata = np.eye(2) * self.prior_weight
+        self.atb = self.e * self.prior_weight
+        self.n_frames = 0
 
     @staticmethod
     def _frame_fit(a, b, x, y, start, iters: int = 3, t_min: float = 3.0):
@@ -356,6 +380,7 @@ class HeadingBiasEstimator(EpipoleEstimator):
         self.ata = np.diag(np.concatenate(info))
         self.theta = np.concatenate([self.prior, b0, np.zeros(self.n_scale)])
         self.atb = self.ata @ self.theta
+        self._heading_info = 1.0 / heading_std ** 2
         self._bias_prior = (self.ata[2:5, 2:5].diagonal().copy(), b0.copy())  # (information (3,), mean (3,))
         self.e = self.theta[:2].copy()
         self._scales: list = []  # each frame's robust residual scale (the rotation-only fit's)
@@ -377,6 +402,20 @@ class HeadingBiasEstimator(EpipoleEstimator):
         self._bias_prior = (new_info, new_mean)
         self.theta = np.linalg.solve(self.ata, self.atb)
         self.e = self.theta[:2].copy()
+
+    def forget_heading(self, attitude, seen) -> None:
+        """As :meth:`EpipoleEstimator.forget_heading`; the gyro's bias and scale keep what the frames
+        told of them (the heading marginalised out of the normal equations), the heading its prior std."""
+        info = self.ata
+        keep = info[2:, 2:] - info[2:, :2] @ np.linalg.solve(info[:2, :2], info[:2, 2:])
+        self.ata = np.zeros_like(info)
+        self.ata[:2, :2] = np.eye(2) * self._heading_info
+        self.ata[2:, 2:] = keep
+        self.theta = np.concatenate([np.asarray(seen, float), self.theta[2:]])
+        self.atb = self.ata @ self.theta
+        self.e = self.theta[:2].copy()
+        self.anchor = np.asarray(attitude, float).copy()
+        self.n_frames = 0
 
     @property
     def scale(self) -> np.ndarray:
@@ -403,9 +442,9 @@ class HeadingBiasEstimator(EpipoleEstimator):
         u, v = (np.asarray(c, float).ravel() for c in points[2])
         ok = np.isfinite(u) & np.isfinite(v) & np.isfinite(x) & np.isfinite(y)
         x, y, u, v = x[ok], y[ok], u[ok], v[ok]
+        R = self.anchor.T @ np.asarray(attitude, float)
         if x.size < 10:
-            return self._seen_epipole(attitude)
-        R = np.asarray(attitude, float)
+            return self._seen_epipole(R)
         b_app = np.asarray(applied_bias, float)
         a, rhs, c, e0 = self._pair_equations(R, b_app, rate, x, y, u, v)
         xr, yr = self._seen(R, x, y)

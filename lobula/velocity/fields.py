@@ -4,6 +4,7 @@ footage (:func:`field_rates`) or one pair at a time (:class:`lobula.velocity.Vel
 from __future__ import annotations
 
 import time as _time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -157,6 +158,9 @@ class FieldPooling:
         self.material = (MaterialFields(fields, self.stagger, gap_correction=config.fields.gap_correction)
                          if config.fields.material and live else None)
         self.count = 0
+        self._e_seen = np.zeros(2)  # the epipole the last pair saw
+        self._turned = False  # a fast turn since the heading was last fitted
+        self._fast = deque(maxlen=self.stagger + 1)  # the last pairs' fast_turn flags (a material difference's span)
 
     def extend_gyro(self, time_s: np.ndarray, gyro: np.ndarray) -> None:
         """Take in more gyro samples (k,) s and (k, 3) rad/s, for the fit's own attitude."""
@@ -173,7 +177,18 @@ class FieldPooling:
             # the pixels it pools), the epipole and the material fields all derotate exactly
             # (finite rotation over the gap) into the middle orientation.
             q = attitude(np.array([s.t0, s.t1, s.t_mid]))
-        if config.epipole == "estimate":
+        fast = (attitude is not None and config.saccade_gate_deg_s is not None
+                and fast_turn(np.linspace(s.t0, s.t1, config.flow.gap + 1), attitude, config.saccade_gate_deg_s))
+        self._fast.append(fast)
+        if config.epipole == "estimate" and fast:
+            e = self._e_seen  # the flow of a fast turn is not read; the heading is re-learned after it
+            self._turned = True
+            if self.fitted:
+                hb = (s.t1, est.bias, est.bias_std)
+        elif config.epipole == "estimate":
+            if self._turned:
+                est.forget_heading(q[2], self._e_seen)
+                self._turned = False
             if attitude is not None:
                 sub = s.flow[:, ::est.stride, ::est.stride].reshape(2, -1)
                 pts = derotate_finite(est.x, est.y, sub, s.dt, q[2].T @ q[0], q[2].T @ q[1])
@@ -194,13 +209,32 @@ class FieldPooling:
                             turns=None if q[0] is None else (q[2].T @ q[0], q[2].T @ q[1], s.dt))
         if config.fields.gap_correction:
             r, r2 = gap_correction(r, r2, s.dt)
+        self._e_seen = np.asarray(e, float)
         m = self.material.update(s.t0, s.dt, s.flow, e, *q) if self.material is not None else None
-        if self.residual_bias is not None and self.count % config.flow.gap == 0:
+        if fast:
+            r, r2 = np.full_like(r, np.nan), np.full_like(r2, np.nan)
+        if m is not None and any(self._fast):
+            m = tuple(np.full_like(x, np.nan) for x in m)
+        if self.residual_bias is not None and self.count % config.flow.gap == 0 and not fast:
             # Measured against the plain attitude (the still-camera bias removed), as vision_gyro_bias models it.
             qp = self.plain_attitude(np.array([s.t0, s.t1]))
             res = residual_rate(self.camera, s, qp[0].T @ qp[1], e, self.residual_bias(s.t_mid))
         self.count += 1
         return PooledPair(s.t_mid if config.timestamps == "mid" else s.t0, s.t1, r, r2, e, m, hb, res)
+
+
+def fast_turn(times: np.ndarray, attitude, gate_deg_s: float) -> bool:
+    """Whether the camera turned faster than ``gate_deg_s`` (°/s) between any two of ``times`` (k,) s
+    (a pair's frames), its orientation given by ``attitude`` (times -> (k, 3, 3), camera → reference).
+
+    The flow of a pair that holds such a turn is not measured: the image moves by tens of pixels a
+    frame, past what the flow resolves, blurs, and turns onto other surfaces (a fly's body saccade,
+    20-90° in 50-100 ms; a whip pan).
+    """
+    q = attitude(times)
+    turn = np.einsum("kji,kjl->kil", q[:-1], q[1:])  # q_k^T q_{k+1}
+    cos = np.clip((np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return bool(np.any(np.degrees(np.arccos(cos)) > gate_deg_s * np.diff(times)))
 
 
 def residual_rate(camera, s: FlowSample, r01: np.ndarray, e: np.ndarray, b_then: np.ndarray):
