@@ -98,6 +98,38 @@ def _fill_nan(x: np.ndarray, causal: bool = False) -> np.ndarray:
     return flat.reshape(x.shape)
 
 
+def vision_runs(x: np.ndarray) -> list[slice]:
+    """The runs of rows along axis 0 with at least one finite value, between rows with none.
+
+    A row with no finite value at all is a break in what the camera saw (the pairs of a fast turn:
+    ``VelocityConfig.saccade_gate_deg_s``): the surfaces after it are others than before, so a
+    smoothing does not carry one run's level into the next.
+
+    Parameters
+    ----------
+    x : ndarray, (n, ...)
+
+    Returns
+    -------
+    list of slice
+        In order; empty where no row has a finite value.
+    """
+    ok = np.isfinite(np.asarray(x, float).reshape(len(x), -1)).any(1)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    return [slice(a, b) for a, b in zip(edges[::2], edges[1::2])]
+
+
+def _by_runs(fn, x: np.ndarray) -> np.ndarray:
+    """fn applied to each run of :func:`vision_runs` alone (rows between runs NaN); fn(x) where there is at most one."""
+    runs = vision_runs(x)
+    if len(runs) <= 1:
+        return fn(x)
+    y = np.full(np.shape(x), np.nan)
+    for run in runs:
+        y[run] = fn(x[run])
+    return y
+
+
 def butterworth(x: np.ndarray, wn: float, order: int, zero_phase: bool) -> np.ndarray:
     """Butterworth low-pass along axis 0; NaNs bridged, then restored.
 
@@ -130,7 +162,7 @@ def butterworth(x: np.ndarray, wn: float, order: int, zero_phase: bool) -> np.nd
 
 
 def gaussian_lowpass(x: np.ndarray, cutoff_hz: float, dt: float, truncate: float = 2.5,
-                     causal: bool = False) -> tuple[np.ndarray, int]:
+                     causal: bool = False, restart: bool = False) -> tuple[np.ndarray, int]:
     """Linear-phase (symmetric Gaussian FIR) low-pass along axis 0, centred; NaNs bridged, then restored.
 
     The Gaussian's gain is ½ at ``cutoff_hz``, as for the zero-phase (forward–backward)
@@ -151,6 +183,9 @@ def gaussian_lowpass(x: np.ndarray, cutoff_hz: float, dt: float, truncate: float
     causal : bool
         NaN gaps hold their last value (see :func:`_fill_nan`), so the output lagged by M reads
         nothing after its own time.
+    restart : bool
+        Smooth each run between rows without a finite value alone, its edges padded with its own
+        values (:func:`vision_runs`); the output lagged by M still reads nothing after its time.
 
     Returns
     -------
@@ -161,6 +196,8 @@ def gaussian_lowpass(x: np.ndarray, cutoff_hz: float, dt: float, truncate: float
     """
     sigma = np.sqrt(np.log(2.0) / 2.0) / (np.pi * cutoff_hz) / dt  # frames
     m = max(1, int(np.ceil(truncate * sigma)))
+    if restart:
+        return _by_runs(lambda part: gaussian_lowpass(part, cutoff_hz, dt, truncate, causal)[0], x), m
     k = np.exp(-0.5 * (np.arange(-m, m + 1) / sigma) ** 2)
     k /= k.sum()
     nan = ~np.isfinite(x)

@@ -317,9 +317,12 @@ def _accel_density2(cfg: ReadoutConfig, turn_rate: float | None) -> float:
     """Squared noise density ((m/s²)²/Hz) of the acceleration given.
 
     accel_noise, and while the camera turns at |ω| = ``turn_rate`` (rad/s) accel_turn_noise·|ω|
-    more (gravity seen through an attitude that errs more the faster it turns).
+    more (gravity seen through an attitude that errs more the faster it turns), |ω| counted up to
+    accel_turn_rate_max.
     """
     q = cfg.accel_noise ** 2
     if turn_rate is not None:
+        if cfg.accel_turn_rate_max is not None:
+            turn_rate = min(turn_rate, cfg.accel_turn_rate_max)
         q += (cfg.accel_turn_noise * turn_rate) ** 2
     return q

@@ -616,15 +616,22 @@ def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     if cfg.filter == "zero-phase":
         wn = cfg.cutoff_hz / (0.5 / dt)
         lp = lambda x: butterworth(x, wn, cfg.order, True)
+        lp_rates = lp
     else:
         lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma, causal=True)[0]
-    rf = lp(r)
+        # Online the fields' rates are smoothed run by run (filters.vision_runs): across a fast turn
+        # they see other surfaces, and a held gap would carry the surfaces before it into the terms
+        # after. (Offline a gap is interpolated, and the zero-phase Butterworth would ring at the
+        # edges of runs shorter than its impulse response.)
+        lp_rates = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma, causal=True,
+                                              restart=True)[0]
+    rf = lp_rates(r)
     if material is None:
-        r2f = lp(r2) if cfg.r2_term == "field" else rf ** 2
+        r2f = lp_rates(r2) if cfg.r2_term == "field" else rf ** 2
         terms = (rf, r2f, staggered_difference(rf, stagger, dt, centred=True), lp(a))
     else:
         m = material
-        rm = lp(m.r)
-        r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp(m.r2)
-        terms = (rm, r2m, lp(m.r_dot), lp(a))
+        rm = lp_rates(m.r)
+        r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp_rates(m.r2)
+        terms = (rm, r2m, lp_rates(m.r_dot), lp(a))
     return tuple(_lag(x, lag) for x in terms), lag, lp, rf
