@@ -95,9 +95,9 @@ def suppressed_readout(t, rho, r2, a, rcfg, saccade=None, **kw):
     r²̄ (as material rates), ṙ the same centred difference over ``rcfg.stagger`` steps the readout takes of
     its low-passed ρ — NaN wherever it would span a flagged step — so that no difference is taken across a
     saccade: a saccade turns every field onto other surfaces, and ρ jumps by what they are, not by a/D.
-    Through the flagged steps the readout's causal low-pass holds ρ and ṙ at their last values, its terms
-    are NaN wherever their centre falls in a flagged step, and there the filter predicts from the
-    acceleration alone and its σ grows.
+    Online the readout smooths each run of steps between saccades alone (:func:`lobula.readout.filters.vision_runs`;
+    offline the zero-phase low-pass bridges the gap), its terms are NaN at the flagged steps, and there the
+    filter predicts from the acceleration alone and its σ grows.
     """
     if saccade is None or not np.any(saccade):
         return readout(t, rho, r2, a, rcfg, **kw)

@@ -440,6 +440,67 @@ def test_online_lowpass_reads_nothing_after_a_gap_it_bridges(lowpass):
     assert not np.allclose(y0[30:40, 1], y1[30:40, 1])
 
 
+def test_online_lowpass_restarts_after_a_row_without_vision():
+    """A row with no finite field (a fast turn's pairs) splits the rates into runs, each smoothed alone
+    with ``restart``: the fields see other surfaces after the turn. A level that steps from 1 to 3
+    across the gap reads exactly 3 from the first row after it (held through the gap, the smoothing
+    blends in the 1 before); each run equals its own smoothing; with no such row it is the plain
+    low-pass bit for bit; and the output lagged by M still reads nothing after its time."""
+    from lobula.readout import gaussian_lowpass
+    from lobula.readout.filters import vision_runs
+
+    dt, n = 1 / 30, 150
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(n, 3))
+    x[60:70] = np.nan                                             # the turn: no field at all
+    x[20:30, 2] = np.nan                                          # one silent field is not a break
+    assert vision_runs(x) == [slice(0, 60), slice(70, n)]
+    y, m = gaussian_lowpass(x, 1.0, dt, causal=True, restart=True)
+    for run in vision_runs(x):
+        np.testing.assert_array_equal(y[run], gaussian_lowpass(x[run], 1.0, dt, causal=True)[0])
+    assert np.isnan(y[60:70]).all()
+    plain = x.copy()
+    plain[60:70] = 0.0
+    np.testing.assert_array_equal(gaussian_lowpass(plain, 1.0, dt, causal=True, restart=True)[0],
+                                  gaussian_lowpass(plain, 1.0, dt, causal=True)[0])
+    step = np.where(np.arange(n) < 60, 1.0, 3.0)[:, None].repeat(2, 1)
+    step[60:70] = np.nan
+    held = gaussian_lowpass(step, 1.0, dt, causal=True)[0]
+    fresh = gaussian_lowpass(step, 1.0, dt, causal=True, restart=True)[0]
+    np.testing.assert_allclose(fresh[70:], 3.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fresh[:60], 1.0, rtol=0, atol=1e-12)
+    assert held[70, 0] < 2.9                                      # the 1 before the turn held into it
+    later = x.copy()
+    later[100:] += 5.0
+    lag = lambda z: np.concatenate([np.full((m, 3), np.nan), z[:-m]])  # noqa: E731  (what is known at k)
+    a = lag(gaussian_lowpass(x, 1.0, dt, causal=True, restart=True)[0])
+    b = lag(gaussian_lowpass(later, 1.0, dt, causal=True, restart=True)[0])
+    np.testing.assert_array_equal(a[:100], b[:100])
+
+
+def test_a_brief_fast_turn_widens_the_band_as_a_turn_at_the_cap():
+    """The turn's acceleration noise counts |ω| up to ``accel_turn_rate_max`` (1 rad/s): a 0.1 s body
+    saccade at 20 rad/s widens σ as a 0.1 s turn at 2 rad/s does (both count as 1 rad/s, the frames at
+    its edges too, where the filter takes the mean of two frames' rates), and by far less than the uncapped
+    density does (accel_turn_noise·20 rad/s for 0.1 s, 0.63 m/s alone; here vision measures through the
+    turn and pulls σ back in); the cap is refused unless positive."""
+    t = np.arange(0, 8, 1 / 30)
+    v = lambda x: 0.4 + 0.2 * np.sin(2 * np.pi * x / 4)
+    a = lambda x: 0.2 * 2 * np.pi / 4 * np.cos(2 * np.pi * x / 4)
+    r, r2, acc = analytic_rates(v, a, t, np.linspace(6, 10, 30))
+    fast = (t > 5.0) & (t < 5.1)
+    after = (t > 5.1) & (t < 5.2)
+    out = {}
+    for name, cap, rate in (("capped", 1.0, 20.0), ("at the cap", 1.0, 2.0), ("uncapped", None, 20.0)):
+        res = readout(t, r, r2, acc, ReadoutConfig(filter="causal", accel_turn_rate_max=cap),
+                      turn_rate=np.where(fast, rate, 0.0))
+        out[name] = float(np.median(res.v_std[after]))
+    assert out["capped"] == pytest.approx(out["at the cap"], rel=1e-12)
+    assert out["uncapped"] > 2.5 * out["capped"], out  # measured 0.158 against 0.054
+    with pytest.raises(ValueError, match="accel_turn_rate_max"):
+        ReadoutConfig(accel_turn_rate_max=0.0)
+
+
 def test_the_accelerometer_scale_error_is_in_the_band():
     """Vision measures a/v: an accelerometer reading 4 % low makes v̂ 4 % low, which no estimator can see
     from the images, so the band must hold it (accel_scale_error·|v̂|); without that term the band of a
