@@ -51,6 +51,12 @@ class VelocityConfig:
     as the compound eye's saccadic suppression (:attr:`lobula.eye_circuit.EyeCircuitConfig.saccade_gate_deg_s`):
     above a fly's intersaccadic wobble and a hand-held camera's or a drone's turns, below a body
     saccade's 800-1800 °/s; 10° a frame at 30 frames/s. None: every pair is read.
+    heading_reset_deg: the heading is also fitted afresh once the camera has turned this far (°) from
+    the orientation it was last fitted afresh in: between such resets it is held fixed in the world,
+    which a vehicle's bend breaks (a fly's 20-90° turns over 0.4-0.8 s, at 100-225 °/s: held through
+    them the epipole errs by 14-20° on the median frame, reset every 15° by 1.4-3.8°; exact flow). 15°:
+    beyond a hand-held or gimbal camera's wobble, so a camera that only wobbles is never reset (the
+    suite's turning families stay within 9° of their start). None: never.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
@@ -76,6 +82,7 @@ class VelocityConfig:
     gyro_scale_prior: float = 0.02
     gyro_bias_prior_deg_s: float = 1.0
     saccade_gate_deg_s: float | None = 300.0
+    heading_reset_deg: float | None = 15.0
     timestamps: str = "mid"
     accel_from_truth: bool = False
     emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)
@@ -94,6 +101,8 @@ class VelocityConfig:
             raise ValueError(f"gyro_scale_prior must be a finite std >= 0, got {self.gyro_scale_prior}")
         if not (self.gyro_bias_prior_deg_s > 0 and math.isfinite(self.gyro_bias_prior_deg_s)):
             raise ValueError(f"gyro_bias_prior_deg_s must be a finite std > 0, got {self.gyro_bias_prior_deg_s}")
+        if self.heading_reset_deg is not None and not (self.heading_reset_deg > 0 and math.isfinite(self.heading_reset_deg)):
+            raise ValueError(f"heading_reset_deg must be a finite angle > 0 (°) or None, got {self.heading_reset_deg}")
         if self.saccade_gate_deg_s is not None and not (self.saccade_gate_deg_s > 0 and math.isfinite(self.saccade_gate_deg_s)):
             raise ValueError(f"saccade_gate_deg_s must be a finite rate > 0 (°/s) or None, got {self.saccade_gate_deg_s}")
 

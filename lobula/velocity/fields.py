@@ -186,7 +186,8 @@ class FieldPooling:
             if self.fitted:
                 hb = (s.t1, est.bias, est.bias_std)
         elif config.epipole == "estimate":
-            if self._turned:
+            if self._turned or (q[2] is not None and config.heading_reset_deg is not None
+                                and np.degrees(_angle(est.anchor, q[2])) > config.heading_reset_deg):
                 est.forget_heading(q[2], self._e_seen)
                 self._turned = False
             if attitude is not None:
@@ -221,6 +222,11 @@ class FieldPooling:
             res = residual_rate(self.camera, s, qp[0].T @ qp[1], e, self.residual_bias(s.t_mid))
         self.count += 1
         return PooledPair(s.t_mid if config.timestamps == "mid" else s.t0, s.t1, r, r2, e, m, hb, res)
+
+
+def _angle(q0: np.ndarray, q1: np.ndarray) -> float:
+    """The angle (rad) between two orientations (3, 3)."""
+    return float(np.arccos(np.clip((np.trace(q0.T @ q1) - 1.0) / 2.0, -1.0, 1.0)))
 
 
 def fast_turn(times: np.ndarray, attitude, gate_deg_s: float) -> bool:
