@@ -198,7 +198,8 @@ def posterior_mean(fo, ds, cfg) -> np.ndarray:
 def dis_scores(folder) -> dict:
     """:func:`flight_scores` of causal DIS (the default pipeline, causal filter) on one pinhole footage folder,
     ``rmse_all`` and ``coverage_2sigma`` of its posterior mean on every frame (its reporting bounds lifted).
-    The camera has no saccade gate: every frame after the skip counts."""
+    Every frame after the skip counts: the camera's pipeline leaves a saccade's flow out
+    (``VelocityConfig.saccade_gate_deg_s``) but its filter carries v̂ through the saccade and reports there."""
     from lobula.config import VelocityConfig
     from lobula.readers import open_footage
     from lobula.velocity import estimate_velocity
