@@ -56,7 +56,7 @@ class VelocityConfig:
     which a vehicle's bend breaks (a fly's 20-90° turns over 0.4-0.8 s, at 100-225 °/s: held through
     them the epipole errs by 14-20° on the median frame, reset every 15° by 1.4-3.8°; exact flow). 15°:
     beyond a hand-held or gimbal camera's wobble, so a camera that only wobbles is never reset (the
-    suite's turning families stay within 9° of their start). None: never.
+    suite's turning families stay within 14° of their start). None: never.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
