@@ -44,8 +44,8 @@ class VelocityConfig:
     (lobula.imu.GYRO_BIAS_PRIOR); a gyro calibrated on the platform may say less. It bounds how
     fast gravity may leak into the forward axis through the integrated attitude, so a prior narrower
     than the gyro's real offset makes the readout confidently wrong.
-    saccade_gate_deg_s: a frame pair over which the gyro turned faster than this (°/s, on average)
-    is not read: its flow is left out of the fields (NaN rates, and every material difference
+    saccade_gate_deg_s: a pair of frames between two consecutive frames of which the gyro turned faster
+    than this (°/s) is not read: its flow is left out of the fields (NaN rates, and every material difference
     spanning it) and of the heading fit, and the heading is re-learned after it, since a vehicle's
     velocity turns with its body (:meth:`lobula.epipole.EpipoleEstimator.forget_heading`). 300 °/s,
     as the compound eye's saccadic suppression (:attr:`lobula.eye_circuit.EyeCircuitConfig.saccade_gate_deg_s`):

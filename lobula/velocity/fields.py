@@ -224,9 +224,10 @@ class FieldPooling:
         return PooledPair(s.t_mid if config.timestamps == "mid" else s.t0, s.t1, r, r2, e, m, hb, res)
 
 
-def _angle(q0: np.ndarray, q1: np.ndarray) -> float:
-    """The angle (rad) between two orientations (3, 3)."""
-    return float(np.arccos(np.clip((np.trace(q0.T @ q1) - 1.0) / 2.0, -1.0, 1.0)))
+def _angle(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """The angles (rad, (...)) between orientations q0 and q1 (..., 3, 3)."""
+    turn = np.einsum("...ji,...jl->...il", q0, q1)  # q0ᵀ q1
+    return np.arccos(np.clip((np.trace(turn, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))
 
 
 def fast_turn(times: np.ndarray, attitude, gate_deg_s: float) -> bool:
@@ -238,9 +239,7 @@ def fast_turn(times: np.ndarray, attitude, gate_deg_s: float) -> bool:
     20-90° in 50-100 ms; a whip pan).
     """
     q = attitude(times)
-    turn = np.einsum("kji,kjl->kil", q[:-1], q[1:])  # q_k^T q_{k+1}
-    cos = np.clip((np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return bool(np.any(np.degrees(np.arccos(cos)) > gate_deg_s * np.diff(times)))
+    return bool(np.any(np.degrees(_angle(q[:-1], q[1:])) > gate_deg_s * np.diff(times)))
 
 
 def residual_rate(camera, s: FlowSample, r01: np.ndarray, e: np.ndarray, b_then: np.ndarray):
