@@ -131,3 +131,21 @@ def test_bad_samples_and_frames_are_refused():
     est.update(np.zeros((120, 160), np.uint8), 0.01)
     with pytest.raises(ValueError, match="frame times"):
         est.update(np.zeros((120, 160), np.uint8), 0.01)
+
+
+def test_frame_by_frame_equals_the_whole_record_run_through_saccades(family_footage):
+    """A fly's saccadic flight (the suite's `saccadic` family, corridor, seed 1: two saccades in 4 s): the
+    pairs of each saccade are left out, the heading is learned again after it and the online terms
+    restart there, frame by frame exactly as over the whole record — same σ, observability and time
+    stamps to 1e-9, and v̂ where observable."""
+    fo = family_footage("saccadic", DURATION_S, SCALE, seed=1)
+    cfg = causal_config()
+    ds = estimate_velocity(fo, cfg, progress=False)
+    assert np.isnan(ds.r.values).all(1).sum() >= 6  # the saccades' pairs were left out
+    states, _ = stream(fo, cfg, intervals=whole_record_intervals(fo, ds))
+    assert len(states) == ds.sizes["time"]
+    obs = np.array([s.observable for s in states])
+    assert np.array_equal(np.array([s.t for s in states]), ds.time.values)
+    assert np.array_equal(obs, ds.observable.values)
+    np.testing.assert_allclose(np.array([s.v for s in states])[obs], ds.v_hat.values[obs], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.array([s.v_std for s in states]), ds.v_std.values, rtol=0, atol=1e-9)
