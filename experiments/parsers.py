@@ -71,6 +71,18 @@ class Number:
 
 POSITIVE = Number(0, above=True)
 NONNEGATIVE = Number(0)
+
+
+def positive_or_none(text: str) -> float | None:
+    """An argparse ``type=``: a number > 0, or ``none`` (the check it sets is off)."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return POSITIVE(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"must be a number > 0 or none, got {text!r}") from None
+
+
 FINITE = Number()
 COUNT = Number(1, integer=True)          # how many of something: ≥ 1
 INDEX = Number(0, integer=True)          # a seed, an index, a count that may be zero
@@ -239,6 +251,15 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
                         "taken to mean the camera is still (ReadoutConfig.rest_depth_max_m): about 5 in a room. "
                         "Without it the depth is learned from the footage while vision measures it, and no flow in a "
                         "scene not yet measured (a still start, a distant view) bounds nothing (default: learned)")
+    v.add_argument("--saccade-gate", type=positive_or_none, default=argparse.SUPPRESS, metavar="DEG_S|none",
+                   help="a flow pair between two consecutive frames of which the gyro turned faster than this (°/s) is "
+                        "not read, and the heading is fitted afresh after it: a saccade or a whip pan, whose image "
+                        "moves past what the flow resolves (VelocityConfig.saccade_gate_deg_s); none: every pair is "
+                        "read (default: 300)")
+    v.add_argument("--heading-reset", type=positive_or_none, default=argparse.SUPPRESS, metavar="DEG|none",
+                   help="the heading is fitted afresh each time the camera has turned this far (°), since a vehicle's "
+                        "velocity turns with it through a bend (VelocityConfig.heading_reset_deg); none: held in the "
+                        "world throughout, as for a hand-held camera that only pans (default: 15)")
     v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo) "
                                  "(default: none)")
     _flo_options(v)

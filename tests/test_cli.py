@@ -74,7 +74,8 @@ def test_help_defaults_written_in_the_text_are_the_codes():
     stated = {"--gap": cfg.flow.gap, "--dis-preset": cfg.flow.dis_preset, "--dis-grid-px": cfg.flow.dis_grid_px,
               "--dphi": cfg.emd.lattice.dphi_deg, "--emd-gaze": cfg.emd.gaze, "--lag": cfg.readout.lag_s,
               "--accel-scale-error": cfg.readout.accel_scale_error, "--field-size": cfg.fields.size_deg,
-              "--tau": cfg.emd.emd.tau_s, "--epipole": cfg.epipole, "--filter": cfg.readout.filter}
+              "--tau": cfg.emd.emd.tau_s, "--epipole": cfg.epipole, "--filter": cfg.readout.filter,
+              "--saccade-gate": cfg.saccade_gate_deg_s, "--heading-reset": cfg.heading_reset_deg}
     for flag, value in stated.items():
         shown = helps[flag].split("(default: ")[1].split(")")[0].split(",")[0].split(";")[0].split(" ")[0]
         assert shown == str(value) or (isinstance(value, (int, float)) and float(shown) == value), (flag, shown)
@@ -203,6 +204,8 @@ _REFUSED = [
     (["velocity", "F", "--out", "o.nc", "--flo-gap", "0"], "--flo-gap", "a number > 0"),
     (["velocity", "F", "--out", "o.nc", "--flo-size", "640", "0"], "--flo-size", "a whole number ≥ 1"),
     (["velocity", "F", "--out", "o.nc", "--skip", "-2"], "--skip", "a number ≥ 0"),
+    (["velocity", "F", "--out", "o.nc", "--saccade-gate", "0"], "--saccade-gate", "a number > 0 or none"),
+    (["velocity", "F", "--out", "o.nc", "--heading-reset", "off"], "--heading-reset", "a number > 0 or none"),
     (["velocity", "F", "--out", "o.nc", "--membrane-noise", "-1"], "--membrane-noise", "a number ≥ 0"),
     (["velocity", "F", "--out", "o.nc", "--haltere-gain", "2"], "--haltere-gain", "(0, 1.5]"),
     (["eye-velocity", "F", "--out", "o.nc", "--tau", "-0.01"], "--tau", "a number > 0"),
@@ -413,3 +416,20 @@ def test_velocity_command_prints_the_numbers_its_figure_titles(tmp_path, monkeyp
     assert printed[0] in titles[0] and "nan" not in printed[0]
     with xr.open_dataset(out) as ds:                           # the stored run gives the same line
         assert score_line(score(ds, scoring_skip(ds)), scoring_skip(ds)) == printed[0]
+
+
+def test_saccade_gate_and_heading_reset_reach_the_configuration():
+    """--saccade-gate and --heading-reset set VelocityConfig's fields (none: off); absent, the defaults stay;
+    on the EMD front end, which holds its gaze rather than reading flow, they are refused."""
+    from experiments.velocity import apply_velocity_options
+    from lobula.config import VelocityConfig
+
+    parse = lambda *extra: build_parser(["velocity"]).parse_args(["velocity", "F", "--out", "o.nc", *extra])  # noqa: E731
+    cfg = apply_velocity_options(VelocityConfig(), parse("--saccade-gate", "none", "--heading-reset", "20"))
+    assert cfg.saccade_gate_deg_s is None and cfg.heading_reset_deg == 20.0
+    cfg = apply_velocity_options(VelocityConfig(), parse("--saccade-gate", "500"))
+    assert cfg.saccade_gate_deg_s == 500.0 and cfg.heading_reset_deg == VelocityConfig().heading_reset_deg
+    cfg = apply_velocity_options(VelocityConfig(), parse())
+    assert (cfg.saccade_gate_deg_s, cfg.heading_reset_deg) == (300.0, 15.0)
+    with pytest.raises(ValueError, match="--heading-reset .* holds its gaze"):
+        apply_velocity_options(VelocityConfig(front_end="emd"), parse("--heading-reset", "10"))

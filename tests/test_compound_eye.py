@@ -556,6 +556,9 @@ def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, 
     assert main(["velocity", str(eye_footage), "--front-end", "emd", "--dphi", "3", "--out",
                  str(tmp_path / "y.nc")]) == 2
     assert "--dphi" in capsys.readouterr().err and not (tmp_path / "y.nc").exists()
+    assert main(["velocity", str(eye_footage), "--front-end", "emd", "--saccade-gate", "none", "--out",
+                 str(tmp_path / "y.nc")]) == 2
+    assert "--saccade-gate" in capsys.readouterr().err and not (tmp_path / "y.nc").exists()
     # The fixed-lag smoother is the camera pipeline's: the eye's readout stays online.
     assert main(["velocity", str(eye_footage), "--front-end", "emd", "--filter", "causal", "--lag", "1", "--out",
                  str(tmp_path / "y.nc")]) == 2
