@@ -106,7 +106,9 @@ RESIDUAL_POINTS = 1500
 
 class FieldPooling:
     """The state carried from one flow pair to the next: the epipole (or the joint heading and
-    gyro-bias fit), the gyro's attitude that derotates, and the material fields' buffer.
+    gyro-bias fit), the gyro's attitude that derotates, the material fields' buffer, and which of the
+    last pairs held a fast turn (``VelocityConfig.saccade_gate_deg_s``: their rates are NaN and the
+    heading is fitted afresh after them, and after every ``heading_reset_deg`` turned).
 
     Parameters
     ----------
@@ -231,7 +233,7 @@ def _angle(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
 
 
 def fast_turn(times: np.ndarray, attitude, gate_deg_s: float) -> bool:
-    """Whether the camera turned faster than ``gate_deg_s`` (°/s) between any two of ``times`` (k,) s
+    """Whether the camera turned faster than ``gate_deg_s`` (°/s) between two consecutive ``times`` (k,) s
     (a pair's frames), its orientation given by ``attitude`` (times -> (k, 3, 3), camera → reference).
 
     The flow of a pair that holds such a turn is not measured: the image moves by tens of pixels a
