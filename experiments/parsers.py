@@ -255,7 +255,7 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
                    help="a flow pair between two consecutive frames of which the gyro turned faster than this (°/s) is "
                         "not read, and the heading is fitted afresh after it: a saccade or a whip pan, whose image "
                         "moves past what the flow resolves (VelocityConfig.saccade_gate_deg_s); none: every pair is "
-                        "read (default: 300)")
+                        "read (default: 150)")
     v.add_argument("--heading-reset", type=positive_or_none, default=argparse.SUPPRESS, metavar="DEG|none",
                    help="the heading is fitted afresh each time the camera has turned this far (°), since a vehicle's "
                         "velocity turns with it through a bend (VelocityConfig.heading_reset_deg); none: held in the "

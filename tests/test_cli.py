@@ -430,6 +430,6 @@ def test_saccade_gate_and_heading_reset_reach_the_configuration():
     cfg = apply_velocity_options(VelocityConfig(), parse("--saccade-gate", "500"))
     assert cfg.saccade_gate_deg_s == 500.0 and cfg.heading_reset_deg == VelocityConfig().heading_reset_deg
     cfg = apply_velocity_options(VelocityConfig(), parse())
-    assert (cfg.saccade_gate_deg_s, cfg.heading_reset_deg) == (300.0, 15.0)
+    assert (cfg.saccade_gate_deg_s, cfg.heading_reset_deg) == (150.0, 15.0)
     with pytest.raises(ValueError, match="--heading-reset .* holds its gaze"):
         apply_velocity_options(VelocityConfig(front_end="emd"), parse("--heading-reset", "10"))
