@@ -64,7 +64,8 @@ __all__ = [
     "readout_terms", "readout_lag", "vision_measurement", "ratio_measurement", "physical_kappa",
     "rest_measurement", "scene_depth", "reversal_measurement", "expansion_sign", "clear_expansion", "signed_expansion",
     "field_velocity", "median_and_error", "accelerometer_level", "accelerometer_steady",
-    "kalman_inputs", "gate_by_lock", "kalman_velocity", "predict", "ratio_update", "rts_smooth", "fixed_lag_smooth",
+    "kalman_inputs", "gate_by_lock", "vision_trusted", "kalman_velocity", "predict", "ratio_update", "rts_smooth",
+    "fixed_lag_smooth",
     "butterworth", "gaussian_lowpass", "staggered_difference", "hold_gaps",
     "NO_EXPANSION_SE", "SIGN_PERSIST_S", "REVERSAL_MAX_GAP_S", "OUTLIER_GATE",
 ]
@@ -316,7 +317,7 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     passed_zero = np.isfinite(reversal[0]) if reversal is not None else np.zeros(len(t), bool)
     locked = vision_locked(coupling, np.isfinite(zr), passed_zero, causal=not zp)
     if gate:
-        kap, reversal = gate_by_lock(kap, reversal, locked | coupling.provisional | ~coupling.full)
+        kap, reversal = gate_by_lock(kap, reversal, vision_trusted(locked, coupling.provisional, coupling.full))
     return KalmanInputs(coupling=coupling, still=np.isfinite(zr), scene_depth=seen, locked=locked,
         passed_zero=passed_zero,
         measurements=[(zr, sr, 0.0)], ratio=(kap, skap, terms[3], shift, e_lp),
@@ -326,13 +327,20 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         delay=delay, corr_frames=n_corr, v_field=v_f, r_dot=r_dot, z=z, z_std=s)
 
 
+def vision_trusted(locked, provisional, full):
+    """Where the filter takes vision's κ and reversals (bool, any shape): locked, answered provisionally, or
+    before the coupling window is whole (see :func:`gate_by_lock`). ``locked``, ``provisional``, ``full``:
+    bools or bool arrays (:class:`lobula.readout.coupling.CouplingTest`'s, the lock's)."""
+    return np.logical_or(np.logical_or(locked, provisional), np.logical_not(full))
+
+
 def gate_by_lock(kappa, reversal, trusted):
     """κ (n,) and the reversals (:func:`reversal_measurement`'s arrays, or None) left out where vision has not
     fixed the speed (``trusted`` (n,) bool; :mod:`lobula.readout.coupling`).
 
     :func:`kalman_inputs` trusts frames that are locked, answered provisionally, or whose coupling window is
-    not yet whole: a lock needs a whole window (4 s), and a filter that waited for it would start from nothing
-    then (the eye's noisier κ, locked 4-5 s in: one draw of four never answered).
+    not yet whole (:func:`vision_trusted`): a lock needs a whole window (4 s), and a filter that waited for it
+    would start from nothing then (the eye's noisier κ, locked 4-5 s in: one draw of four never answered).
 
     Before vision follows the accelerometer its κ is as likely noise — an image stabilised against the body, a
     hovering drone's expansion at the noise floor, a walk's gait — and a filter that takes noise at its stated

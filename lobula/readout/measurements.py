@@ -618,13 +618,13 @@ def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         lp = lambda x: butterworth(x, wn, cfg.order, True)
         lp_rates = lp
     else:
-        lp = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma, causal=True)[0]
+        lp = lambda x, restart=False: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma,
+                                                       causal=True, restart=restart)[0]
         # Online the fields' rates are smoothed run by run (filters.vision_runs): across a fast turn
         # they see other surfaces, and a held gap would carry the surfaces before it into the terms
         # after. (Offline a gap is interpolated, and the zero-phase Butterworth would ring at the
         # edges of runs shorter than its impulse response.)
-        lp_rates = lambda x: gaussian_lowpass(x, cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma, causal=True,
-                                              restart=True)[0]
+        lp_rates = lambda x: lp(x, True)
     rf = lp_rates(r)
     if material is None:
         r2f = lp_rates(r2) if cfg.r2_term == "field" else rf ** 2

@@ -21,7 +21,7 @@ from lobula.config import VelocityConfig
 from lobula.flow import StaggeredFlow
 from lobula.front_ends import get_front_end
 from lobula.imu import HEADING_FIT_BIAS_PRIOR
-from lobula.readout import MaterialRates, gate_by_lock, kalman_inputs
+from lobula.readout import MaterialRates, gate_by_lock, kalman_inputs, vision_trusted
 from lobula.readout.config import std_allowed
 from lobula.readout.coupling import LockState
 from lobula.readout.kalman import ForwardPass, filter_record
@@ -259,7 +259,7 @@ class VelocityEstimator:
                                  refuted)
         # The filter reads row i only: gated by the lock as it stands there (lobula.readout.gate_by_lock).
         trusted = np.zeros(len(t), bool)
-        trusted[i] = locked or bool(c.provisional[i]) or not bool(c.full[i])
+        trusted[i] = vision_trusted(locked, c.provisional[i], c.full[i])
         kappa, reversal = gate_by_lock(inp.ratio[0], inp.reversal, trusted)
         x, P = self._filter.step(i, rec, inp.delay, inp.measurements, (kappa,) + tuple(inp.ratio[1:]),
                                  inp.rest_accel, reversal, inp.sign)[3:]
