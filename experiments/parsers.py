@@ -231,6 +231,10 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
     v.add_argument("--gyro-bias-from-vision", action="store_true",
                    help="estimate the gyro bias from the flow's residual rotation (lobula.imu.vision_gyro_bias) "
                         "for gravity removal and the drift std; writes gyro_bias, gyro_bias_std")
+    v.add_argument("--heading-motion", action="store_true",
+                   help="each field's κ measures the acceleration along its own axis, from the IMU's 3-D "
+                        "acceleration, which holds a heading that moves (a drone's drift, a walker's bounce) "
+                        "(VelocityConfig.heading_motion; docs/results.md says where it helps and where it costs)")
     v.add_argument("--accel-scale-error", type=Number(0, 1, below=True, note="ReadoutConfig.accel_scale_error"),
                    metavar="FRACTION",
                    help="the accelerometer's scale-factor error (1σ fraction), added to v_std as FRACTION·|v̂| "

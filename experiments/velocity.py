@@ -255,6 +255,8 @@ def apply_velocity_options(cfg, args):
         cfg.accel_from_truth = True
     if opt("gyro_bias_from_vision"):
         cfg.gyro_bias_from_vision = True
+    if opt("heading_motion"):
+        cfg.heading_motion = True
     if opt("lag") is not None:
         cfg.readout = replace(cfg.readout, lag_s=args.lag)  # validated there (causal kalman readout only)
     if opt("speed_prior") is not None:

@@ -61,6 +61,15 @@ class VelocityConfig:
     them the epipole errs by 14-20° on the median frame, reset every 15° by 1.4-3.8°; exact flow). 15°:
     beyond a hand-held or gimbal camera's wobble, so a camera that only wobbles is never reset (the
     suite's turning families stay within 14° of their start). None: never.
+    heading_motion: each material field's κ measures the acceleration along its own axis
+    (:func:`lobula.readout.field_axes`), from the IMU's 3-D gravity-free acceleration, rather than the
+    forward acceleration: a heading that moves (a drone's drift, a walker's bounce) enters ṙ̄ as the
+    acceleration across the heading over the speed, which the forward acceleration does not hold. The
+    relation is exact about the velocity's true heading (tests/test_geometry.py); the heading it stands in
+    with, the acceleration's own direction (:func:`lobula.readout.acceleration_heading`), is not that
+    heading while a platform's velocity turns, and on the development scenes the option helps some drone
+    flights and costs the indoor families online (docs/results.md), so it is off by default. Needs the
+    material fields and an accelerometer; ignored without them.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
@@ -87,6 +96,7 @@ class VelocityConfig:
     gyro_bias_prior_deg_s: float = 1.0
     saccade_gate_deg_s: float | None = 150.0
     heading_reset_deg: float | None = 15.0
+    heading_motion: bool = False
     timestamps: str = "mid"
     accel_from_truth: bool = False
     emd: EMDFrontEndConfig = field(default_factory=EMDFrontEndConfig)

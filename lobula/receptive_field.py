@@ -316,6 +316,14 @@ class MaterialFields:
     (:func:`lobula.epipole.derotate_finite`); in a fixed orientation the geometry has no
     rotation term, and at the centre a and v are the camera's own.
 
+    A moving heading: both ends are read about one epipole e (the centre's), and a heading that
+    moves by ė over the difference adds −r·⟨ė, p − e⟩/|p − e|² to Dr/Dt. In the fixed orientation
+    ė = (A_xy − e·A_z)/V_z, so r·ė = (A_xy − e·A_z)/d and each field's ratio becomes
+    (ṙ̄ − r²̄)/r̄ = ⟨A, ñ⟩/V_z with ñ = (−m_x, −m_y, 1 + ⟨e, m⟩), m the field's ``moment``
+    Σw(p − e)/Σw|p − e|² (both ends' points): the acceleration along ñ, which the readout takes
+    from the 3-D accelerometer (:func:`lobula.readout.field_axes`). It needs no speed, and it does
+    not cancel where the fields lie on one side of the heading (a pitched camera's ground).
+
     Work is done on b×b pixel blocks (b chosen so ~20,000 blocks cover the image): the
     maps are smooth at that scale and the cost does not grow with the image.
 
@@ -358,7 +366,8 @@ class MaterialFields:
         q0, q1, qm: the camera's orientation (camera → a fixed reference, from the integrated
         gyro) at the pair's first frame, second frame and middle (None: not turning);
         epipole (2,): the heading seen in the middle orientation.
-        Returns None until s pairs are buffered, else (r̄ 1/s, r²̄ 1/s², ṙ̄ 1/s²), each (F,), for pair k − s/2.
+        Returns None until s pairs are buffered, else (r̄ 1/s, r²̄ 1/s², ṙ̄ 1/s², each (F,); moment m (F, 2),
+        normalised coordinates⁻¹), for pair k − s/2.
         """
         eye = np.eye(3)
         item = dict(t0=t0, T=dt_pair, uf=self._blocks(flow_full[0]), vf=self._blocks(flow_full[1]),
@@ -376,13 +385,13 @@ class MaterialFields:
 
         X, Y, d = derotate_finite(x, y, (uf, vf), item["T"], qc.T @ item["q0"], qc.T @ item["q1"])
         dx, dy = X - e[0], Y - e[1]
-        return d[0] * dx + d[1] * dy, dx * dx + dy * dy, d, X, Y
+        return d[0] * dx + d[1] * dy, dx * dx + dy * dy, d, X, Y, dx, dy
 
     def _difference(self, s0: dict, sc: dict, s1: dict):
         delta = s1["t0"] - s0["t0"]
         T = s0["T"]
         qc, e = sc["qm"], sc["e"]
-        num0, den0, d0, X0, Y0 = self._rates(s0, qc, e, self.x, self.y, s0["uf"], s0["vf"])
+        num0, den0, d0, X0, Y0, dx0, dy0 = self._rates(s0, qc, e, self.x, self.y, s0["uf"], s0["vf"])
         # Where the start's points are at the end. In the fixed orientation only translation
         # moves them, exactly for constant r along the pair (x − e scales by 1/(1 − ρδ),
         # ρ = v/d0), not linearly in δ; the gyro's rotation then says where pair k's first
@@ -401,7 +410,7 @@ class MaterialFields:
         inside = (mx >= 0) & (mx <= self.ws - 1) & (my >= 0) & (my <= self.hs - 1)
         mx, my = np.nan_to_num(mx).astype(np.float32), np.nan_to_num(my).astype(np.float32)
         remap = lambda m: cv2.remap(m, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        num1, den1, *_ = self._rates(s1, qc, e, xe, ye, remap(s1["uf"]), remap(s1["vf"]))
+        num1, den1, _, _, _, dx1, dy1 = self._rates(s1, qc, e, xe, ye, remap(s1["uf"]), remap(s1["vf"]))
         ok = inside & np.isfinite(num0) & np.isfinite(num1)
         cols = []
         for num, den in ((num0, den0), (num1, den1)):
@@ -410,6 +419,8 @@ class MaterialFields:
             with np.errstate(divide="ignore", invalid="ignore"):
                 sq = np.where(den > 0, num * num / den, 0.0)
             cols += [num.ravel(), den.ravel(), sq.ravel()]
+        # The moment's numerator, Σw(p − e) over both ends' points (its denominator is r̄'s, Σw|p − e|²).
+        cols += [np.where(ok, 0.5 * (dx0 + dx1), 0.0).ravel(), np.where(ok, 0.5 * (dy0 + dy1), 0.0).ravel()]
         pooled = self.weights @ np.stack(cols, axis=1).astype(np.float64)
         out = []
         for c in (0, 3):
@@ -418,4 +429,6 @@ class MaterialFields:
                 r2 = pooled[:, c + 2] / pooled[:, c + 1]
             out.append(gap_correction(r, r2, T) if self.gap_correction else (r, r2))
         (ra, r2a), (rb, r2b) = out
-        return 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) / delta
+        with np.errstate(divide="ignore", invalid="ignore"):
+            moment = pooled[:, 6:8] / (0.5 * (pooled[:, 1] + pooled[:, 4]))[:, None]
+        return 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) / delta, moment

@@ -54,11 +54,12 @@ def pytest_configure(config):
 
 
 # The groups with the most CPU time, longest first (measured on one worker thread with ../shared present:
-# families 91 s, the replay 78 s, tutorials 60 s, depth 41 s, faults 28 s, compound eye 27 s, of about
-# 580 s in all). Under --dist loadgroup they are handed out before the rest, so that a short group, not
-# a long one, is the last to finish; a group missing here only starts later (it changes no result).
-LONGEST_GROUPS = ("test_families.py", "replay", "test_tutorials.py", "test_depth_cli.py", "test_faults.py",
-                  "test_compound_eye.py")
+# families 91 s, the replay 78 s, the real GoPro clips 85 s (a few seconds without ../shared), tutorials
+# 60 s, depth 41 s, faults 28 s, compound eye 27 s, of about 600 s in all). Under --dist loadgroup they are
+# handed out before the rest, so that a short group, not a long one, is the last to finish; a group missing
+# here only starts later (it changes no result).
+LONGEST_GROUPS = ("test_families.py", "replay", "test_gopro.py", "test_tutorials.py", "test_depth_cli.py",
+                  "test_faults.py", "test_compound_eye.py")
 
 
 def _xdist_group(item) -> str:

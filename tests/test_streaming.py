@@ -70,6 +70,23 @@ def test_frame_by_frame_equals_the_whole_record_causal_run(family_footage_small,
     np.testing.assert_allclose(np.array([s.accel for s in states]), ds.accel.values, rtol=0, atol=1e-9)
 
 
+def test_frame_by_frame_equals_the_whole_record_with_each_fields_axis(family_footage_small):
+    """With VelocityConfig.heading_motion (each field's κ against its own axis, from the 3-D acceleration, its
+    direction and the attitude) the frame-by-frame estimator still gives the whole record's causal run, on a
+    camera that turns."""
+    fo = family_footage_small("rotation")
+    cfg = causal_config()
+    cfg.heading_motion = True
+    ds = estimate_velocity(fo, cfg, progress=False)
+    off = estimate_velocity(fo, causal_config(), progress=False)
+    assert not np.allclose(ds.v_std.values, off.v_std.values), "the option changed nothing"
+    states, _ = stream(fo, cfg, intervals=whole_record_intervals(fo, ds))
+    obs = np.array([s.observable for s in states])
+    assert np.array_equal(obs, ds.observable.values) and obs.mean() > 0.1
+    np.testing.assert_allclose(np.array([s.v for s in states])[obs], ds.v_hat.values[obs], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.array([s.v_std for s in states]), ds.v_std.values, rtol=0, atol=1e-9)
+
+
 def test_imu_chunking_does_not_change_the_estimate(family_footage_small):
     """Samples one at a time, in odd chunks, or with each frame: the same estimates; and without the record's
     intervals (taken from the first pair and the first samples) within 1e-4 m/s of the record's."""

@@ -26,8 +26,9 @@ Modules: :mod:`lobula.imu.gyro` (bias, attitude), :mod:`lobula.imu.gravity` (gra
 forward acceleration and its error bounds), :mod:`lobula.imu.resample` (samples at the frames' times).
 """
 from .gravity import (ACCEL_CORRELATION_S, G, GRAVITY_INIT_S, GRAVITY_WINDOW_S, LEAK_WINDOW_S, attitude_leak,
-                      forward_acceleration, forward_axis, gravity_direction, gravity_drift_std, gravity_time_constant,
-                      leak_walk, local_linear, online_gravity, transport_rate)
+                      forward_acceleration, forward_axis, gravity_direction, gravity_drift_std,
+                      gravity_free_acceleration, gravity_time_constant, leak_walk, local_linear, online_gravity,
+                      transport_rate)
 from .gyro import (GYRO_BIAS_PRIOR, GYRO_BIAS_WALK, GYRO_NOISE_DENSITY, GYRO_SCALE_PRIOR, HEADING_BIAS_STD_SCALE,
                    HEADING_FIT_BIAS_PRIOR, MIN_RESIDUALS, RESIDUAL_GATE, RESIDUAL_RATE_PRIOR_STD, GyroAttitude,
                    fused_gyro_bias, gyro_bias, orientation_from_gyro, rotation_increments, vision_gyro_bias)
@@ -37,6 +38,7 @@ __all__ = ["ACCEL_CORRELATION_S", "G", "GRAVITY_INIT_S", "GRAVITY_WINDOW_S", "LE
            "GYRO_BIAS_WALK", "GYRO_NOISE_DENSITY", "GYRO_SCALE_PRIOR", "HEADING_BIAS_STD_SCALE",
            "HEADING_FIT_BIAS_PRIOR", "MIN_RESIDUALS", "RESIDUAL_GATE", "RESIDUAL_RATE_PRIOR_STD", "GyroAttitude",
            "attitude_leak", "forward_acceleration", "forward_axis", "fused_gyro_bias", "gravity_direction",
-           "gravity_drift_std", "gravity_time_constant", "gyro_bias", "leak_walk", "local_linear", "online_gravity",
+           "gravity_free_acceleration", "gravity_drift_std", "gravity_time_constant", "gyro_bias", "leak_walk",
+           "local_linear", "online_gravity",
            "orientation_from_gyro", "resample_to", "rotation_increments", "transport_rate", "turn_rate",
            "vision_gyro_bias"]

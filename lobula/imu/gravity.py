@@ -100,7 +100,15 @@ def local_linear(time_s: np.ndarray, values: np.ndarray, window_s: float, causal
 def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None,
                          causal: bool = False, window_s: float = GRAVITY_WINDOW_S,
                          bias: np.ndarray | None = None, orientation: np.ndarray | None = None) -> np.ndarray:
-    """Gravity-free acceleration along the optical axis (m/s², (n,)) from specific force ``accel`` (n, 3) m/s²
+    """Gravity-free acceleration along the optical axis (m/s², (n,)): :func:`gravity_free_acceleration`'s third
+    component (the arguments are its own)."""
+    return gravity_free_acceleration(time_s, accel, gyro, causal, window_s, bias, orientation)[:, 2]
+
+
+def gravity_free_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None,
+                              causal: bool = False, window_s: float = GRAVITY_WINDOW_S,
+                              bias: np.ndarray | None = None, orientation: np.ndarray | None = None) -> np.ndarray:
+    """Gravity-free acceleration in the camera frame (m/s², (n, 3)) from specific force ``accel`` (n, 3) m/s²
     sampled at ``time_s`` (n,) s.
 
     window_s: s. Raises ValueError for non-finite input. With ``gyro`` (n, 3) rad/s the gravity
@@ -133,7 +141,7 @@ def forward_acceleration(time_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray
     f0 = np.einsum("nij,nj->ni", rot, accel)  # specific force in the first frame
     g0 = -(online_gravity(time_s, f0, window_s) if causal else local_linear(time_s, f0, window_s, False, slope_std=0.0))
     g_cam = np.einsum("nji,nj->ni", rot, g0)
-    return (accel + g_cam)[:, 2]
+    return accel + g_cam
 
 
 def forward_axis(time_s: np.ndarray, gyro: np.ndarray, causal: bool = False,

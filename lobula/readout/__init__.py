@@ -51,11 +51,11 @@ from .coupling import CouplingTest, coupling_test, vision_locked
 from .filters import _fill_nan, _integral, _lag, butterworth, gaussian_lowpass, hold_gaps, staggered_difference
 from .kalman import ForwardPass, FilterRecord, _accel_density2, _axis_terms, filter_record, kalman_velocity, predict  # noqa: F401
 from .updates import OUTLIER_GATE, _gated_update, _sign_update, _update, ratio_update  # noqa: F401
-from .measurements import (NO_EXPANSION_SE, REVERSAL_MAX_GAP_S, SIGN_PERSIST_S, MaterialRates,
-                           accelerometer_level, accelerometer_steady, clear_expansion, expansion_sign,
-                           field_velocity, median_and_error, physical_kappa, ratio_measurement, readout_lag,
-                           readout_terms, rest_measurement, reversal_measurement, scene_depth, signed_expansion,
-                           vision_measurement)
+from .measurements import (ACCEL_HEADING_FLOOR_M_S2, NO_EXPANSION_SE, REVERSAL_MAX_GAP_S, SIGN_PERSIST_S,
+                           MaterialRates, acceleration_heading, accelerometer_level, accelerometer_steady,
+                           clear_expansion, expansion_sign, field_axes, field_velocity, median_and_error,
+                           physical_kappa, ratio_measurement, readout_lag, readout_terms, rest_measurement,
+                           reversal_measurement, scene_depth, signed_expansion, vision_measurement)
 from .paper import paper_readout
 from .smoothers import fixed_lag_smooth, rts_smooth
 
@@ -63,7 +63,8 @@ __all__ = [
     "ReadoutConfig", "ReadoutResult", "MaterialRates", "readout", "kalman_readout", "paper_readout",
     "readout_terms", "readout_lag", "vision_measurement", "ratio_measurement", "physical_kappa",
     "rest_measurement", "scene_depth", "reversal_measurement", "expansion_sign", "clear_expansion", "signed_expansion",
-    "field_velocity", "median_and_error", "accelerometer_level", "accelerometer_steady",
+    "field_velocity", "field_axes", "acceleration_heading", "ACCEL_HEADING_FLOOR_M_S2", "median_and_error",
+    "accelerometer_level", "accelerometer_steady",
     "kalman_inputs", "gate_by_lock", "vision_trusted", "kalman_velocity", "predict", "ratio_update", "rts_smooth",
     "fixed_lag_smooth",
     "butterworth", "gaussian_lowpass", "staggered_difference", "hold_gaps",
@@ -74,7 +75,7 @@ __all__ = [
 def readout(t, r, r2, a, config: ReadoutConfig | None = None,
             material: MaterialRates | None = None, gravity_tau=None, drift_std=None,
             turn_rate=None, offset_walk=None, offset_axis=None, offset_axis_prior=0.0,
-            transport=None) -> ReadoutResult:
+            transport=None, kappa_accel=None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
     Parameters
@@ -108,6 +109,12 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
     transport : array_like, (n,), optional
         1/s: λ = ω_x·e_y − ω_y·e_x, how fast a turning camera's forward speed changes per m/s beyond
         its forward acceleration (lobula.imu.transport_rate; None: 0).
+    kappa_accel : tuple, optional
+        (A (n, 3) m/s², ê (n, 2), R (n, 3, 3) or None): the 3-D gravity-free acceleration (camera frame), the
+        direction it points along (:func:`acceleration_heading`) and the camera's orientation in
+        ``offset_axis``'s frame. With the material fields' moments, each field's κ then measures the
+        acceleration along its own axis (:func:`field_axes`), which holds a moving heading, and the gravity
+        error δ along that axis turned by R (kalman readout only; None: κ measures ``a``).
 
     Returns
     -------
@@ -135,16 +142,18 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
         transport = np.asarray(transport, dtype=float)
         if transport.shape != t.shape or not np.all(np.isfinite(transport)):
             raise ValueError(f"transport must be finite and shaped like t {t.shape}, got {transport.shape}")
+    if kappa_accel is not None:
+        kappa_accel = _check_kappa_accel(kappa_accel, len(t), offset_axis is not None)
     if cfg.method == "kalman":
         return kalman_readout(t, r, r2, a, cfg, material, gravity_tau, drift_std,
                               None if turn_rate is None else np.asarray(turn_rate, dtype=float), offset_walk,
-                              offset_axis, offset_axis_prior, transport)
+                              offset_axis, offset_axis_prior, transport, kappa_accel)
     return paper_readout(t, r, r2, a, cfg)
 
 
 def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
                    gravity_tau=None, drift_std=None, turn_rate=None, offset_walk=None,
-                   offset_axis=None, offset_axis_prior=0.0, transport=None) -> ReadoutResult:
+                   offset_axis=None, offset_axis_prior=0.0, transport=None, kappa_accel=None) -> ReadoutResult:
     """The project's readout (see the package's docstring).
 
     Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
@@ -165,6 +174,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
         As :func:`readout` takes them (turn_rate, offset_walk and transport as float arrays).
     offset_axis : ndarray, (n, 3), optional
     offset_axis_prior : float or ndarray, (3,)
+    kappa_accel : tuple, optional
         As :func:`readout` takes them.
 
     Returns
@@ -172,7 +182,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     ReadoutResult
     """
     zp = cfg.filter == "zero-phase"
-    inp = kalman_inputs(t, r, r2, a, cfg, material, offset_axis, offset_axis_prior)
+    inp = kalman_inputs(t, r, r2, a, cfg, material, offset_axis, offset_axis_prior, kappa_accel=kappa_accel)
     if cfg.fusion == "vision-only":
         z, s = inp.z, inp.z_std
         obs = np.isfinite(z) & (s <= std_allowed(z, cfg))
@@ -238,7 +248,7 @@ class KalmanInputs:
 
 def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, offset_axis=None,
                   offset_axis_prior=0.0, dt: float | None = None, rest_depth_seen: float = np.nan,
-                  gate: bool = True) -> KalmanInputs:
+                  gate: bool = True, kappa_accel=None) -> KalmanInputs:
     """The kalman readout's measurements from the fields' rates and the forward acceleration.
 
     Online (``cfg.filter`` "causal") each frame's inputs depend on that frame and those before it only,
@@ -265,6 +275,8 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     gate : bool
         Leave κ and the reversals out where vision has not fixed the speed (:func:`gate_by_lock`), as this
         stretch's verdicts say; a stream, whose lock holds from before the stretch, gates each row itself.
+    kappa_accel : tuple, optional
+        As :func:`readout` takes it: what κ, the coupling test and the fields' depths are measured against.
 
     Returns
     -------
@@ -274,7 +286,15 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     dt = float(np.median(np.diff(t))) if dt is None else float(dt)
     terms, lag, lp, rf = readout_terms(t, r, r2, a, cfg, material, dt=dt)
     r_dot = terms[2]
-    z, s, v_f = vision_measurement(*terms, cfg)
+    axes = a_f = None
+    if kappa_accel is not None and material is not None and material.moment is not None:
+        # Each field's acceleration along its own κ axis (field_axes), low-passed and late as the rates are.
+        accel3, heading, _ = kappa_accel
+        mom = material.moment.reshape(len(t), -1)
+        mom = (lp(mom) if zp else lp(mom, True)).reshape(material.moment.shape)
+        axes = _lag(field_axes(mom, heading), lag)
+        a_f = np.einsum("nj,nfj->nf", _lag(lp(accel3), lag), axes)
+    z, s, v_f = vision_measurement(*terms[:3], terms[3] if a_f is None else a_f, cfg)
     delay = lag * dt
     # Low-passed measurements are correlated over about 1/(2·cutoff) s; treating each
     # frame as independent would make the posterior overconfident by √(that many frames).
@@ -296,9 +316,12 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     # The prior std of the acceleration's whole forward offset: the accelerometer's own, and the
     # start frame's gravity error where the filter tracks it apart (offset_axis).
     offset_prior = float(np.hypot(cfg.bias_prior_m_s2, np.max(offset_axis_prior) if offset_axis is not None else 0.0))
-    kap, skap, e_lp, n_corr = _kappa_measurement(terms, v_f, cfg, dt, sigma_t, offset_prior)
+    kap, skap, e_lp, n_corr, k_f = _kappa_measurement(terms, v_f, cfg, dt, sigma_t, offset_prior)
+    a_m, c_m = terms[3], None
+    if a_f is not None:
+        a_m, c_m = _median_field_accel(kap, k_f, a_f, axes, terms[3], kappa_accel[2], lag)
     min_fields = int(np.ceil(cfg.min_valid_fraction * r.shape[1]))  # for the reversals and the sign
-    coupling = coupling_test(_field_median(terms[2] - terms[1]), terms[3], dt, cfg.coupling_window_s, cfg.cutoff_hz,
+    coupling = coupling_test(_field_median(terms[2] - terms[1]), a_m, dt, cfg.coupling_window_s, cfg.cutoff_hz,
                              not zp, cfg.coupling_z, cfg.coupling_refute_z, cfg.coupling_power_m_s2)
     seen = scene_depth(terms[0], v_f, np.isfinite(z), coupling.coupled, dt, 1.0 / cfg.cutoff_hz, not zp,
                        rest_depth_seen)
@@ -320,7 +343,7 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         kap, reversal = gate_by_lock(kap, reversal, vision_trusted(locked, coupling.provisional, coupling.full))
     return KalmanInputs(coupling=coupling, still=np.isfinite(zr), scene_depth=seen, locked=locked,
         passed_zero=passed_zero,
-        measurements=[(zr, sr, 0.0)], ratio=(kap, skap, terms[3], shift, e_lp),
+        measurements=[(zr, sr, 0.0)], ratio=(kap, skap, a_m, shift, e_lp) + (() if c_m is None else (c_m,)),
         rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True),
         reversal=reversal,
         sign=expansion_sign(t, rf if zp else r, min_fields) if cfg.sign else None,
@@ -442,8 +465,10 @@ def _kappa_measurement(terms, v_f, cfg: ReadoutConfig, dt: float, sigma_t: float
         m/s: the rates' timing error (0 online).
     n_corr : float
         Frames over which the low-passed terms' errors are correlated.
+    k_f : ndarray, (n, F)
+        1/s: the fields' ratios κ is the median of (NaN for those left out).
     """
-    kap, skap = physical_kappa(terms, v_f, cfg, offset_prior)
+    kap, skap, k_f = physical_kappa(terms, v_f, cfg, offset_prior)
     n_corr = max(1.0, 1.0 / (2 * cfg.cutoff_hz * dt))
     skap = skap * np.sqrt(n_corr)
     # What the fields' spread cannot show: an error all fields share (the flow's, a residual
@@ -459,4 +484,34 @@ def _kappa_measurement(terms, v_f, cfg: ReadoutConfig, dt: float, sigma_t: float
     # 0.0119 / 0.0120): the forward filter goes without.
     zp = cfg.filter == "zero-phase"
     e_lp = (0.5 * sigma_t ** 2 * np.abs(np.gradient(_fill_nan(terms[3]), dt)) if zp else np.zeros(len(terms[3])))
-    return kap, skap, e_lp, n_corr
+    return kap, skap, e_lp, n_corr, k_f
+
+
+def _median_field_accel(kap, k_f, a_f, axes, a, turn, lag: int):
+    """What the median κ measures where each field measures its own acceleration (:func:`field_axes`): the
+    acceleration a_m (n,) m/s² of the field whose ratio is the median (the nearer of the middle two), and its
+    axis c_m (n, 3) turned by ``turn`` (n, 3, 3; camera → the gravity frame, late by ``lag`` frames like the
+    terms), or None without one. Frames without κ keep the forward acceleration ``a`` (n,) and the optical axis."""
+    with np.errstate(invalid="ignore"):
+        gap = np.abs(k_f - kap[:, None])
+    has = np.isfinite(gap).any(axis=1)
+    pick = np.argmin(np.where(np.isfinite(gap), gap, np.inf), axis=1)
+    rows = np.arange(len(kap))
+    a_m = np.where(has, a_f[rows, pick], a)
+    if turn is None:
+        return a_m, None
+    ax = np.where(has[:, None], axes[rows, pick], np.array([0.0, 0.0, 1.0]))
+    return a_m, np.einsum("nij,nj->ni", _lag(np.asarray(turn, float), lag), ax)
+
+
+def _check_kappa_accel(kappa_accel, n: int, with_axis: bool):
+    """:func:`readout`'s ``kappa_accel`` as float arrays, or ValueError saying what is wrong."""
+    accel3, heading, turn = (None if x is None else np.asarray(x, dtype=float) for x in kappa_accel)
+    if accel3.shape != (n, 3) or not np.all(np.isfinite(accel3)):
+        raise ValueError(f"kappa_accel's acceleration must be finite and shaped (n, 3) = ({n}, 3), got {accel3.shape}")
+    if heading.shape != (n, 2) or not np.all(np.isfinite(heading)):
+        raise ValueError(f"kappa_accel's heading must be finite and shaped (n, 2) = ({n}, 2), got {heading.shape}")
+    if turn is not None and (not with_axis or turn.shape != (n, 3, 3) or not np.all(np.isfinite(turn))):
+        raise ValueError(f"kappa_accel's orientation must be finite, shaped (n, 3, 3) = ({n}, 3, 3) and come with "
+                         f"offset_axis, got {turn.shape}")
+    return accel3, heading, turn

@@ -49,12 +49,14 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
         so the offset moves as ḃ = −a/τ (a the acceleration given): a known input to the offset state,
         not noise. None: the offset only random-walks.
     ratio : tuple of ndarray, optional
-        (κ, σ_κ, a_m, shift[, e_lp]), each (n,): vision's measurement of a/v (κ = (ṙ − r²)/r per
-        field, 1/s, which needs no accelerometer) against the accelerometer's a_m (m/s², low-passed like
+        (κ, σ_κ, a_m, shift[, e_lp[, c_κ]]), each (n,) but c_κ: vision's measurement of a/v (κ = (ṙ − r²)/r
+        per field, 1/s, which needs no accelerometer) against the accelerometer's a_m (m/s², low-passed like
         κ, belonging to t − delay, where the low-passed velocity κ multiplies was v(t) − shift (m/s),
         less the offset's share): a_m = κ·(v − shift) + b. Linear in the state, it ties b to the
         accelerometer where a ≈ 0 and v to both elsewhere, so an accelerometer offset cannot scale v
-        the way it scales a·r/(ṙ − r²). e_lp (m/s): the rates' timing error (see kalman_readout).
+        the way it scales a·r/(ṙ − r²). e_lp (m/s): the rates' timing error (see kalman_readout). c_κ
+        (n, 3): where a_m is the acceleration along the material fields' κ axis (lobula.readout.field_axes),
+        that axis in ``offset_axis``'s frame, along which the gravity error δ enters a_m.
     drift_std : ndarray, (n,), optional
         m/s²/s: how fast the offset may ramp — gravity seen through an attitude integrated with an
         uncertain gyro bias σ_b drifts at up to |g|·σ_b — as a fourth state ḃ whose std is held within
@@ -201,7 +203,7 @@ class ForwardPass:
         if sign is not None and np.isfinite(sign[k]):
             x, P = _sign_update(x, P, rec.v_row(k, 0.0), sign[k], cfg.max_std_m_s)
         x, P = _velocity_updates(x, P, k, rec, H, measurements, rest_accel, consider)
-        if ratio is not None and all(np.isfinite(q[k]) for q in ratio):
+        if ratio is not None and all(np.all(np.isfinite(q[k])) for q in ratio):
             x, P, nu, hph, R = ratio_update(x, P, k, rec, cfg, H, D, [q[k] for q in ratio], self.noise.scale,
                                             self.cf, consider)
             self.noise.learn(k, rec.t, nu, hph, R, cfg, self.smooth_pass, self.corr_frames)

@@ -23,6 +23,9 @@ NO_EXPANSION_SE = 3.0
 SIGN_PERSIST_S = 0.5
 #: s: the longest stretch without a clear expansion sign across which a reversal is read (see reversal_measurement)
 REVERSAL_MAX_GAP_S = 1.0
+#: m/s²: a forward acceleration below this gives the acceleration's direction nothing to go by
+#: (:func:`acceleration_heading`): the accelerometer's noise and offset, filtered, reach about that
+ACCEL_HEADING_FLOOR_M_S2 = 0.1
 
 
 @dataclass
@@ -41,11 +44,87 @@ class MaterialRates:
         1/s²: r²̄.
     r_dot : ndarray, (n, F)
         1/s²: ṙ̄ = Dr/Dt.
+    moment : ndarray, (n, F, 2), optional
+        The fields' Σw(p − e)/Σw|p − e|² about the heading e the rates were read about (normalised
+        coordinates⁻¹), which says how a moving heading enters ṙ̄ (:func:`field_axes`).
     """
 
     r: np.ndarray
     r2: np.ndarray
     r_dot: np.ndarray
+    moment: np.ndarray | None = None
+
+
+def acceleration_heading(accel: np.ndarray, dt: float, window_s: float, causal: bool,
+                         orientation: np.ndarray | None = None) -> np.ndarray:
+    """ê (n, 2): the direction the camera accelerates along, as a heading (d_x/d_z, d_y/d_z) in the camera frame,
+    d the principal axis of the acceleration over each frame's window (trailing online, centred offline).
+
+    A platform accelerates along its heading, so ê stands for the heading in ė = (A_xy − e·A_z)/V_z
+    (:func:`field_axes`), leaving the drift, bounce and sway that move the heading: the heading the fields were
+    read about may err (a pitched camera whose fit lags), and A_xy − e·A_z would read that error as motion.
+    The axis is found in a frame that does not turn with the camera (``orientation``), so a camera that pans
+    while its platform runs straight keeps one direction, turned into each frame's camera.
+
+    Parameters
+    ----------
+    accel : ndarray, (n, 3)
+        m/s²: the gravity-free acceleration, camera frame.
+    dt : float
+        s: the frame interval.
+    window_s : float
+        s.
+    causal : bool
+    orientation : ndarray, (n, 3, 3), optional
+        Camera → a fixed frame at each frame (None: the camera does not turn).
+
+    Returns
+    -------
+    ndarray, (n, 2)
+        Where the window's acceleration is under ACCEL_HEADING_FLOOR_M_S2 (rms), or its axis lies within 45°
+        of the image plane, the optical axis (0, 0).
+    """
+    from .coupling import _window_sums
+
+    a = np.asarray(accel, float)
+    rot = None if orientation is None else np.asarray(orientation, float)
+    a_ref = a if rot is None else np.einsum("nij,nj->ni", rot, a)
+    w = max(1, int(round(window_s / dt)))
+    outer = (a_ref[:, :, None] * a_ref[:, None, :]).reshape(len(a), 9)
+    m = np.stack([_window_sums(outer[:, j], w, causal) for j in range(9)], axis=1).reshape(len(a), 3, 3)
+    count = _window_sums(np.ones(len(a)), w, causal)
+    vals, vecs = np.linalg.eigh(m)
+    d = vecs[:, :, -1]  # the principal axis, in the fixed frame
+    d_cam = d if rot is None else np.einsum("nji,nj->ni", rot, d)
+    d_cam = d_cam * np.sign(d_cam[:, 2:3] + (d_cam[:, 2:3] == 0))
+    strong = (vals[:, -1] / count >= ACCEL_HEADING_FLOOR_M_S2 ** 2) & (d_cam[:, 2] > np.sqrt(0.5))
+    return np.where(strong[:, None], d_cam[:, :2] / np.where(strong, d_cam[:, 2], 1.0)[:, None], 0.0)
+
+
+def field_axes(moment: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """ñ_f (n, F, 3), camera frame: the axis along which each material field's κ measures the acceleration.
+
+    The fields read both ends of ṙ̄'s difference about one heading, so a heading that moves enters
+    ṙ̄ (:class:`lobula.receptive_field.MaterialFields`): each field's (ṙ̄ − r²̄)/r̄ is ⟨A, ñ_f⟩/V_z, with
+    A the camera's 3-D acceleration (gravity-free, camera frame), ñ_f = (−m_x, −m_y, 1 + ⟨e, m⟩) from
+    its moment m (about the heading the rates were read about) and e the heading the velocity has
+    (its direction of acceleration, :func:`acceleration_heading`, stands for it). A field without a
+    moment measures along the optical axis (0, 0, 1).
+
+    Parameters
+    ----------
+    moment : ndarray, (n, F, 2)
+        :attr:`MaterialRates.moment`, normalised coordinates⁻¹.
+    heading : ndarray, (n, 2)
+        The velocity's heading e, normalised coordinates.
+
+    Returns
+    -------
+    ndarray, (n, F, 3)
+    """
+    m = np.nan_to_num(np.asarray(moment, float))
+    e = np.nan_to_num(np.asarray(heading, float))
+    return np.concatenate([-m, 1.0 + np.einsum("nc,nfc->nf", e, m)[..., None]], axis=2)
 
 
 def field_velocity(r, r2, r_dot, a):
@@ -59,8 +138,8 @@ def field_velocity(r, r2, r_dot, a):
         1/s²: r²̄.
     r_dot : ndarray, (n, F)
         1/s²: ṙ̄.
-    a : ndarray, (n,)
-        m/s²: the forward acceleration.
+    a : ndarray, (n,) or (n, F)
+        m/s²: the forward acceleration, or each field's (:func:`field_axes`).
 
     Returns
     -------
@@ -71,7 +150,7 @@ def field_velocity(r, r2, r_dot, a):
     """
     with np.errstate(divide="ignore", invalid="ignore"):
         denom = r_dot - r2
-        depth = a[:, None] / denom
+        depth = (a if np.ndim(a) == 2 else a[:, None]) / denom
         return r * depth, depth
 
 
@@ -113,8 +192,8 @@ def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
     ----------
     r, r2, r_dot : ndarray, (n, F)
         1/s, 1/s², 1/s²: r̄, r²̄, ṙ̄.
-    a : ndarray, (n,)
-        m/s²: the forward acceleration.
+    a : ndarray, (n,) or (n, F)
+        m/s²: the forward acceleration, or each field's.
     cfg : ReadoutConfig
 
     Returns
@@ -128,7 +207,7 @@ def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
     """
     v_f, depth = field_velocity(r, r2, r_dot, a)
     ok = np.isfinite(v_f) & (depth >= cfg.depth_min_m) & (depth <= cfg.depth_max_m)
-    ok &= (np.abs(a) >= cfg.accel_min_m_s2)[:, None]
+    ok &= np.abs(a if np.ndim(a) == 2 else a[:, None]) >= cfg.accel_min_m_s2
     v_f = np.where(ok, v_f, np.nan)
     n_ok = ok.sum(1)
     z, se = median_and_error(v_f, n_ok)
@@ -137,7 +216,7 @@ def vision_measurement(r, r2, r_dot, a, cfg: ReadoutConfig):
     return np.where(enough, z, np.nan), np.where(enough, std, np.nan), v_f
 
 
-def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
+def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None, fields: bool = False):
     """Vision's a/v per frame, κ = median over fields of (ṙ̄ − r²̄)/r̄, and its standard error.
 
     No accelerometer enters: ṙ − r² = a/d and r = v/d, so their ratio is a/v for every
@@ -153,6 +232,8 @@ def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
     cfg : ReadoutConfig
     keep : ndarray of bool, (n, F), optional
         The fields that may count.
+    fields : bool
+        Also return the fields' ratios.
 
     Returns
     -------
@@ -160,6 +241,8 @@ def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
         1/s: κ, NaN where uninformative.
     std : ndarray, (n,)
         1/s, NaN where uninformative.
+    k : ndarray, (n, F)
+        1/s: each field's ratio, NaN for the fields left out (with ``fields`` only).
     """
     with warnings.catch_warnings(), np.errstate(divide="ignore", invalid="ignore"):
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -171,7 +254,8 @@ def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None):
     n_ok = ok.sum(1)
     kap, std = median_and_error(k, n_ok)
     enough = (n_ok >= max(3, cfg.min_valid_fraction * r.shape[1])) & np.isfinite(kap)
-    return np.where(enough, kap, np.nan), np.where(enough, std, np.nan)
+    out = np.where(enough, kap, np.nan), np.where(enough, std, np.nan)
+    return out + (k,) if fields else out
 
 
 def signed_expansion(r: np.ndarray):
@@ -573,9 +657,11 @@ def physical_kappa(terms, v_f, cfg: ReadoutConfig, offset_prior: float):
         1/s, NaN where uninformative.
     std : ndarray, (n,)
         1/s.
+    k : ndarray, (n, F)
+        1/s: each field's ratio, NaN for the fields left out.
     """
     judge = np.abs(terms[3]) >= cfg.accel_min_m_s2 + 2.0 * offset_prior
-    return ratio_measurement(*terms[:3], cfg, keep=np.isfinite(v_f) | ~judge[:, None])
+    return ratio_measurement(*terms[:3], cfg, keep=np.isfinite(v_f) | ~judge[:, None], fields=True)
 
 
 def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, dt: float | None = None):

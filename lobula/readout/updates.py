@@ -102,8 +102,8 @@ def ratio_update(x, P, k: int, rec: FilterRecord, cfg: ReadoutConfig, H, D: floa
         The row of v one latency ago (:meth:`FilterRecord.v_row`).
     D : float
         s: the latency.
-    q : sequence of float
-        Frame k's (κ (1/s), σ_κ (1/s), a_m (m/s²), shift (m/s)[, e_lp (m/s)]), as
+    q : sequence
+        Frame k's (κ (1/s), σ_κ (1/s), a_m (m/s²), shift (m/s)[, e_lp (m/s)[, c_κ (3,)]]), as
         :func:`kalman_velocity`'s ``ratio``.
     r_scale : float
         The factor on the noise variance (covariance matching, :class:`_KappaNoise`).
@@ -149,7 +149,12 @@ def ratio_update(x, P, k: int, rec: FilterRecord, cfg: ReadoutConfig, H, D: floa
         informative = abs(kap) * np.sqrt(vd ** 2 + pd) >= cfg.accel_min_m_s2
     kv = kap if informative else 0.0
     # a_m = κ·(v(t − D) + shift) + the offset one latency ago, b − ḃ·D (+ c(t − D)·δ)
-    h = kv * H + np.concatenate([[0.0, 1.0, 1.0 if cfg.shared_error_frac > 0 else 0.0, -D], rec.c_at(k, D)])
+    # The gravity error δ enters a_m along the axis a_m is measured on: the optical axis one latency ago, or
+    # the material fields' κ axis where a_m is the acceleration along it (lobula.readout.field_axes).
+    c = rec.c_at(k, D)
+    if len(q) > 5 and len(c):
+        c = np.asarray(q[5], float)
+    h = kv * H + np.concatenate([[0.0, 1.0, 1.0 if cfg.shared_error_frac > 0 else 0.0, -D], c])
     zk = am + (kap * shift if informative else 0.0)
     # The fields' spread (v·σ_κ, floored at meas_floor as a velocity measurement would
     # be) and the filtered accelerometer's noise floor (accel_min_m_s2); its offset and

@@ -266,7 +266,7 @@ def residual_rate(camera, s: FlowSample, r01: np.ndarray, e: np.ndarray, b_then:
 
 def material_rates(items: list, n: int, n_fields: int, stagger: int) -> MaterialRates:
     """Place each difference (returned at pair k, over k − s … k) at its centre k − s/2."""
-    out = [np.full((n, n_fields), np.nan) for _ in range(3)]
+    out = [np.full((n, n_fields), np.nan) for _ in range(3)] + [np.full((n, n_fields, 2), np.nan)]
     h = stagger // 2
     for k, item in enumerate(items):
         if item is not None:

@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from lobula.config import VelocityConfig
-from lobula.imu import fused_gyro_bias, gravity_time_constant, gyro_bias, forward_acceleration, resample_to, turn_rate, vision_gyro_bias
+from lobula.imu import (fused_gyro_bias, gravity_free_acceleration, gravity_time_constant, gyro_bias, resample_to,
+                        turn_rate, vision_gyro_bias)
+from lobula.readout import acceleration_heading
 from lobula.readers.core import Footage, FootageError, acceleration_from_truth
 
 from .fields import FieldRates
@@ -101,6 +103,15 @@ def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig
     bias: gyro bias track (n_imu, 3) rad/s for the attitude that removes gravity
     (:func:`gyro_bias_track`); None: the still-camera estimate. orientation: that attitude
     (n_imu, 3, 3) where already integrated (:func:`lobula.imu.orientation_from_gyro`)."""
+    a3, label = accel_at(footage, times, config, bias, orientation)
+    return (a3 if a3.ndim == 1 else a3[:, 2]), label
+
+
+def accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig,
+             bias: np.ndarray | None = None, orientation: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+    """The acceleration at ``times`` and a label saying where it came from: from the IMU the 3-D
+    gravity-free acceleration (n, 3) m/s² in the camera frame, from the truth the forward one (n,) alone.
+    Arguments as :func:`forward_accel_at` takes them."""
     causal = config.readout.filter == "causal"
     if config.accel_from_truth or footage.imu is None:
         if not config.accel_from_truth and footage.kind != "d435i-sample":
@@ -119,10 +130,29 @@ def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig
                            f"frames of {footage.path.name} need {times[0]:.2f}..{times[-1]:.2f} s; their time stamps "
                            f"are not on one clock: shift the IMU with --clock-offset SECONDS (or auto)"
                            + (", or read both on another --clock" if realsense else ""))
-    a = forward_acceleration(imu.time_s, imu.accel, imu.gyro if config.derotate else None, causal=causal,
-                             bias=bias, orientation=orientation if config.derotate else None)
+    a = gravity_free_acceleration(imu.time_s, imu.accel, imu.gyro if config.derotate else None, causal=causal,
+                                  bias=bias, orientation=orientation if config.derotate else None)
     dt = frame_interval(footage.times)
-    return resample_to(times, imu.time_s, a, dt), "accelerometer (gravity and bias removed)"
+    return (np.stack([resample_to(times, imu.time_s, a[:, j], dt) for j in range(3)], axis=1),
+            "accelerometer (gravity and bias removed)")
+
+
+def kappa_accel_at(accel: np.ndarray, rates, time_s: np.ndarray, orientation: np.ndarray | None, causal: bool,
+                   window_s: float):
+    """:func:`lobula.readout.readout`'s ``kappa_accel``: (the 3-D acceleration (n, 3) m/s², its direction
+    (n, 2) (:func:`lobula.readout.acceleration_heading`), the camera's orientation (n, 3, 3) or None), or None
+    where the fields have no moments (no material fields) or ``accel`` is the forward acceleration alone.
+
+    accel: :func:`accel_at`'s, at the rows' times; rates: the FieldRates; orientation (m, 3, 3) at
+    time_s (m,) s: camera → the frame gravity was removed in (:func:`lobula.imu.orientation_from_gyro`), or None;
+    causal, window_s: the direction over trailing (else centred) windows of window_s s."""
+    m = rates.material
+    if m is None or m.moment is None or accel.ndim != 2:
+        return None
+    from .fields import slerp_orientations
+
+    turns = None if orientation is None else slerp_orientations(time_s, orientation, rates.t)
+    return accel, acceleration_heading(accel, frame_interval(rates.t), window_s, causal, turns), turns
 
 
 def turn_rate_at(footage: Footage, times: np.ndarray, accel_source: str, config: VelocityConfig) -> np.ndarray | None:

@@ -96,7 +96,7 @@ class InertialStream:
         self.prior, self.fit_prior, self.fitted = prior, fit_prior, fitted
         self.interval_s, self.keep_s, self.window_s, self.noise_density = interval_s, keep_s, window_s, noise_density
         self.cols = Columns(t=(), gyro=(3,), accel=(3,), s1=(3,), s2=(3,), still=(), count=(), total=(3,),
-                            bias_still=(3,), q_plain=(3, 3), bias=(3,), bias_std=(3,), rot=(3, 3), a_fwd=(),
+                            bias_still=(3,), q_plain=(3, 3), bias=(3,), bias_std=(3,), rot=(3, 3), a_cam=(3,),
                             axis=(3,), drift=(), leak=(), w_corr=(3,), turned=(3,), f_sum=(3,), g_ref=(3,),
                             accel_sum=(3,))
         self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -286,14 +286,15 @@ class InertialStream:
             out[i:], self._zi = lfilter([alpha], [1.0, -(1 - alpha)], f0[i:], axis=0, zi=self._zi)
         c.raw("g_ref")[idx] = out
         g_cam = np.einsum("nji,nj->ni", rot, -out)
-        c.raw("a_fwd")[idx] = (a + g_cam)[:, 2]
+        c.raw("a_cam")[idx] = a + g_cam
         c.raw("axis")[idx] = rot[:, :, 2]
 
     # ---------------------------------------------------------------- at a frame's time
     def at_frame(self, t: float, epipole: np.ndarray, frame_interval: float) -> dict:
         """What the readout takes at a frame of time t s (its heading ``epipole`` (2,) normalised):
-        a (m/s²), axis (3,), transport λ (1/s), drift (m/s²/s), walk (m/s²/√s), turn |ω| (rad/s) and
-        tau (s), as :func:`lobula.velocity.estimate_velocity` computes them on the whole record."""
+        a (m/s²), the 3-D gravity-free acceleration accel (3,) m/s² (camera frame), axis (3,), transport λ (1/s),
+        drift (m/s²/s), walk (m/s²/√s), turn |ω| (rad/s) and tau (s), as :func:`lobula.velocity.estimate_velocity`
+        computes them on the whole record."""
         self.finalise(t + frame_interval / 2)
         c = self.cols
         end = self._done - c.first
@@ -306,7 +307,9 @@ class InertialStream:
         wx, wy = (resample_to(one, ts, w[:, j], frame_interval)[0] for j in (0, 1))
         from .fields import slerp_orientations
 
-        out = dict(attitude=slerp_orientations(ts, at("rot"), one)[0], a=resample_to(one, ts, at("a_fwd"), frame_interval)[0], axis=axis / np.linalg.norm(axis),
+        accel = np.array([resample_to(one, ts, at("a_cam")[:, j], frame_interval)[0] for j in range(3)])
+        out = dict(attitude=slerp_orientations(ts, at("rot"), one)[0], a=accel[2], accel=accel,
+                   axis=axis / np.linalg.norm(axis),
                    transport=wx * e[1] - wy * e[0], drift=float(np.interp(t, ts, at("drift"))),
                    walk=float(leak_walk(one, ts, at("leak"))[0]),
                    turn=resample_to(one, ts, np.linalg.norm(c["gyro"][:end], axis=1), frame_interval)[0],

@@ -26,7 +26,7 @@ from lobula.readout import readout
 from lobula.version import provenance
 
 from .fields import field_rates, slerp_orientations
-from .inertial import (TRUTH_ACCEL_OFFSET_M_S2, forward_accel_at, frame_interval, gravity_tau, gyro_bias_track,
+from .inertial import (TRUTH_ACCEL_OFFSET_M_S2, accel_at, frame_interval, gravity_tau, gyro_bias_track, kappa_accel_at,
                        start_accel_prior, turn_rate_at)
 
 
@@ -61,14 +61,19 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     imu = footage.imu if not config.accel_from_truth else None
     rot = (orientation_from_gyro(imu.time_s, imu.gyro, causal, None if vb is None else vb[0])
            if imu is not None and imu.gyro is not None and config.derotate else None)
-    a, accel_source = forward_accel_at(footage, rates.t, config, bias=None if vb is None else vb[0], orientation=rot)
+    a3, accel_source = accel_at(footage, rates.t, config, bias=None if vb is None else vb[0], orientation=rot)
+    a = a3 if a3.ndim == 1 else a3[:, 2]
     t0 = _time.perf_counter()
     res = None
     if len(rates.t) >= 3:
         rcfg, axis, gravity_error = _offset_model(footage, rates, config, accel_source, vb, rot)
+        kappa = (kappa_accel_at(a3, rates, imu.time_s, rot if axis is not None else None, causal,
+                                rcfg.coupling_window_s)
+                 if config.heading_motion and imu is not None else None)
         res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material,
                       turn_rate=turn_rate_at(footage, rates.t, accel_source, config), offset_axis=axis,
-                      offset_axis_prior=gravity_error, **_imu_terms(footage, rates, config, accel_source, vb))
+                      offset_axis_prior=gravity_error, kappa_accel=kappa,
+                      **_imu_terms(footage, rates, config, accel_source, vb))
     rates.timings["readout"] = _time.perf_counter() - t0
     ds = velocity_dataset(rates, res, a, accel_source, footage, vb, rot)
     ds.attrs.update(_run_attrs(config, front, rates, res, accel_source, footage, t_start))

@@ -21,7 +21,7 @@ from lobula.config import VelocityConfig
 from lobula.flow import StaggeredFlow
 from lobula.front_ends import get_front_end
 from lobula.imu import HEADING_FIT_BIAS_PRIOR
-from lobula.readout import MaterialRates, gate_by_lock, kalman_inputs, vision_trusted
+from lobula.readout import MaterialRates, acceleration_heading, gate_by_lock, kalman_inputs, vision_trusted
 from lobula.readout.config import std_allowed
 from lobula.readout.coupling import LockState
 from lobula.readout.kalman import ForwardPass, filter_record
@@ -30,6 +30,9 @@ from lobula.receptive_field import tile_fields
 from .fields import FieldPooling
 from .inertial import start_accel_prior
 from .inertial_stream import Columns, InertialStream
+
+#: the rows' columns of the material fields' (r̄, r²̄, ṙ̄, moment), MaterialRates's fields in order
+MATERIAL_COLUMNS = ("m_r", "m_r2", "m_rdot", "m_moment")
 
 
 @dataclass
@@ -123,7 +126,8 @@ class VelocityEstimator:
         self._index = 0
         self._t_last = -np.inf
         F = self.fields.n_fields
-        self.rows = Columns(t=(), known=(), r=(F,), r2=(F,), m_r=(F,), m_r2=(F,), m_rdot=(F,), a=(), axis=(3,),
+        self.rows = Columns(t=(), known=(), r=(F,), r2=(F,), m_r=(F,), m_r2=(F,), m_rdot=(F,), m_moment=(F, 2), a=(),
+                            accel=(3,), axis=(3,),
                             lam=(), drift=(), walk=(), turn=(), tau=(), epipole=(2,), bias=(3,), attitude=(4,))
         self.dt: float | None = frame_interval_s
         self.gravity_error: float | None = None
@@ -214,15 +218,16 @@ class VelocityEstimator:
         k = rows.n
         sl = rows.append(1)
         for name, val in (("t", p.t), ("known", p.known), ("r", p.r), ("r2", p.r2), ("a", q["a"]),
-                          ("axis", q["axis"]), ("lam", q["transport"]), ("drift", q["drift"]), ("walk", q["walk"]),
+                          ("accel", q["accel"]), ("axis", q["axis"]), ("lam", q["transport"]), ("drift", q["drift"]),
+                          ("walk", q["walk"]),
                           ("turn", q["turn"]), ("tau", q["tau"]), ("epipole", p.epipole), ("bias", q["bias"]),
                           ("attitude", Rotation.from_matrix(q["attitude"]).as_quat())):
             rows.raw(name)[sl] = val
-        for name in ("m_r", "m_r2", "m_rdot"):
+        for name in MATERIAL_COLUMNS:
             rows.raw(name)[sl] = np.nan
         h = self.pooling.stagger // 2
         if p.material is not None and k - h >= rows.first:
-            for name, val in zip(("m_r", "m_r2", "m_rdot"), p.material):
+            for name, val in zip(MATERIAL_COLUMNS, p.material):
                 rows.raw(name)[rows._lo + k - h - rows.first] = val
         if self.gravity_error is None and np.isfinite(p.r).sum() >= 3:
             self.gravity_error = start_accel_prior(p.r[None])
@@ -244,10 +249,16 @@ class VelocityEstimator:
         w = slice(rows._lo + lo - rows.first, rows._lo + k + 1 - rows.first)
         col = lambda name: rows.raw(name)[w]
         t, a, axis = col("t"), col("a"), col("axis")
-        material = (MaterialRates(col("m_r"), col("m_r2"), col("m_rdot")) if self.pooling.material is not None
+        material = (MaterialRates(*(col(name) for name in MATERIAL_COLUMNS)) if self.pooling.material is not None
                     else None)
+        kappa = None
+        if material is not None and self.config.heading_motion:
+            # As estimate_velocity takes it (lobula.velocity.inertial.kappa_accel_at), on these rows.
+            turn_to = Rotation.from_quat(col("attitude")).as_matrix()
+            accel = col("accel")
+            kappa = accel, acceleration_heading(accel, self.dt, cfg.coupling_window_s, True, turn_to), turn_to
         inp = kalman_inputs(t, col("r"), col("r2"), a, cfg, material, axis, self.gravity_error, dt=self.dt,
-                            rest_depth_seen=self._rest_depth, gate=False)
+                            rest_depth_seen=self._rest_depth, gate=False, kappa_accel=kappa)
         rec = filter_record(t, a, axis, col("lam"), col("tau"), col("drift"), col("turn"), col("walk"))
         if self._filter is None:
             self._filter = ForwardPass(cfg, 3, col("drift"), self.gravity_error, False, inp.corr_frames)
