@@ -65,11 +65,11 @@ class VelocityConfig:
     (:func:`lobula.readout.field_axes`), from the IMU's 3-D gravity-free acceleration, rather than the
     forward acceleration: a heading that moves (a drone's drift, a walker's bounce) enters ṙ̄ as the
     acceleration across the heading over the speed, which the forward acceleration does not hold. The
-    relation is exact about the velocity's true heading (tests/test_geometry.py); the heading it stands in
-    with, the acceleration's own direction (:func:`lobula.readout.acceleration_heading`), is not that
-    heading while a platform's velocity turns, and on the development scenes the option helps some drone
-    flights and costs the indoor families online (docs/results.md), so it is off by default. Needs the
-    material fields and an accelerometer; ignored without them.
+    relation is exact about the velocity's true heading (tests/test_geometry.py), for which the
+    acceleration's own direction stands in (:func:`lobula.readout.acceleration_heading`). On the
+    development scenes the option turns most of the drones' confidently wrong answers honest and costs the
+    turning indoor families online, with an ideal IMU and the true heading too (docs/results.md), so it is
+    off by default. Needs the material fields and an accelerometer; ignored without them.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
