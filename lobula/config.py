@@ -67,9 +67,9 @@ class VelocityConfig:
     acceleration across the heading over the speed, which the forward acceleration does not hold. The
     relation is exact about the velocity's true heading (tests/test_geometry.py), for which the
     acceleration's own direction stands in (:func:`lobula.readout.acceleration_heading`). On the
-    development scenes the option turns most of the drones' confidently wrong answers honest and costs the
-    turning indoor families online, with an ideal IMU and the true heading too (docs/results.md), so it is
-    off by default. Needs the material fields and an accelerometer; ignored without them.
+    development drones the option makes some confidently wrong answers honest and one right answer wrong,
+    and it costs the turning indoor families online, with an ideal IMU and the true heading too
+    (docs/results.md), so it is off by default. Needs the material fields and an accelerometer; ignored without them.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).

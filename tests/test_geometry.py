@@ -277,6 +277,12 @@ def test_the_readout_takes_each_fields_acceleration_along_its_axis(filt):
         answered[name] = m.sum() / (t > 2).sum()
     assert err["along its axis"] < 0.02 and answered["along its axis"] > 0.8, (err, answered)
     assert err["forward"] > 3 * err["along its axis"], err
+    # Whether vision follows the accelerometer at all is judged against the forward acceleration either way.
+    from lobula.readout import kalman_inputs
+
+    z = [kalman_inputs(t, r, r ** 2, az, cfg, material, kappa_accel=k).coupling.z
+         for k in ((accel, heading, None), None)]
+    np.testing.assert_array_equal(*z)
 
 
 def _rough_flow(shape, seed):

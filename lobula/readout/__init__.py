@@ -276,7 +276,9 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         Leave κ and the reversals out where vision has not fixed the speed (:func:`gate_by_lock`), as this
         stretch's verdicts say; a stream, whose lock holds from before the stretch, gates each row itself.
     kappa_accel : tuple, optional
-        As :func:`readout` takes it: what κ, the coupling test and the fields' depths are measured against.
+        As :func:`readout` takes it: what κ and the fields' depths are measured against. The coupling test keeps
+        the forward acceleration: whether vision follows the accelerometer at all is judged as without it (on a
+        real GoPro walk, judged against the fields' own axes, a stabilised image locked on, confidently wrong).
 
     Returns
     -------
@@ -321,7 +323,7 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     if a_f is not None:
         a_m, c_m = _median_field_accel(kap, k_f, a_f, axes, terms[3], kappa_accel[2], lag)
     min_fields = int(np.ceil(cfg.min_valid_fraction * r.shape[1]))  # for the reversals and the sign
-    coupling = coupling_test(_field_median(terms[2] - terms[1]), a_m, dt, cfg.coupling_window_s, cfg.cutoff_hz,
+    coupling = coupling_test(_field_median(terms[2] - terms[1]), terms[3], dt, cfg.coupling_window_s, cfg.cutoff_hz,
                              not zp, cfg.coupling_z, cfg.coupling_refute_z, cfg.coupling_power_m_s2)
     seen = scene_depth(terms[0], v_f, np.isfinite(z), coupling.coupled, dt, 1.0 / cfg.cutoff_hz, not zp,
                        rest_depth_seen)
