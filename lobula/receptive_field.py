@@ -316,11 +316,11 @@ class MaterialFields:
     (:func:`lobula.epipole.derotate_finite`); in a fixed orientation the geometry has no
     rotation term, and at the centre a and v are the camera's own.
 
-    A moving heading: both ends are read about one epipole e (the centre's), and a heading that
-    moves by ė over the difference adds −r·⟨ė, p − e⟩/|p − e|² to Dr/Dt. In the fixed orientation
+    A moving heading: both ends are read about one epipole e₀ (the centre's), and a heading e that
+    moves by ė over the difference adds −r·⟨ė, p − e₀⟩/|p − e₀|² to Dr/Dt. In the fixed orientation
     ė = (A_xy − e·A_z)/V_z, so r·ė = (A_xy − e·A_z)/d and each field's ratio becomes
     (ṙ̄ − r²̄)/r̄ = ⟨A, ñ⟩/V_z with ñ = (−m_x, −m_y, 1 + ⟨e, m⟩), m the field's ``moment``
-    Σw(p − e)/Σw|p − e|² (both ends' points): the acceleration along ñ, which the readout takes
+    Σw(p − e₀)/Σw|p − e₀|² (both ends' points): the acceleration along ñ, which the readout can take
     from the 3-D accelerometer (:func:`lobula.readout.field_axes`). It needs no speed, and it does
     not cancel where the fields lie on one side of the heading (a pitched camera's ground).
 
