@@ -6,6 +6,11 @@ that import the script again) and as a notebook (jupytext's conversion executed 
 an IPython kernel; skipped where the `tutorials` extra is not installed). Either way every output
 lands in ``tutorial_output/`` of the folder it runs in, nothing else is written there or beside
 the tutorials, and the outputs hold the tutorial's known answers.
+
+Both ways run the same cells, so the default run takes each tutorial one way, the way with more to
+break (:data:`DEFAULT_WAY`): tutorial 3 as a script, whose spawned workers import it again; the
+others as notebooks, where a cell that leans on being a script (``__file__``) would fail. The other
+way is marked ``slow`` (``make test-slow``).
 """
 from __future__ import annotations
 
@@ -124,8 +129,18 @@ CHECKS = {"01": check_01, "02": check_02, "03": check_03, "04": check_04}
 NEEDS = {"02": ("torch", "the bio extra")}
 
 
+#: the way each tutorial runs in the default test run; the other way is marked slow
+DEFAULT_WAY = {"01": "notebook", "02": "notebook", "03": "script", "04": "notebook"}
+
+
+def _ways(way: str) -> list:
+    """The tutorials as parameters, marked slow where ``way`` is not their default."""
+    return [pytest.param(p, id=p.stem, marks=() if DEFAULT_WAY[p.name[:2]] == way else pytest.mark.slow)
+            for p in TUTORIALS]
+
+
 def test_every_tutorial_is_checked():
-    assert sorted(p.name[:2] for p in TUTORIALS) == sorted(CHECKS)
+    assert sorted(p.name[:2] for p in TUTORIALS) == sorted(CHECKS) == sorted(DEFAULT_WAY)
 
 
 def _check_outputs(path: Path, cwd: Path, tutorials_before: set[str], root_had_output: bool) -> None:
@@ -143,7 +158,7 @@ def _before(path: Path) -> tuple[set[str], bool]:
     return {p.name for p in (ROOT / "tutorials").iterdir()}, (ROOT / OUTPUT).exists()
 
 
-@pytest.mark.parametrize("path", TUTORIALS, ids=[p.stem for p in TUTORIALS])
+@pytest.mark.parametrize("path", _ways("script"))
 def test_tutorial_as_script(path, tmp_path):
     """``python tutorials/NN_x.py`` as the README says, from a fresh folder."""
     before = _before(path)
@@ -154,7 +169,7 @@ def test_tutorial_as_script(path, tmp_path):
     _check_outputs(path, tmp_path, *before)
 
 
-@pytest.mark.parametrize("path", TUTORIALS, ids=[p.stem for p in TUTORIALS])
+@pytest.mark.parametrize("path", _ways("notebook"))
 def test_tutorial_as_notebook(path, tmp_path, monkeypatch):
     """The jupytext notebook of each tutorial, executed top to bottom in a kernel started in a fresh folder."""
     why = 'needs the tutorials extra (.venv/bin/pip install -e ".[tutorials]")'
