@@ -24,7 +24,7 @@ FAMILIES = {
 #: estimator's indoor priors are being adapted to them
 EXTRA_FAMILIES = {
     "saccadic": ("fly flight (lobula scene --flight saccadic): straight segments of 0.2-2 s, body saccades of "
-                 "20-90° in 50-100 ms, 0.1-1 m/s; panels on even seeds, the corridor on odd ones"),
+                 "20-90° in 50-100 ms, 0.1-1 m/s; the panels, corridor and meadow worlds in turn (seed mod 3)"),
     "drone": ("drone flight, named only (the estimator is being adapted to it): from near rest to 5-15 m/s in "
               "2-6 s, then cruise; 3-30 m above ground with objects, backdrop 100-2,000 m, sky; gimbal camera "
               "tilted 0-20° down, residual rotation 0.1-0.4°; propeller vibration 0.3-1 m/s² rms at 50-200 Hz, "

@@ -63,13 +63,17 @@ def run_scene(args) -> int:
 
 def add_parser(subparsers):
     """Register `lobula scene` (see experiments.cli)."""
+    from stimuli.worlds import SceneConfig
+
     from .parsers import FINITE, FRACTION, INDEX, NONNEGATIVE, POSITIVE, Number
 
     s = subparsers.add_parser("scene", help="render a synthetic track run (footage folder with exact truth)")
     s.add_argument("out", help="output footage folder (must not exist or be empty)")
-    s.add_argument("--world", default="panels", choices=["panels", "corridor", "ground"],
+    s.add_argument("--world", default="panels", choices=list(SceneConfig.WORLDS),
                    help="panels: frontal textured panels, backdrop, floor; corridor: floor, ceiling, side walls "
-                        "and end wall; ground: ground plane to the horizon, objects, a backdrop 50-200 m away, sky")
+                        "and end wall; ground: ground plane to the horizon, objects, a backdrop 50-200 m away, sky; "
+                        "meadow: outdoors at a fly's scale, the ground 0.1-0.4 m below, stems and leaves 0.05-2 m "
+                        "from the path, a hedge 2-6 m ahead, sky (default: panels)")
     s.add_argument("--flight", default="track", choices=["track", "saccadic"],
                    help="track: along the straight track at the profile's velocity; saccadic: a seeded fly-like "
                         "flight, straight segments of 0.2-2 s joined by 20-90° body saccades of 50-100 ms, heading "
@@ -105,9 +109,9 @@ def add_parser(subparsers):
     s.add_argument("--brightness", type=POSITIVE, default=1.0, help="luminance gain (< 1: a dim scene)")
     s.add_argument("--contrast", type=NONNEGATIVE, default=1.0, help="texture contrast gain (< 1: low contrast)")
     s.add_argument("--sky", type=FRACTION, help="luminance (0..1) where no surface is hit (default: 0.8 for the "
-                                            "ground world, else 0)")
+                                            "ground and meadow worlds, else 0)")
     s.add_argument("--mipmap", default="auto", choices=["auto", "on", "off"],
-                   help="texture mip-mapping by ray footprint (auto: on for corridor and ground)")
+                   help="texture mip-mapping by ray footprint (auto: on for every world but panels)")
     s.add_argument("--exposure", type=NONNEGATIVE, default=0.0, help="motion-blur exposure (s)")
     s.add_argument("--rolling-shutter", type=NONNEGATIVE, default=0.0, metavar="SECONDS",
                    help="rolling shutter: the readout time from the top row to the bottom; row r of a frame "

@@ -104,8 +104,9 @@ def family_config(family: str, seed: int, duration_s: float, scale: float, imu: 
     elif family in ("rest", "moving"):
         run.update(random_peak_m_s=0.6, random_start="rest" if family == "rest" else "motion")
     elif family == "saccadic":
-        # The fly's own flight draws its speed (stimuli.flight); the world alternates with the seed.
-        scene.update(world=("panels", "corridor")[seed % 2])
+        # The fly's own flight draws its speed (stimuli.flight); the world turns with the seed: indoors, a corridor,
+        # outdoors at the fly's scale.
+        scene.update(world=("panels", "corridor", "meadow")[seed % 3])
         run.update(flight="saccadic")
     elif family == "drone":
         # Metre-scale texture (fields, tracks, roofs): what a camera 3-30 m up resolves. The gimbal's tilt is

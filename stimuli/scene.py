@@ -18,6 +18,9 @@ Worlds (``SceneConfig.world``):
 * ``ground``: an outdoor-like ground plane to the horizon, a distant backdrop (a tree
   line / hills band 50-200 m away), scattered upright panels on the ground and a sky
   (no surface; background luminance).
+* ``meadow``: outdoors at a fly's scale: the ground 0.1-0.4 m below the camera, stems and
+  leaves standing along both sides of the path 0.45-2 m off its axis (beyond a saccadic
+  flight's reach), a hedge a few metres ahead and a sky.
 
 A rolling shutter (``SceneConfig.rolling_shutter_s``, the readout time from the top row to the bottom)
 renders each pixel row at its own time: row r of the frame stamped t at t + r/height·readout, so a

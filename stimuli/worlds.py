@@ -20,8 +20,8 @@ if TYPE_CHECKING:
 class SceneConfig:
     """Scene and camera-motion parameters (SI units, angles in degrees).
 
-    seed: seeds layout, textures and the 3-axis rotation. world: "panels", "corridor" or
-    "ground" (module doc). Panels world: near_m/far_m: panel distances beyond the
+    seed: seeds layout, textures and the 3-axis rotation. world: "panels", "corridor",
+    "ground" or "meadow" (module doc). Panels world: near_m/far_m: panel distances beyond the
     camera's farthest position; backdrop_m: backdrop wall distance beyond it; floor,
     side_walls: optional floor and side walls. off_axis_yaw_deg/off_axis_pitch_deg:
     fixed angle between the optical axis and the track (0 = translation along the
@@ -50,6 +50,12 @@ class SceneConfig:
     and roadside_height_m tall (m, (lo, hi)): a road's posts, trees and buildings, or what a drone
     flies over. rolling_shutter_s: the sensor's readout time from the top row to the bottom (s; 0 = a
     global shutter): row r of a frame stamped t is seen at t + r/height·rolling_shutter_s.
+    Meadow world (outdoors at a fly's scale): meadow_height_m (the ground below the camera),
+    meadow_backdrop_m (a hedge beyond the farthest camera position) and meadow_backdrop_height_m: (lo, hi)
+    ranges drawn per seed; stems and leaves stand on the ground along both sides of the path every
+    meadow_spacing_m metres on average, their inner edge meadow_lateral_m off the track axis (beyond a
+    saccadic flight's lateral limit, 0.4 m, so the fly never flies through one), meadow_width_m wide and
+    meadow_stem_height_m tall (m, (lo, hi)).
     """
 
     seed: int = 0
@@ -96,12 +102,23 @@ class SceneConfig:
     roadside_width_m: tuple = (0.5, 8.0)
     roadside_height_m: tuple = (1.0, 10.0)
     rolling_shutter_s: float = 0.0
+    meadow_height_m: tuple = (0.1, 0.4)
+    meadow_backdrop_m: tuple = (2.0, 6.0)
+    meadow_backdrop_height_m: tuple = (0.3, 1.5)
+    meadow_spacing_m: float = 0.1
+    meadow_lateral_m: tuple = (0.45, 2.0)
+    meadow_width_m: tuple = (0.005, 0.15)
+    meadow_stem_height_m: tuple = (0.05, 1.0)
 
-    WORLDS = ("panels", "corridor", "ground")
+    WORLDS = ("panels", "corridor", "ground", "meadow")
     #: fields :meth:`to_dict` leaves out while they hold these defaults, so a scene without roadside
-    #: objects or a rolling shutter reads (and is cached) as it does without the fields
+    #: objects or a rolling shutter, and any world but the meadow, reads (and is cached) as it does without
+    #: the fields
     QUIET_DEFAULTS = dict(roadside_spacing_m=0.0, roadside_ahead_m=100.0, roadside_lateral_m=(3.0, 15.0),
-                          roadside_width_m=(0.5, 8.0), roadside_height_m=(1.0, 10.0), rolling_shutter_s=0.0)
+                          roadside_width_m=(0.5, 8.0), roadside_height_m=(1.0, 10.0), rolling_shutter_s=0.0,
+                          meadow_height_m=(0.1, 0.4), meadow_backdrop_m=(2.0, 6.0),
+                          meadow_backdrop_height_m=(0.3, 1.5), meadow_spacing_m=0.1, meadow_lateral_m=(0.45, 2.0),
+                          meadow_width_m=(0.005, 0.15), meadow_stem_height_m=(0.05, 1.0))
 
     def __post_init__(self):
         if self.world not in self.WORLDS:
@@ -115,21 +132,28 @@ class SceneConfig:
             raise ValueError("rotation3_components must be >= 1")
         if self.brightness <= 0 or self.contrast < 0:
             raise ValueError(f"brightness must be > 0 and contrast >= 0, got {self.brightness}, {self.contrast}")
+        if self.meadow_spacing_m <= 0:
+            raise ValueError(f"meadow_spacing_m must be > 0, got {self.meadow_spacing_m}")
         if self.roadside_spacing_m < 0 or self.rolling_shutter_s < 0:
             raise ValueError(f"roadside_spacing_m and rolling_shutter_s must be >= 0, got "
                              f"{self.roadside_spacing_m}, {self.rolling_shutter_s}")
 
     @property
     def sky(self) -> float:
-        return (0.8 if self.world == "ground" else 0.0) if self.sky_luminance is None else float(self.sky_luminance)
+        outdoors = self.world in ("ground", "meadow")
+        return (0.8 if outdoors else 0.0) if self.sky_luminance is None else float(self.sky_luminance)
 
     @property
     def use_mipmap(self) -> bool:
         return self.world != "panels" if self.mipmap is None else bool(self.mipmap)
 
     def to_dict(self) -> dict:
+        """Every parameter as a plain dict, less the QUIET_DEFAULTS that hold their defaults (a meadow keeps
+        its own: they are what it is)."""
         d = asdict(self)
         for k, v in self.QUIET_DEFAULTS.items():
+            if self.world == "meadow" and k.startswith("meadow_"):
+                continue
             if d[k] == v or (isinstance(v, tuple) and tuple(d[k]) == v):
                 del d[k]
         return d
@@ -178,7 +202,7 @@ def world_surfaces(config: SceneConfig, camera: PinholeCamera, rng: np.random.Ge
     textures after it. Surface i shows texture tile i (Surface.texture), but for roadside objects, which
     share ROADSIDE_TILES tiles.
     """
-    layout = {"panels": _panels, "corridor": _corridor, "ground": _ground}
+    layout = {"panels": _panels, "corridor": _corridor, "ground": _ground, "meadow": _meadow}
     return layout[config.world](config, camera, rng, s_min, s_max)
 
 
@@ -265,21 +289,44 @@ def _roadside(cfg: SceneConfig, rng: np.random.Generator, h: float, s_min: float
     if nearer); surface indices from ``first``.
 
     Their own random stream: the world's other surfaces and the textures drawn after them stay as they
-    are without roadside objects. Spacings are jittered ±50 % around roadside_spacing_m; the inner edge
-    of each object lies roadside_lateral_m off the path; each faces along the track, so it is seen while
-    ahead and leaves the image at its side as it is passed. They share ROADSIDE_TILES texture tiles
-    (from tile ``first`` on), each at its own texel scale and place on the tile.
+    are without roadside objects. Each faces along the track, so it is seen while ahead and leaves the
+    image at its side as it is passed (:func:`_upright_objects`).
     """
+    return _upright_objects(rng, h, s_min + 5.0, z_end, cfg.roadside_spacing_m, cfg.roadside_lateral_m,
+                            cfg.roadside_width_m, cfg.roadside_height_m, first, texel=lambda ht: max(1.0, ht / 4))
+
+
+def _upright_objects(rng: np.random.Generator, h: float, z0: float, z_end: float, spacing: float, lateral: tuple,
+                     width: tuple, height: tuple, first: int, texel) -> list[Surface]:
+    """Upright rectangles standing on the ground (y = h, m), facing along the track, on both sides of the
+    path from z0 to z_end (m): spacings jittered ±50 % around ``spacing`` (m), the inner edge ``lateral``
+    (m, (lo, hi)) off the path, ``width`` wide and ``height`` tall (m, (lo, hi)). They share ROADSIDE_TILES
+    texture tiles (from tile ``first`` on), each at its own texel scale (uniform 1–3, × texel(height))."""
     surf = []
     for side in (-1, 1):
-        z = s_min + 5.0 + rng.uniform(0.0, cfg.roadside_spacing_m)
+        z = z0 + rng.uniform(0.0, spacing)
         while z < z_end:
-            inner = rng.uniform(*cfg.roadside_lateral_m)
-            wd, ht = rng.uniform(*cfg.roadside_width_m), rng.uniform(*cfg.roadside_height_m)
+            inner = rng.uniform(*lateral)
+            wd, ht = rng.uniform(*width), rng.uniform(*height)
             x = side * (inner + wd / 2)
             surf.append(Surface(2, float(z), (0, 1), ((x - wd / 2, x + wd / 2), (h - ht, h)),
                                 first + len(surf) % ROADSIDE_TILES,
                                 float(rng.uniform(0.5, 1.0)),
-                                texel_scale=float(rng.uniform(1.0, 3.0) * max(1.0, ht / 4))))  # coarser on big ones
-            z += cfg.roadside_spacing_m * rng.uniform(0.5, 1.5)
+                                texel_scale=float(rng.uniform(1.0, 3.0) * texel(ht))))  # coarser on big ones
+            z += spacing * rng.uniform(0.5, 1.5)
     return surf
+
+
+def _meadow(cfg: SceneConfig, camera: PinholeCamera, rng: np.random.Generator, s_min: float,
+            s_max: float) -> list[Surface]:
+    """Outdoors at a fly's scale: a ground plane just below the camera, stems and leaves along both sides of
+    the path from 0.5 m behind the start to the hedge, a hedge a few metres beyond the farthest camera
+    position; sky elsewhere. Surfaces 0.05–2 m from a fly that flies the path (SceneConfig meadow_*)."""
+    h = rng.uniform(*cfg.meadow_height_m)
+    zb = s_max + rng.uniform(*cfg.meadow_backdrop_m)
+    hb = rng.uniform(*cfg.meadow_backdrop_height_m)
+    far = 1e3  # the meadow runs on past the hedge to the horizon's few degrees
+    surf = [Surface(1, h, (0, 2), ((-far, far), (-far, far)), 0, float(rng.uniform(0.6, 0.8)), texel_scale=0.5),
+            Surface(2, zb, (0, 1), ((-far, far), (h - hb, h)), 1, float(rng.uniform(0.4, 0.6)), texel_scale=1.0)]
+    return surf + _upright_objects(rng, h, s_min - 0.5, zb, cfg.meadow_spacing_m, cfg.meadow_lateral_m,
+                                   cfg.meadow_width_m, cfg.meadow_stem_height_m, len(surf), texel=lambda ht: 0.5)

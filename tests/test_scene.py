@@ -305,3 +305,42 @@ def test_a_backdrop_two_kilometres_away_is_rendered_at_its_depth():
     assert expected[on_back].min() > 1900
     sky = 255 * scene.config.sky
     assert np.all(np.abs(scene.render(t)[on_back, c].astype(float) - sky) > 40)
+
+
+# ------------------------------------------------------------- the meadow: outdoors at a fly's scale
+def test_a_fly_in_the_meadow_never_flies_through_a_stem_and_sees_surfaces_from_centimetres_to_metres():
+    """The saccadic family's meadow seeds: the ground 0.1-0.4 m below, every stem standing on it with its inner
+    edge beyond the flight's reach (the whole flight's |x| is less than the nearest stem's), a hedge beyond the
+    farthest position; rendered, the camera sees surfaces under 2 m on most of each image, the sky as well, and
+    nothing nearer than the flight allows."""
+    from experiments.suite_scene import family_config
+    from stimuli.flight import FlightConfig
+    from stimuli.track import build_track
+
+    for seed in (2, 5):
+        scene, _ = build_track(family_config("saccadic", seed, 4.0, 0.25))
+        assert scene.config.world == "meadow"
+        ground, hedge, *stems = scene.surfaces
+        h = ground.offset
+        assert ground.axis == 1 and 0.1 <= h <= 0.4
+        assert hedge.axis == 2 and all(hedge.offset > s.offset for s in stems) and len(stems) > 50
+        inner = np.array([min(abs(a) for a in s.bounds[0]) for s in stems])
+        assert np.all(inner >= 0.45) and all(s.bounds[1][1] == h for s in stems)
+        t = np.linspace(0.0, 4.0, 401)
+        reach = np.abs(scene.position(t)[:, 0]).max()
+        assert reach <= FlightConfig().lateral_limit_m + 0.01 < inner.min()
+        for tk in (0.5, 2.0, 3.5):
+            depth = scene.depth(tk)
+            near = np.isfinite(depth) & (depth <= 2.0)
+            assert near.mean() > 0.3 and np.isinf(depth).mean() > 0.02  # stems and ground near, sky beyond
+            assert np.nanmin(depth) > 0.05
+
+
+def test_the_meadow_leaves_the_other_worlds_and_their_stored_configuration_as_they_are():
+    """The meadow's parameters are written for the meadow (scene.json) and not for a world that does not use them
+    (scene.json and the caches keyed by it stay as they are)."""
+    assert not [k for k in SceneConfig(world="ground").to_dict() if k.startswith("meadow")]
+    meadow = SceneConfig(world="meadow").to_dict()
+    assert meadow["meadow_spacing_m"] == 0.1 and SceneConfig(**meadow) == SceneConfig(world="meadow")
+    with np.testing.assert_raises(ValueError):
+        SceneConfig(world="meadow", meadow_spacing_m=0.0)
