@@ -110,12 +110,14 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
     rows = table_rows(ds)
     write_csv(rows, out / "suite_table.csv")
     plot_suite(ds, out / "suite.png")
-    plot_worlds(out, families, seeds[0])
+    plot_worlds(out, families, seeds)
     return ds, rows
 
 
-def plot_worlds(out: Path, families, seed: int = 0) -> Path | None:
-    """``worlds.png``: the middle frame of each family's scene at ``seed``, to see what was measured."""
+def plot_worlds(out: Path, families, seeds) -> Path | None:
+    """``worlds.png``: the middle frame of each family's scene, to see what was measured — one panel per world a
+    family flew among ``seeds`` (the first seed in each: the saccadic family turns from world to world with
+    the seed), titled with the family, the seed and the world (:func:`world_frames`)."""
     import cv2
     import matplotlib
     matplotlib.use("Agg")
@@ -123,27 +125,42 @@ def plot_worlds(out: Path, families, seed: int = 0) -> Path | None:
 
     from .store import save_figure
 
-    frames = []
-    for f in families:
-        folder = out / "scenes" / f"{f}-s{seed}" / "frames"
-        files = sorted(folder.glob("*.png")) if folder.is_dir() else []
-        if files:
-            frames.append((f, cv2.imread(str(files[len(files) // 2]), cv2.IMREAD_GRAYSCALE)))
+    frames = [(title, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)) for title, path in world_frames(out, families, seeds)]
     if not frames:
         return None
     cols = min(len(frames), 5)
     rows = -(-len(frames) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.2 * rows), squeeze=False)
+    # wide enough for the title over a single panel
+    fig, axes = plt.subplots(rows, cols, figsize=(max(2.6 * cols, 4.0), 2.3 * rows + 0.3), squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
-    for ax, (f, img) in zip(axes.ravel(), frames):
+    for ax, (title, img) in zip(axes.ravel(), frames):
         ax.imshow(img, cmap="gray", vmin=0, vmax=255)
-        ax.set_title(f, fontsize=9)
-    fig.suptitle(f"scene families (seed {seed}, middle frame)", fontsize=10)
+        ax.set_title(title, fontsize=8)
+    fig.suptitle("the suite's worlds (middle frame)", fontsize=10)
     fig.tight_layout()
     save_figure(fig, out / "worlds.png", dpi=150)
     plt.close(fig)
     return out / "worlds.png"
+
+
+def world_frames(out: Path, families, seeds) -> list[tuple[str, Path]]:
+    """(title, the middle frame's file) of each world each family flew among ``seeds`` under ``out``/scenes, the
+    first seed in each world, in the families' and seeds' order; scenes not rendered are left out."""
+    import json
+
+    found = []
+    for f in families:
+        seen = set()
+        for seed in seeds:
+            folder = out / "scenes" / f"{f}-s{seed}"
+            files = sorted((folder / "frames").glob("*.png")) if (folder / "frames").is_dir() else []
+            meta = folder / "scene.json"
+            world = json.loads(meta.read_text())["config"]["scene"]["world"] if meta.is_file() else "?"
+            if files and world not in seen:
+                seen.add(world)
+                found.append((f"{f}, seed {seed} ({world})", files[len(files) // 2]))
+    return found
 
 
 def _what_runs(name: str):

@@ -48,7 +48,14 @@ def family_footage_small(family_footage):
     return lambda family: family_footage(family, DURATION_S, SCALE)
 
 
-@pytest.mark.parametrize("family", sorted(FAMILIES))
+#: the families whose frame-by-frame run the default test run compares, one for each path of the stream's
+#: readout (the rest bound, a reversal through 0, a turning camera, an off-axis heading, a fast one); the others
+#: run under ``slow``, their paths the same as these
+STREAM_FAMILIES = ("fast", "mixed", "moving", "offaxis", "rest", "rotation")
+
+
+@pytest.mark.parametrize("family", [pytest.param(f, marks=() if f in STREAM_FAMILIES else pytest.mark.slow)
+                                    for f in sorted(FAMILIES)])
 def test_frame_by_frame_equals_the_whole_record_causal_run(family_footage_small, family):
     """Same v̂, σ, observability and time stamps to 1e-9 on every suite family (a realistic IMU on a
     rotated mount, the gyro bias fitted from the flow), given the record's own intervals."""

@@ -207,3 +207,24 @@ def test_suite_runs_the_fly_eye_on_the_same_world_and_keeps_it_out_of_all(tmp_pa
     suite.run_suite(["rest"], [0], 2.5, 0.2, out, configurations=["eye rates causal"], skip_s=1.0, imu="ideal",
                     progress=lambda *a: None)
     assert (eye / "luminance.npy").stat().st_mtime == mtime
+
+
+def test_worlds_figure_shows_each_world_a_family_flew(tmp_path):
+    """worlds.png holds one panel per world a family flew among the seeds (the saccadic family turns from world to
+    world with the seed), the middle frame of the first seed in each; a scene not rendered is left out."""
+    import cv2
+
+    from experiments.suite import plot_worlds, world_frames
+
+    for name, world in (("saccadic-s0", "panels"), ("saccadic-s1", "corridor"), ("saccadic-s3", "panels"),
+                        ("saccadic-s2", "meadow"), ("rest-s0", "panels")):
+        folder = tmp_path / "scenes" / name
+        (folder / "frames").mkdir(parents=True)
+        for k in range(3):
+            cv2.imwrite(str(folder / "frames" / f"{k:06d}.png"), np.full((24, 32), 40 * k + 20, np.uint8))
+        (folder / "scene.json").write_text(json.dumps({"config": {"scene": {"world": world}}}))
+    found = world_frames(tmp_path, ["saccadic", "rest"], [0, 1, 2, 3, 4])
+    assert [t for t, _ in found] == ["saccadic, seed 0 (panels)", "saccadic, seed 1 (corridor)",
+                                     "saccadic, seed 2 (meadow)", "rest, seed 0 (panels)"]
+    assert all(p.name == "000001.png" for _, p in found)
+    assert plot_worlds(tmp_path, ["saccadic", "rest"], [0, 1, 2, 3, 4]).stat().st_size > 5_000
