@@ -46,6 +46,7 @@ def test_the_paper_readout_on_the_same_rates_is_worse(replay_rates):
     assert r_ours < r_paper
 
 
+@pytest.mark.slow  # make test runs the moving and fast families, which start in motion
 def test_replay_starting_in_motion(make_replay, replay_rates):
     """The window from 40 s starts at about 0.27 m/s: no rest to lock on from."""
     fo = open_footage(make_replay(40.0, 15.0))
@@ -61,6 +62,7 @@ def test_replay_starting_in_motion(make_replay, replay_rates):
     assert sc["rmse_m_s"] <= max(2.0 * at_rest_rmse, 0.06)
 
 
+@pytest.mark.slow  # make test runs the offaxis family (5-9° of yaw, ±4° of pitch)
 @pytest.mark.parametrize("yaw, pitch", [(7.0, 2.0)])
 def test_off_axis_translation(make_replay, replay_rates, yaw, pitch):
     """Camera translating 7° right and 2° down of its optical axis: the epipole is found, velocity holds.

@@ -84,7 +84,7 @@ def test_vision_gyro_bias_without_measurements_is_the_prior():
     np.testing.assert_allclose(s, 2e-3)
 
 
-@pytest.mark.parametrize("from_residual", [True, False])
+@pytest.mark.parametrize("from_residual", [True, pytest.param(False, marks=pytest.mark.slow)])
 def test_gyro_bias_from_vision_on_a_turning_scene_with_a_drifting_bias(tmp_path, from_residual):
     """The rotation family's scene (realistic IMU on a rotated mount, dev seed 9, not a suite
     seed) for 4 s, with the gyro bias walking 5× faster than the BMI055 figure so that it
