@@ -67,29 +67,37 @@ def calibration(tmp_path_factory):
     return gains, latency
 
 
-def test_emd_replay_beside_dis(make_replay, replay_rates, calibration, emd_replay):
-    """EMD and DIS on the same 30 s replay; the EMD's RMSE is reported beside DIS's.
-
-    Measured: DIS 0.016 m/s at fixed pixels, EMD 0.039 with gains and latency fitted on another
-    scene (2.5×, against the project's target of 2×); the bounds below are 3.5× uncalibrated and
-    3× calibrated.
-    """
-    fo = open_footage(make_replay(0.0, 30.0))
-    emd = score(emd_replay)
-    cal = VelocityConfig(front_end="emd")
-    cal.emd.calibration, cal.emd.latency_s = list(calibration[0]), calibration[1]
-    emd_cal = score(estimate_velocity(fo, cal, progress=False))
+def _dis_on_the_replay(replay_rates) -> dict:
+    """DIS's RMSE (m/s) and observable fraction on the 30 s replay after 2 s, the default readout."""
     rates, a, v_true = replay_rates
     res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig())
     m = (rates.t >= rates.t[0] + 2.0)
-    dis = dict(rmse_m_s=float(np.sqrt(np.mean((res.v_hat - v_true)[m & res.observable] ** 2))),
-               observable_fraction=float(res.observable[m].mean()))
+    return dict(rmse_m_s=float(np.sqrt(np.mean((res.v_hat - v_true)[m & res.observable] ** 2))),
+                observable_fraction=float(res.observable[m].mean()))
+
+
+def test_emd_replay_beside_dis(replay_rates, emd_replay):
+    """EMD and DIS on the same 30 s replay; the EMD's RMSE is reported beside DIS's.
+
+    Measured: DIS 0.016 m/s at fixed pixels, EMD 2.5× that uncalibrated; the bound is 3.5×.
+    """
+    emd, dis = score(emd_replay), _dis_on_the_replay(replay_rates)
     print(f"\nreplay: EMD RMSE {emd['rmse_m_s']:.4f} (observable {emd['observable_fraction']:.3f}), "
-          f"DIS {dis['rmse_m_s']:.4f} ({dis['observable_fraction']:.3f}): {emd['rmse_m_s'] / dis['rmse_m_s']:.2f}x; "
-          f"calibrated elsewhere {emd_cal['rmse_m_s']:.4f}: {emd_cal['rmse_m_s'] / dis['rmse_m_s']:.2f}x "
-          f"(latency {1000 * calibration[1]:.0f} ms)")
+          f"DIS {dis['rmse_m_s']:.4f} ({dis['observable_fraction']:.3f}): {emd['rmse_m_s'] / dis['rmse_m_s']:.2f}x")
     assert emd["rmse_m_s"] < 0.08 and emd["observable_fraction"] > 0.9
     assert emd["rmse_m_s"] < 3.5 * dis["rmse_m_s"]
+
+
+@pytest.mark.slow  # a second 30 s EMD run and a calibration scene; make test runs the calibration on its own above
+def test_emd_calibrated_elsewhere_beside_dis(make_replay, replay_rates, calibration):
+    """The EMD with gains and latency fitted on another scene, on the 30 s replay: measured 0.039 m/s, 2.5× DIS
+    (against the project's target of 2×); the bound is 3×."""
+    cal = VelocityConfig(front_end="emd")
+    cal.emd.calibration, cal.emd.latency_s = list(calibration[0]), calibration[1]
+    emd_cal = score(estimate_velocity(open_footage(make_replay(0.0, 30.0)), cal, progress=False))
+    dis = _dis_on_the_replay(replay_rates)
+    print(f"\ncalibrated elsewhere {emd_cal['rmse_m_s']:.4f}: {emd_cal['rmse_m_s'] / dis['rmse_m_s']:.2f}x DIS "
+          f"(latency {1000 * calibration[1]:.0f} ms)")
     assert emd_cal["rmse_m_s"] < 3.0 * dis["rmse_m_s"] and emd_cal["observable_fraction"] > 0.9
 
 

@@ -540,12 +540,11 @@ def test_real_clip_without_a_camera_file_says_it_cannot_know(tmp_path, capsys):
 @needs_gpmf
 @pytest.mark.parametrize("name, filt", [pytest.param("gopro_hero7_walk", "zero-phase", marks=pytest.mark.slow),
                                         pytest.param("gopro_max_walk", "causal", marks=pytest.mark.slow),
-                                        ("gopro_hero7_walk", "causal")])
+                                        pytest.param("gopro_hero7_walk", "causal", marks=pytest.mark.slow)])
 def test_real_clip_is_never_confidently_wrong(tmp_path, capsys, name, filt):
     """On both walks, offline and online, with nothing but the clip: where a speed is claimed, the GPS speed lies
     inside ±2σ on at least 80 % of those frames; a flow whose expansion reverses its sign on a steady walk (the
-    HERO7's) does not lock vision on. The MAX offline is the test above; the HERO7 online runs by default, the
-    other two under ``slow``."""
+    HERO7's) does not lock vision on. The MAX offline is the test above, in make test; these run under ``slow``."""
     path = GOPRO / f"{name}.mp4"
     if not path.exists():
         pytest.skip(f"GoPro clip not found at {path} (../shared/data is beside the repo in CI)")
