@@ -53,11 +53,10 @@ def pytest_configure(config):
         cv2.setNumThreads(threads)
 
 
-# The groups with the most CPU time, longest first (measured on two workers with ../shared present: families
-# 117 s, the replay about 100 s, the real GoPro clips 95 s (a few seconds without ../shared), streaming 73 s,
-# tutorials 45 s, depth 41 s, compound eye 31 s, NWB 31 s, faults 29 s, of about 950 s in all). Under
-# --dist loadgroup they are handed out before the rest, so that a short group, not a long one, is the last to
-# finish; a group missing here only starts later (it changes no result).
+# The groups with the most CPU time, longest first (measured on two workers with ../shared present; the
+# families take about an eighth of the suite's time, the others here 25-80 s each, the real GoPro clips a few
+# seconds without ../shared). Under --dist loadgroup they are handed out before the rest, so that a short
+# group, not a long one, is the last to finish; a group missing here only starts later (it changes no result).
 LONGEST_GROUPS = ("test_families.py", "replay", "test_gopro.py", "test_streaming.py", "test_tutorials.py",
                   "test_depth_cli.py", "test_compound_eye.py", "test_nwb.py", "test_faults.py")
 
