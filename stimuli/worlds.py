@@ -111,14 +111,12 @@ class SceneConfig:
     meadow_stem_height_m: tuple = (0.05, 1.0)
 
     WORLDS = ("panels", "corridor", "ground", "meadow")
-    #: fields :meth:`to_dict` leaves out while they hold these defaults, so a scene without roadside
-    #: objects or a rolling shutter, and any world but the meadow, reads (and is cached) as it does without
-    #: the fields
-    QUIET_DEFAULTS = dict(roadside_spacing_m=0.0, roadside_ahead_m=100.0, roadside_lateral_m=(3.0, 15.0),
-                          roadside_width_m=(0.5, 8.0), roadside_height_m=(1.0, 10.0), rolling_shutter_s=0.0,
-                          meadow_height_m=(0.1, 0.4), meadow_backdrop_m=(2.0, 6.0),
-                          meadow_backdrop_height_m=(0.3, 1.5), meadow_spacing_m=0.1, meadow_lateral_m=(0.45, 2.0),
-                          meadow_width_m=(0.005, 0.15), meadow_stem_height_m=(0.05, 1.0))
+    #: fields :meth:`to_dict` leaves out while they hold their defaults, so a scene without roadside objects or a
+    #: rolling shutter, and any world but the meadow, reads (and is cached) as it does without the fields
+    QUIET_FIELDS = ("roadside_spacing_m", "roadside_ahead_m", "roadside_lateral_m", "roadside_width_m",
+                    "roadside_height_m", "rolling_shutter_s", "meadow_height_m", "meadow_backdrop_m",
+                    "meadow_backdrop_height_m", "meadow_spacing_m", "meadow_lateral_m", "meadow_width_m",
+                    "meadow_stem_height_m")
 
     def __post_init__(self):
         if self.world not in self.WORLDS:
@@ -148,13 +146,14 @@ class SceneConfig:
         return self.world != "panels" if self.mipmap is None else bool(self.mipmap)
 
     def to_dict(self) -> dict:
-        """Every parameter as a plain dict, less the QUIET_DEFAULTS that hold their defaults (a meadow keeps
-        its own: they are what it is)."""
+        """Every parameter as a plain dict, less the QUIET_FIELDS that hold their defaults (a meadow keeps its
+        own: they are what it is)."""
         d = asdict(self)
-        for k, v in self.QUIET_DEFAULTS.items():
+        for k in self.QUIET_FIELDS:
             if self.world == "meadow" and k.startswith("meadow_"):
                 continue
-            if d[k] == v or (isinstance(v, tuple) and tuple(d[k]) == v):
+            default = self.__dataclass_fields__[k].default
+            if d[k] == default or (isinstance(default, tuple) and tuple(d[k]) == default):
                 del d[k]
         return d
 
