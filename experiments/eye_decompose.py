@@ -25,6 +25,10 @@ under a turn that never stops costs):
    given): the correlators' velocity tuning and pattern noise, and the haltere's residue
    under rotation; the fields the pipeline gates by reliability (``field_used``) left out.
 
+On a flight with saccades every level is read out as the pipeline reads the circuit: its visual update
+suppressed at the steps the haltere's gate flags (:func:`experiments.eye_readout.suppressed_readout`), so
+that a level's cost is not that of a saccade's jump in ρ.
+
 The exact motion uses the forward velocity of ``truth.csv`` only (the tracks translate along
 the body axis; the lateral velocity a turn adds in the camera frame changes the exact level by
 < 0.006 m/s on the dev worlds). Run: ``python -m experiments.eye_decompose EYE_FOOTAGE ...``.
@@ -42,8 +46,8 @@ from lobula._optional import torch
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
 from lobula.imu import forward_acceleration, resample_to, turn_rate
 from lobula.photoreceptor import lowpass_scan, spatial_filter
-from lobula.readout import readout
 
+from .eye_readout import suppressed_readout
 from .eye_velocity import EyeVelocityConfig, estimate_eye_velocity, readout_inputs
 
 __all__ = ["exact_pair_motion", "IdealDetectorCircuit", "ideal_fields", "slow_gain_fields", "true_gyro_bias",
@@ -155,7 +159,8 @@ SOURCES = ("true", "offset", "imu", "gyro-bias")
 
 
 def readout_rmse(fo, t, rho, r2, source: str, cfg: EyeVelocityConfig | None = None, skip_s: float = 2.0,
-                 gyro_bias: np.ndarray | None = None) -> tuple[float, float, float]:
+                 gyro_bias: np.ndarray | None = None,
+                 saccade: np.ndarray | None = None) -> tuple[float, float, float]:
     """The eye pipeline's readout (settle time, acceleration, readout inputs) on given fields:
     (RMSE m/s, ±2σ coverage, observable fraction) over the steps after ``skip_s``.
 
@@ -164,8 +169,9 @@ def readout_rmse(fo, t, rho, r2, source: str, cfg: EyeVelocityConfig | None = No
     ``ReadoutConfig.bias_prior_m_s2``, 0.1 m/s²) that is in truth zero, so what the fields' κ errors
     make of an offset shows on its own; "imu", the accelerometer as the pipeline reads it; "gyro-bias",
     the accelerometer with the attitude integrated at ``gyro_bias`` (n, 3) rad/s, the true bias
-    (:func:`true_gyro_bias`), the readout's noise model unchanged. RMSE and coverage are over the
-    observable steps only (NaN where there are none).
+    (:func:`true_gyro_bias`), the readout's noise model unchanged. ``saccade`` (n,) bool: the steps whose
+    visual update is suppressed, as the pipeline suppresses them (:func:`suppressed_readout`). RMSE and
+    coverage are over the observable steps only (NaN where there are none).
     """
     if source not in SOURCES:
         raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
@@ -174,6 +180,8 @@ def readout_rmse(fo, t, rho, r2, source: str, cfg: EyeVelocityConfig | None = No
     cfg = replace(cfg or EyeVelocityConfig(), accel_from_truth=source in ("true", "offset"))
     rho, r2 = rho.copy(), r2.copy()
     cold = (t - t[0]) < cfg.settle_time()
+    if saccade is not None:
+        cold = cold | saccade
     rho[cold], r2[cold] = np.nan, np.nan
     dt = float(np.median(np.diff(t)))
     if cfg.accel_from_truth:
@@ -188,7 +196,7 @@ def readout_rmse(fo, t, rho, r2, source: str, cfg: EyeVelocityConfig | None = No
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
     if source == "offset":
         rcfg = replace(rcfg, bias_prior_m_s2=cfg.readout.bias_prior_m_s2)
-    res = readout(t, rho, r2, a, rcfg, gravity_tau=tau, drift_std=drift, turn_rate=turn)
+    res = suppressed_readout(t, rho, r2, a, rcfg, saccade, gravity_tau=tau, drift_std=drift, turn_rate=turn)
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     late = t >= t[0] + skip_s
     k = late & np.isfinite(res.v_hat)
@@ -210,25 +218,29 @@ def decompose(fo, config: EyeVelocityConfig | None = None, skip_s: float = 2.0) 
         bias = None
     sources = [s for s in SOURCES if s != "gyro-bias" or bias is not None]
     out = {}
+    ds = estimate_eye_velocity(fo, replace(cfg, readout_kind="kalman"))
+    t_ds, flagged = ds.time.values, ds.saccade.values.astype(float)
 
     def rows(level, t, rho, r2):
+        # Every level is suppressed where the pipeline's haltere gate suppressed vision (by time: the levels'
+        # latencies differ), so that what a level costs is not what a saccade's jump in ρ costs.
+        saccade = np.interp(t, t_ds, flagged) > 0 if flagged.any() else None
         for src in sources:
             out[f"{level}|{src}"] = readout_rmse(fo, t, rho, r2, src, cfg, skip_s,
-                                                 gyro_bias=bias if src == "gyro-bias" else None)
+                                                 gyro_bias=bias if src == "gyro-bias" else None, saccade=saccade)
 
     exact = None
     for level, uniform in (("exact", True), ("ideal", False)):
         t, rho, r2 = ideal_fields(fo, uniform, cfg.circuit)
         exact = exact or (t, rho, r2)
         rows(level, t, rho, r2)
-    ds = estimate_eye_velocity(fo, replace(cfg, readout_kind="kalman"))
     used = ds.field_used.values
     if cfg.circuit.rotation not in ("wide-field", "both"):   # field by field (not mirror sums)
         theta = EyeCircuit(fo.eye, fo.rate_hz, cfg.circuit).fields.theta
-        rho_g, r2_g = slow_gain_fields(*exact, ds.time.values, ds.r.values, theta)
-        rows("gain", ds.time.values, np.where(used, rho_g, np.nan), np.where(used, r2_g, np.nan))
+        rho_g, r2_g = slow_gain_fields(*exact, t_ds, ds.r.values, theta)
+        rows("gain", t_ds, np.where(used, rho_g, np.nan), np.where(used, r2_g, np.nan))
     # The fields the pipeline's readout was given (EyeVelocityConfig.reliability_min).
-    t = ds.time.values
+    t = t_ds
     rows("emd", t, np.where(used, ds.r.values, np.nan), np.where(used, ds.r2.values, np.nan))
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     out["zero"] = float(np.sqrt(np.mean(vt[t >= t[0] + skip_s] ** 2)))

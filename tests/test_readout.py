@@ -1114,3 +1114,29 @@ def test_vision_enters_the_filter_only_once_it_has_fixed_the_speed(filt):
         assert out[True][0] == 1.0, out
         assert out[False][0] < 0.5, out
     assert not readout(t, r, r ** 2, a, cfg).observable[t >= 4.0].any()
+
+
+def test_runs_between_gaps_window_the_acceleration_as_they_window_the_rates():
+    """Vision blanked for 0.3 s every 1.2 s (saccades) on a flight whose speed changes fastest inside the
+    gaps (0.36 to 1.08 m/s, |a| up to 2.6 m/s² inside them, 0.3 m/s² between), exact material rates and an
+    exact accelerometer. Online each run between gaps is smoothed alone; the acceleration is then windowed over
+    the same runs with the same edge pads, or a run's first steps pair a κ that never saw the gap's
+    acceleration with an lp(a) that did. Measured: 0.021 m/s, ±2σ 100 %, observable 83 %; with lp(a) over the
+    whole record, 0.17 m/s, ±2σ 39 %, observable 16 % (the zero estimator: 0.71 m/s)."""
+    from lobula.readout import MaterialRates
+
+    t = np.arange(0, 12, 1 / 50)
+    tt = np.arange(0, 12, 1e-3)
+    gap = lambda x: (x % 1.2) >= 0.9
+    # fast changes centred in the gaps, a slow drift between them
+    a_fn = lambda x: np.where(gap(x), 2.6 * np.sin(2 * np.pi * (x % 1.2 - 0.9) / 0.3) * np.sign(np.sin(np.pi * x / 4.8)),
+                              0.3 * np.cos(2 * np.pi * x / 3.7))
+    v_tt = 0.65 + np.cumsum(a_fn(tt)) * 1e-3
+    v = np.interp(t, tt, v_tt)
+    a = a_fn(t)
+    mat = _exact_material(v, a, t, np.linspace(4.0, 12.0, 30))
+    blank = gap(t)[:, None]
+    mat = MaterialRates(*(np.where(blank, np.nan, x) for x in (mat.r, mat.r2, mat.r_dot)))
+    res = readout(t, mat.r, mat.r2, a, ReadoutConfig(filter="causal", coupling_z=0.0), material=mat)
+    rmse, cover, obs = _score(res, v, t)
+    assert obs >= 0.5 and cover >= 0.9 and rmse <= 0.03, (rmse, cover, obs)

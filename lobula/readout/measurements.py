@@ -10,12 +10,12 @@ the camera is not starting or stopping (:func:`accelerometer_level`, :func:`acce
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .config import ReadoutConfig
-from .filters import _integral, _lag, butterworth, gaussian_lowpass, staggered_difference
+from .filters import _integral, _lag, butterworth, gaussian_lowpass, staggered_difference, vision_runs
 
 #: the fields' signed median r̄ within this many standard errors of 0: no expansion detected (see rest_measurement)
 NO_EXPANSION_SE = 3.0
@@ -711,13 +711,24 @@ def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         # after. (Offline a gap is interpolated, and the zero-phase Butterworth would ring at the
         # edges of runs shorter than its impulse response.)
         lp_rates = lambda x: lp(x, True)
+    af = lp(a)
+    if material is not None and cfg.filter != "zero-phase":
+        # Run by run, every term is windowed alike: a run is where ρ and ṙ are both measured (ṙ's difference
+        # starts half a stagger into ρ's run), and the acceleration is smoothed over each run alone with the
+        # same edge pads. A ratio of terms smoothed over different windows is biased at a run's edge, where the pads
+        # weigh the edge sample most (a deceleration inside a saccade would reach lp(a) but not ṙ̄).
+        seen = np.isfinite(material.r).any(1) & np.isfinite(material.r_dot).any(1)
+        material = replace(material, **{k: np.where(seen[:, None], getattr(material, k), np.nan)
+                                        for k in ("r", "r2", "r_dot")})
+        for run in vision_runs(material.r):
+            af[run] = lp(np.asarray(a[run], float))
     rf = lp_rates(r)
     if material is None:
         r2f = lp_rates(r2) if cfg.r2_term == "field" else rf ** 2
-        terms = (rf, r2f, staggered_difference(rf, stagger, dt, centred=True), lp(a))
+        terms = (rf, r2f, staggered_difference(rf, stagger, dt, centred=True), af)
     else:
         m = material
         rm = lp_rates(m.r)
         r2m = rm ** 2 if cfg.r2_term == "mean_squared" else lp_rates(m.r2)
-        terms = (rm, r2m, lp_rates(m.r_dot), lp(a))
+        terms = (rm, r2m, lp_rates(m.r_dot), af)
     return tuple(_lag(x, lag) for x in terms), lag, lp, rf
