@@ -1128,9 +1128,9 @@ def test_runs_between_gaps_window_the_acceleration_as_they_window_the_rates():
     t = np.arange(0, 12, 1 / 50)
     tt = np.arange(0, 12, 1e-3)
     gap = lambda x: (x % 1.2) >= 0.9
-    # fast changes centred in the gaps, a slow drift between them
-    a_fn = lambda x: np.where(gap(x), 2.6 * np.sin(2 * np.pi * (x % 1.2 - 0.9) / 0.3) * np.sign(np.sin(np.pi * x / 4.8)),
-                              0.3 * np.cos(2 * np.pi * x / 3.7))
+    # fast changes centred in the gaps (alternating in sign every 4.8 s), a slow drift between them
+    inside = lambda x: 2.6 * np.sin(2 * np.pi * (x % 1.2 - 0.9) / 0.3) * np.sign(np.sin(np.pi * x / 4.8))
+    a_fn = lambda x: np.where(gap(x), inside(x), 0.3 * np.cos(2 * np.pi * x / 3.7))
     v_tt = 0.65 + np.cumsum(a_fn(tt)) * 1e-3
     v = np.interp(t, tt, v_tt)
     a = a_fn(t)
