@@ -265,9 +265,20 @@ def format_table(rows, window="after_skip") -> str:
     return "\n".join(lines)
 
 
-def plot_suite(ds, path):
-    """RMSE (after the skip and over the first 2 s), 2σ coverage and z95 per family and configuration.
+def unanswered(ds, configuration: str, window: str = "after_skip") -> np.ndarray:
+    """(family,) bool: the families on which ``configuration`` ran but answered no frame in ``window`` of any
+    seed (an observable fraction stored, no RMSE), in the order of ``ds.family``."""
+    v = ds.value.sel(configuration=configuration, window=window)
+    ran = np.isfinite(v.sel(metric="observable_fraction").values).any(1)
+    return ran & ~np.isfinite(v.sel(metric="rmse_m_s").values).any(1)
 
+
+def plot_suite(ds, path):
+    """RMSE (after the skip and over the first 2 s), the frames answered, 2σ coverage and z95 per family and
+    configuration.
+
+    An RMSE and a coverage are over the frames a configuration answers, so the answered fraction stands
+    beside them, and where a configuration ran but answered no frame of a family its RMSE slot says "none".
     The coverage cannot tell a calibrated band from one far too wide (both hold ~100 %), so the last
     panel shows z95, the 95th percentile of |e|/σ (1.96 for a calibrated Gaussian band; log scale),
     shaded where a Gaussian error would put the ±2σ coverage at 85–99 % (z95 1.52–2.72, the project's
@@ -283,15 +294,20 @@ def plot_suite(ds, path):
     x = np.arange(len(fams))
     width = 0.8 / len(confs)
     cmap = plt.get_cmap("tab10")
-    fig, axes = plt.subplots(4, 1, figsize=(max(11, 1.3 * len(fams) + 5), 13), sharex=True)
+    fig, axes = plt.subplots(5, 1, figsize=(max(11, 1.3 * len(fams) + 5), 16), sharex=True)
     for ax, win, metric, label in ((axes[0], "after_skip", "rmse_m_s", "RMSE after skip (m/s)"),
                                    (axes[1], "first_2s", "rmse_m_s", "RMSE, first 2 s (m/s)"),
-                                   (axes[2], "after_skip", "coverage_2sigma", "truth within ±2σ (after skip)"),
-                                   (axes[3], "after_skip", "z95", "z95: 95th pct of |e|/σ (after skip)")):
+                                   (axes[2], "after_skip", "observable_fraction", "frames answered (after skip)"),
+                                   (axes[3], "after_skip", "coverage_2sigma", "truth within ±2σ (after skip)"),
+                                   (axes[4], "after_skip", "z95", "z95: 95th pct of |e|/σ (after skip)")):
         for k, c in enumerate(confs):
             v = ds.value.sel(configuration=c, window=win, metric=metric).values  # (family, seed)
             v = np.where(np.isfinite(v), v, np.nan)  # z95 is infinite where no σ is stated
             ran = np.isfinite(ds.value.sel(configuration=c, metric="observable_fraction").values).any()
+            if metric == "rmse_m_s":
+                for i in np.flatnonzero(unanswered(ds, c, win)):
+                    ax.text(x[i] + (k - len(confs) / 2 + 0.5) * width, 0.03, "none", rotation=90, ha="center",
+                            va="bottom", fontsize=7, color=cmap(k % 10), transform=ax.get_xaxis_transform())
             if not np.isfinite(v).any():
                 if ax is axes[0]:  # keep its colour in the legend, saying it did not run
                     ax.bar([np.nan], [np.nan], color=cmap(k % 10), label=c + ("" if ran else " (not run)"))
@@ -309,8 +325,10 @@ def plot_suite(ds, path):
             ax.set_yscale("log")
             ax.axhspan(*Z95_TARGET, color="g", alpha=0.1, lw=0)
             ax.axhline(1.96, color="g", lw=0.8, ls="--")
-        else:
+        elif metric == "coverage_2sigma":
             ax.axhspan(0.85, 0.99, color="g", alpha=0.1, lw=0)
+            ax.set_ylim(0, 1.02)
+        else:
             ax.set_ylim(0, 1.02)
     axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     axes[-1].set_xticks(x, fams)

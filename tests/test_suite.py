@@ -57,6 +57,21 @@ def test_z95_tells_a_calibrated_band_from_one_too_wide_or_too_narrow():
         assert m["z95"] == pytest.approx(suite.Z95_TARGET[lo_hi], rel=0.01)
 
 
+def test_the_figure_says_none_where_a_configuration_ran_but_answered_nothing():
+    """A configuration that ran and answered no frame of a family has no RMSE to draw: the figure marks that slot
+    "none" (suite.unanswered), unlike one that answered on some seed or did not run at all."""
+    metrics = ["rmse_m_s", "observable_fraction"]
+    value = np.full((3, 2, 2, 1, 2), np.nan)   # family, seed, configuration, window, metric
+    value[:, :, 0, 0, 1] = 0.0                 # "a" ran everywhere ...
+    value[1, 0, 0, 0, :] = (0.1, 0.5)          # ... and answered on family q, seed 0 only
+    value[0, :, 1, 0, :] = (0.2, 1.0)          # "b" ran on family p only, answering there
+    ds = xr.Dataset({"value": (("family", "seed", "configuration", "window", "metric"), value)},
+                    coords=dict(family=["p", "q", "r"], seed=[0, 1], configuration=["a", "b"],
+                                window=["after_skip"], metric=metrics))
+    assert suite.unanswered(ds, "a").tolist() == [True, False, True]
+    assert suite.unanswered(ds, "b").tolist() == [False, False, False]
+
+
 def test_a_configuration_path_the_estimator_lacks_fails_loudly(monkeypatch):
     monkeypatch.setitem(suite.CONFIGURATIONS, "bogus", ("lobula", "zero-phase", {"readout.no_such_field": 1}))
     with pytest.raises(ValueError, match="no field 'no_such_field'"):
