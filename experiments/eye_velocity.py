@@ -26,6 +26,7 @@ from lobula.imu import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_st
 from lobula.photoreceptor import mean_removal
 from lobula.readout import ReadoutConfig
 from lobula.readout_neuron import SPIKE_MODELS, ReadoutNeuronConfig, readout_neuron, spiking_output
+from lobula.velocity.pipeline import vision_variables
 
 from .eye_readout import (field_halves, readout_offset, reliability_gate, split_half_variance,  # noqa: F401
                           suppressed_readout)
@@ -290,7 +291,8 @@ def readout_inputs(fo, t: np.ndarray, cfg: EyeVelocityConfig):
 
 def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_outputs: int,
                  saccade: np.ndarray | None = None) -> tuple:
-    """The readout of the gated LC outputs: (v_hat, observable, r_dot, v_field, v_std, std_name, method, filter);
+    """The readout of the gated LC outputs: (v_hat, observable, r_dot, v_field, v_std, std_name, method, filter,
+    info), info the readout's verdicts on vision (:func:`lobula.readout.readout`'s; {} for the readout neuron);
     ``saccade`` (n,) bool: the steps whose visual update is suppressed (their rho_in, r2_in are NaN)."""
     if cfg.readout_kind == "neuron":
         nout = readout_neuron(t, rho_in, r2_in, a, cfg.neuron)
@@ -302,9 +304,11 @@ def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_out
         method = "readout neuron (" + (f"{SPIKE_MODELS[cfg.neuron.spike_model]} spikes, causal decoding"
                                        if cfg.neuron.spiking else "rate") + ")"
         filt = "causal" if not cfg.neuron.spiking or cfg.neuron.decode == "causal" else "centred spike window"
+        info = {}
     else:
         res = suppressed_readout(t, rho_in, r2_in, a, rcfg, saccade, gravity_tau=tau, drift_std=drift, turn_rate=turn)
         v_hat, observable, r_dot, v_field, v_std = res.v_hat, res.observable, res.r_dot, res.v_field, res.v_std
+        info = res.info
         std_name, method, filt = "posterior std of v_hat", cfg.readout.method, cfg.readout.filter
         if cfg.uncertainty == "halves":
             extra = (cfg.emd_gain_error * np.nan_to_num(res.v_hat)) ** 2
@@ -331,7 +335,7 @@ def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_out
             method = (f"{cfg.readout.method}, carried by {cfg.neuron.population} push-pull "
                       f"{SPIKE_MODELS[cfg.neuron.spike_model]} output neuron pairs "
                       f"({cfg.neuron.gain_hz_per_m_s:g} Hz per m/s), causal decoding, {cfg.neuron.lead} lead")
-    return v_hat, observable, r_dot, v_field, v_std, std_name, method, filt
+    return v_hat, observable, r_dot, v_field, v_std, std_name, method, filt, info
 
 
 def _eye_dataset(fo, cfg, rcfg, f, t, rho, r2, haltere_gain, reliability, used, a, a_source, v_hat, observable,
@@ -448,10 +452,11 @@ def estimate_eye_velocity(fo, config: EyeVelocityConfig | None = None, progress:
     rcfg, tau, drift = readout_inputs(fo, t, cfg)
     t1 = _time.perf_counter()
     (v_hat, observable, r_dot, v_field, v_std, std_name, method,
-     filt) = _eye_readout(cfg, rcfg, circ.fields, t, rho_in, r2_in, a, tau, drift, turn, rho.shape[1], saccade)
+     filt, info) = _eye_readout(cfg, rcfg, circ.fields, t, rho_in, r2_in, a, tau, drift, turn, rho.shape[1], saccade)
     t_readout = _time.perf_counter() - t1
     ds = _eye_dataset(fo, cfg, rcfg, circ.fields, t, rho, r2, haltere_gain, reliability, used, a, a_source,
                       v_hat, observable, r_dot, v_field, v_std, std_name)
+    ds = ds.assign(vision_variables(info))
     gate = cfg.circuit.saccade_gate_deg_s
     ds["saccade"] = ("time", saccade, {"units": "1", "long_name": "saccadic suppression, no visual update: " + (
         f"the haltere's rate above {gate:g} deg/s or within {cfg.circuit.saccade_hold_s():.3g} s after"
@@ -531,7 +536,7 @@ def parse_gain(text: str) -> float:
 
 def run_eye_velocity(args) -> int:
     from experiments.store import write_netcdf
-    from experiments.velocity import plot_velocity, score
+    from experiments.velocity import never_observable_reason, plot_velocity, score
     from stimuli.eye import open_eye_footage
 
     fo = open_eye_footage(args.footage)
@@ -547,6 +552,9 @@ def run_eye_velocity(args) -> int:
     if sc:
         print(f"after {skip:.3g} s: RMSE {sc['rmse_m_s']:.4f} m/s, median |error| {sc['median_abs_error_m_s']:.4f} m/s, "
               f"observable {sc['observable_fraction']:.3f} of {sc['n_frames']} steps")
+    why = never_observable_reason(ds)
+    if why:
+        print(why)
     if args.plot:
         plot_velocity(ds, args.plot)
         print(f"wrote {args.plot}")

@@ -116,7 +116,7 @@ def never_observable_reason(ds: xr.Dataset) -> str | None:
             a_lp = signal.filtfilt(*signal.butter(int(ro.get("order", 2)), wn), a[ok], padlen=min(ok.sum() - 1, 12))
     peak = float(np.max(np.abs(a_lp))) if a_lp.size else 0.0
     if peak < accel_min:
-        return (f"never observable: the camera's forward acceleration never exceeded the readout's accel_min "
+        return (f"never observable: the forward acceleration never exceeded the readout's accel_min "
                 f"({accel_min:g} m/s²; at most {peak:.3f} m/s² here, low-passed at "
                 f"{float(ro.get('cutoff_hz', 1.0)):g} Hz) — speed cannot be told from vision while it does not "
                 f"change; v̂ is NaN throughout")

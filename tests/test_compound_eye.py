@@ -1153,3 +1153,27 @@ def test_the_decomposition_reads_a_level_with_the_pipelines_saccadic_suppression
     untold = readout_rmse(fo, t, jumped, jumped ** 2, "true")
     assert told[0] <= 1.5 * clean[0] and told[1] >= 0.95 and told[2] >= 0.85, (clean, told)
     assert untold[0] > 10 * told[0], (told, untold)
+
+
+def test_the_eye_stores_the_readouts_verdicts_on_vision_and_says_why_it_never_answers(eye_footage):
+    """The eye's velocity Dataset carries the coupling test's verdicts as the camera's does (vision_coupling,
+    vision_locked, ...), so a run that never answers says why from what it stores: here a coupling z of 50,
+    which no flight reaches, and a std no posterior reaches (without it the first seconds, before the coupling
+    window is whole, may still be answered)."""
+    from dataclasses import replace
+
+    from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
+    from experiments.velocity import never_observable_reason
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(eye_footage)
+    ds = estimate_eye_velocity(fo, EyeVelocityConfig())
+    assert ds.vision_locked.values.any() and np.isfinite(ds.vision_coupling.values).all()
+    assert ds.observable.values.any() and never_observable_reason(ds) is None
+    cfg = EyeVelocityConfig()
+    cfg.readout = replace(cfg.readout, coupling_z=50.0, max_std_m_s=1e-6, max_rel_std=0.0)
+    blind = estimate_eye_velocity(fo, cfg)
+    assert not blind.observable.values.any() and not blind.vision_locked.values.any()
+    why = never_observable_reason(blind)
+    assert why.startswith("never observable: the image's expansion never followed the accelerometer"), why
+    assert "50 needed" in why

@@ -536,7 +536,7 @@ def test_constant_velocity_run_says_why_it_is_never_observable(tmp_path, capsys)
     assert code == 0, err
     why = [ln for ln in text.splitlines() if ln.startswith("never observable")]
     assert len(why) == 1, text
-    assert why[0].startswith("never observable: the camera's forward acceleration never exceeded the readout's "
+    assert why[0].startswith("never observable: the forward acceleration never exceeded the readout's "
                              "accel_min (0.03 m/s²; at most 0.0")
     assert "speed cannot be told from vision while it does not change; v̂ is NaN throughout" in why[0]
     with xr.open_dataset(out) as ds:

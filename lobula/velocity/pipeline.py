@@ -165,21 +165,8 @@ def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Foot
         epipole_x=("time", rates.epipole[:, 0], {"units": "1", "long_name": "epipole, normalised x"}),
         epipole_y=("time", rates.epipole[:, 1], {"units": "1", "long_name": "epipole, normalised y"}),
     )
-    if res is not None and "vision_coupling" in res.info:
-        data["vision_coupling"] = ("time", res.info["vision_coupling"], {"units": "1", "long_name":
-                                   "Fisher z of the fields' r_dot - r2 against the acceleration (lobula.readout.coupling)"})
-        data["vision_locked"] = ("time", res.info["vision_locked"], {"units": "1", "long_name":
-                                 "vision has fixed the speed (coupling reached readout.coupling_z, or the camera held "
-                                 "still) and has not since been refuted; between, the accelerometer carries v_hat"})
-        data["vision_informing"] = ("time", res.info["vision_informing"], {"units": "1", "long_name":
-                                    "a measurement of vision (kappa, the rest bound or a reversal) entered the filter "
-                                    "at this frame; elsewhere the accelerometer alone carries v_hat"})
-        data["vision_refuted"] = ("time", res.info["vision_refuted"], {"units": "1", "long_name":
-                                  "the acceleration varied over the coupling window and the expansion did not follow"})
-        data["scene_depth"] = ("time", res.info["scene_depth"], {"units": "m", "long_name":
-                               "the fields' median depth as the footage has shown it while vision followed the "
-                               "accelerometer (lobula.readout.scene_depth): the rest bound's depth; NaN: none yet, "
-                               "inf: a scene too far to bound the speed by"})
+    if res is not None:
+        data.update(vision_variables(res.info))
     if footage.truth is not None:
         data["v_true"] = ("time", np.interp(rates.t, footage.truth["time_s"], footage.truth["v_forward_m_s"]),
                           {"units": "m/s", "long_name": "ground-truth forward velocity"})
@@ -204,6 +191,30 @@ def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Foot
                             "camera orientation, camera to the first IMU sample's frame, from the integrated gyro"})
         coords["quaternion"] = ("quaternion", ["x", "y", "z", "w"], {"long_name": "unit quaternion component"})
     return xr.Dataset(data, coords=coords)
+
+
+def vision_variables(info: dict) -> dict:
+    """The readout's verdicts on vision as Dataset variables (name: (dims, values, attrs)), each (n,) over time:
+    what :func:`lobula.readout.readout`'s ``info`` holds of them (vision_coupling, vision_locked,
+    vision_informing, vision_refuted, scene_depth); {} where it holds none (a readout without the coupling test)."""
+    if "vision_coupling" not in info:
+        return {}
+    return dict(
+        vision_coupling=("time", info["vision_coupling"], {"units": "1", "long_name":
+                         "Fisher z of the fields' r_dot - r2 against the acceleration (lobula.readout.coupling)"}),
+        vision_locked=("time", info["vision_locked"], {"units": "1", "long_name":
+                       "vision has fixed the speed (coupling reached readout.coupling_z, or the camera held still) "
+                       "and has not since been refuted; between, the accelerometer carries v_hat"}),
+        vision_informing=("time", info["vision_informing"], {"units": "1", "long_name":
+                          "a measurement of vision (kappa, the rest bound or a reversal) entered the filter at this "
+                          "frame; elsewhere the accelerometer alone carries v_hat"}),
+        vision_refuted=("time", info["vision_refuted"], {"units": "1", "long_name":
+                        "the acceleration varied over the coupling window and the expansion did not follow"}),
+        scene_depth=("time", info["scene_depth"], {"units": "m", "long_name":
+                     "the fields' median depth as the footage has shown it while vision followed the accelerometer "
+                     "(lobula.readout.scene_depth): the rest bound's depth; NaN: none yet, inf: a scene too far to "
+                     "bound the speed by"}),
+    )
 
 
 def _run_attrs(config: VelocityConfig, front, rates, res, accel_source: str, footage: Footage, t_start: float) -> dict:
