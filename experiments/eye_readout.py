@@ -104,6 +104,6 @@ def suppressed_readout(t, rho, r2, a, rcfg, saccade=None, **kw):
     from lobula.readout import MaterialRates, staggered_difference
 
     dt = float(np.median(np.diff(t)))
-    stagger = max(2, rcfg.stagger + rcfg.stagger % 2)
+    stagger = rcfg.difference_frames
     r_dot = staggered_difference(np.asarray(rho, float), stagger, dt, centred=True)
     return readout(t, rho, r2, a, rcfg, material=MaterialRates(rho, r2, r_dot), **kw)

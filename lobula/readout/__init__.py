@@ -48,7 +48,7 @@ import numpy as np
 
 from .config import ReadoutConfig, ReadoutResult, std_allowed
 from .coupling import CouplingTest, coupling_test, vision_locked
-from .filters import _fill_nan, _integral, _lag, butterworth, gaussian_lowpass, hold_gaps, staggered_difference
+from .filters import _fill_nan, _integral, _lag, butterworth, difference_mean, end_mean, gaussian_lowpass, hold_gaps, staggered_difference
 from .kalman import ForwardPass, FilterRecord, _accel_density2, _axis_terms, filter_record, kalman_velocity, predict  # noqa: F401
 from .updates import OUTLIER_GATE, _gated_update, _sign_update, _update, ratio_update  # noqa: F401
 from .measurements import (ACCEL_HEADING_FLOOR_M_S2, NO_EXPANSION_SE, REVERSAL_MAX_GAP_S, SIGN_PERSIST_S,
@@ -75,7 +75,7 @@ __all__ = [
 def readout(t, r, r2, a, config: ReadoutConfig | None = None,
             material: MaterialRates | None = None, gravity_tau=None, drift_std=None,
             turn_rate=None, offset_walk=None, offset_axis=None, offset_axis_prior=0.0,
-            transport=None, kappa_accel=None) -> ReadoutResult:
+            transport=None, kappa_accel=None, a_rates=None) -> ReadoutResult:
     """Velocity from per-frame field rates.
 
     Parameters
@@ -115,6 +115,10 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
         ``offset_axis``'s frame. With the material fields' moments, each field's κ then measures the
         acceleration along its own axis (:func:`field_axes`), which holds a moving heading, and the gravity
         error δ along that axis turned by R (kalman readout only; None: κ measures ``a``).
+    a_rates : array_like, (n,), optional
+        m/s²: the forward acceleration averaged as each row's rates average the motion (a flow pair's
+        rates over its two frames' interval, :func:`lobula.velocity.inertial.accel_at`), which the vision
+        terms stand beside (kalman readout only; None: ``a``). The filter's state integrates ``a``.
 
     Returns
     -------
@@ -144,16 +148,21 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
             raise ValueError(f"transport must be finite and shaped like t {t.shape}, got {transport.shape}")
     if kappa_accel is not None:
         kappa_accel = _check_kappa_accel(kappa_accel, len(t), offset_axis is not None)
+    if a_rates is not None:
+        a_rates = np.asarray(a_rates, dtype=float)
+        if a_rates.shape != t.shape or not np.all(np.isfinite(a_rates)):
+            raise ValueError(f"a_rates must be finite and shaped like t {t.shape}, got {a_rates.shape}")
     if cfg.method == "kalman":
         return kalman_readout(t, r, r2, a, cfg, material, gravity_tau, drift_std,
                               None if turn_rate is None else np.asarray(turn_rate, dtype=float), offset_walk,
-                              offset_axis, offset_axis_prior, transport, kappa_accel)
+                              offset_axis, offset_axis_prior, transport, kappa_accel, a_rates)
     return paper_readout(t, r, r2, a, cfg)
 
 
 def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None,
                    gravity_tau=None, drift_std=None, turn_rate=None, offset_walk=None,
-                   offset_axis=None, offset_axis_prior=0.0, transport=None, kappa_accel=None) -> ReadoutResult:
+                   offset_axis=None, offset_axis_prior=0.0, transport=None, kappa_accel=None,
+                   a_rates=None) -> ReadoutResult:
     """The project's readout (see the package's docstring).
 
     Without ``material`` ṙ̄ is the staggered difference of the pooled rates at fixed pixels
@@ -174,7 +183,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
         As :func:`readout` takes them (turn_rate, offset_walk and transport as float arrays).
     offset_axis : ndarray, (n, 3), optional
     offset_axis_prior : float or ndarray, (3,)
-    kappa_accel : tuple, optional
+    kappa_accel, a_rates : optional
         As :func:`readout` takes them.
 
     Returns
@@ -182,7 +191,8 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
     ReadoutResult
     """
     zp = cfg.filter == "zero-phase"
-    inp = kalman_inputs(t, r, r2, a, cfg, material, offset_axis, offset_axis_prior, kappa_accel=kappa_accel)
+    inp = kalman_inputs(t, r, r2, a, cfg, material, offset_axis, offset_axis_prior, kappa_accel=kappa_accel,
+                        a_rates=a_rates)
     if cfg.fusion == "vision-only":
         z, s = inp.z, inp.z_std
         obs = np.isfinite(z) & (s <= std_allowed(z, cfg))
@@ -248,7 +258,7 @@ class KalmanInputs:
 
 def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, offset_axis=None,
                   offset_axis_prior=0.0, dt: float | None = None, rest_depth_seen: float = np.nan,
-                  gate: bool = True, kappa_accel=None) -> KalmanInputs:
+                  gate: bool = True, kappa_accel=None, a_rates=None) -> KalmanInputs:
     """The kalman readout's measurements from the fields' rates and the forward acceleration.
 
     Online (``cfg.filter`` "causal") each frame's inputs depend on that frame and those before it only,
@@ -279,6 +289,8 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         As :func:`readout` takes it: what κ and the fields' depths are measured against. The coupling test keeps
         the forward acceleration: whether vision follows the accelerometer at all is judged as without it (on a
         real GoPro walk, judged against the fields' own axes, a stabilised image locked on, confidently wrong).
+    a_rates : ndarray, (n,), optional
+        As :func:`readout` takes it: what the vision terms stand beside (None: ``a``).
 
     Returns
     -------
@@ -286,7 +298,8 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     """
     zp = cfg.filter == "zero-phase"
     dt = float(np.median(np.diff(t))) if dt is None else float(dt)
-    terms, lag, lp, rf = readout_terms(t, r, r2, a, cfg, material, dt=dt)
+    a_rates = a if a_rates is None else np.asarray(a_rates, float)
+    terms, lag, lp, rf = readout_terms(t, r, r2, a_rates, cfg, material, dt=dt)
     r_dot = terms[2]
     axes = a_f = None
     if kappa_accel is not None and material is not None and material.moment is not None:
@@ -295,7 +308,7 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         mom = material.moment.reshape(len(t), -1)
         mom = (lp(mom) if zp else lp(mom, True)).reshape(material.moment.shape)
         axes = _lag(field_axes(mom, heading), lag)
-        a_f = np.einsum("nj,nfj->nf", _lag(lp(accel3), lag), axes)
+        a_f = np.einsum("nj,nfj->nf", _lag(lp(difference_mean(accel3, cfg.difference_frames)), lag), axes)
     z, s, v_f = vision_measurement(*terms[:3], terms[3] if a_f is None else a_f, cfg)
     delay = lag * dt
     # Low-passed measurements are correlated over about 1/(2·cutoff) s; treating each
@@ -313,7 +326,12 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     # exact, shift = cum − lp(cum); pairing κ with v(t) and carrying the mismatch as noise instead
     # reads the suite's 20 development scenes (seeds 100-101) at 0.0052 m/s zero-phase RMSE, 0.0045
     # with this pairing (the worst 0.0094 against 0.0092; exact rates 0.0036 against 0.0002).
-    shift = cum - _lag(lp(cum), lag)
+    # κ's velocity is that of the rows' rates: averaged over each pair of frames (∫a_rates is ∫a so
+    # averaged) and, for the material fields, the mean of the difference's two ends.
+    cum_rates = _integral(a_rates, t)
+    if material is not None:
+        cum_rates = end_mean(cum_rates, cfg.difference_frames)
+    shift = cum - _lag(lp(cum_rates), lag)
     sigma_t = np.sqrt(np.log(2.0) / 2.0) / (np.pi * cfg.cutoff_hz)  # the low-pass's Gaussian width (s)
     # The prior std of the acceleration's whole forward offset: the accelerometer's own, and the
     # start frame's gravity error where the filter tracks it apart (offset_axis).

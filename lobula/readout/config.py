@@ -213,6 +213,11 @@ class ReadoutConfig:
     stamp_error_s: float = 0.033
     lag_s: float = 0.0
 
+    @property
+    def difference_frames(self) -> int:
+        """Frames between the two ends of ṙ̄'s difference: ``stagger`` made even and at least 2."""
+        return max(2, self.stagger + self.stagger % 2)
+
     def __post_init__(self):
         if self.accel_turn_rate_max is not None and not (np.isfinite(self.accel_turn_rate_max)
                                                          and self.accel_turn_rate_max > 0):

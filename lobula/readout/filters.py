@@ -210,6 +210,63 @@ def gaussian_lowpass(x: np.ndarray, cutoff_hz: float, dt: float, truncate: float
     return y, m
 
 
+def difference_mean(x: np.ndarray, stagger: int) -> np.ndarray:
+    """x averaged over the span of a centred difference ``stagger`` frames wide, along axis 0.
+
+    A difference (y[k + s/2] − y[k − s/2])/(s·dt) is the mean of ẏ over those s frame intervals,
+    not ẏ at k: a quantity set beside it (the forward acceleration beside ṙ̄) must be averaged over the
+    same span, or a fast change reads smaller in the difference than in the quantity (a walker's 1.7 Hz
+    surge by 8 % at s = 4 and 30 frames/s). The mean is the trapezoid rule over the s + 1 samples,
+    centred, the edges held.
+
+    Parameters
+    ----------
+    x : ndarray, (n, ...)
+        Units U, finite.
+    stagger : int
+        Frames s between the difference's two samples (even).
+
+    Returns
+    -------
+    ndarray, (n, ...)
+        U.
+    """
+    from scipy.ndimage import convolve1d
+
+    x = np.asarray(x, float)
+    if stagger < 2 or len(x) < 2:
+        return x
+    w = np.ones(stagger + 1)
+    w[[0, -1]] = 0.5
+    return convolve1d(x, w / stagger, axis=0, mode="nearest")
+
+
+def end_mean(x: np.ndarray, stagger: int) -> np.ndarray:
+    """The mean of x at the two ends of a centred difference ``stagger`` frames wide, (x[k − s/2] + x[k + s/2])/2,
+    along axis 0, the edges held: what the material fields' r̄ takes of the motion (:func:`difference_mean`).
+
+    Parameters
+    ----------
+    x : ndarray, (n, ...)
+        Units U, finite.
+    stagger : int
+        Frames s between the two ends (even).
+
+    Returns
+    -------
+    ndarray, (n, ...)
+        U.
+    """
+    from scipy.ndimage import convolve1d
+
+    x = np.asarray(x, float)
+    if stagger < 2 or len(x) < 2:
+        return x
+    w = np.zeros(stagger + 1)
+    w[[0, -1]] = 0.5
+    return convolve1d(x, w, axis=0, mode="nearest")
+
+
 def staggered_difference(x: np.ndarray, stagger: int, dt: float, centred: bool) -> np.ndarray:
     """Derivative by a difference ``stagger`` frames wide, along axis 0.
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .config import ReadoutConfig
-from .filters import _integral, _lag, butterworth, gaussian_lowpass, staggered_difference, vision_runs
+from .filters import _integral, _lag, butterworth, difference_mean, gaussian_lowpass, staggered_difference, vision_runs
 
 #: the fields' signed median r̄ within this many standard errors of 0: no expansion detected (see rest_measurement)
 NO_EXPANSION_SE = 3.0
@@ -629,7 +629,7 @@ def readout_lag(cfg: ReadoutConfig, dt: float) -> int:
     """
     if cfg.filter == "zero-phase":
         return 0
-    stagger = max(2, cfg.stagger + cfg.stagger % 2)
+    stagger = cfg.difference_frames
     return gaussian_lowpass(np.zeros(3), cfg.cutoff_hz, dt, truncate=cfg.online_window_sigma)[1] + stagger // 2
 
 
@@ -697,7 +697,7 @@ def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         1/s: the low-passed fixed-pixel r̄ as of now (not lagged).
     """
     dt = float(np.median(np.diff(t))) if dt is None else float(dt)
-    stagger = max(2, cfg.stagger + cfg.stagger % 2)
+    stagger = cfg.difference_frames
     lag = readout_lag(cfg, dt)
     if cfg.filter == "zero-phase":
         wn = cfg.cutoff_hz / (0.5 / dt)
@@ -711,6 +711,8 @@ def readout_terms(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
         # after. (Offline a gap is interpolated, and the zero-phase Butterworth would ring at the
         # edges of runs shorter than its impulse response.)
         lp_rates = lambda x: lp(x, True)
+    # ṙ̄ is a difference over the stagger: the acceleration beside it is averaged over the same span.
+    a = difference_mean(a, stagger)
     af = lp(a)
     if material is not None and cfg.filter != "zero-phase":
         # Run by run, every term is windowed alike: a run is where ρ and ṙ are both measured (ṙ's difference

@@ -38,7 +38,8 @@ class FieldRates:
     bias fit (lobula.epipole.HeadingBiasEstimator) holds after each pair, known at the pair's
     second frame t; or None (no gyro, no estimated epipole).
     known: (n,) s, when each row's frames are all in (its pair's second frame), or None where the
-    front end does not say (flo, emd).
+    front end does not say (flo, emd). span: s, how long each row's rates average over (a pair's two
+    frames' interval; None: one frame interval, the flo and EMD front ends' rates at frames).
     """
 
     t: np.ndarray
@@ -51,13 +52,15 @@ class FieldRates:
     gyro_residual: tuple | None = None
     heading_bias: tuple | None = None
     known: np.ndarray | None = None
+    span: float | None = None
 
 
 @dataclass
 class PooledPair:
     """One flow pair pooled (:meth:`FieldPooling.push`).
 
-    t: s, the row's time stamp; known: s, when its frames were all in (the pair's second frame);
+    t: s, the row's time stamp; known: s, when its frames were all in (the pair's second frame); span: s, the
+    pair's two frames' interval, over which its flow averages the motion;
     r, r2: (F,) 1/s and 1/s²; epipole: (2,) normalised; material: the material fields' (r̄, r²̄, ṙ̄)
     (each (F,)) of the pair ``stagger // 2`` before this one, or None; heading_bias: (t s, bias (3,)
     rad/s, std (3,) rad/s) of the heading and bias fit after this pair, or None; residual: the pair's
@@ -72,6 +75,7 @@ class PooledPair:
     material: tuple | None = None
     heading_bias: tuple | None = None
     residual: tuple | None = None
+    span: float | None = None
 
 
 def slerp_orientations(time_s: np.ndarray, q: np.ndarray, t) -> np.ndarray:
@@ -156,7 +160,7 @@ class FieldPooling:
             self.est = HeadingBiasEstimator(x, y, b, s, scale_std=config.gyro_scale_prior or None,
                                             stride=max(1, int(np.sqrt(camera.width * camera.height / HEADING_POINTS))))
             self.fitted = True
-        self.stagger = max(2, config.readout.stagger + config.readout.stagger % 2)
+        self.stagger = config.readout.difference_frames
         self.material = (MaterialFields(fields, self.stagger, gap_correction=config.fields.gap_correction)
                          if config.fields.material and live else None)
         self.count = 0
@@ -223,7 +227,7 @@ class FieldPooling:
             qp = self.plain_attitude(np.array([s.t0, s.t1]))
             res = residual_rate(self.camera, s, qp[0].T @ qp[1], e, self.residual_bias(s.t_mid))
         self.count += 1
-        return PooledPair(s.t_mid if config.timestamps == "mid" else s.t0, s.t1, r, r2, e, m, hb, res)
+        return PooledPair(s.t_mid if config.timestamps == "mid" else s.t0, s.t1, r, r2, e, m, hb, res, s.dt)
 
 
 def _angle(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
@@ -340,7 +344,8 @@ def rates_from_rows(rows: list[PooledPair], fields: ReceptiveFields, timings: di
                        if pooling.material is not None else None),
                       stack([p.residual for p in rows if p.residual is not None]),
                       stack([p.heading_bias for p in rows if p.heading_bias is not None]),
-                      np.array([p.known for p in rows]) if live else None)
+                      np.array([p.known for p in rows]) if live else None,
+                      float(np.median([p.span for p in rows])) if rows else None)
 
 
 def _pooled_field_rates(stream, config: VelocityConfig, fields: ReceptiveFields, timings: dict,

@@ -290,12 +290,15 @@ class InertialStream:
         c.raw("axis")[idx] = rot[:, :, 2]
 
     # ---------------------------------------------------------------- at a frame's time
-    def at_frame(self, t: float, epipole: np.ndarray, frame_interval: float) -> dict:
+    def at_frame(self, t: float, epipole: np.ndarray, frame_interval: float, span: float | None = None) -> dict:
         """What the readout takes at a frame of time t s (its heading ``epipole`` (2,) normalised):
         a (m/s²), the 3-D gravity-free acceleration accel (3,) m/s² (camera frame), axis (3,), transport λ (1/s),
         drift (m/s²/s), walk (m/s²/√s), turn |ω| (rad/s) and tau (s), as :func:`lobula.velocity.estimate_velocity`
-        computes them on the whole record."""
-        self.finalise(t + frame_interval / 2)
+        computes them on the whole record; a_rates (m/s²) and accel (3,) averaged over ``span`` s about t, as the
+        row's rates average the motion (a flow pair's interval, whose second frame is in; None: frame_interval),
+        for the vision terms (:func:`lobula.velocity.inertial.accel_at`)."""
+        span = frame_interval if span is None else float(span)
+        self.finalise(t + max(frame_interval, span) / 2)
         c = self.cols
         end = self._done - c.first
         ts = c["t"][:end]
@@ -307,8 +310,9 @@ class InertialStream:
         wx, wy = (resample_to(one, ts, w[:, j], frame_interval)[0] for j in (0, 1))
         from .fields import slerp_orientations
 
-        accel = np.array([resample_to(one, ts, at("a_cam")[:, j], frame_interval)[0] for j in range(3)])
-        out = dict(attitude=slerp_orientations(ts, at("rot"), one)[0], a=accel[2], accel=accel,
+        accel = np.array([resample_to(one, ts, at("a_cam")[:, j], span)[0] for j in range(3)])
+        out = dict(attitude=slerp_orientations(ts, at("rot"), one)[0],
+                   a=resample_to(one, ts, at("a_cam")[:, 2], frame_interval)[0], a_rates=accel[2], accel=accel,
                    axis=axis / np.linalg.norm(axis),
                    transport=wx * e[1] - wy * e[0], drift=float(np.interp(t, ts, at("drift"))),
                    walk=float(leak_walk(one, ts, at("leak"))[0]),

@@ -63,16 +63,20 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
            if imu is not None and imu.gyro is not None and config.derotate else None)
     a3, accel_source = accel_at(footage, rates.t, config, bias=None if vb is None else vb[0], orientation=rot)
     a = a3 if a3.ndim == 1 else a3[:, 2]
+    # What the vision terms stand beside: the acceleration averaged as each row's rates average the motion.
+    a3_rates = (accel_at(footage, rates.t, config, bias=None if vb is None else vb[0], orientation=rot,
+                         window_s=rates.span)[0] if rates.span is not None else a3)
+    a_rates = a3_rates if a3_rates.ndim == 1 else a3_rates[:, 2]
     t0 = _time.perf_counter()
     res = None
     if len(rates.t) >= 3:
         rcfg, axis, gravity_error = _offset_model(footage, rates, config, accel_source, vb, rot)
-        kappa = (kappa_accel_at(a3, rates, imu.time_s, rot if axis is not None else None, causal,
+        kappa = (kappa_accel_at(a3_rates, rates, imu.time_s, rot if axis is not None else None, causal,
                                 rcfg.coupling_window_s)
                  if config.heading_motion and imu is not None else None)
         res = readout(rates.t, rates.r, rates.r2, a, rcfg, material=rates.material,
                       turn_rate=turn_rate_at(footage, rates.t, accel_source, config), offset_axis=axis,
-                      offset_axis_prior=gravity_error, kappa_accel=kappa,
+                      offset_axis_prior=gravity_error, kappa_accel=kappa, a_rates=a_rates,
                       **_imu_terms(footage, rates, config, accel_source, vb))
     rates.timings["readout"] = _time.perf_counter() - t0
     ds = velocity_dataset(rates, res, a, accel_source, footage, vb, rot)

@@ -126,7 +126,7 @@ class VelocityEstimator:
         self._index = 0
         self._t_last = -np.inf
         F = self.fields.n_fields
-        self.rows = Columns(t=(), known=(), r=(F,), r2=(F,), m_r=(F,), m_r2=(F,), m_rdot=(F,), m_moment=(F, 2), a=(),
+        self.rows = Columns(t=(), known=(), r=(F,), r2=(F,), m_r=(F,), m_r2=(F,), m_rdot=(F,), m_moment=(F, 2), a=(), a_rates=(),
                             accel=(3,), axis=(3,),
                             lam=(), drift=(), walk=(), turn=(), tau=(), epipole=(2,), bias=(3,), attitude=(4,))
         self.dt: float | None = frame_interval_s
@@ -213,11 +213,11 @@ class VelocityEstimator:
         p = self.pooling.push(s)
         if p.heading_bias is not None:
             self.imu.add_estimate(*p.heading_bias)
-        q = self.imu.at_frame(p.t, p.epipole, self.dt)
+        q = self.imu.at_frame(p.t, p.epipole, self.dt, p.span)
         rows = self.rows
         k = rows.n
         sl = rows.append(1)
-        for name, val in (("t", p.t), ("known", p.known), ("r", p.r), ("r2", p.r2), ("a", q["a"]),
+        for name, val in (("t", p.t), ("known", p.known), ("r", p.r), ("r2", p.r2), ("a", q["a"]), ("a_rates", q["a_rates"]),
                           ("accel", q["accel"]), ("axis", q["axis"]), ("lam", q["transport"]), ("drift", q["drift"]),
                           ("walk", q["walk"]),
                           ("turn", q["turn"]), ("tau", q["tau"]), ("epipole", p.epipole), ("bias", q["bias"]),
@@ -258,7 +258,7 @@ class VelocityEstimator:
             accel = col("accel")
             kappa = accel, acceleration_heading(accel, self.dt, cfg.coupling_window_s, True, turn_to), turn_to
         inp = kalman_inputs(t, col("r"), col("r2"), a, cfg, material, axis, self.gravity_error, dt=self.dt,
-                            rest_depth_seen=self._rest_depth, gate=False, kappa_accel=kappa)
+                            rest_depth_seen=self._rest_depth, gate=False, kappa_accel=kappa, a_rates=col("a_rates"))
         rec = filter_record(t, a, axis, col("lam"), col("tau"), col("drift"), col("turn"), col("walk"))
         if self._filter is None:
             self._filter = ForwardPass(cfg, 3, col("drift"), self.gravity_error, False, inp.corr_frames)
