@@ -92,9 +92,9 @@ def suppressed_readout(t, rho, r2, a, rcfg, saccade=None, **kw):
     t (n,) s; rho, r2 (n, F) 1/s, 1/s², NaN at the steps ``saccade`` (n,) bool flags (a body saccade and the
     circuit's hold after it); a (n,) m/s²; rcfg a ReadoutConfig; kw: :func:`readout`'s other arguments.
     Without a flagged step this is :func:`readout` itself. With one, the readout is given ṙ as well as ρ and
-    r²̄ (as material rates), ṙ the same centred difference over ``rcfg.stagger`` steps the readout takes of
-    its low-passed ρ — NaN wherever it would span a flagged step — so that no difference is taken across a
-    saccade: a saccade turns every field onto other surfaces, and ρ jumps by what they are, not by a/D.
+    r²̄ (as material rates: ρ and r²̄ the means of the difference's two ends, as the camera's material fields
+    take them), ṙ the same centred difference over ``rcfg.stagger`` steps the readout takes of its low-passed
+    ρ — NaN wherever it would span a flagged step — so that no difference is taken across a saccade: a saccade turns every field onto other surfaces, and ρ jumps by what they are, not by a/D.
     Online the readout smooths each run of steps between saccades alone (:func:`lobula.readout.filters.vision_runs`;
     offline the zero-phase low-pass bridges the gap), its terms are NaN at the flagged steps, and there the
     filter predicts from the acceleration alone and its σ grows.
@@ -105,5 +105,14 @@ def suppressed_readout(t, rho, r2, a, rcfg, saccade=None, **kw):
 
     dt = float(np.median(np.diff(t)))
     stagger = rcfg.difference_frames
-    r_dot = staggered_difference(np.asarray(rho, float), stagger, dt, centred=True)
-    return readout(t, rho, r2, a, rcfg, material=MaterialRates(rho, r2, r_dot), **kw)
+    rho, r2 = np.asarray(rho, float), np.asarray(r2, float)
+    r_dot = staggered_difference(rho, stagger, dt, centred=True)
+    return readout(t, rho, r2, a, rcfg, material=MaterialRates(_ends(rho, stagger), _ends(r2, stagger), r_dot), **kw)
+
+
+def _ends(x: np.ndarray, stagger: int) -> np.ndarray:
+    """(x[k − s/2] + x[k + s/2])/2 along axis 0, s = ``stagger``; NaN where either end is NaN or beyond the record."""
+    h = stagger // 2
+    out = np.full(x.shape, np.nan)
+    out[h:len(x) - h] = 0.5 * (x[:len(x) - 2 * h] + x[2 * h:])
+    return out
