@@ -160,7 +160,8 @@ def make_replay(tmp_path_factory, real_profile):
 
 @pytest.fixture(scope="session")
 def replay_rates(make_replay):
-    """Field rates of the 0–30 s replay with the default DIS front end, and what a readout needs."""
+    """Field rates of the 0–30 s replay with the default DIS front end, and what a readout needs: the forward
+    acceleration, the truth, and the acceleration averaged over each pair's frames as the rates are (``a_rates``)."""
     from lobula.velocity import field_rates
     from lobula.velocity.inertial import forward_accel_at
     from lobula.config import VelocityConfig
@@ -170,8 +171,9 @@ def replay_rates(make_replay):
     cfg = VelocityConfig()
     rates = field_rates(fo, cfg, progress=False)
     a, _ = forward_accel_at(fo, rates.t, cfg)
+    a_rates, _ = forward_accel_at(fo, rates.t, cfg, window_s=rates.span)
     v_true = np.interp(rates.t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
-    return rates, a, v_true
+    return rates, a, v_true, a_rates
 
 
 @pytest.fixture(scope="session")

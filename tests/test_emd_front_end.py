@@ -69,7 +69,7 @@ def calibration(tmp_path_factory):
 
 def _dis_on_the_replay(replay_rates) -> dict:
     """DIS's RMSE (m/s) and observable fraction on the 30 s replay after 2 s, the default readout."""
-    rates, a, v_true = replay_rates
+    rates, a, v_true, _ = replay_rates
     res = readout(rates.t, rates.r, rates.r2, a, ReadoutConfig())
     m = (rates.t >= rates.t[0] + 2.0)
     return dict(rmse_m_s=float(np.sqrt(np.mean((res.v_hat - v_true)[m & res.observable] ** 2))),
