@@ -94,7 +94,8 @@ def suppressed_readout(t, rho, r2, a, rcfg, saccade=None, **kw):
     Without a flagged step this is :func:`readout` itself. With one, the readout is given ṙ as well as ρ and
     r²̄ (as material rates: ρ and r²̄ the means of the difference's two ends, as the camera's material fields
     take them), ṙ the same centred difference over ``rcfg.stagger`` steps the readout takes of its low-passed
-    ρ — NaN wherever it would span a flagged step — so that no difference is taken across a saccade: a saccade turns every field onto other surfaces, and ρ jumps by what they are, not by a/D.
+    ρ — NaN wherever it would span a flagged step — so that no difference is taken across a saccade: a
+    saccade turns every field onto other surfaces, and ρ jumps by what they are, not by a/D.
     Online the readout smooths each run of steps between saccades alone (:func:`lobula.readout.filters.vision_runs`;
     offline the zero-phase low-pass bridges the gap), its terms are NaN at the flagged steps, and there the
     filter predicts from the acceleration alone and its σ grows.

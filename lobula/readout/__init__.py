@@ -48,7 +48,8 @@ import numpy as np
 
 from .config import ReadoutConfig, ReadoutResult, std_allowed
 from .coupling import CouplingTest, coupling_test, vision_locked
-from .filters import _fill_nan, _integral, _lag, butterworth, difference_mean, end_mean, gaussian_lowpass, hold_gaps, staggered_difference
+from .filters import (_fill_nan, _integral, _lag, butterworth, difference_mean, end_mean, gaussian_lowpass, hold_gaps,
+                      staggered_difference)
 from .kalman import ForwardPass, FilterRecord, _accel_density2, _axis_terms, filter_record, kalman_velocity, predict  # noqa: F401
 from .updates import OUTLIER_GATE, _gated_update, _sign_update, _update, ratio_update  # noqa: F401
 from .measurements import (ACCEL_HEADING_FLOOR_M_S2, NO_EXPANSION_SE, REVERSAL_MAX_GAP_S, SIGN_PERSIST_S,

@@ -15,7 +15,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .config import ReadoutConfig
-from .filters import _integral, _lag, butterworth, difference_mean, gaussian_lowpass, staggered_difference, vision_runs
+from .filters import (_integral, _lag, butterworth, difference_mean, gaussian_lowpass, staggered_difference,
+                      vision_runs)
 
 #: the fields' signed median r̄ within this many standard errors of 0: no expansion detected (see rest_measurement)
 NO_EXPANSION_SE = 3.0
