@@ -96,10 +96,10 @@ def test_compare_on_real_d435i_frames(d435i, tmp_path):
     assert list(ds.front_end.values[:2]) == ["dis", "emd"]
     print("\nD435i sample: " + ", ".join(f"{f} RMSE {float(ds.rmse_m_s.sel(front_end=f)):.3f} m/s"
                                          for f in ("dis", "emd")))
-    # Against the zero estimator on the frames each front end reports after the skip (at aa59620: DIS 0.067 m/s
-    # against 0.392, the EMD front end 0.165 against 0.407). Not against the constant that knows the clip's mean
-    # speed: over these 0.8 s the truth varies by 0.060 (std; 0.073 on the EMD's frames), which neither front end
-    # beats on this handheld clip with no IMU (acceleration from truth) and 50-110 px turns.
+    # Against the zero estimator on the frames each front end reports after the skip (DIS 0.053 m/s against
+    # 0.392, the EMD front end 0.087 against 0.407). Not against the constant that knows the clip's mean speed:
+    # over these 0.8 s the truth varies by 0.060 (std; 0.073 on the EMD's frames), which DIS barely beats and
+    # the EMD front end does not on this handheld clip with no IMU (acceleration from truth) and 50-110 px turns.
     t, v_true = ds.time.values, ds.v_true.values
     for f, zero_frac in (("dis", 0.25), ("emd", 0.6)):
         rmse = float(ds.rmse_m_s.sel(front_end=f))
