@@ -231,14 +231,9 @@ def difference_mean(x: np.ndarray, stagger: int) -> np.ndarray:
     ndarray, (n, ...)
         U.
     """
-    from scipy.ndimage import convolve1d
-
-    x = np.asarray(x, float)
-    if stagger < 2 or len(x) < 2:
-        return x
-    w = np.ones(stagger + 1)
-    w[[0, -1]] = 0.5
-    return convolve1d(x, w / stagger, axis=0, mode="nearest")
+    w = np.ones(stagger + 1) / max(stagger, 1)
+    w[[0, -1]] *= 0.5
+    return _centred(x, w)
 
 
 def end_mean(x: np.ndarray, stagger: int) -> np.ndarray:
@@ -257,13 +252,19 @@ def end_mean(x: np.ndarray, stagger: int) -> np.ndarray:
     ndarray, (n, ...)
         U.
     """
+    w = np.zeros(stagger + 1)
+    w[[0, -1]] = 0.5
+    return _centred(x, w)
+
+
+def _centred(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """x (n, ...) weighted by the centred kernel w (odd length) along axis 0, the edges held; x itself where
+    the kernel spans one sample or x does."""
     from scipy.ndimage import convolve1d
 
     x = np.asarray(x, float)
-    if stagger < 2 or len(x) < 2:
+    if len(w) < 3 or len(x) < 2:
         return x
-    w = np.zeros(stagger + 1)
-    w[[0, -1]] = 0.5
     return convolve1d(x, w, axis=0, mode="nearest")
 
 
