@@ -772,9 +772,9 @@ def test_a_camera_seen_moving_at_the_start_gets_a_wider_start_acceleration_prior
     """Online, the gravity reference set over the first frames takes in the platform's acceleration there as an
     offset of the forward reading. A camera starting at 1.8 m/s and braking at 2.5 m/s² (the suite's fast family
     starts so) lies 2.5σ outside the 0.1 g prior: the filter's first answers miss the truth (inside ±2σ on 93 % of
-    the first 3 s). ``start_accel_prior`` sees the first frame's expansion and gives 0.3 g: the truth inside ±2σ on
-    97 % of them, for an RMSE after 2 s of 0.015 m/s against 0.010 (what it no longer rules out, it reads less
-    sharply); a still camera keeps 0.1 g."""
+    the first 3 s). ``start_accel_prior`` sees the first responding frame's expansion and gives 0.3 g: the truth
+    inside ±2σ on 97 % of them, for an RMSE after 2 s of 0.015 m/s against 0.010 (what it no longer rules out, it
+    reads less sharply); a still camera keeps 0.1 g."""
     from lobula.velocity.inertial import START_ACCEL_PRIOR_M_S2, START_ACCEL_PRIOR_MOVING_M_S2, start_accel_prior
     from lobula.readout import MaterialRates
 
@@ -788,6 +788,8 @@ def test_a_camera_seen_moving_at_the_start_gets_a_wider_start_acceleration_prior
     acc = a_t - a_t[:8].mean() + rng.normal(0, 0.02, t.shape)   # the start's acceleration held as an offset
     prior = start_accel_prior(mat.r)
     assert prior == START_ACCEL_PRIOR_MOVING_M_S2
+    # a front end's first frame before it responds (an EMD's reads ~1e-8 1/s) is not a camera at rest
+    assert start_accel_prior(np.vstack([np.full((1, mat.r.shape[1]), 1e-8), mat.r])) == START_ACCEL_PRIOR_MOVING_M_S2
     still = rng.normal(0, 0.02, mat.r.shape)                     # flow noise of a still camera
     assert start_accel_prior(still) == START_ACCEL_PRIOR_M_S2
     assert start_accel_prior(np.full((5, 4), np.nan)) == START_ACCEL_PRIOR_M_S2

@@ -63,12 +63,28 @@ START_ACCEL_PRIOR_M_S2 = 1.0
 START_ACCEL_PRIOR_MOVING_M_S2 = 3.0
 
 
+#: 1/s: fields that all read less than this have not responded yet (an EMD's first frame reads ~1e-8): no
+#: camera's expansion, still or moving, is that small against the flow's noise (~1e-3 1/s at rest)
+NO_RESPONSE_1_S = 1e-6
+
+
+def responding(r: np.ndarray, min_fields: int = 3) -> np.ndarray:
+    """Frames (bool, (n,)) whose fields, r (n, F) 1/s, have read something: at least ``min_fields`` finite
+    and one of them at least :data:`NO_RESPONSE_1_S` in size."""
+    r = np.asarray(r, float)
+    with np.errstate(invalid="ignore"):
+        big = (np.abs(np.nan_to_num(r)) >= NO_RESPONSE_1_S).any(1)
+    return (np.isfinite(r).sum(1) >= min_fields) & big
+
+
 def start_accel_prior(r: np.ndarray, min_fields: int = 3) -> float:
     """Prior std (m/s²) of the start acceleration the online gravity reference takes in: wider where
     the camera is seen moving at the start.
 
-    r (n, F) 1/s: the fields' expansion rates; the first frame with ``min_fields`` finite fields
-    decides. Moving means the fields' signed median r̄ stands clear of its standard error
+    r (n, F) 1/s: the fields' expansion rates; the first frame :func:`responding` decides (``min_fields``
+    finite fields, past a front end's first frames before it responds: an EMD camera judged at rest on its
+    first frame met a fast-family start's deceleration 3.5σ outside the 0.1 g prior and read 16.7 m/s off,
+    confidently). Moving means the fields' signed median r̄ stands clear of its standard error
     (|r̄| > 3·SE, as :func:`lobula.readout.rest_measurement` judges "no detectable expansion").
     Why: a camera already moving may be braking or accelerating hard while the reference is set.
     The suite's fast family starts in motion at up to 2 m/s decelerating at 2–3.7 m/s² (seeds
@@ -81,7 +97,7 @@ def start_accel_prior(r: np.ndarray, min_fields: int = 3) -> float:
     from lobula.readout import NO_EXPANSION_SE, median_and_error
 
     n = np.isfinite(r).sum(1)
-    first = np.flatnonzero(n >= min_fields)
+    first = np.flatnonzero(responding(r, min_fields))
     if not len(first):
         return START_ACCEL_PRIOR_M_S2
     k = first[0]

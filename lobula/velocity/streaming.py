@@ -28,7 +28,7 @@ from lobula.readout.kalman import ForwardPass, filter_record
 from lobula.receptive_field import tile_fields
 
 from .fields import FieldPooling
-from .inertial import start_accel_prior
+from .inertial import responding, start_accel_prior
 from .inertial_stream import Columns, InertialStream
 
 #: the rows' columns of the material fields' (r̄, r²̄, ṙ̄, moment), MaterialRates's fields in order
@@ -171,7 +171,7 @@ class VelocityEstimator:
         """Process the frames the IMU has not reached (as the whole-record run does at the record's end);
         returns the estimates not yet drained."""
         self._advance(final=True)
-        if self._todo:  # no frame ever showed three fields: the start's prior stays the resting one
+        if self._todo:  # no frame's fields ever responded: the start's prior stays the resting one
             self.gravity_error = start_accel_prior(np.full((1, 1), np.nan))
             self._run_readout()
         return self.drain()
@@ -229,7 +229,7 @@ class VelocityEstimator:
         if p.material is not None and k - h >= rows.first:
             for name, val in zip(MATERIAL_COLUMNS, p.material):
                 rows.raw(name)[rows._lo + k - h - rows.first] = val
-        if self.gravity_error is None and np.isfinite(p.r).sum() >= 3:
+        if self.gravity_error is None and responding(p.r[None])[0]:
             self.gravity_error = start_accel_prior(p.r[None])
         self._todo.append(k)
         if self.gravity_error is not None:
