@@ -773,8 +773,8 @@ def test_a_camera_seen_moving_at_the_start_gets_a_wider_start_acceleration_prior
     offset of the forward reading. A camera starting at 1.8 m/s and braking at 2.5 m/s² (the suite's fast family
     starts so) lies 2.5σ outside the 0.1 g prior: the filter's first answers miss the truth (inside ±2σ on 93 % of
     the first 3 s). ``start_accel_prior`` sees the first responding frame's expansion and gives 0.3 g: the truth
-    inside ±2σ on 97 % of them, for an RMSE after 2 s of 0.015 m/s against 0.010 (what it no longer rules out, it
-    reads less sharply); a still camera keeps 0.1 g."""
+    inside ±2σ on 97 % of them, for an RMSE after 2 s of 0.015 m/s against 0.010 (the starts it does not rule out,
+    it reads less sharply); a still camera keeps 0.1 g."""
     from lobula.velocity.inertial import START_ACCEL_PRIOR_M_S2, START_ACCEL_PRIOR_MOVING_M_S2, start_accel_prior
     from lobula.readout import MaterialRates
 

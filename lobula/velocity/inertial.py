@@ -82,9 +82,8 @@ def start_accel_prior(r: np.ndarray, min_fields: int = 3) -> float:
     the camera is seen moving at the start.
 
     r (n, F) 1/s: the fields' expansion rates; the first frame :func:`responding` decides (``min_fields``
-    finite fields, past a front end's first frames before it responds: an EMD camera judged at rest on its
-    first frame met a fast-family start's deceleration 3.5σ outside the 0.1 g prior and read 16.7 m/s off,
-    confidently). Moving means the fields' signed median r̄ stands clear of its standard error
+    finite fields, past a front end's first frames before it responds: the camera's EMD front end reads
+    ~1e-8 1/s on its first frame, which judged alone would start every run with the resting prior). Moving means the fields' signed median r̄ stands clear of its standard error
     (|r̄| > 3·SE, as :func:`lobula.readout.rest_measurement` judges "no detectable expansion").
     Why: a camera already moving may be braking or accelerating hard while the reference is set.
     The suite's fast family starts in motion at up to 2 m/s decelerating at 2–3.7 m/s² (seeds
