@@ -126,8 +126,8 @@ class VelocityEstimator:
         self._index = 0
         self._t_last = -np.inf
         F = self.fields.n_fields
-        self.rows = Columns(t=(), known=(), r=(F,), r2=(F,), m_r=(F,), m_r2=(F,), m_rdot=(F,), m_moment=(F, 2), a=(), a_rates=(),
-                            accel=(3,), axis=(3,),
+        self.rows = Columns(t=(), known=(), r=(F,), r2=(F,), m_r=(F,), m_r2=(F,), m_rdot=(F,), m_moment=(F, 2), a=(),
+                            a_rates=(), accel=(3,), axis=(3,),
                             lam=(), drift=(), walk=(), turn=(), tau=(), epipole=(2,), bias=(3,), attitude=(4,))
         self.dt: float | None = frame_interval_s
         self.gravity_error: float | None = None
@@ -217,8 +217,8 @@ class VelocityEstimator:
         rows = self.rows
         k = rows.n
         sl = rows.append(1)
-        for name, val in (("t", p.t), ("known", p.known), ("r", p.r), ("r2", p.r2), ("a", q["a"]), ("a_rates", q["a_rates"]),
-                          ("accel", q["accel"]), ("axis", q["axis"]), ("lam", q["transport"]), ("drift", q["drift"]),
+        for name, val in (("t", p.t), ("known", p.known), ("r", p.r), ("r2", p.r2), ("a", q["a"]),
+                          ("a_rates", q["a_rates"]), ("accel", q["accel"]), ("axis", q["axis"]), ("lam", q["transport"]), ("drift", q["drift"]),
                           ("walk", q["walk"]),
                           ("turn", q["turn"]), ("tau", q["tau"]), ("epipole", p.epipole), ("bias", q["bias"]),
                           ("attitude", Rotation.from_matrix(q["attitude"]).as_quat())):
