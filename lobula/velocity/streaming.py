@@ -218,8 +218,8 @@ class VelocityEstimator:
         k = rows.n
         sl = rows.append(1)
         for name, val in (("t", p.t), ("known", p.known), ("r", p.r), ("r2", p.r2), ("a", q["a"]),
-                          ("a_rates", q["a_rates"]), ("accel", q["accel"]), ("axis", q["axis"]), ("lam", q["transport"]), ("drift", q["drift"]),
-                          ("walk", q["walk"]),
+                          ("a_rates", q["a_rates"]), ("accel", q["accel"]), ("axis", q["axis"]),
+                          ("lam", q["transport"]), ("drift", q["drift"]), ("walk", q["walk"]),
                           ("turn", q["turn"]), ("tau", q["tau"]), ("epipole", p.epipole), ("bias", q["bias"]),
                           ("attitude", Rotation.from_matrix(q["attitude"]).as_quat())):
             rows.raw(name)[sl] = val
