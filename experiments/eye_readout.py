@@ -103,17 +103,14 @@ def suppressed_readout(t, rho, r2, a, rcfg, saccade=None, **kw):
     if saccade is None or not np.any(saccade):
         return readout(t, rho, r2, a, rcfg, **kw)
     from lobula.readout import MaterialRates, staggered_difference
+    from lobula.readout.filters import end_mean
 
     dt = float(np.median(np.diff(t)))
     stagger = rcfg.difference_frames
     rho, r2 = np.asarray(rho, float), np.asarray(r2, float)
     r_dot = staggered_difference(rho, stagger, dt, centred=True)
-    return readout(t, rho, r2, a, rcfg, material=MaterialRates(_ends(rho, stagger), _ends(r2, stagger), r_dot), **kw)
+    edge = np.isnan(staggered_difference(np.zeros(len(t)), stagger, dt, centred=True))  # no difference there
 
-
-def _ends(x: np.ndarray, stagger: int) -> np.ndarray:
-    """(x[k − s/2] + x[k + s/2])/2 along axis 0, s = ``stagger``; NaN where either end is NaN or beyond the record."""
-    h = stagger // 2
-    out = np.full(x.shape, np.nan)
-    out[h:len(x) - h] = 0.5 * (x[:len(x) - 2 * h] + x[2 * h:])
-    return out
+    def ends(x):
+        return np.where(edge[:, None], np.nan, end_mean(x, stagger))
+    return readout(t, rho, r2, a, rcfg, material=MaterialRates(ends(rho), ends(r2), r_dot), **kw)

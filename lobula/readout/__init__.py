@@ -329,7 +329,7 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     # with this pairing (the worst 0.0094 against 0.0092; exact rates 0.0036 against 0.0002).
     # κ's velocity is that of the rows' rates: averaged over each pair of frames (∫a_rates is ∫a so
     # averaged) and, for the material fields, the mean of the difference's two ends.
-    cum_rates = _integral(a_rates, t)
+    cum_rates = cum if a_rates is a else _integral(a_rates, t)
     if material is not None:
         cum_rates = end_mean(cum_rates, cfg.difference_frames)
     shift = cum - _lag(lp(cum_rates), lag)

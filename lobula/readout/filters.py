@@ -231,19 +231,25 @@ def difference_mean(x: np.ndarray, stagger: int) -> np.ndarray:
     ndarray, (n, ...)
         U.
     """
-    w = np.ones(stagger + 1) / max(stagger, 1)
+    from scipy.ndimage import convolve1d
+
+    x = np.asarray(x, float)
+    if stagger < 2 or len(x) < 2:
+        return x
+    w = np.ones(stagger + 1) / stagger
     w[[0, -1]] *= 0.5
-    return _centred(x, w)
+    return convolve1d(x, w, axis=0, mode="nearest")
 
 
 def end_mean(x: np.ndarray, stagger: int) -> np.ndarray:
     """The mean of x at the two ends of a centred difference ``stagger`` frames wide, (x[k − s/2] + x[k + s/2])/2,
     along axis 0, the edges held: what the material fields' r̄ takes of the motion (:func:`difference_mean`).
+    NaN only where an end is.
 
     Parameters
     ----------
     x : ndarray, (n, ...)
-        Units U, finite.
+        Units U.
     stagger : int
         Frames s between the two ends (even).
 
@@ -252,20 +258,12 @@ def end_mean(x: np.ndarray, stagger: int) -> np.ndarray:
     ndarray, (n, ...)
         U.
     """
-    w = np.zeros(stagger + 1)
-    w[[0, -1]] = 0.5
-    return _centred(x, w)
-
-
-def _centred(x: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """x (n, ...) weighted by the centred kernel w (odd length) along axis 0, the edges held; x itself where
-    the kernel spans one sample or x does."""
-    from scipy.ndimage import convolve1d
-
     x = np.asarray(x, float)
-    if len(w) < 3 or len(x) < 2:
+    h, n = stagger // 2, len(x)
+    if h < 1 or n < 2:
         return x
-    return convolve1d(x, w, axis=0, mode="nearest")
+    k = np.arange(n)
+    return 0.5 * (x[np.clip(k - h, 0, n - 1)] + x[np.clip(k + h, 0, n - 1)])
 
 
 def staggered_difference(x: np.ndarray, stagger: int, dt: float, centred: bool) -> np.ndarray:

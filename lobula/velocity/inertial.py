@@ -133,6 +133,14 @@ def accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig,
     about each time, the span the rows' rates average the motion over (:attr:`FieldRates.span`: a flow
     pair's two frames' interval; None: one frame interval). A 6-frame pair at 30 frames/s sees a
     walker's 1.7 Hz surge at 82 % of its amplitude, and the acceleration set beside it must too."""
+    (a,), label = accels_at(footage, times, config, (window_s,), bias, orientation)
+    return a, label
+
+
+def accels_at(footage: Footage, times: np.ndarray, config: VelocityConfig, windows_s: tuple,
+              bias: np.ndarray | None = None, orientation: np.ndarray | None = None) -> tuple[list, str]:
+    """:func:`accel_at`'s acceleration averaged over each span of ``windows_s`` (s; None: one frame interval),
+    gravity removed once for all of them: (a list of arrays, the label)."""
     causal = config.readout.filter == "causal"
     if config.accel_from_truth or footage.imu is None:
         if not config.accel_from_truth and footage.kind != "d435i-sample":
@@ -142,7 +150,8 @@ def accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig,
         if footage.truth is None:
             raise FootageError(f"{footage.path}: no IMU and no truth to derive acceleration from")
         tt, at = acceleration_from_truth(footage.truth)
-        return np.interp(times, tt, at), "ground truth (smoothed derivative of velocity; no IMU)"
+        a = np.interp(times, tt, at)
+        return [a for _ in windows_s], "ground truth (smoothed derivative of velocity; no IMU)"
     imu = footage.imu
     if times[0] < imu.time_s[0] - 0.5 or times[-1] > imu.time_s[-1] + 0.5:
         # imu.source names the file (or bag and topic) the samples came from, whatever the layout.
@@ -153,9 +162,9 @@ def accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig,
                            + (", or read both on another --clock" if realsense else ""))
     a = gravity_free_acceleration(imu.time_s, imu.accel, imu.gyro if config.derotate else None, causal=causal,
                                   bias=bias, orientation=orientation if config.derotate else None)
-    dt = frame_interval(footage.times) if window_s is None else float(window_s)
-    return (np.stack([resample_to(times, imu.time_s, a[:, j], dt) for j in range(3)], axis=1),
-            "accelerometer (gravity and bias removed)")
+    dt = frame_interval(footage.times)
+    at = lambda w: np.stack([resample_to(times, imu.time_s, a[:, j], w) for j in range(3)], axis=1)
+    return [at(dt if w is None else float(w)) for w in windows_s], "accelerometer (gravity and bias removed)"
 
 
 def kappa_accel_at(accel: np.ndarray, rates, time_s: np.ndarray, orientation: np.ndarray | None, causal: bool,

@@ -26,7 +26,7 @@ from lobula.readout import readout
 from lobula.version import provenance
 
 from .fields import field_rates, slerp_orientations
-from .inertial import (TRUTH_ACCEL_OFFSET_M_S2, accel_at, frame_interval, gravity_tau, gyro_bias_track, kappa_accel_at,
+from .inertial import (TRUTH_ACCEL_OFFSET_M_S2, accels_at, frame_interval, gravity_tau, gyro_bias_track, kappa_accel_at,
                        start_accel_prior, turn_rate_at)
 
 
@@ -61,12 +61,11 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     imu = footage.imu if not config.accel_from_truth else None
     rot = (orientation_from_gyro(imu.time_s, imu.gyro, causal, None if vb is None else vb[0])
            if imu is not None and imu.gyro is not None and config.derotate else None)
-    a3, accel_source = accel_at(footage, rates.t, config, bias=None if vb is None else vb[0], orientation=rot)
-    a = a3 if a3.ndim == 1 else a3[:, 2]
-    # What the vision terms stand beside: the acceleration averaged as each row's rates average the motion.
-    a3_rates = (accel_at(footage, rates.t, config, bias=None if vb is None else vb[0], orientation=rot,
-                         window_s=rates.span)[0] if rates.span is not None else a3)
-    a_rates = a3_rates if a3_rates.ndim == 1 else a3_rates[:, 2]
+    # The frame's acceleration for the filter's state, and what the vision terms stand beside: the same
+    # acceleration averaged as each row's rates average the motion (rates.span).
+    (a3, a3_rates), accel_source = accels_at(footage, rates.t, config, (None, rates.span),
+                                             bias=None if vb is None else vb[0], orientation=rot)
+    a, a_rates = (x if x.ndim == 1 else x[:, 2] for x in (a3, a3_rates))
     t0 = _time.perf_counter()
     res = None
     if len(rates.t) >= 3:
