@@ -85,8 +85,8 @@ class EMDFrontEndConfig:
     gaze : {"fixate", "none"}
         "fixate" (default): with a gyro, each frame is warped into a gaze held fixed in the world
         (:func:`lobula.gaze.fixation_reference`) before the lattice samples it, and the gaze jumps
-        back to the camera (a saccade: photoreceptors and EMDs restart, that frame's output NaN)
-        once the camera has turned ``saccade_limit_deg`` away from it; the fields' expansion
+        back to the camera (a saccade: photoreceptors and EMDs restart, and their output is NaN while
+        they settle, as at the start) once the camera has turned ``saccade_limit_deg`` away from it; the fields' expansion
         templates follow the focus of expansion (the optical axis) into the gaze's frame each
         frame. At 30 frames/s a turning camera's image moves up to 1.6° per frame under the
         suite's turns, two ommatidial spacings at Δφ = 0.75°, so the correlators alias;
@@ -251,6 +251,15 @@ class EMDFrontEnd:
         self._gain = torch.as_tensor(gain, device=self.device)
         self.latency_s = (cfg.latency_s if cfg.latency_s is not None
                           else cfg.photoreceptor.tau_s + cfg.emd.tau_s + 0.5 * dt)
+        # The columns start at rest (the photoreceptors' and delay lines' state set to the first frame, as if
+        # nothing had moved): their first frame reads no motion and the next ones climb to the moving level, a
+        # ṙ that is the circuit's, not the world's (the fast family's camera braking at 4 m/s²: r̄ 0, then 70 %,
+        # then its level; low-passed, κ read +2.4 /s against a true −2.4, and the online readout took the
+        # accelerometer's offset from it for the whole run). Those frames are left out: the first, and those
+        # within twice the photoreceptor and EMD time constants of the (re)start.
+        self.settle_s = 2.0 * (cfg.photoreceptor.tau_s + cfg.emd.tau_s + (cfg.photoreceptor.tau_hp_s or 0.0))
+        self._dt = dt
+        self._age = 0   # frames the columns have run since they started, or restarted after a saccade
         self.timings = dict(sampling=0.0, photoreceptor=0.0, emd=0.0, fields=0.0)
 
     def _batch(self, frames: np.ndarray, gaze: dict | None = None, index: np.ndarray | None = None):
@@ -285,7 +294,10 @@ class EMDFrontEnd:
         r = (self._gain * num / den.clamp_min(1e-20)).double().cpu().numpy()
         r[den.cpu().numpy() <= 0] = np.nan
         if restart:
-            r[0] = np.nan   # the restarted EMDs see no motion on their first frame
+            self._age = 0
+        age = self._age + np.arange(len(r))
+        r[(age == 0) | (age * self._dt < self.settle_s)] = np.nan   # the columns settling (see __init__)
+        self._age += len(r)
         if gaze is not None:
             r[~gaze["seen"][index]] = np.nan   # fields turned out of the camera's view
         tm["sampling"] += t1 - t0

@@ -47,6 +47,27 @@ def test_gradient_ratio_decoding_tracks_exact_expansion_rate(constant_run, surro
     assert np.all(np.sign(np.median(e, 0)) > 0)  # expansion everywhere
 
 
+def test_the_columns_settling_after_a_start_reach_no_readout(constant_run):
+    """The columns start at rest: their first frame reads no motion and the next climbs toward the moving level
+    (at 30 frames/s with the 10 ms photoreceptor and delay filters: 0, then 70 %, then the level, measured on a
+    braking camera), a ṙ the world never had. The frames within twice those time constants of the start are
+    NaN; the first one kept reads the camera's expansion already (measured here, approaching at 0.4 m/s: 0.97 of
+    the median of the next five frames, where the frame before it reads 0.70)."""
+    cfg = VelocityConfig(front_end="emd")
+    fields = tile_fields(constant_run.camera, cfg.fields)
+    front = EMDFrontEnd(constant_run.camera, fields, cfg.emd)
+    r = np.array([r for _, r, _ in front.run(constant_run.frames())])
+    settling = np.arange(len(r)) * constant_run.camera.frame_interval_s < front.settle_s
+    settling[0] = True
+    assert settling.sum() == 2    # 0 and 33 ms at 30 frames/s; the settle time is 40 ms
+    assert np.isnan(r[settling]).all() and np.isfinite(r[~settling]).any(axis=1).all()
+    level = np.nanmedian(r, axis=1)
+    first = int(np.flatnonzero(~settling)[0])
+    steady = np.median(level[first + 1:first + 6])
+    print(f"\nfirst kept frame / the next five frames' median r: {level[first] / steady:.3f}")
+    assert abs(level[first] / steady - 1.0) < 0.05
+
+
 def test_calibration_is_per_field_and_checked(constant_run):
     gains, latency, n = calibrate_emd(constant_run, VelocityConfig(front_end="emd"))
     assert 0.0 <= latency <= 0.3
