@@ -97,7 +97,7 @@ def test_compare_on_real_d435i_frames(d435i, tmp_path):
     print("\nD435i sample: " + ", ".join(f"{f} RMSE {float(ds.rmse_m_s.sel(front_end=f)):.3f} m/s"
                                          for f in ("dis", "emd")))
     # Against the zero estimator on the frames each front end reports after the skip (DIS 0.053 m/s against
-    # 0.392, the EMD front end 0.087 against 0.407). Not against the constant that knows the clip's mean speed:
+    # 0.392, the EMD front end 0.091 against 0.407). Not against the constant that knows the clip's mean speed:
     # over these 0.8 s the truth varies by 0.060 (std; 0.073 on the EMD's frames), which DIS barely beats and
     # the EMD front end does not on this handheld clip with no IMU (acceleration from truth) and 50-110 px turns.
     t, v_true = ds.time.values, ds.v_true.values

@@ -63,7 +63,8 @@ START_ACCEL_PRIOR_M_S2 = 1.0
 START_ACCEL_PRIOR_MOVING_M_S2 = 3.0
 
 
-#: 1/s: fields that all read less than this have not responded yet (an EMD's first frame reads ~1e-8): no
+#: 1/s: fields that all read less than this have not responded yet (a correlator started at rest reads ~1e-8 on
+#: its first frame): no
 #: camera's expansion, still or moving, is that small against the flow's noise (~1e-3 1/s at rest)
 NO_RESPONSE_1_S = 1e-6
 
@@ -82,7 +83,7 @@ def start_accel_prior(r: np.ndarray, min_fields: int = 3) -> float:
     the camera is seen moving at the start.
 
     r (n, F) 1/s: the fields' expansion rates; the first frame :func:`responding` decides (``min_fields``
-    finite fields, past a front end's first frames before it responds: the camera's EMD front end reads
+    finite fields, past a front end's first frames before it responds: a correlator started at rest reads
     ~1e-8 1/s on its first frame, which judged alone would start every run with the resting prior). Moving means the fields' signed median r̄ stands clear of its standard error
     (|r̄| > 3·SE, as :func:`lobula.readout.rest_measurement` judges "no detectable expansion").
     Why: a camera already moving may be braking or accelerating hard while the reference is set.
