@@ -61,8 +61,9 @@ def test_the_columns_settling_after_a_start_reach_no_readout(constant_run):
     settling[0] = True
     assert settling.sum() == 2    # 0 and 33 ms at 30 frames/s; the settle time is 40 ms
     assert np.isnan(r[settling]).all() and np.isfinite(r[~settling]).any(axis=1).all()
-    level = np.nanmedian(r, axis=1)
     first = int(np.flatnonzero(~settling)[0])
+    level = np.full(len(r), np.nan)
+    level[first:] = np.nanmedian(r[first:], axis=1)
     steady = np.median(level[first + 1:first + 6])
     print(f"\nfirst kept frame / the next five frames' median r: {level[first] / steady:.3f}")
     assert abs(level[first] / steady - 1.0) < 0.05
