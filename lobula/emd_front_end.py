@@ -86,8 +86,8 @@ class EMDFrontEndConfig:
         "fixate" (default): with a gyro, each frame is warped into a gaze held fixed in the world
         (:func:`lobula.gaze.fixation_reference`) before the lattice samples it, and the gaze jumps
         back to the camera (a saccade: photoreceptors and EMDs restart, and their output is NaN while
-        they settle, as at the start) once the camera has turned ``saccade_limit_deg`` away from it; the fields' expansion
-        templates follow the focus of expansion (the optical axis) into the gaze's frame each
+        they settle, as at the start) once the camera has turned ``saccade_limit_deg`` away from it; the
+        fields' expansion templates follow the focus of expansion (the optical axis) into the gaze's frame each
         frame. At 30 frames/s a turning camera's image moves up to 1.6° per frame under the
         suite's turns, two ommatidial spacings at Δφ = 0.75°, so the correlators alias;
         subtracting the gyro's predicted response after them does not help (development rotation

@@ -64,8 +64,8 @@ START_ACCEL_PRIOR_MOVING_M_S2 = 3.0
 
 
 #: 1/s: fields that all read less than this have not responded yet (a correlator started at rest reads ~1e-8 on
-#: its first frame): no
-#: camera's expansion, still or moving, is that small against the flow's noise (~1e-3 1/s at rest)
+#: its first frame): no camera's expansion, still or moving, is that small against the flow's noise (~1e-3 1/s
+#: at rest)
 NO_RESPONSE_1_S = 1e-6
 
 
@@ -84,7 +84,8 @@ def start_accel_prior(r: np.ndarray, min_fields: int = 3) -> float:
 
     r (n, F) 1/s: the fields' expansion rates; the first frame :func:`responding` decides (``min_fields``
     finite fields, past a front end's first frames before it responds: a correlator started at rest reads
-    ~1e-8 1/s on its first frame, which judged alone would start every run with the resting prior). Moving means the fields' signed median r̄ stands clear of its standard error
+    ~1e-8 1/s on its first frame, which judged alone would start every run with the resting prior). Moving
+    means the fields' signed median r̄ stands clear of its standard error
     (|r̄| > 3·SE, as :func:`lobula.readout.rest_measurement` judges "no detectable expansion").
     Why: a camera already moving may be braking or accelerating hard while the reference is set.
     The suite's fast family starts in motion at up to 2 m/s decelerating at 2–3.7 m/s² (seeds
