@@ -258,7 +258,6 @@ class EMDFrontEnd:
         # accelerometer's offset from it for the whole run). Those frames are left out: the first, and those
         # within twice the photoreceptor and EMD time constants of the (re)start.
         self.settle_s = 2.0 * (cfg.photoreceptor.tau_s + cfg.emd.tau_s + (cfg.photoreceptor.tau_hp_s or 0.0))
-        self._dt = dt
         self._age = 0   # frames the columns have run since they started, or restarted after a saccade
         self.timings = dict(sampling=0.0, photoreceptor=0.0, emd=0.0, fields=0.0)
 
@@ -296,7 +295,7 @@ class EMDFrontEnd:
         if restart:
             self._age = 0
         age = self._age + np.arange(len(r))
-        r[(age == 0) | (age * self._dt < self.settle_s)] = np.nan   # the columns settling (see __init__)
+        r[age * self.camera.frame_interval_s < self.settle_s] = np.nan   # the columns settling (see __init__)
         self._age += len(r)
         if gaze is not None:
             r[~gaze["seen"][index]] = np.nan   # fields turned out of the camera's view

@@ -118,7 +118,7 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
         error δ along that axis turned by R (kalman readout only; None: κ measures ``a``).
     a_rates : array_like, (n,), optional
         m/s²: the forward acceleration averaged as each row's rates average the motion (a flow pair's
-        rates over its two frames' interval, :func:`lobula.velocity.inertial.accel_at`), which the vision
+        rates over its two frames' interval, :func:`lobula.velocity.inertial.accels_at`), which the vision
         terms stand beside (kalman readout only; None: ``a``). The filter's state integrates ``a``.
 
     Returns

@@ -116,33 +116,24 @@ def gravity_tau(footage: Footage, times: np.ndarray, config: VelocityConfig) -> 
 def forward_accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig,
                      bias: np.ndarray | None = None, orientation: np.ndarray | None = None,
                      window_s: float | None = None) -> tuple[np.ndarray, str]:
-    """Forward acceleration (m/s²) at ``times`` and a label saying where it came from.
-
-    bias: gyro bias track (n_imu, 3) rad/s for the attitude that removes gravity
-    (:func:`gyro_bias_track`); None: the still-camera estimate. orientation: that attitude
-    (n_imu, 3, 3) where already integrated (:func:`lobula.imu.orientation_from_gyro`). window_s: s, the
-    span the IMU is averaged over about each time (:func:`accel_at`)."""
-    a3, label = accel_at(footage, times, config, bias, orientation, window_s)
+    """Forward acceleration (m/s²) at ``times`` and a label saying where it came from; arguments as
+    :func:`accels_at` takes them, ``window_s`` one of its spans."""
+    (a3,), label = accels_at(footage, times, config, (window_s,), bias, orientation)
     return (a3 if a3.ndim == 1 else a3[:, 2]), label
-
-
-def accel_at(footage: Footage, times: np.ndarray, config: VelocityConfig,
-             bias: np.ndarray | None = None, orientation: np.ndarray | None = None,
-             window_s: float | None = None) -> tuple[np.ndarray, str]:
-    """The acceleration at ``times`` and a label saying where it came from: from the IMU the 3-D
-    gravity-free acceleration (n, 3) m/s² in the camera frame, from the truth the forward one (n,) alone.
-    Arguments as :func:`forward_accel_at` takes them; window_s (s): the IMU is averaged over this span
-    about each time, the span the rows' rates average the motion over (:attr:`FieldRates.span`: a flow
-    pair's two frames' interval; None: one frame interval). A 6-frame pair at 30 frames/s sees a
-    walker's 1.7 Hz surge at 82 % of its amplitude, and the acceleration set beside it must too."""
-    (a,), label = accels_at(footage, times, config, (window_s,), bias, orientation)
-    return a, label
 
 
 def accels_at(footage: Footage, times: np.ndarray, config: VelocityConfig, windows_s: tuple,
               bias: np.ndarray | None = None, orientation: np.ndarray | None = None) -> tuple[list, str]:
-    """:func:`accel_at`'s acceleration averaged over each span of ``windows_s`` (s; None: one frame interval),
-    gravity removed once for all of them: (a list of arrays, the label)."""
+    """The acceleration at ``times``, averaged over each span of ``windows_s``, gravity removed once for all of
+    them: (a list of arrays, one per span; a label saying where it came from). From the IMU the 3-D
+    gravity-free acceleration (n, 3) m/s² in the camera frame, from the truth the forward one (n,) alone.
+
+    windows_s: s, the spans the IMU is averaged over about each time; the span the rows' rates average the
+    motion over (:attr:`FieldRates.span`: a flow pair's two frames' interval) is one, and None is one frame
+    interval. A 6-frame pair at 30 frames/s sees a walker's 1.7 Hz surge at 82 % of its amplitude, and the
+    acceleration set beside it must too. bias: gyro bias track (n_imu, 3) rad/s for the attitude that removes
+    gravity (:func:`gyro_bias_track`); None: the still-camera estimate. orientation: that attitude
+    (n_imu, 3, 3) where already integrated (:func:`lobula.imu.orientation_from_gyro`)."""
     causal = config.readout.filter == "causal"
     if config.accel_from_truth or footage.imu is None:
         if not config.accel_from_truth and footage.kind != "d435i-sample":
@@ -175,7 +166,7 @@ def kappa_accel_at(accel: np.ndarray, rates, time_s: np.ndarray, orientation: np
     (n, 2) (:func:`lobula.readout.acceleration_heading`), the camera's orientation (n, 3, 3) or None), or None
     where the fields have no moments (no material fields) or ``accel`` is the forward acceleration alone.
 
-    accel: :func:`accel_at`'s, at the rows' times; rates: the FieldRates; orientation (m, 3, 3) at
+    accel: :func:`accels_at`'s, at the rows' times; rates: the FieldRates; orientation (m, 3, 3) at
     time_s (m,) s: camera → the frame gravity was removed in (:func:`lobula.imu.orientation_from_gyro`), or None;
     causal, window_s: the direction over trailing (else centred) windows of window_s s."""
     m = rates.material

@@ -296,7 +296,7 @@ class InertialStream:
         drift (m/s²/s), walk (m/s²/√s), turn |ω| (rad/s) and tau (s), as :func:`lobula.velocity.estimate_velocity`
         computes them on the whole record; a_rates (m/s²) and accel (3,) averaged over ``span`` s about t, as the
         row's rates average the motion (a flow pair's interval, whose second frame is in; None: frame_interval),
-        for the vision terms (:func:`lobula.velocity.inertial.accel_at`)."""
+        for the vision terms (:func:`lobula.velocity.inertial.accels_at`)."""
         span = frame_interval if span is None else float(span)
         self.finalise(t + max(frame_interval, span) / 2)
         c = self.cols
