@@ -822,9 +822,10 @@ def test_reversals_are_read_where_the_expansion_changes_sign():
     """Every field's r̄ = v/d has v's sign, so a clear sign change of the fields' median r̄ says v passed
     through 0 in between, whatever the depths. Found at the true crossings of a swinging camera (within
     3× the stated std, which holds the gap between clear frames and a frame of stamping error), with
-    the measurement ∫a from the crossing to the frame it is known at; none where a camera creeps
-    forward with only a far backdrop in view (r̄ ≈ 0.004 1/s against flow noise 0.01 per field)."""
-    from lobula.readout import reversal_measurement
+    the measurement ∫a from the crossing to the frame it is known at, once the new sign has held
+    SIGN_PERSIST_S (the crossing 0.3 s before the record ends is not yet known); none where a camera
+    creeps forward with only a far backdrop in view (r̄ ≈ 0.004 1/s against flow noise 0.01 per field)."""
+    from lobula.readout import SIGN_PERSIST_S, reversal_measurement
 
     t = np.arange(0, 10, 1 / 30)
     rng = np.random.default_rng(0)
@@ -832,9 +833,11 @@ def test_reversals_are_read_where_the_expansion_changes_sign():
     shift, t_std, delay, a_mean = reversal_measurement(t, r, acc, stamp_error_s=1 / 30)
     k = np.flatnonzero(np.isfinite(shift))
     t_star = t[k] - delay[k]
-    assert len(k) == len(crossings) == 5
+    crossings = crossings[crossings < t[-1] - SIGN_PERSIST_S]
+    assert len(k) == len(crossings) == 4
     assert np.all(np.abs(t_star - crossings) <= 3 * t_std[k]), (t_star, crossings, t_std[k])
-    assert np.all((t_std[k] >= 1 / 30) & (t_std[k] <= 0.1)) and np.all((delay[k] > 0) & (delay[k] < 0.3))
+    assert np.all((t_std[k] >= 1 / 30) & (t_std[k] <= 0.1))
+    assert np.all((delay[k] >= SIGN_PERSIST_S) & (delay[k] < SIGN_PERSIST_S + 0.3)), delay[k]
     cum = np.concatenate([[0.0], np.cumsum(0.5 * (acc[1:] + acc[:-1]) * np.diff(t))])
     np.testing.assert_allclose(shift[k], cum[k] - np.interp(t_star, t, cum))
     # v ≈ ∫a from the crossing, offset and all: the filter's rows take the offset's share
@@ -847,10 +850,10 @@ def test_reversals_are_read_where_the_expansion_changes_sign():
 def test_velocity_from_the_reversals_alone(filt, bound):
     """With no κ at all (no ṙ: every field's derivative missing) and an accelerometer offset of 0.05 m/s²,
     nothing but the reversals speaks of v: the readout without them knows nothing (every frame NaN);
-    with them v̂ follows ∫a from each crossing, the offset learned between crossings: RMSE 0.015–0.022 m/s
-    online, 0.003–0.005 offline (seeds 0–2; the zero estimator 0.35), the truth inside ±2σ on every frame.
-    Online a crossing locks vision on once a whole coupling window (4 s) has let it stand: answered on
-    53–75 % of the frames after 2 s."""
+    with them v̂ follows ∫a from each crossing, the offset learned between crossings: RMSE 0.014–0.021 m/s
+    online, 0.006–0.008 offline (seeds 0–2; the zero estimator 0.35), the truth inside ±2σ on every frame.
+    Online a crossing is known once the new sign has held SIGN_PERSIST_S, and locks vision on once a whole
+    coupling window (4 s) has let it stand: answered on 41–57 % of the frames after 2 s."""
     from lobula.readout import MaterialRates
 
     t = np.arange(0, 10, 1 / 30)
@@ -862,15 +865,17 @@ def test_velocity_from_the_reversals_alone(filt, bound):
         assert not res[False].observable[t >= 2].any()
         rmse, cover, obs = _score(res[True], v_t, t)
         assert rmse <= bound and rmse <= 0.1 * np.sqrt(np.mean(v_t[t >= 2] ** 2)), (seed, rmse)
-        assert cover >= 0.9 and obs >= 0.5, (seed, cover, obs)
+        assert cover >= 0.9 and obs >= 0.4, (seed, cover, obs)
 
 
-def test_a_sign_fault_of_the_front_end_is_not_taken_for_a_reversal(monkeypatch):
-    """A camera moving forward at 0.3-0.7 m/s whose fields' expansion is read with the wrong sign for 0.3 s (a
-    front-end fault: two clear sign changes, found as reversals). The online filter, sure that v was ~0.5 m/s
-    there (σ ≈ 0.03), leaves both out (innovations 12-13σ, gate 4σ): as on the clean rates. Taken in, they pull
-    v̂ to 0 and hold it there confidently: RMSE 0.29 m/s, ±2σ 48 %. Offline the low-passed r̄ also passes through
-    "no expansion" there, and the smoother leaves those rest bounds out the same way (0.36 m/s on seed 0 without)."""
+@pytest.mark.parametrize("fault_s, found", [(0.3, 0), (0.8, 2)])
+def test_a_sign_fault_of_the_front_end_is_not_taken_for_a_reversal(monkeypatch, fault_s, found):
+    """A camera moving forward at 0.3-0.7 m/s whose fields' expansion is read with the wrong sign for a while (a
+    front-end fault). For 0.3 s, shorter than SIGN_PERSIST_S, neither sign change counts as a reversal. For
+    0.8 s both do, and the online filter, sure that v was ~0.5 m/s there (σ ≈ 0.03), leaves them out (gate
+    4σ): as on the clean rates. Taken in, they pull v̂ to 0 and hold it there confidently (RMSE 0.34 m/s, ±2σ
+    56 %). Offline the low-passed r̄ also passes through "no expansion" there, and the smoother leaves those
+    rest bounds out the same way (taken in: 0.23 / 0.38 m/s, ±2σ 0 %)."""
     import lobula.readout.updates as lr  # where the gate is read
     from lobula.readout import MaterialRates, reversal_measurement
 
@@ -881,9 +886,9 @@ def test_a_sign_fault_of_the_front_end_is_not_taken_for_a_reversal(monkeypatch):
     mat = _exact_material(v_t, a_t, t, np.linspace(5, 14, 40))
     material = MaterialRates(mat.r, mat.r2, mat.r_dot + 0.2 * rng.normal(0, 1, mat.r.shape) * np.abs(mat.r))
     r = mat.r + rng.normal(0, 0.01, mat.r.shape)
-    r_fault = np.where(((t > 6.0) & (t < 6.3))[:, None], -r, r)
+    r_fault = np.where(((t > 6.0) & (t < 6.0 + fault_s))[:, None], -r, r)
     acc = a_t + 0.05 + rng.normal(0, 0.02, t.shape)
-    assert np.isfinite(reversal_measurement(t, r_fault, acc)[0]).sum() == 2
+    assert np.isfinite(reversal_measurement(t, r_fault, acc)[0]).sum() == found
     for cfg in (ReadoutConfig(filter="causal"), ReadoutConfig(filter="causal", sign=True)):
         clean = _score(readout(t, r, mat.r2, acc, cfg, material=material), v_t, t)
         fault = _score(readout(t, r_fault, mat.r2, acc, cfg, material=material), v_t, t)
@@ -894,8 +899,9 @@ def test_a_sign_fault_of_the_front_end_is_not_taken_for_a_reversal(monkeypatch):
     assert fault_zp[0] <= 1.1 * clean_zp[0] + 0.002 and fault_zp[1] >= 0.95, (clean_zp, fault_zp)
     monkeypatch.setattr(lr, "OUTLIER_GATE", np.inf)
     assert _score(readout(t, r_fault, mat.r2, acc, zp, material=material), v_t, t)[0] > 0.1
-    ungated = _score(readout(t, r_fault, mat.r2, acc, cfg, material=material), v_t, t)
-    assert ungated[0] > 0.1 and ungated[1] < 0.7, ungated   # what the gate keeps out
+    if found:
+        ungated = _score(readout(t, r_fault, mat.r2, acc, cfg, material=material), v_t, t)
+        assert ungated[0] > 0.1 and ungated[1] < 0.7, ungated   # what the gate keeps out
 
 
 def test_expansion_sign_is_vs_sign_once_it_has_held():
@@ -1013,6 +1019,27 @@ def test_coupling_is_refuted_only_where_the_acceleration_gave_the_expansion_some
     assert not c.coupled.any()
     c = coupling_test(-g, a, dt, 4.0, 1.0, True, 3.0, 0.0, 0.05)           # the image following a
     assert c.coupled[60:180].all() and not c.refuted.any()
+
+
+def test_before_the_window_can_tell_an_expansion_falling_as_the_camera_speeds_up_answers_nothing():
+    """In the first 1.5 s online (at most 3 effective samples) the test cannot tell a coupling from noise, and
+    the posterior's std decides alone whether to answer (provisional) — unless the acceleration has varied and
+    the correlation so far is negative: a κ of the wrong sign would pin v near 0 with a σ the posterior cannot
+    doubt. An acceleration that barely varies (a 1.2 s clip's) gives the sign of the correlation nothing."""
+    from lobula.readout.coupling import coupling_test
+
+    dt = 1 / 30
+    t = np.arange(0, 1.4, dt)
+    rng = np.random.default_rng(0)
+    a = 0.8 * np.sin(2 * np.pi * 0.5 * t)   # its std over the frames so far passes 0.05 m/s² at the third
+    g = a / 5.0 + 0.01 * rng.standard_normal(t.size)
+    follows = coupling_test(g, a, dt, 4.0, 1.0, True, 3.0, 0.0, 0.05)
+    against = coupling_test(-g, a, dt, 4.0, 1.0, True, 3.0, 0.0, 0.05)
+    assert follows.provisional.all() and not follows.full.any()
+    assert against.provisional[:2].all() and not against.provisional[2:].any()   # 3 frames give a sign
+    assert not against.refuted.any() and not against.coupled.any()
+    steady = coupling_test(-g, 0.01 * a, dt, 4.0, 1.0, True, 3.0, 0.0, 0.05)   # std under power_m_s2
+    assert steady.provisional.all()
 
 
 def test_vision_locks_on_then_carries_until_refuted():

@@ -21,10 +21,13 @@ z = atanh(ρ)·√(n_eff − 3). Each frame's window then says one of three thin
 * neither — a steady pace (nothing to follow, so nothing to refute), or a weak correlation.
 
 Before a window is whole (an online run's first seconds, a record shorter than the window) the test has
-fewer samples. With at most 3 effective ones (1.5 s at the default 1 Hz) it cannot tell at all and the
-posterior's std decides alone (a 1.2 s clip is still read); beyond that a frame is answered provisionally
-where the correlation so far is as strong as a whole window needs, atanh(ρ)·√(n_full − 3) ≥ ``coupling_z``
-(``provisional``), which locks nothing.
+fewer samples. With at most 3 effective ones (1.5 s at the default 1 Hz) it cannot tell, and the
+posterior's std decides alone (a 1.2 s clip is still read) unless the acceleration has varied (by
+``power_m_s2``, as a refutation needs) and the correlation so far is negative: an expansion falling as the
+camera speeds up is a κ of the wrong sign, which would pin v near 0 with a σ the posterior alone cannot doubt
+(a real walk's stabilised image through the EMD front end). Beyond that a frame
+is answered provisionally where the correlation so far is as strong as a whole window needs,
+atanh(ρ)·√(n_full − 3) ≥ ``coupling_z`` (``provisional``), which locks nothing.
 
 :func:`vision_locked` turns that into where vision has fixed the speed: from a coupled frame (or one
 the rest bound holds at v = 0) on, until a refuted one. In between v̂ is reported while σ stays within
@@ -55,7 +58,8 @@ def _window_sums(x: np.ndarray, w: int, causal: bool) -> np.ndarray:
 
 def _window_correlation(g, a, dt: float, window_s: float, cutoff_hz: float, causal: bool):
     """ρ (n,) of g with a over each frame's window (0 where either is constant or fewer than 4 effective
-    samples), the window's effective samples n_eff (n,) and a's std over it (n,) in a's units."""
+    samples), the window's effective samples n_eff (n,), a's std over it (n,) in a's units, and the sign of the
+    correlation however few the samples (n,): ±1, 0 where either is constant or the window holds under 3 frames."""
     g = np.asarray(g, float)
     a = np.asarray(a, float)
     ok = np.isfinite(g) & np.isfinite(a)
@@ -71,9 +75,10 @@ def _window_correlation(g, a, dt: float, window_s: float, cutoff_hz: float, caus
         rho = cov / np.sqrt(var_g * var_a)
         sd_a = np.sqrt(np.maximum(var_a, 0.0) / n)
     n_eff = n * dt * 2.0 * cutoff_hz
-    good = np.isfinite(rho) & (var_g > 0) & (var_a > 0) & (n_eff > 3.0)
-    rho = np.clip(np.where(good, rho, 0.0), -0.999999, 0.999999)
-    return rho, n_eff, np.where(n > 0, sd_a, 0.0)
+    defined = np.isfinite(rho) & (var_g > 0) & (var_a > 0) & (n >= 3)
+    sign = np.where(defined, np.sign(rho), 0.0)
+    rho = np.clip(np.where(defined & (n_eff > 3.0), rho, 0.0), -0.999999, 0.999999)
+    return rho, n_eff, np.where(n > 0, sd_a, 0.0), sign
 
 
 def expansion_coupling(g, a, dt: float, window_s: float, cutoff_hz: float, causal: bool) -> np.ndarray:
@@ -100,7 +105,7 @@ def expansion_coupling(g, a, dt: float, window_s: float, cutoff_hz: float, causa
         z (dimensionless), positive where the expansion rises with the acceleration; 0 where the window
         holds fewer than four effective samples or either signal is constant.
     """
-    rho, n_eff, _ = _window_correlation(g, a, dt, window_s, cutoff_hz, causal)
+    rho, n_eff, _, _ = _window_correlation(g, a, dt, window_s, cutoff_hz, causal)
     return np.arctanh(rho) * np.sqrt(np.maximum(n_eff - 3.0, 0.0))
 
 
@@ -121,8 +126,9 @@ class CouplingTest:
     full : ndarray of bool, (n,)
         The window holds a whole ``window_s`` of record (:func:`window_full`).
     provisional : ndarray of bool, (n,)
-        A window not yet whole that cannot tell (at most 3 effective samples) or already correlates as a whole
-        one must: the posterior may answer there, though vision is not locked.
+        A window not yet whole that cannot tell (at most 3 effective samples, and not correlated negatively
+        while the acceleration varied) or already correlates as a whole one must: the posterior may answer
+        there, though vision is not locked.
     """
 
     z: np.ndarray
@@ -152,7 +158,7 @@ def coupling_test(g, a, dt: float, window_s: float, cutoff_hz: float, causal: bo
     -------
     CouplingTest
     """
-    rho, n_eff, sd_a = _window_correlation(g, a, dt, window_s, cutoff_hz, causal)
+    rho, n_eff, sd_a, sign = _window_correlation(g, a, dt, window_s, cutoff_hz, causal)
     z = np.arctanh(rho) * np.sqrt(np.maximum(n_eff - 3.0, 0.0))
     n = len(rho)
     full = window_full(n, dt, window_s, causal)
@@ -162,7 +168,8 @@ def coupling_test(g, a, dt: float, window_s: float, cutoff_hz: float, causal: bo
     refuted = full & (z < refute_z) & (sd_a >= power_m_s2)
     n_full = max(2, int(round(window_s / dt))) * dt * 2.0 * cutoff_hz
     as_whole = np.arctanh(rho) * np.sqrt(max(n_full - 3.0, 0.0)) >= threshold
-    provisional = ~full & ((n_eff <= 3.0) | as_whole)
+    against = (sign < 0) & (sd_a >= power_m_s2)
+    provisional = ~full & (((n_eff <= 3.0) & ~against) | as_whole)
     return CouplingTest(z, coupled, refuted, sd_a, full, provisional)
 
 

@@ -442,20 +442,25 @@ def rest_measurement(r, cfg: ReadoutConfig, depth_m=None):
     return np.where(use, 0.0, np.nan), np.where(use, std, np.nan)
 
 
-def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.0):
+def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.0,
+                         persist_s: float = SIGN_PERSIST_S):
     """Where v passed through 0: the frames at which the fields' expansion is seen to change sign.
 
     Every field's r̄ = v/d has v's sign (d > 0), so where the fields' signed median r̄ stands clear
     of zero (|r̄| > 3·SE, as :func:`rest_measurement` judges "expansion detected") at frame i and
     again at a later frame j with the other sign, and nowhere clearly in between, v was 0 at some
     t* in [t_i, t_j] — whatever the depths (a far backdrop only makes r̄ small, never of the
-    wrong sign). t* is interpolated linearly in r̄ between the two, and is uncertain by the gap's
-    uniform spread (t_j − t_i)/√12 and by how far the rates' stamps may be off (``stamp_error_s``,
-    1σ, in quadrature), which turns into a velocity error of |a|·that: the
-    acceleration's own offset is still unknown here, so :func:`kalman_velocity` takes |a| as its
-    posterior has it. Gaps longer than REVERSAL_MAX_GAP_S are skipped (v may have crossed more
-    than once). Each reversal is known at frame j (online: once the new sign is clear); the four
-    arrays returned are NaN except at those frames j.
+    wrong sign). Each sign must hold, clear at every frame, for ``persist_s`` on its side of the
+    change (as :func:`expansion_sign` judges v's sign): a flow that is noise, a front-end fault or a
+    walker's bob also flips r̄'s sign, for a moment, and the columns of a front end that has just
+    started have shown no sign before their first frame. t* is interpolated linearly in r̄
+    between i and j, and is uncertain by the gap's uniform spread (t_j − t_i)/√12 and by how far the
+    rates' stamps may be off (``stamp_error_s``, 1σ, in quadrature), which turns into a velocity
+    error of |a|·that: the acceleration's own offset is still unknown here, so
+    :func:`kalman_velocity` takes |a| as its posterior has it. Gaps longer than REVERSAL_MAX_GAP_S
+    are skipped (v may have crossed more than once). Each reversal is known at the first frame k
+    at least ``persist_s`` after j (online: once the new sign has held); the four arrays returned
+    are NaN except at those frames k.
 
     Parameters
     ----------
@@ -469,33 +474,45 @@ def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.
         The fields a frame needs for its median to count.
     stamp_error_s : float
         s (1σ): how far the rates' stamps may be off.
+    persist_s : float
+        s: how long each sign must hold on its side of the change.
 
     Returns
     -------
     shift : ndarray, (n,)
-        m/s: the integrated reading from t* to t_j (the measurement of v(t_j − delay) + ∫a, as the
+        m/s: the integrated reading from t* to t_k (the measurement of v(t_k − delay) + ∫a, as the
         filter's rows take it).
     time_std : ndarray, (n,)
         s: t*'s std.
     delay : ndarray, (n,)
-        s: t_j − t*.
+        s: t_k − t*.
     accel : ndarray, (n,)
         m/s²: the mean reading over [t_i, t_j].
     """
+    t = np.asarray(t, float)
+    n = len(t)
     r_med, clear = clear_expansion(r, min_fields)
     idx = np.flatnonzero(clear)
     flip = np.flatnonzero(np.sign(r_med[idx[1:]]) != np.sign(r_med[idx[:-1]]))
     i, j = idx[flip], idx[flip + 1]
-    keep = t[j] - t[i] <= REVERSAL_MAX_GAP_S
-    i, j = i[keep], j[keep]
+    before = np.searchsorted(t, t[i] - persist_s, side="left")   # the old sign's span [before, i]
+    k = np.searchsorted(t, t[j] + persist_s, side="left")        # the new sign's span [j, k]
+    held = (t[j] - t[i] <= REVERSAL_MAX_GAP_S) & (t[i] - t[0] >= persist_s) & (k < n)
+    i, j, before, k = i[held], j[held], before[held], k[held]
+    sgn = np.where(clear, np.sign(r_med), 0.0)
+    count = np.stack([np.concatenate([[0], np.cumsum(sgn == s)]) for s in (-1.0, 1.0)])  # clear frames of each sign
+    old, new = (r_med[i] > 0).astype(int), (r_med[j] > 0).astype(int)
+    keep = ((count[old, i + 1] - count[old, before] == i - before + 1)
+            & (count[new, k + 1] - count[new, j] == k - j + 1))
+    i, j, k = i[keep], j[keep], k[keep]
     t_star = t[i] + (t[j] - t[i]) * np.abs(r_med[i]) / (np.abs(r_med[i]) + np.abs(r_med[j]))
     cum = _integral(a, t)
-    out = tuple(np.full(len(t), np.nan) for _ in range(4))
-    out[0][j] = cum[j] - np.interp(t_star, t, cum)
-    out[1][j] = np.hypot((t[j] - t[i]) / np.sqrt(12.0), stamp_error_s)
-    out[2][j] = t[j] - t_star
+    out = tuple(np.full(n, np.nan) for _ in range(4))
+    out[0][k] = cum[k] - np.interp(t_star, t, cum)
+    out[1][k] = np.hypot((t[j] - t[i]) / np.sqrt(12.0), stamp_error_s)
+    out[2][k] = t[k] - t_star
     a_sum = np.concatenate([[0.0], np.cumsum(a)])
-    out[3][j] = (a_sum[j + 1] - a_sum[i]) / (j - i + 1)  # the mean reading over frames i..j
+    out[3][k] = (a_sum[j + 1] - a_sum[i]) / (j - i + 1)  # the mean reading over frames i..j
     return out
 
 

@@ -91,7 +91,7 @@ class VelocityEstimator:
         accelerometer (not ``accel_from_truth``), with derotation by the gyro. Others fail here.
     history_s : float
         s of frames the readout's inputs are computed on (at least 8: the rest test's 5 s vibration
-        window and its 1 s bend, the low-pass, the reversals' 1 s).
+        window and its 1 s bend, the low-pass, a reversal's 2 s: its gap and each sign's hold).
     frame_interval_s : float, optional
         s: the camera's frame interval (None: the first flow pair's, over its gap).
     imu_interval_s : float, optional
