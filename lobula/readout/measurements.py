@@ -450,10 +450,10 @@ def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.
     of zero (|r̄| > 3·SE, as :func:`rest_measurement` judges "expansion detected") at frame i and
     again at a later frame j with the other sign, and nowhere clearly in between, v was 0 at some
     t* in [t_i, t_j] — whatever the depths (a far backdrop only makes r̄ small, never of the
-    wrong sign). Each sign must hold, clear at every frame, for ``persist_s`` on its side of the
-    change (as :func:`expansion_sign` judges v's sign): a flow that is noise, a front-end fault or a
-    walker's bob also flips r̄'s sign, for a moment, and the columns of a front end that has just
-    started have shown no sign before their first frame. t* is interpolated linearly in r̄
+    wrong sign). Each sign must hold for ``persist_s`` on its side of the change, its run of clear
+    frames (frames in between may be unclear) spanning that long: a flow that is noise, a front-end
+    fault or a walker's bob also flips r̄'s sign, for a moment, and the columns of a front end that
+    has just started have shown no sign before their first frame. t* is interpolated linearly in r̄
     between i and j, and is uncertain by the gap's uniform spread (t_j − t_i)/√12 and by how far the
     rates' stamps may be off (``stamp_error_s``, 1σ, in quadrature), which turns into a velocity
     error of |a|·that: the acceleration's own offset is still unknown here, so
@@ -495,15 +495,14 @@ def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.
     idx = np.flatnonzero(clear)
     flip = np.flatnonzero(np.sign(r_med[idx[1:]]) != np.sign(r_med[idx[:-1]]))
     i, j = idx[flip], idx[flip + 1]
-    before = np.searchsorted(t, t[i] - persist_s, side="left")   # the old sign's span [before, i]
-    k = np.searchsorted(t, t[j] + persist_s, side="left")        # the new sign's span [j, k]
-    held = (t[j] - t[i] <= REVERSAL_MAX_GAP_S) & (t[i] - t[0] >= persist_s) & (k < n)
-    i, j, before, k = i[held], j[held], before[held], k[held]
-    sgn = np.where(clear, np.sign(r_med), 0.0)
-    count = np.stack([np.concatenate([[0], np.cumsum(sgn == s)]) for s in (-1.0, 1.0)])  # clear frames of each sign
-    old, new = (r_med[i] > 0).astype(int), (r_med[j] > 0).astype(int)
-    keep = ((count[old, i + 1] - count[old, before] == i - before + 1)
-            & (count[new, k + 1] - count[new, j] == k - j + 1))
+    # Each sign's run of clear frames spans persist_s: the old one began that long before i (at the
+    # previous change, or the first clear frame), the new one lasts that long after j (to the next change,
+    # or to k, where the reversal is known).
+    k = np.searchsorted(t, t[j] + persist_s, side="left")
+    began = np.concatenate([t[idx[:1]], t[j[:-1]]])
+    ends = np.concatenate([t[i[1:]], [np.inf]])
+    keep = ((t[j] - t[i] <= REVERSAL_MAX_GAP_S) & (k < n)
+            & (t[i] - began >= persist_s) & (ends - t[j] >= persist_s))
     i, j, k = i[keep], j[keep], k[keep]
     t_star = t[i] + (t[j] - t[i]) * np.abs(r_med[i]) / (np.abs(r_med[i]) + np.abs(r_med[j]))
     cum = _integral(a, t)
