@@ -851,9 +851,9 @@ def test_velocity_from_the_reversals_alone(filt, bound):
     """With no κ at all (no ṙ: every field's derivative missing) and an accelerometer offset of 0.05 m/s²,
     nothing but the reversals speaks of v: the readout without them knows nothing (every frame NaN);
     with them v̂ follows ∫a from each crossing, the offset learned between crossings: RMSE 0.014–0.021 m/s
-    online, 0.006–0.008 offline (seeds 0–2; the zero estimator 0.35), the truth inside ±2σ on every frame.
+    online, 0.004–0.008 offline (seeds 0–2; the zero estimator 0.35), the truth inside ±2σ on every frame.
     Online a crossing is known once the new sign has held SIGN_PERSIST_S, and locks vision on once a whole
-    coupling window (4 s) has let it stand: answered on 41–57 % of the frames after 2 s."""
+    coupling window (4 s) has let it stand: answered on 48–59 % of the frames after 2 s."""
     from lobula.readout import MaterialRates
 
     t = np.arange(0, 10, 1 / 30)
