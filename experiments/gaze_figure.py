@@ -104,6 +104,9 @@ def plot_emd_gaze(numbers: dict, traces: dict, png, trace_label: str = "") -> Pa
             bx.text(xi, v.max() * 1.15, f"{100 * c:.0f}%", ha="center", fontsize=6)
     bx.set_xticks(np.arange(len(fams)), fams)
     bx.set_yscale("log")
+    highest = np.nanmax([np.nanmax(numbers[f][label]["rmse"]) for f in fams for label in labels
+                         if np.isfinite(numbers[f][label]["rmse"]).any()])
+    bx.set_ylim(top=highest * 2.0)  # room for the coverage labels above the highest seed
     bx.set_ylabel("causal RMSE after 2 s (m/s, log)")
     n = len(next(iter(numbers[fams[0]].values()))["rmse"])
     bx.set_title(f"{n} seeds each (bar: mean, dots: seeds, label: truth within ±2σ)", fontsize=9)
