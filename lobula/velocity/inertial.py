@@ -156,8 +156,10 @@ def accels_at(footage: Footage, times: np.ndarray, config: VelocityConfig, windo
     a = gravity_free_acceleration(imu.time_s, imu.accel, imu.gyro if config.derotate else None, causal=causal,
                                   bias=bias, orientation=orientation if config.derotate else None)
     dt = frame_interval(footage.times)
-    at = lambda w: np.stack([resample_to(times, imu.time_s, a[:, j], w) for j in range(3)], axis=1)
-    return [at(dt if w is None else float(w)) for w in windows_s], "accelerometer (gravity and bias removed)"
+    widths = [dt if w is None else float(w) for w in windows_s]
+    at = {w: np.stack([resample_to(times, imu.time_s, a[:, j], w) for j in range(3)], axis=1)
+          for w in dict.fromkeys(widths)}   # each distinct span once (a rows' span of None is the frame's)
+    return [at[w] for w in widths], "accelerometer (gravity and bias removed)"
 
 
 def kappa_accel_at(accel: np.ndarray, rates, time_s: np.ndarray, orientation: np.ndarray | None, causal: bool,
