@@ -103,7 +103,7 @@ def _fig_replay_emd_vs_dis(dis, emd, profile, base, out):
     for name, ds, col in (("DIS", dis, "tab:blue"), ("EMD", emd, "m")):
         r, o = _rmse(ds)
         nums[name] = dict(rmse_m_s=r, observable=o)
-        ax.plot(ds.time, ds.v_hat, color=col, lw=1.5, label=f"{name}: RMSE {r:.3f} m/s")
+        ax.plot(ds.time, ds.v_hat, color=col, lw=1.5, label=f"{name}: RMSE {r:.4f} m/s")
     ax.set(xlabel="time (s)", ylabel="forward velocity (m/s)",
            title=f"Replay ({profile.split(' (')[0]}): EMD and DIS front ends, same readout")
     ax.legend(fontsize=8)
