@@ -264,6 +264,10 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
                    help="the heading is fitted afresh each time the camera has turned this far (°), since a vehicle's "
                         "velocity turns with it through a bend (VelocityConfig.heading_reset_deg); none: held in the "
                         "world throughout, as for a hand-held camera that only pans (default: 15)")
+    v.add_argument("--heading-walk", type=NONNEGATIVE, default=argparse.SUPPRESS, metavar="RATE",
+                   help="how fast the heading may move between the camera's turns, in normalised image coordinates "
+                        "per √s: a drone's sideways drift, a car's lane change, a walker's bounce "
+                        "(VelocityConfig.heading_walk); 0: held in the world between turns (default: 0.15)")
     v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo) "
                                  "(default: none)")
     _flo_options(v)

@@ -274,7 +274,8 @@ def apply_velocity_options(cfg, args):
             raise ValueError("--rest-depth bounds the kalman readout's speed where nothing expands; the paper's median "
                              "readout (--paper) has no rest bound: drop one of them")
         cfg.readout = replace(cfg.readout, rest_depth_max_m=args.rest_depth)
-    for name, field in (("saccade_gate", "saccade_gate_deg_s"), ("heading_reset", "heading_reset_deg")):
+    for name, field in (("saccade_gate", "saccade_gate_deg_s"), ("heading_reset", "heading_reset_deg"),
+                        ("heading_walk", "heading_walk")):
         if hasattr(args, name):  # given (None: off)
             if get_front_end(cfg.front_end).derotation == "gaze":
                 raise ValueError(f"--{name.replace('_', '-')} sets how the flow front ends read a turning camera; the "

@@ -61,6 +61,16 @@ class VelocityConfig:
     them the epipole errs by 14-20° on the median frame, reset every 15° by 1.4-3.8°; exact flow). 15°:
     beyond a hand-held or gimbal camera's wobble, so a camera that only wobbles is never reset (the
     suite's turning families stay within 14° of their start). None: never.
+    heading_walk: how fast the heading may move between the camera's turns (normalised coordinates/√s, a random
+    walk in the joint heading-and-bias fit that runs with a gyro, :meth:`lobula.epipole.HeadingBiasEstimator.walk_heading`):
+    a platform's velocity turns while its camera holds still (a drone drifting sideways as it gathers speed,
+    a car changing lanes, a walker's bounce). The fit then follows the heading within a few degrees, and
+    each end of a material difference is read about its own heading
+    (:class:`lobula.receptive_field.MaterialFields`). 0.15: over a second the heading may move by 0.15 (8.5°
+    at the centre). On the development drones, road vehicles and walks (seeds 100-105, offline) drones that
+    read 0.73 and 1.02 m/s off (±2σ 99 % and 0 %) read 0.18 and 0.27 (±2σ 100 %, 94 %), a car braking at
+    once 0.72 → 0.18 and a walk 0.61 (±2σ 0 %) → 0.05; the ten indoor families' development seeds move by at
+    most 0.003 m/s (one ground scene offline 0.009 → 0.021). 0: the heading is held in the world between turns.
     heading_motion: each material field's κ measures the acceleration along its own axis
     (:func:`lobula.readout.field_axes`), from the IMU's 3-D gravity-free acceleration, rather than the
     forward acceleration: a heading that moves (a drone's drift, a walker's bounce) enters ṙ̄ as the
@@ -69,7 +79,8 @@ class VelocityConfig:
     acceleration's own direction stands in (:func:`lobula.readout.acceleration_heading`). On the
     development drones the option makes some confidently wrong answers honest and one right answer wrong,
     and it costs the turning indoor families online, with an ideal IMU and the true heading too
-    (docs/results.md), so it is off by default. Needs the material fields and an accelerometer; ignored without them.
+    (docs/results.md), so it is off by default. With it both ends of a material difference are read about
+    one heading, as its relation needs. Needs the material fields and an accelerometer; ignored without them.
     timestamps: "mid" (a pair's flow belongs to the middle of its interval) or
     "start" (the paper: to its first frame). accel_from_truth: take forward
     acceleration from truth.csv instead of the IMU (labelled in the output).
@@ -96,6 +107,7 @@ class VelocityConfig:
     gyro_bias_prior_deg_s: float = 1.0
     saccade_gate_deg_s: float | None = 150.0
     heading_reset_deg: float | None = 15.0
+    heading_walk: float = 0.15
     heading_motion: bool = False
     timestamps: str = "mid"
     accel_from_truth: bool = False
@@ -117,6 +129,8 @@ class VelocityConfig:
             raise ValueError(f"gyro_bias_prior_deg_s must be a finite std > 0, got {self.gyro_bias_prior_deg_s}")
         if self.heading_reset_deg is not None and not (self.heading_reset_deg > 0 and math.isfinite(self.heading_reset_deg)):
             raise ValueError(f"heading_reset_deg must be a finite angle > 0 (°) or None, got {self.heading_reset_deg}")
+        if not (self.heading_walk >= 0 and math.isfinite(self.heading_walk)):
+            raise ValueError(f"heading_walk must be a finite rate >= 0 (normalised/√s), got {self.heading_walk}")
         if self.saccade_gate_deg_s is not None and not (self.saccade_gate_deg_s > 0 and math.isfinite(self.saccade_gate_deg_s)):
             raise ValueError(f"saccade_gate_deg_s must be a finite rate > 0 (°/s) or None, got {self.saccade_gate_deg_s}")
 

@@ -417,6 +417,23 @@ class HeadingBiasEstimator(EpipoleEstimator):
         self.anchor = np.asarray(attitude, float).copy()
         self.n_frames = 0
 
+    def walk_heading(self, var: float) -> None:
+        """Let the heading walk: add ``var`` (normalised coordinates², e.g. q²·Δt) to its variance.
+
+        A platform's velocity turns between the camera's turns (a drone drifting sideways as it gathers
+        speed, a car changing lanes, a walker's bounce), so the frames to come outweigh the old ones by
+        what the heading may have moved since; the gyro's bias and scale keep what the frames told of them.
+        The normal equations here are information (each frame's divided by its noise variance), so a
+        variance adds to them as it should.
+        """
+        if not var > 0:
+            return
+        cov = np.linalg.inv(self.ata)
+        cov[:2, :2] += var * np.eye(2)
+        info = np.linalg.inv(cov)
+        self.ata = 0.5 * (info + info.T)
+        self.atb = self.ata @ self.theta
+
     @property
     def scale(self) -> np.ndarray:
         """(3, 3) the gyro's scale-factor and misalignment error E (zeros unless fitted)."""

@@ -316,26 +316,33 @@ class MaterialFields:
     (:func:`lobula.epipole.derotate_finite`); in a fixed orientation the geometry has no
     rotation term, and at the centre a and v are the camera's own.
 
-    A moving heading: both ends are read about one epipole e₀ (the centre's), and a heading e that
-    moves by ė over the difference adds −r·⟨ė, p − e₀⟩/|p − e₀|² to Dr/Dt. In the fixed orientation
-    ė = (A_xy − e·A_z)/V_z, so r·ė = (A_xy − e·A_z)/d and each field's ratio becomes
-    (ṙ̄ − r²̄)/r̄ = ⟨A, ñ⟩/V_z with ñ = (−m_x, −m_y, 1 + ⟨e, m⟩), m the field's ``moment``
-    Σw(p − e₀)/Σw|p − e₀|² (both ends' points): the acceleration along ñ, which the readout can take
-    from the 3-D accelerometer (:func:`lobula.readout.field_axes`). It needs no speed, and it does
-    not cancel where the fields lie on one side of the heading (a pitched camera's ground).
+    A moving heading: read about one epipole e₀ (the centre's), a heading e that moves by ė over the
+    difference adds −r·⟨ė, p − e₀⟩/|p − e₀|² to Dr/Dt. In the fixed orientation ė = (A_xy − e·A_z)/V_z,
+    so r·ė = (A_xy − e·A_z)/d and each field's ratio becomes (ṙ̄ − r²̄)/r̄ = ⟨A, ñ⟩/V_z with
+    ñ = (−m_x, −m_y, 1 + ⟨e, m⟩), m the field's ``moment`` Σw(p − e₀)/Σw|p − e₀|² (both ends' points):
+    the acceleration along ñ, not the forward acceleration, and it does not cancel where the fields lie on
+    one side of the heading (a pitched camera's ground). So each end is read about its own heading (the
+    epipole its pair was given, turned into the centre's orientation; ``own_heading``), and then
+    (ṙ̄ − r²̄)/r̄ = A_z/V_z. Where either end's heading is not ``settled`` (a fit still finding it, whose
+    moves are its learning and not the platform's), both ends are read about the centre's. With
+    ``own_heading`` False both ends are always read about the centre's, for a readout that takes the
+    acceleration along ñ from the 3-D accelerometer (:func:`lobula.readout.field_axes`).
 
     Work is done on b×b pixel blocks (b chosen so ~20,000 blocks cover the image): the
     maps are smooth at that scale and the cost does not grow with the image.
 
     fields: the tiling; stagger: pairs between the difference's two ends s (even, ≥ 2);
-    block: b (px; None: chosen as above); gap_correction: as :attr:`FieldConfig.gap_correction`.
+    block: b (px; None: chosen as above); gap_correction: as :attr:`FieldConfig.gap_correction`;
+    own_heading: as above.
     """
 
-    def __init__(self, fields: ReceptiveFields, stagger: int, block: int | None = None, gap_correction: bool = True):
+    def __init__(self, fields: ReceptiveFields, stagger: int, block: int | None = None, gap_correction: bool = True,
+                 own_heading: bool = True):
         cam = fields.camera
         if stagger < 2 or stagger % 2:
             raise ValueError(f"the material difference needs an even stagger ≥ 2, got {stagger}")
         self.fields, self.stagger, self.gap_correction = fields, int(stagger), gap_correction
+        self.own_heading = own_heading
         b = self.block = block or max(1, int(round(np.sqrt(cam.width * cam.height / 20000))))
         self.hs, self.ws = cam.height // b, cam.width // b
         rows = np.arange(cam.height)[:, None] // b
@@ -359,19 +366,21 @@ class MaterialFields:
         return cv2.resize(m, (self.ws, self.hs), interpolation=cv2.INTER_AREA)
 
     def update(self, t0: float, dt_pair: float, flow_full: np.ndarray, epipole,
-               q0: np.ndarray | None = None, q1: np.ndarray | None = None, qm: np.ndarray | None = None):
+               q0: np.ndarray | None = None, q1: np.ndarray | None = None, qm: np.ndarray | None = None,
+               settled: bool = True):
         """Add frame pair k (first frame at t0 s, gap dt_pair s) and return the rates of pair k − s/2.
 
         flow_full: the image flow (2, H, W) 1/s, rotation included (how content moves);
         q0, q1, qm: the camera's orientation (camera → a fixed reference, from the integrated
         gyro) at the pair's first frame, second frame and middle (None: not turning);
-        epipole (2,): the heading seen in the middle orientation.
+        epipole (2,): the heading seen in the middle orientation; settled: whether that heading is
+        known well enough for its motion to be read (see the class).
         Returns None until s pairs are buffered, else (r̄ 1/s, r²̄ 1/s², ṙ̄ 1/s², each (F,); moment m (F, 2),
         normalised coordinates⁻¹), for pair k − s/2.
         """
         eye = np.eye(3)
         item = dict(t0=t0, T=dt_pair, uf=self._blocks(flow_full[0]), vf=self._blocks(flow_full[1]),
-                    e=np.asarray(epipole, float), q0=eye if q0 is None else np.asarray(q0, float),
+                    e=np.asarray(epipole, float), settled=bool(settled), q0=eye if q0 is None else np.asarray(q0, float),
                     q1=eye if q1 is None else np.asarray(q1, float), qm=eye if qm is None else np.asarray(qm, float))
         self._buf.append(item)
         if len(self._buf) <= self.stagger:
@@ -390,8 +399,11 @@ class MaterialFields:
     def _difference(self, s0: dict, sc: dict, s1: dict):
         delta = s1["t0"] - s0["t0"]
         T = s0["T"]
-        qc, e = sc["qm"], sc["e"]
-        num0, den0, d0, X0, Y0, dx0, dy0 = self._rates(s0, qc, e, self.x, self.y, s0["uf"], s0["vf"])
+        qc = sc["qm"]
+        e0 = e1 = sc["e"]
+        if self.own_heading and s0["settled"] and s1["settled"]:
+            e0, e1 = _heading_seen(s0, qc), _heading_seen(s1, qc)
+        num0, den0, d0, X0, Y0, dx0, dy0 = self._rates(s0, qc, e0, self.x, self.y, s0["uf"], s0["vf"])
         # Where the start's points are at the end. In the fixed orientation only translation
         # moves them, exactly for constant r along the pair (x − e scales by 1/(1 − ρδ),
         # ρ = v/d0), not linearly in δ; the gyro's rotation then says where pair k's first
@@ -410,7 +422,7 @@ class MaterialFields:
         inside = (mx >= 0) & (mx <= self.ws - 1) & (my >= 0) & (my <= self.hs - 1)
         mx, my = np.nan_to_num(mx).astype(np.float32), np.nan_to_num(my).astype(np.float32)
         remap = lambda m: cv2.remap(m, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        num1, den1, _, _, _, dx1, dy1 = self._rates(s1, qc, e, xe, ye, remap(s1["uf"]), remap(s1["vf"]))
+        num1, den1, _, _, _, dx1, dy1 = self._rates(s1, qc, e1, xe, ye, remap(s1["uf"]), remap(s1["vf"]))
         ok = inside & np.isfinite(num0) & np.isfinite(num1)
         cols = []
         for num, den in ((num0, den0), (num1, den1)):
@@ -432,3 +444,10 @@ class MaterialFields:
         with np.errstate(divide="ignore", invalid="ignore"):
             moment = pooled[:, 6:8] / (0.5 * (pooled[:, 1] + pooled[:, 4]))[:, None]
         return 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) / delta, moment
+
+
+def _heading_seen(item: dict, qc: np.ndarray) -> np.ndarray:
+    """(2,) normalised: the heading a buffered pair ``item`` was read about (seen in its middle orientation),
+    as the orientation qc (3, 3, camera → the reference) sees it."""
+    h = qc.T @ item["qm"] @ np.array([item["e"][0], item["e"][1], 1.0])
+    return h[:2] / h[2]

@@ -75,7 +75,8 @@ def test_help_defaults_written_in_the_text_are_the_codes():
               "--dphi": cfg.emd.lattice.dphi_deg, "--emd-gaze": cfg.emd.gaze, "--lag": cfg.readout.lag_s,
               "--accel-scale-error": cfg.readout.accel_scale_error, "--field-size": cfg.fields.size_deg,
               "--tau": cfg.emd.emd.tau_s, "--epipole": cfg.epipole, "--filter": cfg.readout.filter,
-              "--saccade-gate": cfg.saccade_gate_deg_s, "--heading-reset": cfg.heading_reset_deg}
+              "--saccade-gate": cfg.saccade_gate_deg_s, "--heading-reset": cfg.heading_reset_deg,
+              "--heading-walk": cfg.heading_walk}
     for flag, value in stated.items():
         shown = helps[flag].split("(default: ")[1].split(")")[0].split(",")[0].split(";")[0].split(" ")[0]
         assert shown == str(value) or (isinstance(value, (int, float)) and float(shown) == value), (flag, shown)
@@ -419,8 +420,8 @@ def test_velocity_command_prints_the_numbers_its_figure_titles(tmp_path, monkeyp
 
 
 def test_saccade_gate_and_heading_reset_reach_the_configuration():
-    """--saccade-gate and --heading-reset set VelocityConfig's fields (none: off); absent, the defaults stay;
-    on the EMD front end, which holds its gaze rather than reading flow, they are refused."""
+    """--saccade-gate, --heading-reset and --heading-walk set VelocityConfig's fields (none, 0: off); absent, the
+    defaults stay; on the EMD front end, which holds its gaze rather than reading flow, they are refused."""
     from experiments.velocity import apply_velocity_options
     from lobula.config import VelocityConfig
 
@@ -433,3 +434,9 @@ def test_saccade_gate_and_heading_reset_reach_the_configuration():
     assert (cfg.saccade_gate_deg_s, cfg.heading_reset_deg) == (150.0, 15.0)
     with pytest.raises(ValueError, match="--heading-reset .* holds its gaze"):
         apply_velocity_options(VelocityConfig(front_end="emd"), parse("--heading-reset", "10"))
+    assert apply_velocity_options(VelocityConfig(), parse("--heading-walk", "0")).heading_walk == 0.0
+    assert apply_velocity_options(VelocityConfig(), parse()).heading_walk == 0.15
+    with pytest.raises(ValueError, match="--heading-walk .* holds its gaze"):
+        apply_velocity_options(VelocityConfig(front_end="emd"), parse("--heading-walk", "0.3"))
+    with pytest.raises(ValueError, match="heading_walk must be"):
+        VelocityConfig(heading_walk=-0.1)
