@@ -434,8 +434,8 @@ def test_saccade_gate_and_heading_reset_reach_the_configuration():
     assert (cfg.saccade_gate_deg_s, cfg.heading_reset_deg) == (150.0, 15.0)
     with pytest.raises(ValueError, match="--heading-reset .* holds its gaze"):
         apply_velocity_options(VelocityConfig(front_end="emd"), parse("--heading-reset", "10"))
-    assert apply_velocity_options(VelocityConfig(), parse("--heading-walk", "0")).heading_walk == 0.0
-    assert apply_velocity_options(VelocityConfig(), parse()).heading_walk == 0.15
+    assert apply_velocity_options(VelocityConfig(), parse("--heading-walk", "0.15")).heading_walk == 0.15
+    assert apply_velocity_options(VelocityConfig(), parse()).heading_walk == 0.0
     with pytest.raises(ValueError, match="--heading-walk .* holds its gaze"):
         apply_velocity_options(VelocityConfig(front_end="emd"), parse("--heading-walk", "0.3"))
     with pytest.raises(ValueError, match="heading_walk must be"):

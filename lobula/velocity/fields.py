@@ -105,8 +105,9 @@ def attitude_track(time_s: np.ndarray, gyro: np.ndarray, causal: bool):
 
 #: s: how long the heading fit must have counted pairs, since it was (re)started, before the motion of its
 #: heading is read (:class:`lobula.receptive_field.MaterialFields`): before, its heading moves as it learns.
-#: On development drones and road vehicles (seeds 100-105) reading it from the first counted pair leaves a
-#: car braking at once 2.6 m/s off offline, ±2σ 0 %; 0.5 s and 1 s read it 0.22 / 0.18 (±2σ 100 %).
+#: With the heading let walk (VelocityConfig.heading_walk 0.15) on development drones and road vehicles
+#: (seeds 100-105), reading it from the first counted pair leaves a car braking at once 2.6 m/s off offline,
+#: ±2σ 0 %; 0.5 s and 1 s read it 0.22 / 0.18 (±2σ 100 %).
 HEADING_SETTLE_S = 1.0
 
 #: pixels per pair for the residual-rotation fit: a 3-parameter fit (with a 2-parameter
@@ -167,10 +168,10 @@ class FieldPooling:
                                             stride=max(1, int(np.sqrt(camera.width * camera.height / HEADING_POINTS))))
             self.fitted = True
         self.stagger = config.readout.difference_frames
-        # Each end of a material difference is read about its own heading, unless the readout takes the
-        # heading's motion from the accelerometer instead (heading_motion).
+        # A heading let walk moves over a material difference: each end is then read about its own, unless
+        # the readout takes the heading's motion from the accelerometer instead (heading_motion).
         self.material = (MaterialFields(fields, self.stagger, gap_correction=config.fields.gap_correction,
-                                        own_heading=not config.heading_motion)
+                                        own_heading=config.heading_walk > 0 and not config.heading_motion)
                          if config.fields.material and live else None)
         self._t_fit = None  # the last pair the heading fit took (s): its walk since
         self._counting_since = None  # the first pair the fit counted since it was (re)started (s)
