@@ -267,7 +267,8 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
     v.add_argument("--heading-walk", type=NONNEGATIVE, default=argparse.SUPPRESS, metavar="RATE",
                    help="how fast the heading may move between the camera's turns, in normalised image coordinates "
                         "per √s: a drone's sideways drift, a car's lane change, a walker's bounce "
-                        "(VelocityConfig.heading_walk): each end of a material difference is then read about its own heading. "
+                        "(VelocityConfig.heading_walk): each end of a material difference is then read about its own heading; "
+                        "needs a gyro and the estimated epipole. "
                         "Measured, not adopted: it helps development drones and hurts the reported ones (docs/results.md); "
                         "0: held in the world between turns (default: 0)")
     v.add_argument("--flo", help=".flo file or folder of *_<first>_to_<second>.flo files (front end flo) "

@@ -72,7 +72,8 @@ class VelocityConfig:
     1.02 m/s off (±2σ 99 %, 0 %) read 0.18 and 0.27 (±2σ 100 %, 94 %), a car braking at once 0.72 → 0.18, a
     walk 0.61 (±2σ 0 %) → 0.05 — but the reported seeds 0-2 read worse: drones 0.44 (±2σ 31 %) → 0.72 and
     0.40 (±2σ 100 %) → 1.17, both ±2σ 0 %, a road vehicle 0.11 → 0.20 (±2σ 44 %), and the turning held-out
-    mixed family 0.010 → 0.017 online; so it is off by default (docs/results.md).
+    mixed family 0.010 → 0.017 online; so it is off by default (docs/results.md). It needs that fit (a gyro,
+    the estimated epipole, the dis or farneback front end) and is refused where it does not run.
     heading_motion: each material field's κ measures the acceleration along its own axis
     (:func:`lobula.readout.field_axes`), from the IMU's 3-D gravity-free acceleration, rather than the
     forward acceleration: a heading that moves (a drone's drift, a walker's bounce) enters ṙ̄ as the

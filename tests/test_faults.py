@@ -471,6 +471,16 @@ def test_negative_focal_length_names_the_field(run2, tmp_path, capsys):
     assert not out.exists()
 
 
+def test_a_walking_heading_without_the_heading_fit_names_the_footage(run2, tmp_path, capsys):
+    """--heading-walk lets the joint heading-and-bias fit's heading walk; with the epipole held at the principal
+    point (or without a gyro) that fit does not run, and the option is refused, not ignored."""
+    out = tmp_path / "o.nc"
+    code, _, err = cli(capsys, "velocity", run2, "--heading-walk", "0.15", "--epipole", "principal", "--out", out, "--quiet")
+    assert code == 2
+    one_error(err, "velocity", f"{run2}: heading_walk", "drop --heading-walk")
+    assert not out.exists()
+
+
 def test_camera_option_gives_a_bag_its_intrinsics_on_every_reader_command(run2, tmp_path, capsys):
     db3 = write_db3(run2, tmp_path / "bag", camera_info=False)
     out = tmp_path / "o.nc"

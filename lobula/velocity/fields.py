@@ -167,6 +167,10 @@ class FieldPooling:
             self.est = HeadingBiasEstimator(x, y, b, s, scale_std=config.gyro_scale_prior or None,
                                             stride=max(1, int(np.sqrt(camera.width * camera.height / HEADING_POINTS))))
             self.fitted = True
+        if config.heading_walk > 0 and not self.fitted:
+            raise ValueError("heading_walk lets the heading of the joint heading-and-bias fit walk, and that fit runs only "
+                             "with a gyro, an estimated epipole and a flow front end that gives every pair (dis, "
+                             "farneback); this run has no such fit: drop --heading-walk (VelocityConfig.heading_walk)")
         self.stagger = config.readout.difference_frames
         # A heading let walk moves over a material difference: each end is then read about its own, unless
         # the readout takes the heading's motion from the accelerometer instead (heading_motion).
@@ -328,8 +332,11 @@ def footage_pooling(footage: Footage, config: VelocityConfig, fields: ReceptiveF
             # The gyro bias the derotation removed (still-camera estimate), to add back to what vision finds left.
             b0 = gyro_bias(imu.time_s, gyro, causal=causal)
             residual = lambda t: np.array([np.interp(t, imu.time_s, b0[:, k]) for k in range(3)])
-    return FieldPooling(footage.camera, config, fields, live, attitude,
-                        None if gyro is None else imu.time_s, gyro, still_at, residual)
+    try:
+        return FieldPooling(footage.camera, config, fields, live, attitude,
+                            None if gyro is None else imu.time_s, gyro, still_at, residual)
+    except ValueError as exc:  # an option this footage cannot serve: name the footage
+        raise ValueError(f"{footage.path}: {exc}") from None
 
 
 def field_rates(footage: Footage, config: VelocityConfig, flo_files: list[Path] | None = None,
