@@ -119,7 +119,9 @@ class FieldPooling:
     """The state carried from one flow pair to the next: the epipole (or the joint heading and
     gyro-bias fit), the gyro's attitude that derotates, the material fields' buffer, and which of the
     last pairs held a fast turn (``VelocityConfig.saccade_gate_deg_s``: their rates are NaN and the
-    heading is fitted afresh after them, and after every ``heading_reset_deg`` turned).
+    heading is fitted afresh after them, and after every ``heading_reset_deg`` turned), and, with
+    ``heading_walk``, how long the fit has counted pairs (the material fields read each end about its own
+    heading once that is HEADING_SETTLE_S).
 
     Parameters
     ----------
