@@ -402,7 +402,10 @@ class MaterialFields:
         qc = sc["qm"]
         e0 = e1 = sc["e"]
         if self.own_heading and s0["settled"] and s1["settled"]:
-            e0, e1 = _heading_seen(s0, qc), _heading_seen(s1, qc)
+            from .epipole import turn
+
+            # each pair's heading, seen in its middle orientation, as the centre's orientation sees it
+            e0, e1 = (np.array(turn(qc.T @ it["qm"], *it["e"])) for it in (s0, s1))
         num0, den0, d0, X0, Y0, dx0, dy0 = self._rates(s0, qc, e0, self.x, self.y, s0["uf"], s0["vf"])
         # Where the start's points are at the end. In the fixed orientation only translation
         # moves them, exactly for constant r along the pair (x − e scales by 1/(1 − ρδ),
@@ -444,10 +447,3 @@ class MaterialFields:
         with np.errstate(divide="ignore", invalid="ignore"):
             moment = pooled[:, 6:8] / (0.5 * (pooled[:, 1] + pooled[:, 4]))[:, None]
         return 0.5 * (ra + rb), 0.5 * (r2a + r2b), (rb - ra) / delta, moment
-
-
-def _heading_seen(item: dict, qc: np.ndarray) -> np.ndarray:
-    """(2,) normalised: the heading a buffered pair ``item`` was read about (seen in its middle orientation),
-    as the orientation qc (3, 3, camera → the reference) sees it."""
-    h = qc.T @ item["qm"] @ np.array([item["e"][0], item["e"][1], 1.0])
-    return h[:2] / h[2]

@@ -227,7 +227,7 @@ class FieldPooling:
                 est.forget_heading(q[2], self._e_seen)
                 self._turned = False
                 self._counting_since = None
-            if self.fitted and self._t_fit is not None:
+            if self.fitted and config.heading_walk > 0 and self._t_fit is not None:
                 est.walk_heading(config.heading_walk ** 2 * max(s.t1 - self._t_fit, 0.0))
             self._t_fit = s.t1
             if attitude is not None:
@@ -251,7 +251,8 @@ class FieldPooling:
         if config.fields.gap_correction:
             r, r2 = gap_correction(r, r2, s.dt)
         self._e_seen = np.asarray(e, float)
-        m = (self.material.update(s.t0, s.dt, s.flow, e, *q, settled=self._settled(s.t1))
+        m = (self.material.update(s.t0, s.dt, s.flow, e, *q,
+                                  settled=self._settled(s.t1) if self.material.own_heading else True)
              if self.material is not None else None)
         if fast:
             r, r2 = np.full_like(r, np.nan), np.full_like(r2, np.nan)
