@@ -62,7 +62,7 @@ import numpy as np
 
 __all__ = ["InformationModel", "NOISE_MODELS", "readout_latency_s", "filter_and_smoother", "online_offline",
            "family_trajectory", "bound_table", "vision_kappa", "kappa_noise", "footage_kappa", "suite_ratios",
-           "plot_ratios"]
+           "plot_ratios", "readout_priors", "PRIORS"]
 
 
 @dataclass(frozen=True)
@@ -74,7 +74,8 @@ class InformationModel:
     that drives v (m/s²/√Hz). bias_walk: the offset's random walk (m/s²/√s). bias_prior / v_prior: prior
     stds (m/s², m/s). scale_error: the accelerometer's scale-factor error (fraction, 1σ), common to both
     estimators. latency_s: how late vision's κ reaches the online estimator (s); None: the readout's own
-    (:func:`readout_latency_s`).
+    (:func:`readout_latency_s`). bias_prior_online: the online estimator's offset prior std (m/s²) where it
+    differs from the offline one's (None: bias_prior for both).
     """
 
     kappa_rel_error: float = 0.135
@@ -86,6 +87,7 @@ class InformationModel:
     v_prior: float = 1.0
     scale_error: float = 0.01
     latency_s: float | None = None
+    bias_prior_online: float | None = None
 
 
 #: The measured noise sizes (median) and their measured range's two ends.
@@ -105,6 +107,29 @@ def readout_latency_s(dt: float, config=None) -> float:
     from lobula.readout import ReadoutConfig, readout_lag
 
     return readout_lag(replace(config or ReadoutConfig(), filter="causal"), dt) * dt
+
+
+def readout_priors(model: InformationModel, t, v) -> InformationModel:
+    """``model`` with the priors the readout itself starts from on a record of times t (n,) s and true
+    forward velocity v (n,) m/s, in place of the model's fixed ones.
+
+    v: :attr:`ReadoutConfig.v_prior_m_s <lobula.readout.ReadoutConfig>`. The offset: the accelerometer's own
+    (``bias_prior_m_s2``) and, in quadrature, the gravity reference's error as the pipeline sizes it
+    (:func:`lobula.velocity.inertial.offline_gravity_error`): offline the record's mean acceleration, up to
+    v_prior / its span; online the start's acceleration, the start prior for a camera seen moving where the
+    truth moves at the first frame, else the resting one. A drone or a car starts a record at metres per
+    second and takes up its mean acceleration; the model's fixed priors (1 m/s, 0.1 m/s²) know both far
+    better than the readout does.
+    """
+    from lobula.readout import ReadoutConfig
+    from lobula.velocity.inertial import START_ACCEL_PRIOR_M_S2, START_ACCEL_PRIOR_MOVING_M_S2, offline_gravity_error
+
+    rc = ReadoutConfig()
+    start = START_ACCEL_PRIOR_MOVING_M_S2 if v[0] != 0 else START_ACCEL_PRIOR_M_S2
+    return replace(model, v_prior=rc.v_prior_m_s,
+                   bias_prior=float(np.hypot(rc.bias_prior_m_s2, offline_gravity_error(float(t[-1] - t[0]),
+                                                                                        rc.v_prior_m_s))),
+                   bias_prior_online=float(np.hypot(rc.bias_prior_m_s2, start)))
 
 
 def filter_and_smoother(t, v, a, model: InformationModel):
@@ -158,8 +183,11 @@ def filter_and_smoother(t, v, a, model: InformationModel):
 def online_offline(t, v, a, model: InformationModel, skip_s: float = 2.0) -> dict:
     """Expected RMSE (m/s) after ``skip_s`` of the optimal online estimate (vision late by the latency), the
     optimal causal one with vision on time, and the optimal offline one, each with the scale-factor error
-    (scale_error·|v|) added, and their ratios to offline."""
+    (scale_error·|v|) added, and their ratios to offline. The online two start from ``bias_prior_online``
+    where the model has one."""
     pf, ps, pl = filter_and_smoother(t, v, a, model)
+    if model.bias_prior_online is not None:
+        pf, _, pl = filter_and_smoother(t, v, a, replace(model, bias_prior=model.bias_prior_online))
     keep = np.asarray(t) - t[0] >= skip_s
     common = (model.scale_error * np.asarray(v)[keep]) ** 2
     rms = {name: float(np.sqrt(np.mean(p[keep] + common))) for name, p in
@@ -280,15 +308,29 @@ def family_trajectory(family: str, seed: int, duration_s: float = 10.0):
     return times, v, a
 
 
-def bound_table(families, seeds, duration_s: float = 10.0, models=None, skip_s: float = 2.0) -> list[dict]:
-    """One row per family × seed × noise model: :func:`online_offline`'s figures."""
+PRIORS = ("model", "readout")
+
+
+def _with_priors(model: InformationModel, priors: str, t, v) -> InformationModel:
+    """``model`` itself (``priors`` "model") or with the readout's priors on that record ("readout":
+    :func:`readout_priors`)."""
+    if priors not in PRIORS:
+        raise ValueError(f"priors must be one of {', '.join(PRIORS)}, got {priors!r}")
+    return readout_priors(model, t, v) if priors == "readout" else model
+
+
+def bound_table(families, seeds, duration_s: float = 10.0, models=None, skip_s: float = 2.0,
+                priors: str = "model") -> list[dict]:
+    """One row per family × seed × noise model: :func:`online_offline`'s figures; ``priors`` as
+    :func:`_with_priors` takes it."""
     models = models or NOISE_MODELS
     rows = []
     for fam in families:
         for seed in seeds:
             t, v, a = family_trajectory(fam, seed, duration_s)
             for name, model in models.items():
-                rows.append(dict(family=fam, seed=seed, model=name, **online_offline(t, v, a, model, skip_s)))
+                rows.append(dict(family=fam, seed=seed, model=name,
+                                 **online_offline(t, v, a, _with_priors(model, priors, t, v), skip_s)))
     return rows
 
 
@@ -349,9 +391,9 @@ def plot_ratios(rows, families, models, path):
     return out
 
 
-def _summary(rows, key: str) -> str:
+def _summary(rows, key: str, digits: int = 2) -> str:
     r = np.array([x[key] for x in rows])
-    return f"{np.median(r):.2f} ({r.min():.2f}–{r.max():.2f})"
+    return f"{np.median(r):.{digits}f} ({r.min():.{digits}f}–{r.max():.{digits}f})"
 
 
 def main(argv=None) -> int:
@@ -370,6 +412,10 @@ def main(argv=None) -> int:
                         "compound eye, with truth.csv)")
     p.add_argument("--front-end", default="dis", choices=["dis", "emd"],
                    help="the camera footage's front end for --footage (the compound eye has its own circuit)")
+    p.add_argument("--priors", default="model", choices=PRIORS,
+                   help="the estimators' priors on v and the offset: the noise model's (1 m/s, 0.1 m/s²), or those "
+                        "the readout starts from on each record (15 m/s; the offset with the gravity reference's "
+                        "error, offline the record's mean acceleration, online the start's)")
     p.add_argument("--suite", default=None, metavar="SUITE_NC",
                    help="a `lobula suite` suite.nc with 'lobula causal' and 'lobula zero-phase' on the same "
                         "families and seeds: the pipeline's causal / zero-phase ratio beside the optimum's")
@@ -385,7 +431,7 @@ def main(argv=None) -> int:
         p.error("--front-end applies to --footage only")
     if args.footage:
         try:
-            rows = footage_rows(args.footage, args.front_end)
+            rows = footage_rows(args.footage, args.front_end, priors=args.priors)
         except (ValueError, OSError) as e:  # unreadable footage, no truth: said, not a traceback
             p.error(str(e))
         print("vision's κ against the truth, offline: the error of a_m = κ·v (κ·v − a, where |v| ≥ 0.1 m/s), "
@@ -413,7 +459,7 @@ def main(argv=None) -> int:
         pipeline = suite_ratios(args.suite, families, seeds, args.skip, args.duration) if args.suite else {}
     except (ValueError, OSError) as e:
         p.error(str(e))
-    rows = bound_table(families, seeds, args.duration, models, args.skip)
+    rows = bound_table(families, seeds, args.duration, models, args.skip, args.priors)
     for r in rows:
         r["pipeline_ratio"] = pipeline.get((r["family"], r["seed"]), float("nan"))
     print(f"optimal online / offline RMSE after {args.skip:g} s, median (range) over seeds; "
@@ -428,6 +474,12 @@ def main(argv=None) -> int:
         if pipeline:
             cells.append(_summary([r for r in sel if r["model"] == names[0]], "pipeline_ratio"))
         print(f"| {fam} | " + " | ".join(cells) + " |")
+    print(f"\noptimal online / offline RMSE (m/s) after {args.skip:g} s, {names[0]} noise, {args.priors} priors, "
+          f"median (range) over seeds:")
+    print("| family | online | offline |\n|---|---|---|")
+    for fam in families:
+        sel = [r for r in rows if r["family"] == fam and r["model"] == names[0]]
+        print(f"| {fam} | {_summary(sel, 'online', 3)} | {_summary(sel, 'offline', 3)} |")
     if args.plot:
         print(f"wrote {plot_ratios(rows, families, names, args.plot)}")
     _write(args, rows, {m: asdict(models[m]) for m in names})
@@ -443,10 +495,10 @@ def _write(args, rows, models) -> None:
         print(f"wrote {args.out}")
 
 
-def footage_rows(paths, front_end: str = "dis", skip_s: float = 2.0) -> list[dict]:
+def footage_rows(paths, front_end: str = "dis", skip_s: float = 2.0, priors: str = "model") -> list[dict]:
     """One row per footage: κ's error against the truth (:func:`kappa_noise` at 30 frames/s), and the optimal
     online and offline RMSE at that noise on the footage's own trajectory (:func:`online_offline`, vision as
-    late as that front end's causal readout)."""
+    late as that front end's causal readout; ``priors`` as :func:`_with_priors` takes it)."""
     from pathlib import Path
 
     rows = []
@@ -459,7 +511,7 @@ def footage_rows(paths, front_end: str = "dis", skip_s: float = 2.0) -> list[dic
         t = np.arange(k["t"][0], k["t"][-1], 1 / 30)  # the model's frames: 30 a second, as the noise is sized
         v, a = (np.interp(t, k["t"], k[x]) for x in ("v_raw", "a_raw"))
         rows.append(dict(footage=Path(path).name, front_end=k["front_end"], latency_s=model.latency_s, **noise,
-                         **online_offline(t, v, a, model, skip_s)))
+                         **online_offline(t, v, a, _with_priors(model, priors, t, v), skip_s)))
     return rows
 
 

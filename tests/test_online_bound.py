@@ -182,3 +182,41 @@ def test_the_pipelines_ratio_comes_from_a_suite_file_that_matches(tmp_path, caps
             suite_ratios(nc, *bad)
     with pytest.raises(SystemExit):  # refused on the command line too, not a traceback
         main(["--families", "rest", "--seeds", "8,", "--duration", "4", "--suite", str(nc)])
+
+
+def test_the_readouts_priors_start_the_bound_where_the_readout_starts():
+    # The readout starts v at 15 m/s and the offset with the gravity reference's error: offline the record's mean
+    # acceleration (up to 15 m/s over its span), online the start's (0.3 g where the camera moves at the first
+    # frame, 0.1 g at rest).
+    from lobula.readout import ReadoutConfig
+    from lobula.velocity.inertial import START_ACCEL_PRIOR_M_S2, START_ACCEL_PRIOR_MOVING_M_S2
+    from experiments.online_bound import readout_priors
+
+    rc = ReadoutConfig()
+    moving = readout_priors(InformationModel(), T, np.full_like(T, 2.0))
+    assert moving.v_prior == rc.v_prior_m_s
+    assert moving.bias_prior == pytest.approx(np.hypot(rc.bias_prior_m_s2, rc.v_prior_m_s / (T[-1] - T[0])))
+    assert moving.bias_prior_online == pytest.approx(np.hypot(rc.bias_prior_m_s2, START_ACCEL_PRIOR_MOVING_M_S2))
+    at_rest = readout_priors(InformationModel(), T, 0.3 * T)
+    assert at_rest.bias_prior_online == pytest.approx(np.hypot(rc.bias_prior_m_s2, START_ACCEL_PRIOR_M_S2))
+    # Nothing vision sees tells v here (no acceleration: κ = 0 measures the offset alone), so v stays at its
+    # prior, as wide as the readout's.
+    t = np.arange(60) / 30.0
+    _, ps, _ = filter_and_smoother(t, np.full_like(t, 2.0), np.zeros_like(t),
+                                   replace(readout_priors(InformationModel(), t, np.full_like(t, 2.0)), accel_noise=0.0,
+                                           bias_walk=0.0))
+    np.testing.assert_allclose(np.sqrt(ps), rc.v_prior_m_s)
+
+
+def test_the_online_estimator_starts_from_its_own_offset_prior():
+    # bias_prior_online changes the online figures alone: they are the model's with that offset prior, and the
+    # offline figure stays the one with bias_prior.
+    v = 0.2 + 0.3 * T
+    a = np.full_like(T, 0.3)
+    base = InformationModel(latency_s=0.2)
+    split = online_offline(T, v, a, replace(base, bias_prior_online=2.0))
+    assert split["offline"] == pytest.approx(online_offline(T, v, a, base)["offline"])
+    wide = online_offline(T, v, a, replace(base, bias_prior=2.0))
+    assert split["online"] == pytest.approx(wide["online"])
+    assert split["filter"] == pytest.approx(wide["filter"])
+    assert split["online"] > online_offline(T, v, a, base)["online"]

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from lobula.config import VelocityConfig
-from lobula.imu import (fused_gyro_bias, gravity_free_acceleration, gravity_time_constant, gyro_bias, resample_to,
-                        turn_rate, vision_gyro_bias)
+from lobula.imu import (GRAVITY_WINDOW_S, fused_gyro_bias, gravity_free_acceleration, gravity_time_constant, gyro_bias,
+                        resample_to, turn_rate, vision_gyro_bias)
 from lobula.readout import acceleration_heading
 from lobula.readers.core import Footage, FootageError, acceleration_from_truth
 
@@ -61,6 +61,16 @@ START_ACCEL_PRIOR_M_S2 = 1.0
 #: m/s²: the same where the first flow pair already shows the camera moving (:func:`start_accel_prior`):
 #: 0.3 g, a platform braking or speeding up hard (a car braking, a drone) — one at rest mostly starts gently.
 START_ACCEL_PRIOR_MOVING_M_S2 = 3.0
+
+
+def offline_gravity_error(duration_s: float, v_prior_m_s: float) -> float:
+    """m/s²: prior std of the offline gravity reference's error on a record ``duration_s`` long.
+
+    Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which also holds the
+    platform's mean acceleration Δv/T there: an offset of up to ``v_prior_m_s`` (m/s) over that span
+    (at least 1 s).
+    """
+    return v_prior_m_s / max(min(GRAVITY_WINDOW_S, duration_s), 1.0)
 
 
 #: 1/s: fields that all read less than this have not responded yet (a correlator started at rest reads ~1e-8 on

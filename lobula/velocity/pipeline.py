@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from lobula.config import VelocityConfig
 from lobula.front_ends import FRONT_ENDS, get_front_end
-from lobula.imu import (GRAVITY_WINDOW_S, attitude_leak, forward_axis, gravity_drift_std, gyro_bias, leak_walk,
+from lobula.imu import (attitude_leak, forward_axis, gravity_drift_std, gyro_bias, leak_walk,
                             orientation_from_gyro, transport_rate)
 from lobula.readers.core import Footage, footage_provenance
 from lobula.readers.flo import FloUnits
@@ -27,7 +27,7 @@ from lobula.version import provenance
 
 from .fields import field_rates, slerp_orientations
 from .inertial import (TRUTH_ACCEL_OFFSET_M_S2, accels_at, frame_interval, gravity_tau, gyro_bias_track, kappa_accel_at,
-                       start_accel_prior, turn_rate_at)
+                       offline_gravity_error, start_accel_prior, turn_rate_at)
 
 
 def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, progress: bool = True,
@@ -103,10 +103,7 @@ def _offset_model(footage: Footage, rates, config: VelocityConfig, accel_source:
         # A derivative of the true velocity has noise but no accelerometer offset to learn.
         return replace(rcfg, bias_prior_m_s2=min(rcfg.bias_prior_m_s2, TRUTH_ACCEL_OFFSET_M_S2)), None, 0.0
     if not causal:
-        # Offline gravity is the mean specific force over up to GRAVITY_WINDOW_S of record, which
-        # also holds the platform's mean acceleration Δv/T there: an offset of up to v/T.
-        span = min(GRAVITY_WINDOW_S, float(footage.imu.time_s[-1] - footage.imu.time_s[0]))
-        gravity_error = rcfg.v_prior_m_s / max(span, 1.0)
+        gravity_error = offline_gravity_error(float(footage.imu.time_s[-1] - footage.imu.time_s[0]), rcfg.v_prior_m_s)
     else:
         # Online, the gravity reference is set at the start and holds the acceleration there.
         gravity_error = start_accel_prior(rates.r)
