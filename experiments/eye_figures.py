@@ -19,9 +19,12 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["eye_benchmark", "figure_eye", "ensure_runs", "ensure_gaze_runs", "eye_folder", "GAZE_FAMILY", "rate_vs_spiking_numbers", "figure_eye_rate_vs_spiking", "plot_eye_rate_vs_spiking", "dphi_fov_numbers",
-           "figure_eye_dphi_fov"]
+           "figure_eye_dphi_fov", "FRONTAL_FIELDS"]
 
 FAMILIES = ("panels", "rotation", "corridor")
+#: LC fields only inside the D435i's 69°×42° view (centres |az| ≤ 30°, |el| ≤ 20°): the eye's
+#: :class:`lobula.eye_circuit.EyeCircuitConfig` ``fields`` overrides
+FRONTAL_FIELDS = dict(azimuth_deg=(10.0, 30.0), elevation_deg=(-20.0, 20.0), spacing_deg=20.0)
 
 
 def ensure_runs(workdir, families=FAMILIES, seeds=(0, 1, 2), duration_s: float = 10.0, scale: float = 0.5,
@@ -227,8 +230,7 @@ def dphi_fov_numbers(workdir, families=FAMILIES, seeds=(0, 1, 2), dphis=(8.0, 5.
                 for fov in ("wide", "frontal"):
                     cfg = EyeVelocityConfig()
                     if fov == "frontal":
-                        cfg.circuit.fields = _replace(cfg.circuit.fields, azimuth_deg=(10.0, 30.0),
-                                                      elevation_deg=(-20.0, 20.0), spacing_deg=20.0)
+                        cfg.circuit.fields = _replace(cfg.circuit.fields, **FRONTAL_FIELDS)
                     rows.setdefault(f"{fov}|{d:g}", []).append(score(estimate_eye_velocity(fo, cfg))["rmse_m_s"])
             rows.setdefault("dis", []).append(dis[(fam, seed)])
             print(f"  {fam} seed {seed} done", flush=True)

@@ -23,8 +23,9 @@ saccades, and the lock-on time (:func:`experiments.suite_metrics.lock_on_time`).
 
 Figures (:func:`figure_fly_flight`): ``fly_flight_dphi`` (RMSE and answered fraction against Δφ per flight,
 HR), ``fly_flight_detector`` (HR against the three-arm detector on the same flights) and
-``fly_flight_lock_on`` (lock-on time from the start of the flight), each with its JSON of every seed's
-numbers (:func:`write_fly_flight`; ``python -m experiments.fly_flight_figures --out figures``, ~25 min on
+``fly_flight_lock_on`` (lock-on time from the start of the flight) and ``fly_flight_fov`` (HR with its LC fields
+over both eyes or only inside the D435i's view, :data:`FIELDS_OF_VIEW`), each with its JSON of every seed's
+numbers (:func:`write_fly_flight`; ``python -m experiments.fly_flight_figures --out figures``, ~60 min on
 2 cores with the renders). Renders and scores are cached in a work folder (``FLIGHT-SEED-dDPHI-eye``,
 ``FLIGHT-SEED-cam``, ``scores.json``).
 """
@@ -37,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FLIGHTS", "FIGURE_FLIGHTS", "DPHIS", "DETECTORS", "flight_run_config", "eye_dir", "cam_dir",
+__all__ = ["FLIGHTS", "FIGURE_FLIGHTS", "DPHIS", "FIELDS_OF_VIEW", "DETECTORS", "flight_run_config", "eye_dir", "cam_dir",
            "ensure_flight_runs", "flight_scores", "eye_scores", "posterior_mean", "dis_scores", "fly_flight_numbers",
            "plot_fly_flight", "figure_fly_flight", "write_fly_flight"]
 
@@ -51,7 +52,9 @@ FLIGHTS = {
 #: the flights the figures compare (the no-wobble flight answers why the eye fails between saccades)
 FIGURE_FLIGHTS = ("turning", "saccadic", "saccadic, gaze")
 #: interommatidial angles Δφ = Δρ (deg)
-DPHIS = (2.0, 3.5, 5.0)
+DPHIS = (2.0, 3.5, 5.0, 6.0)
+#: fields of view the HR eye is read with: LC fields over both eyes, or only inside the D435i's view
+FIELDS_OF_VIEW = ("both eyes", "frontal")
 #: motion detectors (EyeCircuitConfig.detector)
 DETECTORS = ("hr", "three-arm")
 DURATION_S, SKIP_S, SCALE = 8.0, 2.0, 0.5
@@ -150,15 +153,21 @@ def flight_scores(ds, skip_s: float = SKIP_S) -> dict:
                 zero=float(np.sqrt(np.mean(vt[keep] ** 2))) if keep.any() else float("nan"))
 
 
-def eye_scores(folder, detector: str = "hr", **circuit) -> dict:
+def eye_scores(folder, detector: str = "hr", fov: str = "both eyes", **circuit) -> dict:
     """:func:`flight_scores` of the eye's causal pipeline (the readout's rates) on one eye footage folder, with
-    the circuit's ``detector`` and any other :class:`lobula.eye_circuit.EyeCircuitConfig` fields, plus
-    the circuit's wall time (s)."""
+    the circuit's ``detector``, its LC fields over the field of view ``fov`` (:data:`FIELDS_OF_VIEW`;
+    "frontal": :data:`experiments.eye_figures.FRONTAL_FIELDS`) and any other
+    :class:`lobula.eye_circuit.EyeCircuitConfig` fields, plus the circuit's wall time (s)."""
+    from experiments.eye_figures import FRONTAL_FIELDS
     from experiments.eye_velocity import EyeVelocityConfig, estimate_eye_velocity
     from stimuli.eye import open_eye_footage
 
+    if fov not in FIELDS_OF_VIEW:
+        raise ValueError(f"fov must be one of {', '.join(FIELDS_OF_VIEW)}, got {fov!r}")
     cfg = EyeVelocityConfig()
     cfg.circuit = replace(cfg.circuit, detector=detector, **circuit)
+    if fov == "frontal":
+        cfg.circuit = replace(cfg.circuit, fields=replace(cfg.circuit.fields, **FRONTAL_FIELDS))
     t0 = time.perf_counter()
     fo = open_eye_footage(folder)
     ds = estimate_eye_velocity(fo, cfg)
@@ -218,9 +227,10 @@ def dis_scores(folder) -> dict:
 
 def fly_flight_numbers(workdir, flights=FIGURE_FLIGHTS, seeds=(0, 1), dphis=DPHIS, detectors=DETECTORS,
                        progress: bool = True) -> dict:
-    """Every score the figures plot: {"eye": {flight: {detector: {Δφ: [per seed]}}}, "dis": {flight: [per seed]}},
-    each entry :func:`flight_scores`' dict. Only the Δφ whose footage is in ``workdir`` for every flight and
-    seed are scored (:func:`ensure_flight_runs` renders them); scores are cached in ``workdir/scores.json``."""
+    """Every score the figures plot: {"eye": {flight: {detector: {Δφ: [per seed]}}}, "fov": {flight: {field of
+    view: {Δφ: [per seed]}}} (HR), "dis": {flight: [per seed]}}, each entry :func:`flight_scores`' dict. Only the
+    Δφ whose footage is in ``workdir`` for every flight and seed are scored (:func:`ensure_flight_runs` renders
+    them); scores are cached in ``workdir/scores.json``."""
     workdir = Path(workdir)
     cache_path = workdir / "scores.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
@@ -237,6 +247,19 @@ def fly_flight_numbers(workdir, flights=FIGURE_FLIGHTS, seeds=(0, 1), dphis=DPHI
                         if progress:
                             print(f"  {key}: {cache[key]['wall_s']} s", flush=True)
                     eye.setdefault(flight, {}).setdefault(det, {}).setdefault(f"{dphi:g}", []).append(cache[key])
+    fov: dict = {}
+    for flight in flights:
+        for view in FIELDS_OF_VIEW:
+            for dphi in have:
+                for seed in seeds:
+                    name = eye_dir(workdir, flight, seed, dphi).name
+                    key = f"{name}|hr" if view == "both eyes" else f"{name}|hr|{view}"
+                    if key not in cache:
+                        cache[key] = eye_scores(eye_dir(workdir, flight, seed, dphi), "hr", view)
+                        cache_path.write_text(json.dumps(cache, indent=1))
+                        if progress:
+                            print(f"  {key}: {cache[key]['wall_s']} s", flush=True)
+                    fov.setdefault(flight, {}).setdefault(view, {}).setdefault(f"{dphi:g}", []).append(cache[key])
     dis: dict = {}
     for flight in flights:
         for seed in seeds:
@@ -246,7 +269,8 @@ def fly_flight_numbers(workdir, flights=FIGURE_FLIGHTS, seeds=(0, 1), dphis=DPHI
                 cache_path.write_text(json.dumps(cache, indent=1))
             if key in cache:
                 dis.setdefault(flight, []).append(cache[key])
-    return dict(eye=eye, dis=dis, seeds=list(seeds), dphis_deg=list(have), duration_s=DURATION_S, skip_s=SKIP_S)
+    return dict(eye=eye, fov=fov, dis=dis, seeds=list(seeds), dphis_deg=list(have), duration_s=DURATION_S,
+                skip_s=SKIP_S)
 
 
 COLOURS = {"turning": "tab:green", "saccadic": "tab:red", "saccadic, gaze": "tab:blue", "saccadic, no wobble": "tab:purple"}
@@ -272,8 +296,9 @@ def _plot_metric(ax, rows, key, colour, label, shift=0.0, ls="-", marker="o"):
 
 
 def plot_fly_flight(numbers: dict, out_dir) -> list[Path]:
-    """Draw ``fly_flight_dphi.png``, ``fly_flight_detector.png`` and ``fly_flight_lock_on.png`` from
-    :func:`fly_flight_numbers`' ``numbers`` into ``out_dir``; returns their paths."""
+    """Draw ``fly_flight_dphi.png``, ``fly_flight_detector.png``, ``fly_flight_lock_on.png`` and, where the numbers
+    hold the fields of view, ``fly_flight_fov.png`` from :func:`fly_flight_numbers`' ``numbers`` into ``out_dir``;
+    returns their paths."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -359,8 +384,8 @@ def plot_fly_flight(numbers: dict, out_dir) -> list[Path]:
                 labels.append(f"{f}\n{det}")
                 for i, dphi in enumerate(sorted(eye[f][det], key=float)):
                     v = np.array([r[key] for r in eye[f][det][dphi]], float)
-                    ax.plot(np.full(len(v), x + 0.15 * (i - 1)), np.where(np.isfinite(v), v, never), ls="none",
-                            marker="os^"[i % 3], mfc="none" if det == "three-arm" else c, color=c,
+                    ax.plot(np.full(len(v), x + 0.12 * (i - 1.5)), np.where(np.isfinite(v), v, never), ls="none",
+                            marker="os^v"[i % 4], mfc="none" if det == "three-arm" else c, color=c,
                             label=f"Δφ {dphi}°" if j == 0 and k == 0 else None)
             if dis_of(f) and ", gaze" not in f:
                 v = np.array([r[key] for r in dis_of(f)], float)
@@ -383,6 +408,36 @@ def plot_fly_flight(numbers: dict, out_dir) -> list[Path]:
     paths.append(out_dir / "fly_flight_lock_on.png")
     save_figure(fig, paths[-1], dpi=150)
     plt.close(fig)
+
+    # (d) the field of view: LC fields over both eyes against the D435i's view alone, HR
+    fov = numbers.get("fov", {})
+    if fov:
+        fig, axes = plt.subplots(2, len(flights), figsize=(3.8 * len(flights), 6.2), squeeze=False, sharex=True)
+        for j, f in enumerate(flights):
+            c = COLOURS.get(f, f"C{j}")
+            for k, (view, ls, mk) in enumerate(zip(FIELDS_OF_VIEW, ("-", "--"), ("o", "s"))):
+                label = "LC fields over both eyes" if view == "both eyes" else "LC fields in the D435i's 69°×42° only"
+                for row, key in enumerate(("rmse_all", "answered")):
+                    _plot_metric(axes[row][j], fov[f][view], key, c, label, shift=0.05 * (2 * k - 1), ls=ls, marker=mk)
+            if dis_of(f):
+                for row, key in enumerate(("rmse_all", "answered")):
+                    axes[row][j].axhline(np.nanmean([r[key] for r in dis_of(f)]), color="m", ls="--", lw=1,
+                                         label="DIS on the D435i (causal)")
+            axes[0][j].axhline(np.nanmean([r["zero"] for rows in fov[f]["both eyes"].values() for r in rows]),
+                               color="k", ls=":", lw=1, label="zero estimator")
+            axes[0][j].set_title(f, fontsize=9)
+            axes[0][j].set_ylim(bottom=0)
+            axes[1][j].set_ylim(-0.03, 1.03)
+            axes[1][j].set_xlabel("Δφ = Δρ (deg)")
+            axes[1][j].set_xticks(numbers["dphis_deg"])
+        axes[0][0].set_ylabel("RMSE of v̂, every frame (m/s)")
+        axes[1][0].set_ylabel("frames answered")
+        axes[0][0].legend(fontsize=7)
+        fig.suptitle("The field of view: both eyes against the camera's view, HR detectors\n" + sub, fontsize=8.5)
+        fig.tight_layout()
+        paths.append(out_dir / "fly_flight_fov.png")
+        save_figure(fig, paths[-1], dpi=150)
+        plt.close(fig)
     return paths
 
 
@@ -393,11 +448,13 @@ FIGURE_WHAT = {
     "fly_flight_detector": "HR correlator against the three-arm detector on the same flights and eyes",
     "fly_flight_lock_on": "lock-on time from the start of the flight per flight, detector and Δφ, on the answered "
                           "frames and for the posterior mean on every frame, beside causal DIS",
+    "fly_flight_fov": "fly eye (HR) on fly flight against Δφ, its LC fields over both eyes or only inside the "
+                      "D435i's view: RMSE of the posterior mean and frames answered, beside causal DIS",
 }
 
 
 def figure_fly_flight(out_dir, workdir=None, seeds=(0, 1), dphis=DPHIS, progress: bool = True) -> tuple[list, dict]:
-    """Render (where absent) and score every flight, then draw the three figures into ``out_dir``;
+    """Render (where absent) and score every flight, then draw the four figures into ``out_dir``;
     returns (their paths, the numbers)."""
     out_dir = Path(out_dir)
     workdir = Path(workdir) if workdir else out_dir / ".cache" / "fly_flight_runs"
@@ -407,7 +464,7 @@ def figure_fly_flight(out_dir, workdir=None, seeds=(0, 1), dphis=DPHIS, progress
 
 
 def write_fly_flight(out_dir="figures", workdir=None, seeds=(0, 1), dphis=DPHIS, progress: bool = True) -> dict:
-    """Make the three figures into ``out_dir``, each with ``NAME.json`` (command, provenance, what it shows, the
+    """Make the four figures into ``out_dir``, each with ``NAME.json`` (command, provenance, what it shows, the
     numbers: every seed's scores); returns {name: record}."""
     from lobula.version import command_line, provenance_attrs
 
@@ -433,15 +490,16 @@ def write_fly_flight(out_dir="figures", workdir=None, seeds=(0, 1), dphis=DPHIS,
 
 
 def main(argv=None) -> int:
-    """``python -m experiments.fly_flight_figures [--out figures] [--work DIR] [--seeds 0 1] [--dphi 2 3.5 5]``."""
+    """``python -m experiments.fly_flight_figures [--out figures] [--work DIR] [--seeds 0 1] [--dphi 2 3.5 5 6]``."""
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m experiments.fly_flight_figures", description=__doc__.split("\n")[0])
-    ap.add_argument("--out", default="figures", help="folder for the PNGs and their JSON (default: figures)")
-    ap.add_argument("--work", default=None, help="render cache (default: OUT/.cache/fly_flight_runs)")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap = argparse.ArgumentParser(prog="python -m experiments.fly_flight_figures", description=__doc__.split("\n")[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("--out", default="figures", help="folder for the PNGs and their JSON")
+    ap.add_argument("--work", default=None, help="render cache; None: OUT/.cache/fly_flight_runs")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="flight seeds (even: panels, odd: corridor)")
     ap.add_argument("--dphi", type=float, nargs="+", default=list(DPHIS), help="Δφ = Δρ (deg)")
-    ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
     a = ap.parse_args(argv)
     for name in write_fly_flight(a.out, a.work, tuple(a.seeds), tuple(a.dphi), progress=not a.quiet):
         print(f"wrote {Path(a.out) / name}.png and .json")
