@@ -309,7 +309,8 @@ def plot_fly_flight(numbers: dict, out_dir) -> list[Path]:
     eye, dis = numbers["eye"], numbers["dis"]
     flights = list(eye)
     n_seeds = len(numbers["seeds"])
-    base = (f"{numbers['duration_s']:g} s flights, {n_seeds} seeds (panels, corridor); causal, readout rates")
+    base = (f"{numbers['duration_s']:g} s flights, {n_seeds} seed{'' if n_seeds == 1 else 's'} (panels, corridor); "
+            "causal, readout rates")
     sub = base + f", after {numbers['skip_s']:g} s,\nsaccades and their hold left out; bars: seeds' range, dots: seeds"
     dis_of = (lambda f: dis.get(f.replace(", gaze", ""), []))
     paths = []

@@ -48,8 +48,12 @@ velocity (filter 1/(1/prior + Σ_{j≤k} info_j), smoother the sum over all); a 
 scalar Riccati fixed points; the steady-state smoother's variance half the filter's, √2 in RMSE, in the
 continuous limit); a known white and a known correlated κ error measured back.
 
-Run: ``python -m experiments.online_bound [--families all] [--seeds 3] [--duration 10]`` or
-``python -m experiments.online_bound --footage PATH… [--front-end dis|emd]``.
+The model's priors (1 m/s, 0.1 m/s²) suit the indoor families; ``--priors readout`` gives each record the priors
+the readout itself starts from (:func:`readout_priors`), which is what a drone or a car at metres per second
+calls for.
+
+Run: ``python -m experiments.online_bound [--families all] [--seeds 3] [--duration 10] [--priors model|readout]``
+or ``python -m experiments.online_bound --footage PATH… [--front-end dis|emd] [--priors model|readout]``.
 """
 from __future__ import annotations
 

@@ -17,8 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# ImportError too: pyrealsense2 installed without libusb fails to load its library, which is as absent.
 rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 (pip install '.[realsense]'; Debian: apt-get install "
-                                                 "libusb-1.0-0) is needed to write genuine RealSense recordings")
+                                                 "libusb-1.0-0) is needed to write genuine RealSense recordings",
+                         exc_type=ImportError)
 
 from tests import realsense_writer  # noqa: E402
 
