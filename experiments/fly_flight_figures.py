@@ -295,6 +295,46 @@ def _plot_metric(ax, rows, key, colour, label, shift=0.0, ls="-", marker="o"):
         ax.plot(np.full(len(v), x + shift), v, ".", color=colour, ms=3, alpha=0.6)
 
 
+def _variant_panels(rows, variants, dis_of, dphis, path, title, zero: bool = False) -> Path:
+    """One column per flight of ``rows`` ({flight: {variant: {Δφ: [per seed]}}}): the RMSE of the posterior mean
+    (top) and the frames answered (bottom) against Δφ (deg, ``dphis``), one line per variant of ``variants``
+    ((key, label, line style, marker)) where the flight has it, causal DIS (``dis_of(flight)``: its scores)
+    dashed and, with ``zero``, the zero estimator dotted; saved to ``path`` under ``title``."""
+    import matplotlib.pyplot as plt
+
+    from experiments.store import save_figure
+
+    flights = list(rows)
+    fig, axes = plt.subplots(2, len(flights), figsize=(3.8 * len(flights), 6.2), squeeze=False, sharex=True)
+    for j, f in enumerate(flights):
+        c = COLOURS.get(f, f"C{j}")
+        for k, (key, label, ls, mk) in enumerate(variants):
+            if key in rows[f]:
+                for row, metric in enumerate(("rmse_all", "answered")):
+                    _plot_metric(axes[row][j], rows[f][key], metric, c, label, shift=0.05 * (2 * k - 1), ls=ls,
+                                 marker=mk)
+        if dis_of(f):
+            for row, metric in enumerate(("rmse_all", "answered")):
+                axes[row][j].axhline(np.nanmean([r[metric] for r in dis_of(f)]), color="m", ls="--", lw=1,
+                                     label="DIS on the D435i (causal)")
+        if zero:
+            axes[0][j].axhline(np.nanmean([r["zero"] for rows_d in rows[f][variants[0][0]].values() for r in rows_d]),
+                               color="k", ls=":", lw=1, label="zero estimator")
+        axes[0][j].set_title(f, fontsize=9)
+        axes[0][j].set_ylim(bottom=0)
+        axes[1][j].set_ylim(-0.03, 1.03)
+        axes[1][j].set_xlabel("Δφ = Δρ (deg)")
+        axes[1][j].set_xticks(dphis)
+    axes[0][0].set_ylabel("RMSE of v̂, every frame (m/s)")
+    axes[1][0].set_ylabel("frames answered")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(title, fontsize=8.5)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=150)
+    plt.close(fig)
+    return path
+
+
 def plot_fly_flight(numbers: dict, out_dir) -> list[Path]:
     """Draw ``fly_flight_dphi.png``, ``fly_flight_detector.png``, ``fly_flight_lock_on.png`` and, where the numbers
     hold the fields of view, ``fly_flight_fov.png`` from :func:`fly_flight_numbers`' ``numbers`` into ``out_dir``;
@@ -344,34 +384,10 @@ def plot_fly_flight(numbers: dict, out_dir) -> list[Path]:
     plt.close(fig)
 
     # (b) HR against the three-arm detector
-    fig, axes = plt.subplots(2, len(flights), figsize=(3.8 * len(flights), 6.2), squeeze=False, sharex=True)
-    for j, f in enumerate(flights):
-        for k, (det, ls, mk) in enumerate((("hr", "-", "o"), ("three-arm", "--", "s"))):
-            if det not in eye[f]:
-                continue
-            c = COLOURS.get(f, f"C{j}")
-            _plot_metric(axes[0][j], eye[f][det], "rmse_all", c, DETECTOR_LABEL[det], shift=0.05 * (2 * k - 1), ls=ls,
-                         marker=mk)
-            _plot_metric(axes[1][j], eye[f][det], "answered", c, DETECTOR_LABEL[det], shift=0.05 * (2 * k - 1),
-                         ls=ls, marker=mk)
-        if dis_of(f):
-            axes[0][j].axhline(np.nanmean([r["rmse_all"] for r in dis_of(f)]), color="m", ls="--", lw=1,
-                               label="DIS on the D435i (causal)")
-            axes[1][j].axhline(np.nanmean([r["answered"] for r in dis_of(f)]), color="m", ls="--", lw=1,
-                               label="DIS on the D435i (causal)")
-        axes[0][j].set_title(f, fontsize=9)
-        axes[0][j].set_ylim(bottom=0)
-        axes[1][j].set_ylim(-0.03, 1.03)
-        axes[1][j].set_xlabel("Δφ = Δρ (deg)")
-        axes[1][j].set_xticks(numbers["dphis_deg"])
-    axes[0][0].set_ylabel("RMSE of v̂, every frame (m/s)")
-    axes[1][0].set_ylabel("frames answered")
-    axes[0][0].legend(fontsize=7)
-    fig.suptitle("HR correlator against the three-arm detector (τ = 35 ms both), same flights\n" + sub, fontsize=8.5)
-    fig.tight_layout()
-    paths.append(out_dir / "fly_flight_detector.png")
-    save_figure(fig, paths[-1], dpi=150)
-    plt.close(fig)
+    paths.append(_variant_panels(
+        eye, [(det, DETECTOR_LABEL[det], ls, mk) for det, ls, mk in (("hr", "-", "o"), ("three-arm", "--", "s"))],
+        dis_of, numbers["dphis_deg"], out_dir / "fly_flight_detector.png",
+        "HR correlator against the three-arm detector (τ = 35 ms both), same flights\n" + sub))
 
     # (c) lock-on time after take-off: on the answered frames, and for the posterior mean on every frame
     fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
@@ -411,34 +427,12 @@ def plot_fly_flight(numbers: dict, out_dir) -> list[Path]:
     plt.close(fig)
 
     # (d) the field of view: LC fields over both eyes against the D435i's view alone, HR
-    fov = numbers.get("fov", {})
-    if fov:
-        fig, axes = plt.subplots(2, len(flights), figsize=(3.8 * len(flights), 6.2), squeeze=False, sharex=True)
-        for j, f in enumerate(flights):
-            c = COLOURS.get(f, f"C{j}")
-            for k, (view, ls, mk) in enumerate(zip(FIELDS_OF_VIEW, ("-", "--"), ("o", "s"))):
-                label = "LC fields over both eyes" if view == "both eyes" else "LC fields in the D435i's 69°×42° only"
-                for row, key in enumerate(("rmse_all", "answered")):
-                    _plot_metric(axes[row][j], fov[f][view], key, c, label, shift=0.05 * (2 * k - 1), ls=ls, marker=mk)
-            if dis_of(f):
-                for row, key in enumerate(("rmse_all", "answered")):
-                    axes[row][j].axhline(np.nanmean([r[key] for r in dis_of(f)]), color="m", ls="--", lw=1,
-                                         label="DIS on the D435i (causal)")
-            axes[0][j].axhline(np.nanmean([r["zero"] for rows in fov[f]["both eyes"].values() for r in rows]),
-                               color="k", ls=":", lw=1, label="zero estimator")
-            axes[0][j].set_title(f, fontsize=9)
-            axes[0][j].set_ylim(bottom=0)
-            axes[1][j].set_ylim(-0.03, 1.03)
-            axes[1][j].set_xlabel("Δφ = Δρ (deg)")
-            axes[1][j].set_xticks(numbers["dphis_deg"])
-        axes[0][0].set_ylabel("RMSE of v̂, every frame (m/s)")
-        axes[1][0].set_ylabel("frames answered")
-        axes[0][0].legend(fontsize=7)
-        fig.suptitle("The field of view: both eyes against the camera's view, HR detectors\n" + sub, fontsize=8.5)
-        fig.tight_layout()
-        paths.append(out_dir / "fly_flight_fov.png")
-        save_figure(fig, paths[-1], dpi=150)
-        plt.close(fig)
+    if numbers.get("fov"):
+        paths.append(_variant_panels(
+            numbers["fov"], [("both eyes", "LC fields over both eyes", "-", "o"),
+                             ("frontal", "LC fields in the D435i's 69°×42° only", "--", "s")],
+            dis_of, numbers["dphis_deg"], out_dir / "fly_flight_fov.png",
+            "The field of view: both eyes against the camera's view, HR detectors\n" + sub, zero=True))
     return paths
 
 
