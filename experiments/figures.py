@@ -274,7 +274,7 @@ def _figures_of_their_own_worlds(which, out: Path, cache: Path, base: dict, seed
                                    seconds=round(time.perf_counter() - t0, 1))
         _save_record("emd_gaze", out, records["emd_gaze"])
 
-    if "fly_flight" in which:  # three figures, each with its own record (experiments.fly_flight_figures)
+    if "fly_flight" in which:  # four figures, each with its own record (experiments.fly_flight_figures)
         from experiments.fly_flight_figures import write_fly_flight
 
         t0 = time.perf_counter()

@@ -22,11 +22,11 @@ fraction of frames outside saccades where it answers, the RMSE of its posterior 
 saccades, and the lock-on time (:func:`experiments.suite_metrics.lock_on_time`).
 
 Figures (:func:`figure_fly_flight`): ``fly_flight_dphi`` (RMSE and answered fraction against Δφ per flight,
-HR), ``fly_flight_detector`` (HR against the three-arm detector on the same flights) and
-``fly_flight_lock_on`` (lock-on time from the start of the flight) and ``fly_flight_fov`` (HR with its LC fields
-over both eyes or only inside the D435i's view, :data:`FIELDS_OF_VIEW`), each with its JSON of every seed's
-numbers (:func:`write_fly_flight`; ``python -m experiments.fly_flight_figures --out figures``, ~60 min on
-2 cores with the renders). Renders and scores are cached in a work folder (``FLIGHT-SEED-dDPHI-eye``,
+HR), ``fly_flight_detector`` (HR against the three-arm detector on the same flights), ``fly_flight_lock_on``
+(lock-on time from the start of the flight) and ``fly_flight_fov`` (HR with its LC fields over both eyes or only
+inside the D435i's view, :data:`FIELDS_OF_VIEW`), each with its JSON of every seed's numbers
+(:func:`write_fly_flight`; ``python -m experiments.fly_flight_figures --out figures``, 36 min on 2 cores with the
+renders). Renders and scores are cached in a work folder (``FLIGHT-SEED-dDPHI-eye``,
 ``FLIGHT-SEED-cam``, ``scores.json``).
 """
 from __future__ import annotations
