@@ -18,8 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from lobula.config import VelocityConfig
 from lobula.front_ends import FRONT_ENDS, get_front_end
-from lobula.imu import (attitude_leak, forward_axis, gravity_drift_std, gyro_bias, leak_walk,
-                            orientation_from_gyro, transport_rate)
+from lobula.imu import (attitude_leak, forward_axis, gravity_drift_std, gyro_bias, leak_walk, orientation_from_gyro,
+                        transport_rate)
 from lobula.readers.core import Footage, footage_provenance
 from lobula.readers.flo import FloUnits
 from lobula.readout import readout
