@@ -84,7 +84,8 @@ def run_on_eye_footage(args) -> int:
                          f"footage of the same world")
     given = [k for k, v in vars(args).items() if k not in _VELOCITY_OPTIONS_ON_EYE and k in defaults
              and v != defaults[k]]
-    given += [k for k in ("saccade_gate", "heading_reset", "heading_walk") if hasattr(args, k)]  # no default: present when given
+    # no default: present when given
+    given += [k for k in ("saccade_gate", "heading_reset", "heading_walk") if hasattr(args, k)]
     if given:
         flags = ", ".join("--" + k.replace("_", "-") for k in sorted(given))
         raise ValueError(f"{args.footage}: {flags} set(s) a camera front end and does not apply to compound-eye "

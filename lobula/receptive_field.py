@@ -17,7 +17,7 @@ import numpy as np
 from scipy import sparse
 
 from .camera import PinholeCamera, normalised_to_angles
-from .epipole import derotate, derotate_finite
+from .epipole import derotate, derotate_finite, turn
 
 
 @dataclass
@@ -402,8 +402,6 @@ class MaterialFields:
         qc = sc["qm"]
         e0 = e1 = sc["e"]
         if self.own_heading and s0["settled"] and s1["settled"]:
-            from .epipole import turn
-
             # each pair's heading, seen in its middle orientation, as the centre's orientation sees it
             e0, e1 = (np.array(turn(qc.T @ it["qm"], *it["e"])) for it in (s0, s1))
         num0, den0, d0, X0, Y0, dx0, dy0 = self._rates(s0, qc, e0, self.x, self.y, s0["uf"], s0["vf"])
@@ -417,7 +415,6 @@ class MaterialFields:
             grow = np.where(np.abs(rho) * T > 1e-6,
                             (1.0 / np.maximum(1.0 - rho * delta, 0.2) - 1.0) / np.where(np.abs(lam - 1) > 1e-9, lam - 1, 1.0),
                             delta / T)
-        from .epipole import turn
         xe, ye = turn(s1["q0"].T @ qc, X0 + grow * T * d0[0], Y0 + grow * T * d0[1])
         b = self.block
         mx = ((xe * self.fx + self.cx) - (b - 1) / 2) / b

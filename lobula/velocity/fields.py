@@ -191,8 +191,7 @@ class FieldPooling:
         not estimated (the principal point) is settled."""
         if self.config.epipole != "estimate":
             return True
-        if self.est.n_frames == 0:
-            self._counting_since = None
+        if self.est.n_frames == 0:  # not started, or started afresh (forget_heading, which also clears the clock)
             return False
         if self._counting_since is None:
             self._counting_since = t
