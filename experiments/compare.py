@@ -259,12 +259,13 @@ def _stacked(runs: dict, names: list[str], t_grid: np.ndarray, stages_by_fe: dic
 
     data = {
         "v_hat": (("front_end", "time"), stack(lambda d: _on_grid(d.time.values, d.v_hat.values, t_grid)),
-                  {"units": "m/s", "long_name": "estimated forward velocity (on frame times)"}),
+                  {"units": "m/s", "long_name": "estimated forward velocity (on frame times; beyond the observable "
+                                                "frames carried by the accelerometer)"}),
         "observable": (("front_end", "time"),
                        stack(lambda d: _on_grid(d.time.values, d.observable.values.astype(float), t_grid, 0.0)) >= 0.5,
                        {"units": "1", "long_name": "velocity observable (nearest estimate)"}),
         "v_std": (("front_end", "time"), stack(lambda d: _on_grid(d.time.values, d.v_std.values, t_grid)),
-                  {"units": "m/s", "long_name": "posterior std of v_hat (on frame times)"}),
+                  {"units": "m/s", "long_name": "std of v_hat (on frame times)"}),
         "r_median": (("front_end", "time"), stack(lambda d: _on_grid(d.time.values, _median_r(d.r.values), t_grid)),
                      {"units": "1/s", "long_name": "median over fields of r_bar_f"}),
         "r": (("front_end", "time", "field"), stack(lambda d: _on_grid(d.time.values, d.r.values, t_grid)).astype(np.float32),
@@ -430,8 +431,11 @@ def comparison_figure(ds: xr.Dataset, title: str | None = None):
     gs = fig.add_gridspec(3, 2, height_ratios=[1.5, 1, 1])
     ax = fig.add_subplot(gs[0, :])
     for i, fe in enumerate(names):
-        ax.plot(t, ds.v_hat.values[i], color=cols[i], lw=1.6,
+        obs = ds.observable.values[i].astype(bool) if "observable" in ds else np.ones(len(t), bool)
+        ax.plot(t, np.where(obs, ds.v_hat.values[i], np.nan), color=cols[i], lw=1.6,
                 label=f"{fe}: RMSE {_fmt(float(ds.rmse_m_s.values[i]), 4)} m/s")
+        # Where the accelerometer carries v̂ (not observable): dotted, as `lobula velocity` draws it.
+        ax.plot(t, np.where(obs, np.nan, ds.v_hat.values[i]), color=cols[i], lw=1.0, ls=":")
     if "v_true" in ds:
         # Over the estimates, thin and dashed, so it stays visible where they agree with it.
         ax.plot(t, ds.v_true, "k--", lw=1.2, label="truth", zorder=4)

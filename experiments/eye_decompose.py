@@ -199,7 +199,7 @@ def readout_rmse(fo, t, rho, r2, source: str, cfg: EyeVelocityConfig | None = No
     res = suppressed_readout(t, rho, r2, a, rcfg, saccade, gravity_tau=tau, drift_std=drift, turn_rate=turn)
     vt = np.interp(t, fo.truth["time_s"], fo.truth["v_forward_m_s"])
     late = t >= t[0] + skip_s
-    k = late & np.isfinite(res.v_hat)
+    k = late & res.observable
     if not k.any():
         return float("nan"), float("nan"), 0.0
     err = res.v_hat[k] - vt[k]

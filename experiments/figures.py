@@ -173,12 +173,13 @@ def _fig_error_vs_acceleration(dis, base, out):
     absa = np.abs(a)
     keep = t > t[0] + 2
     rows = []
+    answered = np.where(ours.observable, ours.v_hat, np.nan)
     for lo, hi in zip(edges[:-1], edges[1:]):
         m = keep & (absa >= lo) & (absa < hi)
         if m.sum() < 5:
             continue
         err = lambda v: float(np.nanmedian(np.abs(v - vt)[m])) if np.isfinite(v[m]).any() else np.nan
-        rows.append((0.5 * (lo + hi), m.sum(), err(ours.v_hat), err(paper.measurement),
+        rows.append((0.5 * (lo + hi), m.sum(), err(answered), err(paper.measurement),
                      float(np.isfinite(meas[m]).mean()), err(meas)))
     rows = np.array(rows)
     fig, (ax, ax2) = plt.subplots(2, 1, figsize=(6.5, 6), sharex=True, layout="constrained")

@@ -33,7 +33,8 @@ def _config(front_end: str, gaze: str | None):
 def coverage(ds, skip_s: float = 2.0) -> float:
     """Share of the observable steps after ``skip_s`` with the truth inside v̂ ± 2·v_std."""
     t, v, vt, s = (ds[k].values for k in ("time", "v_hat", "v_true", "v_std"))
-    k = (t >= t[0] + skip_s) & np.isfinite(v) & np.isfinite(s)
+    answered = ds.observable.values.astype(bool) if "observable" in ds else np.isfinite(v)
+    k = (t >= t[0] + skip_s) & answered & np.isfinite(s)
     return float(np.mean(np.abs(v[k] - vt[k]) <= 2 * s[k])) if k.any() else float("nan")
 
 

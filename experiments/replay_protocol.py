@@ -298,13 +298,13 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
     t = ds.time.values
     dt = float(np.median(np.diff(t)))
     ncfg = replace(ecfg.neuron, spiking=spiking, seed=seed, spike_model=spike_model or ecfg.neuron.spike_model)
-    # As `lobula eye-velocity --readout spikes`: the readout's v̂ (NaN where unobservable: the neurons fall
-    # silent), the decoder's lead from the accelerometer less the offset that v̂ implies.
-    v_hat, a = ds.v_hat.values, ds.accel.values
+    # As `lobula eye-velocity --readout spikes`: the readout's v̂ where observable (elsewhere NaN: the neurons
+    # fall silent), the decoder's lead from the accelerometer less the offset that v̂ implies.
+    v_hat, a = np.where(ds.observable.values, ds.v_hat.values, np.nan), ds.accel.values
     a_lead = a - readout_offset(t, v_hat, a, ecfg.lead_offset_tau_s) if ecfg.lead_offset_tau_s else a
     out = per_trial(lambda c: spiking_output(t, v_hat, a_lead, c), trials, ncfg)
     out["v_hat"] = (np.where(ds.observable.values, out["v_dec"], np.nan) if spiking
-                    else np.broadcast_to(v_hat, (trials, len(t))).copy())
+                    else np.broadcast_to(ds.v_hat.values, (trials, len(t))).copy())
     data = _eye_replay_variables(ds, want)
     rec, spike_dt = _replay_dataset(ds, want, out, ncfg, spiking, data,
                                     f"output neurons' decoded forward velocity ({SPIKE_MODELS[ncfg.spike_model]}, "

@@ -21,16 +21,23 @@ from lobula.velocity import estimate_velocity
 
 
 def score(ds: xr.Dataset, skip_s: float = 2.0) -> dict:
-    """RMSE and median absolute error of v̂ against truth after ``skip_s``, and the observable fraction.
+    """RMSE and median absolute error of v̂ against truth after ``skip_s``, the observable fraction, and the
+    truth inside v̂ ± 2·v_std.
 
-    Errors are over observable frames; the fraction says how many those are.
+    Errors are over observable frames; the fraction says how many those are. ``carried_fraction``: the frames
+    where v̂ is carried by the accelerometer (finite, not observable); ``coverage_2sigma_all``: the truth inside
+    ±2σ over every frame after ``skip_s``, a frame without v̂ counted outside.
     """
     if "v_true" not in ds:
         return {}
     keep = (ds.time >= ds.time[0] + skip_s).values
-    obs = ds.observable.values[keep]
-    err = (ds.v_hat - ds.v_true).values[keep][obs]
-    out = dict(observable_fraction=float(obs.mean()) if obs.size else 0.0, n_frames=int(keep.sum()))
+    obs = ds.observable.values[keep].astype(bool)
+    e_all = (ds.v_hat - ds.v_true).values[keep]
+    err = e_all[obs]
+    inside = np.abs(e_all) <= 2 * ds.v_std.values[keep]
+    out = dict(observable_fraction=float(obs.mean()) if obs.size else 0.0, n_frames=int(keep.sum()),
+               carried_fraction=float(np.mean(np.isfinite(e_all) & ~obs)) if obs.size else 0.0,
+               coverage_2sigma_all=float(inside.mean()) if obs.size else float("nan"))
     if err.size:
         out.update(rmse_m_s=float(np.sqrt(np.mean(err ** 2))), median_abs_error_m_s=float(np.median(np.abs(err))))
     else:
@@ -66,6 +73,15 @@ def score_line(sc: dict, skip_s: float) -> str:
             f"{sc['median_abs_error_m_s']:.4f} m/s, {obs}")
 
 
+def carried_line(sc: dict) -> str | None:
+    """One line on the frames the accelerometer carries v̂ through, from :func:`score`'s dict; None where it
+    carries none (or there is no truth)."""
+    if not sc.get("carried_fraction"):
+        return None
+    return (f"v̂ carried by the accelerometer on {100 * sc['carried_fraction']:.1f} % of the estimates; the truth "
+            f"inside ±2σ on {100 * sc['coverage_2sigma_all']:.0f} % of all (no v̂ counted outside)")
+
+
 def _stored_readout_config(ds: xr.Dataset) -> dict:
     """The readout's configuration as the run stored it (``attrs["config"]``, JSON), {} where unreadable."""
     try:
@@ -97,7 +113,8 @@ def never_observable_reason(ds: xr.Dataset) -> str | None:
     Computed from what the run stores: its forward acceleration ``accel`` (m/s²) low-passed as the
     readout low-passes it (a zero-phase Butterworth of the configuration's ``readout.order`` at
     ``readout.cutoff_hz``) against ``readout.accel_min_m_s2``; else the expansion rates ``r``
-    (none finite: the fields measured nothing); else ``v_std`` against ``readout.max_std_m_s``.
+    (none finite: the fields measured nothing); else the filter's ``posterior_std`` (``v_std`` in a run
+    without it) against ``readout.max_std_m_s``.
     """
     if "observable" not in ds or bool(ds.observable.values.astype(bool).any()):
         return None
@@ -134,7 +151,8 @@ def never_observable_reason(ds: xr.Dataset) -> str | None:
                 f"{float(ro.get('coupling_z', 3.0)):g} needed{seen}; lobula.readout.coupling) — vision's κ = a/v is "
                 f"noise here (an image stabilised against the body, a scene that moves, or a steady pace with nothing "
                 f"to follow), so the speed cannot be told; v̂ is NaN throughout")
-    std = ds.v_std.values.astype(float) if "v_std" in ds else np.full(1, np.nan)
+    std = ds["posterior_std" if "posterior_std" in ds else "v_std"].values.astype(float) \
+        if "v_std" in ds else np.full(1, np.nan)
     low = float(np.nanmin(std)) if np.isfinite(std).any() else float("nan")
     return (f"never observable: the posterior std of v̂ never fell below the readout's max_std ({max_std:g} m/s; "
             f"at best {low:.3f} m/s) — the forward acceleration (up to {peak:.3f} m/s², low-passed) and the "
@@ -160,11 +178,11 @@ def describe_run(ds: xr.Dataset) -> str:
 def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | None = None):
     """The figure of a velocity run: v̂ with its ±2σ band against truth (top), forward acceleration (bottom).
 
-    ds: the velocity Dataset (:func:`estimate_velocity`, or its NetCDF read back); ``v_std`` is the
-    1σ posterior std (m/s), drawn as v̂ ± 2·v_std. skip_s: seconds not scored (default
-    :func:`scoring_skip`, as `lobula velocity` prints it); the title's numbers are :func:`score_line` of
-    :func:`score` on ``ds`` with it, the console's numbers, after ``title`` (default "forward velocity");
-    below them the front end, readout and filter in words (:func:`describe_run`).
+    ds: the velocity Dataset (:func:`estimate_velocity`, or its NetCDF read back); ``v_std`` is v̂'s
+    1σ std (m/s), drawn as v̂ ± 2·v_std; v̂ solid where observable, dotted where the accelerometer carries it.
+    skip_s: seconds not scored (default :func:`scoring_skip`, as `lobula velocity` prints it); the title's
+    numbers are :func:`score_line` of :func:`score` on ``ds`` with it, the console's numbers, after ``title``
+    (default "forward velocity"); below them the front end, readout and filter in words (:func:`describe_run`).
     Returns the matplotlib Figure.
     """
     import matplotlib
@@ -177,22 +195,25 @@ def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | No
                                   gridspec_kw=dict(height_ratios=[3, 1]))
     v, s = ds.v_hat.values, ds.v_std.values
     if np.isfinite(s).any():
-        ax.fill_between(t, v - 2 * s, v + 2 * s, color="m", alpha=0.18, lw=0, label="±2σ (2 × v_std)")
-    ax.plot(t, v, color="m", lw=2.2, label="v̂ estimate", zorder=3)
+        ax.fill_between(t, v - 2 * s, v + 2 * s, color="m", alpha=0.18, lw=0, label="±2σ (2 × v_std)", zorder=2)
+    unobs = ~ds.observable.values.astype(bool)
+    ax.plot(t, np.where(unobs, np.nan, v), color="m", lw=2.2, label="v̂ estimate", zorder=3)
+    if np.isfinite(v[unobs]).any():
+        ax.plot(t, np.where(unobs, v, np.nan), color="m", lw=1.4, ls=":", zorder=3,
+                label="v̂ carried by the accelerometer (not observable)")
     if "v_true" in ds:
         # Drawn over v̂, thinner and dashed, so it stays visible where the two agree.
         ax.plot(t, ds.v_true.values, color="k", ls="--", lw=1.2, label="truth", zorder=4)
-    unobs = ~ds.observable.values.astype(bool)
     # Runs stored without the coupling test's flags read as never refuted, locked and informed.
     flag = lambda name, absent: ds[name].values.astype(bool) if name in ds else np.full(len(t), absent)
     refuted, unlocked = flag("vision_refuted", False), ~flag("vision_locked", True)
     carried = ~unobs & ~flag("vision_informing", True)
-    for where, grey, words in ((unobs & refuted, "0.7", "unobservable: expansion not following a (no v̂)"),
-                               (unobs & unlocked & ~refuted, "0.8", "unobservable: vision has not fixed v (no v̂)"),
-                               (unobs & ~unlocked, "0.88", "unobservable: std too large (no v̂)")):
+    for where, grey, words in ((unobs & refuted, "0.7", "unobservable: expansion not following a"),
+                               (unobs & unlocked & ~refuted, "0.8", "unobservable: vision has not fixed v"),
+                               (unobs & ~unlocked, "0.88", "unobservable: std too large")):
         if where.any():
             ax.fill_between(t, 0, 1, where=where, transform=ax.get_xaxis_transform(), color=grey, lw=0, label=words,
-                            step="mid")
+                            step="mid", zorder=0)
     if carried.any():
         ax.fill_between(t, 0, 0.04, where=carried, transform=ax.get_xaxis_transform(), color="tab:cyan", lw=0,
                         label="v̂ carried by the accelerometer alone (no vision measurement)", step="mid")
@@ -204,6 +225,8 @@ def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | No
     sc = score(ds, skip)
     # A caller's title gets a line of its own: with the scores after it, it ran past the figure's edge.
     head = f"{title}\n{score_line(sc, skip)}" if title else f"forward velocity: {score_line(sc, skip)}"
+    if carried_line(sc):
+        head += "\n" + carried_line(sc)
     fig.suptitle(f"{head}\n{describe_run(ds)}", fontsize=9)
     ax2.plot(t, ds.accel.values, color="tab:blue", lw=1, label="a")
     ax2.axhline(0, color="0.4", lw=0.8)
@@ -348,6 +371,8 @@ def run_velocity(args) -> int:
         print(line)
     if sc:
         print(score_line(sc, skip))
+        if carried_line(sc):
+            print(carried_line(sc))
     why = never_observable_reason(ds) if ds.sizes["time"] >= 3 else None
     if why:
         print(why)

@@ -194,7 +194,8 @@ def test_empty_or_corrupt_db3_frame_is_one_line_or_skipped(run2, tmp_path, capsy
     assert err == ""                                   # nor OpenCV's own log of the damaged PNG
     with xr.open_dataset(out) as ds:
         assert int(ds.attrs["frames_skipped"]) == 2 and json.loads(ds.attrs["frames_skipped_indices"]) == [10, 20]
-        assert ds.attrs["footage_layout"] == "realsense-db3" and bool(np.isfinite(ds.v_std).all())  # estimated throughout
+        # the filter ran through the skipped frames: its posterior holds on every frame
+        assert ds.attrs["footage_layout"] == "realsense-db3" and bool(np.isfinite(ds.posterior_std).all())
     assert entries(out.parent) == {"v.nc"}
 
 
@@ -565,7 +566,7 @@ def test_never_observable_reason_is_read_from_the_stored_run(run2, tmp_path, cap
         assert never_observable_reason(ds) is None
         ds["observable"] = ds.observable * False                  # the same accelerations, never observable:
         ds["vision_locked"] = ds.vision_locked | True              # vision locked on, the posterior never sure
-        ds["v_std"] = ds.v_std * 0 + 0.5
+        ds["posterior_std"] = ds.posterior_std * 0 + 0.5
         why = never_observable_reason(ds)
         assert why.startswith(f"never observable: the posterior std of v̂ never fell below the readout's max_std "
                               f"({cfg['readout']['max_std_m_s']:g} m/s; at best 0.500 m/s)")

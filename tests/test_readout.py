@@ -850,10 +850,10 @@ def test_reversals_are_read_where_the_expansion_changes_sign():
 def test_velocity_from_the_reversals_alone(filt, bound):
     """With no κ at all (no ṙ: every field's derivative missing) and an accelerometer offset of 0.05 m/s²,
     nothing but the reversals speaks of v: the readout without them knows nothing (every frame NaN);
-    with them v̂ follows ∫a from each crossing, the offset learned between crossings: RMSE 0.014–0.021 m/s
-    online, 0.004–0.008 offline (seeds 0–2; the zero estimator 0.35), the truth inside ±2σ on every frame.
-    Online a crossing is known once the new sign has held SIGN_PERSIST_S, and locks vision on once a whole
-    coupling window (4 s) has let it stand: answered on 48–59 % of the frames after 2 s."""
+    with them v̂ follows ∫a from each crossing, the offset learned between crossings, the truth inside ±2σ on every
+    frame. Online a crossing is known once the new sign has held SIGN_PERSIST_S, and locks vision on once a whole
+    coupling window (4 s) has let it stand; beyond each crossing σ grows with the offset's prior
+    (lobula.readout.carry), so fewer frames are answered than are carried."""
     from lobula.readout import MaterialRates
 
     t = np.arange(0, 10, 1 / 30)
@@ -865,7 +865,12 @@ def test_velocity_from_the_reversals_alone(filt, bound):
         assert not res[False].observable[t >= 2].any()
         rmse, cover, obs = _score(res[True], v_t, t)
         assert rmse <= bound and rmse <= 0.1 * np.sqrt(np.mean(v_t[t >= 2] ** 2)), (seed, rmse)
-        assert cover >= 0.9 and obs >= 0.4, (seed, cover, obs)
+        assert cover >= 0.9 and obs >= 0.2, (seed, cover, obs)
+        # between the crossings the accelerometer carries v̂, its band grown from the last (offline: nearest) one
+        late = t >= 2
+        carried = late & np.isfinite(res[True].v_hat)
+        e = np.abs(res[True].v_hat - v_t)[carried]
+        assert carried.sum() >= 0.9 * late.sum() and np.mean(e <= 2 * res[True].v_std[carried]) >= 0.95, seed
 
 
 @pytest.mark.parametrize("fault_s, found", [(0.3, 0), (0.8, 2)])
@@ -1110,7 +1115,7 @@ def test_expansion_that_does_not_follow_the_accelerometer_is_not_read_as_a_speed
         good = readout(t, r, r ** 2, a, cfg, material=MaterialRates(r, r ** 2, r_dot))
         after = t >= cfg.coupling_window_s
         _, cover_blind, obs_blind = _score(blind, v, t)
-        assert obs_blind > 0.3 and cover_blind < 0.5, (filt, cover_blind, obs_blind)  # confidently wrong
+        assert obs_blind > 0.2 and cover_blind < 0.5, (filt, cover_blind, obs_blind)  # confidently wrong
         assert not bad.observable[after].any(), filt
         rmse, cover, obs = _score(good, v, t)
         # obs: of all frames, scored from 2 s; online the lock-on comes some seconds in

@@ -28,15 +28,17 @@ Two readouts share this arithmetic:
   confident, wrong offset; offline the smoother estimates it. The acceleration's own noise
   grows while the camera turns (``accel_turn_noise``), and offline every error of a low-passed
   term counts once per correlation time of the low-pass, not once per frame.
-  v̂ is NaN (``observable`` False) wherever the posterior standard deviation exceeds
+  ``observable`` is False wherever the posterior standard deviation exceeds
   :func:`~lobula.readout.config.std_allowed`, or vision has not fixed the speed or was seen not to
-  follow the accelerometer (:mod:`lobula.readout.coupling`): the readout says when it does not know.
-  Between the moments vision informs it, the accelerometer carries v̂ and σ grows as its errors allow.
+  follow the accelerometer (:mod:`lobula.readout.coupling`): the readout says when vision does not
+  know. Beyond the observable frames the accelerometer carries v̂, its σ growing with the offset's
+  prior (:mod:`lobula.readout.carry`); before vision has ever answered, v̂ is NaN.
 
 The package, one module per concept: :mod:`lobula.readout.config` (:class:`ReadoutConfig`,
 :class:`ReadoutResult`), :mod:`lobula.readout.filters` (low-passes and differences),
 :mod:`lobula.readout.measurements` (what vision and the accelerometer measure),
-:mod:`lobula.readout.kalman` (the filter), :mod:`lobula.readout.smoothers` (its backward passes) and
+:mod:`lobula.readout.kalman` (the filter), :mod:`lobula.readout.smoothers` (its backward passes),
+:mod:`lobula.readout.carry` (v̂ beyond the frames vision answers) and
 :mod:`lobula.readout.paper` (the paper's readout); every public name is importable from
 ``lobula.readout`` itself.
 """
@@ -46,6 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .carry import carried_std, time_from_answer
 from .config import ReadoutConfig, ReadoutResult, std_allowed
 from .coupling import CouplingTest, coupling_test, vision_locked
 from .filters import (_fill_nan, _integral, _lag, butterworth, difference_mean, end_mean, gaussian_lowpass, hold_gaps,
@@ -67,7 +70,7 @@ __all__ = [
     "field_velocity", "field_axes", "acceleration_heading", "ACCEL_HEADING_FLOOR_M_S2", "median_and_error",
     "accelerometer_level", "accelerometer_steady",
     "kalman_inputs", "gate_by_lock", "vision_trusted", "kalman_velocity", "predict", "ratio_update", "rts_smooth",
-    "fixed_lag_smooth",
+    "fixed_lag_smooth", "time_from_answer", "carried_std",
     "butterworth", "gaussian_lowpass", "staggered_difference", "hold_gaps",
     "NO_EXPANSION_SE", "SIGN_PERSIST_S", "REVERSAL_MAX_GAP_S", "OUTLIER_GATE",
 ]
@@ -205,22 +208,29 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
                                offset_axis=offset_axis, offset_axis_prior=offset_axis_prior, transport=transport,
                                rest_accel=inp.rest_accel, lag=cfg.lag_s,  # the smoother (zero-phase) ignores lag
                                reversal=inp.reversal, sign=inp.sign)
-    return finish_readout(v, v_std, inp, a, cfg)
+    return finish_readout(t, v, v_std, inp, a, cfg)
 
 
-def finish_readout(v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> ReadoutResult:
-    """The :class:`ReadoutResult` of the filter's posterior v, v_std ((n,) m/s): v_std widened by the
-    accelerometer's scale error (ReadoutConfig.accel_scale_error), v̂ NaN where v_std exceeds
-    :func:`~lobula.readout.config.std_allowed` or vision has not fixed the speed (:mod:`lobula.readout.coupling`)."""
+def finish_readout(t, v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> ReadoutResult:
+    """The :class:`ReadoutResult` of the filter's posterior v, v_std ((n,) m/s at t (n,) s): v_std widened by
+    the accelerometer's scale error (ReadoutConfig.accel_scale_error); observable where v_std is within
+    :func:`~lobula.readout.config.std_allowed` and vision has fixed the speed (:mod:`lobula.readout.coupling`),
+    v_std carried (:mod:`lobula.readout.carry`) from the frames where, so judged, a measurement of vision entered;
+    v̂ NaN where vision never has."""
     v_std = np.hypot(v_std, cfg.accel_scale_error * np.abs(v))  # the accelerometer's scale (see ReadoutConfig)
     zp = cfg.filter == "zero-phase"
-    obs = (v_std <= std_allowed(v, cfg)) & (inp.locked | inp.coupling.provisional)
+    fixed = inp.locked | inp.coupling.provisional
+    informing = np.isfinite(inp.ratio[0]) | inp.still | inp.passed_zero
+    # σ is the posterior's where vision spoke and fixed the speed; beyond, it grows as lobula.readout.carry says.
+    spoke = (v_std <= std_allowed(v, cfg)) & fixed & informing
+    posterior_std, v_std = v_std, carried_std(v_std, time_from_answer(t, spoke, causal=not zp), inp.offset_prior)
+    obs = (v_std <= std_allowed(v, cfg)) & fixed
     # The direct measurement as the filter takes it: its latency bridged with ∫a (the accelerometer's fast path).
     z = inp.z + inp.ratio[3]
-    return ReadoutResult(np.where(obs, v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
+    return ReadoutResult(np.where(np.isfinite(v_std), v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
                          info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s,
                                    vision_coupling=inp.coupling.z, vision_locked=inp.locked,
-                                   vision_informing=np.isfinite(inp.ratio[0]) | inp.still | inp.passed_zero,
+                                   vision_informing=informing, posterior_std=posterior_std,
                                    vision_refuted=inp.coupling.refuted, scene_depth=inp.scene_depth))
 
 
@@ -236,7 +246,8 @@ class KalmanInputs:
     rest bound holds at 0, and frames a reversal (taken by the filter) was seen at; scene_depth (n,) m: the scene's depth
     as learned so far (:func:`~lobula.readout.measurements.scene_depth`; NaN: none yet, inf: too far to bound), which
     the rest bound takes × ``rest_depth_margin`` unless ``rest_depth_max_m`` gives one; locked (n,) bool: where vision
-    has fixed the speed over this stretch (:func:`lobula.readout.coupling.vision_locked`).
+    has fixed the speed over this stretch (:func:`lobula.readout.coupling.vision_locked`); offset_prior: m/s², the prior
+    std of the acceleration's whole forward offset.
     """
 
     measurements: list
@@ -255,6 +266,7 @@ class KalmanInputs:
     passed_zero: np.ndarray
     scene_depth: np.ndarray
     locked: np.ndarray
+    offset_prior: float
 
 
 def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | None = None, offset_axis=None,
@@ -363,7 +375,7 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     if gate:
         kap, reversal = gate_by_lock(kap, reversal, vision_trusted(locked, coupling.provisional, coupling.full))
     return KalmanInputs(coupling=coupling, still=np.isfinite(zr), scene_depth=seen, locked=locked,
-        passed_zero=passed_zero,
+        passed_zero=passed_zero, offset_prior=offset_prior,
         measurements=[(zr, sr, 0.0)], ratio=(kap, skap, a_m, shift, e_lp) + (() if c_m is None else (c_m,)),
         rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True),
         reversal=reversal,

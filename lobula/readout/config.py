@@ -306,11 +306,12 @@ class ReadoutResult:
     Parameters
     ----------
     v_hat : ndarray, (n,)
-        m/s: the estimated forward velocity, NaN where unobservable.
+        m/s: the estimated forward velocity: where observable, the filter's posterior; beyond, carried by the
+        accelerometer (:mod:`lobula.readout.carry`); NaN where vision has not fixed the speed (online: yet).
     observable : ndarray of bool, (n,)
-        Where v_hat is reported.
+        Where vision fixes v_hat.
     v_std : ndarray, (n,)
-        m/s: its posterior standard deviation (NaN throughout for the paper's readout).
+        m/s: its standard deviation (NaN where v_hat is, and throughout for the paper's readout).
     v_field : ndarray, (n, F)
         m/s: each field's velocity a·r̄/(ṙ̄ − r²̄), NaN for rejected fields.
     r_dot : ndarray, (n, F)

@@ -152,9 +152,14 @@ def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Foot
     n, F = rates.r.shape
     nan_nf = np.full((n, F), np.nan)
     data = dict(
-        v_hat=("time", res.v_hat if res else np.full(n, np.nan), {"units": "m/s", "long_name": "estimated forward velocity"}),
-        observable=("time", res.observable if res else np.zeros(n, bool), {"units": "1", "long_name": "velocity observable"}),
-        v_std=("time", res.v_std if res else np.full(n, np.nan), {"units": "m/s", "long_name": "posterior std of v_hat"}),
+        v_hat=("time", res.v_hat if res else np.full(n, np.nan), {"units": "m/s", "long_name":
+               "estimated forward velocity: where observable the filter's posterior, beyond carried by the "
+               "accelerometer; NaN where vision has not fixed the speed"}),
+        observable=("time", res.observable if res else np.zeros(n, bool), {"units": "1", "long_name":
+                    "vision fixes the velocity at this frame"}),
+        v_std=("time", res.v_std if res else np.full(n, np.nan), {"units": "m/s", "long_name":
+               "std of v_hat: the posterior's where observable, beyond grown by the accelerometer offset's prior "
+               "std times the time from the nearest observable frame (online: the last)"}),
         accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": accel_source}),
         r=(("time", "field"), rates.r, {"units": "1/s", "long_name": "pooled expansion rate v/d"}),
         r2=(("time", "field"), rates.r2, {"units": "1/s2", "long_name": "pooled mean of r squared"}),
@@ -196,7 +201,8 @@ def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Foot
 def vision_variables(info: dict) -> dict:
     """The readout's verdicts on vision as Dataset variables (name: (dims, values, attrs)), each (n,) over time:
     what :func:`lobula.readout.readout`'s ``info`` holds of them (vision_coupling, vision_locked,
-    vision_informing, vision_refuted, scene_depth); {} where it holds none (a readout without the coupling test)."""
+    vision_informing, vision_refuted, scene_depth) and the filter's posterior_std; {} where it holds none (a
+    readout without the coupling test)."""
     if "vision_coupling" not in info:
         return {}
     return dict(
@@ -214,6 +220,9 @@ def vision_variables(info: dict) -> dict:
                      "the fields' median depth as the footage has shown it while vision followed the accelerometer "
                      "(lobula.readout.scene_depth): the rest bound's depth; NaN: none yet, inf: a scene too far to "
                      "bound the speed by"}),
+        posterior_std=("time", info["posterior_std"], {"units": "m/s", "long_name":
+                       "the filter's posterior std of v on every frame; beyond the observable frames it takes the "
+                       "offset vision taught as known, which v_std does not (lobula.readout.carry)"}),
     )
 
 

@@ -22,6 +22,7 @@ from lobula.flow import StaggeredFlow
 from lobula.front_ends import get_front_end
 from lobula.imu import HEADING_FIT_BIAS_PRIOR
 from lobula.readout import MaterialRates, acceleration_heading, gate_by_lock, kalman_inputs, vision_trusted
+from lobula.readout.carry import carried_std
 from lobula.readout.config import std_allowed
 from lobula.readout.coupling import LockState
 from lobula.readout.kalman import ForwardPass, filter_record
@@ -46,15 +47,17 @@ class VelocityState:
     known_at : float
         s: the newest frame it uses (the pair's second frame).
     v : float
-        m/s: forward velocity along the optical axis; NaN where not observable.
+        m/s: forward velocity along the optical axis: where observable the filter's posterior, after that carried
+        by the accelerometer (lobula.readout.carry); NaN before vision has first fixed the speed.
     v_std : float
-        m/s: its posterior std (1σ), also where not observable.
+        m/s: its std (1σ), NaN where v is.
     observable : bool
-        v_std within lobula.readout.config.std_allowed, and vision has fixed the speed (lobula.readout.coupling).
+        The posterior std within lobula.readout.config.std_allowed, and vision has fixed the speed
+        (lobula.readout.coupling).
     heading : ndarray, (2,)
         The epipole (v_x/v_z, v_y/v_z), normalised image coordinates.
     velocity : ndarray, (3,)
-        m/s: v·(e_x, e_y, 1) in the camera frame (x right, y down, z forward); NaN where not observable.
+        m/s: v·(e_x, e_y, 1) in the camera frame (x right, y down, z forward); NaN where v is.
     accel : float
         m/s²: the forward acceleration the readout took (gravity removed).
     gyro_bias : ndarray, (3,)
@@ -135,6 +138,7 @@ class VelocityEstimator:
         self._filter: ForwardPass | None = None
         self._lock = LockState(locked=self.config.readout.coupling_z <= 0)  # lobula.readout.coupling
         self._rest_depth = np.nan  # m: the scene depth learned so far (lobula.readout.scene_depth)
+        self._t_answered = -np.inf  # s: the last frame vision fixed the speed at (lobula.readout.carry)
         self._out: list[VelocityState] = []
 
     # ---------------------------------------------------------------- input
@@ -276,7 +280,14 @@ class VelocityEstimator:
                                  inp.rest_accel, reversal, inp.sign)[3:]
         v = float(x[0])
         v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
-        obs = v_std <= float(std_allowed(v, cfg)) and (locked or bool(c.provisional[i]))
+        fixed = locked or bool(c.provisional[i])
+        # As lobula.readout.finish_readout: σ carried from the last frame where vision spoke and fixed the speed.
+        if fixed and v_std <= float(std_allowed(v, cfg)) and (np.isfinite(kappa[i]) or inp.still[i]
+                                                               or inp.passed_zero[i]):
+            self._t_answered = float(t[i])
+        s_out = float(carried_std(v_std, t[i] - self._t_answered, inp.offset_prior))
+        v_out = v if np.isfinite(s_out) else np.nan
+        obs = fixed and s_out <= float(std_allowed(v, cfg))
         e = col("epipole")[i]
         if refuted:
             reason = (f"the image's expansion has not followed the accelerometer (coupling z {c.z[i]:.1f} < "
@@ -286,11 +297,11 @@ class VelocityEstimator:
             reason = (f"vision has not yet fixed the speed: the image's expansion has not followed the accelerometer "
                       f"(coupling z {c.z[i]:.1f}, {cfg.coupling_z:g} needed)")
         else:
-            reason = "" if obs else (f"posterior std {v_std:.3f} m/s above the readout's max_std "
+            reason = "" if obs else (f"std {s_out:.3f} m/s above the readout's max_std "
                                      f"{float(std_allowed(v, cfg)):.3g} m/s: the expansion and the acceleration have "
                                      f"not fixed the speed, or the accelerometer has carried it too long")
-        return VelocityState(float(t[i]), float(col("known")[i]), v if obs else np.nan, v_std, bool(obs), e.copy(),
-                             (v * np.array([e[0], e[1], 1.0])) if obs else np.full(3, np.nan), float(a[i]),
+        return VelocityState(float(t[i]), float(col("known")[i]), v_out, s_out, bool(obs), e.copy(),
+                             v_out * np.array([e[0], e[1], 1.0]), float(a[i]),
                              col("bias")[i].copy(), col("attitude")[i].copy(), reason)
 
 
