@@ -336,6 +336,7 @@ def test_command_line(synthetic, tmp_path, capsys):
         assert cli.main(["depth", str(tmp_path / "missing"), "--out", str(tmp_path / "x.nc")]) == 2
 
 
+@pytest.mark.slow  # 28 s: the whole depth suite end to end
 def test_depth_suite_scores_against_its_baselines_and_the_table_is_the_netcdf(tmp_path, capsys):
     """`lobula depth-suite` end to end on one tiny scene (96×72, 3.5 s): the oracle "tv exact flow"
     baseline with the exact speed is near exact, TV on DIS flow beats the oracle constant depth,
