@@ -28,7 +28,7 @@ Two readouts share this arithmetic:
   confident, wrong offset; offline the smoother estimates it. The acceleration's own noise
   grows while the camera turns (``accel_turn_noise``), and offline every error of a low-passed
   term counts once per correlation time of the low-pass, not once per frame.
-  ``observable`` is False wherever the posterior standard deviation exceeds
+  ``observable`` is False wherever v̂'s standard deviation exceeds
   :func:`~lobula.readout.config.std_allowed`, or vision has not fixed the speed or was seen not to
   follow the accelerometer (:mod:`lobula.readout.coupling`): the readout says when vision does not
   know. Beyond the observable frames the accelerometer carries v̂, its σ growing with the offset's
@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .carry import carried_std, time_from_answer
+from .carry import carried_std, time_from_answer, vision_answers
 from .config import ReadoutConfig, ReadoutResult, std_allowed
 from .coupling import CouplingTest, coupling_test, vision_locked
 from .filters import (_fill_nan, _integral, _lag, butterworth, difference_mean, end_mean, gaussian_lowpass, hold_gaps,
@@ -70,7 +70,7 @@ __all__ = [
     "field_velocity", "field_axes", "acceleration_heading", "ACCEL_HEADING_FLOOR_M_S2", "median_and_error",
     "accelerometer_level", "accelerometer_steady",
     "kalman_inputs", "gate_by_lock", "vision_trusted", "kalman_velocity", "predict", "ratio_update", "rts_smooth",
-    "fixed_lag_smooth", "time_from_answer", "carried_std",
+    "fixed_lag_smooth", "vision_answers", "time_from_answer", "carried_std",
     "butterworth", "gaussian_lowpass", "staggered_difference", "hold_gaps",
     "NO_EXPANSION_SE", "SIGN_PERSIST_S", "REVERSAL_MAX_GAP_S", "OUTLIER_GATE",
 ]
@@ -222,7 +222,7 @@ def finish_readout(t, v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> R
     fixed = inp.locked | inp.coupling.provisional
     informing = np.isfinite(inp.ratio[0]) | inp.still | inp.passed_zero
     # σ is the posterior's where vision spoke and fixed the speed; beyond, it grows as lobula.readout.carry says.
-    spoke = (v_std <= std_allowed(v, cfg)) & fixed & informing
+    spoke = vision_answers(v_std, std_allowed(v, cfg), fixed, informing)
     posterior_std, v_std = v_std, carried_std(v_std, time_from_answer(t, spoke, causal=not zp), inp.offset_prior)
     obs = (v_std <= std_allowed(v, cfg)) & fixed
     # The direct measurement as the filter takes it: its latency bridged with ∫a (the accelerometer's fast path).

@@ -5,12 +5,20 @@ filter goes on integrating the acceleration, but its posterior std there takes t
 while vision answered as known; a κ error the filter absorbed into that offset (a heading swing, a gait's
 bounce) then carries through the cruise with a σ of centimetres per second. The carried σ forgets what
 vision taught about the offset: the offset is as uncertain as its prior, so σ grows by the prior's std
-times the time since vision last answered (offline: to the nearest answered frame, either side).
+times the time since vision last answered: the last frame where a measurement of vision entered the
+filter and its posterior fixed the speed (offline: the nearest such frame, either side).
 Before vision has ever answered (online), or where it never does (offline), v̂ is unknown: NaN.
 """
 from __future__ import annotations
 
 import numpy as np
+
+
+def vision_answers(v_std, allowed, fixed, informing):
+    """Where vision answers (bool, of the arguments' one shape): a measurement of vision entered the filter
+    (``informing``), vision has fixed the speed (``fixed``), and the posterior std v_std is within ``allowed``
+    (both m/s; :func:`lobula.readout.config.std_allowed`). Carrying starts from these frames."""
+    return (np.asarray(v_std) <= allowed) & np.asarray(fixed, bool) & np.asarray(informing, bool)
 
 
 def time_from_answer(t: np.ndarray, answered: np.ndarray, causal: bool) -> np.ndarray:
@@ -49,5 +57,5 @@ def carried_std(v_std, since_s, offset_prior: float):
     offset_prior m/s², the prior std of the acceleration's forward offset. NaN where since_s is inf.
     """
     since_s = np.asarray(since_s, float)
-    return np.where(np.isfinite(since_s), np.hypot(v_std, offset_prior * np.where(np.isfinite(since_s), since_s, 0.0)),
-                    np.nan)
+    finite = np.isfinite(since_s)
+    return np.where(finite, np.hypot(v_std, offset_prior * np.where(finite, since_s, 0.0)), np.nan)

@@ -158,8 +158,8 @@ def velocity_dataset(rates, res, a: np.ndarray, accel_source: str, footage: Foot
         observable=("time", res.observable if res else np.zeros(n, bool), {"units": "1", "long_name":
                     "vision fixes the velocity at this frame"}),
         v_std=("time", res.v_std if res else np.full(n, np.nan), {"units": "m/s", "long_name":
-               "std of v_hat: the posterior's where observable, beyond grown by the accelerometer offset's prior "
-               "std times the time from the nearest observable frame (online: the last)"}),
+               "std of v_hat: the posterior's where vision answers, beyond grown by the accelerometer offset's "
+               "prior std times the time from the nearest frame where it answered (online: the last)"}),
         accel=("time", a, {"units": "m/s2", "long_name": "forward acceleration", "source": accel_source}),
         r=(("time", "field"), rates.r, {"units": "1/s", "long_name": "pooled expansion rate v/d"}),
         r2=(("time", "field"), rates.r2, {"units": "1/s2", "long_name": "pooled mean of r squared"}),

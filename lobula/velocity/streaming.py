@@ -22,7 +22,7 @@ from lobula.flow import StaggeredFlow
 from lobula.front_ends import get_front_end
 from lobula.imu import HEADING_FIT_BIAS_PRIOR
 from lobula.readout import MaterialRates, acceleration_heading, gate_by_lock, kalman_inputs, vision_trusted
-from lobula.readout.carry import carried_std
+from lobula.readout.carry import carried_std, vision_answers
 from lobula.readout.config import std_allowed
 from lobula.readout.coupling import LockState
 from lobula.readout.kalman import ForwardPass, filter_record
@@ -282,8 +282,8 @@ class VelocityEstimator:
         v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
         fixed = locked or bool(c.provisional[i])
         # As lobula.readout.finish_readout: σ carried from the last frame where vision spoke and fixed the speed.
-        if fixed and v_std <= float(std_allowed(v, cfg)) and (np.isfinite(kappa[i]) or inp.still[i]
-                                                               or inp.passed_zero[i]):
+        if vision_answers(v_std, float(std_allowed(v, cfg)), fixed,
+                          np.isfinite(kappa[i]) | inp.still[i] | inp.passed_zero[i]):
             self._t_answered = float(t[i])
         s_out = float(carried_std(v_std, t[i] - self._t_answered, inp.offset_prior))
         v_out = v if np.isfinite(s_out) else np.nan
