@@ -207,16 +207,16 @@ def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | No
     # Runs stored without the coupling test's flags read as never refuted, locked and informed.
     flag = lambda name, absent: ds[name].values.astype(bool) if name in ds else np.full(len(t), absent)
     refuted, unlocked = flag("vision_refuted", False), ~flag("vision_locked", True)
-    carried = ~unobs & ~flag("vision_informing", True)
+    bridged = ~unobs & ~flag("vision_informing", True)
     for where, grey, words in ((unobs & refuted, "0.7", "unobservable: expansion not following a"),
                                (unobs & unlocked & ~refuted, "0.8", "unobservable: vision has not fixed v"),
                                (unobs & ~unlocked, "0.88", "unobservable: std too large")):
         if where.any():
             ax.fill_between(t, 0, 1, where=where, transform=ax.get_xaxis_transform(), color=grey, lw=0, label=words,
                             step="mid", zorder=0)
-    if carried.any():
-        ax.fill_between(t, 0, 0.04, where=carried, transform=ax.get_xaxis_transform(), color="tab:cyan", lw=0,
-                        label="v̂ carried by the accelerometer alone (no vision measurement)", step="mid")
+    if bridged.any():
+        ax.fill_between(t, 0, 0.04, where=bridged, transform=ax.get_xaxis_transform(), color="tab:cyan", lw=0,
+                        label="no vision measurement at this frame (the accelerometer bridges it)", step="mid")
     if skip > 0 and "v_true" in ds:
         ax.axvspan(t[0], t[0] + skip, color="0.5", alpha=0.08, lw=0, label=f"not scored (first {skip:.3g} s)")
     ax.axhline(0, color="0.4", lw=0.8, zorder=1)
