@@ -201,7 +201,7 @@ def posterior_mean(fo, ds, cfg) -> np.ndarray:
     dt = float(np.median(np.diff(t)))
     turn = None if cfg.accel_from_truth else turn_rate(t, fo.imu.time_s, fo.imu.gyro, dt)
     return suppressed_readout(t, rho, r2, ds.accel.values, rcfg, sac, gravity_tau=tau, drift_std=drift,
-                              turn_rate=turn).v_hat
+                              turn_rate=turn).info["posterior_mean"]
 
 
 def dis_scores(folder) -> dict:

@@ -41,6 +41,9 @@ def test_a_speed_seen_while_accelerating_is_carried_through_a_blind_cruise_with_
     # carried, not unknown: v̂ on every frame after vision first answered, its σ growing in the dark
     first = np.argmax(res.observable)
     assert np.all(np.isfinite(res.v_hat[first:])) and np.all(np.isfinite(res.v_std[first:]))
+    # v̂ is the filter's posterior mean; only its std is not the posterior's
+    np.testing.assert_array_equal(res.v_hat[first:], res.info["posterior_mean"][first:])
+    assert np.all(res.v_std[first:] >= res.info["posterior_std"][first:])
     assert np.all(np.diff(res.v_std[blind]) >= -1e-12)
     err = res.v_hat - v
     assert np.abs(err[-1]) > 0.5 * step * (t[-1] - 8.0)  # the step did move the carried speed

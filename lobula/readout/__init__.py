@@ -230,7 +230,7 @@ def finish_readout(t, v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> R
     return ReadoutResult(np.where(np.isfinite(v_std), v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
                          info=dict(measurement_delay_s=inp.delay, lag_s=0.0 if zp else cfg.lag_s,
                                    vision_coupling=inp.coupling.z, vision_locked=inp.locked,
-                                   vision_informing=informing, posterior_std=posterior_std,
+                                   vision_informing=informing, posterior_mean=v, posterior_std=posterior_std,
                                    vision_refuted=inp.coupling.refuted, scene_depth=inp.scene_depth))
 
 

@@ -323,8 +323,9 @@ class ReadoutResult:
     accel : ndarray, (n,)
         m/s²: the forward acceleration used.
     info : dict
-        The kalman readout's ``measurement_delay_s`` (s) and, with kalman fusion, ``lag_s`` (s); empty for
-        the paper's.
+        The kalman readout's ``measurement_delay_s`` (s) and, with kalman fusion, ``lag_s`` (s), the verdicts on
+        vision (``vision_*``, ``scene_depth``) and the filter's ``posterior_mean`` and ``posterior_std`` (m/s, (n,),
+        on every frame); empty for the paper's.
     """
 
     v_hat: np.ndarray
