@@ -24,7 +24,7 @@ from lobula.gaze import retinal_rotation
 from lobula.imu import (GRAVITY_WINDOW_S, forward_acceleration, gravity_drift_std, gravity_time_constant,
                             resample_to, turn_rate)
 from lobula.photoreceptor import mean_removal
-from lobula.readout import ReadoutConfig
+from lobula.readout import ReadoutConfig, answered_velocity
 from lobula.readout_neuron import SPIKE_MODELS, ReadoutNeuronConfig, readout_neuron, spiking_output
 from lobula.velocity.pipeline import vision_variables
 
@@ -309,15 +309,16 @@ def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_out
         res = suppressed_readout(t, rho_in, r2_in, a, rcfg, saccade, gravity_tau=tau, drift_std=drift, turn_rate=turn)
         v_hat, observable, r_dot, v_field, v_std = res.v_hat, res.observable, res.r_dot, res.v_field, res.v_std
         info = res.info
-        # The halves, the offset and the spikes take v̂ where vision answers only, not where it is carried.
-        answered = lambda out: np.where(out.observable, out.v_hat, np.nan)
+        # The halves, the offset and the spikes take v̂ where vision answers only (answered_velocity), not where
+        # it is carried.
         std_name, method, filt = "posterior std of v_hat", cfg.readout.method, cfg.readout.filter
         if cfg.uncertainty == "halves":
             extra = (cfg.emd_gain_error * np.nan_to_num(res.v_hat)) ** 2
             for a_half, b_half in field_halves(fields, n_outputs):
                 # Each half through the same readout alone: their disagreement is an error the posterior misses.
-                halves = [answered(suppressed_readout(t, rho_in[:, h], r2_in[:, h], a, rcfg, saccade, gravity_tau=tau,
-                                                      drift_std=drift, turn_rate=turn)) for h in (a_half, b_half)]
+                halves = [answered_velocity(suppressed_readout(t, rho_in[:, h], r2_in[:, h], a, rcfg, saccade,
+                                                               gravity_tau=tau, drift_std=drift, turn_rate=turn))
+                          for h in (a_half, b_half)]
                 extra = extra + np.nan_to_num(split_half_variance(t, *halves, cfg.split_tau_s))
             v_std = np.sqrt(v_std ** 2 + extra)
             std_name = ("posterior std of v_hat combined with the disagreement of the field halves (left and right "
@@ -328,8 +329,9 @@ def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_out
             # The decoder's lead τ_d·a takes the accelerometer less the offset the readout has found
             # (its v̂ moves by a − b̂): the raw accelerometer's offset, up to 0.6 m/s² at the start of
             # a dev world, would shift every decoded step by τ_d·b.
-            a_lead = a - readout_offset(t, answered(res), a, cfg.lead_offset_tau_s) if cfg.lead_offset_tau_s else a
-            enc = spiking_output(t, answered(res), a_lead, replace(cfg.neuron, spiking=True))
+            v_ans = answered_velocity(res)
+            a_lead = a - readout_offset(t, v_ans, a, cfg.lead_offset_tau_s) if cfg.lead_offset_tau_s else a
+            enc = spiking_output(t, v_ans, a_lead, replace(cfg.neuron, spiking=True))
             v_hat = np.where(observable, enc["v_dec"], np.nan)
             v_std = np.sqrt(v_std ** 2 + enc["decode_std"] ** 2)
             std_name = std_name.replace("posterior std of v_hat", "posterior std of the readout", 1) + \

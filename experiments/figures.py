@@ -38,7 +38,7 @@ import numpy as np
 
 from lobula.version import command_line, provenance_attrs
 from lobula.config import VelocityConfig
-from lobula.readout import ReadoutConfig, readout
+from lobula.readout import ReadoutConfig, answered_velocity, readout
 from lobula.readout_neuron import ReadoutNeuronConfig, readout_neuron
 from lobula.readers import open_footage
 
@@ -173,7 +173,7 @@ def _fig_error_vs_acceleration(dis, base, out):
     absa = np.abs(a)
     keep = t > t[0] + 2
     rows = []
-    answered = np.where(ours.observable, ours.v_hat, np.nan)
+    answered = answered_velocity(ours)
     for lo, hi in zip(edges[:-1], edges[1:]):
         m = keep & (absa >= lo) & (absa < hi)
         if m.sum() < 5:

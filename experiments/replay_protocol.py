@@ -30,6 +30,7 @@ import numpy as np
 import xarray as xr
 
 from lobula.config import VelocityConfig
+from lobula.readout import answered_velocity
 from lobula.readout_neuron import ReadoutNeuronConfig, lc_pathways, readout_neuron, spike_steps_per_frame
 
 __all__ = ["velocity_replay", "eye_velocity_replay", "REPLAY_RECORDS"]
@@ -300,7 +301,7 @@ def eye_velocity_replay(footage_path: str | Path | None = None, trials: int = 4,
     ncfg = replace(ecfg.neuron, spiking=spiking, seed=seed, spike_model=spike_model or ecfg.neuron.spike_model)
     # As `lobula eye-velocity --readout spikes`: the readout's v̂ where observable (elsewhere NaN: the neurons
     # fall silent), the decoder's lead from the accelerometer less the offset that v̂ implies.
-    v_hat, a = np.where(ds.observable.values, ds.v_hat.values, np.nan), ds.accel.values
+    v_hat, a = answered_velocity(ds), ds.accel.values
     a_lead = a - readout_offset(t, v_hat, a, ecfg.lead_offset_tau_s) if ecfg.lead_offset_tau_s else a
     out = per_trial(lambda c: spiking_output(t, v_hat, a_lead, c), trials, ncfg)
     out["v_hat"] = (np.where(ds.observable.values, out["v_dec"], np.nan) if spiking

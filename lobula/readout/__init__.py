@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .carry import carried_std, time_from_answer, vision_answers
+from .carry import answered_velocity, carried_std, time_from_answer, vision_answers
 from .config import ReadoutConfig, ReadoutResult, std_allowed
 from .coupling import CouplingTest, coupling_test, vision_locked
 from .filters import (_fill_nan, _integral, _lag, butterworth, difference_mean, end_mean, gaussian_lowpass, hold_gaps,
@@ -70,7 +70,7 @@ __all__ = [
     "field_velocity", "field_axes", "acceleration_heading", "ACCEL_HEADING_FLOOR_M_S2", "median_and_error",
     "accelerometer_level", "accelerometer_steady",
     "kalman_inputs", "gate_by_lock", "vision_trusted", "kalman_velocity", "predict", "ratio_update", "rts_smooth",
-    "fixed_lag_smooth", "vision_answers", "time_from_answer", "carried_std",
+    "fixed_lag_smooth", "vision_answers", "answered_velocity", "time_from_answer", "carried_std",
     "butterworth", "gaussian_lowpass", "staggered_difference", "hold_gaps",
     "NO_EXPANSION_SE", "SIGN_PERSIST_S", "REVERSAL_MAX_GAP_S", "OUTLIER_GATE",
 ]

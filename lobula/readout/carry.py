@@ -21,6 +21,12 @@ def vision_answers(v_std, allowed, fixed, informing):
     return (np.asarray(v_std) <= allowed) & np.asarray(fixed, bool) & np.asarray(informing, bool)
 
 
+def answered_velocity(result) -> np.ndarray:
+    """(n,) m/s: v̂ where vision answers (``observable``), NaN where it is carried or unknown; ``result`` a
+    :class:`~lobula.readout.config.ReadoutResult` or a velocity Dataset (``v_hat``, ``observable`` over time)."""
+    return np.where(np.asarray(result.observable, bool), np.asarray(result.v_hat, float), np.nan)
+
+
 def time_from_answer(t: np.ndarray, answered: np.ndarray, causal: bool) -> np.ndarray:
     """s: each frame's time from the nearest answered frame; inf where there is none.
 
