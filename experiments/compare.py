@@ -51,6 +51,7 @@ from lobula.front_ends import FRONT_ENDS
 from lobula.readers import open_footage
 from lobula.readers.core import Footage, FootageError
 from lobula.readers.flo import FloUnits
+from lobula.readout import answered_velocity
 
 from .store import provenance, save_figure, write_netcdf, write_text
 
@@ -186,7 +187,7 @@ def front_end_metrics(ds: xr.Dataset, footage: Footage, skip_s: float, exact=Non
              observable_fraction=sc.get("observable_fraction", float("nan")),
              n_frames=float(sc.get("n_frames", 0)), n_estimates=float(ds.sizes["time"]))
     if "v_true" in ds:
-        v = np.where(ds.observable.values, ds.v_hat.values, np.nan)
+        v = answered_velocity(ds)
         m["lock_on_s"] = lock_on_time(ds.time.values, v, ds.v_true.values, tol_m_s, hold_s,
                                       t_origin=float(footage.times[0]))
     m.update(field_rate_error(ds, footage, exact, skip_s))

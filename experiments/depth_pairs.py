@@ -20,6 +20,7 @@ from lobula.config import VelocityConfig
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
 from lobula.imu import orientation_from_gyro
 from lobula.readers.core import Footage, FootageError
+from lobula.readout import answered_velocity
 
 __all__ = ["Pair", "attitude_track", "pair_rotation", "metric_scale", "mean_truth_velocity", "flow_config",
            "depth_flow_fn", "stabilised_average", "frames_averaged", "footage_attitude", "ranged_pairs"]
@@ -242,9 +243,7 @@ def ranged_pairs(footage: Footage, velocity, run, timings: dict | None = None,
                            f"{stamps[-1]:.3f} s); estimate velocity on this footage, or leave --velocity-run out")
     if run.velocity == "truth" and footage.truth is None:
         raise FootageError(f"{footage.path}: velocity 'truth' needs truth.csv (or the D435i velocity.csv)")
-    v_hat_all = velocity.v_hat.values.astype(float)
-    if "observable" in velocity:
-        v_hat_all = np.where(velocity.observable.values.astype(bool), v_hat_all, np.nan)
+    v_hat_all = answered_velocity(velocity) if "observable" in velocity else velocity.v_hat.values.astype(float)
     v_std_all = velocity.v_std.values.astype(float) if "v_std" in velocity else np.full(n_pairs, np.nan)
     attitude = footage_attitude(footage, vcfg)
     starts = list(range(0, n_pairs, int(run.every))) if starts is None else [int(k) for k in starts]

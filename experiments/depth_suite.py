@@ -214,6 +214,7 @@ def run_one(out: Path, family: str, seed: int, args) -> dict:
     from lobula.readers import open_footage
     from stimuli.track import build_track
 
+    from lobula.readout import answered_velocity
     from lobula.velocity import estimate_velocity
 
     t0 = _time.perf_counter()
@@ -226,7 +227,7 @@ def run_one(out: Path, family: str, seed: int, args) -> dict:
     mcfg.readout.filter = args.filter
     mcfg.flow.dis_preset = "medium"
     vmed = estimate_velocity(footage, mcfg, progress=False)
-    v_medium = np.where(vmed.observable.values.astype(bool), vmed.v_hat.values, np.nan)
+    v_medium = answered_velocity(vmed)
     scene, _ = build_track(cfg)
     run = _run_config(args)
     with torch_threads(1):
@@ -238,7 +239,7 @@ def run_one(out: Path, family: str, seed: int, args) -> dict:
     after = velocity.time.values >= args.skip
 
     def rmse(ds):
-        e = np.where(ds.observable.values, ds.v_hat.values, np.nan) - ds.v_true.values
+        e = answered_velocity(ds) - ds.v_true.values
         return float(np.sqrt(np.nanmean(e[after] ** 2)))
     return dict(family=family, seed=seed, scores=scores, sample=sample, frame=frame, v_hat_rmse=rmse(velocity),
                 v_hat_rmse_medium=rmse(vmed), seconds=_time.perf_counter() - t0)

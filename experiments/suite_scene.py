@@ -291,6 +291,7 @@ def _run_configurations(job: SceneJob, cfg, footage) -> tuple[dict, dict, dict, 
     Returns ({name: (t (s), v̂ (m/s, NaN where unobservable), v_std (m/s))}, {name: why it did not run},
     {name: wall time (s)}, the seconds spent rendering the eye's footage).
     """
+    from lobula.readout import answered_velocity
     from lobula.velocity import estimate_velocity
 
     out = Path(job.out)
@@ -317,7 +318,7 @@ def _run_configurations(job: SceneJob, cfg, footage) -> tuple[dict, dict, dict, 
             errors[name] = str(exc)
             continue
         t = ds.time.values
-        v_hat = np.where(ds.observable.values, ds.v_hat.values, np.nan)
+        v_hat = answered_velocity(ds)
         series[name] = (t, v_hat, ds.v_std.values)
         wall[name] = _time.perf_counter() - t1
     return series, errors, wall, eye_render_s

@@ -225,8 +225,8 @@ def velocity_figure(ds: xr.Dataset, skip_s: float | None = None, title: str | No
     sc = score(ds, skip)
     # A caller's title gets a line of its own: with the scores after it, it ran past the figure's edge.
     head = f"{title}\n{score_line(sc, skip)}" if title else f"forward velocity: {score_line(sc, skip)}"
-    if carried_line(sc):
-        head += "\n" + carried_line(sc)
+    if (carried := carried_line(sc)) is not None:
+        head += "\n" + carried
     fig.suptitle(f"{head}\n{describe_run(ds)}", fontsize=9)
     ax2.plot(t, ds.accel.values, color="tab:blue", lw=1, label="a")
     ax2.axhline(0, color="0.4", lw=0.8)
@@ -371,8 +371,8 @@ def run_velocity(args) -> int:
         print(line)
     if sc:
         print(score_line(sc, skip))
-        if carried_line(sc):
-            print(carried_line(sc))
+        if (carried := carried_line(sc)) is not None:
+            print(carried)
     why = never_observable_reason(ds) if ds.sizes["time"] >= 3 else None
     if why:
         print(why)

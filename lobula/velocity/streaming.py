@@ -52,8 +52,7 @@ class VelocityState:
     v_std : float
         m/s: its std (1σ), NaN where v is.
     observable : bool
-        The posterior std within lobula.readout.config.std_allowed, and vision has fixed the speed
-        (lobula.readout.coupling).
+        v_std within lobula.readout.config.std_allowed, and vision has fixed the speed (lobula.readout.coupling).
     heading : ndarray, (2,)
         The epipole (v_x/v_z, v_y/v_z), normalised image coordinates.
     velocity : ndarray, (3,)
@@ -280,14 +279,13 @@ class VelocityEstimator:
                                  inp.rest_accel, reversal, inp.sign)[3:]
         v = float(x[0])
         v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
-        fixed = locked or bool(c.provisional[i])
+        fixed, allowed = locked or bool(c.provisional[i]), float(std_allowed(v, cfg))
         # As lobula.readout.finish_readout: σ carried from the last frame where vision spoke and fixed the speed.
-        if vision_answers(v_std, float(std_allowed(v, cfg)), fixed,
-                          np.isfinite(kappa[i]) | inp.still[i] | inp.passed_zero[i]):
+        if vision_answers(v_std, allowed, fixed, np.isfinite(kappa[i]) | inp.still[i] | inp.passed_zero[i]):
             self._t_answered = float(t[i])
         s_out = float(carried_std(v_std, t[i] - self._t_answered, inp.offset_prior))
         v_out = v if np.isfinite(s_out) else np.nan
-        obs = fixed and s_out <= float(std_allowed(v, cfg))
+        obs = fixed and s_out <= allowed
         e = col("epipole")[i]
         if refuted:
             reason = (f"the image's expansion has not followed the accelerometer (coupling z {c.z[i]:.1f} < "
@@ -298,7 +296,7 @@ class VelocityEstimator:
                       f"(coupling z {c.z[i]:.1f}, {cfg.coupling_z:g} needed)")
         else:
             reason = "" if obs else (f"std {s_out:.3f} m/s above the readout's max_std "
-                                     f"{float(std_allowed(v, cfg)):.3g} m/s: the expansion and the acceleration have "
+                                     f"{allowed:.3g} m/s: the expansion and the acceleration have "
                                      f"not fixed the speed, or the accelerometer has carried it too long")
         return VelocityState(float(t[i]), float(col("known")[i]), v_out, s_out, bool(obs), e.copy(),
                              v_out * np.array([e[0], e[1], 1.0]), float(a[i]),
