@@ -222,9 +222,10 @@ def finish_readout(t, v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> R
     fixed = inp.locked | inp.coupling.provisional
     informing = np.isfinite(inp.ratio[0]) | inp.still | inp.passed_zero
     # σ is the posterior's where vision spoke and fixed the speed; beyond, it grows as lobula.readout.carry says.
-    spoke = vision_answers(v_std, std_allowed(v, cfg), fixed, informing)
+    allowed = std_allowed(v, cfg)
+    spoke = vision_answers(v_std, allowed, fixed, informing)
     posterior_std, v_std = v_std, carried_std(v_std, time_from_answer(t, spoke, causal=not zp), inp.offset_prior)
-    obs = (v_std <= std_allowed(v, cfg)) & fixed
+    obs = (v_std <= allowed) & fixed
     # The direct measurement as the filter takes it: its latency bridged with ∫a (the accelerometer's fast path).
     z = inp.z + inp.ratio[3]
     return ReadoutResult(np.where(np.isfinite(v_std), v, np.nan), obs, v_std, inp.v_field, inp.r_dot, z, inp.z_std, a,
