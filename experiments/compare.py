@@ -436,7 +436,9 @@ def comparison_figure(ds: xr.Dataset, title: str | None = None):
         ax.plot(t, np.where(obs, ds.v_hat.values[i], np.nan), color=cols[i], lw=1.6,
                 label=f"{fe}: RMSE {_fmt(float(ds.rmse_m_s.values[i]), 4)} m/s")
         # Where the accelerometer carries v̂ (not observable): dotted, as `lobula velocity` draws it.
-        ax.plot(t, np.where(obs, np.nan, ds.v_hat.values[i]), color=cols[i], lw=1.0, ls=":")
+        carried = np.where(obs, np.nan, ds.v_hat.values[i])
+        ax.plot(t, carried, color=cols[i], lw=1.0, ls=":",
+                label=f"{fe}: v̂ carried by the accelerometer (not observable)" if np.isfinite(carried).any() else None)
     if "v_true" in ds:
         # Over the estimates, thin and dashed, so it stays visible where they agree with it.
         ax.plot(t, ds.v_true, "k--", lw=1.2, label="truth", zorder=4)
