@@ -34,9 +34,10 @@ def _toy_open(seen: list):
 
 def test_readers_are_asked_in_priority_order():
     # Bags and videos before folders, the single-video folder last: a folder holding frames.csv and a
-    # video is a footage folder, and a .bag is never taken for anything else.
-    assert [r.name for r in READERS] == ["realsense-bag", "rosbag2", "gopro", "video", "folder", "d435i-sample",
-                                         "euroc", "video-folder"]
+    # video is a footage folder, and a .bag is never taken for anything else. A camera's own motion log is
+    # asked before the video layout, which claims every video (and says what is missing beside it).
+    assert [r.name for r in READERS] == ["realsense-bag", "rosbag2", "gopro", "camera-telemetry", "video", "folder",
+                                         "d435i-sample", "euroc", "video-folder"]
 
 
 def test_a_registered_reader_opens_its_extension(registry, tmp_path):

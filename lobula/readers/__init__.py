@@ -7,6 +7,8 @@ entries in priority order, and opens the path with the first whose ``recognise``
   (:mod:`lobula.readers.realsense_bag`) and rosbag2 ``.db3`` as 2.58 and later do
   (:mod:`lobula.readers.rosbag2_db3`);
 * GoPro MP4s as the camera wrote them, with their GPMF telemetry (:mod:`lobula.readers.gopro`);
+* videos whose camera logs its own motion (Sony, Insta360, DJI, RunCam, ...) or with a Gyroflow ``.gcsv``
+  beside them, read by Gyroflow's telemetry-parser (:mod:`lobula.readers.camera_telemetry`);
 * video files with an IMU CSV and camera.json beside them (:mod:`lobula.readers.video`);
 * the footage folder and the D435i sample folder (:mod:`lobula.readers.folder`);
 * the ASL/EuRoC folder layout (:mod:`lobula.readers.euroc`);
@@ -86,6 +88,20 @@ def _open_gopro(path, *, require_imu=True, camera=None, require_camera=True, **_
     return open_gopro(path, require_imu=require_imu, camera_json=camera, require_camera=require_camera)
 
 
+def _is_camera_telemetry(path: Path) -> bool:
+    if not (path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES):
+        return False
+    if path.with_name(f"{path.stem}.imu.csv").exists() or path.with_name("imu.csv").exists():
+        return False  # the video layout: its own IMU log rules
+    from .camera_telemetry import has_motion_log
+    return has_motion_log(path)
+
+
+def _open_camera_telemetry(path, *, require_imu=True, camera=None, require_camera=True, **_):
+    from .camera_telemetry import open_camera_telemetry
+    return open_camera_telemetry(path, require_imu=require_imu, camera_json=camera, require_camera=require_camera)
+
+
 def _open_video(path, *, require_imu=True, camera=None, keep_nan=False, **_):
     from .video import open_video
     return open_video(path, require_imu=require_imu, camera_json=camera, keep_nan=keep_nan)
@@ -126,6 +142,8 @@ READERS: list[Reader] = [
     Reader("rosbag2", lambda p: p.suffix.lower() == ".db3" or (p.is_dir() and (p / "metadata.yaml").exists()),
            _open_rosbag2, "a rosbag2 .db3, or its folder with metadata.yaml"),
     Reader("gopro", _is_gopro, _open_gopro, "a GoPro MP4 with its GPMF telemetry track"),
+    Reader("camera-telemetry", _is_camera_telemetry, _open_camera_telemetry,
+           "a video with its camera's own motion log (Sony, Insta360, DJI, RunCam, ...) or a Gyroflow .gcsv beside it"),
     Reader("video", lambda p: p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES, _open_video,
            f"a video file, {'/'.join(VIDEO_SUFFIXES)}, with camera.json and imu.csv beside it"),
     Reader("folder", lambda p: p.is_dir() and (p / "frames.csv").exists(), _open_folder,
@@ -179,7 +197,8 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
     path: a footage folder, the D435i sample folder, a RealSense ``.bag`` (ROS1) or ``.db3``
     (rosbag2), an ASL/EuRoC folder (``mav0/``), or a video file (mp4, mkv, avi, mov) with
     ``camera.json`` and ``imu.csv`` beside it (or a folder holding those and one video), or a
-    GoPro MP4 as the camera wrote it, with its GPMF telemetry track (:mod:`lobula.readers.gopro`);
+    GoPro MP4 as the camera wrote it, with its GPMF telemetry track (:mod:`lobula.readers.gopro`), or a video
+    with its camera's own motion log or a Gyroflow ``.gcsv`` beside it (:mod:`lobula.readers.camera_telemetry`);
     whatever else :func:`register_reader` added. The first reader of :data:`READERS` that
     recognises it opens it; when none does, a FootageError names the path and the known layouts.
     stream: RealSense recordings: image stream ("Color_0", "Infrared_1", or part of a topic;

@@ -186,7 +186,7 @@ def open_video(path: str | Path, require_imu: bool = True, camera_json: str | Pa
         if r is not None:
             notes.append(f"IMU rotated into the camera frame by imu_to_camera ({rotation_deg(r):.2f} deg)")
     elif require_imu:
-        raise FootageError(f"{imu_path}: missing; velocity needs an IMU log beside the video ({path.stem}.imu.csv "
+        raise FootageError(f"{imu_path}: missing; velocity needs an IMU log beside the video ({path.stem}.gcsv, or {path.stem}.imu.csv "
                            f"or imu.csv: time_s, accel_x..z, gyro_x..z on the video's clock)")
     truth, truth_nan = None, {}
     tp = _beside(path, "truth.csv")

@@ -1,0 +1,224 @@
+"""Video from cameras that log their own motion, read by Gyroflow's telemetry-parser.
+
+Many cameras write their gyroscope and accelerometer into the video file (Sony, Insta360, DJI action
+cameras, RunCam and other FPV cameras, Blackmagic, RED), and any logger or phone app can write
+Gyroflow's ``.gcsv`` beside the video (``clip.mp4`` with ``clip.gcsv``). Gyroflow's own parser,
+`telemetry-parser <https://github.com/AdrianEddy/telemetry-parser>`_, reads them all and turns each
+model's axes into one frame, Gyroflow's: x up, y left, z backwards from the lens (for ``.gcsv`` its
+``orientation`` line says how the logged axes map onto that frame). This reader rotates that frame into
+the camera's (x right, y down, z forward; :data:`GYROFLOW_TO_CAMERA`), converts deg/s to rad/s, and
+takes the samples' times as the parser gives them, on the video's clock (``--clock-offset auto``
+estimates an offset; a camera opened without intrinsics has its offset estimated anyway).
+
+Intrinsics come from ``--camera FILE`` or a camera.json beside the video. Without one, an action camera
+(a wide fisheye) is opened as GoPro MP4s are: an equidistant lens of a nominal field of view whose
+focal length the gyro then measures (:mod:`lobula.readers.self_calibration`); any other camera needs a
+camera file, and the error says so. GoPro MP4s are read by :mod:`lobula.readers.gopro`, which also
+reads their GPS; a video with an ``imu.csv`` beside it stays the ``video`` layout.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .core import FootageError, IMU, imu_to_camera, read_camera_json, rotation_deg
+from .video import VideoFootage, check_presentation_times, container_times
+
+#: Gyroflow's IMU frame (x up, y left, z backwards from the lens) into the camera's (x right, y down, z forward)
+GYROFLOW_TO_CAMERA = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+#: makers of action and FPV cameras, whose lenses are wide fisheyes (matched at the start of the parser's
+#: camera or model name, any case): opened without intrinsics as an equidistant lens the gyro calibrates
+ACTION_CAMERAS = ("gopro", "insta360", "dji", "runcam", "caddx", "foxeer", "hawkeye", "akaso", "sjcam", "xtu",
+                  "iflight", "walksnail")
+
+INSTALL_HINT = ("reading a camera's motion log needs telemetry-parser (Gyroflow's parser; wheels for Linux, macOS "
+                "and Windows, CPython 3.8-3.12): pip install telemetry-parser")
+
+
+def _parser(path: Path):
+    """telemetry-parser's Parser on the ``.gcsv`` beside the video at ``path`` where there is one (the log the
+    user put there), else on the video itself; None where it finds no motion log; FootageError where the
+    package is missing or the ``.gcsv`` cannot be parsed."""
+    try:
+        import telemetry_parser
+    except ImportError:
+        raise FootageError(f"{path}: {INSTALL_HINT}") from None
+    sidecar = path.with_suffix(".gcsv")
+    try:
+        return telemetry_parser.Parser(str(sidecar if sidecar.is_file() else path))
+    except (OSError, ValueError, RuntimeError) as exc:
+        if sidecar.is_file():
+            raise FootageError(f"{sidecar}: not a motion log telemetry-parser can read ({exc}); a .gcsv starts "
+                               f"with 'GYROFLOW IMU LOG' or 'CAMERA IMU LOG', then version, id, orientation, "
+                               f"tscale, gscale, ascale lines and a t,gx,gy,gz,ax,ay,az header") from None
+        return None
+
+
+def has_motion_log(path: Path) -> bool:
+    """Whether ``path`` is a video whose motion log telemetry-parser reads (embedded, or a ``.gcsv`` beside it).
+    False without telemetry-parser installed, so that other readers are asked."""
+    try:
+        import telemetry_parser  # noqa: F401
+    except ImportError:
+        return path.with_suffix(".gcsv").is_file()  # a sidecar is claimed, so the open names what to install
+    if path.with_suffix(".gcsv").is_file():
+        return True  # the user's log: a bad one is named when opened
+    p = _parser(path)
+    try:
+        return p is not None and len(p.normalized_imu()) > 0
+    except (OSError, ValueError, RuntimeError):
+        return False
+
+
+def read_motion_log(path: Path) -> dict:
+    """The motion log of the video at ``path`` in the camera frame.
+
+    Returns
+    -------
+    dict
+        time_s (n,) s ascending; accel (n, 3) m/s² or None (no accelerometer); gyro (n, 3) rad/s or None;
+        camera (the parser's camera type, e.g. "Sony", "Insta360", "gcsv") and model (str or None).
+    """
+    p = _parser(path)
+    src = path.with_suffix(".gcsv") if path.with_suffix(".gcsv").is_file() else path  # what errors name
+    if p is None:
+        raise FootageError(f"{path}: telemetry-parser finds no motion log in it (no embedded gyro, no "
+                           f"{path.with_suffix('.gcsv').name} beside it); give an imu.csv and camera.json beside "
+                           f"the video instead")
+    try:
+        samples = p.normalized_imu()
+    except (OSError, ValueError, RuntimeError) as exc:
+        raise FootageError(f"{src}: its motion log cannot be read ({exc}); copy the file again from the camera, "
+                           f"or write the .gcsv again") from None
+    if not samples:
+        raise FootageError(f"{src}: the motion log holds no samples; a .gcsv needs its t,gx,gy,gz[,ax,ay,az] "
+                           f"header and rows of numbers, a camera's file its motion track (copy it again)")
+    t = np.array([s["timestamp_ms"] for s in samples], float) / 1e3
+
+    def vectors(key, scale):
+        if all(s.get(key) is None for s in samples):
+            return None
+        return np.array([s[key] if s.get(key) is not None else (np.nan,) * 3 for s in samples], float) * scale
+
+    accel, gyro = vectors("accl", 1.0), vectors("gyro", np.pi / 180.0)
+    order = np.argsort(t, kind="stable")
+    keep = np.concatenate([[True], np.diff(t[order]) > 0])  # one sample per time stamp
+    order = order[keep]
+    rows = [x for x in (accel, gyro) if x is not None]
+    good = np.isfinite(t[order]) & np.all([np.isfinite(x[order]).all(1) for x in rows], axis=0)
+    order = order[good]
+    if len(order) < 2:
+        raise FootageError(f"{src}: the motion log has fewer than 2 samples with finite values and distinct times")
+    rotate = lambda x: None if x is None else x[order] @ GYROFLOW_TO_CAMERA.T
+    return dict(time_s=t[order], accel=rotate(accel), gyro=rotate(gyro), camera=str(p.camera or "unknown"),
+                model=str(p.model) if p.model else None, dropped=int(len(t) - len(order)))
+
+
+def is_action_camera(camera: str, model: str | None) -> bool:
+    """Whether the parser's camera type or model names a maker of wide-fisheye action or FPV cameras."""
+    names = [camera.lower(), (model or "").lower()]
+    return any(n.startswith(m) for n in names for m in ACTION_CAMERAS)
+
+
+class CameraTelemetryFootage(VideoFootage):
+    """A video with the camera's own motion log (module doc). ``lens_guess``: where no camera file was
+    given, the equidistant lens assumed (as :class:`lobula.readers.gopro.GoProFootage`'s), else None;
+    ``motion_log``: {camera, model, samples, rate_hz, source}."""
+
+    lens_guess: dict | None
+    motion_log: dict
+
+    def provenance(self) -> dict:
+        out = super().provenance()
+        out["motion_log"] = json.dumps(self.motion_log)
+        if getattr(self, "calibration", None):
+            out["camera_calibration"] = json.dumps(self.calibration)
+        return out
+
+
+def _camera_file(path: Path, camera_json) -> Path | None:
+    if camera_json is not None:
+        return Path(camera_json)
+    for p in (path.with_name(f"{path.stem}.camera.json"), path.with_name("camera.json")):
+        if p.is_file():
+            return p
+    return None
+
+
+def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_json=None,
+                          require_camera: bool = True) -> CameraTelemetryFootage:
+    """Open a video with its camera's motion log (module doc).
+
+    path: the video. camera_json: intrinsics (``--camera``); else ``CLIP.camera.json`` or ``camera.json`` beside
+    it, whose optional imu_to_camera is applied after the parser's axis mapping, as a correction in the camera
+    frame. require_imu: FootageError when the log has no accelerometer (False: opened with ``imu=None``).
+    require_camera: FootageError where no intrinsics are known and the camera is not an action camera (False:
+    ``camera=None``, for ``lobula info``). Every bad input is one FootageError naming the file and the fix.
+    """
+    from .gopro import NOMINAL_DIAGONAL_FOV_DEG, NOMINAL_FOV_REL_STD, equidistant_camera
+
+    path = Path(path)
+    if not path.is_file():
+        raise FootageError(f"{path}: not found; give the video file itself")
+    log = read_motion_log(path)
+    times, w, h, fps, codec = container_times(path)
+    if len(times) == 0:
+        raise FootageError(f"{path}: no video frames could be read (empty or damaged file)")
+    check_presentation_times(path, times)
+    who = " ".join(x for x in (log["camera"], log["model"]) if x)
+    sidecar = path.with_suffix(".gcsv")
+    source = f"{sidecar} (.gcsv)" if log["camera"] == "gcsv" else f"{path} ({who} motion log)"
+    cam_path = _camera_file(path, camera_json)
+    camera, lens_guess = None, None
+    if cam_path is not None:
+        camera = read_camera_json(cam_path)
+        if (w, h) != (camera.width, camera.height):
+            raise FootageError(f"{path}: video is {w}x{h} but {cam_path} says {camera.width}x{camera.height}; give "
+                               f"the intrinsics of this resolution")
+    elif is_action_camera(log["camera"], log["model"]):
+        camera = equidistant_camera(w, h, fps, NOMINAL_DIAGONAL_FOV_DEG)
+        lens_guess = dict(model="kannala-brandt", coeffs=[0.0, 0.0, 0.0, 0.0],
+                          diagonal_fov_deg=NOMINAL_DIAGONAL_FOV_DEG,
+                          source=f"a nominal {NOMINAL_DIAGONAL_FOV_DEG:g}° diagonal for a {who} action camera",
+                          rel_std=NOMINAL_FOV_REL_STD)
+    elif require_camera:
+        raise FootageError(f"{path}: no intrinsics for this {who} camera; write {path.stem}.camera.json beside it "
+                           f"(width, height, fx, fy, cx, cy, frame_rate_hz, and its lens \"distortion\") or give "
+                           f"one with --camera FILE")
+    notes = [f"video: {len(times)} frames ({w}x{h}, {codec}), frame times from the container's time stamps"]
+    imu, r = None, None
+    if log["accel"] is None:
+        if require_imu:
+            raise FootageError(f"{source}: the motion log has a gyroscope but no accelerometer; velocity needs one: "
+                               f"log the accelerometer too, or pass --accel-from-truth with a truth.csv")
+    else:
+        imu = IMU(log["time_s"], log["accel"], log["gyro"], source=source)
+        rate = (len(log["time_s"]) - 1) / max(float(log["time_s"][-1] - log["time_s"][0]), 1e-9)
+        notes.append(f"IMU: {len(log['time_s'])} samples ({rate:.0f} Hz) from {source}, read by telemetry-parser and "
+                     f"rotated from Gyroflow's axes (x up, y left, z back) into the camera frame (x right, y down, "
+                     f"z forward); its times taken as on the video's clock"
+                     + (f"; {log['dropped']} samples without finite values or with a repeated time left out"
+                        if log["dropped"] else ""))
+        if cam_path is not None:
+            r = imu_to_camera(cam_path)
+            if r is not None:
+                imu = imu.rotated(r)
+                notes.append(f"IMU then rotated by {cam_path.name}'s imu_to_camera ({rotation_deg(r):.2f} deg)")
+    truth = None
+    tp = path.with_name("truth.csv")
+    if tp.is_file():
+        from .core import read_truth_csv
+        truth, _ = read_truth_csv(tp, False)
+    streams = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=round(fps, 3)),
+               dict(stream="motion log", camera=log["camera"], model=log["model"], samples=len(log["time_s"]),
+                    accelerometer=log["accel"] is not None, gyroscope=log["gyro"] is not None)]
+    footage = CameraTelemetryFootage(path, camera, times, [], imu, truth, kind="camera-telemetry", notes=notes,
+                                     imu_to_camera=(GYROFLOW_TO_CAMERA if r is None else r @ GYROFLOW_TO_CAMERA)
+                                     if imu is not None else None, streams=streams)
+    footage.lens_guess = lens_guess
+    footage.motion_log = dict(camera=log["camera"], model=log["model"], samples=int(len(log["time_s"])),
+                              source=source)
+    return footage

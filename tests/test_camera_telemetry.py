@@ -1,0 +1,131 @@
+"""Videos with their camera's own motion log (lobula.readers.camera_telemetry): a Gyroflow .gcsv beside a
+synthetic run's video gives back the run's IMU exactly, and the same velocity as the run's imu.csv; bad logs
+are one clear line."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from experiments.cli import main
+from lobula.readers import open_footage
+from lobula.readers.core import FootageError
+from stimuli.scene import SceneConfig
+from stimuli.track import TrackRunConfig, make_track_run
+
+pytest.importorskip("telemetry_parser", reason="telemetry-parser has wheels for CPython 3.8-3.12 only")
+G = 9.80665
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> Path:
+    """2 s of a small (160×120) synthetic run in motion, with exact truth."""
+    cfg = TrackRunConfig(profile=None, start_s=6.0, duration_s=2.0, scale=0.25, scene=SceneConfig(seed=2))
+    return make_track_run(tmp_path_factory.mktemp("run") / "run", cfg, progress=False)
+
+
+def write_gcsv(path: Path, fo, ident="lobula_logger", accel=True) -> Path:
+    """The run's IMU as a .gcsv as a logger writes it: integer µs, acceleration in g, and the camera-frame
+    axes (x right, y down, z forward) named against Gyroflow's (x up, y left, z back): orientation "yxz"."""
+    imu = fo.imu
+    head = ["GYROFLOW IMU LOG", "version,1", f"id,{ident}", "orientation,yxz", "tscale,0.000001", "gscale,1",
+            f"ascale,{1 / G!r}", "t,gx,gy,gz" + (",ax,ay,az" if accel else "")]
+    rows = [",".join([str(int(round(t * 1e6)))] + [repr(float(x)) for x in g] + ([repr(float(x)) for x in a / 1.0]
+                                                                                  if accel else []))
+            for t, g, a in zip(imu.time_s, imu.gyro, imu.accel * 1.0)]
+    path.write_text("\n".join(head + rows) + "\n")
+    return path
+
+
+def write_video(run: Path, dst: Path, *, gcsv=True, imu_csv=False, camera=True, **gcsv_kw) -> Path:
+    dst.mkdir()
+    fo = open_footage(run)
+    video = dst / "clip.avi"
+    wr = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (fo.camera.width, fo.camera.height))
+    for _, _, img in fo.frames():
+        wr.write(cv2.cvtColor(img.astype(np.uint8), cv2.COLOR_GRAY2BGR))
+    wr.release()
+    if camera:
+        shutil.copy(run / "camera.json", dst / "clip.camera.json")
+    if gcsv:
+        write_gcsv(dst / "clip.gcsv", fo, **gcsv_kw)
+    if imu_csv:
+        shutil.copy(run / "imu.csv", dst / "imu.csv")
+    shutil.copy(run / "truth.csv", dst / "truth.csv")
+    return video
+
+
+def cli(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err.strip()
+
+
+def test_a_gcsv_beside_the_video_gives_back_the_runs_imu(run, tmp_path):
+    video = write_video(run, tmp_path / "v")
+    fo, ref = open_footage(video), open_footage(run)
+    assert fo.kind == "camera-telemetry" and len(fo) == len(ref)
+    np.testing.assert_allclose(fo.imu.time_s, ref.imu.time_s, rtol=0, atol=1e-6)  # written in whole µs
+    np.testing.assert_allclose(fo.imu.accel, ref.imu.accel, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(fo.imu.gyro, ref.imu.gyro, rtol=1e-12, atol=1e-15)
+    assert fo.truth is not None and "clip.gcsv" in fo.imu.source
+
+
+def test_velocity_from_the_gcsv_equals_velocity_from_the_imu_csv(run, tmp_path, capsys):
+    import xarray as xr
+
+    gcsv = write_video(run, tmp_path / "g")
+    plain = write_video(run, tmp_path / "p", gcsv=False, imu_csv=True)
+    shutil.move(tmp_path / "p" / "clip.camera.json", tmp_path / "p" / "camera.json")
+    assert open_footage(plain).kind == "video"
+    out = {}
+    for name, src in (("gcsv", gcsv), ("video", plain)):
+        code, _, err = cli(capsys, "velocity", src, "--out", tmp_path / f"{name}.nc", "--quiet")
+        assert code == 0, err
+        out[name] = xr.load_dataset(tmp_path / f"{name}.nc")
+    assert out["gcsv"].attrs["footage_layout"] == "camera-telemetry"
+    # the same up to the log's whole microseconds
+    for var in ("v_hat", "v_std", "accel", "r"):
+        np.testing.assert_allclose(out["gcsv"][var].values, out["video"][var].values, rtol=1e-4, atol=1e-5,
+                                   equal_nan=True)
+    assert np.isfinite(out["gcsv"]["posterior_std"].values).any()
+
+
+def test_a_video_with_its_own_imu_csv_stays_the_video_layout(run, tmp_path):
+    video = write_video(run, tmp_path / "v", imu_csv=True)
+    assert open_footage(video).kind == "video"
+
+
+@pytest.mark.parametrize("content, needle", [
+    ("GYROFLOW IMU LOG\nversion,1\nthis is not a log\n", "holds no samples"),
+    ("\x00\x01garbage", "not a motion log"),
+])
+def test_a_broken_gcsv_is_one_clear_line(run, tmp_path, capsys, content, needle):
+    video = write_video(run, tmp_path / "v")
+    (tmp_path / "v" / "clip.gcsv").write_text(content)
+    out = tmp_path / "o.nc"
+    code, _, err = cli(capsys, "velocity", video, "--out", out)
+    assert code == 2 and len(err.splitlines()) == 1 and needle in err and "clip.gcsv" in err, err
+    assert not out.exists() and not list(tmp_path.glob(".o.nc*"))
+
+
+def test_a_gyro_only_log_says_velocity_needs_an_accelerometer(run, tmp_path, capsys):
+    video = write_video(run, tmp_path / "v", accel=False)
+    code, _, err = cli(capsys, "velocity", video, "--out", tmp_path / "o.nc")
+    assert code == 2 and "no accelerometer" in err and "clip.gcsv" in err, err
+    fo = open_footage(video, require_imu=False)
+    assert fo.imu is None
+
+
+def test_without_intrinsics_an_action_camera_is_self_calibrated_and_another_is_refused(run, tmp_path):
+    video = write_video(run, tmp_path / "a", camera=False, ident="runcam_thumb_pro")
+    fo = open_footage(video)
+    assert fo.lens_guess is not None and fo.distortion["removed"]
+    assert fo.calibration["lens"].startswith("equidistant") and "focal_length_px" in fo.calibration
+    video = write_video(run, tmp_path / "b", camera=False, ident="phone_logger")
+    with pytest.raises(FootageError, match="no intrinsics for this gcsv phone logger camera.*--camera"):
+        open_footage(video)
+    assert open_footage(video, require_camera=False).camera is None
