@@ -32,10 +32,9 @@ def write_gcsv(path: Path, fo, ident="lobula_logger", accel=True) -> Path:
     axes (x right, y down, z forward) named against Gyroflow's (x up, y left, z back): orientation "yxz"."""
     imu = fo.imu
     head = ["GYROFLOW IMU LOG", "version,1", f"id,{ident}", "orientation,yxz", "tscale,0.000001", "gscale,1",
-            f"ascale,{1 / G!r}", "t,gx,gy,gz" + (",ax,ay,az" if accel else "")]
-    rows = [",".join([str(int(round(t * 1e6)))] + [repr(float(x)) for x in g] + ([repr(float(x)) for x in a / 1.0]
-                                                                                  if accel else []))
-            for t, g, a in zip(imu.time_s, imu.gyro, imu.accel * 1.0)]
+            "ascale,1", "t,gx,gy,gz" + (",ax,ay,az" if accel else "")]
+    rows = [",".join([str(int(round(t * 1e6))), *map(repr, g.tolist()), *(map(repr, (a / G).tolist()) if accel else [])])
+            for t, g, a in zip(imu.time_s, imu.gyro, imu.accel)]
     path.write_text("\n".join(head + rows) + "\n")
     return path
 
@@ -129,3 +128,15 @@ def test_without_intrinsics_an_action_camera_is_self_calibrated_and_another_is_r
     with pytest.raises(FootageError, match="no intrinsics for this gcsv phone logger camera.*--camera"):
         open_footage(video)
     assert open_footage(video, require_camera=False).camera is None
+
+
+def test_a_360_degree_picture_is_refused_without_intrinsics(run, tmp_path):
+    dst = tmp_path / "s"
+    dst.mkdir()
+    wr = cv2.VideoWriter(str(dst / "clip.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (240, 120))
+    for k in range(5):
+        wr.write(np.full((120, 240, 3), 40 * k, np.uint8))
+    wr.release()
+    write_gcsv(dst / "clip.gcsv", open_footage(run), ident="insta360_x3")
+    with pytest.raises(FootageError, match="240x120 frame is a 360° picture"):
+        open_footage(dst / "clip.avi")

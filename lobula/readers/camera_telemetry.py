@@ -173,17 +173,22 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     source = f"{sidecar} (.gcsv)" if log["camera"] == "gcsv" else f"{path} ({who} motion log)"
     cam_path = _camera_file(path, camera_json)
     camera, lens_guess = None, None
+    spherical = abs(w - 2 * h) <= 0.02 * w  # a 2:1 frame: a 360° camera's equirectangular or dual-fisheye picture
     if cam_path is not None:
         camera = read_camera_json(cam_path)
         if (w, h) != (camera.width, camera.height):
             raise FootageError(f"{path}: video is {w}x{h} but {cam_path} says {camera.width}x{camera.height}; give "
                                f"the intrinsics of this resolution")
-    elif is_action_camera(log["camera"], log["model"]):
+    elif is_action_camera(log["camera"], log["model"]) and not spherical:
         camera = equidistant_camera(w, h, fps, NOMINAL_DIAGONAL_FOV_DEG)
         lens_guess = dict(model="kannala-brandt", coeffs=[0.0, 0.0, 0.0, 0.0],
                           diagonal_fov_deg=NOMINAL_DIAGONAL_FOV_DEG,
                           source=f"a nominal {NOMINAL_DIAGONAL_FOV_DEG:g}° diagonal for a {who} action camera",
                           rel_std=NOMINAL_FOV_REL_STD)
+    elif require_camera and spherical:
+        raise FootageError(f"{path}: a {w}x{h} frame is a 360° picture (equirectangular, or two fisheyes side by "
+                           f"side), not one lens's view; reframe it to one view and give that view's intrinsics "
+                           f"with --camera FILE")
     elif require_camera:
         raise FootageError(f"{path}: no intrinsics for this {who} camera; write {path.stem}.camera.json beside it "
                            f"(width, height, fx, fy, cx, cy, frame_rate_hz, and its lens \"distortion\") or give "
