@@ -43,6 +43,10 @@ __all__ = ["EyeVelocityConfig", "estimate_eye_velocity", "causal_gyro", "readout
 #: and drones (lobula.readout.ReadoutConfig.v_prior_m_s)
 FLY_SPEED_PRIOR_M_S = 1.0
 
+#: the long name of the eye's v_std (as the camera's: lobula.velocity.pipeline)
+STD_NAME = ("std of v_hat: the posterior's where vision answers, beyond grown by the accelerometer offset's prior std "
+            "times the time from the nearest frame where it answered (online: the last)")
+
 
 @dataclass
 class EyeVelocityConfig:
@@ -311,7 +315,7 @@ def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_out
         info = res.info
         # The halves, the offset and the spikes take v̂ where vision answers only (answered_velocity), not where
         # it is carried.
-        std_name, method, filt = "posterior std of v_hat", cfg.readout.method, cfg.readout.filter
+        std_name, method, filt = STD_NAME, cfg.readout.method, cfg.readout.filter
         if cfg.uncertainty == "halves":
             extra = (cfg.emd_gain_error * np.nan_to_num(res.v_hat)) ** 2
             for a_half, b_half in field_halves(fields, n_outputs):
@@ -321,7 +325,7 @@ def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_out
                           for h in (a_half, b_half)]
                 extra = extra + np.nan_to_num(split_half_variance(t, *halves, cfg.split_tau_s))
             v_std = np.sqrt(v_std ** 2 + extra)
-            std_name = ("posterior std of v_hat combined with the disagreement of the field halves (left and right "
+            std_name = (f"{STD_NAME}, combined with the disagreement of the field halves (left and right "
                         f"eye, upper and lower) and the EMD gain error ({cfg.emd_gain_error:g}·|v_hat|)")
         if cfg.readout_kind == "spikes":
             if cfg.readout.filter != "causal":
@@ -334,7 +338,7 @@ def _eye_readout(cfg, rcfg, fields, t, rho_in, r2_in, a, tau, drift, turn, n_out
             enc = spiking_output(t, v_ans, a_lead, replace(cfg.neuron, spiking=True))
             v_hat = np.where(observable, enc["v_dec"], np.nan)
             v_std = np.sqrt(v_std ** 2 + enc["decode_std"] ** 2)
-            std_name = std_name.replace("posterior std of v_hat", "posterior std of the readout", 1) + \
+            std_name = std_name.replace("std of v_hat", "std of the readout's v_hat", 1) + \
                 f" and the {SPIKE_MODELS[cfg.neuron.spike_model]} count noise of the spike decoding"
             method = (f"{cfg.readout.method}, carried by {cfg.neuron.population} push-pull "
                       f"{SPIKE_MODELS[cfg.neuron.spike_model]} output neuron pairs "
@@ -350,7 +354,8 @@ def _eye_dataset(fo, cfg, rcfg, f, t, rho, r2, haltere_gain, reliability, used, 
     else:
         # What v_std adds beyond the posterior does not gate: gating on it leaves the eye blind, so the
         # file says which std the flag is of.
-        obs_definition = (f"the readout's posterior std ≤ max({rcfg.max_std_m_s:g} m/s, {rcfg.max_rel_std:g}·|v̂|) and "
+        obs_definition = (f"the readout's std of v̂ (its posterior's, grown beyond the frames vision answers) ≤ "
+                          f"max({rcfg.max_std_m_s:g} m/s, {rcfg.max_rel_std:g}·|v̂|) and "
                           f"vision coupled to the accelerometer (lobula.readout.coupling)") + (
             "; v_std adds the field halves' disagreement and the EMD gain error, so it may exceed that"
             if cfg.uncertainty == "halves" else "")

@@ -320,9 +320,9 @@ def test_eye_velocity_beats_the_zero_estimator(eye_footage):
     ds = estimate_eye_velocity(fo, EyeVelocityConfig(accel_from_truth=True))
     assert set(["v_hat", "v_std", "observable", "accel", "r", "r2", "r_dot", "v_field", "v_true"]) <= set(ds)
     assert ds.attrs["filter"] == "causal"
-    # the flag says which std it is of: the posterior's, not v_std's (which adds the halves' disagreement)
+    # the flag says which std it is of: the readout's, not v_std's (which adds the halves' disagreement)
     definition = ds.observable.attrs["definition"]
-    assert "posterior std ≤ max(0.1 m/s, 0.05·|v̂|)" in definition and "halves" in definition
+    assert "grown beyond the frames vision answers) ≤ max(0.1 m/s, 0.05·|v̂|)" in definition and "halves" in definition
     sc = score(ds, skip_s=1.0)
     keep = (ds.time.values >= ds.time.values[0] + 1.0) & ds.observable.values
     v_true, v_hat = ds.v_true.values[keep], ds.v_hat.values[keep]
@@ -575,7 +575,7 @@ def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, 
         assert json.loads(dc.attrs["config"])["neuron"]["membrane_noise_mv"] == 2.0
         circuit = json.loads(dc.attrs["config"])["circuit"]
         assert circuit["surround"] == 0.0 and circuit["photoreceptor"]["tau_hp_s"] == 0.25   # --mean-removal time
-        assert dc.v_std.attrs["long_name"].startswith("posterior std")
+        assert dc.v_std.attrs["long_name"].startswith("std of the readout's v_hat")
         np.testing.assert_allclose(dc.v_hat.values, dd.v_hat.values, equal_nan=True)
         np.testing.assert_allclose(dc.v_std.values, dd.v_std.values, equal_nan=True)
         assert dc.sizes["field"] != da.sizes["field"]        # mirror sums: the options did something
