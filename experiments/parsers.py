@@ -185,11 +185,13 @@ def add_footage_options(p) -> None:
                         "length that keeps the whole view (optimal: OpenCV's new K for EuRoC; the whole width up to "
                         "150° for a camera.json lens)")
     p.add_argument("--camera", metavar="FILE",
-                   help="camera.json (width, height, fx, fy, cx, cy in pixels, frame_rate_hz; optionally a lens "
-                        "\"distortion\": {\"model\": \"kannala-brandt\"|\"radtan\", \"coeffs\": [...]}) with the intrinsics "
-                        "to use instead of the recording's: for a bag without usable CameraInfo, or to correct "
-                        "them; for a footage folder or video it stands for their camera.json (imu_to_camera too) "
-                        "(default: the recording's own)")
+                   help="the intrinsics to use instead of the recording's: a camera.json (width, height, fx, fy, cx, "
+                        "cy in pixels, frame_rate_hz; optionally a lens \"distortion\": {\"model\": "
+                        "\"kannala-brandt\"|\"radtan\", \"coeffs\": [...]}), an OpenCV calibration (FileStorage "
+                        "YAML/XML/JSON), a ROS camera_info YAML, a Kalibr camchain (cam0; its T_cam_imu and "
+                        "timeshift_cam_imu too) or a Gyroflow lens profile (scaled to the footage's resolution); for "
+                        "a bag without usable CameraInfo, or to correct them; for a footage folder or video it "
+                        "stands for their camera.json (imu_to_camera too) (default: the recording's own)")
 
 
 # ----------------------------------------------------------------------------- lobula velocity (camera)

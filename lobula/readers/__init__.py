@@ -213,7 +213,8 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
     :mod:`lobula.lens`): "same-k" (undistort onto the same pinhole K) or "optimal" (EuRoC: onto
     OpenCV's optimal new K, all pixels valid; a lens: a focal length that keeps the whole width's view,
     up to 150°). camera: a
-    camera.json (width, height, fx, fy, cx, cy, frame_rate_hz; optionally imu_to_camera) to use
+    camera.json (width, height, fx, fy, cx, cy, frame_rate_hz; optionally imu_to_camera), or a calibration
+    tool's file (:mod:`lobula.readers.intrinsics`: OpenCV, ROS camera_info, Kalibr, Gyroflow), to use
     instead of the recording's own intrinsics, on every layout (``--camera FILE``): for a folder
     or a video it stands for the camera.json beside the frames (its imu_to_camera too); for
     RealSense bags and EuRoC it replaces the recorded intrinsics (EuRoC's distortion is still
@@ -229,22 +230,88 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
         from .core import FootageError
         raise FootageError(f"{path}: not found (not a folder or a file); give one of: {known_layouts()}")
     cam_json = None if camera is None else Path(camera)
+    intr = None
     if cam_json is not None:
-        _intrinsics(cam_json)  # a bad --camera is named before the footage is looked at
-    reader = _reader_for(path)
-    footage = reader.open(path, stream=stream, clock=clock, require_imu=require_imu, undistort=undistort,
-                          camera=cam_json, keep_nan=keep_nan, require_camera=require_camera)
-    if cam_json is not None:
-        footage.notes.append(f"intrinsics from {cam_json} (--camera), not the recording's own")
-    lensed = _remove_lens(footage, path, cam_json, undistort)
+        from .intrinsics import read_intrinsics
+        intr = read_intrinsics(cam_json)  # a bad --camera is named before the footage is looked at
+    import tempfile
+    with tempfile.TemporaryDirectory(prefix="lobula-camera-") as tmp:
+        given = cam_json
+        if intr is not None and intr.format != "camera.json":
+            # Another tool's calibration: the readers take it as the camera.json it amounts to.
+            cam_json, intr = _converted_camera_json(intr, cam_json, path, Path(tmp))
+        reader = _reader_for(path)
+        footage = reader.open(path, stream=stream, clock=clock, require_imu=require_imu, undistort=undistort,
+                              camera=cam_json, keep_nan=keep_nan, require_camera=require_camera)
+        lensed = _remove_lens(footage, path, cam_json, undistort)
+    if given is not None:
+        _name_the_given_file(footage, cam_json, given, intr)
     _refuse_options_for_layout(footage, stream, clock, undistort if not lensed else "same-k")
     footage.skip_bad_frames = skip_bad_frames
-    if clock_offset not in (None, 0, 0.0, "0"):
+    if clock_offset is None and intr is not None and intr.imu_clock_offset_s and footage.imu is not None:
+        footage.imu = footage.imu.shifted(intr.imu_clock_offset_s)
+        footage.clock_offset_s = float(intr.imu_clock_offset_s)
+        footage.clock_offset_source = f"from {given} ({intr.format})"
+        footage.notes.append(f"IMU clock shifted by {intr.imu_clock_offset_s * 1e3:+.1f} ms onto the frames' clock "
+                             f"(from {given})")
+    elif clock_offset not in (None, 0, 0.0, "0"):
         _apply_clock_offset(footage, clock_offset)
     if getattr(footage, "lens_guess", None) is not None and footage.imu is not None:
         from .self_calibration import self_calibrate
         self_calibrate(footage, clock=clock_offset is None)
     return footage
+
+
+def _footage_size_and_rate(path: Path) -> tuple[tuple[int, int] | None, float | None]:
+    """((width, height) px, nominal frames/s) of a video file, a folder holding one, or a footage folder
+    (frames.csv and its first frame); (None, None) for anything else. Reads no picture of a video."""
+    import numpy as np
+
+    videos = [path] if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES else _videos_in(path)
+    if len(videos) == 1:
+        import av
+        try:
+            with av.open(str(videos[0])) as c:
+                s = c.streams.video[0]
+                rate = float(s.average_rate) if s.average_rate else None
+                return (s.codec_context.width, s.codec_context.height), rate
+        except (av.error.FFmpegError, IndexError):
+            return None, None
+    if path.is_dir() and (path / "frames.csv").exists():
+        import cv2
+
+        from .core import read_csv_columns
+        cols = read_csv_columns(path / "frames.csv", ("time_s", "file"))
+        img = cv2.imread(str(path / str(cols["file"][0])), cv2.IMREAD_UNCHANGED)
+        t = np.asarray(cols["time_s"], float)
+        rate = round(1.0 / float(np.median(np.diff(t))), 3) if len(t) > 1 else None
+        return (None if img is None else (img.shape[1], img.shape[0])), rate
+    return None, None
+
+
+def _converted_camera_json(intr, given: Path, path: Path, tmp: Path):
+    """(the camera.json written in ``tmp``, the calibration it holds) of the calibration ``intr`` read from
+    ``given``: scaled to the footage at ``path`` where its size is known and differs, its frame rate the
+    footage's where the calibration has none."""
+    import json
+
+    from .intrinsics import camera_json_of
+    size, rate = _footage_size_and_rate(path)
+    if size is not None:
+        intr = intr.scaled_to(size[0], size[1], given)
+    out = tmp / f"{given.stem}.camera.json"
+    out.write_text(json.dumps(camera_json_of(intr, rate or 30.0)))
+    return out, intr
+
+
+def _name_the_given_file(footage: "Footage", used: Path, given: Path, intr) -> None:
+    """Notes and the lens's source name the user's ``--camera`` file, not the camera.json it was turned into."""
+    what = "" if intr is None or intr.format == "camera.json" else f", read as {intr.format}" + "".join(
+        f"; {n}" for n in intr.notes)
+    footage.notes = [n.replace(str(used), str(given)).replace(used.name, given.name) for n in footage.notes]
+    footage.notes.append(f"intrinsics from {given} (--camera{what}), not the recording's own")
+    if isinstance(footage.distortion, dict) and footage.distortion.get("source") == str(used):
+        footage.distortion["source"] = str(given)
 
 
 def _lens_file(path: Path, cam_json: Path | None) -> Path | None:
