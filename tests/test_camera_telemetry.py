@@ -3,6 +3,7 @@ synthetic run's video gives back the run's IMU exactly, and the same velocity as
 are one clear line."""
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -119,15 +120,34 @@ def test_a_gyro_only_log_says_velocity_needs_an_accelerometer(run, tmp_path, cap
     assert fo.imu is None
 
 
-def test_without_intrinsics_an_action_camera_is_self_calibrated_and_another_is_refused(run, tmp_path):
+def test_without_intrinsics_an_action_camera_is_taken_for_a_fisheye_and_another_for_a_pinhole(run, tmp_path):
     video = write_video(run, tmp_path / "a", camera=False, ident="runcam_thumb_pro")
     fo = open_footage(video)
-    assert fo.lens_guess is not None and fo.distortion["removed"]
+    assert fo.lens_guess["model"] == "kannala-brandt" and fo.distortion["removed"]
     assert fo.calibration["lens"].startswith("equidistant") and "focal_length_px" in fo.calibration
     video = write_video(run, tmp_path / "b", camera=False, ident="phone_logger")
-    with pytest.raises(FootageError, match="no intrinsics for this gcsv phone logger camera.*--camera"):
-        open_footage(video)
-    assert open_footage(video, require_camera=False).camera is None
+    fo = open_footage(video)
+    assert fo.lens_guess["model"] == "pinhole" and fo.lens_maps is None and fo.distortion is None
+    # the run barely turns: the focal length stays the guess's, with the guess's uncertainty, and says why
+    cal = fo.calibration
+    assert cal["lens"].startswith("pinhole") and cal["focal_length_rel_std"] == 0.25
+    assert "not measured: too little pan and tilt" in cal["focal_length_source"]
+    assert cal["focal_length_px"] == pytest.approx(fo.camera.fx)
+
+
+def test_a_phone_video_that_turns_has_its_focal_length_measured(tmp_path):
+    """A 160×120 pinhole run turning on three axes, its IMU as a phone app's .gcsv, no intrinsics: from the 75°
+    guess (130 px) the gyro finds the focal length (154 px) within 6 %, inside twice its stated std."""
+    cfg = TrackRunConfig(start_s=3.0, duration_s=3.0, scale=0.25,
+                         scene=SceneConfig(seed=2, rotation3_amp_deg=(5.0, 5.0, 5.0)))
+    run = make_track_run(tmp_path / "turn", cfg, progress=False)
+    true_fx = json.loads((run / "camera.json").read_text())["fx"]
+    fo = open_footage(write_video(run, tmp_path / "v", camera=False, ident="phone_logger"))
+    cal = fo.calibration
+    assert "measured against the gyro" in cal["focal_length_source"], cal
+    err = cal["focal_length_px"] / true_fx - 1.0
+    assert abs(err) < 0.06 and abs(err) <= 2 * cal["focal_length_rel_std"], cal
+    assert fo.camera.fx == pytest.approx(cal["focal_length_px"], rel=1e-4) and abs(cal["clock_offset_s"]) < 0.01
 
 
 def test_a_360_degree_picture_is_refused_without_intrinsics(run, tmp_path):

@@ -333,7 +333,8 @@ def _remove_lens(footage: Footage, path: Path, cam_json: Path | None, undistort:
     from .core import FootageError
     src = _lens_file(path, cam_json)
     guess = getattr(footage, "lens_guess", None)
-    if (src is None and guess is None) or footage.camera is None or footage.kind == "euroc":
+    if (src is None and (guess is None or guess["model"] == "pinhole")) or footage.camera is None \
+            or footage.kind == "euroc":
         return False
     if src is None:
         from lobula.lens import LensDistortion

@@ -10,10 +10,12 @@ the camera's (x right, y down, z forward; :data:`GYROFLOW_TO_CAMERA`), converts 
 takes the samples' times as the parser gives them, on the video's clock (``--clock-offset auto``
 estimates an offset; a camera opened without intrinsics has its offset estimated anyway).
 
-Intrinsics come from ``--camera FILE`` or a camera.json beside the video. Without one, an action camera
-(a wide fisheye) is opened as GoPro MP4s are: an equidistant lens of a nominal field of view whose
-focal length the gyro then measures (:mod:`lobula.readers.self_calibration`); any other camera needs a
-camera file, and the error says so. GoPro MP4s are read by :mod:`lobula.readers.gopro`, which also
+Intrinsics come from ``--camera FILE`` (a camera.json or a calibration tool's file,
+:mod:`lobula.readers.intrinsics`) or a camera.json beside the video. Without one, an action camera (a wide
+fisheye) is opened as GoPro MP4s are, as an equidistant lens of a nominal field of view, and any other camera
+as a pinhole of a phone's field of view; the gyro then measures the focal length where the footage turns
+enough (:mod:`lobula.readers.self_calibration`), and the output says which. A 360° camera's 2:1 picture is
+refused without intrinsics. GoPro MP4s are read by :mod:`lobula.readers.gopro`, which also
 reads their GPS; a video with an ``imu.csv`` beside it stays the ``video`` layout.
 """
 from __future__ import annotations
@@ -33,6 +35,12 @@ GYROFLOW_TO_CAMERA = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1
 #: camera or model name, any case): opened without intrinsics as an equidistant lens the gyro calibrates
 ACTION_CAMERAS = ("gopro", "insta360", "dji", "runcam", "caddx", "foxeer", "hawkeye", "akaso", "sjcam", "xtu",
                   "iflight", "walksnail")
+
+#: degree: the diagonal field of view assumed for a camera that is not an action camera and comes without
+#: intrinsics (a phone's main camera sees 70-85°), and the 1σ fraction of the focal length it implies, before the
+#: gyro measures it
+NOMINAL_PINHOLE_DIAGONAL_FOV_DEG = 75.0
+NOMINAL_PINHOLE_FOV_REL_STD = 0.25
 
 INSTALL_HINT = ("reading a camera's motion log needs telemetry-parser (Gyroflow's parser; wheels for Linux, macOS "
                 "and Windows, CPython 3.8-3.12): pip install telemetry-parser")
@@ -123,9 +131,21 @@ def is_action_camera(camera: str, model: str | None) -> bool:
     return any(n.startswith(m) for n in names for m in ACTION_CAMERAS)
 
 
+def pinhole_camera(width: int, height: int, fps: float, diagonal_fov_deg: float):
+    """A pinhole camera whose diagonal sees ``diagonal_fov_deg`` (deg): f = half the diagonal (px) / tan(half the
+    angle); principal point at the centre."""
+    import math
+
+    from lobula.camera import PinholeCamera
+
+    f = 0.5 * math.hypot(width, height) / math.tan(math.radians(0.5 * diagonal_fov_deg))
+    return PinholeCamera(width, height, f, f, (width - 1) / 2, (height - 1) / 2, fps)
+
+
 class CameraTelemetryFootage(VideoFootage):
     """A video with the camera's own motion log (module doc). ``lens_guess``: where no camera file was
-    given, the equidistant lens assumed (as :class:`lobula.readers.gopro.GoProFootage`'s), else None;
+    given, the lens assumed (an equidistant fisheye as :class:`lobula.readers.gopro.GoProFootage`'s, or model
+    "pinhole"), else None;
     ``motion_log``: {camera, model, samples, rate_hz, source}."""
 
     lens_guess: dict | None
@@ -155,8 +175,8 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     path: the video. camera_json: intrinsics (``--camera``); else ``CLIP.camera.json`` or ``camera.json`` beside
     it, whose optional imu_to_camera is applied after the parser's axis mapping, as a correction in the camera
     frame. require_imu: FootageError when the log has no accelerometer (False: opened with ``imu=None``).
-    require_camera: FootageError where no intrinsics are known and the camera is not an action camera (False:
-    ``camera=None``, for ``lobula info``). Every bad input is one FootageError naming the file and the fix.
+    require_camera: FootageError for a 360° picture without intrinsics (False: ``camera=None``, for
+    ``lobula info``). Every bad input is one FootageError naming the file and the fix.
     """
     from .gopro import NOMINAL_DIAGONAL_FOV_DEG, NOMINAL_FOV_REL_STD, equidistant_camera
 
@@ -185,14 +205,17 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
                           diagonal_fov_deg=NOMINAL_DIAGONAL_FOV_DEG,
                           source=f"a nominal {NOMINAL_DIAGONAL_FOV_DEG:g}° diagonal for a {who} action camera",
                           rel_std=NOMINAL_FOV_REL_STD)
-    elif require_camera and spherical:
+    elif not spherical:
+        # A phone's or a camera's own lens: a pinhole of a phone's main camera's field of view, the focal length
+        # measured against the gyro where the footage turns enough (lobula.readers.self_calibration).
+        camera = pinhole_camera(w, h, fps, NOMINAL_PINHOLE_DIAGONAL_FOV_DEG)
+        lens_guess = dict(model="pinhole", coeffs=[], diagonal_fov_deg=NOMINAL_PINHOLE_DIAGONAL_FOV_DEG,
+                          source=f"a nominal {NOMINAL_PINHOLE_DIAGONAL_FOV_DEG:g}° diagonal pinhole for a {who} camera",
+                          rel_std=NOMINAL_PINHOLE_FOV_REL_STD)
+    elif require_camera:
         raise FootageError(f"{path}: a {w}x{h} frame is a 360° picture (equirectangular, or two fisheyes side by "
                            f"side), not one lens's view; reframe it to one view and give that view's intrinsics "
                            f"with --camera FILE")
-    elif require_camera:
-        raise FootageError(f"{path}: no intrinsics for this {who} camera; write {path.stem}.camera.json beside it "
-                           f"(width, height, fx, fy, cx, cy, frame_rate_hz, and its lens \"distortion\") or give "
-                           f"one with --camera FILE")
     notes = [f"video: {len(times)} frames ({w}x{h}, {codec}), frame times from the container's time stamps"]
     imu, r = None, None
     if log["accel"] is None:
