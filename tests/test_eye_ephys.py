@@ -48,6 +48,7 @@ def test_tf_tuning_follows_tau():
     assert np.median(ds.lc_input_peak_temporal_frequency_hz.values) == 2.27
 
 
+@pytest.mark.slow
 def test_rf_map_recovers_the_designed_centre_and_size():
     ds = eye_rf_map(fields=[19], spacing_deg=10.0, extent_deg=36.0, directions=3)
     f = EyeRig().fields

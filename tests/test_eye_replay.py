@@ -81,6 +81,7 @@ def test_eye_replay_trials_differ_in_spikes_and_follow_the_flight(rec):
     assert np.sqrt(np.mean((dec[ok] - truth[ok]) ** 2)) < 0.3 * np.sqrt(np.mean(truth[ok] ** 2))
 
 
+@pytest.mark.slow
 def test_eye_replay_options_change_the_recording(eye_run, rec):
     f = str(eye_run)
     tau = run_protocol("velocity-replay", {"eye": "fly", "footage": f, "trials": 1, "tau": 0.07})

@@ -15,6 +15,7 @@ COMMITTED = Path(__file__).resolve().parents[1] / "figures"
 RTOL = {"rmse_vs_dphi": 1e-2, "rmse_vs_tau_contrast_noise": 1e-2}
 
 
+@pytest.mark.slow
 def test_figures_are_deterministic(tmp_path):
     # One figure made twice, on the built-in profile the test suite renders on every machine: every
     # figure's numbers against its committed record (the recorded profile) is the slow test below.

@@ -66,6 +66,7 @@ def counter(tmp_path, monkeypatch):
     return path
 
 
+@pytest.mark.slow
 def test_sweep_grid_resume_after_lost_record_and_same_numbers(tmp_path, counter):
     """2 scenes × 2 field sizes on tiny runs (threads): dims, coords, metrics; a deleted record is the
     only point recomputed, and it comes back with the same numbers; one point matches a direct run."""
