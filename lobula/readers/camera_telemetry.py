@@ -241,8 +241,9 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
         from .core import read_truth_csv
         truth, _ = read_truth_csv(tp, False)
     streams = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=round(fps, 3)),
-               dict(stream="motion log", camera=log["camera"], model=log["model"], samples=len(log["time_s"]),
-                    accelerometer=log["accel"] is not None, gyroscope=log["gyro"] is not None)]
+               dict(stream="motion log", source=who, samples=len(log["time_s"]),
+                    sensors=", ".join(n for n, x in (("accelerometer", log["accel"]), ("gyroscope", log["gyro"]))
+                                      if x is not None))]
     footage = CameraTelemetryFootage(path, camera, times, [], imu, truth, kind="camera-telemetry", notes=notes,
                                      imu_to_camera=(GYROFLOW_TO_CAMERA if r is None else r @ GYROFLOW_TO_CAMERA)
                                      if imu is not None else None, streams=streams)
