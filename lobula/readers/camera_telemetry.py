@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .core import FootageError, IMU, imu_to_camera, read_camera_json, rotation_deg
-from .video import VideoFootage, check_presentation_times, container_times
+from .video import VideoFootage, camera_file, check_presentation_times, container_times
 
 #: Gyroflow's IMU frame (x up, y left, z backwards from the lens) into the camera's (x right, y down, z forward)
 GYROFLOW_TO_CAMERA = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
@@ -159,15 +159,6 @@ class CameraTelemetryFootage(VideoFootage):
         return out
 
 
-def _camera_file(path: Path, camera_json) -> Path | None:
-    if camera_json is not None:
-        return Path(camera_json)
-    for p in (path.with_name(f"{path.stem}.camera.json"), path.with_name("camera.json")):
-        if p.is_file():
-            return p
-    return None
-
-
 def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_json=None,
                           require_camera: bool = True) -> CameraTelemetryFootage:
     """Open a video with its camera's motion log (module doc).
@@ -191,7 +182,7 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     who = " ".join(x for x in (log["camera"], log["model"]) if x)
     sidecar = path.with_suffix(".gcsv")
     source = f"{sidecar} (.gcsv)" if log["camera"] == "gcsv" else f"{path} ({who} motion log)"
-    cam_path = _camera_file(path, camera_json)
+    cam_path = camera_file(path, camera_json)
     camera, lens_guess = None, None
     spherical = abs(w - 2 * h) <= 0.02 * w  # a 2:1 frame: a 360° camera's equirectangular or dual-fisheye picture
     if cam_path is not None:

@@ -55,7 +55,7 @@ from .gopro_telemetry import (DEFAULT_ORIN, GOPRO_TO_CAMERA, GOPRO_XYZ_TO_CAMERA
                               axis_order_matrix, imu_axes_to_camera, packet_sample_times, read_telemetry)
 from .gpmf import DATA_KEYS, GPMF_INSTALL_HINT, STICKY_KEYS, decode_gpmf, decode_settings
 from .mp4_index import GPMF_SAMPLE_TYPE, Mp4Index, has_gpmf_track, read_mp4_index
-from .video import VideoFootage, container_times
+from .video import VideoFootage, camera_file, container_times
 
 #: The lowest GPS fix (GPSF, GPS9's fix field: 0 no lock, 2 2D, 3 3D) whose samples count as truth.
 GPS_FIX_2D = 2
@@ -154,15 +154,6 @@ class GoProFootage(VideoFootage):
         return out
 
 
-def _camera_file(path: Path, camera_json: str | Path | None) -> Path | None:
-    if camera_json is not None:
-        return Path(camera_json)
-    for p in (path.with_name(f"{path.stem}.camera.json"), path.with_name("camera.json")):
-        if p.exists():
-            return p
-    return None
-
-
 def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Path | None = None,
                require_camera: bool = True) -> GoProFootage:
     """Open a GoPro MP4 as the camera wrote it (module doc): frames, IMU in the camera frame, GPS truth.
@@ -183,7 +174,7 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
         raise FootageError(f"{path}: no video frames could be read (empty or damaged MP4); copy the file again "
                            f"from the camera's card")
     model, firmware = str(settings.get("MINF") or ""), str(settings.get("FMWR") or "")
-    cam_path = _camera_file(path, camera_json)
+    cam_path = camera_file(path, camera_json)
     camera = None
     if cam_path is not None:
         camera = read_camera_json(cam_path)

@@ -28,6 +28,17 @@ def _beside(video: Path, name: str) -> Path:
     return own if own.exists() else video.with_name(name)
 
 
+def camera_file(video: Path, camera_json: str | Path | None) -> Path | None:
+    """The camera.json of the video at ``video``: ``camera_json`` (``--camera``) where given, else
+    ``<stem>.camera.json`` or ``camera.json`` beside it; None where there is none."""
+    if camera_json is not None:
+        return Path(camera_json)
+    for p in (video.with_name(f"{video.stem}.camera.json"), video.with_name("camera.json")):
+        if p.is_file():
+            return p
+    return None
+
+
 def _open_container(path: Path):
     """(container, its first video stream); FootageError naming the file when FFmpeg cannot read it."""
     try:
