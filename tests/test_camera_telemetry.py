@@ -74,6 +74,18 @@ def test_a_gcsv_beside_the_video_gives_back_the_runs_imu(run, tmp_path):
     assert fo.truth is not None and "clip.gcsv" in fo.imu.source
 
 
+def test_a_loggers_own_clock_starts_at_the_videos_start(run, tmp_path):
+    video = write_video(run, tmp_path / "v")
+    log = tmp_path / "v" / "clip.gcsv"
+    lines = log.read_text().splitlines()
+    head, rows = lines[:8], lines[8:]
+    shifted = [",".join([str(int(r.split(",")[0]) + 500_000_000)] + r.split(",")[1:]) for r in rows]  # 500 s on
+    log.write_text("\n".join(head + shifted) + "\n")
+    fo, ref = open_footage(video), open_footage(run)
+    np.testing.assert_allclose(fo.imu.time_s, ref.imu.time_s - ref.imu.time_s[0], atol=1e-6)
+    assert "first sample at the video's start" in " ".join(fo.notes)
+
+
 def test_velocity_from_the_gcsv_equals_velocity_from_the_imu_csv(run, tmp_path, capsys):
     import xarray as xr
 

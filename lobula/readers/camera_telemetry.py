@@ -7,8 +7,9 @@ Gyroflow's ``.gcsv`` beside the video (``clip.mp4`` with ``clip.gcsv``). Gyroflo
 model's axes into one frame, Gyroflow's: x up, y left, z backwards from the lens (for ``.gcsv`` its
 ``orientation`` line says how the logged axes map onto that frame). This reader rotates that frame into
 the camera's (x right, y down, z forward; :data:`GYROFLOW_TO_CAMERA`), converts deg/s to rad/s, and
-takes the samples' times as the parser gives them, on the video's clock (``--clock-offset auto``
-estimates an offset; a camera opened without intrinsics has its offset estimated anyway).
+takes the samples' times as the parser gives them, as on the video's clock: the parser starts a
+``.gcsv`` at 0, the video's start, whatever clock its logger kept (``--clock-offset auto`` estimates a
+constant offset; a camera opened without intrinsics has its offset estimated anyway).
 
 Intrinsics come from ``--camera FILE`` (a camera.json or a calibration tool's file,
 :mod:`lobula.readers.intrinsics`) or a camera.json beside the video. Without one, an action camera (a wide
@@ -219,6 +220,7 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
         notes.append(f"IMU: {len(log['time_s'])} samples ({rate:.0f} Hz) from {source}, read by telemetry-parser and "
                      f"rotated from Gyroflow's axes (x up, y left, z back) into the camera frame (x right, y down, "
                      f"z forward); its times taken as on the video's clock"
+                     + (" (a .gcsv's first sample at the video's start)" if log["camera"] == "gcsv" else "")
                      + (f"; {log['dropped']} samples without finite values or with a repeated time left out"
                         if log["dropped"] else ""))
         if cam_path is not None:
