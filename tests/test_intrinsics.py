@@ -67,6 +67,20 @@ def test_an_opencv_calibration_is_the_camera_json_it_says(run, tmp_path, suffix)
     assert f"intrinsics from {path} (--camera, read as an OpenCV FileStorage file)" in got.notes[-1]
 
 
+def test_opencvs_calibration_sample_marks_a_fisheye(run, tmp_path):
+    """OpenCV's camera_calibration sample writes fisheye_model 1 and four coefficients for a fisheye."""
+    c = camera_of(run)
+    path = tmp_path / "out_camera_data.yml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for k, v in (("image_width", c["width"]), ("image_height", c["height"]), ("flags", 0), ("fisheye_model", 1),
+                 ("camera_matrix", k_matrix(c)), ("distortion_coefficients", np.array(KB4)[:, None]),
+                 ("avg_reprojection_error", 0.3)):
+        fs.write(k, v)
+    fs.release()
+    got = open_footage(run, camera=path)
+    assert got.distortion["model"] == "kannala-brandt" and got.distortion["coeffs"] == pytest.approx(KB4)
+
+
 def test_velocity_with_an_opencv_calibration_equals_velocity_with_the_camera_json(run, tmp_path):
     from lobula.config import VelocityConfig
     from lobula.velocity import estimate_velocity
