@@ -172,3 +172,32 @@ def test_a_360_degree_picture_is_refused_without_intrinsics(run, tmp_path):
     write_gcsv(dst / "clip.gcsv", open_footage(run), ident="insta360_x3")
     with pytest.raises(FootageError, match="240x120 frame is a 360° picture"):
         open_footage(dst / "clip.avi")
+
+
+def test_a_panic_of_the_parser_is_one_clear_line(run, tmp_path, monkeypatch, capfd):
+    """telemetry-parser's Rust code panics on some damaged files: the panic (a BaseException, its message and
+    backtrace printed on the process's standard error) reads as "no motion log", with nothing else printed."""
+    import os
+
+    import telemetry_parser
+
+    class Panic(BaseException):  # what pyo3 raises for a Rust panic
+        pass
+
+    def parser(path):
+        os.write(2, b"thread '<unnamed>' panicked at src/gopro: range end index 88 out of range\nstack backtrace:\n")
+        raise Panic("range end index 88 out of range for slice of length 84")
+
+    monkeypatch.setattr(telemetry_parser, "Parser", parser)
+    from lobula.readers.camera_telemetry import has_motion_log, read_motion_log
+
+    video = write_video(run, tmp_path / "v", gcsv=False)
+    capfd.readouterr()
+    assert not has_motion_log(video)
+    with pytest.raises(FootageError, match="finds no motion log"):
+        read_motion_log(video)
+    (tmp_path / "v" / "clip.gcsv").write_text("GYROFLOW IMU LOG\n")
+    with pytest.raises(FootageError, match="clip.gcsv: not a motion log telemetry-parser can read"):
+        open_footage(video)
+    assert capfd.readouterr().err == ""
+
