@@ -506,6 +506,19 @@ def test_camera_option_gives_a_bag_its_intrinsics_on_every_reader_command(run2, 
         assert json.loads(ds.attrs["camera_intrinsics"])["fx"] == 150.0
 
 
+def test_a_camera_files_imu_rotation_a_bag_would_not_apply_is_refused(run2, tmp_path, capsys):
+    """A bag's own extrinsics put its IMU in the camera frame: a --camera file's imu_to_camera (or a Kalibr
+    T_cam_imu) would be dropped without a word, so it is one line naming the file."""
+    db3 = write_db3(run2, tmp_path / "bag")
+    turned = write_camera_json(tmp_path / "turned.json", run2, imu_to_camera=[[0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    out = tmp_path / "o.nc"
+    code, _, err = cli(capsys, "velocity", db3, "--camera", turned, "--out", out)
+    assert code == 2 and not out.exists()
+    one_error(err, "velocity", f"{turned}: its IMU rotation", "is not applied to a realsense-db3 recording")
+    assert open_footage(db3, camera=write_camera_json(tmp_path / "plain.json", run2)).kind == "realsense-db3"
+    assert open_footage(run2, camera=turned).imu_to_camera is not None  # a folder applies it
+
+
 def test_info_counts_nans_in_imu_and_truth(run2, tmp_path, capsys):
     run = tmp_path / "nan"
     shutil.copytree(run2, run)

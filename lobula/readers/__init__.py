@@ -244,6 +244,8 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
         footage = reader.open(path, stream=stream, clock=clock, require_imu=require_imu, undistort=undistort,
                               camera=cam_json, keep_nan=keep_nan, require_camera=require_camera)
         lensed = _remove_lens(footage, path, cam_json, undistort)
+        if given is not None:
+            _refuse_an_ignored_rotation(footage, cam_json, given)
     if given is not None:
         _name_the_given_file(footage, cam_json, given, intr)
     _refuse_options_for_layout(footage, stream, clock, undistort if not lensed else "same-k")
@@ -312,6 +314,20 @@ def _name_the_given_file(footage: "Footage", used: Path, given: Path, intr) -> N
     footage.notes.append(f"intrinsics from {given} (--camera{what}), not the recording's own")
     if isinstance(footage.distortion, dict) and footage.distortion.get("source") == str(used):
         footage.distortion["source"] = str(given)
+
+
+#: layouts whose IMU the recording's own extrinsics put into the camera frame: a --camera file's rotation has no place
+OWN_EXTRINSICS = ("realsense-bag", "realsense-db3", "euroc")
+
+
+def _refuse_an_ignored_rotation(footage: "Footage", used: Path, given: Path) -> None:
+    """FootageError where the ``--camera`` file (as the readers took it, ``used``) carries an IMU rotation that the
+    layout does not apply (its own extrinsics rule): silently dropped it would not do what it says."""
+    from .core import FootageError, imu_to_camera
+    if footage.kind in OWN_EXTRINSICS and imu_to_camera(used) is not None:
+        raise FootageError(f"{given}: its IMU rotation (imu_to_camera, or a camchain's T_cam_imu) is not applied to a "
+                           f"{footage.kind} recording, whose own extrinsics put the IMU in the camera frame; give "
+                           f"the intrinsics without it")
 
 
 def _lens_file(path: Path, cam_json: Path | None) -> Path | None:
