@@ -50,25 +50,29 @@ INSTALL_HINT = ("reading a camera's motion log needs telemetry-parser (Gyroflow'
                 "and Windows, CPython 3.8-3.12): pip install telemetry-parser")
 
 
+class ParseFailure(Exception):
+    """telemetry-parser failed on a file: raised an error, or its Rust code panicked."""
+
+
 @contextmanager
-def _parser_quiet():
-    """Standard error silenced at the file descriptor while the parser runs: a panic of its Rust code prints
-    its own message and backtrace there before Python sees it, and a bad file must read as one line."""
+def _parsing():
+    """Run the parser with standard error silenced at the file descriptor (a panic of its Rust code prints its
+    message and backtrace there before Python sees it, and a bad file must read as one line), any failure of it
+    raised as :class:`ParseFailure` (pyo3's PanicException derives from BaseException, not Exception)."""
     sys.stderr.flush()
     saved = os.dup(2)
     try:
         with open(os.devnull, "w") as null:
             os.dup2(null.fileno(), 2)
-            yield
+            try:
+                yield
+            except (KeyboardInterrupt, SystemExit, GeneratorExit):
+                raise
+            except BaseException as exc:  # noqa: B036: a Rust panic is no Exception
+                raise ParseFailure(str(exc)) from None
     finally:
         os.dup2(saved, 2)
         os.close(saved)
-
-
-def _failed(exc: BaseException) -> bool:
-    """Whether ``exc`` is the parser failing on a file: an error, or a panic of its Rust code (pyo3's
-    PanicException derives from BaseException), not an interrupt or an exit."""
-    return not isinstance(exc, (KeyboardInterrupt, SystemExit, GeneratorExit))
 
 
 def _parser(path: Path):
@@ -81,11 +85,9 @@ def _parser(path: Path):
         raise FootageError(f"{path}: {INSTALL_HINT}") from None
     sidecar = path.with_suffix(".gcsv")
     try:
-        with _parser_quiet():
+        with _parsing():
             return telemetry_parser.Parser(str(sidecar if sidecar.is_file() else path))
-    except BaseException as exc:  # noqa: B036 — a Rust panic is no Exception
-        if not _failed(exc):
-            raise
+    except ParseFailure as exc:
         if sidecar.is_file():
             raise FootageError(f"{sidecar}: not a motion log telemetry-parser can read ({exc}); a .gcsv starts "
                                f"with 'GYROFLOW IMU LOG' or 'CAMERA IMU LOG', then version, id, orientation, "
@@ -102,13 +104,11 @@ def has_motion_log(path: Path) -> bool:
         return path.with_suffix(".gcsv").is_file()  # a sidecar is claimed, so the open names what to install
     if path.with_suffix(".gcsv").is_file():
         return True  # the user's log: a bad one is named when opened
+    p = _parser(path)
     try:
-        p = _parser(path)
-        with _parser_quiet():
+        with _parsing():
             return p is not None and len(p.normalized_imu()) > 0
-    except BaseException as exc:  # noqa: B036
-        if not _failed(exc):
-            raise
+    except ParseFailure:
         return False
 
 
@@ -128,11 +128,9 @@ def read_motion_log(path: Path) -> dict:
                            f"{path.with_suffix('.gcsv').name} beside it); give an imu.csv and camera.json beside "
                            f"the video instead")
     try:
-        with _parser_quiet():
+        with _parsing():
             samples = p.normalized_imu()
-    except BaseException as exc:  # noqa: B036
-        if not _failed(exc):
-            raise
+    except ParseFailure as exc:
         raise FootageError(f"{src}: its motion log cannot be read ({exc}); copy the file again from the camera, "
                            f"or write the .gcsv again") from None
     if not samples:
