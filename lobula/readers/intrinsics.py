@@ -105,10 +105,6 @@ def _matrix(k, path: Path) -> tuple[float, float, float, float]:
     return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
 
 
-def _first(d: dict, keys):
-    return next((d[k] for k in keys if k in d and d[k] is not None), None)
-
-
 def _size(w, h, path: Path, where: str) -> tuple[int, int]:
     try:
         w, h = int(w), int(h)
