@@ -52,7 +52,7 @@ FLIGHTS = {
 #: the flights the figures compare (the no-wobble flight answers why the eye fails between saccades)
 FIGURE_FLIGHTS = ("turning", "saccadic", "saccadic, gaze")
 #: interommatidial angles Δφ = Δρ (deg)
-DPHIS = (2.0, 3.5, 5.0, 6.0)
+DPHIS = (1.0, 2.0, 3.5, 5.0, 6.0)
 #: fields of view the HR eye is read with: LC fields over both eyes, or only inside the D435i's view
 FIELDS_OF_VIEW = ("both eyes", "frontal")
 #: motion detectors (EyeCircuitConfig.detector)
@@ -485,7 +485,7 @@ def write_fly_flight(out_dir="figures", workdir=None, seeds=(0, 1), dphis=DPHIS,
 
 
 def main(argv=None) -> int:
-    """``python -m experiments.fly_flight_figures [--out figures] [--work DIR] [--seeds 0 1] [--dphi 2 3.5 5 6]``."""
+    """``python -m experiments.fly_flight_figures [--out figures] [--work DIR] [--seeds 0 1] [--dphi 1 2 3.5 5 6]``."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m experiments.fly_flight_figures", description=__doc__.split("\n")[0],
