@@ -390,13 +390,16 @@ def run_velocity(args) -> int:
 
 
 def calibration_lines(cal: dict | None) -> list[str]:
-    """The lens and clock offset a self-calibrated camera used (:mod:`lobula.readers.self_calibration`), in words."""
+    """The lens, clock offset and IMU axes a self-calibrated camera used (:mod:`lobula.readers.self_calibration`),
+    in words."""
     if not cal:
         return []
     out = [f"lens: {cal['lens']}, fx {cal['focal_length_px']:.1f} px ± {100 * cal['focal_length_rel_std']:.0f} % "
            f"({cal['focal_length_source']})"]
     if "clock_offset_s" in cal:
         out.append(f"clock offset: {1e3 * cal['clock_offset_s']:+.1f} ms ({cal['clock_offset_source']})")
+    if "imu_axes_source" in cal:
+        out.append(f"IMU axes: {cal['imu_axes_source']}")
     return out
 
 

@@ -147,19 +147,54 @@ def test_without_intrinsics_an_action_camera_is_taken_for_a_fisheye_and_another_
     assert cal["focal_length_px"] == pytest.approx(fo.camera.fx)
 
 
-def test_a_phone_video_that_turns_has_its_focal_length_measured(tmp_path):
-    """A 160×120 pinhole run turning on three axes, its IMU as a phone app's .gcsv, no intrinsics: from the 75°
-    guess (130 px) the gyro finds the focal length (154 px) within 6 %, inside twice its stated std."""
+@pytest.fixture(scope="module")
+def turning_run(tmp_path_factory) -> Path:
+    """A 160×120 pinhole run turning on three axes (3 s)."""
     cfg = TrackRunConfig(start_s=3.0, duration_s=3.0, scale=0.25,
                          scene=SceneConfig(seed=2, rotation3_amp_deg=(5.0, 5.0, 5.0)))
-    run = make_track_run(tmp_path / "turn", cfg, progress=False)
-    true_fx = json.loads((run / "camera.json").read_text())["fx"]
-    fo = open_footage(write_video(run, tmp_path / "v", camera=False, ident="phone_logger"))
+    return make_track_run(tmp_path_factory.mktemp("turn") / "turn", cfg, progress=False)
+
+
+def test_a_phone_video_that_turns_has_its_focal_length_measured(turning_run, tmp_path):
+    """The turning run, its IMU as a phone app's .gcsv, no intrinsics: from the 75° guess (130 px) the gyro finds
+    the focal length (154 px) within 6 %, inside twice its stated std; the IMU's axes, right, are left alone."""
+    true_fx = json.loads((turning_run / "camera.json").read_text())["fx"]
+    fo = open_footage(write_video(turning_run, tmp_path / "v", camera=False, ident="phone_logger"))
     cal = fo.calibration
     assert "measured against the gyro" in cal["focal_length_source"], cal
     err = cal["focal_length_px"] / true_fx - 1.0
     assert abs(err) < 0.06 and abs(err) <= 2 * cal["focal_length_rel_std"], cal
     assert fo.camera.fx == pytest.approx(cal["focal_length_px"], rel=1e-4) and abs(cal["clock_offset_s"]) < 0.01
+    assert cal["imu_axes_source"].startswith("as read") and cal["imu_axes_angle_deg"] < 2 * cal["imu_axes_angle_std_deg"]
+    assert "imu_axes_rotation" not in cal
+
+
+def test_a_motion_log_in_other_axes_is_turned_onto_the_image(turning_run, tmp_path, capsys):
+    """The same phone video, its motion logged in portrait while the picture is landscape (the log's axes 90°
+    about the optical axis from the camera's): the gyro's rates no longer line up with the image's, so the clock
+    offset cannot be found; the IMU is turned onto the image's rotation, within 2° of the truth (and its stated
+    2σ), the clock found again, and the focal length measured as with the right axes."""
+    from scipy.spatial.transform import Rotation
+
+    portrait = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    video = write_video(turning_run, tmp_path / "v", camera=False, ident="phone_logger")
+    fo = open_footage(turning_run)
+    fo.imu = fo.imu.rotated(portrait.T)
+    write_gcsv(video.with_suffix(".gcsv"), fo, ident="phone_logger")
+    got, ref = open_footage(video), open_footage(turning_run).imu
+    cal = got.calibration
+    assert cal["imu_axes_source"].startswith("turned by"), cal
+    k = min(len(ref.gyro), len(got.imu.gyro))
+    r = np.asarray(cal["imu_axes_rotation"]) @ portrait.T          # what is left of the log's axes
+    left = float(np.degrees(Rotation.from_matrix(r).magnitude()))
+    assert left < 2.0 and left < 2 * cal["imu_axes_angle_std_deg"], cal
+    # the whole IMU turned by the rotation stated (rounded to 1e-6)
+    assert np.allclose(got.imu.gyro[:k], ref.gyro[:k] @ r.T, atol=1e-5)
+    assert np.allclose(got.imu.accel[:k], ref.accel[:k] @ r.T, atol=1e-4)
+    assert cal["clock_offset_source"].startswith("estimated") and abs(cal["clock_offset_s"]) < 0.01, cal
+    true_fx = json.loads((turning_run / "camera.json").read_text())["fx"]
+    assert abs(cal["focal_length_px"] / true_fx - 1.0) <= 2 * cal["focal_length_rel_std"], cal
+    assert json.loads(got.provenance()["camera_calibration"])["imu_axes_source"] == cal["imu_axes_source"]
 
 
 def test_a_360_degree_picture_is_refused_without_intrinsics(run, tmp_path):

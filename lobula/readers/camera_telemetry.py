@@ -270,7 +270,7 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
                                       if x is not None))]
     footage = CameraTelemetryFootage(path, camera, times, [], imu, truth, kind="camera-telemetry", notes=notes,
                                      imu_to_camera=(GYROFLOW_TO_CAMERA if r is None else r @ GYROFLOW_TO_CAMERA)
-                                     if imu is not None else None, streams=streams)
+                                     if imu is not None else None, camera_file_imu_rotation=r, streams=streams)
     footage.lens_guess = lens_guess
     footage.motion_log = dict(camera=log["camera"], model=log["model"], samples=int(len(log["time_s"])),
                               source=source)

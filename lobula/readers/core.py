@@ -222,7 +222,9 @@ class Footage:
     reader chose, one line each. ``imu`` may be None (then velocity needs ``accel_from_truth``); ``truth`` maps
     column name -> array at ``truth['time_s']``. ``distortion`` describes lens distortion
     the reader removed or ignored (None: none reported); ``imu_to_camera`` the rotation
-    applied to the IMU on reading (None: none needed or known). ``skip_bad_frames``,
+    applied to the IMU on reading (None: none needed or known), and ``camera_file_imu_rotation`` the part of it
+    the camera file's "imu_to_camera" gave (the whole rotation for a footage folder or a video, a correction after
+    the reader's own axes for a GoPro or camera-telemetry file; None where the file gave none). ``skip_bad_frames``,
     ``skipped_frames`` and the clock offset fields (``clock_offset_s``, s added to the IMU's times;
     ``clock_offset_source``, where it came from) are filled by :func:`lobula.readers.open_footage`;
     ``streams`` lists what the recording holds (one dict per topic or sensor: name, type, count, ...);
@@ -241,6 +243,7 @@ class Footage:
     notes: list[str] = field(default_factory=list)
     distortion: dict | None = None
     imu_to_camera: np.ndarray | None = None
+    camera_file_imu_rotation: np.ndarray | None = None
     skip_bad_frames: bool = False
     skipped_frames: list[int] = field(default_factory=list)
     clock_offset_s: float = 0.0

@@ -46,7 +46,7 @@ def open_folder(path: Path, cam_json: Path | None = None, keep_nan: bool = False
                          f"({rotation_deg(r):.2f} deg)")
     truth, truth_nan = read_truth_csv(path / "truth.csv", keep_nan) if (path / "truth.csv").exists() else (None, {})
     return Footage(path, camera, fr["time_s"], files, imu, truth, kind="folder", notes=notes, imu_to_camera=r,
-                   truth_nan_counts=truth_nan)
+                   camera_file_imu_rotation=r, truth_nan_counts=truth_nan)
 
 
 def open_d435i_sample(path: Path, cam_json: Path | None = None) -> Footage:

@@ -230,7 +230,7 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
     telemetry = _telemetry_summary(model, firmware, packets, t0, t1, streams, settings, gps, truth, stab)
     footage = GoProFootage(path, camera, times, [], imu, truth, kind="gopro", notes=notes, distortion=distortion,
                            imu_to_camera=(GOPRO_XYZ_TO_CAMERA if r_extra is None else r_extra @ GOPRO_XYZ_TO_CAMERA)
-                           if imu is not None else None, streams=stream_list)
+                           if imu is not None else None, camera_file_imu_rotation=r_extra, streams=stream_list)
     footage.telemetry, footage.gps, footage.orientation, footage.nominal_fps = telemetry, gps, orientation, fps
     footage.lens_guess = lens_guess
     return footage

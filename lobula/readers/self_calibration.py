@@ -7,7 +7,13 @@ cameras) or a pinhole (:mod:`lobula.readers.camera_telemetry`) — ``footage.len
 1. the camera–IMU clock offset (:func:`lobula.readers.clock_offset.estimate_clock_offset`: the lag that
    best lines the image's rotation up with the gyro's; the correlation is scale-free, so the guessed
    focal length does not bias it);
-2. the focal length (:func:`lobula.readers.focal_length.estimate_focal_length`: the slope of the image's
+2. the IMU's axes (:func:`lobula.readers.imu_rotation.fit_imu_rotation`: the rotation that turns the gyro's
+   rates into the image's). The reader's axes stand unless the image clearly says otherwise — more than
+   :data:`AXES_TOLERANCE_DEG` and three standard errors off, with the rotated gyro following the image
+   (correlation ≥ :data:`AXES_MIN_CORRELATION`) — as when a phone logs its motion in portrait while the video
+   is landscape; the IMU is then turned (accelerometer too) and, if the clock could not be found with the
+   axes as given, the clock offset estimated again;
+3. the focal length (:func:`lobula.readers.focal_length.estimate_focal_length`: the slope of the image's
    pan and tilt rates against the gyro's, iterated to 1), with its standard error.
 
 Each is kept only where the footage shows it (enough rotation, image and gyro rates that agree);
@@ -21,15 +27,20 @@ import json
 
 import numpy as np
 
-from .core import FootageError
+from .core import FootageError, rotation_deg
 
-__all__ = ["self_calibrate", "FOCAL_SYSTEMATIC_REL_STD"]
+__all__ = ["self_calibrate", "check_imu_axes", "FOCAL_SYSTEMATIC_REL_STD", "AXES_TOLERANCE_DEG", "AXES_MIN_CORRELATION"]
 
 #: 1σ fraction: what the slope's own standard error leaves out of a measured focal length, the translation's flow
 #: that a record of seconds does not average out (synthetic scenes turning on three axes while moving: a 131°
 #: fisheye from guesses 22 % short and 25 % long within 3 %; a 160×120 pinhole from a 75° guess 5 % long, where
 #: the slope's error said 0.6 %)
 FOCAL_SYSTEMATIC_REL_STD = 0.04
+#: deg: the least disagreement between the IMU's axes as read and the image's rotation that turns the IMU (a
+#: mounting within a few degrees of its nominal axes is not worth the risk of a wrong turn)
+AXES_TOLERANCE_DEG = 5.0
+#: the least correlation of the image's rotation rates with the turned gyro's for the turn to be trusted
+AXES_MIN_CORRELATION = 0.7
 
 
 def _clock(footage) -> dict:
@@ -43,6 +54,55 @@ def _clock(footage) -> dict:
     source = f"estimated: gyro vs image rotation, correlation {est.correlation:.2f} over {est.n_pairs} frame pairs"
     footage.clock_offset_s, footage.clock_offset_source = float(est.offset_s), source
     return dict(clock_offset_s=round(float(est.offset_s), 4), clock_offset_source=source)
+
+
+def check_imu_axes(footage, turned: dict | None = None) -> dict:
+    """Measure ``footage``'s IMU axes against the image's rotation; turn its IMU (and ``imu_to_camera``) in place
+    where they clearly disagree (see the module doc).
+
+    The image's rates are measured as for the focal length (DIS's medium preset at
+    :data:`lobula.readers.focal_length.FLOW_WIDTH_PX`: coarser flow reads a fisheye's rotation several degrees
+    off). ``turned``: this function's result where it turned the IMU already; the turn is then
+    refined (the focal length measured since makes the image's rates truer) whatever its size. Returns the
+    ``imu_axes_*`` entries of :func:`self_calibrate`'s dict.
+    """
+    import cv2
+
+    from .clock_offset import image_rotation_rates
+    from .focal_length import FLOW_WIDTH_PX
+    from .imu_rotation import fit_imu_rotation
+
+    try:
+        t_img, w_img = image_rotation_rates(footage, width=FLOW_WIDTH_PX, preset=cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    except FootageError as exc:
+        return dict(imu_axes_source=f"as read, not checked: {_why(exc)}")
+    imu = footage.imu
+    ok = (t_img >= imu.time_s[0]) & (t_img <= imu.time_s[-1])
+    g = np.stack([np.interp(t_img[ok], imu.time_s, imu.gyro[:, j]) for j in range(3)], -1)
+    try:
+        est = fit_imu_rotation(w_img[ok], g, where=str(footage.path))
+    except FootageError as exc:
+        return dict(imu_axes_source=f"as read, not checked: {_why(exc)}")
+    if est.correlation < AXES_MIN_CORRELATION:
+        return dict(imu_axes_source=(f"as read, not checked: even turned at best, the gyro's rates correlate only "
+                                     f"{est.correlation:.2f} with the image's (< {AXES_MIN_CORRELATION}; electronic "
+                                     f"stabilisation, a gimbal, or much translation)"))
+    before = np.eye(3) if turned is None else np.asarray(turned["imu_axes_rotation"])
+    total = est.rotation @ before                     # from the axes as read
+    angle = rotation_deg(total)
+    found = dict(imu_axes_angle_deg=round(angle, 2), imu_axes_angle_std_deg=round(est.angle_std_deg, 2),
+                 imu_axes_correlation_as_read=round(est.correlation_as_given if turned is None
+                                                    else turned["imu_axes_correlation_as_read"], 3))
+    if turned is None and angle <= max(AXES_TOLERANCE_DEG, 3.0 * est.angle_std_deg):
+        return dict(imu_axes_source=(f"as read: the image's rotation puts them {angle:.1f}° ± "
+                                     f"{est.angle_std_deg:.1f}° off (correlation {est.correlation:.2f} turned, "
+                                     f"{est.correlation_as_given:.2f} as read), within what it can tell"), **found)
+    footage.imu = imu.rotated(est.rotation)
+    footage.imu_to_camera = est.rotation @ (footage.imu_to_camera if footage.imu_to_camera is not None else np.eye(3))
+    return dict(imu_axes_source=(f"turned by {angle:.1f}° ± {est.angle_std_deg:.1f}° onto the image's rotation "
+                                 f"(correlation {found['imu_axes_correlation_as_read']:.2f} as read, "
+                                 f"{est.correlation:.2f} turned, over {est.n_pairs} pairs)"),
+                imu_axes_rotation=np.round(total, 6).tolist(), **found)
 
 
 def _focal(footage, guess: dict) -> dict:
@@ -83,7 +143,7 @@ def _why(exc: Exception) -> str:
 
 
 def self_calibrate(footage, clock: bool = True) -> dict:
-    """Measure ``footage``'s clock offset (where ``clock``) and focal length from its gyro, in place.
+    """Measure ``footage``'s clock offset (where ``clock``), IMU axes and focal length from its gyro, in place.
 
     Parameters
     ----------
@@ -96,7 +156,10 @@ def self_calibrate(footage, clock: bool = True) -> dict:
     -------
     dict
         lens (the projection), focal_length_px (px) with focal_length_rel_std (1σ fraction) and its
-        source, clock_offset_s (s) and its source; also set as ``footage.calibration``.
+        source, clock_offset_s (s) and its source, imu_axes_source (what was found of the IMU's axes) with,
+        where measured, imu_axes_angle_deg and imu_axes_angle_std_deg (deg; the image's rotation against the
+        axes as read) and, where the IMU was turned, imu_axes_rotation (3×3, applied as ω ← R·ω); also set as
+        ``footage.calibration``.
     """
     guess = footage.lens_guess
     pinhole = guess["model"] == "pinhole"
@@ -108,7 +171,12 @@ def self_calibrate(footage, clock: bool = True) -> dict:
     else:
         if clock:
             out.update(_clock(footage))
+        out.update(check_imu_axes(footage))
+        if clock and "imu_axes_rotation" in out and out["clock_offset_source"].startswith("not identifiable"):
+            out.update(_clock(footage))
         out.update(_focal(footage, guess))
+        if "imu_axes_rotation" in out and "measured against the gyro" in out["focal_length_source"]:
+            out.update(check_imu_axes(footage, turned=out))
     footage.calibration = out
     footage.notes.append(f"camera self-calibrated (no calibration file): {json.dumps(out)}")
     return out

@@ -205,5 +205,5 @@ def open_video(path: str | Path, require_imu: bool = True, camera_json: str | Pa
         truth, truth_nan = read_truth_csv(tp, keep_nan)
     streams = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=fps)]
     return VideoFootage(path, camera, times, [path] * 0, imu, truth, kind="video", notes=notes,
-                        imu_to_camera=r, streams=streams, truth_nan_counts=truth_nan)
+                        imu_to_camera=r, camera_file_imu_rotation=r, streams=streams, truth_nan_counts=truth_nan)
 
