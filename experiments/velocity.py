@@ -390,7 +390,7 @@ def run_velocity(args) -> int:
 
 
 def calibration_lines(cal: dict | None) -> list[str]:
-    """The lens, clock offset and IMU axes a self-calibrated camera used (:mod:`lobula.readers.self_calibration`),
+    """The lens, projection, clock offset and IMU axes a self-calibrated camera used (:mod:`lobula.readers.self_calibration`),
     in words."""
     if not cal:
         return []
@@ -398,6 +398,8 @@ def calibration_lines(cal: dict | None) -> list[str]:
            f"({cal['focal_length_source']})"]
     if "clock_offset_s" in cal:
         out.append(f"clock offset: {1e3 * cal['clock_offset_s']:+.1f} ms ({cal['clock_offset_source']})")
+    if "projection_source" in cal:
+        out.append(f"projection: {cal['projection_source']}")
     if "imu_axes_source" in cal:
         out.append(f"IMU axes: {cal['imu_axes_source']}")
     return out

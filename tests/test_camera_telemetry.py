@@ -166,7 +166,19 @@ def test_a_phone_video_that_turns_has_its_focal_length_measured(turning_run, tmp
     assert abs(err) < 0.06 and abs(err) <= 2 * cal["focal_length_rel_std"], cal
     assert fo.camera.fx == pytest.approx(cal["focal_length_px"], rel=1e-4) and abs(cal["clock_offset_s"]) < 0.01
     assert cal["imu_axes_source"].startswith("as read") and cal["imu_axes_angle_deg"] < 2 * cal["imu_axes_angle_std_deg"]
-    assert "imu_axes_rotation" not in cal
+    assert "imu_axes_rotation" not in cal and cal["projection_source"].startswith("the reader's guess, as the image")
+
+
+def test_an_action_camera_that_films_through_a_pinhole_is_found_out(turning_run, tmp_path):
+    """The turning run logged by an action camera (opened as an equidistant fisheye for want of intrinsics): its
+    edge turns 1.13× as fast as its centre read as a fisheye, 1.0× read as a pinhole, so it is read as a pinhole,
+    with its focal length within twice its stated std."""
+    fo = open_footage(write_video(turning_run, tmp_path / "v", camera=False, ident="runcam_thumb_pro"))
+    cal = fo.calibration
+    assert fo.lens_guess["model"] == "pinhole" and fo.distortion is None and fo.lens_maps is None, cal
+    assert cal["lens"].startswith("pinhole") and cal["projection_source"].startswith("measured"), cal
+    true_fx = json.loads((turning_run / "camera.json").read_text())["fx"]
+    assert abs(cal["focal_length_px"] / true_fx - 1.0) <= 2 * cal["focal_length_rel_std"], cal
 
 
 def test_a_motion_log_in_other_axes_is_turned_onto_the_image(turning_run, tmp_path, capsys):

@@ -1,4 +1,5 @@
-"""lobula.readers.focal_length and `lobula calibrate-camera`: the focal length from the gyro against the image."""
+"""lobula.readers.focal_length, lobula.readers.lens_projection and `lobula calibrate-camera`: the focal length and
+the projection from the gyro against the image."""
 import json
 
 import numpy as np
@@ -86,3 +87,42 @@ def test_self_calibration_keeps_what_the_gyro_measures(fisheye_run, tmp_path):
     # the map is the measured lens's: the pinhole it resamples onto keeps the measured focal length (same-k)
     assert fo.camera.fx == pytest.approx(cal["focal_length_px"], rel=1e-4)
     assert abs(cal["clock_offset_s"]) < 0.01 and "estimated" in cal["clock_offset_source"]
+
+
+def _projection_guess(run, tmp_path, model, factor):
+    d = {k: v for k, v in json.loads((run / "camera.json").read_text()).items() if k != "distortion"}
+    d["fx"], d["fy"] = d["fx"] * factor, d["fy"] * factor
+    if model != "pinhole":
+        d["distortion"] = dict(model=model, coeffs=[0, 0, 0, 0])
+    (tmp_path / f"{model}.json").write_text(json.dumps(d))
+    return tmp_path / f"{model}.json"
+
+
+def test_the_radial_ratio_is_one_through_the_right_projection(fisheye_run, tmp_path):
+    """The 131° equidistant fisheye turning: through its own projection the image's edge turns with its centre
+    (ratio 0.97), read as a pinhole at half the speed (0.47), whatever the focal length guessed."""
+    from lobula.readers.lens_projection import radial_rotation_ratio
+
+    for factor in (0.8, 1.0):
+        own = radial_rotation_ratio(open_footage(fisheye_run, camera=_projection_guess(
+            fisheye_run, tmp_path, "kannala-brandt", factor)))
+        flat = radial_rotation_ratio(open_footage(fisheye_run, camera=_projection_guess(
+            fisheye_run, tmp_path, "pinhole", factor)))
+        print(f"\nfocal ×{factor}: {own.ratio:.3f} ± {own.log_std:.3f} as a fisheye, {flat.ratio:.3f} as a pinhole, "
+              f"corner {own.half_diagonal_deg:.0f}°")
+        assert abs(np.log(own.ratio)) < 2 * own.log_std + 0.02 and flat.ratio < 0.65
+
+
+def test_a_fisheye_taken_for_a_pinhole_is_found_out(fisheye_run, tmp_path):
+    """Self-calibration from a pinhole guess 15 % short: the projection is measured as equidistant, and the focal
+    length found through it within 5 %."""
+    from lobula.readers.self_calibration import self_calibrate
+
+    fo = open_footage(fisheye_run, camera=_projection_guess(fisheye_run, tmp_path, "pinhole", 0.85))
+    fo.lens_guess = dict(model="pinhole", coeffs=[], source="a test's pinhole guess", rel_std=0.25)
+    cal = self_calibrate(fo)
+    print("\n" + cal["projection_source"])
+    assert cal["lens"].startswith("equidistant") and cal["projection_source"].startswith("measured"), cal
+    assert fo.distortion["model"] == "kannala-brandt" and fo.lens_maps is not None
+    assert cal["focal_length_px"] == pytest.approx(json.loads((fisheye_run / "camera.json").read_text())["fx"],
+                                                   rel=0.05)

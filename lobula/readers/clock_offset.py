@@ -43,18 +43,25 @@ class ClockOffset:
 
 
 def image_rotation_rates(footage, max_frames: int = 900, width: int = 160,
-                         preset: int = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST) -> tuple[np.ndarray, np.ndarray]:
+                         preset: int = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, bands=None,
+                         samples: int = 3000) -> tuple[np.ndarray, np.ndarray]:
     """(mid times (n,) s, ω_img (n, 3) rad/s) from consecutive frames of ``footage`` (the first ``max_frames``),
-    DIS flow (OpenCV ``preset``) computed at ``width`` pixels."""
+    DIS flow (OpenCV ``preset``) computed at ``width`` pixels and sampled at about ``samples`` points.
+
+    ``bands``: where given, a sequence of k (lo, hi) fractions of the largest normalised image radius: ω_img is
+    then fitted to the flow inside each ring separately, (n, k, 3)."""
     from lobula.epipole import rotational_flow
 
     cam = footage.camera
     scale = min(1.0, width / cam.width)
     small = cam.scaled(scale) if scale < 1 else cam
     x, y = small.normalised_grid()
-    step = max(1, int(np.sqrt(small.width * small.height / 3000)))
+    step = max(1, int(np.sqrt(small.width * small.height / samples)))
     xs, ys = x[::step, ::step].ravel(), y[::step, ::step].ravel()
-    basis = np.stack([rotational_flow(e, xs, ys).reshape(-1) for e in np.eye(3)], -1)   # (2P, 3)
+    rho = np.hypot(xs, ys)
+    rings = [np.ones(len(xs), bool)] if bands is None else \
+        [(rho >= lo * rho.max()) & (rho < hi * rho.max()) for lo, hi in bands]
+    bases = [np.stack([rotational_flow(e, xs[m], ys[m]).reshape(-1) for e in np.eye(3)], -1) for m in rings]
     dis = cv2.DISOpticalFlow_create(preset)
     prev, out_t, out_w = None, [], []
     for _, t, img in footage.frames(0, max_frames):
@@ -63,12 +70,13 @@ def image_rotation_rates(footage, max_frames: int = 900, width: int = 160,
         if prev is not None:
             dt = t - prev[0]
             f = dis.calc(prev[1], g, None)[::step, ::step]
-            b = np.concatenate([f[..., 0].ravel() / small.fx, f[..., 1].ravel() / small.fy]) / dt
-            w, *_ = np.linalg.lstsq(basis, b, rcond=None)
+            u, v = f[..., 0].ravel() / small.fx / dt, f[..., 1].ravel() / small.fy / dt
+            out_w.append([np.linalg.lstsq(b, np.concatenate([u[m], v[m]]), rcond=None)[0]
+                          for b, m in zip(bases, rings)])
             out_t.append(0.5 * (t + prev[0]))
-            out_w.append(w)
         prev = (t, g)
-    return np.asarray(out_t), np.asarray(out_w).reshape(-1, 3)
+    w = np.asarray(out_w).reshape(-1, len(rings), 3)
+    return np.asarray(out_t), (w[:, 0] if bands is None else w)
 
 
 def estimate_clock_offset(footage, max_offset_s: float = 0.25, resolution_s: float = 0.001,

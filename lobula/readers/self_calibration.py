@@ -14,7 +14,11 @@ cameras) or a pinhole (:mod:`lobula.readers.camera_telemetry`) — ``footage.len
    is landscape; the IMU is then turned (accelerometer too) and, if the clock could not be found with the
    axes as given, the clock offset estimated again;
 3. the focal length (:func:`lobula.readers.focal_length.estimate_focal_length`: the slope of the image's
-   pan and tilt rates against the gyro's, iterated to 1), with its standard error.
+   pan and tilt rates against the gyro's, iterated to 1), with its standard error;
+4. the projection, pinhole or equidistant fisheye (:func:`lobula.readers.lens_projection.radial_rotation_ratio`:
+   through the right one the image's edge turns with the gyro as its centre does). The reader's guess stands
+   unless the other projection's radial ratio is clearly nearer 1 (by three standard errors); the focal
+   length is then measured again through it.
 
 Each is kept only where the footage shows it (enough rotation, image and gyro rates that agree);
 otherwise the guess stays, and the reason is said — an image stabilised against the body (HyperSmooth)
@@ -86,7 +90,8 @@ def check_imu_axes(footage, turned: dict | None = None) -> dict:
     if est.correlation < AXES_MIN_CORRELATION:
         return dict(imu_axes_source=(f"as read, not checked: even turned at best, the gyro's rates correlate only "
                                      f"{est.correlation:.2f} with the image's (< {AXES_MIN_CORRELATION}; electronic "
-                                     f"stabilisation, a gimbal, or much translation)"))
+                                     f"stabilisation, a gimbal, or much translation)"),
+                    imu_axes_correlation=round(est.correlation, 3))
     before = np.eye(3) if turned is None else np.asarray(turned["imu_axes_rotation"])
     total = est.rotation @ before                     # from the axes as read
     angle = rotation_deg(total)
@@ -136,6 +141,73 @@ def _focal(footage, guess: dict) -> dict:
                                      f"correlation {est.correlation:.2f} over {est.n_pairs} pairs)"))
 
 
+def _lens_text(guess: dict) -> str:
+    return ("pinhole (no distortion)" if guess["model"] == "pinhole"
+            else f"equidistant fisheye ({guess['model']}, no coefficients)")
+
+
+def _set_projection(footage, model: str, fx: float, source: str) -> None:
+    """Read ``footage``'s frames through ``model`` ("pinhole", or "kannala-brandt" with no coefficients: an
+    equidistant fisheye) of focal length ``fx`` (px; fy keeps its ratio), resampled onto a pinhole of the same K."""
+    from dataclasses import replace
+
+    from lobula.camera import PinholeCamera
+    from lobula.lens import LensDistortion, undistortion_maps
+
+    raw = PinholeCamera(**footage.distortion["raw_camera"]) if footage.distortion else footage.camera
+    raw = replace(raw, fx=fx, fy=fx * raw.fy / raw.fx)
+    if model == "pinhole":
+        footage.distortion, footage.lens_maps, footage.camera = None, None, raw
+        return
+    footage.lens_maps, footage.camera = undistortion_maps(raw, LensDistortion(model, (0.0, 0.0, 0.0, 0.0)), "same-k")
+    footage.distortion = dict(model=model, coeffs=[0.0, 0.0, 0.0, 0.0], removed=True, target_k="same-k",
+                              raw_camera=raw.to_dict(), source=source)
+
+
+def _raw_fx(footage) -> float:
+    return float(footage.distortion["raw_camera"]["fx"] if footage.distortion else footage.camera.fx)
+
+
+def _projection(footage, guess: dict, original: dict) -> tuple[dict, dict]:
+    """(the lens guess to go on with, the projection_* entries): the radial ratio through ``guess``'s projection
+    and through the other at the focal length ``footage`` has now; switches ``footage`` to the other where it is
+    clearly nearer 1 (module doc). ``original``: the reader's guess, for the wording."""
+    from .lens_projection import radial_rotation_ratio
+
+    kept = footage.camera, footage.lens_maps, footage.distortion
+    pinhole = guess["model"] == "pinhole"
+    other = original if original["model"] != guess["model"] else \
+        dict(model="kannala-brandt" if pinhole else "pinhole", coeffs=[0.0, 0.0, 0.0, 0.0] if pinhole else [],
+             source=f"{guess['source']}, its projection measured", rel_std=guess["rel_std"])
+    try:
+        mine = radial_rotation_ratio(footage)
+        _set_projection(footage, other["model"], _raw_fx(footage), other["source"])
+        theirs = radial_rotation_ratio(footage)
+    except FootageError as exc:
+        footage.camera, footage.lens_maps, footage.distortion = kept
+        return guess, dict(projection_source=f"{'the reader' if guess is original else 'measured'}'s guess, not "
+                                             f"checked: {_why(exc)}")
+    log_std = float(np.hypot(mine.log_std, theirs.log_std))
+    ratios = {_lens_text(guess): round(mine.ratio, 3), _lens_text(other): round(theirs.ratio, 3)}
+    gap = abs(np.log(mine.ratio)) - abs(np.log(theirs.ratio))
+    chosen = other if gap > 3.0 * log_std else guess
+    if chosen is guess:
+        footage.camera, footage.lens_maps, footage.distortion = kept
+    else:
+        footage.lens_guess = other
+        footage.notes.append(f"lens projection measured: {_lens_text(other)}; frames resampled through it")
+    words = (", ".join(f"{r:.2f} read as {'a pinhole' if k.startswith('pinhole') else 'a fisheye'}"
+                       for k, r in ratios.items()) + f" (± {log_std:.2f} in log; 1 for the right projection)")
+    if chosen is not original:
+        text = f"measured: the image's edge turns against its centre {words}"
+    else:
+        told = "as the image's rotation says" if abs(gap) > 3.0 * log_std else \
+            "the image's rotation cannot tell the projections apart here"
+        text = f"the reader's guess, {told}: the image's edge turns against its centre {words}"
+    return chosen, dict(projection_source=text, projection_radial_ratio=ratios,
+                        projection_radial_ratio_log_std=round(log_std, 3))
+
+
 def _why(exc: Exception) -> str:
     """The reason of a FootageError without the file's name in front (the note names the footage already)."""
     text = str(exc)
@@ -143,7 +215,8 @@ def _why(exc: Exception) -> str:
 
 
 def self_calibrate(footage, clock: bool = True) -> dict:
-    """Measure ``footage``'s clock offset (where ``clock``), IMU axes and focal length from its gyro, in place.
+    """Measure ``footage``'s clock offset (where ``clock``), IMU axes, focal length and projection from its gyro,
+    in place.
 
     Parameters
     ----------
@@ -158,12 +231,13 @@ def self_calibrate(footage, clock: bool = True) -> dict:
         lens (the projection), focal_length_px (px) with focal_length_rel_std (1σ fraction) and its
         source, clock_offset_s (s) and its source, imu_axes_source (what was found of the IMU's axes) with,
         where measured, imu_axes_angle_deg and imu_axes_angle_std_deg (deg; the image's rotation against the
-        axes as read) and, where the IMU was turned, imu_axes_rotation (3×3, applied as ω ← R·ω); also set as
-        ``footage.calibration``.
+        axes as read), imu_axes_correlation where too low to tell and, where the IMU was turned, imu_axes_rotation (3×3, applied as ω ← R·ω);
+        projection_source (whether the projection was measured) with, where it was, projection_radial_ratio
+        ({projection: radial ratio}) and projection_radial_ratio_log_std; also set as ``footage.calibration``.
     """
     guess = footage.lens_guess
     pinhole = guess["model"] == "pinhole"
-    out = dict(lens="pinhole (no distortion)" if pinhole else f"equidistant fisheye ({guess['model']}, no coefficients)")
+    out = dict(lens=_lens_text(guess))
     if footage.imu is None or footage.imu.gyro is None:
         out.update(focal_length_px=float(footage.camera.fx if pinhole else footage.distortion["raw_camera"]["fx"]),
                    focal_length_rel_std=guess["rel_std"],
@@ -174,7 +248,21 @@ def self_calibrate(footage, clock: bool = True) -> dict:
         out.update(check_imu_axes(footage))
         if clock and "imu_axes_rotation" in out and out["clock_offset_source"].startswith("not identifiable"):
             out.update(_clock(footage))
-        out.update(_focal(footage, guess))
+        # the projection, checked at the guessed focal length (a fisheye read as a pinhole defeats the focal
+        # length's search) and again at the measured one (where a wide pinhole and a fisheye part)
+        if out.get("imu_axes_correlation", 1.0) < AXES_MIN_CORRELATION:
+            chosen, projection = guess, dict(projection_source=(
+                f"the reader's guess, not checked: the image's rotation does not follow the gyro's (correlation "
+                f"{out['imu_axes_correlation']:.2f} at best)"))
+        else:
+            chosen, projection = _projection(footage, guess, guess)
+        out.update(_focal(footage, chosen))
+        if out["focal_length_source"].startswith("measured"):
+            again, projection = _projection(footage, chosen, guess)
+            if again is not chosen:
+                chosen = again
+                out.update(_focal(footage, chosen))
+        out.update(projection, lens=_lens_text(chosen))
         if "imu_axes_rotation" in out and "measured against the gyro" in out["focal_length_source"]:
             out.update(check_imu_axes(footage, turned=out))
     footage.calibration = out
