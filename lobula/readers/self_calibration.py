@@ -33,7 +33,8 @@ import numpy as np
 
 from .core import FootageError, rotation_deg
 
-__all__ = ["self_calibrate", "check_imu_axes", "FOCAL_SYSTEMATIC_REL_STD", "AXES_TOLERANCE_DEG", "AXES_MIN_CORRELATION"]
+__all__ = ["self_calibrate", "check_imu_axes", "FOCAL_SYSTEMATIC_REL_STD", "AXES_TOLERANCE_DEG",
+           "AXES_MIN_CORRELATION"]
 
 #: 1σ fraction: what the slope's own standard error leaves out of a measured focal length, the translation's flow
 #: that a record of seconds does not average out (synthetic scenes turning on three axes while moving: a 131°
@@ -185,8 +186,8 @@ def _projection(footage, guess: dict, original: dict) -> tuple[dict, dict]:
         theirs = radial_rotation_ratio(footage)
     except FootageError as exc:
         footage.camera, footage.lens_maps, footage.distortion = kept
-        return guess, dict(projection_source=f"{'the reader' if guess is original else 'measured'}'s guess, not "
-                                             f"checked: {_why(exc)}")
+        kept_text = "the reader's guess" if guess is original else f"measured as {_lens_text(guess)}"
+        return guess, dict(projection_source=f"{kept_text}, not checked further: {_why(exc)}")
     log_std = float(np.hypot(mine.log_std, theirs.log_std))
     ratios = {_lens_text(guess): round(mine.ratio, 3), _lens_text(other): round(theirs.ratio, 3)}
     gap = abs(np.log(mine.ratio)) - abs(np.log(theirs.ratio))
@@ -231,9 +232,10 @@ def self_calibrate(footage, clock: bool = True) -> dict:
         lens (the projection), focal_length_px (px) with focal_length_rel_std (1σ fraction) and its
         source, clock_offset_s (s) and its source, imu_axes_source (what was found of the IMU's axes) with,
         where measured, imu_axes_angle_deg and imu_axes_angle_std_deg (deg; the image's rotation against the
-        axes as read), imu_axes_correlation where too low to tell and, where the IMU was turned, imu_axes_rotation (3×3, applied as ω ← R·ω);
-        projection_source (whether the projection was measured) with, where it was, projection_radial_ratio
-        ({projection: radial ratio}) and projection_radial_ratio_log_std; also set as ``footage.calibration``.
+        axes as read), imu_axes_correlation where too low to tell and, where the IMU was turned,
+        imu_axes_rotation (3×3, applied as ω ← R·ω); projection_source (whether the projection was measured)
+        with, where it was, projection_radial_ratio ({projection: radial ratio}) and
+        projection_radial_ratio_log_std; also set as ``footage.calibration``.
     """
     guess = footage.lens_guess
     pinhole = guess["model"] == "pinhole"
