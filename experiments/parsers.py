@@ -560,8 +560,8 @@ def add_calibrate_camera_parser(subparsers) -> argparse.ArgumentParser:
     c.add_argument("footage", help="footage with a gyroscope that pans and tilts (any layout the readers open)")
     c.add_argument("--out", required=True, help="camera.json with the focal length found (the lens's distortion, the "
                                                 "size, the principal point and the rate kept from the first guess) "
-                                                "and the IMU's rotation into the camera (imu_to_camera) where the "
-                                                "image's rotation clearly disagrees with the axes as read")
+                                                "and the IMU's rotation into the camera (imu_to_camera): the first "
+                                                "guess's, turned where the image's rotation clearly disagrees with it")
     c.add_argument("--iterations", type=COUNT, default=4, help="rescalings at most")
     c.add_argument("--min-correlation", type=Number(0, 1), default=0.7,
                    help="the least correlation of the image's pan/tilt rates with the gyro's")
