@@ -390,8 +390,8 @@ def run_velocity(args) -> int:
 
 
 def calibration_lines(cal: dict | None) -> list[str]:
-    """The lens, projection, clock offset and IMU axes a self-calibrated camera used (:mod:`lobula.readers.self_calibration`),
-    in words."""
+    """The lens, projection, clock offset and IMU axes a self-calibrated camera used
+    (:mod:`lobula.readers.self_calibration`), in words."""
     if not cal:
         return []
     out = [f"lens: {cal['lens']}, fx {cal['focal_length_px']:.1f} px ± {100 * cal['focal_length_rel_std']:.0f} % "

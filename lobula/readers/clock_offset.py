@@ -43,10 +43,10 @@ class ClockOffset:
 
 
 def image_rotation_rates(footage, max_frames: int = 900, width: int = 160,
-                         preset: int = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, bands=None,
-                         samples: int = 3000) -> tuple[np.ndarray, np.ndarray]:
+                         preset: int = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+                         bands=None) -> tuple[np.ndarray, np.ndarray]:
     """(mid times (n,) s, ω_img (n, 3) rad/s) from consecutive frames of ``footage`` (the first ``max_frames``),
-    DIS flow (OpenCV ``preset``) computed at ``width`` pixels and sampled at about ``samples`` points.
+    DIS flow (OpenCV ``preset``) computed at ``width`` pixels and sampled at about 3,000 points.
 
     ``bands``: where given, a sequence of k (lo, hi) fractions of the largest normalised image radius: ω_img is
     then fitted to the flow inside each ring separately, (n, k, 3)."""
@@ -56,7 +56,7 @@ def image_rotation_rates(footage, max_frames: int = 900, width: int = 160,
     scale = min(1.0, width / cam.width)
     small = cam.scaled(scale) if scale < 1 else cam
     x, y = small.normalised_grid()
-    step = max(1, int(np.sqrt(small.width * small.height / samples)))
+    step = max(1, int(np.sqrt(small.width * small.height / 3000)))
     xs, ys = x[::step, ::step].ravel(), y[::step, ::step].ravel()
     rho = np.hypot(xs, ys)
     rings = [np.ones(len(xs), bool)] if bands is None else \
