@@ -503,6 +503,37 @@ def test_real_clip_through_gyroflows_axes_is_the_same_imu(clip):
 
 
 @needs_gpmf
+def test_real_clip_without_gopros_parser_is_read_by_telemetry_parser(clip, monkeypatch):
+    """Where py-gpmf-parser is not installed (it has Linux x86-64 wheels only), a GoPro MP4 opens as
+    camera-telemetry: the same IMU samples, no GPS truth, and a note that says what is missing and why."""
+    pytest.importorskip("telemetry_parser", reason="telemetry-parser has wheels for CPython 3.8-3.12 only")
+    import lobula.readers as readers
+    from lobula.readers.camera_telemetry import open_camera_telemetry
+
+    path, _, fo = clip
+    monkeypatch.setattr(readers, "gpmf_parser_installed", lambda: False)
+    assert readers._reader_for(path).name == "camera-telemetry"
+    got = open_camera_telemetry(path)
+    assert got.kind == "camera-telemetry" and got.truth is None
+    assert any("py-gpmf-parser" in n and "IMU only" in n for n in got.notes), got.notes
+    np.testing.assert_allclose(got.imu.gyro, fo.imu.gyro, rtol=0, atol=1e-9)
+
+
+def test_a_gopro_file_neither_parser_reads_names_what_to_install(synthetic, monkeypatch):
+    """telemetry-parser cannot read the synthetic MP4 either: without GoPro's parser it is one line saying how to
+    install it."""
+    import sys
+
+    import lobula.readers as readers
+
+    monkeypatch.setattr(readers, "gpmf_parser_installed", lambda: False)
+    monkeypatch.setitem(sys.modules, "py_gpmf_parser", None)   # its import fails as where it is not installed
+    assert readers._reader_for(synthetic).name == "gopro"
+    with pytest.raises(FootageError, match="needs py-gpmf-parser"):
+        open_footage(synthetic)
+
+
+@needs_gpmf
 def test_real_clip_gyro_turns_the_image_the_right_way(clip):
     """The gyro, in the camera frame, against the image's mean flow (DIS at quarter size): turning right
     (ω_y > 0) moves the image left (u < 0), tilting up (ω_x > 0) moves it down (v > 0). HyperSmooth takes

@@ -80,7 +80,20 @@ def _is_gopro(path: Path) -> bool:
     if not (path.is_file() and path.suffix.lower() in (".mp4", ".mov", ".m4v")):
         return False
     from .gopro import has_gpmf_track  # reads the MP4's box index only: no decoder is started
-    return has_gpmf_track(path)
+    if not has_gpmf_track(path):
+        return False
+    if gpmf_parser_installed():
+        return True
+    # Without GoPro's own parser, telemetry-parser reads the IMU where it can (camera-telemetry); where it cannot,
+    # the GoPro reader claims the file and names what to install.
+    from .camera_telemetry import has_motion_log
+    return not has_motion_log(path)
+
+
+def gpmf_parser_installed() -> bool:
+    """Whether GoPro's own parser (py-gpmf-parser, Linux x86-64 wheels only) is installed."""
+    import importlib.util
+    return importlib.util.find_spec("py_gpmf_parser") is not None
 
 
 def _open_gopro(path, *, require_imu=True, camera=None, require_camera=True, **_):

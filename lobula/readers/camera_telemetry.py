@@ -16,8 +16,9 @@ Intrinsics come from ``--camera FILE`` (a camera.json or a calibration tool's fi
 fisheye) is opened as GoPro MP4s are, as an equidistant lens of a nominal field of view, and any other camera
 as a pinhole of a phone's field of view; the gyro then measures the focal length where the footage turns
 enough (:mod:`lobula.readers.self_calibration`), and the output says which. A 360° camera's 2:1 picture is
-refused without intrinsics. GoPro MP4s are read by :mod:`lobula.readers.gopro`, which also
-reads their GPS; a video with an ``imu.csv`` beside it stays the ``video`` layout.
+refused without intrinsics. GoPro MP4s are read by :mod:`lobula.readers.gopro`, which also reads their GPS; by
+this reader, IMU only, where GoPro's own parser is not installed (it has Linux x86-64 wheels only). A video with
+an ``imu.csv`` beside it stays the ``video`` layout.
 """
 from __future__ import annotations
 
@@ -240,6 +241,10 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
                            f"side), not one lens's view; reframe it to one view and give that view's intrinsics "
                            f"with --camera FILE")
     notes = [f"video: {len(times)} frames ({w}x{h}, {codec}), frame times from the container's time stamps"]
+    if (log["camera"] or "").lower() == "gopro":
+        notes.append("a GoPro MP4 read by telemetry-parser, IMU only: GoPro's own parser, which also reads its GPS "
+                     "(the truth), its stated field of view and its stabilisation, is not installed here "
+                     "(py-gpmf-parser, Linux x86-64 wheels)")
     imu, r = None, None
     if log["accel"] is None:
         if require_imu:
