@@ -399,10 +399,11 @@ def plot_fly_flight(numbers: dict, out_dir) -> list[Path]:
             for k, det in enumerate(d for d in DETECTORS if d in eye[f]):
                 x = len(labels)
                 labels.append(f"{f}\n{det}")
-                for i, dphi in enumerate(sorted(eye[f][det], key=float)):
+                spacings = sorted(eye[f][det], key=float)
+                for i, dphi in enumerate(spacings):
                     v = np.array([r[key] for r in eye[f][det][dphi]], float)
-                    ax.plot(np.full(len(v), x + 0.12 * (i - 1.5)), np.where(np.isfinite(v), v, never), ls="none",
-                            marker="os^v"[i % 4], mfc="none" if det == "three-arm" else c, color=c,
+                    ax.plot(np.full(len(v), x + 0.1 * (i - (len(spacings) - 1) / 2)), np.where(np.isfinite(v), v, never),
+                            ls="none", marker="os^vDP"[i % 6], mfc="none" if det == "three-arm" else c, color=c,
                             label=f"Δφ {dphi}°" if j == 0 and k == 0 else None)
             if dis_of(f) and ", gaze" not in f:
                 v = np.array([r[key] for r in dis_of(f)], float)
