@@ -113,6 +113,7 @@ def test_the_radial_ratio_is_one_through_the_right_projection(fisheye_run, tmp_p
         assert abs(np.log(own.ratio)) < 2 * own.log_std + 0.02 and flat.ratio < 0.65
 
 
+@pytest.mark.slow  # the switch itself runs in make test (tests/test_camera_telemetry.py, an action camera's pinhole)
 def test_a_fisheye_taken_for_a_pinhole_is_found_out(fisheye_run, tmp_path):
     """Self-calibration from a pinhole guess 15 % short: the projection is measured as equidistant, and the focal
     length found through it within 5 %."""
