@@ -25,7 +25,7 @@ Figures (:func:`figure_fly_flight`): ``fly_flight_dphi`` (RMSE and answered frac
 HR), ``fly_flight_detector`` (HR against the three-arm detector on the same flights), ``fly_flight_lock_on``
 (lock-on time from the start of the flight) and ``fly_flight_fov`` (HR with its LC fields over both eyes or only
 inside the D435i's view, :data:`FIELDS_OF_VIEW`), each with its JSON of every seed's numbers
-(:func:`write_fly_flight`; ``python -m experiments.fly_flight_figures --out figures``, 36 min on 2 cores with the
+(:func:`write_fly_flight`; ``python -m experiments.fly_flight_figures --out figures``, about 2½ h on 2 cores with the
 renders). Renders and scores are cached in a work folder (``FLIGHT-SEED-dDPHI-eye``,
 ``FLIGHT-SEED-cam``, ``scores.json``).
 """
@@ -403,7 +403,7 @@ def plot_fly_flight(numbers: dict, out_dir) -> list[Path]:
                 for i, dphi in enumerate(spacings):
                     v = np.array([r[key] for r in eye[f][det][dphi]], float)
                     ax.plot(np.full(len(v), x + 0.1 * (i - (len(spacings) - 1) / 2)), np.where(np.isfinite(v), v, never),
-                            ls="none", marker="os^vDP"[i % 6], mfc="none" if det == "three-arm" else c, color=c,
+                            ls="none", marker="os^vPX"[i % 6], mfc="none" if det == "three-arm" else c, color=c,
                             label=f"Δφ {dphi}°" if j == 0 and k == 0 else None)
             if dis_of(f) and ", gaze" not in f:
                 v = np.array([r[key] for r in dis_of(f)], float)
