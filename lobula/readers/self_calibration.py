@@ -17,8 +17,8 @@ cameras) or a pinhole (:mod:`lobula.readers.camera_telemetry`) — ``footage.len
    pan and tilt rates against the gyro's, iterated to 1), with its standard error;
 4. the projection, pinhole or equidistant fisheye (:func:`lobula.readers.lens_projection.radial_rotation_ratio`:
    through the right one the image's edge turns with the gyro as its centre does). The reader's guess stands
-   unless the other projection's radial ratio is clearly nearer 1 (by three standard errors); the focal
-   length is then measured again through it.
+   unless its radial ratio is far from 1 (:data:`PROJECTION_MIN_LOG_RATIO`) and the other projection's is
+   clearly nearer (by three standard errors); the focal length is then measured again through it.
 
 Each is kept only where the footage shows it (enough rotation, image and gyro rates that agree);
 otherwise the guess stays, and the reason is said — an image stabilised against the body (HyperSmooth)
@@ -34,7 +34,7 @@ import numpy as np
 from .core import FootageError, rotation_deg
 
 __all__ = ["self_calibrate", "check_imu_axes", "FOCAL_SYSTEMATIC_REL_STD", "AXES_TOLERANCE_DEG",
-           "AXES_MIN_CORRELATION"]
+           "AXES_MIN_CORRELATION", "PROJECTION_MIN_LOG_RATIO"]
 
 #: 1σ fraction: what the slope's own standard error leaves out of a measured focal length, the translation's flow
 #: that a record of seconds does not average out (synthetic scenes turning on three axes while moving: a 131°
@@ -46,6 +46,10 @@ FOCAL_SYSTEMATIC_REL_STD = 0.04
 AXES_TOLERANCE_DEG = 5.0
 #: the least correlation of the image's rotation rates with the turned gyro's for the turn to be trusted
 AXES_MIN_CORRELATION = 0.7
+#: |log| of the radial ratio through the guessed projection beyond which the other may replace it (the edge
+#: turning 22 % off the centre): a hand-held walk's translation alone moves the ratio by up to 7 % (the suite's
+#: walking scenes, where three standard errors do not cover it); a fisheye read as a pinhole is 0.37–0.62 off
+PROJECTION_MIN_LOG_RATIO = 0.2
 
 
 def _clock(footage) -> dict:
@@ -191,7 +195,7 @@ def _projection(footage, guess: dict, original: dict) -> tuple[dict, dict]:
     log_std = float(np.hypot(mine.log_std, theirs.log_std))
     ratios = {_lens_text(guess): round(mine.ratio, 3), _lens_text(other): round(theirs.ratio, 3)}
     gap = abs(np.log(mine.ratio)) - abs(np.log(theirs.ratio))
-    chosen = other if gap > 3.0 * log_std else guess
+    chosen = other if gap > 3.0 * log_std and abs(np.log(mine.ratio)) > PROJECTION_MIN_LOG_RATIO else guess
     if chosen is guess:
         footage.camera, footage.lens_maps, footage.distortion = kept
     else:
@@ -202,7 +206,7 @@ def _projection(footage, guess: dict, original: dict) -> tuple[dict, dict]:
     if chosen is not original:
         text = f"measured: the image's edge turns against its centre {words}"
     else:
-        told = "as the image's rotation says" if abs(gap) > 3.0 * log_std else \
+        told = "as the image's rotation says" if -gap > 3.0 * log_std else \
             "the image's rotation cannot tell the projections apart here"
         text = f"the reader's guess, {told}: the image's edge turns against its centre {words}"
     return chosen, dict(projection_source=text, projection_radial_ratio=ratios,
