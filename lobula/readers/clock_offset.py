@@ -42,6 +42,12 @@ class ClockOffset:
     scores: np.ndarray
 
 
+def gyro_at(imu, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mask (n,) of the times ``t`` (s) the IMU covers, the gyro linearly interpolated there (k, 3) rad/s)."""
+    ok = (t >= imu.time_s[0]) & (t <= imu.time_s[-1])
+    return ok, np.stack([np.interp(t[ok], imu.time_s, imu.gyro[:, j]) for j in range(3)], -1)
+
+
 def image_rotation_rates(footage, max_frames: int = 900, width: int = 160,
                          preset: int = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
                          bands=None) -> tuple[np.ndarray, np.ndarray]:
@@ -102,11 +108,9 @@ def estimate_clock_offset(footage, max_offset_s: float = 0.25, resolution_s: flo
     scores = np.full(len(lags), np.nan)
     for k, lag in enumerate(lags):
         # gyro on the camera clock: ω(t_cam) = gyro(t_cam − τ)
-        tq = t_img - lag
-        ok = (tq >= imu.time_s[0]) & (tq <= imu.time_s[-1])
+        ok, g = gyro_at(imu, t_img - lag)
         if ok.sum() < 0.8 * len(t_img):
             continue
-        g = np.stack([np.interp(tq[ok], imu.time_s, imu.gyro[:, j]) for j in range(3)], -1)
         g = g - g.mean(0)
         a = w_img[ok]
         den = np.sqrt((a ** 2).sum() * (g ** 2).sum())

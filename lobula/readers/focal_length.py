@@ -49,16 +49,15 @@ def _slope(footage, max_frames: int) -> tuple[float, float, float, int, bool]:
     every axis, cancels there; roll does not depend on the focal length)."""
     import cv2
 
-    from .clock_offset import image_rotation_rates
+    from .clock_offset import gyro_at, image_rotation_rates
 
     imu = footage.imu
     t_img, w_img = image_rotation_rates(footage, max_frames=max_frames, width=FLOW_WIDTH_PX,
                                         preset=cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    ok = (t_img >= imu.time_s[0]) & (t_img <= imu.time_s[-1])
+    ok, g = gyro_at(imu, t_img)
     if ok.sum() < 10:
         raise FootageError(f"{footage.path}: fewer than 10 frame pairs with gyro samples around them; the focal length "
                            f"cannot be measured here: give it in a camera.json (--camera FILE)")
-    g = np.stack([np.interp(t_img[ok], imu.time_s, imu.gyro[:, j]) for j in range(3)], -1)
     a = w_img[ok]
     g, a = g - g.mean(0), a - a.mean(0)
     gg = float((g[:, :2] ** 2).sum())

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .clock_offset import image_rotation_rates
+from .clock_offset import gyro_at, image_rotation_rates
 from .core import FootageError
 
 __all__ = ["RadialRatio", "radial_rotation_ratio", "INNER_BAND", "OUTER_BAND", "RATIO_SYSTEMATIC"]
@@ -63,11 +63,10 @@ def radial_rotation_ratio(footage, max_frames: int = 300, width: int = 320) -> R
     imu = footage.imu
     t, w = image_rotation_rates(footage, max_frames=max_frames, width=width,
                                 preset=cv2.DISOPTICAL_FLOW_PRESET_MEDIUM, bands=(INNER_BAND, OUTER_BAND))
-    ok = (t >= imu.time_s[0]) & (t <= imu.time_s[-1])
+    ok, g = gyro_at(imu, t)
     if ok.sum() < 10:
         raise FootageError(f"{footage.path}: fewer than 10 frame pairs with gyro samples around them")
-    g = np.stack([np.interp(t[ok], imu.time_s, imu.gyro[:, j]) for j in range(2)], -1)
-    g = g - g.mean(0)
+    g = g[:, :2] - g[:, :2].mean(0)
     rms = float(np.sqrt((g ** 2).mean()))
     if rms < MIN_ROTATION_RAD_S:
         raise FootageError(f"{footage.path}: too little pan and tilt (gyro RMS {rms:.3f} rad/s < {MIN_ROTATION_RAD_S})")

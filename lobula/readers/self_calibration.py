@@ -77,7 +77,7 @@ def check_imu_axes(footage, turned: dict | None = None) -> dict:
     """
     import cv2
 
-    from .clock_offset import image_rotation_rates
+    from .clock_offset import gyro_at, image_rotation_rates
     from .focal_length import FLOW_WIDTH_PX
     from .imu_rotation import fit_imu_rotation
 
@@ -86,8 +86,7 @@ def check_imu_axes(footage, turned: dict | None = None) -> dict:
     except FootageError as exc:
         return dict(imu_axes_source=f"as read, not checked: {_why(exc)}")
     imu = footage.imu
-    ok = (t_img >= imu.time_s[0]) & (t_img <= imu.time_s[-1])
-    g = np.stack([np.interp(t_img[ok], imu.time_s, imu.gyro[:, j]) for j in range(3)], -1)
+    ok, g = gyro_at(imu, t_img)
     try:
         est = fit_imu_rotation(w_img[ok], g, where=str(footage.path))
     except FootageError as exc:
@@ -118,13 +117,7 @@ def check_imu_axes(footage, turned: dict | None = None) -> dict:
 def _focal(footage, guess: dict) -> dict:
     from .focal_length import estimate_focal_length
 
-    from dataclasses import replace
-
-    from lobula.camera import PinholeCamera
-    from lobula.lens import LensDistortion, undistortion_maps
-
-    dist = footage.distortion if guess["model"] != "pinhole" else None
-    f0 = float(dist["raw_camera"]["fx"] if dist else footage.camera.fx)
+    f0 = _raw_fx(footage)
     before = footage.camera, footage.lens_maps
     try:
         est = estimate_focal_length(footage)
@@ -132,14 +125,7 @@ def _focal(footage, guess: dict) -> dict:
         footage.camera, footage.lens_maps = before  # the search leaves its last trial behind
         return dict(focal_length_px=f0, focal_length_rel_std=guess["rel_std"],
                     focal_length_source=f"{guess['source']}, not measured: {_why(exc)}")
-    if dist is None:  # a pinhole: nothing to resample
-        footage.camera = replace(before[0], fx=est.fx, fy=est.fy)
-    else:
-        raw = replace(PinholeCamera(**dist["raw_camera"]), fx=est.fx, fy=est.fy)
-        footage.lens_maps, footage.camera = undistortion_maps(raw, LensDistortion(dist["model"],
-                                                                                  tuple(dist["coeffs"])),
-                                                              dist.get("target_k", "same-k"))
-        dist["raw_camera"] = raw.to_dict()
+    _set_projection(footage, guess["model"], est.fx)
     rel_std = float(np.hypot(est.slope_std, FOCAL_SYSTEMATIC_REL_STD))
     return dict(focal_length_px=round(est.fx, 2), focal_length_rel_std=round(rel_std, 4),
                 focal_length_source=(f"measured against the gyro (from {guess['source']}: {f0:.1f} px; pan/tilt "
@@ -151,22 +137,26 @@ def _lens_text(guess: dict) -> str:
             else f"equidistant fisheye ({guess['model']}, no coefficients)")
 
 
-def _set_projection(footage, model: str, fx: float, source: str) -> None:
-    """Read ``footage``'s frames through ``model`` ("pinhole", or "kannala-brandt" with no coefficients: an
-    equidistant fisheye) of focal length ``fx`` (px; fy keeps its ratio), resampled onto a pinhole of the same K."""
+def _set_projection(footage, model: str, fx: float, source: str | None = None) -> None:
+    """Read ``footage``'s frames through ``model`` ("pinhole", or "kannala-brandt": an equidistant fisheye, with the
+    coefficients and resampling target it has, else none and the same K) of focal length ``fx`` (px; fy keeps its
+    ratio), resampled onto a pinhole. ``source``: what the lens is said to come from (None: as it was)."""
     from dataclasses import replace
 
     from lobula.camera import PinholeCamera
     from lobula.lens import LensDistortion, undistortion_maps
 
-    raw = PinholeCamera(**footage.distortion["raw_camera"]) if footage.distortion else footage.camera
+    old = footage.distortion or {}
+    raw = PinholeCamera(**old["raw_camera"]) if old else footage.camera
     raw = replace(raw, fx=fx, fy=fx * raw.fy / raw.fx)
     if model == "pinhole":
         footage.distortion, footage.lens_maps, footage.camera = None, None, raw
         return
-    footage.lens_maps, footage.camera = undistortion_maps(raw, LensDistortion(model, (0.0, 0.0, 0.0, 0.0)), "same-k")
-    footage.distortion = dict(model=model, coeffs=[0.0, 0.0, 0.0, 0.0], removed=True, target_k="same-k",
-                              raw_camera=raw.to_dict(), source=source)
+    coeffs = list(old["coeffs"]) if old.get("model") == model else [0.0, 0.0, 0.0, 0.0]
+    target = old.get("target_k", "same-k")
+    footage.lens_maps, footage.camera = undistortion_maps(raw, LensDistortion(model, tuple(coeffs)), target)
+    footage.distortion = dict(old, model=model, coeffs=coeffs, removed=True, target_k=target,
+                              raw_camera=raw.to_dict(), source=source or old.get("source"))
 
 
 def _raw_fx(footage) -> float:
