@@ -39,15 +39,15 @@ def run_calibrate_camera(args) -> int:
         r = np.asarray(axes["imu_axes_rotation"]) @ (np.eye(3) if r is None else r)
     if r is not None:
         cam["imu_to_camera"] = np.round(r, 9).tolist()
-    cam["calibration"] = dict(method="gyro against the image's rotation (lobula.readers.focal_length)",
+    cam["calibration"] = dict(method="gyro against the image's rotation, the translation fitted alongside "
+                                     "(lobula.readers.focal_length)",
                               scale_from_first_guess=round(est.scale, 5), correlation=round(est.correlation, 4),
                               slope_std=round(est.slope_std, 5), frame_pairs=est.n_pairs, slopes=est.steps,
-                              relative_to_roll=est.by_roll, imu_axes=axes.get("imu_axes_source", "not checked"),
+                              roll_scale=round(est.roll_scale, 5), imu_axes=axes.get("imu_axes_source", "not checked"),
                               footage=str(footage.path), **provenance_attrs())
     write_text(args.out, json.dumps(cam, indent=1) + "\n")
-    print(f"wrote {args.out}: fx {est.fx:.2f} px, fy {est.fy:.2f} px ({est.scale:.4f} × the first guess; slope std "
-          f"{est.slope_std:.4f}, correlation {est.correlation:.3f} over {est.n_pairs} frame pairs"
-          + (", relative to the roll's" if est.by_roll else "") + ")")
+    print(f"wrote {args.out}: fx {est.fx:.2f} px, fy {est.fy:.2f} px ({est.scale:.4f} × the first guess; std "
+          f"{est.slope_std:.4f}, correlation {est.correlation:.3f} over {est.n_pairs} frame pairs)")
     if "imu_axes_source" in axes:
         print(f"IMU axes: {axes['imu_axes_source']}")
     return 0

@@ -48,41 +48,70 @@ def gyro_at(imu, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ok, np.stack([np.interp(t[ok], imu.time_s, imu.gyro[:, j]) for j in range(3)], -1)
 
 
-def image_rotation_rates(footage, max_frames: int = 900, width: int = 160,
-                         preset: int = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
-                         bands=None) -> tuple[np.ndarray, np.ndarray]:
-    """(mid times (n,) s, ω_img (n, 3) rad/s) from consecutive frames of ``footage`` (the first ``max_frames``),
-    DIS flow (OpenCV ``preset``) computed at ``width`` pixels and sampled at about 3,000 points.
+@dataclass
+class FlowSamples:
+    """Dense flow between consecutive frames, sampled on a fixed grid of points.
 
-    ``bands``: where given, a sequence of k (lo, hi) fractions of the largest normalised image radius: ω_img is
-    then fitted to the flow inside each ring separately, (n, k, 3)."""
-    from lobula.epipole import rotational_flow
+    time_s (n,) s: the frame pairs' mid times; x, y (m,): the points' normalised image coordinates; flow
+    (n, 2, m) 1/s: the flow (u, v) at each point per second, in normalised coordinates."""
 
+    time_s: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    flow: np.ndarray
+
+
+def image_flow_samples(footage, max_frames: int = 900, width: int = 160,
+                       preset: int = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST) -> FlowSamples:
+    """DIS flow (OpenCV ``preset``) between consecutive frames of ``footage`` (the first ``max_frames``),
+    computed at ``width`` pixels and sampled at about 3,000 points (:class:`FlowSamples`)."""
     cam = footage.camera
     scale = min(1.0, width / cam.width)
     small = cam.scaled(scale) if scale < 1 else cam
     x, y = small.normalised_grid()
     step = max(1, int(np.sqrt(small.width * small.height / 3000)))
     xs, ys = x[::step, ::step].ravel(), y[::step, ::step].ravel()
-    rho = np.hypot(xs, ys)
-    rings = [np.ones(len(xs), bool)] if bands is None else \
-        [(rho >= lo * rho.max()) & (rho < hi * rho.max()) for lo, hi in bands]
-    bases = [np.stack([rotational_flow(e, xs[m], ys[m]).reshape(-1) for e in np.eye(3)], -1) for m in rings]
     dis = cv2.DISOpticalFlow_create(preset)
-    prev, out_t, out_w = None, [], []
+    prev, out_t, out_f = None, [], []
     for _, t, img in footage.frames(0, max_frames):
         g = cv2.resize(img, (small.width, small.height), interpolation=cv2.INTER_AREA) if scale < 1 else img
         g = np.clip(np.round(g), 0, 255).astype(np.uint8)
         if prev is not None:
             dt = t - prev[0]
             f = dis.calc(prev[1], g, None)[::step, ::step]
-            u, v = f[..., 0].ravel() / small.fx / dt, f[..., 1].ravel() / small.fy / dt
-            out_w.append([np.linalg.lstsq(b, np.concatenate([u[m], v[m]]), rcond=None)[0]
-                          for b, m in zip(bases, rings)])
+            out_f.append(np.stack([f[..., 0].ravel() / small.fx / dt, f[..., 1].ravel() / small.fy / dt]))
             out_t.append(0.5 * (t + prev[0]))
         prev = (t, g)
-    w = np.asarray(out_w).reshape(-1, len(rings), 3)
-    return np.asarray(out_t), (w[:, 0] if bands is None else w)
+    flow = np.asarray(out_f, np.float32).reshape(-1, 2, len(xs))
+    return FlowSamples(np.asarray(out_t, float), xs, ys, flow)
+
+
+def image_rotation_rates(footage, max_frames: int = 900, width: int = 160,
+                         preset: int = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+                         bands=None) -> tuple[np.ndarray, np.ndarray]:
+    """(mid times (n,) s, ω_img (n, 3) rad/s): per frame pair, the least-squares angular velocity whose rotational
+    field explains the flow of :func:`image_flow_samples` (same arguments).
+
+    ``bands``: where given, a sequence of k (lo, hi) fractions of the largest normalised image radius: ω_img is
+    then fitted to the flow inside each ring separately, (n, k, 3)."""
+    s = image_flow_samples(footage, max_frames, width, preset)
+    return s.time_s, rotation_rates(s, bands)
+
+
+def rotation_rates(samples: FlowSamples, bands=None) -> np.ndarray:
+    """ω_img (n, 3) rad/s, or (n, k, 3) within ``bands`` (see :func:`image_rotation_rates`), from ``samples``."""
+    from lobula.epipole import rotational_flow
+
+    xs, ys, flow = samples.x, samples.y, samples.flow.astype(float)
+    rho = np.hypot(xs, ys)
+    rings = [np.ones(len(xs), bool)] if bands is None else \
+        [(rho >= lo * rho.max()) & (rho < hi * rho.max()) for lo, hi in bands]
+    w = np.zeros((len(flow), len(rings), 3))
+    for k, m in enumerate(rings):
+        basis = np.stack([rotational_flow(e, xs[m], ys[m]).reshape(-1) for e in np.eye(3)], -1)
+        if len(flow):
+            w[:, k] = np.linalg.lstsq(basis, flow[:, :, m].reshape(len(flow), -1).T, rcond=None)[0].T
+    return w[:, 0] if bands is None else w
 
 
 def estimate_clock_offset(footage, max_offset_s: float = 0.25, resolution_s: float = 0.001,
