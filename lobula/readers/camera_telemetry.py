@@ -16,8 +16,8 @@ Intrinsics come from ``--camera FILE`` (a camera.json or a calibration tool's fi
 fisheye) is opened as GoPro MP4s are, as an equidistant lens of a nominal field of view, and any other camera
 as a pinhole of a phone's field of view; the gyro then measures the focal length where the footage turns
 enough (:mod:`lobula.readers.self_calibration`), and the output says which. A 360° camera's 2:1 picture is
-refused without intrinsics. GoPro MP4s are read by :mod:`lobula.readers.gopro`, which also reads their GPS; by
-this reader, IMU only, where GoPro's own parser is not installed (it has Linux x86-64 wheels only). A video with
+refused without intrinsics. GoPro MP4s are read by :mod:`lobula.readers.gopro`; by this reader, IMU and GPS
+truth (:func:`gopro_gps`), where GoPro's own parser is not installed (it has Linux x86-64 wheels only). A video with
 an ``imu.csv`` beside it stays the ``video`` layout.
 """
 from __future__ import annotations
@@ -158,6 +158,61 @@ def read_motion_log(path: Path) -> dict:
                 model=str(p.model) if p.model else None, dropped=int(len(t) - len(order)))
 
 
+#: telemetry-parser's keys of a GoPro GPS group's packet fix (GPSF: 0 none, 2 2D, 3 3D) and precision (GPSP, DOP×100)
+_GPSF, _GPSP = "0x47505346", "0x47505350"
+
+
+def gopro_gps(path: Path, notes: list[str]) -> dict | None:
+    """The GPS samples of the GoPro MP4 at ``path`` read by telemetry-parser, as
+    :func:`lobula.readers.gopro.gps_samples` gives them (time_s on the video's clock, each packet's samples spread
+    over its span from the MP4's sample table; lat_deg, lon_deg, alt_m, speed_2d_m_s, speed_3d_m_s, fix, dop);
+    None where the file has none or its packets do not line up with the telemetry track's, with a note saying
+    which."""
+    from .gopro_telemetry import packet_sample_times, packet_spans
+
+    p = _parser(path)
+    try:
+        with _parsing():
+            groups = p.telemetry() if p is not None else []
+    except ParseFailure as exc:
+        notes.append(f"GPS not read: telemetry-parser cannot read the telemetry's packets ({exc})")
+        return None
+    while groups and set(groups[0]) <= {"Default"}:   # the settings block before the track's packets
+        groups = groups[1:]
+    if not any("GPS" in g for g in groups):
+        return None
+    try:
+        spans = packet_spans(path)
+    except FootageError as exc:
+        notes.append(f"GPS not read: {exc}")
+        return None
+    if len(groups) != len(spans):
+        notes.append(f"GPS not read: telemetry-parser gives {len(groups)} telemetry packets where the MP4's track "
+                     f"has {len(spans)}, so their times are not known")
+        return None
+    cols = {k: [] for k in ("time_s", "data", "fix", "dop")}
+    for (t_in, t_out), g in zip(spans, groups):
+        gps = g.get("GPS") or {}
+        data = np.asarray(gps.get("Data") or [], float)
+        if data.ndim != 2 or data.shape[1] < 5:
+            continue
+        data = data / np.asarray(gps.get("Scale") or 1.0, float)[: data.shape[1]]
+        cols["time_s"].append(packet_sample_times(t_in, t_out, len(data)))
+        cols["data"].append(data[:, :9])
+        if data.shape[1] >= 9:    # GPS9: a fix and DOP per sample
+            cols["fix"].append(data[:, 8])
+            cols["dop"].append(data[:, 7])
+        else:
+            cols["fix"].append(np.full(len(data), float(gps.get(_GPSF, np.nan))))
+            cols["dop"].append(np.full(len(data), float(gps.get(_GPSP, np.nan)) / 100.0))
+    if not cols["data"]:
+        return None
+    d = np.concatenate(cols["data"])
+    return dict(time_s=np.concatenate(cols["time_s"]), lat_deg=d[:, 0], lon_deg=d[:, 1], alt_m=d[:, 2],
+                speed_2d_m_s=d[:, 3], speed_3d_m_s=d[:, 4], fix=np.concatenate(cols["fix"]),
+                dop=np.concatenate(cols["dop"]), source=("GPS9" if d.shape[1] >= 9 else "GPS5") + ", telemetry-parser")
+
+
 def is_action_camera(camera: str, model: str | None) -> bool:
     """Whether the parser's camera type or model names a maker of wide-fisheye action or FPV cameras."""
     names = [camera.lower(), (model or "").lower()]
@@ -241,10 +296,10 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
                            f"side), not one lens's view; reframe it to one view and give that view's intrinsics "
                            f"with --camera FILE")
     notes = [f"video: {len(times)} frames ({w}x{h}, {codec}), frame times from the container's time stamps"]
-    if (log["camera"] or "").lower() == "gopro":
-        notes.append("a GoPro MP4 read by telemetry-parser, IMU only: GoPro's own parser, which also reads its GPS "
-                     "(the truth), its stated field of view and its stabilisation, is not installed here "
-                     "(py-gpmf-parser, Linux x86-64 wheels)")
+    gopro = (log["camera"] or "").lower() == "gopro"
+    if gopro:
+        notes.append("a GoPro MP4 read by telemetry-parser: GoPro's own parser, which also reads its stated field of "
+                     "view and its stabilisation settings, is not installed here (py-gpmf-parser, Linux x86-64 wheels)")
     imu, r = None, None
     if log["accel"] is None:
         if require_imu:
@@ -269,6 +324,9 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     if tp.is_file():
         from .core import read_truth_csv
         truth, _ = read_truth_csv(tp, False)
+    elif gopro:
+        from .gopro import gps_truth
+        truth = gps_truth(gopro_gps(path, notes), notes)
     streams = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=round(fps, 3)),
                dict(stream="motion log", source=who, samples=len(log["time_s"]),
                     sensors=", ".join(n for n, x in (("accelerometer", log["accel"]), ("gyroscope", log["gyro"]))

@@ -210,7 +210,7 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
                      f"frames before it have no IMU samples around them")
     imu, r_extra = _gopro_imu(path, streams, cam_path, require_imu, notes)
     gps = gps_samples(streams)
-    truth = _gps_truth(gps, notes)
+    truth = gps_truth(gps, notes)
     stab = stabilisation(settings, streams)
     if stab["electronic"]:
         notes.append(f"electronic stabilisation on ({stab['setting'] or 'HyperSmooth'}; from {stab['source']}): the "
@@ -270,7 +270,7 @@ def _gopro_imu(path: Path, streams: dict[str, Stream], cam_path: Path | None, re
     return imu, r_extra
 
 
-def _gps_truth(gps: dict | None, notes: list[str]) -> dict | None:
+def gps_truth(gps: dict | None, notes: list[str]) -> dict | None:
     """The truth of the GPS samples (:func:`gps_samples`) with a 2D/3D fix: {time_s, v_forward_m_s (the 2D
     ground speed), gps_speed_3d_m_s, gps_fix, gps_dop}; None with fewer than two. Appends a note."""
     truth = None

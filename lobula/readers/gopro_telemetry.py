@@ -149,9 +149,19 @@ def read_telemetry(path: str | Path, index: Mp4Index | None = None) -> tuple[dic
     return out, settings, (spans[0][0], spans[-1][1], len(spans))
 
 
-def _demux(path: Path, index: Mp4Index) -> tuple[dict[str, list], list[tuple[float, float]]]:
-    """The ``gpmd`` track's packets decoded: ``{key: [(t_in, t_out, occurrence), ...]}`` for each data key
-    (:func:`~lobula.readers.gpmf.decode_gpmf`'s dicts; the first device's only) and every packet's span
+def packet_spans(path: str | Path) -> list[tuple[float, float]]:
+    """Every ``gpmd`` telemetry packet's span [t_in, t_out) (s, on the video's clock) of the GoPro MP4 at ``path``,
+    the packets not decoded. FootageError as :func:`read_telemetry`'s."""
+    path = Path(path)
+    index = read_mp4_index(path)
+    if index is None or not index.gpmd_tracks:
+        raise FootageError(f"{path}: no GPMF telemetry track (gpmd) in this file; use the camera's original file")
+    return _demux(path, index, decode=False)[1]
+
+
+def _demux(path: Path, index: Mp4Index, decode: bool = True) -> tuple[dict[str, list], list[tuple[float, float]]]:
+    """The ``gpmd`` track's packets decoded (where ``decode``): ``{key: [(t_in, t_out, occurrence), ...]}`` for each
+    data key (:func:`~lobula.readers.gpmf.decode_gpmf`'s dicts; the first device's only) and every packet's span
     [t_in, t_out) (s, on the video's clock). FootageError naming the file for a damaged container or
     packet, or a track without packets."""
     try:
@@ -177,6 +187,9 @@ def _demux(path: Path, index: Mp4Index) -> tuple[dict[str, list], list[tuple[flo
                 if t_out <= t_in:
                     raise FootageError(f"{path}: telemetry packet {k} at {t_in:.3f} s has no duration in the MP4's "
                                        f"sample table; copy the file again from the camera's card")
+                if not decode:
+                    spans.append((t_in, t_out))
+                    continue
                 try:
                     found = decode_gpmf(bytes(packet))
                 except ValueError as exc:
