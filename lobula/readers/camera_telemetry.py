@@ -16,8 +16,9 @@ Intrinsics come from ``--camera FILE`` (a camera.json or a calibration tool's fi
 fisheye) is opened as GoPro MP4s are, as an equidistant lens of a nominal field of view, and any other camera
 as a pinhole of a phone's field of view; the gyro then measures the focal length where the footage turns
 enough (:mod:`lobula.readers.self_calibration`), and the output says which. A 360° camera's 2:1 picture is
-refused without intrinsics. GoPro MP4s are read by :mod:`lobula.readers.gopro`; by this reader, IMU and GPS
-truth (:func:`gopro_gps`), where GoPro's own parser is not installed (it has Linux x86-64 wheels only). A video with
+refused without intrinsics. GoPro MP4s are read by :mod:`lobula.readers.gopro`; by this reader where GoPro's
+own parser is not installed (it has Linux x86-64 wheels only): the IMU, the GPS truth (:func:`gopro_gps`), the
+settings and the stated field of view (:func:`gopro_telemetry`), as the GoPro reader has them. A video with
 an ``imu.csv`` beside it stays the ``video`` layout.
 """
 from __future__ import annotations
@@ -162,23 +163,33 @@ def read_motion_log(path: Path) -> dict:
 _GPSF, _GPSP = "0x47505346", "0x47505350"
 
 
-def gopro_gps(path: Path, notes: list[str]) -> dict | None:
-    """The GPS samples of the GoPro MP4 at ``path`` read by telemetry-parser, as
-    :func:`lobula.readers.gopro.gps_samples` gives them (time_s on the video's clock, each packet's samples spread
-    over its span from the MP4's sample table; lat_deg, lon_deg, alt_m, speed_2d_m_s, speed_3d_m_s, fix, dop);
-    None where the file has none or its packets do not line up with the telemetry track's, with a note saying
-    which."""
-    from .gopro_telemetry import packet_sample_times, packet_spans
-
+def gopro_telemetry(path: Path, notes: list[str]) -> tuple[dict, list[dict]]:
+    """(settings {FourCC: value}, one dict of streams per telemetry packet) of the GoPro MP4 at ``path`` as
+    telemetry-parser reads them; empty, with a note, where it cannot."""
     p = _parser(path)
     try:
         with _parsing():
             groups = p.telemetry() if p is not None else []
     except ParseFailure as exc:
-        notes.append(f"GPS not read: telemetry-parser cannot read the telemetry's packets ({exc})")
-        return None
+        notes.append(f"telemetry-parser cannot read the telemetry's packets ({exc}): no GPS, field of view or "
+                     f"stabilisation settings")
+        return {}, []
+    settings = {}
     while groups and set(groups[0]) <= {"Default"}:   # the settings block before the track's packets
+        settings.update({bytes.fromhex(k[2:]).decode("latin-1"): v for k, v in groups[0]["Default"].items()
+                         if k.startswith("0x") and len(k) == 10})
         groups = groups[1:]
+    return settings, groups
+
+
+def gopro_gps(path: Path, groups: list[dict], notes: list[str]) -> dict | None:
+    """The GPS samples in telemetry-parser's packets ``groups`` (:func:`gopro_telemetry`) of the GoPro MP4 at
+    ``path``, as :func:`lobula.readers.gopro.gps_samples` gives them (time_s on the video's clock, each packet's
+    samples spread over its span from the MP4's sample table; lat_deg, lon_deg, alt_m, speed_2d_m_s,
+    speed_3d_m_s, fix, dop); None where the file has none or its packets do not line up with the telemetry
+    track's, with a note saying which."""
+    from .gopro_telemetry import packet_sample_times, packet_spans
+
     if not any("GPS" in g for g in groups):
         return None
     try:
@@ -196,7 +207,8 @@ def gopro_gps(path: Path, notes: list[str]) -> dict | None:
         data = np.asarray(gps.get("Data") or [], float)
         if data.ndim != 2 or data.shape[1] < 5:
             continue
-        data = data / np.asarray(gps.get("Scale") or 1.0, float)[: data.shape[1]]
+        scale = np.atleast_1d(np.asarray(gps.get("Scale") or 1.0, float))
+        data = data / (scale[: data.shape[1]] if len(scale) > 1 else scale[0])
         cols["time_s"].append(packet_sample_times(t_in, t_out, len(data)))
         cols["data"].append(data[:, :9])
         if data.shape[1] >= 9:    # GPS9: a fix and DOP per sample
@@ -257,7 +269,8 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     require_camera: FootageError for a 360° picture without intrinsics (False: ``camera=None``, for
     ``lobula info``). Every bad input is one FootageError naming the file and the fix.
     """
-    from .gopro import NOMINAL_DIAGONAL_FOV_DEG, NOMINAL_FOV_REL_STD, equidistant_camera
+    from .gopro import (NOMINAL_DIAGONAL_FOV_DEG, NOMINAL_FOV_REL_STD, equidistant_camera, gps_truth,
+                        lens_guess_from_settings, stabilisation, stabilisation_notes)
 
     path = Path(path)
     if not path.is_file():
@@ -271,6 +284,9 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     sidecar = path.with_suffix(".gcsv")
     source = f"{sidecar} (.gcsv)" if log["camera"] == "gcsv" else f"{path} ({who} motion log)"
     cam_path = camera_file(path, camera_json)
+    gopro, settings, packets, gopro_notes = (log["camera"] or "").lower() == "gopro", {}, [], []
+    if gopro:
+        settings, packets = gopro_telemetry(path, gopro_notes)
     camera, lens_guess = None, None
     spherical = abs(w - 2 * h) <= 0.02 * w  # a 2:1 frame: a 360° camera's equirectangular or dual-fisheye picture
     if cam_path is not None:
@@ -278,6 +294,8 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
         if (w, h) != (camera.width, camera.height):
             raise FootageError(f"{path}: video is {w}x{h} but {cam_path} says {camera.width}x{camera.height}; give "
                                f"the intrinsics of this resolution")
+    elif gopro and not spherical:
+        camera, lens_guess = lens_guess_from_settings(w, h, fps, settings)
     elif is_action_camera(log["camera"], log["model"]) and not spherical:
         camera = equidistant_camera(w, h, fps, NOMINAL_DIAGONAL_FOV_DEG)
         lens_guess = dict(model="kannala-brandt", coeffs=[0.0, 0.0, 0.0, 0.0],
@@ -296,10 +314,10 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
                            f"side), not one lens's view; reframe it to one view and give that view's intrinsics "
                            f"with --camera FILE")
     notes = [f"video: {len(times)} frames ({w}x{h}, {codec}), frame times from the container's time stamps"]
-    gopro = (log["camera"] or "").lower() == "gopro"
     if gopro:
-        notes.append("a GoPro MP4 read by telemetry-parser: GoPro's own parser, which also reads its stated field of "
-                     "view and its stabilisation settings, is not installed here (py-gpmf-parser, Linux x86-64 wheels)")
+        notes.append("a GoPro MP4 read by telemetry-parser (GoPro's own parser is not installed here: py-gpmf-parser, "
+                     "Linux x86-64 wheels): its IMU, GPS, settings and stated field of view; not its image orientation")
+        notes.extend(gopro_notes + stabilisation_notes(stabilisation(settings, {})))
     imu, r = None, None
     if log["accel"] is None:
         if require_imu:
@@ -325,8 +343,7 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
         from .core import read_truth_csv
         truth, _ = read_truth_csv(tp, False)
     elif gopro:
-        from .gopro import gps_truth
-        truth = gps_truth(gopro_gps(path, notes), notes)
+        truth = gps_truth(gopro_gps(path, packets, notes), notes)
     streams = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=round(fps, 3)),
                dict(stream="motion log", source=who, samples=len(log["time_s"]),
                     sensors=", ".join(n for n, x in (("accelerometer", log["accel"]), ("gyroscope", log["gyro"]))

@@ -112,6 +112,14 @@ def stabilisation(settings: dict, streams: dict[str, Stream]) -> dict:
     return out
 
 
+def stabilisation_notes(stab: dict) -> list[str]:
+    """The note on :func:`stabilisation`'s finding ``stab``, where the image is stabilised electronically."""
+    if not stab["electronic"]:
+        return []
+    return [f"electronic stabilisation on ({stab['setting'] or 'HyperSmooth'}; from {stab['source']}): the image is "
+            f"warped against the gyro's frame, so image rotation is not the camera body's"]
+
+
 # ----------------------------------------------------------------------------- footage
 class GoProFootage(VideoFootage):
     """A GoPro MP4: frames decoded from the video, IMU and GPS truth from its GPMF track.
@@ -186,14 +194,7 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
         # No calibration: an equidistant fisheye (what a GoPro's wide lenses are close to) whose diagonal sees
         # the field of view the file states, else a nominal one; its focal length is then measured against the
         # gyro where the footage allows (lobula.readers.self_calibration), and said either way.
-        zfov = settings.get("ZFOV")
-        stated = isinstance(zfov, (int, float)) and 0 < zfov < 360
-        fov = float(zfov) if stated else NOMINAL_DIAGONAL_FOV_DEG
-        camera = equidistant_camera(w, h, fps, fov)
-        lens_guess = dict(model="kannala-brandt", coeffs=[0.0, 0.0, 0.0, 0.0], diagonal_fov_deg=round(fov, 3),
-                          source=(f"the file's stated diagonal field of view (ZFOV {fov:.1f}°)" if stated else
-                                  f"a nominal {fov:g}° diagonal (the file states no field of view)"),
-                          rel_std=STATED_FOV_REL_STD if stated else NOMINAL_FOV_REL_STD)
+        camera, lens_guess = lens_guess_from_settings(w, h, fps, settings)
     notes = [("" if model.upper().startswith("GOPRO") else "GoPro ") + (model or "camera")
              + (f" (firmware {firmware})" if firmware else "")
              + f": video {len(times)} frames ({w}x{h}, {codec}) with its GPMF telemetry track: {packets} packets "
@@ -212,9 +213,7 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
     gps = gps_samples(streams)
     truth = gps_truth(gps, notes)
     stab = stabilisation(settings, streams)
-    if stab["electronic"]:
-        notes.append(f"electronic stabilisation on ({stab['setting'] or 'HyperSmooth'}; from {stab['source']}): the "
-                     f"image is warped against the gyro's frame, so image rotation is not the camera body's")
+    notes.extend(stabilisation_notes(stab))
     distortion = dict(model="GoPro wide-angle (fisheye) lens; the file gives no intrinsics or distortion, and the "
                             "pipeline treats the image as a pinhole camera's", removed=False)
     if settings.get("VFOV"):
@@ -268,6 +267,20 @@ def _gopro_imu(path: Path, streams: dict[str, Stream], cam_path: Path | None, re
                 notes.append(f"IMU then rotated by {cam_path.name}'s imu_to_camera ({rotation_deg(r_extra):.2f} deg), "
                              f"a correction in the camera frame")
     return imu, r_extra
+
+
+def lens_guess_from_settings(width: int, height: int, fps: float, settings: dict) -> tuple[PinholeCamera, dict]:
+    """(camera, lens guess) of a GoPro clip without intrinsics: an equidistant fisheye whose diagonal sees the field
+    of view its ``settings`` state (ZFOV, deg), else :data:`NOMINAL_DIAGONAL_FOV_DEG`; the guess's rel_std says
+    which."""
+    zfov = settings.get("ZFOV")
+    stated = isinstance(zfov, (int, float)) and 0 < zfov < 360
+    fov = float(zfov) if stated else NOMINAL_DIAGONAL_FOV_DEG
+    guess = dict(model="kannala-brandt", coeffs=[0.0, 0.0, 0.0, 0.0], diagonal_fov_deg=round(fov, 3),
+                 source=(f"the file's stated diagonal field of view (ZFOV {fov:.1f}°)" if stated else
+                         f"a nominal {fov:g}° diagonal (the file states no field of view)"),
+                 rel_std=STATED_FOV_REL_STD if stated else NOMINAL_FOV_REL_STD)
+    return equidistant_camera(width, height, fps, fov), guess
 
 
 def gps_truth(gps: dict | None, notes: list[str]) -> dict | None:
