@@ -206,6 +206,7 @@ def test_a_motion_log_in_other_axes_is_turned_onto_the_image(turning_run, tmp_pa
     k = min(len(ref.gyro), len(got.imu.gyro))
     r = np.asarray(cal["imu_axes_rotation"]) @ portrait.T          # what is left of the log's axes
     left = float(np.degrees(Rotation.from_matrix(r).magnitude()))
+    print(f"\n{cal['imu_axes_source']}; {left:.2f}° left; focal length {cal['focal_length_px']:.1f} px")
     assert left < 2.0 and left < 2 * cal["imu_axes_angle_std_deg"], cal
     # the whole IMU turned by the rotation stated (rounded to 1e-6)
     assert np.allclose(got.imu.gyro[:k], ref.gyro[:k] @ r.T, atol=1e-5)

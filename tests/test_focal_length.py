@@ -11,6 +11,7 @@ from lobula.epipole import rotational_flow
 from lobula.readers.focal_length import estimate_focal_length
 from lobula.readers.gyro_scale import gyro_scale_with_translation
 from lobula.readers.self_calibration import FOCAL_SYSTEMATIC_REL_STD
+from tests.flow_helpers import swaying_flow
 
 
 def _guess(run, tmp_path, factor, name="guess.json", imu_to_camera=None):
@@ -20,21 +21,6 @@ def _guess(run, tmp_path, factor, name="guess.json", imu_to_camera=None):
         d["imu_to_camera"] = np.asarray(imu_to_camera).tolist()
     (tmp_path / name).write_text(json.dumps(d))
     return tmp_path / name
-
-
-def _swaying_flow(k, n=200, m=600, noise=0.0, seed=0):
-    """Flow (n, 2, m) 1/s of a camera turning at k·gyro while it walks forward at 1 m/s and sways sideways and
-    bounces in step with its pan and tilt (a hand-held walk), before points 1-10 m away; and the gyro (n, 3)."""
-    rng = np.random.default_rng(seed)
-    x, y = rng.uniform(-0.6, 0.6, m), rng.uniform(-0.45, 0.45, m)
-    t = np.arange(n) / 30.0
-    gyro = np.stack([0.3 * np.sin(2 * np.pi * 0.9 * t), 0.3 * np.sin(2 * np.pi * 1.3 * t + 1),
-                     0.2 * np.sin(2 * np.pi * 0.6 * t + 2)], -1)
-    vel = np.stack([0.8 * gyro[:, 1], -0.8 * gyro[:, 0], np.ones(n)], -1)       # m/s, sway with pan, bounce with tilt
-    depth = rng.uniform(1.0, 10.0, (n, m))
-    rot = np.stack([rotational_flow(k * w, x, y) for w in gyro])
-    trans = np.stack([x * vel[:, 2, None] - vel[:, 0, None], y * vel[:, 2, None] - vel[:, 1, None]], 1) / depth[:, None]
-    return x, y, rot + trans + noise * rng.standard_normal((n, 2, m)), gyro
 
 
 def _rotation_only_slope(x, y, flow, gyro):
@@ -47,7 +33,7 @@ def _rotation_only_slope(x, y, flow, gyro):
 def test_the_gyro_scale_is_found_through_a_swaying_walk(k):
     """Exact flow of a camera that sways and bounces with its own pan and tilt: a fit of the rotation alone reads
     the scale more than 10 % off, the fit with the translation alongside within 0.2 %, roll's scale too."""
-    x, y, flow, gyro = _swaying_flow(k)
+    x, y, flow, gyro = swaying_flow(k)
     assert abs(_rotation_only_slope(x, y, flow, gyro) / k - 1) > 0.1
     got, std, roll = gyro_scale_with_translation(x, y, flow, gyro)
     assert got == pytest.approx(k, rel=2e-3) and roll == pytest.approx(k, rel=2e-3) and std < 2e-3
@@ -59,7 +45,7 @@ def test_the_gyro_scale_std_covers_its_error_in_noisy_flow():
     too small (RMS of error over σ under 1.6) nor vacuous (over 0.4)."""
     errs, stds = [], []
     for seed in range(10):
-        x, y, flow, gyro = _swaying_flow(1.1, n=120, m=400, noise=0.05, seed=seed)
+        x, y, flow, gyro = swaying_flow(1.1, n=120, m=400, noise=0.05, seed=seed)
         got, std, _ = gyro_scale_with_translation(x, y, flow, gyro)
         errs.append(got / 1.1 - 1)
         stds.append(std / 1.1)

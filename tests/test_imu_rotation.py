@@ -5,6 +5,7 @@ from scipy.spatial.transform import Rotation
 
 from lobula.readers.core import FootageError
 from lobula.readers.imu_rotation import ROTATION_SYSTEMATIC_DEG, fit_imu_rotation, wahba_rotation
+from tests.flow_helpers import swaying_flow
 
 
 def _rates(n=300, seed=0, axes=(1.0, 1.0, 1.0)):
@@ -72,3 +73,22 @@ def test_turning_about_one_axis_cannot_tell_the_axes():
     g = _rates(axes=(0.0, 1.0, 0.0))
     with pytest.raises(FootageError, match="turns about one axis at most"):
         fit_imu_rotation(g, g, where="clip.mp4")
+
+
+def test_a_swaying_walk_does_not_turn_the_axes_once_the_translation_is_fitted():
+    """Exact flow of a camera that sways with its own pan and roll and bounces with its tilt, its IMU's axes 30°
+    off: fitted to the image's least-squares rates the axes read more than 3° off the truth, to the flow with the
+    translation alongside within 0.2°, with the scales (1.1 pan/tilt, 1.1 roll) recovered."""
+    from lobula.readers.clock_offset import FlowSamples, rotation_rates
+    from lobula.readers.imu_rotation import refine_with_translation
+
+    x, y, flow, gyro_cam = swaying_flow(1.1, roll_sway=1.5)
+    r_true = Rotation.from_rotvec(np.radians(30.0) * np.array([0.6, -0.64, 0.48])).as_matrix()
+    gyro_imu = gyro_cam @ r_true                                          # ω_imu = Rᵀ ω_camera, row by row
+    samples = FlowSamples(np.arange(len(flow)) / 30.0, x, y, flow)
+    w_img = rotation_rates(samples)
+    start = fit_imu_rotation(w_img, gyro_imu)
+    assert _angle_between(start.rotation, r_true) > 3.0
+    got = refine_with_translation(start, samples, w_img, gyro_imu)
+    assert _angle_between(got.rotation, r_true) < 0.2
+    assert got.scales == pytest.approx((1.1, 1.1), rel=2e-3)

@@ -50,8 +50,8 @@ class FocalEstimate:
 
 def _slope(footage, max_frames: int) -> tuple[float, float, float, int, float]:
     """(k, its standard error, correlation, pairs, k_roll) of ``footage`` as opened
-    (:func:`lobula.readers.gyro_scale.gyro_scale_with_translation`; the correlation is of the image's least-squares pan and tilt rates
-    with the gyro's)."""
+    (:func:`lobula.readers.gyro_scale.gyro_scale_with_translation`; the correlation is of the image's
+    least-squares pan and tilt rates with the gyro's)."""
     import cv2
 
     from .clock_offset import gyro_at, image_flow_samples, rotation_rates
@@ -79,11 +79,11 @@ def estimate_focal_length(footage, iterations: int = 4, tolerance: float = 0.002
                           max_frames: int = 900) -> FocalEstimate:
     """Estimate the focal length of ``footage``'s camera from its gyro (see the module doc).
 
-    The footage is opened with a first guess (its camera.json, or ``--camera``; a distorted lens's
-    map is remade at each step). ``iterations``: at most this many rescalings; ``tolerance``: stop when the
-    scale is within this of 1, or within two of its standard errors and :data:`CLOSE_ENOUGH`; ``min_correlation``:
-    below it the image and gyro rates are taken not to agree (FootageError); ``max_frames``: the frames read at each step. The clock offset must already be applied
-    (``--clock-offset``): a lag between the two rates lowers the slope.
+    The footage is opened with a first guess (its camera.json, or ``--camera``; a distorted lens's map is remade at
+    each step). ``iterations``: at most this many rescalings; ``tolerance``: stop when the scale is within this of
+    1, or within two of its standard errors and :data:`CLOSE_ENOUGH`; ``min_correlation``: below it the image and
+    gyro rates are taken not to agree (FootageError); ``max_frames``: the frames read at each step. The clock offset
+    must already be applied (``--clock-offset``): a lag between the two rates lowers the slope.
     """
     from lobula.lens import undistortion_maps
 

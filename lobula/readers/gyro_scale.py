@@ -46,34 +46,60 @@ def _profiled_cost(k, normal, whiten):
     return float(lam[:, 0].sum()), grad, e
 
 
-def _minimise(normal, whiten, k0):
+def _identity(p):
+    return p
+
+
+def _minimise(normal, whiten, p0, scales=_identity):
+    """The parameters p minimising :func:`_profiled_cost` of k = ``scales(p)`` (BFGS; the gradient through the
+    map's Jacobian, by central differences where the map is not the identity)."""
     from scipy.optimize import minimize
 
-    return minimize(lambda k: _profiled_cost(k, normal, whiten)[:2], k0, jac=True, method="BFGS",
-                    options=dict(gtol=1e-9 * _profiled_cost(k0, normal, whiten)[0], xrtol=1e-7)).x
+    def cost(p):
+        c, grad, _ = _profiled_cost(scales(p), normal, whiten)
+        if scales is _identity:
+            return c, grad
+        h = 1e-6
+        jac = np.stack([(scales(p + h * d) - scales(p - h * d)) / (2 * h) for d in np.eye(len(p))], -1)
+        return c, grad @ jac
+
+    p0 = np.asarray(p0, float)
+    return minimize(cost, p0, jac=True, method="BFGS",
+                    options=dict(gtol=1e-9 * _profiled_cost(scales(p0), normal, whiten)[0], xrtol=1e-7)).x
 
 
-def rotation_field_scales(x: np.ndarray, y: np.ndarray, flow: np.ndarray, fields: np.ndarray, blocks: int = 12,
-                          robust_iters: int = 5) -> tuple[np.ndarray, np.ndarray]:
-    """The scales k (J,) with which ``fields`` explain ``flow``, a translation from one epipole per frame pair fitted
-    alongside (module doc).
+def rotation_field_scales(x: np.ndarray, y: np.ndarray, flow: np.ndarray, fields, k0=None, blocks: int = 12,
+                          robust_iters: int = 5, chunk: int = 64, scales=None) -> tuple[np.ndarray, np.ndarray]:
+    """The scales k (J,) with which rotational ``fields`` explain ``flow``, a translation from one epipole per frame
+    pair fitted alongside (module doc).
 
     Parameters
     ----------
     x, y : (m,) normalised coordinates of the sampled points.
     flow : (n, 2, m) 1/s, the flow at the points per frame pair.
-    fields : (J, n, 2, m) 1/s, the rotational fields (from the gyro) the flow is made of, up to their scales.
+    fields : callable
+        ``fields(frames)`` for a slice of the n frame pairs: (J, frames, 2, m) 1/s, the rotational fields (from
+        the gyro) the flow is made of, up to their scales; made a chunk of frame pairs at a time, so that many
+        fields of a long record need little memory.
+    k0 : the scales (J,) to start from (ones where None), or the parameters (P,) where ``scales`` is given.
     blocks : contiguous blocks of frame pairs left out in turn for the jackknife.
     robust_iters : reweightings of the points (Huber weights on the epipolar residual).
+    chunk : frame pairs crossed at a time.
+    scales : callable, optional
+        ``scales(p)``: the J scales made of P parameters (a rotation and two scales, say), fitted in their stead.
 
     Returns
     -------
-    (k (J,), replicates (blocks, J)): the scales, and the jackknife's scales without each block
-    (:func:`jackknife_std`).
+    (k (J,) or p (P,), replicates (blocks, J or P)): the scales (or parameters), and the jackknife's without each
+    block (:func:`jackknife_std`).
     """
     x, y = np.asarray(x, float), np.asarray(y, float)
-    c = np.stack([_cross(x, y, np.asarray(f, float)) for f in (flow, *fields)], 2)   # (n, m, J + 1, 3)
-    n, m, nf = c.shape[:3]
+    n, m = len(flow), len(x)
+    parts = [slice(i, min(i + chunk, n)) for i in range(0, n, chunk)]
+
+    def crossed(sl):                                  # (frames, m, J + 1, 3)
+        return np.stack([_cross(x, y, np.asarray(f, float)) for f in (flow[sl], *fields(sl))], 2)
+
     # the crossed flow's covariance per unit of isotropic flow noise, point by point: dividing by it (a generalised
     # eigenproblem) keeps the noise from pulling the epipoles towards the points, and the scales with them
     q = np.zeros((m, 3, 3))
@@ -81,20 +107,29 @@ def rotation_field_scales(x: np.ndarray, y: np.ndarray, flow: np.ndarray, fields
     q[:, 0, 2] = q[:, 2, 0] = -x
     q[:, 1, 2] = q[:, 2, 1] = -y
     q[:, 2, 2] = x * x + y * y
-    k, w = np.ones(nf - 1), np.ones((n, m))
+    w = np.ones((n, m))
+    k = None if k0 is None else np.asarray(k0, float)
     for _ in range(robust_iters):
-        cw = (c * np.sqrt(w)[..., None, None]).reshape(n, m, 3 * nf)
-        normal = (cw.transpose(0, 2, 1) @ cw).reshape(n, nf, 3, nf, 3).transpose(0, 1, 3, 2, 4)
+        normal = []
+        for sl in parts:
+            c = crossed(sl)
+            nf = c.shape[2]
+            cw = (c * np.sqrt(w[sl])[..., None, None]).reshape(len(c), m, 3 * nf)
+            normal.append((cw.transpose(0, 2, 1) @ cw).reshape(len(c), nf, 3, nf, 3).transpose(0, 1, 3, 2, 4))
+        normal = np.concatenate(normal)
+        k = np.ones(nf - 1) if k is None else k
         whiten = np.linalg.inv(np.linalg.cholesky(np.einsum("nm,mpq->npq", w, q)))
-        k = _minimise(normal, whiten, k)
-        e = _profiled_cost(k, normal, whiten)[2]
+        k = _minimise(normal, whiten, k, scales or _identity)
+        e = _profiled_cost((scales or _identity)(k), normal, whiten)[2]
         # the residual flow's component across the direction from the epipole, 1/s
         dist2 = np.maximum((e[:, 0, None] - x * e[:, 2, None]) ** 2 + (e[:, 1, None] - y * e[:, 2, None]) ** 2,
                            MIN_EPIPOLE_DISTANCE ** 2 * (e ** 2).sum(1, keepdims=True))
-        res = np.abs(np.einsum("nmap,a,np->nm", c, np.concatenate([[1.0], -k]), e)) / np.sqrt(dist2)
+        kap = np.concatenate([[1.0], -(scales or _identity)(k)])
+        res = np.concatenate([np.abs(np.einsum("nmap,a,np->nm", crossed(sl), kap, e[sl])) for sl in parts])
+        res /= np.sqrt(dist2)
         # Huber weights: flow at occlusions and on the fastest, nearest surfaces reads worst
         w = 1.0 / np.maximum(1.0, res / (2.0 * 1.4826 * np.median(res) + 1e-12))
-    replicates = np.array([_minimise(np.delete(normal, p, 0), np.delete(whiten, p, 0), k)
+    replicates = np.array([_minimise(np.delete(normal, p, 0), np.delete(whiten, p, 0), k, scales or _identity)
                            for p in np.array_split(np.arange(n), blocks)])
     return k, replicates
 
@@ -128,5 +163,6 @@ def gyro_scale_with_translation(x: np.ndarray, y: np.ndarray, flow: np.ndarray, 
     the rotational field of (k·ω_x, k·ω_y, k_roll·ω_z) plus a translation (:func:`rotation_field_scales`); k is
     f/f₀ for a camera opened at focal length f₀.
     """
-    k, reps = rotation_field_scales(x, y, flow, np.stack(gyro_fields(x, y, gyro)), blocks)
+    g = np.asarray(gyro, float)
+    k, reps = rotation_field_scales(x, y, flow, lambda sl: np.stack(gyro_fields(x, y, g[sl])), blocks=blocks)
     return float(k[0]), jackknife_std(reps[:, 0]), float(k[1])

@@ -12,6 +12,11 @@ solved by alternating Wahba's problem for R (the SVD solution, Kabsch's) with le
 scales. The standard error of R's angle comes from the residuals through the problem linearised about the
 solution (δθ ↦ −D·[R·ω_gyro]×·δθ), plus :data:`ROTATION_SYSTEMATIC_DEG`. It needs rotation about at least
 two axes: about one axis alone, any turn about that axis fits as well.
+
+A camera that walks, bounces and sways moves the image as a turn would, and the image's least-squares rates
+take that for rotation. :func:`refine_with_translation` fits the flow itself instead: the rotational field of
+D·R·ω_gyro plus a translation from one epipole per frame pair
+(:func:`lobula.readers.gyro_scale.rotation_field_scales`), R's standard error a jackknife over blocks of time.
 """
 from __future__ import annotations
 
@@ -21,7 +26,8 @@ import numpy as np
 
 from .core import FootageError, rotation_deg
 
-__all__ = ["ImuRotation", "wahba_rotation", "fit_imu_rotation", "MIN_ROTATION_RAD_S", "ROTATION_SYSTEMATIC_DEG"]
+__all__ = ["ImuRotation", "wahba_rotation", "fit_imu_rotation", "refine_with_translation", "MIN_ROTATION_RAD_S",
+           "ROTATION_SYSTEMATIC_DEG"]
 
 #: rad/s: the RMS gyro rate the footage needs about its second most turned axis for R to be measured
 MIN_ROTATION_RAD_S = 0.05
@@ -122,3 +128,42 @@ def _cross_matrices(v: np.ndarray) -> np.ndarray:
     return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1),
                      np.stack([v[:, 2], z, -v[:, 0]], -1),
                      np.stack([-v[:, 1], v[:, 0], z], -1)], 1)
+
+
+def refine_with_translation(start: ImuRotation, samples, w_img: np.ndarray, w_gyro: np.ndarray) -> ImuRotation:
+    """R fitted to the flow with the translation alongside (module doc), from :func:`fit_imu_rotation`'s ``start``.
+
+    Parameters
+    ----------
+    start : the fit to the image's least-squares rates.
+    samples : :class:`lobula.readers.clock_offset.FlowSamples` of the same n frame pairs.
+    w_img, w_gyro : (n, 3) rad/s, the image's least-squares rates (for the correlations) and the gyro.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from lobula.epipole import rotational_flow
+
+    from .gyro_scale import jackknife_std, rotation_field_scales
+
+    x, y = samples.x, samples.y
+    basis = [rotational_flow(e, x, y) for e in np.eye(3)]
+    g = np.asarray(w_gyro, float)
+
+    def fields(sl):       # (9, frames, 2, m): image axis i turning with gyro axis j, entry M[i, j]
+        return np.stack([g[sl, j, None, None] * basis[i] for i in range(3) for j in range(3)])
+
+    def scales(p):        # M = D·R, R a turn p[:3] (rotation vector, rad) after the start's, D = diag(p3, p3, p4)
+        return (np.array([p[3], p[3], p[4]])[:, None] * (start.rotation @ Rotation.from_rotvec(p[:3]).as_matrix())
+                ).ravel()
+
+    p0 = np.array([0.0, 0.0, 0.0, start.scales[0], start.scales[1]])
+    p, reps = rotation_field_scales(x, y, samples.flow, fields, k0=p0, scales=scales)
+    r = start.rotation @ Rotation.from_rotvec(p[:3]).as_matrix()
+    std = float(np.hypot(np.degrees(np.sqrt(sum(jackknife_std(reps[:, c]) ** 2 for c in range(3)))),
+                         ROTATION_SYSTEMATIC_DEG))
+    d = np.array([p[3], p[3], p[4]])
+    a, gc = w_img - w_img.mean(0), g - g.mean(0)
+    return ImuRotation(rotation=r, angle_deg=rotation_deg(r), angle_std_deg=std, scales=(float(p[3]), float(p[4])),
+                       correlation=_correlation(a, (gc @ r.T) * d), correlation_as_given=_correlation(a, gc * d),
+                       n_pairs=int(len(a)))
+

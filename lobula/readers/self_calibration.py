@@ -28,6 +28,7 @@ attrs (``camera_calibration``).
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 
@@ -77,20 +78,25 @@ def check_imu_axes(footage, turned: dict | None = None) -> dict:
     """
     import cv2
 
-    from .clock_offset import gyro_at, image_rotation_rates
+    from .clock_offset import gyro_at, image_flow_samples, rotation_rates
     from .focal_length import FLOW_WIDTH_PX
-    from .imu_rotation import fit_imu_rotation
+    from .imu_rotation import fit_imu_rotation, refine_with_translation
 
     try:
-        t_img, w_img = image_rotation_rates(footage, width=FLOW_WIDTH_PX, preset=cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        samples = image_flow_samples(footage, width=FLOW_WIDTH_PX, preset=cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     except FootageError as exc:
         return dict(imu_axes_source=f"as read, not checked: {_why(exc)}")
-    imu = footage.imu
-    ok, g = gyro_at(imu, t_img)
+    ok, g = gyro_at(footage.imu, samples.time_s)
+    w_img = rotation_rates(samples)[ok]
     try:
-        est = fit_imu_rotation(w_img[ok], g, where=str(footage.path))
+        est = fit_imu_rotation(w_img, g, where=str(footage.path))
     except FootageError as exc:
         return dict(imu_axes_source=f"as read, not checked: {_why(exc)}")
+    if est.correlation >= AXES_MIN_CORRELATION:
+        # the flow itself, with the translation fitted alongside: a walk's sway read as rotation turns the
+        # image's rates by several degrees
+        est = refine_with_translation(est, replace(samples, time_s=samples.time_s[ok], flow=samples.flow[ok]),
+                                      w_img, g)
     if est.correlation < AXES_MIN_CORRELATION:
         return dict(imu_axes_source=(f"as read, not checked: even turned at best, the gyro's rates correlate only "
                                      f"{est.correlation:.2f} with the image's (< {AXES_MIN_CORRELATION}; electronic "
@@ -106,7 +112,7 @@ def check_imu_axes(footage, turned: dict | None = None) -> dict:
         return dict(imu_axes_source=(f"as read: the image's rotation puts them {angle:.1f}° ± "
                                      f"{est.angle_std_deg:.1f}° off (correlation {est.correlation:.2f} turned, "
                                      f"{est.correlation_as_given:.2f} as read), within what it can tell"), **found)
-    footage.imu = imu.rotated(est.rotation)
+    footage.imu = footage.imu.rotated(est.rotation)
     footage.imu_to_camera = est.rotation @ (footage.imu_to_camera if footage.imu_to_camera is not None else np.eye(3))
     return dict(imu_axes_source=(f"turned by {angle:.1f}° ± {est.angle_std_deg:.1f}° onto the image's rotation "
                                  f"(correlation {found['imu_axes_correlation_as_read']:.2f} as read, "
