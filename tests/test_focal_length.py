@@ -54,7 +54,7 @@ def test_the_gyro_scale_std_covers_its_error_in_noisy_flow():
     assert 0.4 < np.sqrt(((errs / stds) ** 2).mean()) < 1.6, (errs, stds)
 
 
-@pytest.mark.parametrize("factor", [0.78, 1.25])
+@pytest.mark.parametrize("factor", [0.78, pytest.param(1.25, marks=pytest.mark.slow)])
 def test_the_focal_length_is_found_from_a_wrong_guess(fisheye_run, tmp_path, factor):
     """A 131° equidistant fisheye (fx 140 px at 320×240) turning on three axes: from a guess 22 % short or 25 %
     long, within 3 % of the truth, and within three of its stated standard errors with the systematic 4 %

@@ -201,7 +201,7 @@ def gopro_gps(path: Path, groups: list[dict], notes: list[str]) -> dict | None:
         notes.append(f"GPS not read: telemetry-parser gives {len(groups)} telemetry packets where the MP4's track "
                      f"has {len(spans)}, so their times are not known")
         return None
-    cols = {k: [] for k in ("time_s", "data", "fix", "dop")}
+    cols, gps9 = {k: [] for k in ("time_s", "data", "fix", "dop")}, False
     for (t_in, t_out), g in zip(spans, groups):
         gps = g.get("GPS") or {}
         data = np.asarray(gps.get("Data") or [], float)
@@ -210,10 +210,11 @@ def gopro_gps(path: Path, groups: list[dict], notes: list[str]) -> dict | None:
         scale = np.atleast_1d(np.asarray(gps.get("Scale") or 1.0, float))
         data = data / (scale[: data.shape[1]] if len(scale) > 1 else scale[0])
         cols["time_s"].append(packet_sample_times(t_in, t_out, len(data)))
-        cols["data"].append(data[:, :9])
+        cols["data"].append(data[:, :5])
         if data.shape[1] >= 9:    # GPS9: a fix and DOP per sample
             cols["fix"].append(data[:, 8])
             cols["dop"].append(data[:, 7])
+            gps9 = True
         else:
             cols["fix"].append(np.full(len(data), float(gps.get(_GPSF, np.nan))))
             cols["dop"].append(np.full(len(data), float(gps.get(_GPSP, np.nan)) / 100.0))
@@ -222,7 +223,7 @@ def gopro_gps(path: Path, groups: list[dict], notes: list[str]) -> dict | None:
     d = np.concatenate(cols["data"])
     return dict(time_s=np.concatenate(cols["time_s"]), lat_deg=d[:, 0], lon_deg=d[:, 1], alt_m=d[:, 2],
                 speed_2d_m_s=d[:, 3], speed_3d_m_s=d[:, 4], fix=np.concatenate(cols["fix"]),
-                dop=np.concatenate(cols["dop"]), source=("GPS9" if d.shape[1] >= 9 else "GPS5") + ", telemetry-parser")
+                dop=np.concatenate(cols["dop"]), source=("GPS9" if gps9 else "GPS5") + ", telemetry-parser")
 
 
 def is_action_camera(camera: str, model: str | None) -> bool:

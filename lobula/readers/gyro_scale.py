@@ -3,9 +3,9 @@
 A camera that turns at ω and moves at T sees flow that is the rotational field of ω plus a translational one
 radiating from the epipole e = T/T_z, each point's length set by its unknown depth. A fit of the rotation
 alone takes the part of the translation that looks like a turn (a walk's sway like a pan, its bounce like a
-tilt) for rotation. Here the flow is modelled as Σ_j k_j·F_j, fields F_j made from the gyro (the pan and
-tilt, the roll, or the pan and tilt within a ring of the image), plus a translation from one epipole per
-frame pair at any depths. Crossing the residual flow with the direction from a homogeneous epipole e
+tilt) for rotation. Here the flow is modelled as Σ_j k_j·F_j, fields F_j made from the gyro (its pan and
+tilt and its roll for the focal length; each of its axes turning the image about each of the camera's for the
+IMU's axes), plus a translation from one epipole per frame pair at any depths. Crossing the residual flow with the direction from a homogeneous epipole e
 (a point at infinity too) leaves what no translation from e makes; for given scales the best e of a
 frame pair is the smallest generalised eigenvector of the 3×3 normal matrix of those crossed residuals,
 taken against the flow noise's own normal matrix (without it, noise pulls the epipoles towards the points
@@ -96,6 +96,7 @@ def rotation_field_scales(x: np.ndarray, y: np.ndarray, flow: np.ndarray, fields
     x, y = np.asarray(x, float), np.asarray(y, float)
     n, m = len(flow), len(x)
     parts = [slice(i, min(i + chunk, n)) for i in range(0, n, chunk)]
+    to_k = scales or _identity
 
     def crossed(sl):                                  # (frames, m, J + 1, 3)
         return np.stack([_cross(x, y, np.asarray(f, float)) for f in (flow[sl], *fields(sl))], 2)
@@ -119,17 +120,17 @@ def rotation_field_scales(x: np.ndarray, y: np.ndarray, flow: np.ndarray, fields
         normal = np.concatenate(normal)
         k = np.ones(nf - 1) if k is None else k
         whiten = np.linalg.inv(np.linalg.cholesky(np.einsum("nm,mpq->npq", w, q)))
-        k = _minimise(normal, whiten, k, scales or _identity)
-        e = _profiled_cost((scales or _identity)(k), normal, whiten)[2]
+        k = _minimise(normal, whiten, k, to_k)
+        e = _profiled_cost(to_k(k), normal, whiten)[2]
         # the residual flow's component across the direction from the epipole, 1/s
         dist2 = np.maximum((e[:, 0, None] - x * e[:, 2, None]) ** 2 + (e[:, 1, None] - y * e[:, 2, None]) ** 2,
                            MIN_EPIPOLE_DISTANCE ** 2 * (e ** 2).sum(1, keepdims=True))
-        kap = np.concatenate([[1.0], -(scales or _identity)(k)])
+        kap = np.concatenate([[1.0], -to_k(k)])
         res = np.concatenate([np.abs(np.einsum("nmap,a,np->nm", crossed(sl), kap, e[sl])) for sl in parts])
         res /= np.sqrt(dist2)
         # Huber weights: flow at occlusions and on the fastest, nearest surfaces reads worst
         w = 1.0 / np.maximum(1.0, res / (2.0 * 1.4826 * np.median(res) + 1e-12))
-    replicates = np.array([_minimise(np.delete(normal, p, 0), np.delete(whiten, p, 0), k, scales or _identity)
+    replicates = np.array([_minimise(np.delete(normal, p, 0), np.delete(whiten, p, 0), k, to_k)
                            for p in np.array_split(np.arange(n), blocks)])
     return k, replicates
 

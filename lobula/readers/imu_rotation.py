@@ -34,6 +34,8 @@ MIN_ROTATION_RAD_S = 0.05
 #: deg, 1σ: what the residuals' standard error leaves out (consecutive frame pairs' errors are correlated,
 #: translation adds flow that seconds of footage do not average out)
 ROTATION_SYSTEMATIC_DEG = 1.0
+#: the most sampled points :func:`refine_with_translation` fits (of the flow's about 3,000)
+REFINE_POINTS = 1500
 
 
 @dataclass
@@ -145,7 +147,8 @@ def refine_with_translation(start: ImuRotation, samples, w_img: np.ndarray, w_gy
 
     from .gyro_scale import jackknife_std, rotation_field_scales
 
-    x, y = samples.x, samples.y
+    step = -(-len(samples.x) // REFINE_POINTS)    # five parameters: a subset of the points serves, at a fraction
+    x, y, flow = samples.x[::step], samples.y[::step], samples.flow[:, :, ::step]
     basis = [rotational_flow(e, x, y) for e in np.eye(3)]
     g = np.asarray(w_gyro, float)
 
@@ -157,7 +160,7 @@ def refine_with_translation(start: ImuRotation, samples, w_img: np.ndarray, w_gy
                 ).ravel()
 
     p0 = np.array([0.0, 0.0, 0.0, start.scales[0], start.scales[1]])
-    p, reps = rotation_field_scales(x, y, samples.flow, fields, k0=p0, scales=scales)
+    p, reps = rotation_field_scales(x, y, flow, fields, k0=p0, scales=scales)
     r = start.rotation @ Rotation.from_rotvec(p[:3]).as_matrix()
     std = float(np.hypot(np.degrees(np.sqrt(sum(jackknife_std(reps[:, c]) ** 2 for c in range(3)))),
                          ROTATION_SYSTEMATIC_DEG))
