@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .core import FootageError
-from .gyro_scale import gyro_scale_with_translation
+from .gyro_scale import gyro_scale_with_translation, thinned
 
 #: rad/s: the gyro's RMS pan and tilt rate a footage needs for its focal length to be measured
 MIN_ROTATION_RAD_S = 0.1
@@ -71,7 +71,7 @@ def _slope(footage, max_frames: int) -> tuple[float, float, float, int, float]:
     a = rotation_rates(samples)[ok]
     a = a - a.mean(0)
     corr = float((a[:, :2] * gc[:, :2]).sum() / np.sqrt((a[:, :2] ** 2).sum() * gg))
-    k, k_std, k_roll = gyro_scale_with_translation(samples.x, samples.y, samples.flow[ok], g)
+    k, k_std, k_roll = gyro_scale_with_translation(*thinned(samples.x, samples.y, samples.flow[ok]), g)
     return k, k_std, corr, int(ok.sum()), k_roll
 
 

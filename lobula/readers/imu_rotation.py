@@ -34,8 +34,6 @@ MIN_ROTATION_RAD_S = 0.05
 #: deg, 1σ: what the residuals' standard error leaves out (consecutive frame pairs' errors are correlated,
 #: translation adds flow that seconds of footage do not average out)
 ROTATION_SYSTEMATIC_DEG = 1.0
-#: the most sampled points :func:`refine_with_translation` fits (of the flow's about 3,000)
-REFINE_POINTS = 1500
 
 
 @dataclass
@@ -145,10 +143,9 @@ def refine_with_translation(start: ImuRotation, samples, w_img: np.ndarray, w_gy
 
     from lobula.epipole import rotational_flow
 
-    from .gyro_scale import jackknife_std, rotation_field_scales
+    from .gyro_scale import jackknife_std, rotation_field_scales, thinned
 
-    step = -(-len(samples.x) // REFINE_POINTS)    # five parameters: a subset of the points serves, at a fraction
-    x, y, flow = samples.x[::step], samples.y[::step], samples.flow[:, :, ::step]
+    x, y, flow = thinned(samples.x, samples.y, samples.flow)
     basis = [rotational_flow(e, x, y) for e in np.eye(3)]
     g = np.asarray(w_gyro, float)
 
