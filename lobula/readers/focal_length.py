@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .core import FootageError
-from .gyro_scale import gyro_scale_with_translation, thinned
+from .gyro_scale import SEARCH_FACTOR, gyro_scale_with_translation, thinned
 
 #: rad/s: the gyro's RMS pan and tilt rate a footage needs for its focal length to be measured
 MIN_ROTATION_RAD_S = 0.1
@@ -71,7 +71,18 @@ def _slope(footage, max_frames: int) -> tuple[float, float, float, int, float]:
     a = rotation_rates(samples)[ok]
     a = a - a.mean(0)
     corr = float((a[:, :2] * gc[:, :2]).sum() / np.sqrt((a[:, :2] ** 2).sum() * gg))
-    k, k_std, k_roll = gyro_scale_with_translation(*thinned(samples.x, samples.y, samples.flow[ok]), g)
+    # the rotation alone, where the search starts and near which it stays
+    near_pt = float((a[:, :2] * gc[:, :2]).sum() / gg)
+    gz = float((gc[:, 2] ** 2).sum())
+    near_roll = float(a[:, 2] @ gc[:, 2] / gz) if np.sqrt(gz / len(g)) >= MIN_ROTATION_RAD_S else 1.0
+    if not 0.2 < near_pt < 5.0:
+        return near_pt, np.inf, corr, int(ok.sum()), near_roll
+    k, k_std, k_roll = gyro_scale_with_translation(*thinned(samples.x, samples.y, samples.flow[ok]), g,
+                                                   near=(near_pt, near_roll))
+    if min(k / near_pt, near_pt / k) < 1.0 / SEARCH_FACTOR + 1e-3:
+        raise FootageError(f"{footage.path}: the flow's translation takes the pan and tilt for its own here (the "
+                           f"scale runs to {k / near_pt:.2f}× a fit of the rotation alone); the focal length is not "
+                           f"identifiable from this footage: give it in a camera.json (--camera FILE)")
     return k, k_std, corr, int(ok.sum()), k_roll
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["rotation_field_scales", "jackknife_std", "gyro_fields", "gyro_scale_with_translation", "thinned",
-           "MIN_EPIPOLE_DISTANCE", "FIT_POINTS"]
+           "search_bounds", "MIN_EPIPOLE_DISTANCE", "FIT_POINTS", "SEARCH_FACTOR"]
 
 #: the distance (normalised, in units of the homogeneous epipole's length) from the epipole within which a point's
 #: flow direction tells nothing of it (for the robust weights)
@@ -27,6 +27,14 @@ MIN_EPIPOLE_DISTANCE = 0.05
 #: the most sampled points a fit uses: a few scales or angles are as well fitted on 1,500 of DIS's 3,000 points
 #: (a walk's focal-length scale: 1.02875 on 3,072 points, 1.02886 on 1,536) at a third of the time
 FIT_POINTS = 1500
+#: how far from a fit of the rotation alone the scales are searched (a walk's sway moves that fit by up to 18 %)
+SEARCH_FACTOR = 1.5
+
+
+def search_bounds(scale: float) -> tuple[float, float]:
+    """(low, high) of a scale's search around a fit of the rotation alone that read ``scale``
+    (:data:`SEARCH_FACTOR`); 0.2-5 where that fit read none (too little rotation about the axis)."""
+    return (scale / SEARCH_FACTOR, scale * SEARCH_FACTOR) if scale > 0.2 else (0.2, 5.0)
 
 
 def thinned(x: np.ndarray, y: np.ndarray, flow: np.ndarray, most: int = FIT_POINTS):
@@ -59,9 +67,9 @@ def _identity(p):
     return p
 
 
-def _minimise(normal, whiten, p0, scales=_identity):
-    """The parameters p minimising :func:`_profiled_cost` of k = ``scales(p)`` (BFGS; the gradient through the
-    map's Jacobian, by central differences where the map is not the identity)."""
+def _minimise(normal, whiten, p0, scales=_identity, bounds=None):
+    """The parameters p minimising :func:`_profiled_cost` of k = ``scales(p)`` (BFGS, L-BFGS-B within ``bounds``;
+    the gradient through the map's Jacobian, by central differences where the map is not the identity)."""
     from scipy.optimize import minimize
 
     def cost(p):
@@ -73,12 +81,16 @@ def _minimise(normal, whiten, p0, scales=_identity):
         return c, grad @ jac
 
     p0 = np.asarray(p0, float)
-    return minimize(cost, p0, jac=True, method="BFGS",
-                    options=dict(gtol=1e-9 * _profiled_cost(scales(p0), normal, whiten)[0], xrtol=1e-7)).x
+    c0 = _profiled_cost(scales(p0), normal, whiten)[0]
+    if bounds is not None:
+        return minimize(cost, p0, jac=True, method="L-BFGS-B", bounds=bounds,
+                        options=dict(ftol=1e-13, gtol=1e-9 * c0)).x
+    return minimize(cost, p0, jac=True, method="BFGS", options=dict(gtol=1e-9 * c0, xrtol=1e-7)).x
 
 
 def rotation_field_scales(x: np.ndarray, y: np.ndarray, flow: np.ndarray, fields, k0=None, blocks: int = 12,
-                          robust_iters: int = 5, chunk: int = 64, scales=None) -> tuple[np.ndarray, np.ndarray]:
+                          robust_iters: int = 5, chunk: int = 64, scales=None,
+                          bounds=None) -> tuple[np.ndarray, np.ndarray]:
     """The scales k (J,) with which rotational ``fields`` explain ``flow``, a translation from one epipole per frame
     pair fitted alongside (module doc).
 
@@ -96,6 +108,9 @@ def rotation_field_scales(x: np.ndarray, y: np.ndarray, flow: np.ndarray, fields
     chunk : frame pairs crossed at a time.
     scales : callable, optional
         ``scales(p)``: the J scales made of P parameters (a rotation and two scales, say), fitted in their stead.
+    bounds : sequence of (low, high), optional
+        Per scale (or parameter), where the search stays: a fit of the rotation alone put near, since with a
+        narrow view or a small image the translation can take a turn for itself far from it.
 
     Returns
     -------
@@ -129,7 +144,7 @@ def rotation_field_scales(x: np.ndarray, y: np.ndarray, flow: np.ndarray, fields
         normal = np.concatenate(normal)
         k = np.ones(nf - 1) if k is None else k
         whiten = np.linalg.inv(np.linalg.cholesky(np.einsum("nm,mpq->npq", w, q)))
-        k = _minimise(normal, whiten, k, to_k)
+        k = _minimise(normal, whiten, k, to_k, bounds)
         e = _profiled_cost(to_k(k), normal, whiten)[2]
         # the residual flow's component across the direction from the epipole, 1/s
         dist2 = np.maximum((e[:, 0, None] - x * e[:, 2, None]) ** 2 + (e[:, 1, None] - y * e[:, 2, None]) ** 2,
@@ -139,7 +154,7 @@ def rotation_field_scales(x: np.ndarray, y: np.ndarray, flow: np.ndarray, fields
         res /= np.sqrt(dist2)
         # Huber weights: flow at occlusions and on the fastest, nearest surfaces reads worst
         w = 1.0 / np.maximum(1.0, res / (2.0 * 1.4826 * np.median(res) + 1e-12))
-    replicates = np.array([_minimise(np.delete(normal, p, 0), np.delete(whiten, p, 0), k, to_k)
+    replicates = np.array([_minimise(np.delete(normal, p, 0), np.delete(whiten, p, 0), k, to_k, bounds)
                            for p in np.array_split(np.arange(n), blocks)])
     return k, replicates
 
@@ -165,14 +180,17 @@ def gyro_fields(x: np.ndarray, y: np.ndarray, gyro: np.ndarray) -> tuple[np.ndar
 
 
 def gyro_scale_with_translation(x: np.ndarray, y: np.ndarray, flow: np.ndarray, gyro: np.ndarray,
-                                blocks: int = 12) -> tuple[float, float, float]:
+                                blocks: int = 12, near=None) -> tuple[float, float, float]:
     """The gyro's pan/tilt scale in the image's flow, with its standard error and the roll's scale.
 
     x, y (m,): normalised coordinates of the points; flow (n, 2, m) 1/s; gyro (n, 3) rad/s at the frame pairs'
-    mid times, in the camera's axes; blocks: for the jackknife. Returns (k, k_std, k_roll): the flow is
-    the rotational field of (k·ω_x, k·ω_y, k_roll·ω_z) plus a translation (:func:`rotation_field_scales`); k is
-    f/f₀ for a camera opened at focal length f₀.
+    mid times, in the camera's axes; blocks: for the jackknife; near: (pan/tilt, roll) scales of a fit of the
+    rotation alone, where given the start and the bounds of the search (:func:`search_bounds`). Returns (k, k_std, k_roll): the flow is the rotational field of (k·ω_x, k·ω_y, k_roll·ω_z) plus a
+    translation (:func:`rotation_field_scales`); k is f/f₀ for a camera opened at focal length f₀.
     """
     g = np.asarray(gyro, float)
-    k, reps = rotation_field_scales(x, y, flow, lambda sl: np.stack(gyro_fields(x, y, g[sl])), blocks=blocks)
+    bounds = None if near is None else [search_bounds(s) for s in near]
+    k0 = None if near is None else [float(np.clip(s, *b)) for s, b in zip(near, bounds)]
+    k, reps = rotation_field_scales(x, y, flow, lambda sl: np.stack(gyro_fields(x, y, g[sl])), k0=k0,
+                                    blocks=blocks, bounds=bounds)
     return float(k[0]), jackknife_std(reps[:, 0]), float(k[1])

@@ -34,6 +34,9 @@ MIN_ROTATION_RAD_S = 0.05
 #: deg, 1σ: what the residuals' standard error leaves out (consecutive frame pairs' errors are correlated,
 #: translation adds flow that seconds of footage do not average out)
 ROTATION_SYSTEMATIC_DEG = 1.0
+#: rad: how far :func:`refine_with_translation` may turn the axes from the image's rates' answer (a walk's sway
+#: turns that answer by up to about 6°)
+REFINE_TURN_RAD = 0.2
 
 
 @dataclass
@@ -143,7 +146,7 @@ def refine_with_translation(start: ImuRotation, samples, w_img: np.ndarray, w_gy
 
     from lobula.epipole import rotational_flow
 
-    from .gyro_scale import jackknife_std, rotation_field_scales, thinned
+    from .gyro_scale import jackknife_std, rotation_field_scales, search_bounds, thinned
 
     x, y, flow = thinned(samples.x, samples.y, samples.flow)
     basis = [rotational_flow(e, x, y) for e in np.eye(3)]
@@ -156,8 +159,11 @@ def refine_with_translation(start: ImuRotation, samples, w_img: np.ndarray, w_gy
         return (np.array([p[3], p[3], p[4]])[:, None] * (start.rotation @ Rotation.from_rotvec(p[:3]).as_matrix())
                 ).ravel()
 
-    p0 = np.array([0.0, 0.0, 0.0, start.scales[0], start.scales[1]])
-    p, reps = rotation_field_scales(x, y, flow, fields, k0=p0, scales=scales)
+    bounds = [(-REFINE_TURN_RAD, REFINE_TURN_RAD)] * 3 + [search_bounds(s) for s in start.scales]
+    p0 = np.array([0.0, 0.0, 0.0] + [float(np.clip(s, *b)) for s, b in zip(start.scales, bounds[3:])])
+    p, reps = rotation_field_scales(x, y, flow, fields, k0=p0, scales=scales, bounds=bounds)
+    if np.abs(p[:3]).max() > REFINE_TURN_RAD - 1e-3:
+        return start          # the translation takes the turn for its own: the image's rates alone decide
     r = start.rotation @ Rotation.from_rotvec(p[:3]).as_matrix()
     std = float(np.hypot(np.degrees(np.sqrt(sum(jackknife_std(reps[:, c]) ** 2 for c in range(3)))),
                          ROTATION_SYSTEMATIC_DEG))
