@@ -11,7 +11,8 @@ frame pair is the smallest generalised eigenvector of the 3×3 normal matrix of 
 taken against the flow noise's own normal matrix (without it, noise pulls the epipoles towards the points
 and the scales with them: +4 % at 0.05 1/s of noise), and its eigenvalue is what is left. The scales
 minimise the sum over frame pairs (BFGS with the eigenvalues' exact gradient), with Huber weights on each
-point's residual across the epipolar direction. Their spread is a jackknife over contiguous blocks of time,
+point's residual across the epipolar direction, near a fit of the rotation alone: with a narrow view or a small
+image the translation can take a turn for its own, and the cost a second minimum far from the truth. Their spread is a jackknife over contiguous blocks of time,
 since the translation's leak comes and goes with the motion.
 """
 from __future__ import annotations

@@ -40,7 +40,7 @@ __all__ = ["self_calibrate", "check_imu_axes", "FOCAL_SYSTEMATIC_REL_STD", "AXES
 
 #: 1σ fraction: what the scale's jackknife error leaves out of a measured focal length: the gyro's scale factors
 #: (about 1 % per axis) and a clock offset left (9 ms moves a 131° fisheye's scale by 2–4 %); on the suite's walks
-#: the focal length lands 0.1–3.1 % from the truth with jackknife errors of 0.2–1.5 %
+#: the focal length lands 0.1–3.1 % from the truth with jackknife errors of 0.2–1.6 %
 FOCAL_SYSTEMATIC_REL_STD = 0.04
 #: deg: the least disagreement between the IMU's axes as read and the image's rotation that turns the IMU (a
 #: mounting within a few degrees of its nominal axes is not worth the risk of a wrong turn)
