@@ -1,19 +1,20 @@
 """The gyro's rotation in the image's flow, scaled, with the translation's flow fitted alongside.
 
 A camera that turns at ω and moves at T sees flow that is the rotational field of ω plus a translational one
-radiating from the epipole e = T/T_z, each point's length set by its unknown depth. A fit of the rotation
-alone takes the part of the translation that looks like a turn (a walk's sway like a pan, its bounce like a
-tilt) for rotation. Here the flow is modelled as Σ_j k_j·F_j, fields F_j made from the gyro (its pan and
-tilt and its roll for the focal length; each of its axes turning the image about each of the camera's for the
-IMU's axes), plus a translation from one epipole per frame pair at any depths. Crossing the residual flow with the direction from a homogeneous epipole e
-(a point at infinity too) leaves what no translation from e makes; for given scales the best e of a
-frame pair is the smallest generalised eigenvector of the 3×3 normal matrix of those crossed residuals,
-taken against the flow noise's own normal matrix (without it, noise pulls the epipoles towards the points
-and the scales with them: +4 % at 0.05 1/s of noise), and its eigenvalue is what is left. The scales
+radiating from the epipole e = T/T_z, each point's length set by its unknown depth. A fit of the rotation alone
+takes the part of the translation that looks like a turn (a walk's sway like a pan, its bounce like a tilt) for
+rotation. Here the flow is modelled as Σ_j k_j·F_j, fields F_j made from the gyro (its pan and tilt and its roll
+for the focal length; each of its axes turning the image about each of the camera's for the IMU's axes), plus a
+translation from one epipole per frame pair at any depths. Crossing the residual flow with the direction from a
+homogeneous epipole e (a point at infinity too) leaves what no translation from e makes; for given scales the
+best e of a frame pair is the smallest generalised eigenvector of the 3×3 normal matrix of those crossed
+residuals, taken against the flow noise's own normal matrix (without it, noise pulls the epipoles towards the
+points and the scales with them: +4 % at 0.05 1/s of noise), and its eigenvalue is what is left. The scales
 minimise the sum over frame pairs (BFGS with the eigenvalues' exact gradient), with Huber weights on each
 point's residual across the epipolar direction, near a fit of the rotation alone: with a narrow view or a small
-image the translation can take a turn for its own, and the cost a second minimum far from the truth. Their spread is a jackknife over contiguous blocks of time,
-since the translation's leak comes and goes with the motion.
+image the translation can take a turn for its own, and the cost a second minimum far from the truth. Their
+spread is a jackknife over contiguous blocks of time, since the translation's leak comes and goes with the
+motion.
 """
 from __future__ import annotations
 
