@@ -106,6 +106,7 @@ def test_footage_without_rotation_is_refused_in_one_line(tmp_path):
         estimate_focal_length(open_footage(run))
 
 
+@pytest.mark.slow  # calibrate-camera's test measures the same focal length in make test
 def test_self_calibration_keeps_what_the_gyro_measures(fisheye_run, tmp_path):
     """A camera opened with a lens guess 22 % short (as a GoPro file without intrinsics is): self_calibrate
     measures the focal length, remakes the lens's map at it, and says where it came from; the clock offset it
