@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .core import FootageError
-from .gyro_scale import SEARCH_FACTOR, gyro_scale_with_translation, thinned
+from .gyro_scale import at_bound, gyro_scale_with_translation, search_bounds, thinned
 
 #: rad/s: the gyro's RMS pan and tilt rate a footage needs for its focal length to be measured
 MIN_ROTATION_RAD_S = 0.1
@@ -79,7 +79,7 @@ def _slope(footage, max_frames: int) -> tuple[float, float, float, int, float]:
         return near_pt, np.inf, corr, int(ok.sum()), near_roll
     k, k_std, k_roll = gyro_scale_with_translation(*thinned(samples.x, samples.y, samples.flow[ok]), g,
                                                    near=(near_pt, near_roll))
-    if min(k / near_pt, near_pt / k) < 1.0 / SEARCH_FACTOR + 1e-3:
+    if at_bound(k, search_bounds(near_pt)):
         raise FootageError(f"{footage.path}: the flow's translation takes the pan and tilt for its own here (the "
                            f"scale runs to {k / near_pt:.2f}× a fit of the rotation alone); the focal length is not "
                            f"identifiable from this footage: give it in a camera.json (--camera FILE)")

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["rotation_field_scales", "jackknife_std", "gyro_fields", "gyro_scale_with_translation", "thinned",
-           "search_bounds", "MIN_EPIPOLE_DISTANCE", "FIT_POINTS", "SEARCH_FACTOR"]
+           "search_bounds", "at_bound", "MIN_EPIPOLE_DISTANCE", "FIT_POINTS", "SEARCH_FACTOR"]
 
 #: the distance (normalised, in units of the homogeneous epipole's length) from the epipole within which a point's
 #: flow direction tells nothing of it (for the robust weights)
@@ -31,6 +31,13 @@ MIN_EPIPOLE_DISTANCE = 0.05
 FIT_POINTS = 1500
 #: how far from a fit of the rotation alone the scales are searched (a walk's sway moves that fit by up to 18 %)
 SEARCH_FACTOR = 1.5
+
+
+def at_bound(value: float, bounds: tuple[float, float]) -> bool:
+    """Whether a fitted ``value`` ended on (within 0.1 % of the width of) either end of its search ``bounds``: the
+    fit found no minimum inside them."""
+    lo, hi = bounds
+    return min(value - lo, hi - value) < 1e-3 * (hi - lo)
 
 
 def search_bounds(scale: float) -> tuple[float, float]:

@@ -146,7 +146,7 @@ def refine_with_translation(start: ImuRotation, samples, w_img: np.ndarray, w_gy
 
     from lobula.epipole import rotational_flow
 
-    from .gyro_scale import jackknife_std, rotation_field_scales, search_bounds, thinned
+    from .gyro_scale import at_bound, jackknife_std, rotation_field_scales, search_bounds, thinned
 
     x, y, flow = thinned(samples.x, samples.y, samples.flow)
     basis = [rotational_flow(e, x, y) for e in np.eye(3)]
@@ -162,7 +162,7 @@ def refine_with_translation(start: ImuRotation, samples, w_img: np.ndarray, w_gy
     bounds = [(-REFINE_TURN_RAD, REFINE_TURN_RAD)] * 3 + [search_bounds(s) for s in start.scales]
     p0 = np.array([0.0, 0.0, 0.0] + [float(np.clip(s, *b)) for s, b in zip(start.scales, bounds[3:])])
     p, reps = rotation_field_scales(x, y, flow, fields, k0=p0, scales=scales, bounds=bounds)
-    if np.abs(p[:3]).max() > REFINE_TURN_RAD - 1e-3:
+    if any(at_bound(v, b) for v, b in zip(p[:3], bounds)):
         return start          # the translation takes the turn for its own: the image's rates alone decide
     r = start.rotation @ Rotation.from_rotvec(p[:3]).as_matrix()
     std = float(np.hypot(np.degrees(np.sqrt(sum(jackknife_std(reps[:, c]) ** 2 for c in range(3)))),
