@@ -466,9 +466,9 @@ def test_real_clip_matches_a_second_reader(clip):
     path, _, fo = clip
     t2, a2 = _second_reader(path, "ACCL")
     _, g2 = _second_reader(path, "GYRO")
-    assert len(t2) == len(fo.imu.time_s)
-    assert np.max(np.abs(t2 - fo.imu.time_s)) < 1e-3
-    assert np.allclose(a2, fo.imu.accel, rtol=0, atol=1e-9) and np.allclose(g2, fo.imu.gyro, rtol=0, atol=1e-9)
+    assert len(t2) == len(fo.body_imu.time_s)
+    assert np.max(np.abs(t2 - fo.body_imu.time_s)) < 1e-3
+    assert np.allclose(a2, fo.body_imu.accel, rtol=0, atol=1e-9) and np.allclose(g2, fo.body_imu.gyro, rtol=0, atol=1e-9)
 
 
 @needs_gpmf
@@ -482,7 +482,7 @@ def test_real_clip_matches_telemetry_parser(clip):
             raw = np.array([[s["x"], s["y"], s["z"]] for s in a["Data"]], float)
             m = np.asarray(a["Matrix"][0], float).reshape(3, 3)
             acc.append(raw @ m.T / float(a["Scale"]) @ GOPRO_TO_CAMERA.T)
-    assert np.allclose(np.concatenate(acc), fo.imu.accel, atol=1e-6)
+    assert np.allclose(np.concatenate(acc), fo.body_imu.accel, atol=1e-6)
 
 
 @needs_gpmf
@@ -496,10 +496,10 @@ def test_real_clip_through_gyroflows_axes_is_the_same_imu(clip):
 
     path, _, fo = clip
     log = read_motion_log(path)
-    assert log["camera"] == "GoPro" and len(log["time_s"]) == len(fo.imu.time_s)
-    np.testing.assert_allclose(log["accel"], fo.imu.accel, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(log["gyro"], fo.imu.gyro, rtol=0, atol=1e-9)
-    assert np.max(np.abs(log["time_s"] - fo.imu.time_s)) < 0.2
+    assert log["camera"] == "GoPro" and len(log["time_s"]) == len(fo.body_imu.time_s)
+    np.testing.assert_allclose(log["accel"], fo.body_imu.accel, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(log["gyro"], fo.body_imu.gyro, rtol=0, atol=1e-9)
+    assert np.max(np.abs(log["time_s"] - fo.body_imu.time_s)) < 0.2
 
 
 @needs_gpmf
@@ -523,7 +523,7 @@ def test_real_clip_without_gopros_parser_is_read_by_telemetry_parser(clip, monke
     stated = fo.telemetry["lens"]["diagonal_fov_deg"]       # the GPMF reader's reading of ZFOV (the MAX's 137.4°)
     assert got.lens_guess["diagonal_fov_deg"] == round(stated or 135.0, 3), got.lens_guess
     assert ("ZFOV" in got.lens_guess["source"]) == (stated is not None)
-    np.testing.assert_allclose(got.imu.gyro, fo.imu.gyro, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.imu.gyro, fo.body_imu.gyro, rtol=0, atol=1e-9)
     for key in ("time_s", "v_forward_m_s", "gps_speed_3d_m_s", "gps_fix", "gps_dop"):
         np.testing.assert_allclose(got.truth[key], fo.truth[key], rtol=0, atol=1e-9, err_msg=key)
 
@@ -544,7 +544,7 @@ def test_a_gopro_file_neither_parser_reads_names_what_to_install(synthetic, monk
 
 @needs_gpmf
 def test_real_clip_gyro_turns_the_image_the_right_way(clip):
-    """The gyro, in the camera frame, against the image's mean flow (DIS at quarter size): turning right
+    """The body's gyro, in the camera frame, against the image's mean flow (DIS at quarter size): turning right
     (ω_y > 0) moves the image left (u < 0), tilting up (ω_x > 0) moves it down (v > 0). HyperSmooth takes
     out most of the fast rotation (the HERO7's nearly all of it), so the slow part (1 s) carries the sign."""
     path, want, fo = clip
@@ -552,18 +552,51 @@ def test_real_clip_gyro_turns_the_image_the_right_way(clip):
     prev, rows = None, []
     for _, t, img in fo.frames():
         small = cv2.resize(img, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA).astype(np.uint8)
-        if prev is not None and t <= fo.imu.time_s[-1]:
+        if prev is not None and t <= fo.body_imu.time_s[-1]:
             flow = dis.calc(prev[1], small, None)
             rows.append((prev[0], t, flow[..., 0].mean() * 4, flow[..., 1].mean() * 4))
         prev = (t, small)
     t0, t1, u, v = np.array(rows).T
-    ti = fo.imu.time_s
-    w = np.array([fo.imu.gyro[(ti >= a) & (ti < b)].mean(0) for a, b in zip(t0, t1)])
+    ti = fo.body_imu.time_s
+    w = np.array([fo.body_imu.gyro[(ti >= a) & (ti < b)].mean(0) for a, b in zip(t0, t1)])
     slow = lambda x: uniform_filter1d(x, 31, mode="nearest")  # noqa: E731
     yaw, pitch = np.corrcoef(slow(w[:, 1]), slow(u))[0, 1], np.corrcoef(slow(w[:, 0]), slow(v))[0, 1]
     assert yaw < 0 and pitch > 0.5, (yaw, pitch)
     if want["iori"]:  # the MAX's image follows the turns frame by frame as well
         assert np.corrcoef(w[:, 1], u)[0, 1] < -0.5
+
+
+def _pair_mean(imu, t0, t1):
+    """(n, 3) rad/s: ``imu``'s gyro averaged over each interval [t0, t1) (s)."""
+    ti = imu.time_s
+    return np.array([imu.gyro[(ti >= a) & (ti < b)].mean(0) for a, b in zip(t0, t1)])
+
+
+@needs_gpmf
+def test_real_clip_imu_follows_the_stabilised_image(clip, tmp_path):
+    """The MAX writes its body's and its image's orientations (CORI, IORI): its IMU is turned into the stabilised
+    image's frame, where the image's own rotation rates follow the gyro's, as the body's gyro does not. The
+    HERO7 writes no IORI: its IMU stays the body's. Asked not to, the reader keeps the body's."""
+    from lobula.readers.clock_offset import image_rotation_rates
+    from lobula.readers.gopro import open_gopro
+
+    path, want, fo = clip
+    st = fo.telemetry["stabilisation"]
+    if not want["iori"]:
+        assert st["imu_frame"] == "body" and fo.imu is fo.body_imu
+        return
+    assert st["imu_frame"] == "image" and min(st["orientation_gyro_correlation"]) > 0.9
+    assert any(n.startswith("IMU turned into the stabilised image's frame") for n in fo.notes), fo.notes
+    t, w_img = image_rotation_rates(fo, width=160)
+    dt = np.diff(fo.times)[:len(t)]
+    t0, t1 = t - dt / 2, t + dt / 2
+    corr = lambda w: [np.corrcoef(w_img[:, j], w[:, j])[0, 1] for j in range(3)]  # noqa: E731
+    image, body = corr(_pair_mean(fo.imu, t0, t1)), corr(_pair_mean(fo.body_imu, t0, t1))
+    assert image[0] > 0.9 and image[1] > 0.9 and image[2] > 0.7, image
+    assert max(body) < 0.7, body
+    kept = open_gopro(path, camera_json=camera_json(tmp_path / "camera.json", 848, 480), image_orientation=False)
+    assert kept.telemetry["stabilisation"]["imu_frame"] == "body"
+    np.testing.assert_array_equal(kept.imu.gyro, fo.body_imu.gyro)
 
 
 @needs_gpmf

@@ -92,9 +92,11 @@ def stabilisation(settings: dict, streams: dict[str, Stream]) -> dict:
     """Electronic stabilisation (HyperSmooth/EIS) as the metadata tell it (``settings``: the camera settings,
     :func:`~lobula.readers.gpmf.decode_settings`; ``streams``: the GPMF streams by key):
     {electronic: True/False/None (unknown), setting: EISA text or None, source: where it was read,
-    image_orientation_max_deg / _mean_deg: IORI's angle from the camera body where the file has IORI}."""
+    image_orientation_max_deg / _mean_deg: IORI's angle from the camera body where the file has IORI, imu_frame:
+    "body" (the IMU as the telemetry holds it; "image" once :func:`open_gopro` has turned it into the stabilised
+    image's frame)}."""
     out = dict(electronic=None, setting=None, source="none in the file", image_orientation_max_deg=None,
-               image_orientation_mean_deg=None)
+               image_orientation_mean_deg=None, imu_frame="body")
     eise, eisa = settings.get("EISE"), settings.get("EISA")
     if isinstance(eisa, str) and eisa:
         out["setting"] = eisa
@@ -116,6 +118,9 @@ def stabilisation_notes(stab: dict) -> list[str]:
     """The note on :func:`stabilisation`'s finding ``stab``, where the image is stabilised electronically."""
     if not stab["electronic"]:
         return []
+    if stab.get("imu_frame") == "image":
+        return [f"electronic stabilisation on ({stab['setting'] or 'HyperSmooth'}; from {stab['source']}): the image "
+                f"is warped against the body, and the IMU was turned to follow it"]
     return [f"electronic stabilisation on ({stab['setting'] or 'HyperSmooth'}; from {stab['source']}): the image is "
             f"warped against the gyro's frame, so image rotation is not the camera body's"]
 
@@ -127,7 +132,9 @@ class GoProFootage(VideoFootage):
     Beside the :class:`~lobula.readers.core.Footage` fields: ``telemetry`` (a JSON-able summary:
     model, firmware, stabilisation, lens, streams), ``gps`` (every GPS sample, with or without a fix;
     :func:`gps_samples`) and ``orientation`` ({"CORI", "IORI", "GRAV": (time_s (n,), values)} where
-    the file has them, in GoPro's own frame, unrotated). ``camera`` is None only where the footage
+    the file has them, in GoPro's own frame, unrotated); ``body_imu``: the IMU in the camera body's frame, as the
+    telemetry holds it — ``imu`` is the same unless turned into the stabilised image's frame
+    (:mod:`lobula.readers.image_orientation`). ``camera`` is None only where the footage
     was opened without intrinsics (``lobula info``). ``lens_guess``: where no camera file was given, the
     equidistant lens assumed (model, coeffs, diagonal_fov_deg, source, rel_std: the focal length's 1σ
     fraction), which :func:`lobula.readers.self_calibration.self_calibrate` measures against the gyro; None
@@ -137,6 +144,7 @@ class GoProFootage(VideoFootage):
     telemetry: dict
     gps: dict | None
     orientation: dict
+    body_imu: IMU | None
     nominal_fps: float
     lens_guess: dict | None
 
@@ -163,14 +171,17 @@ class GoProFootage(VideoFootage):
 
 
 def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Path | None = None,
-               require_camera: bool = True) -> GoProFootage:
+               require_camera: bool = True, image_orientation: bool = True) -> GoProFootage:
     """Open a GoPro MP4 as the camera wrote it (module doc): frames, IMU in the camera frame, GPS truth.
 
     path: the MP4. camera_json: intrinsics (``--camera FILE``); else ``CLIP.camera.json`` or ``camera.json`` beside
     the clip. Its optional imu_to_camera is applied after the GPMF axis mapping, as a correction in
     the camera frame. require_imu: FootageError when the telemetry has no accelerometer (False:
     ``imu=None``). require_camera: FootageError without a camera file (False: ``camera=None``,
-    for ``lobula info``). Every bad input is one FootageError naming the file and the fix.
+    for ``lobula info``). image_orientation: where the image is stabilised electronically and the file has the
+    camera's and the image's orientations (CORI, IORI), turn the IMU into the stabilised image's frame
+    (:mod:`lobula.readers.image_orientation`; False: keep the body's). Every bad input is one FootageError
+    naming the file and the fix.
     """
     path = Path(path)
     if not path.is_file():
@@ -210,9 +221,12 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
         notes.append(f"the telemetry covers {t0:.3f}..{t1:.3f} s and the frames {times[0]:.3f}..{times[-1]:.3f} s: "
                      f"frames before it have no IMU samples around them")
     imu, r_extra = _gopro_imu(path, streams, cam_path, require_imu, notes)
+    body_imu = imu
     gps = gps_samples(streams)
     truth = gps_truth(gps, notes)
     stab = stabilisation(settings, streams)
+    if image_orientation and imu is not None and stab["electronic"]:
+        imu = _image_frame(imu, streams, stab, notes)
     notes.extend(stabilisation_notes(stab))
     distortion = dict(model="GoPro wide-angle (fisheye) lens; the file gives no intrinsics or distortion, and the "
                             "pipeline treats the image as a pinhole camera's", removed=False)
@@ -231,6 +245,7 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
                            imu_to_camera=(GOPRO_XYZ_TO_CAMERA if r_extra is None else r_extra @ GOPRO_XYZ_TO_CAMERA)
                            if imu is not None else None, camera_file_imu_rotation=r_extra, streams=stream_list)
     footage.telemetry, footage.gps, footage.orientation, footage.nominal_fps = telemetry, gps, orientation, fps
+    footage.body_imu = body_imu
     footage.lens_guess = lens_guess
     return footage
 
@@ -267,6 +282,33 @@ def _gopro_imu(path: Path, streams: dict[str, Stream], cam_path: Path | None, re
                 notes.append(f"IMU then rotated by {cam_path.name}'s imu_to_camera ({rotation_deg(r_extra):.2f} deg), "
                              f"a correction in the camera frame")
     return imu, r_extra
+
+
+def _image_frame(imu: IMU, streams: dict[str, Stream], stab: dict, notes: list[str]) -> IMU:
+    """``imu`` turned into the stabilised image's frame by CORI and IORI where the file has both and they follow
+    the gyro (:func:`lobula.readers.image_orientation.image_frame_imu`), else ``imu``. Where turned, ``stab``'s
+    imu_frame becomes "image", with CORI's correlation with the gyro; ``notes`` say which it was."""
+    from .image_orientation import MIN_GYRO_CORRELATION, image_frame_imu, orientation_follows_gyro
+
+    cori, iori = streams.get("CORI"), streams.get("IORI")
+    if cori is None or iori is None or imu.gyro is None:
+        return imu
+    same = len(cori.time_s) == len(iori.time_s) and np.allclose(cori.time_s, iori.time_s, atol=1e-6)
+    res = image_frame_imu(imu, cori.time_s, cori.data[:, :4], iori.data[:, :4]) if same else None
+    if res is None:
+        why = ("their samples do not pair up" if not same else
+               "CORI's rates follow the gyro's only at " + ", ".join(
+                   f"{c:.2f}" for c in orientation_follows_gyro(cori.time_s, cori.data[:, :4], imu))
+               + f" (x, y, z; {MIN_GYRO_CORRELATION} needed)")
+        notes.append(f"the file's camera and image orientations (CORI, IORI) are not used: {why}; the IMU stays in "
+                     f"the body's frame, which the stabilised image does not turn with")
+        return imu
+    stab.update(imu_frame="image", orientation_gyro_correlation=[round(float(c), 3) for c in res.gyro_correlation])
+    notes.append(f"IMU turned into the stabilised image's frame by the file's camera and image orientations (CORI, "
+                 f"IORI; the image up to {res.max_deg:.1f}° from the body, {res.mean_deg:.1f}° on average): the gyro "
+                 f"reads the image's rotation, the accelerometer the image's axes (CORI's rates follow the gyro at "
+                 f"{', '.join(f'{c:.2f}' for c in res.gyro_correlation)})")
+    return res.imu
 
 
 def lens_guess_from_settings(width: int, height: int, fps: float, settings: dict) -> tuple[PinholeCamera, dict]:

@@ -1,0 +1,120 @@
+"""The stabilised image's own orientation, where the camera writes it: the IMU turned into the image's frame.
+
+A camera that stabilises electronically (GoPro HyperSmooth) warps each picture against its body, so the picture
+turns as a smoothed virtual camera does, not as the gyro does: the image's rotation no longer follows the gyro,
+and neither the gyro's derotation nor the self-calibration against the gyro (focal length, clock offset, IMU axes)
+can work on it. GoPro's HERO8 and later and the MAX write, once per frame, the body's orientation (CORI) and the
+image's relative to the body (IORI), unit quaternions (w, x, y, z) in the camera's axes.
+
+Read as rotations of the camera frame (x right, y down, z forward), CORI is world → body and IORI body → image:
+
+* the body, camera → world, is B = CORI⁻¹ — its angular velocity is the gyro's (:func:`body_rates`;
+  :func:`orientation_follows_gyro` checks it on each file, as a correlation per axis);
+* the image, image → world, is V = CORI⁻¹ · IORI⁻¹ = B · S with S = IORI⁻¹ (image → body), as Gyroflow composes
+  CORI · IORI to stabilise.
+
+On the MAX clip of ``../shared/data/gopro_walking`` the image's own least-squares rotation rates
+(:func:`lobula.readers.clock_offset.image_rotation_rates`) correlate with V's at 0.95 / 0.98 / 0.83 (x, y, z), against
+0.26 / 0.61 / −0.43 with the gyro's. :func:`image_frame_imu` makes the IMU the image's: its gyro V's angular
+velocity (piecewise constant between the frames the quaternions belong to, so its integral over a frame
+interval is V's turn there), its accelerometer the body's specific force in the image's axes, S⁻¹·a.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from .core import IMU
+
+__all__ = ["quaternion_rotations", "body_rates", "orientation_follows_gyro", "image_frame_imu",
+           "ImageOrientation", "MIN_GYRO_CORRELATION"]
+
+#: the least correlation, on every axis, of the rates of CORI⁻¹ with the gyro's for the file's orientations to be
+#: read in the convention above (on the MAX clip: 0.95 / 0.91 / 0.96)
+MIN_GYRO_CORRELATION = 0.8
+
+
+def quaternion_rotations(q: np.ndarray) -> Rotation:
+    """Rotations of unit quaternions q (n, 4) ordered w, x, y, z (any norm; normalised here)."""
+    q = np.asarray(q, float)
+    return Rotation.from_quat(np.c_[q[:, 1:4], q[:, :1]])
+
+
+def body_rates(time_s: np.ndarray, rot: Rotation) -> tuple[np.ndarray, np.ndarray]:
+    """(interval mid-times (n − 1,) s, angular velocities (n − 1, 3) rad/s): the constant rate, in the rotating
+    frame's own axes, that turns ``rot`` (n; frame → reference at ``time_s`` (n,) s) from each sample to the next."""
+    t = np.asarray(time_s, float)
+    return 0.5 * (t[:-1] + t[1:]), (rot[:-1].inv() * rot[1:]).as_rotvec() / np.diff(t)[:, None]
+
+
+def _rates_at(time_s: np.ndarray, rot: Rotation, at: np.ndarray) -> np.ndarray:
+    """(m, 3) rad/s: :func:`body_rates` of ``rot`` at times ``at`` (m,) s, held over each interval (the first and
+    last interval's outside the samples)."""
+    _, w = body_rates(time_s, rot)
+    k = np.clip(np.searchsorted(time_s, at, side="right") - 1, 0, len(w) - 1)
+    return w[k]
+
+
+def orientation_follows_gyro(time_s: np.ndarray, cori: np.ndarray, imu: IMU) -> np.ndarray:
+    """(3,): the correlation, per camera axis, of the body's angular velocity read from CORI (B = CORI⁻¹) with the
+    gyro's, both averaged over the quaternions' intervals. ``cori`` (n, 4) w, x, y, z at ``time_s`` (n,) s; ``imu``
+    in the camera frame."""
+    t_mid, w = body_rates(time_s, quaternion_rotations(cori).inv())
+    edges = np.asarray(time_s, float)
+    cum = np.stack([np.concatenate([[0.0], np.cumsum(0.5 * (imu.gyro[1:, j] + imu.gyro[:-1, j])
+                                                       * np.diff(imu.time_s))]) for j in range(3)], 1)
+    at = np.stack([np.interp(edges, imu.time_s, cum[:, j]) for j in range(3)], 1)
+    g = np.diff(at, axis=0) / np.diff(edges)[:, None]
+    inside = (edges[:-1] >= imu.time_s[0]) & (edges[1:] <= imu.time_s[-1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.array([np.corrcoef(w[inside, j], g[inside, j])[0, 1] if inside.sum() > 2 else np.nan
+                         for j in range(3)])
+
+
+@dataclass
+class ImageOrientation:
+    """What :func:`image_frame_imu` did: ``imu`` (the IMU in the image's frame), ``gyro_correlation`` (3,) (as
+    :func:`orientation_follows_gyro`), ``max_deg`` and ``mean_deg`` (how far the image turns from the body, S's
+    angle, deg)."""
+
+    imu: IMU
+    gyro_correlation: np.ndarray
+    max_deg: float
+    mean_deg: float
+
+
+def image_frame_imu(imu: IMU, time_s: np.ndarray, cori: np.ndarray, iori: np.ndarray) -> ImageOrientation | None:
+    """The IMU turned into the stabilised image's frame (module doc), or None where the file's orientations do
+    not follow its gyro (fewer than 3 quaternions, a gyro missing, a correlation under
+    :data:`MIN_GYRO_CORRELATION` on an axis): then they are not in the convention read here.
+
+    Parameters
+    ----------
+    imu : IMU
+        The body's IMU in the camera frame, with a gyro.
+    time_s : ndarray, (n,)
+        s: the quaternions' times (the frames', on the video's clock).
+    cori, iori : ndarray, (n, 4)
+        CORI and IORI, w, x, y, z.
+
+    Returns
+    -------
+    ImageOrientation or None
+    """
+    t = np.asarray(time_s, float)
+    if imu.gyro is None or len(t) < 3 or cori.shape != iori.shape or not np.all(np.diff(t) > 0):
+        return None
+    corr = orientation_follows_gyro(t, cori, imu)
+    if not np.all(corr >= MIN_GYRO_CORRELATION):
+        return None
+    body = quaternion_rotations(cori).inv()
+    s = quaternion_rotations(iori).inv()  # image → body
+    image = body * s
+    gyro = _rates_at(t, image, imu.time_s)
+    s_at = Slerp(t, s)(np.clip(imu.time_s, t[0], t[-1]))
+    accel = s_at.inv().apply(imu.accel)
+    ang = np.degrees(s.magnitude())
+    return ImageOrientation(IMU(imu.time_s, accel, gyro, imu.source, imu.nan_counts), corr, float(ang.max()),
+                            float(ang.mean()))

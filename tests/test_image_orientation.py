@@ -1,0 +1,80 @@
+"""lobula.readers.image_orientation: the IMU turned into a stabilised image's frame by CORI and IORI."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lobula.readers.core import IMU
+from lobula.readers.image_orientation import (body_rates, image_frame_imu, orientation_follows_gyro,
+                                              quaternion_rotations)
+
+FPS, IMU_HZ, SECONDS = 30.0, 200.0, 4.0
+
+
+def _smooth(t, seed, amp):
+    """(n, 3) rotation vectors (rad): a few sines per axis, amplitude ``amp``."""
+    rng = np.random.default_rng(seed)
+    return np.stack([sum(amp * rng.uniform(0.3, 1.0) * np.sin(2 * np.pi * f * t + rng.uniform(0, 6))
+                         for f in rng.uniform(0.2, 2.0, 3)) for _ in range(3)], -1)
+
+
+def _wxyz(rot: Rotation) -> np.ndarray:
+    q = rot.as_quat()
+    return np.c_[q[:, 3:], q[:, :3]]
+
+
+def _camera(seed=0):
+    """A body turning as a hand-held camera does and a stabilisation S (image → body) that undoes most of it,
+    exact: the body's gyro at IMU_HZ, its specific force, and CORI = B⁻¹, IORI = S⁻¹ at the frames."""
+    t_imu = np.arange(0.0, SECONDS, 1.0 / IMU_HZ)
+    t_fr = np.arange(0.0, SECONDS - 0.05, 1.0 / FPS)
+    body = lambda t: Rotation.from_rotvec(_smooth(t, seed, 0.15))  # noqa: E731  camera → world
+    smooth_image = lambda t: Rotation.from_rotvec(0.2 * _smooth(t, seed, 0.15))  # noqa: E731  image → world
+    # the gyro: body rates from the exact orientation, finely differenced
+    h = 1e-5
+    gyro = (body(t_imu).inv() * body(t_imu + h)).as_rotvec() / h
+    accel = np.c_[np.sin(t_imu), -9.81 + 0.3 * np.cos(3 * t_imu), 0.5 * np.ones_like(t_imu)]
+    s = body(t_fr).inv() * smooth_image(t_fr)  # image → body
+    return (IMU(t_imu, accel, gyro, "synthetic"), t_fr, _wxyz(body(t_fr).inv()), _wxyz(s.inv()), body, smooth_image,
+            t_imu)
+
+
+def test_body_rates_of_a_constant_turn():
+    t = np.arange(10) / 30.0
+    rot = Rotation.from_rotvec(np.outer(t, [0.1, -0.2, 0.3]))
+    mid, w = body_rates(t, rot)
+    assert np.allclose(mid, t[:-1] + 1 / 60.0) and np.allclose(w, [0.1, -0.2, 0.3], atol=1e-12)
+
+
+def test_quaternions_are_read_w_first():
+    q = np.array([[np.cos(0.25), np.sin(0.25), 0.0, 0.0]]) * 3.0  # 0.5 rad about x, any norm
+    assert np.allclose(quaternion_rotations(q).as_rotvec(), [[0.5, 0.0, 0.0]])
+
+
+def test_the_image_frame_imu_turns_as_the_image_does():
+    """The gyro it gives integrates over each frame interval to the image's own turn there (to the slerp's
+    discretisation), where the body's gyro turns by up to several times more; the accelerometer is the body's
+    specific force in the image's axes (to the slerp between frames: 0.01 m/s² of 10, where leaving it out errs by
+    up to 1.4)."""
+    imu, t_fr, cori, iori, body, image, t_imu = _camera()
+    res = image_frame_imu(imu, t_fr, cori, iori)
+    assert res is not None and np.all(res.gyro_correlation > 0.99)
+    inside = (t_imu >= t_fr[0]) & (t_imu < t_fr[-1])
+    for a, b in zip(t_fr[5:-5:7], t_fr[6:-4:7]):
+        m = (t_imu >= a) & (t_imu < b)
+        turned = res.imu.gyro[m].sum(0) / IMU_HZ
+        want = (image(np.array([a])).inv() * image(np.array([b]))).as_rotvec()[0]
+        body_turn = (body(np.array([a])).inv() * body(np.array([b]))).as_rotvec()[0]
+        assert np.linalg.norm(turned - want) < 0.05 * np.linalg.norm(body_turn) + 1e-4
+    s = body(t_imu[inside]).inv() * image(t_imu[inside])  # image → body, exact
+    np.testing.assert_allclose(res.imu.accel[inside], s.inv().apply(imu.accel[inside]), atol=0.02)
+    assert res.max_deg == pytest.approx(np.degrees(np.max(quaternion_rotations(iori).magnitude())))
+
+
+def test_orientations_in_another_convention_are_not_used():
+    """CORI written as camera → world (B, not B⁻¹) turns the other way from the gyro: refused, not misread."""
+    imu, t_fr, cori, iori, *_ = _camera(seed=1)
+    flipped = _wxyz(quaternion_rotations(cori).inv())
+    assert np.all(orientation_follows_gyro(t_fr, cori, imu) > 0.99)
+    assert np.all(orientation_follows_gyro(t_fr, flipped, imu) < -0.9)
+    assert image_frame_imu(imu, t_fr, flipped, iori) is None
+    assert image_frame_imu(IMU(imu.time_s, imu.accel, None, "no gyro"), t_fr, cori, iori) is None
