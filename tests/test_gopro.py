@@ -506,24 +506,35 @@ def test_real_clip_through_gyroflows_axes_is_the_same_imu(clip):
 def test_real_clip_without_gopros_parser_is_read_by_telemetry_parser(clip, monkeypatch):
     """Where py-gpmf-parser is not installed (it has Linux x86-64 wheels only), a GoPro MP4 opens as
     camera-telemetry: the same IMU samples, the same GPS truth (times, speeds, fixes, DOPs) from telemetry-parser's
-    decoding timed by the MP4's telemetry track, the same lens guess (the stated field of view, where there is one),
-    the stabilisation said, and a note that says what is missing and why."""
+    decoding timed by the MP4's telemetry track, the same camera and image orientations (CORI, IORI) and so the same
+    IMU turned into the stabilised image's frame (to the parsers' 4 ms apart in timing the IMU), the same lens guess
+    (the stated field of view, where there is one), the stabilisation said, and a note that says which parser read
+    it and why."""
     pytest.importorskip("telemetry_parser", reason="telemetry-parser has wheels for CPython 3.8-3.12 only")
     import lobula.readers as readers
     from lobula.readers.camera_telemetry import open_camera_telemetry
 
-    path, _, fo = clip
+    path, want, fo = clip
     monkeypatch.setattr(readers, "gpmf_parser_installed", lambda: False)
     assert readers._reader_for(path).name == "camera-telemetry"
     got = open_camera_telemetry(path)
     assert got.kind == "camera-telemetry" and got.truth is not None and fo.truth is not None
-    assert any("py-gpmf-parser" in n and "image orientation" in n for n in got.notes), got.notes
+    assert any("py-gpmf-parser" in n and "image orientations" in n for n in got.notes), got.notes
     assert any(n.startswith("truth is GPS (GPS5, telemetry-parser)") for n in got.notes), got.notes
     assert any(n.startswith("electronic stabilisation on (HS ") for n in got.notes), got.notes
     stated = fo.telemetry["lens"]["diagonal_fov_deg"]       # the GPMF reader's reading of ZFOV (the MAX's 137.4°)
     assert got.lens_guess["diagonal_fov_deg"] == round(stated or 135.0, 3), got.lens_guess
     assert ("ZFOV" in got.lens_guess["source"]) == (stated is not None)
-    np.testing.assert_allclose(got.imu.gyro, fo.body_imu.gyro, rtol=0, atol=1e-9)
+    assert sorted(got.orientation) == sorted(k for k in fo.orientation if k != "GRAV")
+    for key, (t, q) in got.orientation.items():
+        np.testing.assert_allclose(t, fo.orientation[key][0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(q, fo.orientation[key][1][:, :4], rtol=0, atol=1e-9)
+    turned = any(n.startswith("IMU turned into the stabilised image's frame") for n in got.notes)
+    assert turned == want["iori"] == (fo.telemetry["stabilisation"]["imu_frame"] == "image")
+    if turned:
+        assert min(np.corrcoef(got.imu.gyro[:, j], fo.imu.gyro[:, j])[0, 1] for j in range(3)) > 0.99
+    else:
+        np.testing.assert_allclose(got.imu.gyro, fo.body_imu.gyro, rtol=0, atol=1e-9)
     for key in ("time_s", "v_forward_m_s", "gps_speed_3d_m_s", "gps_fix", "gps_dop"):
         np.testing.assert_allclose(got.truth[key], fo.truth[key], rtol=0, atol=1e-9, err_msg=key)
 

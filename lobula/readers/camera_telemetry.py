@@ -18,7 +18,8 @@ as a pinhole of a phone's field of view; the gyro then measures the focal length
 enough (:mod:`lobula.readers.self_calibration`), and the output says which. A 360° camera's 2:1 picture is
 refused without intrinsics. GoPro MP4s are read by :mod:`lobula.readers.gopro`; by this reader where GoPro's
 own parser is not installed (it has Linux x86-64 wheels only): the IMU, the GPS truth (:func:`gopro_gps`), the
-settings and the stated field of view (:func:`gopro_telemetry`), as the GoPro reader has them. A video with
+camera and image orientations (:func:`gopro_orientations`, turning a stabilised clip's IMU into its image's frame),
+the settings and the stated field of view (:func:`gopro_telemetry`), as the GoPro reader has them. A video with
 an ``imu.csv`` beside it stays the ``video`` layout.
 """
 from __future__ import annotations
@@ -182,6 +183,43 @@ def gopro_telemetry(path: Path, notes: list[str]) -> tuple[dict, list[dict]]:
     return settings, groups
 
 
+#: telemetry-parser's names of GoPro's per-frame camera and image orientations
+_ORIENTATION_GROUPS = {"CORI": "CameraOrientation", "IORI": "ImageOrientation"}
+
+
+def gopro_orientations(path: Path, groups: list[dict], notes: list[str]) -> dict:
+    """The camera's and the image's orientations (CORI, IORI) in telemetry-parser's packets ``groups``
+    (:func:`gopro_telemetry`) of the GoPro MP4 at ``path``, as :class:`lobula.readers.gopro.GoProFootage`'s
+    ``orientation`` holds them: {key: (time_s (n,) s on the video's clock, each packet's samples spread over its
+    span, quaternions (n, 4) w, x, y, z)}; {} where the file has neither or its packets do not line up with the
+    telemetry track's, with a note saying which."""
+    from .gopro_telemetry import packet_sample_times, packet_spans
+
+    if not any(name in g for g in groups for name in _ORIENTATION_GROUPS.values()):
+        return {}
+    try:
+        spans = packet_spans(path)
+    except FootageError as exc:
+        notes.append(f"camera and image orientations not read: {exc}")
+        return {}
+    if len(groups) != len(spans):
+        notes.append(f"camera and image orientations not read: telemetry-parser gives {len(groups)} telemetry "
+                     f"packets where the MP4's track has {len(spans)}, so their times are not known")
+        return {}
+    out = {}
+    for key, name in _ORIENTATION_GROUPS.items():
+        times, quats = [], []
+        for (t_in, t_out), g in zip(spans, groups):
+            group = g.get(name) or {}
+            q = np.array([[d["w"], d["x"], d["y"], d["z"]] for d in group.get("Data") or []], float)
+            if len(q):
+                times.append(packet_sample_times(t_in, t_out, len(q)))
+                quats.append(q / float(group.get("Scale") or 32767))
+        if quats:
+            out[key] = (np.concatenate(times), np.concatenate(quats))
+    return out
+
+
 def gopro_gps(path: Path, groups: list[dict], notes: list[str]) -> dict | None:
     """The GPS samples in telemetry-parser's packets ``groups`` (:func:`gopro_telemetry`) of the GoPro MP4 at
     ``path``, as :func:`lobula.readers.gopro.gps_samples` gives them (time_s on the video's clock, each packet's
@@ -251,6 +289,7 @@ class CameraTelemetryFootage(VideoFootage):
 
     lens_guess: dict | None
     motion_log: dict
+    orientation: dict
 
     def provenance(self) -> dict:
         out = super().provenance()
@@ -270,7 +309,7 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     require_camera: FootageError for a 360° picture without intrinsics (False: ``camera=None``, for
     ``lobula info``). Every bad input is one FootageError naming the file and the fix.
     """
-    from .gopro import (NOMINAL_DIAGONAL_FOV_DEG, NOMINAL_FOV_REL_STD, equidistant_camera, gps_truth,
+    from .gopro import (NOMINAL_DIAGONAL_FOV_DEG, NOMINAL_FOV_REL_STD, equidistant_camera, gps_truth, image_frame,
                         lens_guess_from_settings, stabilisation, stabilisation_notes)
 
     path = Path(path)
@@ -286,8 +325,10 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     source = f"{sidecar} (.gcsv)" if log["camera"] == "gcsv" else f"{path} ({who} motion log)"
     cam_path = camera_file(path, camera_json)
     gopro, settings, packets, gopro_notes = (log["camera"] or "").lower() == "gopro", {}, [], []
+    orientation = {}
     if gopro:
         settings, packets = gopro_telemetry(path, gopro_notes)
+        orientation = gopro_orientations(path, packets, gopro_notes)
     camera, lens_guess = None, None
     spherical = abs(w - 2 * h) <= 0.02 * w  # a 2:1 frame: a 360° camera's equirectangular or dual-fisheye picture
     if cam_path is not None:
@@ -315,10 +356,12 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
                            f"side), not one lens's view; reframe it to one view and give that view's intrinsics "
                            f"with --camera FILE")
     notes = [f"video: {len(times)} frames ({w}x{h}, {codec}), frame times from the container's time stamps"]
+    stab = stabilisation(settings, orientation["IORI"][1] if "IORI" in orientation else None)
     if gopro:
         notes.append("a GoPro MP4 read by telemetry-parser (GoPro's own parser is not installed here: py-gpmf-parser, "
-                     "Linux x86-64 wheels): its IMU, GPS, settings and stated field of view; not its image orientation")
-        notes.extend(gopro_notes + stabilisation_notes(stabilisation(settings, {})))
+                     "Linux x86-64 wheels): its IMU, GPS, camera and image orientations, settings and stated field "
+                     "of view")
+        notes.extend(gopro_notes)
     imu, r = None, None
     if log["accel"] is None:
         if require_imu:
@@ -338,6 +381,10 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
             if r is not None:
                 imu = imu.rotated(r)
                 notes.append(f"IMU then rotated by {cam_path.name}'s imu_to_camera ({rotation_deg(r):.2f} deg)")
+    if gopro and imu is not None and stab["electronic"]:
+        imu = image_frame(imu, orientation, stab, notes)
+    if gopro:
+        notes.extend(stabilisation_notes(stab))
     truth = None
     tp = path.with_name("truth.csv")
     if tp.is_file():
@@ -352,7 +399,7 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     footage = CameraTelemetryFootage(path, camera, times, [], imu, truth, kind="camera-telemetry", notes=notes,
                                      imu_to_camera=(GYROFLOW_TO_CAMERA if r is None else r @ GYROFLOW_TO_CAMERA)
                                      if imu is not None else None, camera_file_imu_rotation=r, streams=streams)
-    footage.lens_guess = lens_guess
+    footage.lens_guess, footage.orientation = lens_guess, orientation
     footage.motion_log = dict(camera=log["camera"], model=log["model"], samples=int(len(log["time_s"])),
                               source=source)
     return footage

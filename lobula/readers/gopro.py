@@ -31,7 +31,9 @@ How the file is read:
   ``truth["v_forward_m_s"]``: the camera's forward speed only when its optical axis points along
   the walk (otherwise speed × cos of the angle between them). Every output says its truth is GPS.
 * **stabilisation** — HyperSmooth/EIS is read from the settings (EISE, EISA) and, where the file
-  has IORI, from how far the image orientation departs from the camera body's.
+  has IORI, from how far the image orientation departs from the camera body's. A stabilised clip with CORI and
+  IORI has its IMU turned into the stabilised image's frame (:func:`image_frame`,
+  :mod:`lobula.readers.image_orientation`); ``body_imu`` keeps the body's.
 
 GoPro files carry no lens intrinsics (the lens is a wide-angle fisheye), so velocity needs a
 camera.json: ``--camera FILE`` or ``CLIP.camera.json`` / ``camera.json`` beside the clip.
@@ -88,9 +90,9 @@ def gps_samples(streams: dict[str, Stream]) -> dict[str, np.ndarray] | None:
                 speed_3d_m_s=d[:, 4], fix=fix, dop=dop, source=s.key)
 
 
-def stabilisation(settings: dict, streams: dict[str, Stream]) -> dict:
+def stabilisation(settings: dict, iori: np.ndarray | None = None) -> dict:
     """Electronic stabilisation (HyperSmooth/EIS) as the metadata tell it (``settings``: the camera settings,
-    :func:`~lobula.readers.gpmf.decode_settings`; ``streams``: the GPMF streams by key):
+    :func:`~lobula.readers.gpmf.decode_settings`; ``iori``: the image orientations (n, 4) w, x, y, z, or None):
     {electronic: True/False/None (unknown), setting: EISA text or None, source: where it was read,
     image_orientation_max_deg / _mean_deg: IORI's angle from the camera body where the file has IORI, imu_frame:
     "body" (the IMU as the telemetry holds it; "image" once :func:`open_gopro` has turned it into the stabilised
@@ -104,8 +106,8 @@ def stabilisation(settings: dict, streams: dict[str, Stream]) -> dict:
         out["electronic"], out["source"] = eise[:1] == "Y", "camera settings (EISE/EISA)"
     elif out["setting"] is not None:
         out["electronic"], out["source"] = out["setting"].upper() not in ("N/A", "OFF", "N"), "camera settings (EISA)"
-    if "IORI" in streams and len(streams["IORI"].data):
-        ang = quaternion_angle_deg(streams["IORI"].data[:, :4])
+    if iori is not None and len(iori):
+        ang = quaternion_angle_deg(iori[:, :4])
         out["image_orientation_max_deg"] = round(float(ang.max()), 3)
         out["image_orientation_mean_deg"] = round(float(ang.mean()), 3)
         if out["electronic"] is None:
@@ -224,9 +226,10 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
     body_imu = imu
     gps = gps_samples(streams)
     truth = gps_truth(gps, notes)
-    stab = stabilisation(settings, streams)
+    orientation = {k: (streams[k].time_s, streams[k].data) for k in ("CORI", "IORI", "GRAV") if k in streams}
+    stab = stabilisation(settings, orientation["IORI"][1] if "IORI" in orientation else None)
     if image_orientation and imu is not None and stab["electronic"]:
-        imu = _image_frame(imu, streams, stab, notes)
+        imu = image_frame(imu, orientation, stab, notes)
     notes.extend(stabilisation_notes(stab))
     distortion = dict(model="GoPro wide-angle (fisheye) lens; the file gives no intrinsics or distortion, and the "
                             "pipeline treats the image as a pinhole camera's", removed=False)
@@ -234,7 +237,6 @@ def open_gopro(path: str | Path, require_imu: bool = True, camera_json: str | Pa
         distortion["fov_mode"] = settings["VFOV"]
     if isinstance(settings.get("ZFOV"), float):
         distortion["diagonal_fov_deg"] = round(settings["ZFOV"], 3)
-    orientation = {k: (streams[k].time_s, streams[k].data) for k in ("CORI", "IORI", "GRAV") if k in streams}
     stream_list = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=round(fps, 3))]
     for k, s in sorted(streams.items()):
         entry = dict(stream=k, name=s.name, samples=int(len(s.time_s)), rate_hz=round(s.rate_hz or 0.0, 3),
@@ -284,21 +286,23 @@ def _gopro_imu(path: Path, streams: dict[str, Stream], cam_path: Path | None, re
     return imu, r_extra
 
 
-def _image_frame(imu: IMU, streams: dict[str, Stream], stab: dict, notes: list[str]) -> IMU:
-    """``imu`` turned into the stabilised image's frame by CORI and IORI where the file has both and they follow
-    the gyro (:func:`lobula.readers.image_orientation.image_frame_imu`), else ``imu``. Where turned, ``stab``'s
-    imu_frame becomes "image", with CORI's correlation with the gyro; ``notes`` say which it was."""
+def image_frame(imu: IMU, orientation: dict, stab: dict, notes: list[str]) -> IMU:
+    """``imu`` turned into the stabilised image's frame by ``orientation``'s CORI and IORI ({key: (time_s (n,) s,
+    quaternions (n, 4) w, x, y, z)}) where it has both and they follow the gyro
+    (:func:`lobula.readers.image_orientation.image_frame_imu`), else ``imu``. Where turned, ``stab``'s
+    (:func:`stabilisation`'s) imu_frame becomes "image", with CORI's correlation with the gyro; ``notes`` say
+    which it was."""
     from .image_orientation import MIN_GYRO_CORRELATION, image_frame_imu, orientation_follows_gyro
 
-    cori, iori = streams.get("CORI"), streams.get("IORI")
-    if cori is None or iori is None or imu.gyro is None:
+    if "CORI" not in orientation or "IORI" not in orientation or imu.gyro is None:
         return imu
-    same = len(cori.time_s) == len(iori.time_s) and np.allclose(cori.time_s, iori.time_s, atol=1e-6)
-    res = image_frame_imu(imu, cori.time_s, cori.data[:, :4], iori.data[:, :4]) if same else None
+    (t, cori), (ti, iori) = orientation["CORI"], orientation["IORI"]
+    same = len(t) == len(ti) and np.allclose(t, ti, atol=1e-6)
+    res = image_frame_imu(imu, t, cori[:, :4], iori[:, :4]) if same else None
     if res is None:
         why = ("their samples do not pair up" if not same else
                "CORI's rates follow the gyro's only at " + ", ".join(
-                   f"{c:.2f}" for c in orientation_follows_gyro(cori.time_s, cori.data[:, :4], imu))
+                   f"{c:.2f}" for c in orientation_follows_gyro(t, cori[:, :4], imu))
                + f" (x, y, z; {MIN_GYRO_CORRELATION} needed)")
         notes.append(f"the file's camera and image orientations (CORI, IORI) are not used: {why}; the IMU stays in "
                      f"the body's frame, which the stabilised image does not turn with")

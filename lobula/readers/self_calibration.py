@@ -23,7 +23,7 @@ cameras) or a pinhole (:mod:`lobula.readers.camera_telemetry`) — ``footage.len
 
 Each is kept only where the footage shows it (enough rotation, image and gyro rates that agree);
 otherwise the guess stays, and the reason is said — an image stabilised against the body (HyperSmooth)
-hides both. What was used is written to ``footage.calibration``, to the notes, and so to every output's
+hides both, unless the file records the image's orientation (:mod:`lobula.readers.image_orientation`). What was used is written to ``footage.calibration``, to the notes, and so to every output's
 attrs (``camera_calibration``).
 """
 from __future__ import annotations
