@@ -4,7 +4,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lobula.readers.core import IMU
-from lobula.readers.image_orientation import (body_rates, image_frame_imu, orientation_follows_gyro,
+from lobula.readers.image_orientation import (body_rates, gyro_agreement, image_frame_imu,
                                               quaternion_rotations)
 
 FPS, IMU_HZ, SECONDS = 30.0, 200.0, 4.0
@@ -57,7 +57,7 @@ def test_the_image_frame_imu_turns_as_the_image_does():
     up to 1.4)."""
     imu, t_fr, cori, iori, body, image, t_imu = _camera()
     res = image_frame_imu(imu, t_fr, cori, iori)
-    assert res is not None and np.all(res.gyro_correlation > 0.99)
+    assert res is not None and res.gyro_agreement > 0.99
     inside = (t_imu >= t_fr[0]) & (t_imu < t_fr[-1])
     for a, b in zip(t_fr[5:-5:7], t_fr[6:-4:7]):
         m = (t_imu >= a) & (t_imu < b)
@@ -74,7 +74,16 @@ def test_orientations_in_another_convention_are_not_used():
     """CORI written as camera → world (B, not B⁻¹) turns the other way from the gyro: refused, not misread."""
     imu, t_fr, cori, iori, *_ = _camera(seed=1)
     flipped = _wxyz(quaternion_rotations(cori).inv())
-    assert np.all(orientation_follows_gyro(t_fr, cori, imu) > 0.99)
-    assert np.all(orientation_follows_gyro(t_fr, flipped, imu) < -0.9)
+    assert gyro_agreement(t_fr, cori, imu)[0] > 0.99
+    assert gyro_agreement(t_fr, flipped, imu)[0] < -2.5
     assert image_frame_imu(imu, t_fr, flipped, iori) is None
     assert image_frame_imu(IMU(imu.time_s, imu.accel, None, "no gyro"), t_fr, cori, iori) is None
+
+
+def test_a_camera_too_still_to_check_keeps_its_imu():
+    """Below MIN_CHECK_RATE the agreement says nothing: the orientations are not used."""
+    imu, t_fr, cori, iori, *_ = _camera(seed=2)
+    still = IMU(imu.time_s, imu.accel, imu.gyro * 1e-3, "still")
+    slow = _wxyz(Rotation.from_rotvec(1e-3 * quaternion_rotations(cori).as_rotvec()))
+    assert gyro_agreement(t_fr, slow, still)[1] < 0.02
+    assert image_frame_imu(still, t_fr, slow, iori) is None

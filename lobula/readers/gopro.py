@@ -290,9 +290,9 @@ def image_frame(imu: IMU, orientation: dict, stab: dict, notes: list[str]) -> IM
     """``imu`` turned into the stabilised image's frame by ``orientation``'s CORI and IORI ({key: (time_s (n,) s,
     quaternions (n, 4) w, x, y, z)}) where it has both and they follow the gyro
     (:func:`lobula.readers.image_orientation.image_frame_imu`), else ``imu``. Where turned, ``stab``'s
-    (:func:`stabilisation`'s) imu_frame becomes "image", with CORI's correlation with the gyro; ``notes`` say
+    (:func:`stabilisation`'s) imu_frame becomes "image", with CORI's agreement with the gyro; ``notes`` say
     which it was."""
-    from .image_orientation import MIN_GYRO_CORRELATION, image_frame_imu, orientation_follows_gyro
+    from .image_orientation import MIN_CHECK_RATE, MIN_GYRO_AGREEMENT, gyro_agreement, image_frame_imu
 
     if "CORI" not in orientation or "IORI" not in orientation or imu.gyro is None:
         return imu
@@ -300,18 +300,19 @@ def image_frame(imu: IMU, orientation: dict, stab: dict, notes: list[str]) -> IM
     same = len(t) == len(ti) and np.allclose(t, ti, atol=1e-6)
     res = image_frame_imu(imu, t, cori[:, :4], iori[:, :4]) if same else None
     if res is None:
+        agreement, rate = gyro_agreement(t, cori[:, :4], imu) if same else (np.nan, np.nan)
         why = ("their samples do not pair up" if not same else
-               "CORI's rates follow the gyro's only at " + ", ".join(
-                   f"{c:.2f}" for c in orientation_follows_gyro(t, cori[:, :4], imu))
-               + f" (x, y, z; {MIN_GYRO_CORRELATION} needed)")
+               f"the camera turns too little to check them against the gyro ({rate:.3f} rad/s RMS, "
+               f"{MIN_CHECK_RATE} needed)" if not rate >= MIN_CHECK_RATE else
+               f"CORI's rates do not follow the gyro's (agreement {agreement:.2f}, {MIN_GYRO_AGREEMENT} needed)")
         notes.append(f"the file's camera and image orientations (CORI, IORI) are not used: {why}; the IMU stays in "
                      f"the body's frame, which the stabilised image does not turn with")
         return imu
-    stab.update(imu_frame="image", orientation_gyro_correlation=[round(float(c), 3) for c in res.gyro_correlation])
+    stab.update(imu_frame="image", orientation_gyro_agreement=round(res.gyro_agreement, 3))
     notes.append(f"IMU turned into the stabilised image's frame by the file's camera and image orientations (CORI, "
                  f"IORI; the image up to {res.max_deg:.1f}° from the body, {res.mean_deg:.1f}° on average): the gyro "
-                 f"reads the image's rotation, the accelerometer the image's axes (CORI's rates follow the gyro at "
-                 f"{', '.join(f'{c:.2f}' for c in res.gyro_correlation)})")
+                 f"reads the image's rotation, the accelerometer the image's axes (CORI's rates agree with the gyro's "
+                 f"to {res.gyro_agreement:.2f})")
     return res.imu
 
 
@@ -397,7 +398,8 @@ def describe_telemetry(telemetry: dict) -> list[str]:
                + f", from {st['source']}"
                + (f"; image orientation (IORI) up to {st['image_orientation_max_deg']:.2f} deg from the body "
                   f"(mean {st['image_orientation_mean_deg']:.2f})" if st.get("image_orientation_max_deg") is not None
-                  else ""))
+                  else "")
+               + ("; IMU in the stabilised image's frame" if st.get("imu_frame") == "image" else ""))
     lens = t.get("lens") or {}
     if lens.get("fov_mode") or lens.get("diagonal_fov_deg"):
         out.append(f"  lens:     field of view mode {lens.get('fov_mode') or '-'}"

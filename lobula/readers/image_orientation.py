@@ -9,7 +9,7 @@ image's relative to the body (IORI), unit quaternions (w, x, y, z) in the camera
 Read as rotations of the camera frame (x right, y down, z forward), CORI is world → body and IORI body → image:
 
 * the body, camera → world, is B = CORI⁻¹ — its angular velocity is the gyro's (:func:`body_rates`;
-  :func:`orientation_follows_gyro` checks it on each file, as a correlation per axis);
+  :func:`gyro_agreement` checks it on each file);
 * the image, image → world, is V = CORI⁻¹ · IORI⁻¹ = B · S with S = IORI⁻¹ (image → body), as Gyroflow composes
   CORI · IORI to stabilise.
 
@@ -28,12 +28,14 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from .core import IMU
 
-__all__ = ["quaternion_rotations", "body_rates", "orientation_follows_gyro", "image_frame_imu",
-           "ImageOrientation", "MIN_GYRO_CORRELATION"]
+__all__ = ["quaternion_rotations", "body_rates", "gyro_agreement", "image_frame_imu", "ImageOrientation",
+           "MIN_GYRO_AGREEMENT", "MIN_CHECK_RATE"]
 
-#: the least correlation, on every axis, of the rates of CORI⁻¹ with the gyro's for the file's orientations to be
-#: read in the convention above (on the MAX clip: 0.95 / 0.91 / 0.96)
-MIN_GYRO_CORRELATION = 0.8
+#: the least agreement of the body's rates read from CORI (B = CORI⁻¹) with the gyro's, 1 − Σ|ω_B − ω|²/Σ|ω|², for
+#: the file's orientations to be read in the convention above: 0.90 on the MAX clip, −3.0 read the other way round
+MIN_GYRO_AGREEMENT = 0.5
+#: rad/s: the least RMS rate (all axes) at which that agreement means anything
+MIN_CHECK_RATE = 0.02
 
 
 def quaternion_rotations(q: np.ndarray) -> Rotation:
@@ -57,38 +59,40 @@ def _rates_at(time_s: np.ndarray, rot: Rotation, at: np.ndarray) -> np.ndarray:
     return w[k]
 
 
-def orientation_follows_gyro(time_s: np.ndarray, cori: np.ndarray, imu: IMU) -> np.ndarray:
-    """(3,): the correlation, per camera axis, of the body's angular velocity read from CORI (B = CORI⁻¹) with the
-    gyro's, both averaged over the quaternions' intervals. ``cori`` (n, 4) w, x, y, z at ``time_s`` (n,) s; ``imu``
-    in the camera frame."""
-    t_mid, w = body_rates(time_s, quaternion_rotations(cori).inv())
+def gyro_agreement(time_s: np.ndarray, cori: np.ndarray, imu: IMU) -> tuple[float, float]:
+    """(agreement, RMS rate rad/s): how well the body's angular velocity read from CORI (B = CORI⁻¹) matches the
+    gyro's, both averaged over the quaternions' intervals, as 1 − Σ|ω_B − ω|²/Σ|ω|² over the intervals inside the
+    IMU's record and all axes (1: the same, 0: no better than none, negative: turning the other way), and the
+    gyro's RMS rate there. ``cori`` (n, 4) w, x, y, z at ``time_s`` (n,) s; ``imu`` in the camera frame."""
+    _, w = body_rates(time_s, quaternion_rotations(cori).inv())
     edges = np.asarray(time_s, float)
     cum = np.stack([np.concatenate([[0.0], np.cumsum(0.5 * (imu.gyro[1:, j] + imu.gyro[:-1, j])
                                                        * np.diff(imu.time_s))]) for j in range(3)], 1)
     at = np.stack([np.interp(edges, imu.time_s, cum[:, j]) for j in range(3)], 1)
     g = np.diff(at, axis=0) / np.diff(edges)[:, None]
     inside = (edges[:-1] >= imu.time_s[0]) & (edges[1:] <= imu.time_s[-1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.array([np.corrcoef(w[inside, j], g[inside, j])[0, 1] if inside.sum() > 2 else np.nan
-                         for j in range(3)])
+    power = float(np.sum(g[inside] ** 2))
+    if power == 0.0:
+        return float("nan"), 0.0
+    return 1.0 - float(np.sum((w[inside] - g[inside]) ** 2)) / power, float(np.sqrt(power / inside.sum()))
 
 
 @dataclass
 class ImageOrientation:
-    """What :func:`image_frame_imu` did: ``imu`` (the IMU in the image's frame), ``gyro_correlation`` (3,) (as
-    :func:`orientation_follows_gyro`), ``max_deg`` and ``mean_deg`` (how far the image turns from the body, S's
-    angle, deg)."""
+    """What :func:`image_frame_imu` did: ``imu`` (the IMU in the image's frame), ``gyro_agreement`` (as
+    :func:`gyro_agreement`), ``max_deg`` and ``mean_deg`` (how far the image turns from the body, S's angle, deg)."""
 
     imu: IMU
-    gyro_correlation: np.ndarray
+    gyro_agreement: float
     max_deg: float
     mean_deg: float
 
 
 def image_frame_imu(imu: IMU, time_s: np.ndarray, cori: np.ndarray, iori: np.ndarray) -> ImageOrientation | None:
-    """The IMU turned into the stabilised image's frame (module doc), or None where the file's orientations do
-    not follow its gyro (fewer than 3 quaternions, a gyro missing, a correlation under
-    :data:`MIN_GYRO_CORRELATION` on an axis): then they are not in the convention read here.
+    """The IMU turned into the stabilised image's frame (module doc), or None where the file's orientations cannot
+    be checked against its gyro (fewer than 3 quaternions, no gyro, the camera turning at under
+    :data:`MIN_CHECK_RATE`) or do not follow it (:func:`gyro_agreement` under :data:`MIN_GYRO_AGREEMENT`: then
+    they are not in the convention read here).
 
     Parameters
     ----------
@@ -106,8 +110,8 @@ def image_frame_imu(imu: IMU, time_s: np.ndarray, cori: np.ndarray, iori: np.nda
     t = np.asarray(time_s, float)
     if imu.gyro is None or len(t) < 3 or cori.shape != iori.shape or not np.all(np.diff(t) > 0):
         return None
-    corr = orientation_follows_gyro(t, cori, imu)
-    if not np.all(corr >= MIN_GYRO_CORRELATION):
+    agreement, rate = gyro_agreement(t, cori, imu)
+    if not (rate >= MIN_CHECK_RATE and agreement >= MIN_GYRO_AGREEMENT):
         return None
     body = quaternion_rotations(cori).inv()
     s = quaternion_rotations(iori).inv()  # image → body
@@ -116,5 +120,5 @@ def image_frame_imu(imu: IMU, time_s: np.ndarray, cori: np.ndarray, iori: np.nda
     s_at = Slerp(t, s)(np.clip(imu.time_s, t[0], t[-1]))
     accel = s_at.inv().apply(imu.accel)
     ang = np.degrees(s.magnitude())
-    return ImageOrientation(IMU(imu.time_s, accel, gyro, imu.source, imu.nan_counts), corr, float(ang.max()),
+    return ImageOrientation(IMU(imu.time_s, accel, gyro, imu.source, imu.nan_counts), agreement, float(ang.max()),
                             float(ang.mean()))
