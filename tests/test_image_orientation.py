@@ -57,7 +57,7 @@ def test_the_image_frame_imu_turns_as_the_image_does():
     up to 1.4)."""
     imu, t_fr, cori, iori, body, image, t_imu = _camera()
     res = image_frame_imu(imu, t_fr, cori, iori)
-    assert res is not None and res.gyro_agreement > 0.99
+    assert res.gyro_agreement > 0.99
     inside = (t_imu >= t_fr[0]) & (t_imu < t_fr[-1])
     for a, b in zip(t_fr[5:-5:7], t_fr[6:-4:7]):
         m = (t_imu >= a) & (t_imu < b)
@@ -76,8 +76,19 @@ def test_orientations_in_another_convention_are_not_used():
     flipped = _wxyz(quaternion_rotations(cori).inv())
     assert gyro_agreement(t_fr, cori, imu)[0] > 0.99
     assert gyro_agreement(t_fr, flipped, imu)[0] < -2.5
-    assert image_frame_imu(imu, t_fr, flipped, iori) is None
-    assert image_frame_imu(IMU(imu.time_s, imu.accel, None, "no gyro"), t_fr, cori, iori) is None
+    with pytest.raises(ValueError, match="CORI's rates do not follow the gyro's"):
+        image_frame_imu(imu, t_fr, flipped, iori)
+    with pytest.raises(ValueError, match="no gyro"):
+        image_frame_imu(IMU(imu.time_s, imu.accel, None, "no gyro"), t_fr, cori, iori)
+
+
+@pytest.mark.parametrize("bad", ["nan", "zero"])
+def test_damaged_quaternions_are_refused_with_the_reason(bad):
+    imu, t_fr, cori, iori, *_ = _camera(seed=3)
+    broken = cori.copy()
+    broken[5] = np.nan if bad == "nan" else 0.0
+    with pytest.raises(ValueError, match="1 of their quaternions are not unit quaternions"):
+        image_frame_imu(imu, t_fr, broken, iori)
 
 
 def test_a_camera_too_still_to_check_keeps_its_imu():
@@ -86,4 +97,5 @@ def test_a_camera_too_still_to_check_keeps_its_imu():
     still = IMU(imu.time_s, imu.accel, imu.gyro * 1e-3, "still")
     slow = _wxyz(Rotation.from_rotvec(1e-3 * quaternion_rotations(cori).as_rotvec()))
     assert gyro_agreement(t_fr, slow, still)[1] < 0.02
-    assert image_frame_imu(still, t_fr, slow, iori) is None
+    with pytest.raises(ValueError, match="turns too little to check them"):
+        image_frame_imu(still, t_fr, slow, iori)

@@ -288,24 +288,21 @@ def _gopro_imu(path: Path, streams: dict[str, Stream], cam_path: Path | None, re
 
 def image_frame(imu: IMU, orientation: dict, stab: dict, notes: list[str]) -> IMU:
     """``imu`` turned into the stabilised image's frame by ``orientation``'s CORI and IORI ({key: (time_s (n,) s,
-    quaternions (n, 4) w, x, y, z)}) where it has both and they follow the gyro
+    quaternions (n, 4) w, x, y, z)}) where it has both and they can be used
     (:func:`lobula.readers.image_orientation.image_frame_imu`), else ``imu``. Where turned, ``stab``'s
     (:func:`stabilisation`'s) imu_frame becomes "image", with CORI's agreement with the gyro; ``notes`` say
-    which it was."""
-    from .image_orientation import MIN_CHECK_RATE, MIN_GYRO_AGREEMENT, gyro_agreement, image_frame_imu
+    which it was, and why."""
+    from .image_orientation import image_frame_imu
 
-    if "CORI" not in orientation or "IORI" not in orientation or imu.gyro is None:
+    if "CORI" not in orientation or "IORI" not in orientation:
         return imu
     (t, cori), (ti, iori) = orientation["CORI"], orientation["IORI"]
-    same = len(t) == len(ti) and np.allclose(t, ti, atol=1e-6)
-    res = image_frame_imu(imu, t, cori[:, :4], iori[:, :4]) if same else None
-    if res is None:
-        agreement, rate = gyro_agreement(t, cori[:, :4], imu) if same else (np.nan, np.nan)
-        why = ("their samples do not pair up" if not same else
-               f"the camera turns too little to check them against the gyro ({rate:.3f} rad/s RMS, "
-               f"{MIN_CHECK_RATE} needed)" if not rate >= MIN_CHECK_RATE else
-               f"CORI's rates do not follow the gyro's (agreement {agreement:.2f}, {MIN_GYRO_AGREEMENT} needed)")
-        notes.append(f"the file's camera and image orientations (CORI, IORI) are not used: {why}; the IMU stays in "
+    try:
+        if len(t) != len(ti) or not np.allclose(t, ti, atol=1e-6):
+            raise ValueError("their samples do not pair up")
+        res = image_frame_imu(imu, t, cori[:, :4], iori[:, :4])
+    except ValueError as exc:
+        notes.append(f"the file's camera and image orientations (CORI, IORI) are not used: {exc}; the IMU stays in "
                      f"the body's frame, which the stabilised image does not turn with")
         return imu
     stab.update(imu_frame="image", orientation_gyro_agreement=round(res.gyro_agreement, 3))

@@ -88,11 +88,8 @@ class ImageOrientation:
     mean_deg: float
 
 
-def image_frame_imu(imu: IMU, time_s: np.ndarray, cori: np.ndarray, iori: np.ndarray) -> ImageOrientation | None:
-    """The IMU turned into the stabilised image's frame (module doc), or None where the file's orientations cannot
-    be checked against its gyro (fewer than 3 quaternions, no gyro, the camera turning at under
-    :data:`MIN_CHECK_RATE`) or do not follow it (:func:`gyro_agreement` under :data:`MIN_GYRO_AGREEMENT`: then
-    they are not in the convention read here).
+def image_frame_imu(imu: IMU, time_s: np.ndarray, cori: np.ndarray, iori: np.ndarray) -> ImageOrientation:
+    """The IMU turned into the stabilised image's frame (module doc).
 
     Parameters
     ----------
@@ -105,14 +102,36 @@ def image_frame_imu(imu: IMU, time_s: np.ndarray, cori: np.ndarray, iori: np.nda
 
     Returns
     -------
-    ImageOrientation or None
+    ImageOrientation
+
+    Raises
+    ------
+    ValueError
+        Saying why the orientations cannot be used: no gyro, fewer than 3 samples, times that do not increase,
+        quaternions that are not finite or have no length, a camera turning at under :data:`MIN_CHECK_RATE` (too
+        still to check them against the gyro), or CORI's rates not following the gyro's (:func:`gyro_agreement`
+        under :data:`MIN_GYRO_AGREEMENT`: not the convention read here).
     """
     t = np.asarray(time_s, float)
-    if imu.gyro is None or len(t) < 3 or cori.shape != iori.shape or not np.all(np.diff(t) > 0):
-        return None
+    cori, iori = np.asarray(cori, float), np.asarray(iori, float)
+    if imu.gyro is None:
+        raise ValueError("the IMU has no gyro to check them against")
+    if len(t) < 3 or cori.shape != (len(t), 4) or iori.shape != (len(t), 4):
+        raise ValueError(f"they need 3 or more samples of 4 values each, paired with their times (got {len(t)} "
+                         f"times, CORI {cori.shape}, IORI {iori.shape})")
+    if not np.all(np.diff(t) > 0):
+        raise ValueError("their times do not increase")
+    norms = np.linalg.norm(np.concatenate([cori, iori]), axis=1)
+    if not np.all(np.isfinite(norms) & (norms > 0.5)):
+        raise ValueError(f"{int(np.sum(~(np.isfinite(norms) & (norms > 0.5))))} of their quaternions are not unit "
+                         f"quaternions (not finite, or of length under 0.5)")
     agreement, rate = gyro_agreement(t, cori, imu)
-    if not (rate >= MIN_CHECK_RATE and agreement >= MIN_GYRO_AGREEMENT):
-        return None
+    if not rate >= MIN_CHECK_RATE:
+        raise ValueError(f"the camera turns too little to check them against the gyro ({rate:.3f} rad/s RMS, "
+                         f"{MIN_CHECK_RATE} needed)")
+    if not agreement >= MIN_GYRO_AGREEMENT:
+        raise ValueError(f"CORI's rates do not follow the gyro's (agreement {agreement:.2f}, {MIN_GYRO_AGREEMENT} "
+                         f"needed)")
     body = quaternion_rotations(cori).inv()
     s = quaternion_rotations(iori).inv()  # image → body
     image = body * s
