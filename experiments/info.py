@@ -34,7 +34,8 @@ def open_footage_from_args(args, require_imu: bool = True, keep_nan: bool = Fals
                         skip_bad_frames=getattr(args, "skip_bad_frames", False),
                         clock_offset=getattr(args, "clock_offset", None),
                         undistort=getattr(args, "undistort", "same-k"), camera=getattr(args, "camera", None),
-                        keep_nan=keep_nan, require_camera=require_camera)
+                        keep_nan=keep_nan, require_camera=require_camera,
+                        rolling_shutter=getattr(args, "rolling_shutter", None))
 
 
 def _rate(t: np.ndarray) -> float | None:

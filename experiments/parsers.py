@@ -179,6 +179,11 @@ def add_footage_options(p) -> None:
                    help="seconds added to the IMU's times to put them on the camera's clock, or 'auto' to "
                         "estimate it by cross-correlating the gyro with the image rotation (default: none, the "
                         "times as recorded)")
+    p.add_argument("--rolling-shutter", type=Number(0, note="lobula.camera.PinholeCamera.rolling_shutter_s"),
+                   default=None, metavar="SECONDS",
+                   help="the sensor's readout, its first row's exposure to its last's (s): each row's flow is put "
+                        "back on the frames' times for the rotation (lobula.rolling_shutter) (default: the "
+                        "camera.json's rolling_shutter_s, else 0, a global shutter)")
     p.add_argument("--undistort", default="same-k", choices=["same-k", "optimal"],
                    help="a distorted lens (EuRoC's sensor.yaml, or a camera.json \"distortion\": kannala-brandt or "
                         "radtan): resample each frame onto a pinhole camera with the same K (same-k), or with a focal "

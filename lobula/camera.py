@@ -27,7 +27,8 @@ class PinholeCamera:
     """Intrinsics of a pinhole camera.
 
     width, height: image size (pixels); fx, fy: focal lengths (pixels);
-    cx, cy: principal point (pixels); frame_rate_hz: frames per second.
+    cx, cy: principal point (pixels); frame_rate_hz: frames per second; rolling_shutter_s: the time from the
+    first row's exposure to the last's (s; 0, the default: a global shutter; :mod:`lobula.rolling_shutter`).
     """
 
     width: int = D435I["width"]
@@ -37,12 +38,16 @@ class PinholeCamera:
     cx: float = D435I["cx"]
     cy: float = D435I["cy"]
     frame_rate_hz: float = D435I["frame_rate_hz"]
+    rolling_shutter_s: float = 0.0
 
     def __post_init__(self):
         if self.width <= 0 or self.height <= 0 or self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"camera size and focal lengths must be positive, got {self}")
         if self.frame_rate_hz <= 0:
             raise ValueError(f"frame_rate_hz must be positive, got {self.frame_rate_hz}")
+        if not 0.0 <= self.rolling_shutter_s <= 1.0 / self.frame_rate_hz:
+            raise ValueError(f"rolling_shutter_s must lie between 0 and the frame interval "
+                             f"{1.0 / self.frame_rate_hz:.4f} s, got {self.rolling_shutter_s}")
 
     @classmethod
     def from_json(cls, path: str | Path) -> "PinholeCamera":
@@ -57,8 +62,11 @@ class PinholeCamera:
             raise ValueError(f"{path}: not a valid camera.json ({exc}); it needs width, height, fx, fy, cx, cy, frame_rate_hz") from None
 
     def to_dict(self) -> dict:
-        """The fields as a dict (px, Hz), as a camera.json holds them."""
-        return asdict(self)
+        """The fields as a dict (px, Hz, s), as a camera.json holds them (rolling_shutter_s only where not 0)."""
+        d = asdict(self)
+        if not d["rolling_shutter_s"]:
+            del d["rolling_shutter_s"]
+        return d
 
     def scaled(self, scale: float) -> "PinholeCamera":
         """The same camera with the image resampled by ``scale`` (0.5 halves each side).

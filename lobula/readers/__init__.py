@@ -204,7 +204,8 @@ def _reader_for(path: Path) -> Reader:
 def open_footage(path: str | Path, *, stream: str | None = None, clock: str | None = None,
                  require_imu: bool = True, skip_bad_frames: bool = False,
                  clock_offset: float | str | None = None, undistort: str = "same-k",
-                 camera: str | Path | None = None, keep_nan: bool = False, require_camera: bool = True) -> Footage:
+                 camera: str | Path | None = None, keep_nan: bool = False, require_camera: bool = True,
+                 rolling_shutter: float | None = None) -> Footage:
     """Open any footage the registered readers know, checking everything cheap up front.
 
     path: a footage folder, the D435i sample folder, a RealSense ``.bag`` (ROS1) or ``.db3``
@@ -235,6 +236,9 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
     them per column (IMU.nan_counts, ``truth_nan_counts``) instead of stopping (``lobula info``).
     require_camera: a GoPro MP4 carries no intrinsics: without ``camera`` or a camera.json beside
     it, stop (True) or open it with ``camera=None`` (False, ``lobula info``).
+    rolling_shutter: the sensor's readout, its first row's exposure to its last's (s), in place of
+    the camera's own ``rolling_shutter_s`` (:mod:`lobula.rolling_shutter`; before any self-calibration, which then
+    times the image's rotation at its rows' mean exposure).
     """
     path = Path(path)
     if clock not in (None, "device", "header", "record"):
@@ -271,10 +275,29 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
                              f"(from {given})")
     elif clock_offset not in (None, 0, 0.0, "0"):
         _apply_clock_offset(footage, clock_offset)
+    if rolling_shutter is not None and footage.camera is not None:
+        _apply_rolling_shutter(footage, rolling_shutter)
     if getattr(footage, "lens_guess", None) is not None and footage.imu is not None:
         from .self_calibration import self_calibrate
         self_calibrate(footage, clock=clock_offset is None)
     return footage
+
+
+def _apply_rolling_shutter(footage: "Footage", readout_s: float) -> None:
+    """Give ``footage``'s camera (and the raw camera behind a resampled lens) a rolling shutter's readout (s, the
+    ``rolling_shutter`` option), said in its notes; FootageError where it is negative or exceeds the frame
+    interval."""
+    from dataclasses import replace
+
+    from .core import FootageError
+    try:
+        footage.camera = replace(footage.camera, rolling_shutter_s=float(readout_s))
+    except ValueError as exc:
+        raise FootageError(f"{footage.path}: --rolling-shutter {readout_s:g}: {exc}") from None
+    if isinstance(footage.distortion, dict) and "raw_camera" in footage.distortion:
+        footage.distortion["raw_camera"]["rolling_shutter_s"] = float(readout_s)
+    footage.notes.append(f"rolling shutter: {1e3 * readout_s:.1f} ms readout, first row to last (--rolling-shutter); "
+                         f"each row's flow is put back on the frames' times for the rotation")
 
 
 def _footage_size_and_rate(path: Path) -> tuple[tuple[int, int] | None, float | None]:
@@ -315,7 +338,13 @@ def _converted_camera_json(intr, given: Path, path: Path, tmp: Path):
     if size is not None:
         intr = intr.scaled_to(size[0], size[1], given)
     out = tmp / f"{given.stem}.camera.json"
-    out.write_text(json.dumps(camera_json_of(intr, rate or 30.0)))
+    d = camera_json_of(intr, rate or 30.0)
+    if d.get("rolling_shutter_s", 0.0) > 1.0 / d["frame_rate_hz"]:
+        from .core import FootageError
+        raise FootageError(f"{given}: its readout, {1e3 * d['rolling_shutter_s']:.1f} ms, is longer than the "
+                           f"footage's frame interval ({1e3 / d['frame_rate_hz']:.1f} ms): a profile of another "
+                           f"frame rate; give this mode's")
+    out.write_text(json.dumps(d))
     return out, intr
 
 

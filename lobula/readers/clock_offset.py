@@ -52,7 +52,8 @@ def gyro_at(imu, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class FlowSamples:
     """Dense flow between consecutive frames, sampled on a fixed grid of points.
 
-    time_s (n,) s: the frame pairs' mid times; x, y (m,): the points' normalised image coordinates; flow
+    time_s (n,) s: the frame pairs' mid times, plus half a rolling shutter's readout (the rows' mean exposure,
+    lobula.camera.PinholeCamera.rolling_shutter_s); x, y (m,): the points' normalised image coordinates; flow
     (n, 2, m) 1/s: the flow (u, v) at each point per second, in normalised coordinates."""
 
     time_s: np.ndarray
@@ -72,6 +73,7 @@ def image_flow_samples(footage, max_frames: int = 900, width: int = 160,
     step = max(1, int(np.sqrt(small.width * small.height / 3000)))
     xs, ys = x[::step, ::step].ravel(), y[::step, ::step].ravel()
     dis = cv2.DISOpticalFlow_create(preset)
+    late = 0.5 * getattr(cam, "rolling_shutter_s", 0.0)  # a rolling shutter's rows are seen, on average, this late
     prev, out_t, out_f = None, [], []
     for _, t, img in footage.frames(0, max_frames):
         g = cv2.resize(img, (small.width, small.height), interpolation=cv2.INTER_AREA) if scale < 1 else img
@@ -80,7 +82,7 @@ def image_flow_samples(footage, max_frames: int = 900, width: int = 160,
             dt = t - prev[0]
             f = dis.calc(prev[1], g, None)[::step, ::step]
             out_f.append(np.stack([f[..., 0].ravel() / small.fx / dt, f[..., 1].ravel() / small.fy / dt]))
-            out_t.append(0.5 * (t + prev[0]))
+            out_t.append(0.5 * (t + prev[0]) + late)
         prev = (t, g)
     flow = np.asarray(out_f, np.float32).reshape(-1, 2, len(xs))
     return FlowSamples(np.asarray(out_t, float), xs, ys, flow)

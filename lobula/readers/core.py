@@ -42,7 +42,8 @@ CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy", "frame_rate_hz")
 
 def read_camera_json(path: str | Path) -> PinholeCamera:
     """The intrinsics of the camera.json at ``path`` (width, height, fx, fy, cx, cy in pixels; frame_rate_hz
-    in Hz), each field checked: a FootageError names the file, the field, what it must be and what it is."""
+    in Hz; optionally rolling_shutter_s in s), each field checked: a FootageError names the file, the field, what
+    it must be and what it is."""
     path = Path(path)
     need = ", ".join(CAMERA_FIELDS)
     try:
@@ -70,6 +71,13 @@ def read_camera_json(path: str | Path) -> PinholeCamera:
         if k in ("width", "height", "fx", "fy", "frame_rate_hz") and v <= 0:
             raise FootageError(f"{path}: {k} must be > 0, got {v:g}")
         vals[k] = int(v) if k in ("width", "height") else float(v)
+    if "rolling_shutter_s" in d:  # optional: a rolling shutter's readout (lobula.rolling_shutter)
+        v = d["rolling_shutter_s"]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0 / vals["frame_rate_hz"]:
+            raise FootageError(f"{path}: rolling_shutter_s (s, the first row's exposure to the last's) must be a "
+                               f"number from 0 to the frame interval {1.0 / vals['frame_rate_hz']:.4f} s, got "
+                               f"{json.dumps(v)}")
+        vals["rolling_shutter_s"] = float(v)
     return PinholeCamera(**vals)
 
 

@@ -44,7 +44,8 @@ class Intrinsics:
     """A calibration read from any format: pixels (width, height, fx, fy, cx, cy), the lens
     ({"model", "coeffs"} or None), the IMU's rotation into the camera (3, 3) or None, the IMU's clock
     offset onto the camera's (s, added to the IMU's times) or None, the frame rate (Hz) or None, and the
-    format's name as a sentence takes it ("a Kalibr camchain")."""
+    format's name as a sentence takes it ("a Kalibr camchain"), and a rolling shutter's readout (s, first row to
+    last) or None."""
 
     width: int
     height: int
@@ -58,6 +59,7 @@ class Intrinsics:
     frame_rate_hz: float | None = None
     format: str = "camera.json"
     notes: list = field(default_factory=list)
+    rolling_shutter_s: float | None = None
 
     def scaled_to(self, width: int, height: int, path: Path) -> "Intrinsics":
         """The same lens at another resolution of the same aspect ratio (pixels scale, coefficients do not);
@@ -70,7 +72,7 @@ class Intrinsics:
                                f"another aspect ratio (a crop): give a calibration of this resolution")
         out = Intrinsics(width, height, self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5,
                          (self.cy + 0.5) * sy - 0.5, self.distortion, self.imu_to_camera, self.imu_clock_offset_s,
-                         self.frame_rate_hz, self.format, list(self.notes))
+                         self.frame_rate_hz, self.format, list(self.notes), self.rolling_shutter_s)
         out.notes.append(f"calibrated at {self.width}x{self.height}, scaled by {sx:.4g} to {width}x{height}")
         return out
 
@@ -212,6 +214,15 @@ def _from_gyroflow(d: dict, path: Path) -> Intrinsics:
     out = Intrinsics(w, h, fx, fy, cx, cy, lens, frame_rate_hz=d.get("fps") or None, format="a Gyroflow lens profile")
     if name:
         out.notes.append(f"profile of {name}")
+    readout = d.get("frame_readout_time")
+    if isinstance(readout, (int, float)) and not isinstance(readout, bool) and readout > 0:
+        direction = d.get("frame_readout_direction") or "TopToBottom"
+        if direction == "TopToBottom":
+            out.rolling_shutter_s = float(readout) / 1e3
+            out.notes.append(f"rolling shutter: {readout:g} ms readout (frame_readout_time)")
+        else:
+            out.notes.append(f"its rolling shutter reads {direction}, which is not modelled (top to bottom is): "
+                             f"treated as a global shutter")
     if d.get("input_horizontal_stretch") not in (None, 1, 1.0):
         raise FootageError(f"{path}: a lens profile for horizontally stretched footage (input_horizontal_stretch "
                            f"{d['input_horizontal_stretch']}) is not supported")
@@ -244,7 +255,7 @@ def read_intrinsics(path: str | Path) -> Intrinsics:
             return _from_opencv(path)
         cam = read_camera_json(path)  # the project's own: its errors name the field
         return Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, frame_rate_hz=cam.frame_rate_hz,
-                          format="camera.json")
+                          format="camera.json", rolling_shutter_s=cam.rolling_shutter_s or None)
     import yaml
 
     try:
@@ -269,4 +280,6 @@ def camera_json_of(intr: Intrinsics, frame_rate_hz: float) -> dict:
         d["distortion"] = intr.distortion
     if intr.imu_to_camera is not None:
         d["imu_to_camera"] = np.asarray(intr.imu_to_camera, float).tolist()
+    if intr.rolling_shutter_s:
+        d["rolling_shutter_s"] = float(intr.rolling_shutter_s)
     return d

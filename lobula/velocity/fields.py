@@ -21,6 +21,7 @@ from lobula.readers.core import Footage, FootageError
 from lobula.readers.flo import FloUnits
 from lobula.readout import MaterialRates
 from lobula.receptive_field import MaterialFields, ReceptiveFields, gap_correction, pool_fields, tile_fields
+from lobula.rolling_shutter import global_shutter_flow, pixel_delays
 from lobula.threads import threaded
 
 
@@ -147,9 +148,13 @@ class FieldPooling:
     """
 
     def __init__(self, camera, config: VelocityConfig, fields: ReceptiveFields, live: bool, attitude=None,
-                 imu_time=None, gyro=None, still_bias=None, residual_bias=None):
+                 imu_time=None, gyro=None, still_bias=None, residual_bias=None, lens_maps=None):
         self.camera, self.config, self.fields = camera, config, fields
         x, y = fields.x, fields.y
+        # A rolling shutter's rows are exposed at their own times: each pair's flow is put back on the frames'
+        # times for the rotation before anything reads it (lobula.rolling_shutter).
+        self.delays = (pixel_delays(y, camera, camera.rolling_shutter_s, lens_maps)
+                       if attitude is not None and getattr(camera, "rolling_shutter_s", 0.0) > 0 else None)
         # ~5,000 pixels are plenty for a 2-parameter fit, whatever the image size.
         self.est = EpipoleEstimator(x, y, stride=max(1, int(np.sqrt(camera.width * camera.height / 5000))))
         self.attitude = self.plain_attitude = attitude
@@ -205,6 +210,9 @@ class FieldPooling:
     def push(self, s: FlowSample) -> PooledPair:
         """Derotate, locate the epipole in and pool pair ``s``; returns its :class:`PooledPair`."""
         config, est, attitude = self.config, self.est, self.attitude
+        if self.delays is not None:
+            s = FlowSample(s.index, s.t0, s.t1, global_shutter_flow(self.fields.x, self.fields.y, s.flow, s.t0, s.t1,
+                                                                    self.delays, self.plain_attitude))
         flow, q = s.flow, (None, None, None)
         hb = res = None
         if attitude is not None:
@@ -336,7 +344,7 @@ def footage_pooling(footage: Footage, config: VelocityConfig, fields: ReceptiveF
             residual = lambda t: np.array([np.interp(t, imu.time_s, b0[:, k]) for k in range(3)])
     try:
         return FieldPooling(footage.camera, config, fields, live, attitude,
-                            None if gyro is None else imu.time_s, gyro, still_at, residual)
+                            None if gyro is None else imu.time_s, gyro, still_at, residual, footage.lens_maps)
     except ValueError as exc:  # an option this footage cannot serve: name the footage
         raise ValueError(f"{footage.path}: {exc}") from None
 
