@@ -55,7 +55,8 @@ class PinholeCamera:
         path = Path(path)
         try:
             d = json.loads(path.read_text())
-            return cls(**{k: d[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "frame_rate_hz")})
+            return cls(**{k: d[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "frame_rate_hz")},
+                       rolling_shutter_s=float(d.get("rolling_shutter_s", 0.0)))
         except FileNotFoundError:
             raise FileNotFoundError(f"{path}: no camera.json; write one with width, height, fx, fy, cx, cy, frame_rate_hz") from None
         except (KeyError, TypeError, json.JSONDecodeError) as exc:
