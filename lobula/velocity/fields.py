@@ -145,6 +145,10 @@ class FieldPooling:
     residual_bias : callable, optional
         With ``config.gyro_bias_from_vision``: t s -> (3,) rad/s, the still-camera bias the derotation removed;
         each gap-th pair's residual rotation (:func:`residual_rate`) is then fitted.
+    lens_maps : tuple of ndarray, optional
+        (map_x, map_y) px: where a resampled lens's pinhole pixels lie on the raw sensor, whose rows set a rolling
+        shutter's delays (``camera.rolling_shutter_s``, :mod:`lobula.rolling_shutter`; each pair's flow is put back
+        on the frames' times first).
     """
 
     def __init__(self, camera, config: VelocityConfig, fields: ReceptiveFields, live: bool, attitude=None,
@@ -344,7 +348,8 @@ def footage_pooling(footage: Footage, config: VelocityConfig, fields: ReceptiveF
             residual = lambda t: np.array([np.interp(t, imu.time_s, b0[:, k]) for k in range(3)])
     try:
         return FieldPooling(footage.camera, config, fields, live, attitude,
-                            None if gyro is None else imu.time_s, gyro, still_at, residual, footage.lens_maps)
+                            None if gyro is None else imu.time_s, gyro, still_at, residual,
+                            getattr(footage, "lens_maps", None))
     except ValueError as exc:  # an option this footage cannot serve: name the footage
         raise ValueError(f"{footage.path}: {exc}") from None
 
