@@ -21,6 +21,7 @@ from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
 from lobula.imu import orientation_from_gyro
 from lobula.readers.core import Footage, FootageError
 from lobula.readout import answered_velocity
+from lobula.rolling_shutter import global_shutter_flow, pixel_delays
 
 __all__ = ["Pair", "attitude_track", "pair_rotation", "metric_scale", "mean_truth_velocity", "flow_config",
            "depth_flow_fn", "stabilised_average", "frames_averaged", "footage_attitude", "ranged_pairs"]
@@ -251,6 +252,12 @@ def ranged_pairs(footage: Footage, velocity, run, timings: dict | None = None,
         raise ValueError(f"pair start frames must lie in 0..{n_pairs - 1}, got {starts}")
     heads = _heading_at_first_frames(footage, velocity, vcfg, run, attitude, starts, gap)
     flow_fn = depth_flow_fn(fcfg, run.flow)
+    # A rolling shutter's rows, put back on the frames' times for the rotation as the velocity run did
+    # (lobula.rolling_shutter).
+    shutter = None
+    if attitude is not None and getattr(cam, "rolling_shutter_s", 0.0) > 0:
+        gx, gy = cam.normalised_grid(np.float64)
+        shutter = gx, gy, pixel_delays(gy, cam, cam.rolling_shutter_s, getattr(footage, "lens_maps", None))
     half = frames_averaged(run, attitude)
     read = _FrameReader(footage, keep=gap + 2 + 2 * half)
     image = (lambda i: read(i)) if half == 0 else (
@@ -275,6 +282,8 @@ def ranged_pairs(footage: Footage, velocity, run, timings: dict | None = None,
             r0, tf = read.read_s, _time.perf_counter()
             a, b = image(i0), image(i1)
             pair.flow = pixel_to_angular(flow_fn(a, b), cam, t1 - t0)
+            if shutter is not None:
+                pair.flow = global_shutter_flow(shutter[0], shutter[1], pair.flow, t0, t1, shutter[2], attitude)
             reading = read.read_s - r0
             timings["read"] += reading
             timings["flow"] += _time.perf_counter() - tf - reading   # the frame average included

@@ -141,3 +141,17 @@ def test_the_option_sets_the_readout_or_says_why_not(rolling_run, capsys):
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "--rolling-shutter 0.05" in err and "Traceback" not in err
     assert not (rolling_run.parent / "o.nc").exists()
+
+
+def test_depth_on_a_rolling_shutter_run(rolling_run):
+    """The depth pass puts the rows back on the frames' times as the velocity run does: with the truth's speed,
+    ratio depth's AbsRel 0.17 (a global shutter's render: 0.14) where read as a global shutter it is 0.39."""
+    from experiments.depth_stream import DepthRunConfig, estimate_depth
+    from lobula.readers import open_footage
+
+    scores = {}
+    for readout in (None, 0.0):
+        ds = estimate_depth(open_footage(rolling_run, rolling_shutter=readout),
+                            run=DepthRunConfig(method="ratio", every=10, velocity="truth"), progress=False)
+        scores[readout] = float(ds.pooled_abs_rel.sel(ring="all"))
+    assert scores[None] < 0.22 and scores[0.0] > 1.8 * scores[None], scores
