@@ -155,3 +155,15 @@ def test_depth_on_a_rolling_shutter_run(rolling_run):
                             run=DepthRunConfig(method="ratio", every=10, velocity="truth"), progress=False)
         scores[readout] = float(ds.pooled_abs_rel.sel(ring="all"))
     assert scores[None] < 0.22 and scores[0.0] > 1.8 * scores[None], scores
+
+
+def test_where_the_shutter_cannot_be_corrected_the_output_says_so(rolling_run):
+    from dataclasses import replace
+
+    from lobula.config import VelocityConfig
+    from lobula.readers import open_footage
+    from lobula.velocity.pipeline import estimate_velocity
+
+    fo = open_footage(rolling_run)
+    ds = estimate_velocity(fo, replace(VelocityConfig(), derotate=False), progress=False)
+    assert "rolling shutter (33.0 ms) not corrected: derotation is off" in ds.attrs["notes"]

@@ -53,6 +53,7 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     config = config or VelocityConfig()
     front = get_front_end(config.front_end)
     _check_epipole(config, front)
+    _note_uncorrected_shutter(footage, config, front)
     t_start = _time.perf_counter()
     rates = field_rates(footage, config, flo_files, flo_units, progress)
     causal = config.readout.filter == "causal"
@@ -81,6 +82,20 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     ds = velocity_dataset(rates, res, a, accel_source, footage, vb, rot)
     ds.attrs.update(_run_attrs(config, front, rates, res, accel_source, footage, t_start))
     return ds
+
+
+def _note_uncorrected_shutter(footage: Footage, config: VelocityConfig, front) -> None:
+    """Say in ``footage``'s notes where its camera's rolling shutter cannot be put back on the frames' times: the
+    correction turns each row's flow by the gyro before it is pooled (lobula.rolling_shutter)."""
+    readout = getattr(footage.camera, "rolling_shutter_s", 0.0) if footage.camera is not None else 0.0
+    if not readout:
+        return
+    imu = footage.imu
+    why = ("the footage has no gyro" if imu is None or imu.gyro is None else
+           "derotation is off" if not config.derotate else
+           f"the {front.name} front end pools its own fields, not flow" if front.yields == "fields" else None)
+    if why:
+        footage.notes.append(f"rolling shutter ({1e3 * readout:.1f} ms) not corrected: {why}")
 
 
 def _check_epipole(config: VelocityConfig, front) -> None:
