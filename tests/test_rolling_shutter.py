@@ -143,6 +143,7 @@ def test_the_option_sets_the_readout_or_says_why_not(rolling_run, capsys):
     assert not (rolling_run.parent / "o.nc").exists()
 
 
+@pytest.mark.slow
 def test_depth_on_a_rolling_shutter_run(rolling_run):
     """The depth pass puts the rows back on the frames' times as the velocity run does: with the truth's speed,
     ratio depth's AbsRel 0.17 (a global shutter's render: 0.14) where read as a global shutter it is 0.39."""
@@ -158,12 +159,24 @@ def test_depth_on_a_rolling_shutter_run(rolling_run):
 
 
 def test_where_the_shutter_cannot_be_corrected_the_output_says_so(rolling_run):
+    """Without a gyro, with derotation off, or through a front end that pools its own fields, the rows cannot be
+    put back on the frames' times: the notes (and so the output's attrs) say which."""
     from dataclasses import replace
 
     from lobula.config import VelocityConfig
+    from lobula.front_ends import get_front_end
     from lobula.readers import open_footage
-    from lobula.velocity.pipeline import estimate_velocity
+    from lobula.readers.core import IMU
+    from lobula.velocity.pipeline import _note_uncorrected_shutter
 
-    fo = open_footage(rolling_run)
-    ds = estimate_velocity(fo, replace(VelocityConfig(), derotate=False), progress=False)
-    assert "rolling shutter (33.0 ms) not corrected: derotation is off" in ds.attrs["notes"]
+    cases = [(VelocityConfig(), "dis", None), (replace(VelocityConfig(), derotate=False), "dis", "derotation is off"),
+             (VelocityConfig(), "emd", "the emd front end pools its own fields, not flow"),
+             (VelocityConfig(), "dis", "no gyro")]
+    for config, front, why in cases:
+        fo = open_footage(rolling_run)
+        if why == "no gyro":
+            fo.imu = IMU(fo.imu.time_s, fo.imu.accel, None, "no gyro")
+            why = "the footage has no gyro"
+        _note_uncorrected_shutter(fo, config, get_front_end(front))
+        said = [n for n in fo.notes if n.startswith("rolling shutter (33.0 ms) not corrected")]
+        assert said == ([] if why is None else [f"rolling shutter (33.0 ms) not corrected: {why}"])
