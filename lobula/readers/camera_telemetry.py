@@ -17,9 +17,10 @@ fisheye) is opened as GoPro MP4s are, as an equidistant lens of a nominal field 
 as a pinhole of a phone's field of view; the gyro then measures the focal length where the footage turns
 enough (:mod:`lobula.readers.self_calibration`), and the output says which. A 360° camera's 2:1 picture is
 refused without intrinsics. GoPro MP4s are read by :mod:`lobula.readers.gopro`; by this reader where GoPro's
-own parser is not installed (it has Linux x86-64 wheels only): the IMU, the GPS truth (:func:`gopro_gps`), the
+own parser is not installed (it has Linux x86-64 wheels only): the IMU, the GPS truth (:func:`gopro_gps`) and the
 camera and image orientations (:func:`gopro_orientations`, turning a stabilised clip's IMU into its image's frame),
-the settings and the stated field of view (:func:`gopro_telemetry`), as the GoPro reader has them. A video with
+both timed by the MP4's telemetry track (:func:`packet_times`), the settings and the stated field of view
+(:func:`gopro_telemetry`), as the GoPro reader has them. A video with
 an ``imu.csv`` beside it stays the ``video`` layout.
 """
 from __future__ import annotations
@@ -187,29 +188,40 @@ def gopro_telemetry(path: Path, notes: list[str]) -> tuple[dict, list[dict]]:
 _ORIENTATION_GROUPS = {"CORI": "CameraOrientation", "IORI": "ImageOrientation"}
 
 
-def gopro_orientations(path: Path, groups: list[dict], notes: list[str]) -> dict:
-    """The camera's and the image's orientations (CORI, IORI) in telemetry-parser's packets ``groups``
-    (:func:`gopro_telemetry`) of the GoPro MP4 at ``path``, as :class:`lobula.readers.gopro.GoProFootage`'s
-    ``orientation`` holds them: {key: (time_s (n,) s on the video's clock, each packet's samples spread over its
-    span, quaternions (n, 4) w, x, y, z)}; {} where the file has neither or its packets do not line up with the
-    telemetry track's, with a note saying which."""
-    from .gopro_telemetry import packet_sample_times, packet_spans
+def packet_times(path: Path, groups: list[dict], notes: list[str]) -> list[tuple[float, float]] | None:
+    """Each of telemetry-parser's packets ``groups`` (:func:`gopro_telemetry`) of the GoPro MP4 at ``path`` timed by
+    the MP4's telemetry track: their spans [t_in, t_out) s on the video's clock (demuxed once, not decoded); None
+    where no packet holds GPS or orientations, or where the track cannot be read or its packets do not line up
+    with telemetry-parser's, with a note saying which."""
+    from .gopro_telemetry import packet_spans
 
-    if not any(name in g for g in groups for name in _ORIENTATION_GROUPS.values()):
-        return {}
+    if not any("GPS" in g or name in g for g in groups for name in _ORIENTATION_GROUPS.values()):
+        return None
+    what = "GPS and camera and image orientations not read"
     try:
         spans = packet_spans(path)
     except FootageError as exc:
-        notes.append(f"camera and image orientations not read: {exc}")
-        return {}
+        notes.append(f"{what}: {exc}")
+        return None
     if len(groups) != len(spans):
-        notes.append(f"camera and image orientations not read: telemetry-parser gives {len(groups)} telemetry "
-                     f"packets where the MP4's track has {len(spans)}, so their times are not known")
-        return {}
+        notes.append(f"{what}: telemetry-parser gives {len(groups)} telemetry packets where the MP4's track has "
+                     f"{len(spans)}, so their times are not known")
+        return None
+    return spans
+
+
+def gopro_orientations(groups: list[dict], spans: list[tuple[float, float]] | None) -> dict:
+    """The camera's and the image's orientations (CORI, IORI) in telemetry-parser's packets ``groups``
+    (:func:`gopro_telemetry`), timed by their ``spans`` (:func:`packet_times`), as
+    :class:`lobula.readers.gopro.GoProFootage`'s ``orientation`` holds them: {key: (time_s (n,) s on the video's
+    clock, each packet's samples spread over its span, quaternions (n, 4) w, x, y, z)}; {} without spans or
+    orientations."""
+    from .gopro_telemetry import packet_sample_times
+
     out = {}
     for key, name in _ORIENTATION_GROUPS.items():
         times, quats = [], []
-        for (t_in, t_out), g in zip(spans, groups):
+        for (t_in, t_out), g in zip(spans or [], groups):
             group = g.get(name) or {}
             q = np.array([[d["w"], d["x"], d["y"], d["z"]] for d in group.get("Data") or []], float)
             if len(q):
@@ -220,24 +232,14 @@ def gopro_orientations(path: Path, groups: list[dict], notes: list[str]) -> dict
     return out
 
 
-def gopro_gps(path: Path, groups: list[dict], notes: list[str]) -> dict | None:
-    """The GPS samples in telemetry-parser's packets ``groups`` (:func:`gopro_telemetry`) of the GoPro MP4 at
-    ``path``, as :func:`lobula.readers.gopro.gps_samples` gives them (time_s on the video's clock, each packet's
-    samples spread over its span from the MP4's sample table; lat_deg, lon_deg, alt_m, speed_2d_m_s,
-    speed_3d_m_s, fix, dop); None where the file has none or its packets do not line up with the telemetry
-    track's, with a note saying which."""
-    from .gopro_telemetry import packet_sample_times, packet_spans
+def gopro_gps(groups: list[dict], spans: list[tuple[float, float]] | None) -> dict | None:
+    """The GPS samples in telemetry-parser's packets ``groups`` (:func:`gopro_telemetry`), timed by their ``spans``
+    (:func:`packet_times`), as :func:`lobula.readers.gopro.gps_samples` gives them (time_s on the video's clock,
+    each packet's samples spread over its span; lat_deg, lon_deg, alt_m, speed_2d_m_s, speed_3d_m_s, fix, dop);
+    None without spans or GPS."""
+    from .gopro_telemetry import packet_sample_times
 
-    if not any("GPS" in g for g in groups):
-        return None
-    try:
-        spans = packet_spans(path)
-    except FootageError as exc:
-        notes.append(f"GPS not read: {exc}")
-        return None
-    if len(groups) != len(spans):
-        notes.append(f"GPS not read: telemetry-parser gives {len(groups)} telemetry packets where the MP4's track "
-                     f"has {len(spans)}, so their times are not known")
+    if spans is None:
         return None
     cols, gps9 = {k: [] for k in ("time_s", "data", "fix", "dop")}, False
     for (t_in, t_out), g in zip(spans, groups):
@@ -325,10 +327,11 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
     source = f"{sidecar} (.gcsv)" if log["camera"] == "gcsv" else f"{path} ({who} motion log)"
     cam_path = camera_file(path, camera_json)
     gopro, settings, packets, gopro_notes = (log["camera"] or "").lower() == "gopro", {}, [], []
-    orientation = {}
+    orientation, spans = {}, None
     if gopro:
         settings, packets = gopro_telemetry(path, gopro_notes)
-        orientation = gopro_orientations(path, packets, gopro_notes)
+        spans = packet_times(path, packets, gopro_notes)
+        orientation = gopro_orientations(packets, spans)
     camera, lens_guess = None, None
     spherical = abs(w - 2 * h) <= 0.02 * w  # a 2:1 frame: a 360° camera's equirectangular or dual-fisheye picture
     if cam_path is not None:
@@ -391,7 +394,7 @@ def open_camera_telemetry(path: str | Path, require_imu: bool = True, camera_jso
         from .core import read_truth_csv
         truth, _ = read_truth_csv(tp, False)
     elif gopro:
-        truth = gps_truth(gopro_gps(path, packets, notes), notes)
+        truth = gps_truth(gopro_gps(packets, spans), notes)
     streams = [dict(stream="video", codec=codec, frames=len(times), nominal_fps=round(fps, 3)),
                dict(stream="motion log", source=who, samples=len(log["time_s"]),
                     sensors=", ".join(n for n, x in (("accelerometer", log["accel"]), ("gyroscope", log["gyro"]))

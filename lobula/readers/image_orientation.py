@@ -64,12 +64,11 @@ def gyro_agreement(time_s: np.ndarray, cori: np.ndarray, imu: IMU) -> tuple[floa
     gyro's, both averaged over the quaternions' intervals, as 1 − Σ|ω_B − ω|²/Σ|ω|² over the intervals inside the
     IMU's record and all axes (1: the same, 0: no better than none, negative: turning the other way), and the
     gyro's RMS rate there. ``cori`` (n, 4) w, x, y, z at ``time_s`` (n,) s; ``imu`` in the camera frame."""
-    _, w = body_rates(time_s, quaternion_rotations(cori).inv())
+    from lobula.imu.resample import resample_to
+
+    mid, w = body_rates(time_s, quaternion_rotations(cori).inv())
     edges = np.asarray(time_s, float)
-    cum = np.stack([np.concatenate([[0.0], np.cumsum(0.5 * (imu.gyro[1:, j] + imu.gyro[:-1, j])
-                                                       * np.diff(imu.time_s))]) for j in range(3)], 1)
-    at = np.stack([np.interp(edges, imu.time_s, cum[:, j]) for j in range(3)], 1)
-    g = np.diff(at, axis=0) / np.diff(edges)[:, None]
+    g = np.stack([resample_to(mid, imu.time_s, imu.gyro[:, j], np.diff(edges)) for j in range(3)], 1)
     inside = (edges[:-1] >= imu.time_s[0]) & (edges[1:] <= imu.time_s[-1])
     power = float(np.sum(g[inside] ** 2))
     if power == 0.0:
