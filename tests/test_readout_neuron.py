@@ -43,6 +43,7 @@ def test_trials_are_batched_and_spiking_is_seeded():
     assert s1["spikes_plus"].sum() > 0
 
 
+@pytest.mark.slow  # the 30 s EMD replay
 def test_neuron_on_the_emd_replay_is_close_to_the_arithmetic_readout(emd_replay):
     """Same EMD input (30 s replay). The neuron is causal, so its fair comparison is the
     causal arithmetic readout; the zero-phase one is reported too.
