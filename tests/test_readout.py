@@ -753,8 +753,9 @@ def test_a_shorter_online_window_shortens_the_latency_the_filter_bridges():
         r_dot = r_dot0 + c[:, None] * r / v_fn(t)[:, None] + 0.2 * rng.normal(0, 1, r.shape) * np.abs(r)
         acc = a + 0.05 + np.random.default_rng(10 + seed).normal(0, 0.02, t.shape)
         for w, frames in ((2.5, 17), (1.5, 11)):
-            # Without the reversals (read from the newest r̄, no window): the latency alone is compared.
-            res = readout(t, r, r2, acc, ReadoutConfig(filter="causal", online_window_sigma=w, reversal=False),
+            # Without the reversals and stops (read from the newest r̄, no window): the latency alone is compared.
+            res = readout(t, r, r2, acc, ReadoutConfig(filter="causal", online_window_sigma=w, reversal=False,
+                                                       stop=False),
                           material=MaterialRates(r, r2, r_dot))
             assert res.info["measurement_delay_s"] == pytest.approx(frames / 30), w
             m = (t >= 2) & res.observable
@@ -1232,3 +1233,57 @@ def test_the_vision_terms_stand_beside_the_acceleration_averaged_as_the_rates_av
         assert out["a"][0] >= 0.2 and out["a"][1] <= 0.1, (filt, out)   # the instantaneous a alone: 0.32 m/s off
     with pytest.raises(ValueError, match="a_rates"):
         readout(t, r, r ** 2, a, ReadoutConfig(), material=material, a_rates=a_rates[:-1])
+
+
+def _stopping(t, rng, depths=np.linspace(5.0, 40.0, 30), noise=0.003, offset=0.8):
+    """A vehicle at 9 m/s braking at 3 m/s² from 1 s to a stop at 4 s, standing until 7 s, then pulling away at
+    2 m/s²: its fields' exact material rates (r = v/d, plus flow noise, 1/s per field) and an accelerometer whose
+    reading holds ``offset`` (m/s²; offline gravity holds a record's mean acceleration so) and noise."""
+    v_t = np.clip(9.0 - 3.0 * np.clip(t - 1.0, 0, None), 0, None) + 2.0 * np.clip(t - 7.0, 0, None)
+    a_t = np.where((t > 1.0) & (t < 4.0), -3.0, 0.0) + np.where(t > 7.0, 2.0, 0.0)
+    mat = _exact_material(v_t, a_t, t, depths + 9.0 * 2.5 + 8.0)  # nearer than nothing at the end
+    r = mat.r + rng.normal(0, noise, mat.r.shape)
+    return v_t, r, mat, a_t + offset + rng.normal(0, 0.02, t.shape)
+
+
+def test_a_stop_is_read_where_the_expansion_falls():
+    """Every field's r̄ = v/d falls with v, so the fields' median falling to a few percent of what it was
+    moments before is v falling alike, whatever the depths: read only through the stop (once the fall has
+    held SIGN_PERSIST_S), the ratio within 3σ of v(t)/v(t − Δ), the measurement's ∫a over [t − Δ, t]
+    as read; never on a camera cruising or braking well clear of a stop."""
+    from lobula.readout import SIGN_PERSIST_S, stop_measurement
+    from lobula.readout.filters import _integral
+
+    t = np.arange(0, 10, 1 / 30)
+    v_t, r, _, acc = _stopping(t, np.random.default_rng(0))
+    shift, rho, rho_std, delay = stop_measurement(t, r, acc)
+    k = np.flatnonzero(np.isfinite(rho))
+    assert len(k) > 30 and np.all((t[k] > 3.0 + SIGN_PERSIST_S) & (t[k] < 7.1)), t[k]
+    truth = v_t[k] / np.interp(t[k] - delay[k], t, v_t)
+    assert np.all(np.abs(rho[k] - truth) <= 3 * rho_std[k] + 1e-3), (rho[k] - truth, rho_std[k])
+    assert np.all((rho_std[k] > 0) & (rho_std[k] < 0.1)) and np.all((delay[k] > 0) & (delay[k] <= 3.0 + 1e-9))
+    cum = _integral(acc, t)
+    np.testing.assert_allclose(shift[k], cum[k] - np.interp(t[k] - delay[k], t, cum), atol=1e-9)
+    cruise = 8.0 / np.linspace(5.0, 40.0, 30)[None, :] + np.random.default_rng(1).normal(0, 0.003, (len(t), 30))
+    assert not np.isfinite(stop_measurement(t, cruise, np.zeros(len(t)))[1]).any()
+    braking = t < 3.0
+    assert not np.isfinite(stop_measurement(t[braking], r[braking], acc[braking])[1]).any()
+
+
+@pytest.mark.parametrize("filt", ["zero-phase", "causal"])
+def test_a_stop_tells_the_offset_a_constant_braking_cannot(filt):
+    """Braking at a constant rate to a stop, κ = −1/(time to stop) fits any accelerometer offset; the stop
+    itself, v falling to a few percent of what it was, tells it. With an offset of 0.8 m/s² in the reading,
+    the readout that reads the stop follows the truth through the stop and the pull-away, inside ±2σ; without
+    it the offset integrates through the stop into a speed the truth leaves (or nothing is answered)."""
+    t = np.arange(0, 10, 1 / 30)
+    for seed in range(2):
+        v_t, r, mat, acc = _stopping(t, np.random.default_rng(seed))
+        mat = type(mat)(r, mat.r2, mat.r_dot)
+        res = {s: readout(t, r, r ** 2, acc, ReadoutConfig(filter=filt, stop=s), material=mat) for s in (False, True)}
+        rmse, cover, obs = _score(res[True], v_t, t)
+        print(f"\n{filt} seed {seed}: with the stop {rmse:.3f} m/s (±2σ {cover:.2f}, answered {obs:.2f}); without "
+              f"{_score(res[False], v_t, t)}")
+        assert rmse <= 0.15 and cover >= 0.8 and obs >= 0.3, (seed, rmse, cover, obs)
+        without = _score(res[False], v_t, t)
+        assert without[2] < 0.5 * obs or without[0] >= 2 * rmse, (seed, without)

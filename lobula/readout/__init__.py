@@ -59,14 +59,15 @@ from .measurements import (ACCEL_HEADING_FLOOR_M_S2, NO_EXPANSION_SE, REVERSAL_M
                            MaterialRates, acceleration_heading, accelerometer_level, accelerometer_steady,
                            clear_expansion, expansion_sign, field_axes, field_velocity, median_and_error,
                            physical_kappa, ratio_measurement, readout_lag, readout_terms, rest_measurement,
-                           reversal_measurement, scene_depth, signed_expansion, vision_measurement)
+                           reversal_measurement, scene_depth, signed_expansion, stop_measurement,
+                           vision_measurement)
 from .paper import paper_readout
 from .smoothers import fixed_lag_smooth, rts_smooth
 
 __all__ = [
     "ReadoutConfig", "ReadoutResult", "MaterialRates", "readout", "kalman_readout", "paper_readout",
     "readout_terms", "readout_lag", "vision_measurement", "ratio_measurement", "physical_kappa",
-    "rest_measurement", "scene_depth", "reversal_measurement", "expansion_sign", "clear_expansion", "signed_expansion",
+    "rest_measurement", "scene_depth", "reversal_measurement", "stop_measurement", "expansion_sign", "clear_expansion", "signed_expansion",
     "field_velocity", "field_axes", "acceleration_heading", "ACCEL_HEADING_FLOOR_M_S2", "median_and_error",
     "accelerometer_level", "accelerometer_steady",
     "kalman_inputs", "gate_by_lock", "vision_trusted", "kalman_velocity", "predict", "ratio_update", "rts_smooth",
@@ -207,7 +208,7 @@ def kalman_readout(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | No
                                corr_frames=inp.corr_frames, turn_rate=turn_rate, offset_walk=offset_walk,
                                offset_axis=offset_axis, offset_axis_prior=offset_axis_prior, transport=transport,
                                rest_accel=inp.rest_accel, lag=cfg.lag_s,  # the smoother (zero-phase) ignores lag
-                               reversal=inp.reversal, sign=inp.sign)
+                               reversal=inp.reversal, sign=inp.sign, stop=inp.stop)
     return finish_readout(t, v, v_std, inp, a, cfg)
 
 
@@ -239,12 +240,13 @@ def finish_readout(t, v, v_std, inp: "KalmanInputs", a, cfg: ReadoutConfig) -> R
 class KalmanInputs:
     """What the kalman readout's filter takes from the fields and the acceleration (:func:`kalman_inputs`).
 
-    measurements, ratio, rest_accel, reversal, sign: :func:`kalman_velocity`'s arguments of those names
+    measurements, ratio, rest_accel, reversal, sign, stop: :func:`kalman_velocity`'s arguments of those names
     (arrays (n,)); delay: s, the measurements' latency; corr_frames: frames over which their errors are
     correlated; v_field (n, F) m/s, r_dot (n, F) 1/s², z and z_std (n,) m/s: the per-field velocities, ṙ̄ and
     the direct vision measurement (of the low-passed v one ``delay`` ago) with its std, for the result;
     coupling: :func:`lobula.readout.coupling.coupling_test`'s verdicts; still, passed_zero (n,) bool: frames the
-    rest bound holds at 0, and frames a reversal (taken by the filter) was seen at; scene_depth (n,) m: the scene's depth
+    rest bound holds at 0 or the expansion has fallen to a stop at, and frames a reversal (taken by the filter) was
+    seen at; scene_depth (n,) m: the scene's depth
     as learned so far (:func:`~lobula.readout.measurements.scene_depth`; NaN: none yet, inf: too far to bound), which
     the rest bound takes × ``rest_depth_margin`` unless ``rest_depth_max_m`` gives one; locked (n,) bool: where vision
     has fixed the speed over this stretch (:func:`lobula.readout.coupling.vision_locked`); offset_prior: m/s², the prior
@@ -256,6 +258,7 @@ class KalmanInputs:
     rest_accel: tuple | None
     reversal: tuple | None
     sign: np.ndarray | None
+    stop: tuple | None
     delay: float
     corr_frames: float
     v_field: np.ndarray
@@ -362,9 +365,12 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     depth = (cfg.rest_depth_margin * seen if cfg.rest_depth_max_m is None  # the footage's own depth, or the user's
              else np.full(len(t), float(cfg.rest_depth_max_m)))
     zr, sr = _rest_bound(r, rf, a, terms[3], depth, cfg, dt, sigma_t, offset_prior)
-    # A frame the rest bound holds is a still camera's: the accelerometer's changes there are its own errors
-    # (gravity leaking through a gyro bias), nothing the image should have followed.
-    coupling.refuted &= ~np.isfinite(zr)
+    stop = stop_measurement(t, rf if zp else r, a, min_fields) if cfg.stop else None
+    # A frame the rest bound holds, or one whose expansion has fallen to a stop, is a still camera's: the
+    # accelerometer's changes there are its own errors (gravity leaking through a gyro bias), nothing the
+    # image should have followed.
+    still = np.isfinite(zr) | (np.isfinite(stop[1]) if stop is not None else False)
+    coupling.refuted &= ~still
     reversal = reversal_measurement(t, r, a, min_fields, cfg.stamp_error_s) if cfg.reversal else None
     # Where the expansion was seen not to follow the acceleration, neither its κ nor its changes of sign
     # speak of v (lobula.readout.coupling): the filter carries v̂ with the accelerometer there.
@@ -372,15 +378,15 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
     if reversal is not None:
         reversal = (np.where(coupling.refuted, np.nan, reversal[0]),) + tuple(reversal[1:])
     passed_zero = np.isfinite(reversal[0]) if reversal is not None else np.zeros(len(t), bool)
-    locked = vision_locked(coupling, np.isfinite(zr), passed_zero, causal=not zp)
+    locked = vision_locked(coupling, still, passed_zero, causal=not zp)
     if gate:
         kap, reversal = gate_by_lock(kap, reversal, vision_trusted(locked, coupling.provisional, coupling.full))
-    return KalmanInputs(coupling=coupling, still=np.isfinite(zr), scene_depth=seen, locked=locked,
+    return KalmanInputs(coupling=coupling, still=still, scene_depth=seen, locked=locked,
         passed_zero=passed_zero, offset_prior=offset_prior,
         measurements=[(zr, sr, 0.0)], ratio=(kap, skap, a_m, shift, e_lp) + (() if c_m is None else (c_m,)),
         rest_accel=None if zp else accelerometer_level(a, dt, cfg.rest_accel_change_m_s2, causal=True),
         reversal=reversal,
-        sign=expansion_sign(t, rf if zp else r, min_fields) if cfg.sign else None,
+        sign=expansion_sign(t, rf if zp else r, min_fields) if cfg.sign else None, stop=stop,
         delay=delay, corr_frames=n_corr, v_field=v_f, r_dot=r_dot, z=z, z_std=s)
 
 

@@ -157,6 +157,11 @@ class ReadoutConfig:
         every field sees. Off by default: on the camera's DIS readout (22 development scenes,
         causal) it changes nothing on 21 and costs one (mixed 101: 0.0155 m/s against 0.0138),
         as DIS's κ does not drift so.
+    stop : bool
+        Use where the fields' expansion falls to a few percent of what it was moments before
+        (:func:`stop_measurement`): v fell alike, v(t) = ρ·v(t − Δ), whatever the depths — what
+        tells a vehicle braking to a stop from an accelerometer offset, which a constant braking's
+        κ cannot. On by default.
     stamp_error_s : float
         s (1σ): how far the fields' rates may be off the times they are stamped with, added to
         each reversal's timing (a front end whose latency is taken out only roughly, as the EMD's,
@@ -210,6 +215,7 @@ class ReadoutConfig:
     fusion: str = "kalman"
     reversal: bool = True
     sign: bool = False
+    stop: bool = True
     stamp_error_s: float = 0.033
     lag_s: float = 0.0
 

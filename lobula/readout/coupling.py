@@ -183,7 +183,8 @@ def window_full(n: int, dt: float, window_s: float, causal: bool) -> np.ndarray:
 
 
 def vision_locked(test: CouplingTest, still, passed_zero, causal: bool) -> np.ndarray:
-    """Where vision has fixed the speed: from a coupled frame, one the rest bound holds at v = 0, or a reversal of
+    """Where vision has fixed the speed: from a coupled frame, one the rest bound holds at v = 0 or whose expansion
+    has fallen to a stop (:func:`lobula.readout.stop_measurement`), or a reversal of
     the expansion's sign (v passed 0) that a whole window has since let stand, until a refuted frame.
 
     A reversal needs no κ, but a flow that is noise also changes sign; it locks only once a whole window
@@ -193,7 +194,7 @@ def vision_locked(test: CouplingTest, still, passed_zero, causal: bool) -> np.nd
     ----------
     test : CouplingTest
     still, passed_zero : ndarray of bool, (n,)
-        Frames the rest bound holds v at 0, and frames a reversal was seen at.
+        Frames the rest bound holds v at 0 or a stop is read at, and frames a reversal was seen at.
     causal : bool
         True: from the frames so far. False: the whole record; the smoother carries what a frame fixes over
         every frame not parted from it by a refuted one.

@@ -19,7 +19,7 @@ import numpy as np
 from .config import ReadoutConfig
 from .smoothers import fixed_lag_smooth, rts_smooth
 from .record import FilterRecord, _axis_terms, filter_record  # noqa: F401  (re-exported)
-from .updates import _reversal_update, _sign_update, _velocity_updates, ratio_update
+from .updates import _reversal_update, _sign_update, _stop_update, _velocity_updates, ratio_update
 
 
 
@@ -27,7 +27,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                     ratio=None, drift_std=None, delay: float = 0.0, full: bool = False,
                     corr_frames: float = 1.0, turn_rate=None, rest_accel=None, offset_walk=None,
                     offset_axis=None, offset_axis_prior=0.0, transport=None, lag: float = 0.0,
-                    reversal=None, sign=None):
+                    reversal=None, sign=None, stop=None):
     """Kalman filter/RTS smoother for v driven by a, with an accelerometer offset b.
 
     Parameters
@@ -119,6 +119,11 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
         ±1 where v is known to have that sign (:func:`expansion_sign` of the newest fields online, the
         zero-phase ones offline: no latency), NaN elsewhere: a posterior of v on the other side is
         moved to it (:func:`_sign_update`; None: none).
+    stop : tuple of ndarray, optional
+        (shift, ratio, ratio_std, delay), each (n,), NaN but where the fields' expansion has fallen to a stop
+        (:func:`stop_measurement`): v(t) = ratio·v(t − delay), with std ratio_std × (|v̂(t − delay)| + 2σ) as
+        the posterior has it, floored at meas_floor_m_s and counted once per corr_frames on the smoother's
+        pass; not gated (:func:`_stop_update`; None: none).
 
     Returns
     -------
@@ -139,7 +144,7 @@ def kalman_velocity(t, a, measurements, cfg: ReadoutConfig, smooth: bool, gravit
                                     np.zeros((n, N, N)), np.zeros((n, N, N)))
     for k in range(n):  # a loop over time steps; the state has 4 or 7 dimensions
         xs_pred[k], Ps_pred[k], Fs[k], xs[k], Ps[k] = fp.step(k, rec, float(delay), measurements, ratio,
-                                                              rest_accel, reversal, sign)
+                                                              rest_accel, reversal, sign, stop)
     if smooth:
         xs, Ps = rts_smooth(xs, Ps, xs_pred, Ps_pred, Fs)
     elif fixed_lag:
@@ -182,7 +187,8 @@ class ForwardPass:
         self.noise = _KappaNoise()
         self.cf = corr_frames if smooth_pass else 1.0
 
-    def step(self, k: int, rec: "FilterRecord", D: float, measurements, ratio, rest_accel, reversal, sign):
+    def step(self, k: int, rec: "FilterRecord", D: float, measurements, ratio, rest_accel, reversal, sign,
+             stop=None):
         """Predict to frame k (of ``rec``'s arrays) and update with its measurements (each array indexed at k,
         as :func:`kalman_velocity` takes them; D s the measurements' latency).
 
@@ -203,6 +209,8 @@ class ForwardPass:
         if sign is not None and np.isfinite(sign[k]):
             x, P = _sign_update(x, P, rec.v_row(k, 0.0), sign[k], cfg.max_std_m_s)
         x, P = _velocity_updates(x, P, k, rec, H, measurements, rest_accel, consider)
+        if stop is not None and np.isfinite(stop[1][k]):
+            x, P = _stop_update(x, P, k, rec, stop, cfg.meas_floor_m_s, self.cf, consider)
         if ratio is not None and all(np.all(np.isfinite(q[k])) for q in ratio):
             x, P, nu, hph, R = ratio_update(x, P, k, rec, cfg, H, D, [q[k] for q in ratio], self.noise.scale,
                                             self.cf, consider)

@@ -515,6 +515,100 @@ def reversal_measurement(t, r, a, min_fields: int = 3, stamp_error_s: float = 0.
     return out
 
 
+#: the largest ratio v(t)/v(t − Δ) (its 2σ upper end) at which the fields' expansion reads a stop
+#: (:func:`stop_measurement`)
+STOP_RATIO_MAX = 0.1
+#: s: how far back :func:`stop_measurement` looks for the expansion a stop is read against
+STOP_LOOKBACK_S = 3.0
+#: the most the fields' depth may have grown (a factor less one, exp(∫|r̄|) − 1) between the two frames a
+#: stop is read from
+STOP_DEPTH_CHANGE_MAX = 1.0
+
+
+def stop_measurement(t, r, a, min_fields: int = 3, persist_s: float = SIGN_PERSIST_S,
+                     ratio_max: float = STOP_RATIO_MAX, lookback_s: float = STOP_LOOKBACK_S):
+    """Where the camera has nearly stopped: v(t) = ρ·v(t − Δ), read from how far the expansion has fallen.
+
+    Every field's r̄ = v/d, so where the same scene is seen at two moments the fields' signed median
+    r̄_m falls with v: r̄_m(t)/r̄_m(t − Δ) = v(t)/v(t − Δ) · d(t − Δ)/d(t), whatever the depth. Between the
+    two, tracked points draw nearer by ∫v, which changes d by at most a factor exp(∫|r̄_m|); where that
+    is small (under 1 + STOP_DEPTH_CHANGE_MAX) and r̄_m has fallen below ``ratio_max`` of what it was
+    (its 2σ upper end, depth change included), the ratio ρ = r̄_m(t)/r̄_m(t − Δ) is a measurement of v(t)/v(t − Δ) that needs no
+    depth and no κ. It is what tells a stop from a constant deceleration: braking to a stop, κ =
+    −1/(time to stop) fits any offset of the accelerometer, while v falling to a few percent of what it
+    was pins the offset the accelerometer integrates through the stop. The reference t − Δ is the frame of
+    clear expansion (|r̄_m| > NO_EXPANSION_SE·SE) within ``lookback_s`` before t that bounds ρ tightest, and the fall
+    must have held for ``persist_s`` (a frame or two of flow that reads nothing is a front-end fault,
+    not a stop). A scene that changes between the two (a camera leaving a corridor for open ground)
+    also lowers r̄_m; that its depth change is bounded by the expansion itself keeps Δ short enough.
+
+    Parameters
+    ----------
+    t : ndarray, (n,)
+        s, uniformly spaced.
+    r : ndarray, (n, F)
+        1/s: the fields' expansion rates (as the rest bound judges them).
+    a : ndarray, (n,)
+        m/s²: the forward acceleration as read (offset and all).
+    min_fields : int
+        The fields a frame needs for its median to count.
+    persist_s : float
+        s: how long the fall must have held.
+    ratio_max : float
+        The largest 2σ upper end of ρ taken as a stop.
+    lookback_s : float
+        s: the farthest back the reference frame may lie.
+
+    Returns
+    -------
+    shift : ndarray, (n,)
+        m/s: the reading integrated over [t − Δ, t] (v(t − Δ) = the filter's row for Δ − shift).
+    ratio : ndarray, (n,)
+        ρ, the measured v(t)/v(t − Δ).
+    ratio_std : ndarray, (n,)
+        ρ's std: the two medians' standard errors and the depth change.
+    delay : ndarray, (n,)
+        s: Δ.
+    All NaN but where a stop is read.
+    """
+    t = np.asarray(t, float)
+    n = len(t)
+    out = tuple(np.full(n, np.nan) for _ in range(4))
+    if n < 2:
+        return out
+    dt = float(np.median(np.diff(t)))
+    r_med, se, count = signed_expansion(r)
+    clear = np.isfinite(r_med) & (count >= max(3, min_fields)) & (np.abs(r_med) > NO_EXPANSION_SE * se)
+    cum_r = _integral(np.abs(np.nan_to_num(r_med)), t)
+    # The reference of frame k, among frames k − w … k − 1 of clear expansion: the one that bounds ρ tightest,
+    # (|r̄_m| − 2·SE)·exp(∫|r̄_m|) largest at the reference (the later, the less the depth may have changed).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        score = np.where(clear & (np.abs(r_med) > 2.0 * se), np.log(np.abs(r_med) - 2.0 * se) + cum_r, -np.inf)
+    w = max(1, int(round(lookback_s / dt)))
+    window = np.lib.stride_tricks.sliding_window_view(np.concatenate([np.full(w, -np.inf), score]), w)[:n]
+    j = np.arange(n) - w + np.argmax(window, axis=1)
+    has_ref = np.isfinite(window.max(axis=1))
+    j = np.where(has_ref, j, np.arange(n))
+    growth = np.exp(cum_r - cum_r[j]) - 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ref = np.abs(r_med[j])
+        rho = r_med / r_med[j]
+        rho_hi = (np.abs(r_med) + 2.0 * se) / (ref - 2.0 * se[j]) * (1.0 + growth)
+        rho_std = np.hypot(se, np.abs(rho) * se[j]) / ref + np.abs(rho) * growth
+        fallen = (has_ref & np.isfinite(r_med) & (count >= max(3, min_fields)) & (ref > 2.0 * se[j])
+                  & (rho_hi <= ratio_max) & (growth <= STOP_DEPTH_CHANGE_MAX))
+    p = max(1, int(round(persist_s / dt)))
+    run = np.concatenate([[0], np.cumsum(fallen)])
+    held = fallen & (np.arange(n) >= p) & (run[np.arange(1, n + 1)] - run[np.maximum(np.arange(n) + 1 - p, 0)] == p)
+    k = np.flatnonzero(held)
+    cum = _integral(a, t)
+    out[0][k] = cum[k] - cum[j[k]]
+    out[1][k] = rho[k]
+    out[2][k] = rho_std[k]
+    out[3][k] = t[k] - t[j[k]]
+    return out
+
+
 def accelerometer_level(a: np.ndarray, dt: float, change_max: float, causal: bool = False):
     """The forward accelerometer reading averaged over 5 frames, and how far it may stray while nothing happens.
 

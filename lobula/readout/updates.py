@@ -47,6 +47,43 @@ def _reversal_update(x, P, k: int, rec: FilterRecord, reversal, floor: float, co
     return _gated_update(x, P, Hr, reversal[0][k] - Hr @ x, s_rev ** 2, consider)
 
 
+def _stop_update(x, P, k: int, rec: FilterRecord, stop, floor: float, cf: float, consider: bool):
+    """Update with v(t_k) = ρ·v(t_k − Δ) where the fields' expansion has fallen to a stop (:func:`stop_measurement`).
+
+    Its std is ρ's std × the velocity it multiplies as the posterior has it (|v̂(t_k − Δ)| + 2σ), floored at
+    ``floor`` (m/s) and counted once per ``cf`` frames (the frames' ratios share their reference). Not gated:
+    a stop held for SIGN_PERSIST_S is what corrects a posterior sure of a speed that an offset it could
+    not tell from the braking made up.
+
+    Parameters
+    ----------
+    x : ndarray, (N,)
+    P : ndarray, (N, N)
+    k : int
+        The frame.
+    rec : FilterRecord
+    stop : tuple of ndarray
+        (shift, ratio, ratio_std, delay), each (n,), as :func:`kalman_velocity` takes it.
+    floor : float
+        m/s: the least std.
+    cf : float
+        The frames each measurement's error is counted over (corr_frames on the smoother's pass, else 1).
+    consider : bool
+        As in :func:`_update`.
+
+    Returns
+    -------
+    x : ndarray, (N,)
+    P : ndarray, (N, N)
+    """
+    shift, rho, rho_std, delay = (q[k] for q in stop)
+    H0 = rec.v_row(k, delay)  # v(t − Δ) + shift
+    h = rec.v_row(k, 0.0) - rho * H0
+    reach = abs(H0 @ x - shift) + 2.0 * np.sqrt(max(H0 @ P @ H0, 0.0))
+    r = cf * max(rho_std * reach, floor) ** 2
+    return _update(x, P, h, -rho * shift - h @ x, r, consider)
+
+
 def _velocity_updates(x, P, k: int, rec: FilterRecord, H, measurements, rest_accel, consider: bool):
     """Update with frame k's direct measurements of v (:func:`kalman_velocity`'s ``measurements``), each gated.
 

@@ -276,7 +276,7 @@ class VelocityEstimator:
         trusted[i] = vision_trusted(locked, c.provisional[i], c.full[i])
         kappa, reversal = gate_by_lock(inp.ratio[0], inp.reversal, trusted)
         x, P = self._filter.step(i, rec, inp.delay, inp.measurements, (kappa,) + tuple(inp.ratio[1:]),
-                                 inp.rest_accel, reversal, inp.sign)[3:]
+                                 inp.rest_accel, reversal, inp.sign, inp.stop)[3:]
         v = float(x[0])
         v_std = float(np.hypot(np.sqrt(max(P[0, 0], 0.0)), cfg.accel_scale_error * abs(v)))
         fixed, allowed = locked or bool(c.provisional[i]), float(std_allowed(v, cfg))
