@@ -1270,15 +1270,17 @@ def test_a_stop_is_read_where_the_expansion_falls():
     assert not np.isfinite(stop_measurement(t[braking], r[braking], acc[braking])[1]).any()
 
 
-@pytest.mark.parametrize("filt", ["zero-phase", "causal"])
-def test_a_stop_tells_the_offset_a_constant_braking_cannot(filt):
+@pytest.mark.parametrize("filt, offset", [("zero-phase", 0.8), ("causal", 0.8), ("causal", 1.5)])
+def test_a_stop_tells_the_offset_a_constant_braking_cannot(filt, offset):
     """Braking at a constant rate to a stop, κ = −1/(time to stop) fits any accelerometer offset; the stop
-    itself, v falling to a few percent of what it was, tells it. With an offset of 0.8 m/s² in the reading,
-    the readout that reads the stop follows the truth through the stop and the pull-away, inside ±2σ; without
-    it the offset integrates through the stop into a speed the truth leaves (or nothing is answered)."""
+    itself, v falling to a few percent of what it was, tells it. With an offset of 0.8 or 1.5 m/s² in the
+    reading, the readout that reads the stop follows the truth through the stop and the pull-away, inside ±2σ;
+    without it the offset integrates through the stop into a speed the truth leaves (or nothing is answered).
+    Online, the larger offset has the filter sure of a wrong one by the stop, which the stop's contradiction
+    lets go."""
     t = np.arange(0, 10, 1 / 30)
     for seed in range(2):
-        v_t, r, mat, acc = _stopping(t, np.random.default_rng(seed))
+        v_t, r, mat, acc = _stopping(t, np.random.default_rng(seed), offset=offset)
         mat = type(mat)(r, mat.r2, mat.r_dot)
         res = {s: readout(t, r, r ** 2, acc, ReadoutConfig(filter=filt, stop=s), material=mat) for s in (False, True)}
         rmse, cover, obs = _score(res[True], v_t, t)

@@ -76,12 +76,23 @@ def _stop_update(x, P, k: int, rec: FilterRecord, stop, floor: float, cf: float,
     x : ndarray, (N,)
     P : ndarray, (N, N)
     """
+    h, nu, r = _stop_row(x, P, k, rec, stop, floor, cf)
+    return _update(x, P, h, nu, r, consider)
+
+
+def _stop_row(x, P, k: int, rec: FilterRecord, stop, floor: float, cf: float):
+    """The stop's row h (N,), innovation (m/s) and noise variance ((m/s)²) at frame k (see :func:`_stop_update`)."""
     shift, rho, rho_std, delay = (q[k] for q in stop)
     H0 = rec.v_row(k, delay)  # v(t − Δ) + shift
     h = rec.v_row(k, 0.0) - rho * H0
     reach = abs(H0 @ x - shift) + 2.0 * np.sqrt(max(H0 @ P @ H0, 0.0))
-    r = cf * max(rho_std * reach, floor) ** 2
-    return _update(x, P, h, -rho * shift - h @ x, r, consider)
+    return h, -rho * shift - h @ x, cf * max(rho_std * reach, floor) ** 2
+
+
+def _stop_contradicts(x, P, k: int, rec: FilterRecord, stop, floor: float, cf: float) -> bool:
+    """Whether the prior (x, P) is sure the stop at frame k cannot be: its innovation beyond OUTLIER_GATE of its std."""
+    h, nu, r = _stop_row(x, P, k, rec, stop, floor, cf)
+    return nu ** 2 > OUTLIER_GATE ** 2 * (h @ P @ h + r)
 
 
 def _velocity_updates(x, P, k: int, rec: FilterRecord, H, measurements, rest_accel, consider: bool):
