@@ -672,6 +672,7 @@ def test_real_clip_info(clip, capsys):
 
 
 @needs_gpmf
+@pytest.mark.slow  # the whole MAX clip through every self-calibration (36 s); the reader's tests above run in make test
 def test_real_clip_without_a_camera_file_says_it_cannot_know(tmp_path, capsys):
     """`lobula velocity CLIP.mp4` with nothing else: the lens from the stated field of view (the gyro cannot measure it
     through the stabilised image), the clock offset said, and — vision's expansion not following the accelerometer
@@ -701,8 +702,7 @@ def test_real_clip_is_never_confidently_wrong(tmp_path, capsys, name, filt, fron
     inside ±2σ on at least 80 % of those frames; a flow whose expansion reverses its sign on a steady walk (the
     HERO7's) does not lock vision on. The EMD front end online on the HERO7 reads the walker's bob as two sign
     changes of the expansion within 0.2 s and a κ of the wrong sign in its first second: taken in, they held
-    v̂ near 0 ± 0.1 m/s while the GPS read 1.7-2.1. The MAX offline is the test above, in make test; these run
-    under ``slow``."""
+    v̂ near 0 ± 0.1 m/s while the GPS read 1.7-2.1. The MAX offline is the test above; all run under ``slow``."""
     path = GOPRO / f"{name}.mp4"
     if not path.exists():
         pytest.skip(f"GoPro clip not found at {path} (../shared/data is beside the repo in CI)")
