@@ -67,7 +67,8 @@ from .smoothers import fixed_lag_smooth, rts_smooth
 __all__ = [
     "ReadoutConfig", "ReadoutResult", "MaterialRates", "readout", "kalman_readout", "paper_readout",
     "readout_terms", "readout_lag", "vision_measurement", "ratio_measurement", "physical_kappa",
-    "rest_measurement", "scene_depth", "reversal_measurement", "stop_measurement", "expansion_sign", "clear_expansion", "signed_expansion",
+    "rest_measurement", "scene_depth", "reversal_measurement", "stop_measurement", "expansion_sign",
+    "clear_expansion", "signed_expansion",
     "field_velocity", "field_axes", "acceleration_heading", "ACCEL_HEADING_FLOOR_M_S2", "median_and_error",
     "accelerometer_level", "accelerometer_steady",
     "kalman_inputs", "gate_by_lock", "vision_trusted", "kalman_velocity", "predict", "ratio_update", "rts_smooth",
@@ -245,9 +246,8 @@ class KalmanInputs:
     correlated; v_field (n, F) m/s, r_dot (n, F) 1/s², z and z_std (n,) m/s: the per-field velocities, ṙ̄ and
     the direct vision measurement (of the low-passed v one ``delay`` ago) with its std, for the result;
     coupling: :func:`lobula.readout.coupling.coupling_test`'s verdicts; still, passed_zero (n,) bool: frames the
-    rest bound holds at 0 or the expansion has fallen to a stop at, and frames a reversal (taken by the filter) was
-    seen at; scene_depth (n,) m: the scene's depth
-    as learned so far (:func:`~lobula.readout.measurements.scene_depth`; NaN: none yet, inf: too far to bound), which
+    rest bound holds at 0 or the expansion has fallen to a stop at, and frames a reversal (taken by the filter)
+    was seen at; scene_depth (n,) m: the scene's depth as learned so far (:func:`~lobula.readout.measurements.scene_depth`; NaN: none yet, inf: too far to bound), which
     the rest bound takes × ``rest_depth_margin`` unless ``rest_depth_max_m`` gives one; locked (n,) bool: where vision
     has fixed the speed over this stretch (:func:`lobula.readout.coupling.vision_locked`); offset_prior: m/s², the prior
     std of the acceleration's whole forward offset.

@@ -530,17 +530,17 @@ def stop_measurement(t, r, a, min_fields: int = 3, persist_s: float = SIGN_PERSI
     """Where the camera has nearly stopped: v(t) = ρ·v(t − Δ), read from how far the expansion has fallen.
 
     Every field's r̄ = v/d, so where the same scene is seen at two moments the fields' signed median
-    r̄_m falls with v: r̄_m(t)/r̄_m(t − Δ) = v(t)/v(t − Δ) · d(t − Δ)/d(t), whatever the depth. Between the
-    two, tracked points draw nearer by ∫v, which changes d by at most a factor exp(∫|r̄_m|); where that
-    is small (under 1 + STOP_DEPTH_CHANGE_MAX) and r̄_m has fallen below ``ratio_max`` of what it was
-    (its 2σ upper end, depth change included), the ratio ρ = r̄_m(t)/r̄_m(t − Δ) is a measurement of v(t)/v(t − Δ) that needs no
-    depth and no κ. It is what tells a stop from a constant deceleration: braking to a stop, κ =
-    −1/(time to stop) fits any offset of the accelerometer, while v falling to a few percent of what it
-    was pins the offset the accelerometer integrates through the stop. The reference t − Δ is the frame of
-    clear expansion (|r̄_m| > NO_EXPANSION_SE·SE) within ``lookback_s`` before t that bounds ρ tightest, and the fall
-    must have held for ``persist_s`` (a frame or two of flow that reads nothing is a front-end fault,
-    not a stop). A scene that changes between the two (a camera leaving a corridor for open ground)
-    also lowers r̄_m; that its depth change is bounded by the expansion itself keeps Δ short enough.
+    r̄_m falls with v: r̄_m(t)/r̄_m(t − Δ) = v(t)/v(t − Δ) · d(t − Δ)/d(t), whatever the depth. Between
+    the two, tracked points draw nearer by ∫v, which changes d by at most a factor exp(∫|r̄_m|). Where
+    that is under 1 + STOP_DEPTH_CHANGE_MAX and r̄_m has fallen below ``ratio_max`` of what it was (its
+    2σ upper end, the depth change included), the ratio ρ = r̄_m(t)/r̄_m(t − Δ) measures v(t)/v(t − Δ)
+    with no depth and no κ. It is what tells a stop from a constant deceleration: braking to a stop,
+    κ = −1/(time to stop) fits any offset of the accelerometer, while v falling to a few percent of
+    what it was pins the offset the accelerometer integrates through the stop. The reference t − Δ is
+    the frame of clear expansion (|r̄_m| > NO_EXPANSION_SE·SE) within ``lookback_s`` before t that
+    bounds ρ tightest, and the fall must have held for ``persist_s`` (a frame or two of flow that reads
+    nothing is a front-end fault, not a stop). A scene that changes between the two at speed (a camera
+    leaving a corridor for open ground) lowers r̄_m as well and would be read as a stop: a known limit.
 
     Parameters
     ----------
