@@ -364,8 +364,10 @@ def kalman_inputs(t, r, r2, a, cfg: ReadoutConfig, material: MaterialRates | Non
                        rest_depth_seen)
     depth = (cfg.rest_depth_margin * seen if cfg.rest_depth_max_m is None  # the footage's own depth, or the user's
              else np.full(len(t), float(cfg.rest_depth_max_m)))
-    zr, sr = _rest_bound(r, rf, a, terms[3], depth, cfg, dt, sigma_t, offset_prior)
-    stop = stop_measurement(t, rf if zp else r, a, min_fields) if cfg.stop else None
+    # The rest bound and the stops judge the same expansion (online the newest fields', offline the low-passed).
+    expansion = signed_expansion(rf if zp else r)
+    zr, sr = _rest_bound(r, rf, a, terms[3], depth, cfg, dt, sigma_t, offset_prior, expansion)
+    stop = stop_measurement(t, rf if zp else r, a, min_fields, expansion=expansion) if cfg.stop else None
     # A frame the rest bound holds, or one whose expansion has fallen to a stop, is a still camera's: the
     # accelerometer's changes there are its own errors (gravity leaking through a gyro bias), nothing the
     # image should have followed.
@@ -417,7 +419,8 @@ def gate_by_lock(kappa, reversal, trusted):
     return kappa, reversal
 
 
-def _rest_bound(r, rf, a, a_lp, depth, cfg: ReadoutConfig, dt: float, sigma_t: float, offset_prior: float):
+def _rest_bound(r, rf, a, a_lp, depth, cfg: ReadoutConfig, dt: float, sigma_t: float, offset_prior: float,
+                expansion=None):
     """The kalman readout's rest bound (:func:`rest_measurement`), where the accelerometer allows it.
 
     Parameters
@@ -439,6 +442,8 @@ def _rest_bound(r, rf, a, a_lp, depth, cfg: ReadoutConfig, dt: float, sigma_t: f
         s: the low-pass's Gaussian width.
     offset_prior : float
         m/s²: the prior std of the acceleration's whole forward offset.
+    expansion : tuple of ndarray, optional
+        :func:`signed_expansion` of the r̄ it judges on, where the caller has it (None: computed here).
 
     Returns
     -------
@@ -451,7 +456,7 @@ def _rest_bound(r, rf, a, a_lp, depth, cfg: ReadoutConfig, dt: float, sigma_t: f
     # Whether the image expands needs no derivative and no band-limiting: online it is judged
     # on the newest fields' r̄ (no latency to bridge with an offset-laden ∫a), offline on the
     # low-passed r̄ like everything else.
-    zr, sr = rest_measurement(rf if zp else r, cfg, depth)
+    zr, sr = rest_measurement(rf if zp else r, cfg, depth, expansion)
     # A far backdrop or the sky can fill most fields and show no expansion while the camera
     # moves (suite ground family, seed 0: with a 160-px DIS grid the bound alone holds v at 0
     # ± 0.02 m/s while it reaches −0.2 and pins a wrong offset for the whole record, 0.40 m/s

@@ -183,9 +183,10 @@ class ForwardPass:
         # States: v, the offset b, vision's shared error c (online a consider state, offline estimated), the
         # ramp ḃ, and with offset_axis the start frame's gravity error δ (3).
         self.x = np.zeros(4 + nd)
-        self.P = np.diag([sv, sb, 0.0, sd0] + list(np.broadcast_to(np.asarray(offset_axis_prior, float) ** 2, (nd,))))
+        sdelta = list(np.broadcast_to(np.asarray(offset_axis_prior, float) ** 2, (nd,)))
+        self.P = np.diag([sv, sb, 0.0, sd0] + sdelta)
         # the offset's prior variances (b, ḃ, δ), given back where a stop shows the posterior sure of a wrong offset
-        self.offset_prior_var = np.diag(np.diag(self.P) * np.array([0.0, 1.0, 0.0, 1.0] + [1.0] * nd))
+        self.offset_prior_var = np.diag([0.0, sb, 0.0, sd0] + sdelta)
         self.consider = cfg.shared_error_frac > 0 and not smooth_pass
         self.noise = _KappaNoise()
         self.cf = corr_frames if smooth_pass else 1.0

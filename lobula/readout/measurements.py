@@ -397,7 +397,7 @@ def scene_depth(r, v_f, informative, coupled, dt: float, window_s: float, causal
     return np.full(n, np.fmax(np.nanmax(windowed) if np.any(~np.isnan(windowed)) else np.nan, seen))
 
 
-def rest_measurement(r, cfg: ReadoutConfig, depth_m=None):
+def rest_measurement(r, cfg: ReadoutConfig, depth_m=None, expansion=None):
     """v = r·d with 0 < d ≤ the scene's depth: no detectable expansion bounds |v|.
 
     Translation makes every field's r̄ = v/d of one sign (v's), while flow noise and residual
@@ -420,6 +420,8 @@ def rest_measurement(r, cfg: ReadoutConfig, depth_m=None):
     cfg : ReadoutConfig
     depth_m : float or ndarray, (n,), optional
         m: D, NaN or inf where unknown or unbounded (no bound); None: ``cfg.rest_depth_max_m``.
+    expansion : tuple of ndarray, optional
+        :func:`signed_expansion` of ``r``, where the caller has it already (None: computed here).
 
     Returns
     -------
@@ -432,7 +434,7 @@ def rest_measurement(r, cfg: ReadoutConfig, depth_m=None):
         if cfg.rest_depth_max_m is None:
             raise ValueError("rest_measurement needs the scene's depth: depth_m, or ReadoutConfig.rest_depth_max_m")
         depth_m = cfg.rest_depth_max_m
-    r_med, se, n = signed_expansion(r)
+    r_med, se, n = signed_expansion(r) if expansion is None else expansion
     with np.errstate(invalid="ignore"):
         std = np.maximum(0.5 * np.asarray(depth_m, float) * (np.abs(r_med) + 2.0 * se), cfg.meas_floor_m_s)
     # It is a bound, not a noisy sample: repeating a loose bound frame after frame must
@@ -526,7 +528,7 @@ STOP_DEPTH_CHANGE_MAX = 1.0
 
 
 def stop_measurement(t, r, a, min_fields: int = 3, persist_s: float = SIGN_PERSIST_S,
-                     ratio_max: float = STOP_RATIO_MAX, lookback_s: float = STOP_LOOKBACK_S):
+                     ratio_max: float = STOP_RATIO_MAX, lookback_s: float = STOP_LOOKBACK_S, expansion=None):
     """Where the camera has nearly stopped: v(t) = ρ·v(t − Δ), read from how far the expansion has fallen.
 
     Every field's r̄ = v/d, so where the same scene is seen at two moments the fields' signed median
@@ -558,6 +560,8 @@ def stop_measurement(t, r, a, min_fields: int = 3, persist_s: float = SIGN_PERSI
         The largest 2σ upper end of ρ taken as a stop.
     lookback_s : float
         s: the farthest back the reference frame may lie.
+    expansion : tuple of ndarray, optional
+        :func:`signed_expansion` of ``r``, where the caller has it already (None: computed here).
 
     Returns
     -------
@@ -577,7 +581,7 @@ def stop_measurement(t, r, a, min_fields: int = 3, persist_s: float = SIGN_PERSI
     if n < 2:
         return out
     dt = float(np.median(np.diff(t)))
-    r_med, se, count = signed_expansion(r)
+    r_med, se, count = signed_expansion(r) if expansion is None else expansion
     clear = np.isfinite(r_med) & (count >= max(3, min_fields)) & (np.abs(r_med) > NO_EXPANSION_SE * se)
     cum_r = _integral(np.abs(np.nan_to_num(r_med)), t)
     # The reference of frame k, among frames k − w … k − 1 of clear expansion: the one that bounds ρ tightest,

@@ -51,30 +51,11 @@ def _stop_update(x, P, k: int, rec: FilterRecord, stop, floor: float, cf: float,
     """Update with v(t_k) = ρ·v(t_k − Δ) where the fields' expansion has fallen to a stop (:func:`stop_measurement`).
 
     Its std is ρ's std × the velocity it multiplies as the posterior has it (|v̂(t_k − Δ)| + 2σ), floored at
-    ``floor`` (m/s) and counted once per ``cf`` frames (the frames' ratios share their reference). Not gated:
-    a stop held for SIGN_PERSIST_S is what corrects a posterior sure of a speed that an offset it could
-    not tell from the braking made up.
-
-    Parameters
-    ----------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
-    k : int
-        The frame.
-    rec : FilterRecord
-    stop : tuple of ndarray
-        (shift, ratio, ratio_std, delay), each (n,), as :func:`kalman_velocity` takes it.
-    floor : float
-        m/s: the least std.
-    cf : float
-        The frames each measurement's error is counted over (corr_frames on the smoother's pass, else 1).
-    consider : bool
-        As in :func:`_update`.
-
-    Returns
-    -------
-    x : ndarray, (N,)
-    P : ndarray, (N, N)
+    ``floor`` (m/s) and counted once per ``cf`` frames (corr_frames on the smoother's pass, else 1: the frames'
+    ratios share their reference). Not gated: a stop held for SIGN_PERSIST_S is what corrects a posterior sure
+    of a speed that an offset it could not tell from the braking made up. ``stop``: (shift, ratio, ratio_std,
+    delay), each (n,), as :func:`kalman_velocity` takes it; the rest as :func:`_reversal_update`, returning the
+    posterior (x, P).
     """
     h, nu, r = _stop_row(x, P, k, rec, stop, floor, cf)
     return _update(x, P, h, nu, r, consider)
