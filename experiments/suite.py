@@ -18,12 +18,18 @@ Metrics, per window — after a skip (``--skip``) and over the first 2 s —:
   a calibrated band from one ten times too wide; NaN without a std);
 * ``observable_fraction``: fraction of the window's frames with an observable v̂;
 * ``lock_on_s`` (whole run, the same in both windows): time from the first frame until the
-  error stays within 0.05 m/s + 10 % of |v| for a full second (NaN: never).
+  error stays within 0.05 m/s + 10 % of |v| for a full second (NaN: never);
+* ``rmse_all_m_s``: over every frame with a v̂, where vision answers or the accelerometer carries it
+  (:mod:`lobula.readout.carry`);
+* ``coverage_2sigma_all``: fraction of all the window's frames with |v̂ − v| ≤ 2·v_std, carried v̂
+  included and a frame without v̂ counted outside (NaN without a std): what a user who reads every v̂
+  with its σ meets.
 
 Outputs in ``OUT``: ``suite.nc`` (family × seed × configuration × window × metric, with the
 per-scene settings), ``suite_table.csv`` (mean, sd and n over seeds), ``suite.png``,
 ``worlds.png`` (a frame of each family), and
-``series/<scene>.nc`` (truth, v̂ and v_std of every configuration, for plots). Scenes and
+``series/<scene>.nc`` (truth, v̂ answered and v̂ answered or carried, and v_std of every configuration),
+``series.png`` (each scene's truth against v̂ ± 2σ, online and offline). Scenes and
 per-scene results are kept, so an interrupted suite resumes where it stopped: a scene is
 re-rendered only if its settings changed, a result reused only if the settings and the
 code's git commit match (with uncommitted changes, "+dirty", or outside a checkout,
@@ -43,7 +49,7 @@ from .families import ALL_FAMILIES, EXTRA_FAMILIES, FAMILIES, parse_seeds  # the
 from .suite_metrics import METRIC_UNITS, METRICS, WINDOWS, Z95_TARGET, lock_on_time, score_series, window_metrics
 from .suite_scene import (BASELINES, CONFIGURATIONS, EYE_CONFIGURATIONS, EYE_RATE_HZ, SceneJob, dead_reckoning,
                           ensure_eye_scene, ensure_rendered, family_config, family_seed, remove_partial_scenes,
-                          run_scene_job, velocity_config)
+                          run_scene_job, scene_name, velocity_config)
 
 
 def seed_summary(values, name: str) -> dict:
@@ -111,7 +117,70 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
     write_csv(rows, out / "suite_table.csv")
     plot_suite(ds, out / "suite.png")
     plot_worlds(out, families, seeds)
+    plot_series(out, families, seeds, configurations)
     return ds, rows
+
+
+#: the configurations ``series.png`` draws, where the suite ran them
+SERIES_CONFIGURATIONS = ("lobula zero-phase", "lobula causal")
+
+
+def plot_series(out: Path, families, seeds, configurations) -> Path | None:
+    """``series.png``: each scene's true forward velocity against v̂ ± 2σ of :data:`SERIES_CONFIGURATIONS`
+    (those the suite ran; else its first estimator), one panel per (family, seed), read from ``series/``.
+
+    v̂ is solid where vision answers and dotted where the accelerometer carries it; the band is ±2·v_std
+    over both. Returns the path, or None where there is nothing to draw."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import xarray as xr
+
+    from .store import save_figure
+
+    names = [c for c in SERIES_CONFIGURATIONS if c in configurations] or \
+        [c for c in configurations if c not in BASELINES][:1]
+    files = [[out / "series" / f"{scene_name(f, s)}.nc" for s in seeds] for f in families]
+    if not names or not any(p.exists() for row in files for p in row):
+        return None
+    rows, cols = len(families), len(seeds)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols + 1.5, 2.2 * rows + 0.8), squeeze=False,
+                             sharex=True)
+    colours = dict(zip(names, ("tab:blue", "tab:red", "tab:green")))
+    for (i, f), (j, s) in ((a, b) for a in enumerate(families) for b in enumerate(seeds)):
+        ax, path = axes[i, j], files[i][j]
+        ax.set_title(f"{f} seed {s}", fontsize=8)
+        ax.tick_params(labelsize=7)
+        if not path.exists():
+            ax.text(0.5, 0.5, "no series", ha="center", va="center", transform=ax.transAxes, fontsize=8)
+            continue
+        with xr.open_dataset(path) as ds:
+            t = ds.time.values
+            ax.plot(t, ds.v_true.values, "k--", lw=1.0, label="truth")
+            for c in names:
+                key = c.replace(" ", "_").replace("=", "-")
+                if f"v_hat__{key}" not in ds:
+                    continue
+                answered, every = ds[f"v_hat__{key}"].values, ds[f"v_hat_all__{key}"].values
+                sd = ds[f"v_std__{key}"].values if f"v_std__{key}" in ds else np.full_like(t, np.nan)
+                ax.fill_between(t, every - 2 * sd, every + 2 * sd, color=colours[c], alpha=0.15, lw=0)
+                ax.plot(t, every, ":", color=colours[c], lw=1.0)
+                ax.plot(t, answered, "-", color=colours[c], lw=1.4, label=f"{c} (dotted: carried)")
+            top = np.nanmax(np.abs(ds.v_true.values))
+        ax.set_ylim(-0.3 * top - 0.05, 1.6 * top + 0.05)  # a carried σ can grow without bound
+        ax.axhline(0, color="0.6", lw=0.5)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)", fontsize=8)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("v (m/s)", fontsize=8)
+    handles, labels = next(((h, l) for h, l in (ax.get_legend_handles_labels() for ax in axes.ravel()) if h),
+                           ([], []))
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
+    fig.suptitle("forward velocity: truth against v̂ ± 2σ (solid where vision answers)", fontsize=10)
+    fig.tight_layout(rect=(0, 0.04, 1, 0.97))
+    save_figure(fig, out / "series.png", dpi=130)
+    plt.close(fig)
+    return out / "series.png"
 
 
 def plot_worlds(out: Path, families, seeds) -> Path | None:
@@ -153,7 +222,7 @@ def world_frames(out: Path, families, seeds) -> list[tuple[str, Path]]:
     for f in families:
         seen = set()
         for seed in seeds:
-            folder = out / "scenes" / f"{f}-s{seed}"
+            folder = out / "scenes" / scene_name(f, seed)
             files = sorted((folder / "frames").glob("*.png")) if (folder / "frames").is_dir() else []
             meta = folder / "scene.json"
             world = json.loads(meta.read_text())["config"]["scene"]["world"] if meta.is_file() else "?"
@@ -250,8 +319,8 @@ def format_table(rows, window="after_skip") -> str:
         return f"{mu:.3f}" + (f" ± {sd:.3f}" if np.isfinite(sd) else "")
 
     lines = ["| family | configuration | RMSE (m/s) | median abs e | 2σ coverage | \\|e\\|/σ, 95th pct (1.96 calibrated) "
-             "| observable | lock-on (s) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| observable | lock-on (s) | 2σ coverage, every frame (carried v̂ in, none out) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if r["window"] != window:
             continue
@@ -261,7 +330,7 @@ def format_table(rows, window="after_skip") -> str:
             if r["lock_on_s_n"] != r["observable_fraction_n"] else "")
         lines.append(f"| {r['family']} | {r['configuration']} | {ms(r, 'rmse_m_s')} | "
                      f"{ms(r, 'median_abs_error_m_s')} | {ms(r, 'coverage_2sigma', True)} | {ms(r, 'z95')} | "
-                     f"{ms(r, 'observable_fraction', True)} | {lock_s} |")
+                     f"{ms(r, 'observable_fraction', True)} | {lock_s} | {ms(r, 'coverage_2sigma_all', True)} |")
     return "\n".join(lines)
 
 
@@ -282,7 +351,8 @@ def plot_suite(ds, path):
     The coverage cannot tell a calibrated band from one far too wide (both hold ~100 %), so the last
     panel shows z95, the 95th percentile of |e|/σ (1.96 for a calibrated Gaussian band; log scale),
     shaded where a Gaussian error would put the ±2σ coverage at 85–99 % (z95 1.52–2.72, the project's
-    target). Configurations that state no σ (z95 infinite) have no bar there."""
+    target). Configurations that state no σ (z95 infinite) have no bar there. The coverage over every frame
+    takes in the v̂ the accelerometer carries beyond the answered frames, and counts a frame without v̂ outside."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -294,12 +364,14 @@ def plot_suite(ds, path):
     x = np.arange(len(fams))
     width = 0.8 / len(confs)
     cmap = plt.get_cmap("tab10")
-    fig, axes = plt.subplots(5, 1, figsize=(max(11, 1.3 * len(fams) + 5), 16), sharex=True)
+    fig, axes = plt.subplots(6, 1, figsize=(max(11, 1.3 * len(fams) + 5), 19), sharex=True)
     for ax, win, metric, label in ((axes[0], "after_skip", "rmse_m_s", "RMSE after skip (m/s)"),
                                    (axes[1], "first_2s", "rmse_m_s", "RMSE, first 2 s (m/s)"),
                                    (axes[2], "after_skip", "observable_fraction", "frames answered (after skip)"),
                                    (axes[3], "after_skip", "coverage_2sigma", "truth within ±2σ (after skip)"),
-                                   (axes[4], "after_skip", "z95", "z95: 95th pct of |e|/σ (after skip)")):
+                                   (axes[4], "after_skip", "coverage_2sigma_all",
+                                    "truth within ±2σ, every frame\n(carried v̂ in, none out; after skip)"),
+                                   (axes[5], "after_skip", "z95", "z95: 95th pct of |e|/σ (after skip)")):
         for k, c in enumerate(confs):
             v = ds.value.sel(configuration=c, window=win, metric=metric).values  # (family, seed)
             v = np.where(np.isfinite(v), v, np.nan)  # z95 is infinite where no σ is stated
@@ -325,7 +397,7 @@ def plot_suite(ds, path):
             ax.set_yscale("log")
             ax.axhspan(*Z95_TARGET, color="g", alpha=0.1, lw=0)
             ax.axhline(1.96, color="g", lw=0.8, ls="--")
-        elif metric == "coverage_2sigma":
+        elif metric.startswith("coverage_2sigma"):
             ax.axhspan(0.85, 0.99, color="g", alpha=0.1, lw=0)
             ax.set_ylim(0, 1.02)
         else:

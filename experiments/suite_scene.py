@@ -210,6 +210,11 @@ def dead_reckoning(footage, times: np.ndarray, v0: float, calib_s: float = 1.0, 
 
 
 # ---------------------------------------------------------------------- one scene
+def scene_name(family: str, seed: int) -> str:
+    """A scene's name in the suite's folders (``scenes/``, ``series/``, ``results/``)."""
+    return f"{family}-s{seed}"
+
+
 @dataclass
 class SceneJob:
     family: str
@@ -224,7 +229,7 @@ class SceneJob:
 
     @property
     def name(self) -> str:
-        return f"{self.family}-s{self.seed}"
+        return scene_name(self.family, self.seed)
 
     def key(self) -> str:
         """What a stored result must match to be reused: the settings and the code's git commit."""
@@ -267,12 +272,12 @@ def run_scene_job(job: SceneJob) -> dict:
     t_ref = next((v[0] for k, v in series.items() if k not in EYE_CONFIGURATIONS), footage.times)
     v_true_ref = np.interp(t_ref, tt, vt)
     if "zero" in job.configurations:
-        series["zero"] = (t_ref, np.zeros_like(t_ref), None)
+        series["zero"] = (t_ref, np.zeros_like(t_ref), None, np.zeros_like(t_ref))
     if "imu dead reckoning" in job.configurations:
-        series["imu dead reckoning"] = (t_ref, dead_reckoning(footage, t_ref, float(np.interp(t_ref[0], tt, vt))),
-                                        None)
-    for name, (t, v_hat, v_std) in series.items():
-        metrics[name] = score_series(t, v_hat, v_std, np.interp(t, tt, vt), job.skip_s)
+        v_dr = dead_reckoning(footage, t_ref, float(np.interp(t_ref[0], tt, vt)))
+        series["imu dead reckoning"] = (t_ref, v_dr, None, v_dr)
+    for name, (t, v_hat, v_std, v_all) in series.items():
+        metrics[name] = score_series(t, v_hat, v_std, np.interp(t, tt, vt), job.skip_s, v_all)
     write_netcdf(_series_dataset(job, cfg, series, t_ref, v_true_ref), out / "series" / f"{job.name}.nc")
     res = dict(key=job.key(), family=job.family, seed=job.seed, scene_seed=cfg.scene.seed, metrics=metrics,
                errors=errors, render_s=render_s, eye_render_s=eye_render_s, estimator_s=wall,
@@ -288,8 +293,9 @@ def run_scene_job(job: SceneJob) -> dict:
 def _run_configurations(job: SceneJob, cfg, footage) -> tuple[dict, dict, dict, float]:
     """Every configuration of ``job`` but the baselines on its scene (``footage``, run configuration ``cfg``).
 
-    Returns ({name: (t (s), v̂ (m/s, NaN where unobservable), v_std (m/s))}, {name: why it did not run},
-    {name: wall time (s)}, the seconds spent rendering the eye's footage).
+    Returns ({name: (t (s), v̂ (m/s, NaN where unobservable), v_std (m/s), v̂ answered or carried (m/s, NaN
+    where unknown))}, {name: why it did not run}, {name: wall time (s)}, the seconds spent rendering the eye's
+    footage).
     """
     from lobula.readout import answered_velocity
     from lobula.velocity import estimate_velocity
@@ -319,24 +325,28 @@ def _run_configurations(job: SceneJob, cfg, footage) -> tuple[dict, dict, dict, 
             continue
         t = ds.time.values
         v_hat = answered_velocity(ds)
-        series[name] = (t, v_hat, ds.v_std.values)
+        series[name] = (t, v_hat, ds.v_std.values, ds.v_hat.values)
         wall[name] = _time.perf_counter() - t1
     return series, errors, wall, eye_render_s
 
 
 def _series_dataset(job: SceneJob, cfg, series: dict, t_ref: np.ndarray, v_true_ref: np.ndarray):
-    """``series/<scene>.nc``: the true forward velocity ``v_true_ref`` (m/s) and each series' v̂ and stated std
-    (m/s) on the reference times ``t_ref`` (s); ``series`` as :func:`_run_configurations` gives it, baselines added."""
+    """``series/<scene>.nc``: the true forward velocity ``v_true_ref`` (m/s) and each series' v̂ where answered,
+    v̂ answered or carried, and stated std (m/s) on the reference times ``t_ref`` (s); ``series`` as
+    :func:`_run_configurations` gives it, baselines added."""
     import xarray as xr
 
     # Series file: every configuration on the reference times (the paper stamps pairs at their
     # first frame, so its times differ; interpolated for the file only, scored on its own).
     data = {"v_true": ("time", v_true_ref, {"units": "m/s", "long_name": "ground-truth forward velocity"})}
-    for name, (t, v_hat, v_std) in series.items():
+    for name, (t, v_hat, v_std, v_all) in series.items():
         key = name.replace(" ", "_").replace("=", "-")
         data[f"v_hat__{key}"] = ("time", np.interp(t_ref, t, v_hat, left=np.nan, right=np.nan),
                                  {"units": "m/s", "long_name": f"estimated forward velocity, {name} (NaN: not "
                                                                "observable)"})
+        data[f"v_hat_all__{key}"] = ("time", np.interp(t_ref, t, v_all, left=np.nan, right=np.nan),
+                                     {"units": "m/s", "long_name": f"estimated forward velocity, {name}, answered "
+                                                                   "or carried by the accelerometer (NaN: unknown)"})
         if v_std is not None:
             data[f"v_std__{key}"] = ("time", np.interp(t_ref, t, v_std, left=np.nan, right=np.nan),
                                      {"units": "m/s", "long_name": f"stated std of v_hat, {name}"})

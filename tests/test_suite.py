@@ -57,6 +57,26 @@ def test_z95_tells_a_calibrated_band_from_one_too_wide_or_too_narrow():
         assert m["z95"] == pytest.approx(suite.Z95_TARGET[lo_hi], rel=0.01)
 
 
+def test_every_frame_coverage_counts_carried_estimates_and_frames_without_one():
+    """Ten frames: 4 answered inside ±2σ, 3 carried (2 inside, 1 outside), 3 unknown. Answered coverage is 4/4;
+    over every frame it is 6/10 (an unknown frame counts outside), and the RMSE over every v̂ takes in the 7."""
+    t = np.arange(10) / 10.0
+    v_true = np.ones(10)
+    v_all = np.array([1.01, 0.99, 1.0, 1.015, 1.1, 0.9, 1.5, np.nan, np.nan, np.nan])
+    answered = np.where(np.arange(10) < 4, v_all, np.nan)
+    sd = np.array([0.01] * 4 + [0.1] * 3 + [np.nan] * 3)
+    m = suite.window_metrics(t, answered, sd, v_true, np.ones(10, bool), v_all)
+    assert m["coverage_2sigma"] == 1.0 and m["observable_fraction"] == pytest.approx(0.4)
+    assert m["coverage_2sigma_all"] == pytest.approx(0.6)
+    e = v_all[:7] - 1.0
+    assert m["rmse_all_m_s"] == pytest.approx(np.sqrt(np.mean(e ** 2)))
+    assert m["rmse_m_s"] == pytest.approx(np.sqrt(np.mean(e[:4] ** 2)))
+    # Without a carried series the answered one is every v̂; without a std there is no coverage.
+    alone = suite.window_metrics(t, answered, sd, v_true, np.ones(10, bool))
+    assert alone["rmse_all_m_s"] == alone["rmse_m_s"] and alone["coverage_2sigma_all"] == pytest.approx(0.4)
+    assert np.isnan(suite.window_metrics(t, answered, None, v_true, np.ones(10, bool), v_all)["coverage_2sigma_all"])
+
+
 def test_the_figure_says_none_where_a_configuration_ran_but_answered_nothing():
     """A configuration that ran and answered no frame of a family has no RMSE to draw: the figure marks that slot
     "none" (suite.unanswered), unlike one that answered on some seed or did not run at all."""
@@ -119,7 +139,13 @@ def test_suite_on_tiny_scenes_writes_consistent_files(tmp_path, capsys):
     assert float(dr.sel(family="rest")) < 0.2 * float(zero.sel(family="rest"))
     lob = ds.value.sel(configuration="lobula zero-phase", window="after_skip", metric="rmse_m_s").isel(seed=0)
     assert np.all(np.isfinite(lob)) and float(lob.sel(family="rest")) < float(zero.sel(family="rest"))
-    assert (out / "suite.png").stat().st_size > 10_000
+    assert (out / "suite.png").stat().st_size > 10_000 and (out / "series.png").stat().st_size > 10_000
+    # The series file holds v̂ answered and answered-or-carried: equal where vision answers.
+    s0 = xr.load_dataset(out / "series" / "ground-s0.nc")
+    answered = np.isfinite(s0["v_hat__lobula_zero-phase"].values)
+    assert answered.any()
+    np.testing.assert_array_equal(s0["v_hat_all__lobula_zero-phase"].values[answered],
+                                  s0["v_hat__lobula_zero-phase"].values[answered])
     assert "| rest | lobula zero-phase |" in printed
     # Resumable: a second run reuses the per-scene results and gives the same numbers.
     mtime = (out / "results" / "rest-s0.json").stat().st_mtime
