@@ -49,7 +49,7 @@ from .families import ALL_FAMILIES, EXTRA_FAMILIES, FAMILIES, parse_seeds  # the
 from .suite_metrics import METRIC_UNITS, METRICS, WINDOWS, Z95_TARGET, lock_on_time, score_series, window_metrics
 from .suite_scene import (BASELINES, CONFIGURATIONS, EYE_CONFIGURATIONS, EYE_RATE_HZ, SceneJob, dead_reckoning,
                           ensure_eye_scene, ensure_rendered, family_config, family_seed, remove_partial_scenes,
-                          run_scene_job, scene_name, velocity_config)
+                          run_scene_job, scene_name, series_key, velocity_config)
 
 
 def seed_summary(values, name: str) -> dict:
@@ -158,7 +158,7 @@ def plot_series(out: Path, families, seeds, configurations) -> Path | None:
             t = ds.time.values
             ax.plot(t, ds.v_true.values, "k--", lw=1.0, label="truth")
             for c in names:
-                key = c.replace(" ", "_").replace("=", "-")
+                key = series_key(c)
                 if f"v_hat__{key}" not in ds:
                     continue
                 answered, every = ds[f"v_hat__{key}"].values, ds[f"v_hat_all__{key}"].values
@@ -167,6 +167,10 @@ def plot_series(out: Path, families, seeds, configurations) -> Path | None:
                 ax.plot(t, every, ":", color=colours[c], lw=1.0)
                 ax.plot(t, answered, "-", color=colours[c], lw=1.4, label=f"{c} (dotted: carried)")
             top = np.nanmax(np.abs(ds.v_true.values))
+            if not any(np.isfinite(ds[f"v_hat_all__{series_key(c)}"]).any() for c in names
+                       if f"v_hat_all__{series_key(c)}" in ds):
+                ax.text(0.5, 0.12, "no v̂: vision never answered", ha="center", transform=ax.transAxes, fontsize=8,
+                        color="0.4")
         ax.set_ylim(-0.3 * top - 0.05, 1.6 * top + 0.05)  # a carried σ can grow without bound
         ax.axhline(0, color="0.6", lw=0.5)
     for ax in axes[-1]:

@@ -64,7 +64,7 @@ def window_metrics(t, v_hat, v_std, v_true, mask, v_all=None) -> dict:
     e_all = (v_hat if v_all is None else v_all)[mask] - vt
     out["rmse_all_m_s"] = float(np.sqrt(np.mean(e_all[np.isfinite(e_all)] ** 2))) if np.isfinite(e_all).any() \
         else float("nan")
-    if v_std is not None and np.isfinite(v_std[mask]).any():
+    if v_std is not None and mask.any():
         with np.errstate(invalid="ignore"):
             out["coverage_2sigma_all"] = float(np.mean(np.abs(e_all) <= 2 * v_std[mask]))  # NaN compares False
     if v_std is not None and err.size:

@@ -215,6 +215,12 @@ def scene_name(family: str, seed: int) -> str:
     return f"{family}-s{seed}"
 
 
+def series_key(configuration: str) -> str:
+    """A configuration's name in ``series/<scene>.nc``'s variables (``v_hat__<key>``, ``v_hat_all__<key>``,
+    ``v_std__<key>``)."""
+    return configuration.replace(" ", "_").replace("=", "-")
+
+
 @dataclass
 class SceneJob:
     family: str
@@ -340,7 +346,7 @@ def _series_dataset(job: SceneJob, cfg, series: dict, t_ref: np.ndarray, v_true_
     # first frame, so its times differ; interpolated for the file only, scored on its own).
     data = {"v_true": ("time", v_true_ref, {"units": "m/s", "long_name": "ground-truth forward velocity"})}
     for name, (t, v_hat, v_std, v_all) in series.items():
-        key = name.replace(" ", "_").replace("=", "-")
+        key = series_key(name)
         data[f"v_hat__{key}"] = ("time", np.interp(t_ref, t, v_hat, left=np.nan, right=np.nan),
                                  {"units": "m/s", "long_name": f"estimated forward velocity, {name} (NaN: not "
                                                                "observable)"})

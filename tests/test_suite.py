@@ -75,6 +75,9 @@ def test_every_frame_coverage_counts_carried_estimates_and_frames_without_one():
     alone = suite.window_metrics(t, answered, sd, v_true, np.ones(10, bool))
     assert alone["rmse_all_m_s"] == alone["rmse_m_s"] and alone["coverage_2sigma_all"] == pytest.approx(0.4)
     assert np.isnan(suite.window_metrics(t, answered, None, v_true, np.ones(10, bool), v_all)["coverage_2sigma_all"])
+    # An estimator that states a std but never gives a v̂ covers no frame.
+    never = np.full(10, np.nan)
+    assert suite.window_metrics(t, never, never, v_true, np.ones(10, bool), never)["coverage_2sigma_all"] == 0.0
 
 
 def test_the_figure_says_none_where_a_configuration_ran_but_answered_nothing():
