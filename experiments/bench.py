@@ -139,16 +139,9 @@ def _sync(device) -> None:
 
 def check_device(device: str) -> None:
     """Fail loudly (ValueError) when ``device`` is not a torch device this machine has."""
-    from lobula._optional import torch
+    from lobula._optional import torch_device
 
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError) as exc:
-        raise ValueError(f"--device {device!r} is not a torch device ({exc})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {device}: torch {torch.__version__} sees no CUDA device on this machine")
-    if dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"--device {device}: only cpu and cuda devices are supported")
+    torch_device(device)
 
 
 def _tv_flows(scale: float, n_frames: int, seed: int = 0):

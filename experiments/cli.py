@@ -101,11 +101,18 @@ class _Version(argparse.Action):
         parser.exit()
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, refusing an option in one line that names it and where the options are told."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (options: {self.prog} --help)\n")
+
+
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The parser; only the subcommand named in ``argv`` (if any) gets its full options built."""
     argv = sys.argv[1:] if argv is None else argv
     chosen = next((a for a in argv if not a.startswith("-")), None)
-    p = argparse.ArgumentParser(prog="lobula", description=DESCRIPTION, formatter_class=_Formatter)
+    p = _Parser(prog="lobula", description=DESCRIPTION, formatter_class=_Formatter)
     p.add_argument("--version", action=_Version, help="print the version and git commit, and exit")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (target, help_) in COMMANDS.items():
@@ -225,8 +232,43 @@ def _not_kept(command: str, group: list) -> str:
     return f" ({names} not kept: lobula {command} writes its outputs together or not at all)"
 
 
+#: the figure formats --plot writes
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+
+
+def _output_clash(outputs: list[tuple[str, str]]) -> str | None:
+    """Why the outputs a command line names cannot all be written (two options naming one file, a figure
+    in a format not drawn), or None."""
+    from pathlib import Path
+
+    seen: dict[Path, str] = {}
+    for option, path in outputs:
+        key = Path(os.path.abspath(path))
+        if key in seen:
+            return f"{seen[key]} and {option} both name {path}: give each its own file"
+        seen[key] = option
+        if option == "--plot" and Path(path).suffix.lower() not in PLOT_SUFFIXES:
+            return f"--plot {path}: use a {', '.join(PLOT_SUFFIXES[:-1])} or {PLOT_SUFFIXES[-1]} file"
+    return None
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    # SIGINT and SIGTERM unwind from the first moment (imports, parsing, the output checks included).
+    try:
+        with _signals_unwind():
+            return _main(argv)
+    except (KeyboardInterrupt, ImportError) as exc:
+        # An interrupt that lands inside a module's import comes out as that import's ImportError.
+        if not isinstance(exc, KeyboardInterrupt) and not isinstance(exc.__context__, KeyboardInterrupt):
+            raise
+        signum = getattr(exc if isinstance(exc, KeyboardInterrupt) else exc.__context__, "signum", signal.SIGINT)
+        command = next((a for a in argv if not a.startswith("-")), None)
+        print(f"lobula{' ' + command if command else ''}: interrupted; nothing written", file=sys.stderr)
+        return 128 + signum
+
+
+def _main(argv: list[str]) -> int:
     try:
         args = build_parser(argv).parse_args(argv)
     except SystemExit as exc:
@@ -245,6 +287,10 @@ def main(argv=None) -> int:
     from . import store
 
     outputs = _outputs(args)
+    clash = _output_clash(outputs)
+    if clash is not None:
+        print(f"lobula {args.command}: error: {clash}", file=sys.stderr)
+        return 2
     folders = args.command in FOLDER_OUTPUTS
     for option, path in outputs:  # before the run: a run is never lost to a folder it cannot write
         problem = store.writable_problem(path, folder=folders and option in ("--out", "OUT"))
@@ -253,8 +299,7 @@ def main(argv=None) -> int:
             return 2
     written, group = len(store.WRITTEN), []
     try:
-        with _signals_unwind(), (store.all_or_nothing() if args.command in ALL_OR_NOTHING
-                                 else nullcontext([])) as group:
+        with store.all_or_nothing() if args.command in ALL_OR_NOTHING else nullcontext([]) as group:
             return args.func(args)
     except (FootageError, FileExistsError, FileNotFoundError, ValueError, MissingExtraError) as exc:
         print(f"lobula {args.command}: error: {exc}{_not_kept(args.command, group)}", file=sys.stderr)

@@ -107,11 +107,15 @@ def add_parser(subparsers):
 
 def run_depth(args) -> int:
     """Handler of ``lobula depth``: returns the exit code; bad input raises FootageError/ValueError."""
+    from lobula._optional import torch_device
+
     from .info import open_footage_from_args
 
     out = Path(args.out)
     if out.suffix not in (".nc", ".zarr"):
         raise ValueError(f"{out}: --out must end in .nc (NetCDF) or .zarr (Zarr)")
+    if args.device != "cpu":  # before the velocity pass, not after it (the cpu needs no torch without TV)
+        torch_device(args.device)
     gamma = FOOTAGE_GAMMA if getattr(args, "gamma", None) is None else args.gamma
     dcfg = DepthConfig(gamma=gamma)
     # The reader options, applied as `lobula velocity` applies them; the .flo route needs no IMU.

@@ -460,6 +460,10 @@ def run_depth_suite(args) -> int:
         raise ValueError(f"unknown families {', '.join(bad)}; choose from {', '.join(FAMILIES)} or 'all'")
     if args.every < 1 or not args.duration > args.skip + 1.0 or not args.scale > 0:
         raise ValueError("--every must be ≥ 1, --duration > --skip + 1 s, --scale > 0")
+    if args.device != "cpu":  # before the renders, not after them
+        from lobula._optional import torch_device
+
+        torch_device(args.device)
     seeds = parse_seeds(args.seeds)
     seeds = list(range(seeds)) if isinstance(seeds, int) else seeds
     if args.workers < 1:

@@ -71,6 +71,8 @@ class Number:
 
 POSITIVE = Number(0, above=True)
 NONNEGATIVE = Number(0)
+#: a rendered camera's scale of the D435i's 640×480: 4 gives 2560×1920, whose supersampled render needs GBs
+CAMERA_SCALE = Number(0, 4, above=True, note="times the D435i's 640×480")
 
 
 def positive_or_none(text: str) -> float | None:
@@ -415,7 +417,7 @@ def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
                                  "(default: none; needed unless --list-params)")
     s.add_argument("--base-duration", type=POSITIVE, default=30.0, help="duration of each synthetic run (s)")
     s.add_argument("--start", type=NONNEGATIVE, default=0.0, help="window start in the velocity profile (s)")
-    s.add_argument("--scale", type=POSITIVE, default=0.5, help="image scale of the D435i camera (0.5 = 320×240)")
+    s.add_argument("--scale", type=CAMERA_SCALE, default=0.5, help="image scale of the D435i camera (0.5 = 320×240)")
     s.add_argument("--profile", help="velocity CSV (default: the real FLIVVER run when ../shared is present, else "
                                      "the built-in profile)")
     s.add_argument("--builtin-profile", action="store_true", help="use the built-in velocity profile")
@@ -534,7 +536,7 @@ def add_depth_suite_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--skip", type=NONNEGATIVE, default=2.0,
                    help="pairs starting in the first SKIP seconds are not scored (the velocity readout locks on "
                         "then; the velocity suite skips the same)")
-    p.add_argument("--scale", type=POSITIVE, default=0.25,
+    p.add_argument("--scale", type=CAMERA_SCALE, default=0.25,
                    help="camera scale of the D435i's 640x480 (0.25: 160x120; 0.5: 320x240, the velocity suite's)")
     p.add_argument("--every", type=COUNT, default=5, help="exact depth (and a scored map) every N frames")
     p.add_argument("--max-range", type=POSITIVE, default=DEPTH_RUN_DEFAULTS["max_range_m"],

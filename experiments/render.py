@@ -56,7 +56,8 @@ def run_scene(args) -> int:
            if cfg.random_peak_m_s is not None else cfg.profile or "built-in")
     if cfg.flight != "track":
         src = f"{cfg.flight} flight"
-    print(f"wrote {out} ({int(args.duration * 30)} frames; world: {args.world}; profile: {src}; "
+    frames = sum(1 for _ in open(out / "frames.csv")) - 1  # what was written, less the header
+    print(f"wrote {out} ({frames} frames; world: {args.world}; profile: {src}; "
           f"IMU: {args.imu}, mounted {args.imu_mount})")
     return 0
 
@@ -65,7 +66,7 @@ def add_parser(subparsers):
     """Register `lobula scene` (see experiments.cli)."""
     from stimuli.worlds import SceneConfig
 
-    from .parsers import FINITE, FRACTION, INDEX, NONNEGATIVE, POSITIVE, Number
+    from .parsers import CAMERA_SCALE, FINITE, FRACTION, INDEX, NONNEGATIVE, POSITIVE, Number
 
     s = subparsers.add_parser("scene", help="render a synthetic track run (footage folder with exact truth)")
     s.add_argument("out", help="output footage folder (must not exist or be empty)")
@@ -91,7 +92,7 @@ def add_parser(subparsers):
     s.add_argument("--speed-scale", type=POSITIVE, default=1.0, help="multiply the profile's velocity by this")
     s.add_argument("--start", type=NONNEGATIVE, default=0.0, help="window start in the profile (s)")
     s.add_argument("--duration", type=POSITIVE, default=30.0, help="duration (s)")
-    s.add_argument("--scale", type=POSITIVE, default=0.5, help="image scale of the D435i camera (0.5 = 320x240)")
+    s.add_argument("--scale", type=CAMERA_SCALE, default=0.5, help="image scale of the D435i camera (0.5 = 320x240)")
     s.add_argument("--camera", help="camera.json with other intrinsics (default: the D435i's)")
     s.add_argument("--lens", type=_lens, metavar="MODEL:C1,C2,...",
                    help="render through a distorted lens: kannala-brandt:k1,k2,k3,k4 (OpenCV's fisheye, equidistant) or "

@@ -23,7 +23,7 @@ import shutil
 import tempfile
 import warnings
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from contextvars import ContextVar
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -102,16 +102,22 @@ def writable_problem(path: str | Path, folder: bool = False) -> OutputError | No
     if not folder and path.is_dir():
         return OutputError(errno.EISDIR, path, f"cannot write {path}: a folder of that name exists",
                            "give a file name")
+    if not folder and path.exists() and not path.is_file():
+        # A device or a pipe would be replaced by a file of that name (the output is renamed onto it).
+        return OutputError(errno.EEXIST, path, f"cannot write {path}: it is a device or a pipe, not a file",
+                           "give a file name")
     d = path if folder else path.parent
     d = Path(os.path.abspath(d))
     while not d.exists() and d != d.parent:
         d = d.parent
     if not d.is_dir():
         return OutputError(errno.ENOTDIR, path, f"cannot write {path}: {d} is a file, not a folder")
+    probe = None
     try:
         fd, probe = tempfile.mkstemp(prefix=f".{TEMP_TAG}-check-{os.getpid()}-", dir=d)
         os.close(fd)
         os.unlink(probe)
+        probe = None
         st = os.statvfs(d)
         if st.f_bavail == 0 and st.f_blocks > 0:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -120,6 +126,10 @@ def writable_problem(path: str | Path, folder: bool = False) -> OutputError | No
         if isinstance(err, OutputError):
             return err
         return OutputError(exc.errno or errno.EIO, path, f"cannot write {path}: {exc.strerror or exc}")
+    finally:
+        if probe is not None:  # interrupted between making the probe and removing it
+            with suppress(OSError):
+                os.unlink(probe)
     return None
 
 

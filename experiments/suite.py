@@ -81,6 +81,9 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
     if duration_s <= skip_s:
         raise ValueError(f"--duration ({duration_s} s) must exceed --skip ({skip_s} s)")
     out = Path(out)
+    footage = [n for n in ("camera.json", "frames.csv") if (out / n).exists()]
+    if footage:  # its own results, scenes and series would be mixed into the recording
+        raise ValueError(f"{out} is a footage folder ({footage[0]}): give the suite a folder of its own")
     out.mkdir(parents=True, exist_ok=True)
     stale = remove_partial_scenes(out)
     if stale:
@@ -440,7 +443,7 @@ def run_suite_cli(args) -> int:
 
 def add_parser(subparsers):
     """Register `lobula suite` (see experiments.cli)."""
-    from .parsers import COUNT, NONNEGATIVE, POSITIVE, seeds
+    from .parsers import CAMERA_SCALE, COUNT, NONNEGATIVE, POSITIVE, seeds
 
     s = subparsers.add_parser("suite", help="accuracy suite: scene families x seeds, all configurations, baselines",
                               description="The accuracy suite: scene families × seeds, every configuration, "
@@ -454,7 +457,7 @@ def add_parser(subparsers):
                    help="seeds per family: a count N (seeds 0..N-1) or a comma-separated list (e.g. 100,101 "
                         "for development seeds that the reported 0..N-1 never see; 7, for seed 7 alone)")
     s.add_argument("--duration", type=POSITIVE, default=10.0, help="seconds per scene")
-    s.add_argument("--scale", type=POSITIVE, default=0.5,
+    s.add_argument("--scale", type=CAMERA_SCALE, default=0.5,
                    help="image scale of the D435i camera (0.5 = 320x240; at 0.25 = 160x120 DIS resolves "
                         "the corridor and fast turns poorly)")
     s.add_argument("--configurations", default="all",

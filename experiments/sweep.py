@@ -226,6 +226,21 @@ class _Client:
                 cv2.setNumThreads(self._restore[1])
 
 
+#: the schedulers run_sweep starts itself; any other --scheduler is a running dask scheduler's address
+LOCAL_SCHEDULERS = ("processes", "threads", "synchronous")
+
+
+def _check_scheduler(scheduler: str) -> None:
+    """ValueError unless ``scheduler`` is one of :data:`LOCAL_SCHEDULERS` or an address (HOST:PORT, with or
+    without a protocol such as tcp://), before anything is made."""
+    if scheduler in LOCAL_SCHEDULERS:
+        return
+    host, _, port = scheduler.rpartition("://")[2].rpartition(":")
+    if not (host and port.isdigit()):
+        raise ValueError(f"--scheduler {scheduler}: use {', '.join(LOCAL_SCHEDULERS)} or a dask scheduler's "
+                         f"address (tcp://HOST:PORT)")
+
+
 def run_sweep(spec: SweepSpec, out: str | Path, scheduler: str = "processes", workers: int = 2,
               progress: bool = True, keep_renders: bool = False, series: bool = True,
               stop_after: int | None = None, log=None) -> xr.Dataset:
@@ -238,6 +253,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, scheduler: str = "processes", wo
     """
     from tqdm.auto import tqdm
 
+    _check_scheduler(scheduler)
     say = log or (lambda s: None)
     out, points_dir, renders_dir = sweep_paths(out)
     grid = spec.points()

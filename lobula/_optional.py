@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import sys
 
-__all__ = ["BIO_INSTALL", "MissingExtraError", "require_torch", "optional_torch", "is_tensor", "torch"]
+__all__ = ["BIO_INSTALL", "MissingExtraError", "require_torch", "optional_torch", "is_tensor", "torch_device",
+           "torch"]
 
 #: how to install what the biological front end needs
 BIO_INSTALL = "pip install 'lobula[bio]'"
@@ -41,6 +42,25 @@ def require_torch(what: str = "this") -> object:
             raise
         raise MissingExtraError(f"{what} needs torch, which is not installed: {BIO_INSTALL}", name="torch") from None
     return torch
+
+
+def torch_device(device: str, what: str = "--device") -> str:
+    """``device`` (a torch device name) when this machine has it; else ValueError naming ``what``.
+
+    Only cpu and cuda devices are taken: the TV solver and the biological front end run on those. Called
+    before a run, so that a device a run cannot use is refused before its work, not after it.
+    """
+    torch = require_torch(f"{what} {device}")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"{what} {device!r} is not a torch device; use cpu or cuda") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"{what} {device}: only cpu and cuda devices are supported")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"{what} {device}: torch {torch.__version__} sees no CUDA device on this machine; "
+                         f"use {what} cpu")
+    return device
 
 
 def optional_torch():

@@ -192,7 +192,14 @@ def make_track_run(folder, cfg: TrackRunConfig, progress: bool = True) -> Path:
     if folder.exists() and any(folder.iterdir()):
         raise FileExistsError(f"{folder}: exists and is not empty; choose a new folder or delete it")
     scene, imu = build_track(cfg)
-    times = np.arange(0.0, cfg.duration_s - 1e-9, 1.0 / scene.camera.frame_rate_hz)
+    rate = scene.camera.frame_rate_hz
+    times = np.arange(0.0, cfg.duration_s - 1e-9, 1.0 / rate)
+    if len(times) < 2:
+        raise ValueError(f"a duration of {cfg.duration_s:g} s holds {len(times)} frame(s) at {rate:g} Hz: give at "
+                         f"least {2.0 / rate:.3f} s")
+    if not cfg.scene.rolling_shutter_s <= 1.0 / rate:
+        raise ValueError(f"a rolling shutter of {cfg.scene.rolling_shutter_s:g} s reads out longer than a frame "
+                         f"lasts ({1.0 / rate:.4f} s at {rate:g} Hz): give at most that")
     meta = dict(lobula_version=__version__, config=cfg.to_dict(), epipole=scene.epipole(0.0),
                 accel_bias=imu["accel_bias"].tolist(), gyro_bias=imu["gyro_bias"].tolist(),
                 trajectory=scene.trajectory.source,

@@ -172,7 +172,7 @@ def test_number_accepts_its_range_and_refuses_the_rest(spec, good, bad):
 _REFUSED = [
     (["scene", "OUT", "--duration", "-1"], "--duration", "a number > 0"),
     (["scene", "OUT", "--duration", "0"], "--duration", "a number > 0"),
-    (["scene", "OUT", "--scale", "0"], "--scale", "a number > 0"),
+    (["scene", "OUT", "--scale", "0"], "--scale", "a number in (0, 4]"),
     (["scene", "OUT", "--peak-speed", "-2"], "--peak-speed", "a number > 0"),
     (["scene", "OUT", "--speed-scale", "0"], "--speed-scale", "a number > 0"),
     (["scene", "OUT", "--start", "-1"], "--start", "a number ≥ 0"),
@@ -223,7 +223,7 @@ _REFUSED = [
     (["depth", "F", "--out", "o.nc", "--max-range", "0"], "--max-range", "a number > 0"),
     (["depth", "F", "--out", "o.nc", "--gamma", "-1"], "--gamma", "a number ≥ 0"),
     (["depth-suite", "--out", "D", "--seeds", "1,x"], "--seeds", "a comma-separated list of seeds"),
-    (["depth-suite", "--out", "D", "--scale", "0"], "--scale", "a number > 0"),
+    (["depth-suite", "--out", "D", "--scale", "0"], "--scale", "a number in (0, 4]"),
     (["ephys", "looming", "--out", "x.nc", "--trials", "0"], "--trials", "a whole number ≥ 1"),
     (["ephys", "tf-tuning", "--out", "x.nc", "--contrast", "0.5", "1.5"], "--contrast", "a number in (0, 1]"),
     (["ephys", "tf-tuning", "--out", "x.nc", "--tf", "0"], "--tf", "a number in (0, 500)"),

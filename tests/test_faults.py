@@ -239,6 +239,81 @@ def test_read_only_output_is_refused_before_the_run(run2, tmp_path, capsys, monk
     one_error(err, "velocity", "a folder of that name exists", "give a file name")
 
 
+def test_outputs_that_cannot_all_be_written_are_refused_before_the_run(run2, tmp_path, capsys, monkeypatch):
+    """Two options naming one file (one would overwrite the other), a figure in a format not drawn, and a device or
+    pipe where a file is asked for (the output would be renamed onto it, replacing it): one line each, before the
+    run, nothing made."""
+    import experiments.velocity as velocity
+
+    def never(*a, **k):
+        raise AssertionError("the run started although its outputs cannot all be written")
+
+    monkeypatch.setattr(velocity, "estimate_velocity", never)
+    out = tmp_path / "out"
+    out.mkdir()
+    for argv, needles in (
+            (["--out", out / "o.nc", "--tum", out / "o.nc"], ("--out and --tum both name", "give each its own file")),
+            (["--out", out / "o.nc", "--plot", out / "o.nc"], ("--out and --plot both name",)),
+            (["--out", out / "o.nc", "--plot", out / "o.xyz"], ("--plot", "use a .png, .pdf or .svg file"))):
+        code, printed, err = cli(capsys, "velocity", run2, *argv, "--quiet")
+        assert code == 2 and printed == ""
+        one_error(err, "velocity", *needles)
+    code, _, err = cli(capsys, "compare", run2, "--out", out / "c.nc", "--csv", out / "c.nc", "--quiet")
+    assert code == 2
+    one_error(err, "compare", "--out and --csv both name")
+    fifo = out / "pipe.nc"
+    os.mkfifo(fifo)
+    code, _, err = cli(capsys, "velocity", run2, "--out", fifo, "--quiet")
+    assert code == 2
+    one_error(err, "velocity", "it is a device or a pipe, not a file")
+    assert entries(out) == {"pipe.nc"} and fifo.is_fifo()
+
+
+def test_a_refused_option_is_one_line_that_names_it(capsys):
+    """argparse's refusal without its usage block: the option, why, and where the options are told."""
+    code, printed, err = cli(capsys, "velocity", "x", "--out", "o.nc", "--gap", "0")
+    assert code == 2 and printed == ""
+    one_error(err, "velocity", "argument --gap", "(options: lobula velocity --help)")
+    code, _, err = cli(capsys, "scene", "x", "--scale", "50")
+    assert code == 2
+    one_error(err, "scene", "argument --scale", "(0, 4]")
+
+
+def test_an_interrupt_before_the_run_begins_is_one_line(capsys, monkeypatch):
+    """SIGINT while the command line is still being read (its imports, its parser): one line, the signal's code."""
+    import experiments.cli as cli_module
+
+    def interrupted(argv):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_module, "build_parser", interrupted)
+    code, printed, err = cli(capsys, "velocity", "x", "--out", "o.nc")
+    assert code == 130 and printed == ""
+    assert err.strip() == "lobula velocity: interrupted; nothing written"
+
+
+def test_values_a_run_cannot_use_are_refused_before_its_work(run2, tmp_path, capsys):
+    """A torch device this machine lacks, a sweep scheduler that is neither local nor an address, a scene too short
+    for two frames or whose rolling shutter outlasts a frame, a suite into a footage folder: one line, nothing made."""
+    code, _, err = cli(capsys, "depth", run2, "--method", "tv", "--device", "foo", "--out", tmp_path / "d.nc")
+    assert code == 2
+    one_error(err, "depth", "--device 'foo' is not a torch device")
+    code, _, err = cli(capsys, "sweep", "--param", "readout.cutoff_hz=1,2", "--builtin-profile",
+                       "--out", tmp_path / "s.zarr", "--scheduler", "foo")
+    assert code == 2
+    one_error(err, "sweep", "--scheduler foo", "tcp://HOST:PORT")
+    for argv, needle in ((["--duration", "0.01"], "holds 1 frame(s) at 30 Hz"),
+                         (["--duration", "0.5", "--rolling-shutter", "0.05"], "reads out longer than a frame lasts")):
+        code, _, err = cli(capsys, "scene", tmp_path / "sc", "--scale", "0.25", "--builtin-profile", *argv, "--quiet")
+        assert code == 2
+        one_error(err, "scene", needle)
+    code, _, err = cli(capsys, "suite", "--out", run2, "--families", "rest", "--seeds", "1")
+    assert code == 2
+    one_error(err, "suite", "is a footage folder (camera.json)")
+    assert entries(tmp_path) == set()
+    assert not (run2 / "results").exists() and not (run2 / "scenes").exists()
+
+
 def test_outputs_of_a_run_appear_together_or_not_at_all(run2, tmp_path, capsys, monkeypatch):
     """The figure fails after the NetCDF is written (a disk that fills between the two): neither is kept."""
     from matplotlib.figure import Figure

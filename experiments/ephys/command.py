@@ -278,20 +278,12 @@ def rig_config(protocol: str, opts: dict):
     """The :class:`EphysConfig` of an LC-rig protocol from the given options."""
     from dataclasses import replace
 
-    from lobula._optional import torch
+    from lobula._optional import torch_device
     from lobula.population import LCNeurons
 
     from .rig import EphysConfig
 
-    device = opts.get("device", "cpu")
-    try:
-        dev = torch.device(device)
-    except RuntimeError:
-        raise ValueError(f"--device {device!r} is not a torch device; use cpu or cuda") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {device}: no CUDA device on this machine; use --device cpu")
-    if dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"--device {device}: the ephys rig runs on cpu or cuda")
+    device = torch_device(opts.get("device", "cpu"))
     cfg = EphysConfig(seed=opts.get("seed", 0), device=device)
 
     if "dphi" in opts:
