@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import copy
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -513,8 +514,16 @@ def _config_from_args(args) -> VelocityConfig:
 
     if args.config:
         try:
-            cfg = VelocityConfig.from_json(Path(args.config).read_text())
-        except (OSError, ValueError, TypeError) as exc:
+            text = Path(args.config).read_text()
+            # A key the configuration does not have would be dropped (from_json reads older runs' configs so).
+            given = json.loads(text)
+            if not isinstance(given, dict):
+                raise ValueError(f"a JSON object is needed, not a {type(given).__name__}")
+            unknown = sorted(set(given) - {f.name for f in dataclasses.fields(VelocityConfig)})
+            if unknown:
+                raise ValueError(f"no field {', '.join(map(repr, unknown))}")
+            cfg = VelocityConfig.from_json(text)
+        except (OSError, ValueError, TypeError, AttributeError) as exc:
             raise FootageError(f"{args.config}: not a VelocityConfig JSON ({exc})") from None
     elif args.paper:
         cfg = VelocityConfig.paper("dis", args.filter or "zero-phase")

@@ -156,7 +156,11 @@ def run_depth(args) -> int:
         p = Path(args.velocity_run)
         if not p.exists():
             raise FootageError(f"{p}: velocity run not found")
-        velocity = xr.load_dataset(p)
+        try:
+            velocity = xr.load_dataset(p)
+        except (OSError, ValueError) as exc:  # not a NetCDF (xarray finds no engine), or a damaged one
+            raise FootageError(f"{p}: not a readable NetCDF velocity run of `lobula velocity` "
+                               f"({str(exc).splitlines()[0]})") from None
         if "config" not in velocity.attrs or "v_hat" not in velocity:
             raise FootageError(f"{p}: not a velocity run of `lobula velocity` (no v_hat / config)")
     run = DepthRunConfig(method=args.method, every=args.every, velocity=args.velocity, epipole=args.epipole,
@@ -171,6 +175,9 @@ def run_depth(args) -> int:
           f"acceleration: {ds.attrs['acceleration_source']}]")
     print(format_scores(ds))
     if args.plot:
+        t = ds.time.values
+        if args.plot_time is not None and not t[0] - 0.5 <= args.plot_time <= t[-1] + 0.5:
+            raise ValueError(f"--plot-time {args.plot_time:g} s lies outside the maps' {t[0]:.2f}–{t[-1]:.2f} s")
         plot_depth(ds, footage, args.plot, time=args.plot_time, device=args.device)
         print(f"wrote {args.plot}")
     return 0

@@ -10,6 +10,7 @@ are pooled at once by one sparse matrix product.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -41,6 +42,17 @@ class FieldConfig:
     pooling: str = "least-squares"
     gap_correction: bool = True
     material: bool = True
+
+    def __post_init__(self):
+        for name, value, low in (("size_deg", self.size_deg, 0.0), ("spacing_deg", self.spacing_deg, 0.0)):
+            if value is not None and not (math.isfinite(value) and value > low):
+                raise ValueError(f"FieldConfig.{name} must be a finite number of degrees > 0, got {value}")
+        if not (math.isfinite(self.margin_deg) and self.margin_deg >= 0):
+            raise ValueError(f"FieldConfig.margin_deg must be a finite number of degrees ≥ 0, got {self.margin_deg}")
+        for name, value, allowed in (("shape", self.shape, ("box", "gaussian")),
+                                     ("pooling", self.pooling, ("least-squares", "pixel-mean"))):
+            if value not in allowed:
+                raise ValueError(f"FieldConfig.{name} must be one of {', '.join(allowed)}, got {value!r}")
 
     def to_dict(self) -> dict:
         """Every field as a dict."""

@@ -280,7 +280,11 @@ def open_eye_footage(path: str | Path) -> EyeFootage:
                            f"({len(xyz)} rows, {eye.n} expected); re-render the folder")
     tt = _read_csv(path / "times.csv", ("sample", "time_s"))["time_s"]
     _check_times(path / "times.csv", tt)
-    shape = np.load(path / "luminance.npy", mmap_mode="r").shape
+    try:
+        shape = np.load(path / "luminance.npy", mmap_mode="r").shape
+    except (OSError, ValueError) as exc:  # cut short (its header promises more than the file holds), or no .npy
+        raise FootageError(f"{path / 'luminance.npy'}: not a readable array ({exc}); render the eye footage "
+                           f"again (lobula scene OUT --eye fly)") from None
     if shape != (len(tt), eye.n):
         raise FootageError(f"{path / 'luminance.npy'}: shape {shape}, expected ({len(tt)}, {eye.n}) from "
                            f"times.csv and ommatidia.csv; re-render the folder")

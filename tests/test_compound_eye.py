@@ -195,6 +195,12 @@ def test_eye_footage_roundtrip(tmp_path):
     assert np.allclose(fo.truth["v_forward_m_s"], 0.5)
     with pytest.raises(FileExistsError):
         write_eye_footage(out, world, eye, imu, times, {})
+    lum_file = out / "luminance.npy"
+    whole = lum_file.read_bytes()
+    lum_file.write_bytes(whole[: len(whole) // 2])  # cut short: its header promises more than the file holds
+    with pytest.raises(FootageError, match="luminance.npy: not a readable array"):
+        open_eye_footage(out)
+    lum_file.write_bytes(whole)
     (out / "times.csv").write_text("sample,time_s\n0,0.0\n")
     with pytest.raises(FootageError, match="luminance.npy"):
         open_eye_footage(out)

@@ -314,6 +314,24 @@ def test_values_a_run_cannot_use_are_refused_before_its_work(run2, tmp_path, cap
     assert not (run2 / "results").exists() and not (run2 / "scenes").exists()
 
 
+def test_an_input_file_that_is_not_what_its_option_needs_is_named(run2, tmp_path, capsys):
+    """A configuration with a key it does not have or a field size below 0, a velocity run that is no NetCDF: one
+    line naming the file, before any work."""
+    bad = tmp_path / "bad.json"
+    for text, needle in (('{"nonsense_key": 1}', "no field 'nonsense_key'"), ("[1, 2]", "a JSON object is needed"),
+                         ('{"fields": {"size_deg": -3}}', "FieldConfig.size_deg must be")):
+        bad.write_text(text)
+        code, _, err = cli(capsys, "compare", run2, "--out", tmp_path / "c.nc", "--config", bad, "--quiet")
+        assert code == 2
+        one_error(err, "compare", f"{bad}: not a VelocityConfig JSON", needle)
+    not_nc = tmp_path / "run.nc"
+    not_nc.write_text("not a NetCDF\n")
+    code, _, err = cli(capsys, "depth", run2, "--velocity-run", not_nc, "--out", tmp_path / "d.nc", "--quiet")
+    assert code == 2
+    one_error(err, "depth", f"{not_nc}: not a readable NetCDF velocity run")
+    assert entries(tmp_path) == {"bad.json", "run.nc"}
+
+
 def test_outputs_of_a_run_appear_together_or_not_at_all(run2, tmp_path, capsys, monkeypatch):
     """The figure fails after the NetCDF is written (a disk that fills between the two): neither is kept."""
     from matplotlib.figure import Figure
