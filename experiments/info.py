@@ -177,7 +177,39 @@ def format_text(d: dict) -> str:
     return "\n".join(out)
 
 
+def describe_eye(fo) -> dict:
+    """What compound-eye footage (``lobula scene OUT --eye fly``; a :class:`stimuli.eye.EyeFootage`) holds."""
+    t = fo.times
+    d = dict(footage=str(fo.path), kind="compound-eye footage",
+             ommatidia=int(fo.eye.n), dphi_deg=float(fo.eye.config.dphi_deg), eyes=fo.eye.config.eyes,
+             samples=int(len(t)), rate_hz=float(fo.rate_hz), duration_s=float(t[-1] - t[0]) if len(t) else 0.0,
+             imu=None, truth=fo.truth is not None, head_stabilised=fo.head is not None,
+             read_with="lobula eye-velocity FOOTAGE")
+    if fo.imu is not None and len(fo.imu.time_s) > 1:
+        d["imu"] = dict(samples=int(len(fo.imu.time_s)),
+                        rate_hz=float((len(fo.imu.time_s) - 1) / (fo.imu.time_s[-1] - fo.imu.time_s[0])))
+    return d
+
+
+def format_eye_text(d: dict) -> str:
+    """:func:`describe_eye`'s dict as lines of text."""
+    imu = d["imu"]
+    return "\n".join([
+        f"{d['footage']}: {d['kind']}",
+        f"eye: {d['ommatidia']} ommatidia ({d['eyes']}), Δφ {d['dphi_deg']:g}°",
+        f"samples: {d['samples']} at {d['rate_hz']:.1f} Hz, {d['duration_s']:.2f} s",
+        "IMU: " + (f"{imu['samples']} samples at {imu['rate_hz']:.1f} Hz" if imu else "none"),
+        f"truth: {'yes' if d['truth'] else 'none'}; head stabilised: {'yes' if d['head_stabilised'] else 'no'}",
+        f"read it with: {d['read_with']}"])
+
+
 def run_info(args) -> int:
+    from stimuli.eye import is_eye_footage, open_eye_footage
+
+    if is_eye_footage(args.footage):
+        d = describe_eye(open_eye_footage(args.footage))
+        print(json.dumps(d, indent=1) if args.json else format_eye_text(d))
+        return 0
     footage = open_footage_from_args(args, require_imu=False, keep_nan=True, require_camera=False)
     d = describe(footage)
     if args.json:

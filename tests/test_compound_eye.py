@@ -1183,3 +1183,18 @@ def test_the_eye_stores_the_readouts_verdicts_on_vision_and_says_why_it_never_an
     why = never_observable_reason(blind)
     assert why.startswith("never observable: the image's expansion never followed the accelerometer"), why
     assert "50 needed" in why
+
+
+def test_info_describes_eye_footage_from_its_own_files(eye_footage, capsys):
+    """`lobula info` on the folder `lobula scene --eye fly` writes: the eye, its samples and IMU as stored."""
+    from experiments.cli import main
+    from stimuli.eye import open_eye_footage
+
+    fo = open_eye_footage(eye_footage)
+    assert main(["info", str(eye_footage), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["ommatidia"] == fo.eye.n and d["samples"] == len(fo.times)
+    assert d["rate_hz"] == pytest.approx(250.0, rel=1e-6) and d["imu"]["samples"] == len(fo.imu.time_s)
+    assert d["read_with"].startswith("lobula eye-velocity")
+    assert main(["info", str(eye_footage)]) == 0
+    assert f"{fo.eye.n} ommatidia" in capsys.readouterr().out
