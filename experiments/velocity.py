@@ -364,6 +364,10 @@ def run_velocity(args) -> int:
           f"acceleration: {ds.attrs['acceleration_source']}]")
     for line in calibration_lines(getattr(footage, "calibration", None)):
         print(line)
+    if skipped := int(ds.attrs.get("frames_skipped", 0)):
+        first = json.loads(ds.attrs.get("frames_skipped_indices", "[]"))[:5]
+        print(f"left out {skipped} frame(s) that could not be decoded (--skip-bad-frames): "
+              f"{', '.join(map(str, first))}{', ...' if skipped > len(first) else ''}")
     e = ds.epipole_x.values[-1], ds.epipole_y.values[-1]
     print(f"epipole: ({np.degrees(np.arctan(e[0])):+.2f}°, {np.degrees(np.arctan(e[1])):+.2f}°) from the principal point")
     print(f"observable: {100 * float(ds.observable.mean()):.1f} % of all {ds.sizes['time']} estimates")

@@ -192,6 +192,7 @@ def test_empty_or_corrupt_db3_frame_is_one_line_or_skipped(run2, tmp_path, capsy
     code, text, err = cli(capsys, "velocity", db3, "--out", out, "--quiet", "--skip-bad-frames")
     assert code == 0, err
     assert err == ""                                   # nor OpenCV's own log of the damaged PNG
+    assert "left out 2 frame(s) that could not be decoded (--skip-bad-frames): 10, 20" in text
     with xr.open_dataset(out) as ds:
         assert int(ds.attrs["frames_skipped"]) == 2 and json.loads(ds.attrs["frames_skipped_indices"]) == [10, 20]
         # the filter ran through the skipped frames: its posterior holds on every frame
