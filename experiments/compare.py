@@ -551,6 +551,8 @@ def _compare(args) -> int:
                             skip_s=args.skip, tol_m_s=args.tol, hold_s=args.hold, progress=not args.quiet, log=say)
     write_netcdf(ds, args.out)
     print(format_table(ds))
+    if footage.truth is None:
+        print(f"{args.footage} holds no truth: the accuracy columns are empty, only the timings are measured")
     print(f"scored after {ds.attrs['skip_s']:g} s; lock-on: {ds.attrs['lock_on']}; acceleration: "
           f"{ds.attrs['acceleration_source']}")
     if ds.attrs.get("notes", "none") != "none":

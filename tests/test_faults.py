@@ -685,3 +685,14 @@ def test_never_observable_reason_is_read_from_the_stored_run(run2, tmp_path, cap
         assert "refuted on 50 % of the frames" in never_observable_reason(ds)
         ds["r"] = ds.r * np.nan
         assert "no receptive field measured an expansion rate" in never_observable_reason(ds)
+
+
+def test_compare_without_truth_says_why_its_accuracy_is_empty(run2, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(run2, run)
+    (run / "truth.csv").unlink()
+    code, text, err = cli(capsys, "compare", run, "--front-ends", "dis", "--out", tmp_path / "c.nc", "--quiet")
+    assert code == 0, err
+    assert f"{run} holds no truth: the accuracy columns are empty" in text
