@@ -25,6 +25,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 from contextlib import contextmanager, nullcontext
 
 #: subcommand: ("module:function" that adds its parser to a subparsers object, one-line help shown by ``lobula --help``)
@@ -213,6 +214,22 @@ def _signals_unwind():
             signal.signal(s, h if h is not None else signal.SIG_DFL)
 
 
+@contextmanager
+def _one_line_warnings(command: str):
+    """A warning while the command runs is one line, "lobula COMMAND: warning: …", not Python's two (the file and
+    the source line that warned); the previous way of showing them comes back afterwards."""
+    before = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"lobula {command}: warning: {message}", file=sys.stderr if file is None else file)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = before
+
+
 def _fix_for(exc, outputs: list[tuple[str, str]]) -> str:
     """An OutputError's one line, its fix naming the option that chose the output where one did."""
     from pathlib import Path
@@ -299,7 +316,8 @@ def _main(argv: list[str]) -> int:
             return 2
     written, group = len(store.WRITTEN), []
     try:
-        with store.all_or_nothing() if args.command in ALL_OR_NOTHING else nullcontext([]) as group:
+        with _one_line_warnings(args.command), \
+                store.all_or_nothing() if args.command in ALL_OR_NOTHING else nullcontext([]) as group:
             return args.func(args)
     except (FootageError, FileExistsError, FileNotFoundError, ValueError, MissingExtraError) as exc:
         print(f"lobula {args.command}: error: {exc}{_not_kept(args.command, group)}", file=sys.stderr)

@@ -96,6 +96,10 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
 
     def done(res):
         results.append(res)
+        if not res.get("resumed"):  # kept when the suite is stopped: the same command resumes from it
+            from .store import WRITTEN
+
+            WRITTEN.append(out / "results" / f"{scene_name(res['family'], res['seed'])}.json")
         how = "resumed" if res.get("resumed") else f"scene ready in {res['render_s']:.0f} s"
         lz = res["metrics"].get("lobula zero-phase", {}).get("after_skip", {}).get("rmse_m_s")
         progress(f"[{len(results)}/{len(jobs)}] {res['family']} seed {res['seed']}: {how}"
