@@ -696,3 +696,18 @@ def test_compare_without_truth_says_why_its_accuracy_is_empty(run2, tmp_path, ca
     code, text, err = cli(capsys, "compare", run, "--front-ends", "dis", "--out", tmp_path / "c.nc", "--quiet")
     assert code == 0, err
     assert f"{run} holds no truth: the accuracy columns are empty" in text
+
+
+def test_a_warning_during_a_command_is_one_line_naming_it(capsys):
+    """Python shows a warning as two lines (the file, then the source line that warned); a command shows one."""
+    import warnings
+
+    import experiments.cli as cli_module
+
+    before = warnings.showwarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        with cli_module._one_line_warnings("suite"):
+            warnings.warn("acceptance σ is 0.68 px on this camera", UserWarning)
+    assert capsys.readouterr().err == "lobula suite: warning: acceptance σ is 0.68 px on this camera\n"
+    assert warnings.showwarning is before
