@@ -56,6 +56,11 @@ def _nan_note(counts: dict) -> str:
     return ", ".join(f"{k} {n}" for k, n in counts.items())
 
 
+#: the layouts whose readers guess a lens from the file where no camera file is given
+#: (lobula.readers.gopro.lens_guess_from_settings, lobula.readers.camera_telemetry), for self-calibration
+SELF_CALIBRATING = ("gopro", "camera-telemetry")
+
+
 def describe(footage) -> dict:
     """Everything ``lobula info`` reports about a footage, as plain JSON-able values."""
     from lobula.readers.core import frame_gaps
@@ -71,7 +76,9 @@ def describe(footage) -> dict:
                          nominal_rate_hz=nominal, measured_rate_hz=_rate(t),
                          median_interval_s=float(np.median(np.diff(t))) if len(t) > 1 else None,
                          **{f"dropped_{k}": v for k, v in frame_gaps(t, 1.0 / nominal).items()}),
-             intrinsics=None if cam is None else cam.to_dict(), distortion=footage.distortion or None)
+             intrinsics=None if cam is None else cam.to_dict(), distortion=footage.distortion or None,
+             # where the reader guesses a lens from the file (opened for velocity), the gyro measures the rest
+             self_calibrates=cam is None and footage.kind in SELF_CALIBRATING)
     if getattr(footage, "telemetry", None) is not None:
         d["telemetry"] = footage.telemetry
     for extra in ("topic", "encoding", "time_source", "time_origin_s"):
@@ -127,7 +134,11 @@ def format_text(d: dict) -> str:
     for k in ("topic", "encoding", "time_source"):
         if k in f:
             out.append(f"{k + ':':<11} {f[k]}")
-    out.append("intrinsics: none in the recording; velocity needs them: --camera FILE (a camera.json)" if c is None else
+    out.append(("intrinsics: none in the recording; velocity measures them from the gyro against the image's "
+                "rotation (printed and stored with their uncertainty), or takes --camera FILE (a camera.json)"
+                if d["self_calibrates"] else
+                "intrinsics: none in the recording; velocity needs them: --camera FILE (a camera.json)")
+               if c is None else
                f"intrinsics: {c['width']}x{c['height']}, fx {c['fx']:.3f}, fy {c['fy']:.3f}, "
                f"cx {c['cx']:.3f}, cy {c['cy']:.3f}")
     out.append(f"distortion: {json.dumps(d['distortion']) if d['distortion'] else 'none reported'}")

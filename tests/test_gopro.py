@@ -343,7 +343,7 @@ def test_info_prints_the_telemetry(synthetic, capsys):
 
 # ------------------------------------------------------------------ bad input: one line, no output
 @needs_gpmf
-def test_without_a_camera_file_the_lens_is_assumed_measured_and_said(synthetic, tmp_path):
+def test_without_a_camera_file_the_lens_is_assumed_measured_and_said(synthetic, tmp_path, capsys):
     """No camera file and no stated field of view: an equidistant fisheye of the nominal diagonal, whose focal length
     and clock offset the gyro cannot measure on a clip that does not turn — said, and stored."""
     from lobula.readers.gopro import NOMINAL_DIAGONAL_FOV_DEG, equidistant_camera
@@ -359,6 +359,9 @@ def test_without_a_camera_file_the_lens_is_assumed_measured_and_said(synthetic, 
     assert cal["clock_offset_s"] == 0.0 and "not identifiable" in cal["clock_offset_source"]
     assert fo.distortion["model"] == "kannala-brandt" and fo.distortion["removed"]
     assert json.loads(fo.provenance()["camera_calibration"]) == cal
+    # and info does not ask for the camera file velocity goes without
+    code, out, _ = cli(capsys, "info", clip)
+    assert code == 0 and "intrinsics: none in the recording; velocity measures them from the gyro" in out
 
 
 @needs_gpmf
