@@ -16,7 +16,7 @@ import xarray as xr
 from experiments.cli import main
 from lobula.flow import FlowConfig, StaggeredFlow
 from lobula.readers import open_footage
-from lobula.readers.core import FootageError
+from lobula.readers.core import IMU, FootageError, gravity_problem, span_problem
 from stimuli.scene import SceneConfig
 from stimuli.track import TrackRunConfig, make_track_run
 
@@ -477,3 +477,146 @@ def test_reader_options_the_layout_cannot_use_fail_loudly(run2, tmp_path, capsys
                          (["--undistort", "optimal"], "--undistort (only EuRoC")):
         code, _, err = cli(capsys, "velocity", run2, "--out", out, "--quiet", *opts)
         assert_clean_failure(code, err, out, needle)
+
+
+# ------------------------------------------------------------------ bad CSVs, impossible IMUs, no video
+def _copy(run: Path, dst: Path) -> Path:
+    shutil.copytree(run, dst)
+    return dst
+
+
+def _cut_inside_last_row(path: Path, whole_values: int) -> int:
+    """Cut the CSV at ``path`` inside its last row, after ``whole_values`` values and part of the next, as a copy
+    stopped mid-row leaves it (no line end); returns that row's line number in the file."""
+    lines = path.read_text().splitlines()
+    values = lines[-1].split(",")
+    lines[-1] = ",".join(values[:whole_values] + [values[whole_values][:2]])
+    path.write_text("\n".join(lines))
+    return len(lines)
+
+
+@pytest.mark.parametrize("name, whole_values, needed", [("imu.csv", 2, 7), ("truth.csv", 1, 4),
+                                                         ("frames.csv", 1, 3)])
+def test_a_csv_cut_short_names_the_row_and_its_columns(run2, tmp_path, capsys, name, whole_values, needed):
+    run = _copy(run2, tmp_path / "cut")
+    line = _cut_inside_last_row(run / name, whole_values)
+    out = tmp_path / "o.nc"
+    want = f"{run / name}: row {line} has {whole_values + 1} columns, {needed} needed (cut short?)"
+    code, _, err = cli(capsys, "velocity", run, "--out", out, "--quiet")
+    assert_clean_failure(code, err, out, want)
+    code, _, err = cli(capsys, "info", run)
+    assert code == 2 and len(err.splitlines()) == 1 and want in err, err
+
+
+def test_an_asl_csv_row_cut_short_is_named_by_its_line(tmp_path):
+    from lobula.readers.euroc import _ns_csv
+
+    csv_path = tmp_path / "data.csv"
+    csv_path.write_text("#timestamp [ns],filename\n1000,1000.png\n\n2000\n")   # a blank line before the cut row
+    with pytest.raises(FootageError, match=r"row 4 has 1 column, 2 needed \(cut short\?\)"):
+        _ns_csv(csv_path, 2, "cam0/data.csv")
+
+
+def _set_imu_cell(path: Path, data_row: int, column: int, value: str) -> int:
+    """Write ``value`` into ``column`` of data row ``data_row`` (0-based) of the imu.csv at ``path``; returns the
+    row's line number in the file."""
+    lines = path.read_text().splitlines()
+    cells = lines[data_row + 1].split(",")
+    cells[column] = value
+    lines[data_row + 1] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    return data_row + 2
+
+
+def test_an_infinite_imu_value_is_said_to_be_not_finite(run2, tmp_path, capsys):
+    run = _copy(run2, tmp_path / "inf")
+    line = _set_imu_cell(run / "imu.csv", 40, 3, "inf")
+    out = tmp_path / "o.nc"
+    code, _, err = cli(capsys, "velocity", run, "--out", out, "--quiet")
+    assert_clean_failure(code, err, out, f"values that are not finite (inf) in accel_z (first at row {line})")
+    assert "NaN" not in err
+
+
+def test_times_that_do_not_increase_name_the_later_rows_line(run2, tmp_path, capsys):
+    run = _copy(run2, tmp_path / "back")
+    lines = (run / "imu.csv").read_text().splitlines()
+    t_before = lines[10].split(",")[0]
+    line = _set_imu_cell(run / "imu.csv", 10, 0, t_before)  # data row 10 (line 12) repeats line 11's time
+    out = tmp_path / "o.nc"
+    code, _, err = cli(capsys, "velocity", run, "--out", out, "--quiet")
+    assert_clean_failure(code, err, out, f"time_s does not increase at row {line} ({float(t_before)} after "
+                                         f"{float(t_before)})")
+
+
+def _rewrite_imu(run: Path, time_scale: float = 1.0, accel=None) -> None:
+    """Write ``run``'s imu.csv again with time_s times ``time_scale`` and, where given, ``accel`` (n, 3) m/s² for
+    the accelerometer."""
+    fo = open_footage(run)
+    acc = fo.imu.accel if accel is None else accel
+    rows = ["time_s,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z"]
+    rows += [",".join(f"{x:.9g}" for x in (t * time_scale, *a, *g))
+             for t, a, g in zip(fo.imu.time_s, acc, fo.imu.gyro)]
+    (run / "imu.csv").write_text("\n".join(rows) + "\n")
+
+
+@pytest.mark.parametrize("damage, needle", [
+    ("zero", "the accelerometer reads no gravity: |a| 0.000 m/s² throughout"),
+    ("milliseconds", "time_s looks like milliseconds, not seconds"),
+    ("nanoseconds", "time_s looks like nanoseconds, not seconds"),
+])
+def test_an_imu_that_cannot_be_one_is_refused_and_info_warns(run2, tmp_path, capsys, damage, needle):
+    run = _copy(run2, tmp_path / damage)
+    n = len(open_footage(run2).imu.time_s)
+    if damage == "zero":
+        _rewrite_imu(run, accel=np.zeros((n, 3)))
+    else:
+        _rewrite_imu(run, time_scale=1e3 if damage == "milliseconds" else 1e9)
+    out = tmp_path / "o.nc"
+    code, _, err = cli(capsys, "velocity", run, "--out", out, "--quiet")
+    assert_clean_failure(code, err, out, f"{run / 'imu.csv'}: {needle}")
+    code, text, err = cli(capsys, "info", run)
+    assert code == 0 and err == ""
+    warned = [ln for ln in text.splitlines() if needle in ln]
+    assert len(warned) == 1 and "lobula velocity refuses this IMU" in warned[0], text
+
+
+def _imu(rate_hz: float, span_s: float, accel=(0.0, -9.81, 0.0)) -> IMU:
+    """An IMU sampled at ``rate_hz`` (Hz) over ``span_s`` (s), its accelerometer reading ``accel`` (m/s²)
+    throughout."""
+    t = np.arange(0.0, span_s, 1.0 / rate_hz)
+    return IMU(t, np.tile(accel, (len(t), 1)), np.zeros((len(t), 3)), source="imu.csv")
+
+
+def test_a_fast_imus_milliseconds_are_told_from_a_long_log():
+    frames = np.arange(0.0, 2.0, 1 / 30)
+    in_ms = _imu(1.0, 2000.0)                       # a 1 kHz IMU over the frames' 2 s, time_s in ms: 1 Hz
+    assert "time_s looks like milliseconds" in span_problem(in_ms, frames)
+    assert span_problem(_imu(200.0, 1000.0), frames) is None   # a 200 Hz log running on 1000 s beyond the video
+    assert span_problem(_imu(1.0, 2.0), frames) is None
+
+
+def test_an_accelerometer_in_g_or_without_gravity_says_which():
+    assert gravity_problem(_imu(250.0, 2.0, (0.3, -9.7, 0.4))) is None
+    assert "readings in g?" in gravity_problem(_imu(250.0, 2.0, (0.03, -0.99, 0.04)))
+    assert "gravity removed" in gravity_problem(_imu(250.0, 2.0, (0.1, 0.2, 0.3)))
+
+
+def test_accel_from_truth_without_truth_csv_names_it(run2, tmp_path, capsys):
+    run = _copy(run2, tmp_path / "no_truth")
+    (run / "truth.csv").unlink()
+    out = tmp_path / "o.nc"
+    code, _, err = cli(capsys, "velocity", run, "--out", out, "--quiet", "--accel-from-truth")
+    assert_clean_failure(code, err, out, f"{run / 'truth.csv'}: missing; --accel-from-truth")
+    assert f"drop --accel-from-truth to use the IMU ({run / 'imu.csv'})" in err
+
+
+@pytest.mark.parametrize("content, needle", [(b"", "the file is empty (0 bytes), not a video"),
+                                             (b"hello world\n", "holds text ('hello world'), not a video")])
+def test_an_empty_or_text_file_named_mp4_is_said_to_be_no_video(tmp_path, capsys, content, needle):
+    video = tmp_path / "x.mp4"                      # no camera.json beside it
+    video.write_bytes(content)
+    for command in (["info", video], ["velocity", video, "--out", tmp_path / "o.nc", "--quiet"]):
+        code, _, err = cli(capsys, *command)
+        assert code == 2 and err.startswith(f"lobula {command[0]}: error: {video}: {needle}"), err
+        assert len(err.splitlines()) == 1 and "camera.json" not in err
+    assert not (tmp_path / "o.nc").exists()

@@ -233,7 +233,8 @@ def open_footage(path: str | Path, *, stream: str | None = None, clock: str | No
     or a video it stands for the camera.json beside the frames (its imu_to_camera too); for
     RealSense bags and EuRoC it replaces the recorded intrinsics (EuRoC's distortion is still
     removed with them). keep_nan: open IMU and truth logs with NaN or empty values, counting
-    them per column (IMU.nan_counts, ``truth_nan_counts``) instead of stopping (``lobula info``).
+    them per column (IMU.nan_counts, ``truth_nan_counts``), and an imu.csv that cannot be an IMU's (no gravity,
+    a time_s not in seconds) said in the notes, instead of stopping (``lobula info``).
     require_camera: a GoPro MP4 carries no intrinsics: without ``camera`` or a camera.json beside
     it, stop (True) or open it with ``camera=None`` (False, ``lobula info``).
     rolling_shutter: the sensor's readout, its first row's exposure to its last's (s), in place of

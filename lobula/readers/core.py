@@ -83,12 +83,27 @@ def read_camera_json(path: str | Path) -> PinholeCamera:
 
 def read_csv_columns(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
     """The CSV at ``path`` (a header row) as {column: (n,) array} (float where every value parses);
-    clear errors, among them a missing column of ``required`` (names)."""
+    clear errors, among them a missing column of ``required`` (names) and a row cut short
+    (:func:`read_csv_table`, which also gives each row's line number)."""
+    return read_csv_table(path, required)[0]
+
+
+def read_csv_table(path: Path, required: tuple[str, ...]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The CSV at ``path`` (a header row) as ({column: (n,) array}, each row's line number in the file (n,)).
+
+    A column is float where every value parses, text otherwise. A FootageError names the file
+    where it is missing or unreadable, lacks a column of ``required`` (names), has no rows, or
+    has a row with fewer values than the header names (a file cut off mid-row).
+    """
     try:
         with open(path, newline="") as fh:
-            reader = csv.DictReader(fh)
-            rows = list(reader)
-            cols = reader.fieldnames or []
+            reader = csv.reader(fh)
+            cols = next(reader, [])
+            rows, lines = [], []
+            for row in reader:
+                if row:  # a blank line is no row
+                    rows.append(row)
+                    lines.append(reader.line_num)
     except FileNotFoundError:
         raise FootageError(f"{path}: file not found") from None
     except (UnicodeDecodeError, csv.Error) as exc:
@@ -98,24 +113,45 @@ def read_csv_columns(path: Path, required: tuple[str, ...]) -> dict[str, np.ndar
         raise FootageError(f"{path}: missing column(s) {missing}; expected {list(required)}")
     if not rows:
         raise FootageError(f"{path}: no rows")
+    check_row_lengths(path, rows, lines, len(cols))
     out = {}
-    for c in cols:
+    for k, c in enumerate(cols):
         try:
-            out[c] = np.array([float(r[c]) for r in rows])
-        except (TypeError, ValueError):
-            out[c] = np.array([r[c] for r in rows])
-    return out
+            out[c] = np.array([float(r[k]) for r in rows])
+        except ValueError:
+            out[c] = np.array([r[k] for r in rows])
+    return out, np.asarray(lines, int)
 
 
-def check_times(path: Path, t: np.ndarray, what: str = "time_s") -> None:
+def check_row_lengths(path: Path, rows: list[list[str]], lines: list[int], needed: int) -> None:
+    """FootageError naming the first of ``rows`` (lists of values; ``lines``, their line numbers in the file at
+    ``path``) with fewer than ``needed`` values: a row cut short, as a copy or a recording stopped mid-row leaves
+    the last one."""
+    for row, line in zip(rows, lines):
+        if len(row) < needed:
+            raise FootageError(f"{path}: row {line} has {len(row)} column{'s' * (len(row) != 1)}, {needed} needed "
+                               f"(cut short?); complete or remove that row")
+
+
+def row_of(lines: np.ndarray | None, index: int) -> int:
+    """The file's line number of data row ``index`` (0-based): from ``lines`` (each row's line number) where
+    given, else counted after one header line."""
+    return int(lines[index]) if lines is not None else index + 2
+
+
+def check_times(path: Path, t: np.ndarray, what: str = "time_s", lines: np.ndarray | None = None) -> None:
     """Times ``t`` (n,) s must be finite and strictly increasing; the FootageError names ``path``, the
-    column ``what`` and the first bad row."""
-    if not np.all(np.isfinite(t)):
-        raise FootageError(f"{path}: {what} has NaN or infinite values; remove those rows")
-    bad = np.flatnonzero(np.diff(t) <= 0)
+    column ``what`` and the first bad row by its line number in the file (``lines`` (n,), each row's; default
+    one header line and no blank lines)."""
+    bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
-        raise FootageError(f"{path}: {what} does not increase at row {bad[0] + 2} "
-                           f"({t[bad[0]]} then {t[bad[0] + 1]}); sort the rows and drop duplicates")
+        raise FootageError(f"{path}: {what} has NaN or infinite values (first at row {row_of(lines, bad[0])}); "
+                           f"remove those rows")
+    bad = np.flatnonzero(np.diff(t) <= 0) + 1  # the row that fails to come after the one before it
+    if bad.size:
+        k = int(bad[0])
+        raise FootageError(f"{path}: {what} does not increase at row {row_of(lines, k)} "
+                           f"({t[k]} after {t[k - 1]}); sort the rows and drop duplicates")
 
 
 @contextmanager
@@ -361,11 +397,11 @@ def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None, keep_nan: b
     ``rotation`` (3, 3) if given.
 
     A NaN, infinite or empty value is a FootageError naming its row, unless ``keep_nan``: then
-    rows without a time are left out, other NaNs kept, and every column's count of them is in
+    rows without a time are left out, other such values kept, and every column's count of them is in
     the IMU's ``nan_counts`` (what ``lobula info`` reports).
     """
     cols = ("time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
-    d = read_csv_columns(imu_path, cols)
+    d, lines = read_csv_table(imu_path, cols)
     try:
         v = {c: numeric_column(d[c]) for c in cols}
     except ValueError:
@@ -375,15 +411,118 @@ def read_imu_csv(imu_path: Path, rotation: np.ndarray | None = None, keep_nan: b
     t = v["time_s"]
     counts = nan_counts(v)
     if counts and not keep_nan:
-        row = int(np.flatnonzero(~np.isfinite(np.c_[t, acc, gyr]).all(1))[0]) + 2
-        raise FootageError(f"{imu_path}: NaN or missing values in {', '.join(counts)} (first at row {row}); "
-                           f"repair or remove those rows (`lobula info` counts them)")
+        raise FootageError(f"{imu_path}: {not_finite_values(v, lines)}; repair or remove those rows "
+                           f"(`lobula info` counts them)")
     if keep_nan:
         timed = np.isfinite(t)
-        t, acc, gyr = t[timed], acc[timed], gyr[timed]
-    check_times(imu_path, t)
+        t, acc, gyr, lines = t[timed], acc[timed], gyr[timed], lines[timed]
+    check_times(imu_path, t, lines=lines)
     imu = IMU(t, acc, gyr, source=str(imu_path), nan_counts=counts)
     return imu.rotated(rotation) if rotation is not None else imu
+
+
+def not_finite_values(columns: dict[str, np.ndarray], lines: np.ndarray) -> str:
+    """What is wrong with the float ``columns`` ({name: (n,)}, at least one value not finite) in words: which
+    kind of value (NaN or missing, infinite), in which columns, first at which row (``lines`` (n,), each row's
+    line number in the file)."""
+    bad = {c: ~np.isfinite(v) for c, v in columns.items() if not np.isfinite(v).all()}
+    first = int(np.flatnonzero(np.any(list(bad.values()), axis=0))[0])
+    values = np.concatenate([columns[c][m] for c, m in bad.items()])
+    infinite, nan = np.isinf(values).any(), np.isnan(values).any()
+    kind = ("NaN, missing or infinite values" if infinite and nan
+            else "values that are not finite (inf)" if infinite else "NaN or missing values")
+    return f"{kind} in {', '.join(bad)} (first at row {row_of(lines, first)})"
+
+
+#: gravity, m/s²
+GRAVITY_M_S2 = 9.80665
+#: m/s²: below this median |specific force| an accelerometer reads no gravity. A camera is not in free fall for
+#: most of a recording, so a working accelerometer's median |a| stays within a few m/s² of gravity's 9.81 (a
+#: walk, a car, a hovering drone); a dead sensor reads 0, gravity-removed acceleration well under 1 g, and the
+#: same readings in g about 1.
+MIN_MEDIAN_SPECIFIC_FORCE_M_S2 = 3.0
+#: Hz: the sample rates an IMU can have; a time_s outside them is not in seconds (an IMU in ms reads 1000 times
+#: slower: 250 Hz as 0.25 Hz)
+IMU_RATE_RANGE_HZ = (1.0, 1e5)
+#: the time units a time_s column is mistakenly written in, and how many of them make a second
+TIME_UNITS = (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9))
+#: an IMU spanning this many times the frames' span at a rate this slow (Hz) is a fast IMU's time_s in
+#: milliseconds (a 1 kHz IMU reads 1 Hz); an IMU log that truly runs on beyond the video samples faster
+MS_SPAN_RATIO, MS_MAX_RATE_HZ = 300.0, 20.0
+#: what an imu.csv whose time_s is not in seconds is told to do
+TIME_FIX = "write time_s in seconds, on the frames' clock"
+
+
+def check_imu_csv(imu: IMU, frame_times: np.ndarray, notes: list[str], keep_nan: bool = False) -> None:
+    """A FootageError where the IMU read from an imu.csv cannot be the one the layout documents (accelerometer in
+    m/s², gravity included; time_s in s on the frames' clock, ``frame_times`` (n,) s); with ``keep_nan``
+    (``lobula info``) the same said in ``notes`` instead, the footage opened."""
+    problem = gravity_problem(imu) or rate_problem(imu) or span_problem(imu, frame_times)
+    if problem is None:
+        return
+    if not keep_nan:
+        raise FootageError(problem)
+    notes.append(f"{problem} (lobula velocity refuses this IMU)")
+
+
+def gravity_problem(imu: IMU) -> str | None:
+    """Why ``imu``'s accelerometer (m/s²) reads no gravity, or None where it does (its median |a| at least
+    :data:`MIN_MEDIAN_SPECIFIC_FORCE_M_S2`)."""
+    norm = np.linalg.norm(imu.accel, axis=1)
+    norm = norm[np.isfinite(norm)]
+    if not norm.size or np.median(norm) >= MIN_MEDIAN_SPECIFIC_FORCE_M_S2:
+        return None
+    median, top = float(np.median(norm)), float(norm.max())
+    if round(top, 3) == 0:
+        seen, cause = "|a| 0.000 m/s² throughout", "a dead or unconnected sensor"
+    else:
+        seen = f"median |a| {median:.3f} m/s², at most {top:.3f}"
+        cause = ("readings in g? (multiply them by 9.81)" if 0.8 <= median <= 1.25
+                 else "a dead sensor, or acceleration with gravity removed")
+    return (f"{imu.source}: the accelerometer reads no gravity: {seen}, where a working one reads about "
+            f"{GRAVITY_M_S2:.2f} m/s² at rest ({cause}); accel_x..z must be the specific force in m/s², "
+            f"gravity included")
+
+
+def imu_rate(imu: IMU) -> tuple[float, float] | None:
+    """(span s, mean sample rate Hz) of ``imu``'s time_s, or None where it has fewer than 2 samples."""
+    t = imu.time_s
+    if len(t) < 2:
+        return None
+    span = float(t[-1] - t[0])
+    return span, (len(t) - 1) / span
+
+
+def rate_problem(imu: IMU) -> str | None:
+    """Why ``imu``'s time_s is not in seconds where its sample rate is one no IMU has (outside
+    :data:`IMU_RATE_RANGE_HZ`), naming the likeliest unit it is in; else None."""
+    low, high = IMU_RATE_RANGE_HZ
+    span_rate = imu_rate(imu)
+    if span_rate is None or low <= span_rate[1] <= high:
+        return None
+    span, rate = span_rate
+    said = f"{len(imu.time_s)} samples over {span:.6g} s is a rate of {rate:.3g} Hz"
+    rates = f"where an IMU samples at {low:g} Hz to {high / 1e3:g} kHz"
+    fits = [(unit, rate * k) for unit, k in TIME_UNITS if low <= rate * k <= high]
+    if not fits:
+        return f"{imu.source}: time_s is not in seconds: {said}, {rates}; {TIME_FIX}"
+    unit, real = min(fits, key=lambda f: abs(np.log10(f[1] / 200.0)))  # the likeliest: nearest a common 200 Hz
+    return f"{imu.source}: time_s looks like {unit}, not seconds: {said} ({real:.0f} Hz in {unit}), {rates}; {TIME_FIX}"
+
+
+def span_problem(imu: IMU, frame_times: np.ndarray) -> str | None:
+    """Why ``imu``'s time_s is in milliseconds where it spans :data:`MS_SPAN_RATIO` times the frames' span
+    (``frame_times`` (n,) s) or more at :data:`MS_MAX_RATE_HZ` or slower; else None."""
+    span_rate = imu_rate(imu)
+    frames = float(frame_times[-1] - frame_times[0]) if len(frame_times) > 1 else 0.0
+    if span_rate is None or frames <= 0:
+        return None
+    span, rate = span_rate
+    if span < MS_SPAN_RATIO * frames or rate > MS_MAX_RATE_HZ:
+        return None
+    return (f"{imu.source}: time_s looks like milliseconds, not seconds: the IMU spans {span:.6g} s, "
+            f"{span / frames:.0f} times the frames' {frames:.3g} s, at a rate of {rate:.3g} Hz ({rate * 1e3:.0f} Hz "
+            f"in milliseconds); {TIME_FIX}")
 
 
 def read_truth_csv(path: Path, keep_nan: bool = False) -> tuple[dict[str, np.ndarray], dict[str, int]]:
@@ -393,7 +532,7 @@ def read_truth_csv(path: Path, keep_nan: bool = False) -> tuple[dict[str, np.nda
     Rows without a time are a FootageError naming the file, unless ``keep_nan`` (then they are
     left out and counted); NaN velocities are kept either way (counted).
     """
-    truth = read_csv_columns(path, ("time_s", "v_forward_m_s"))
+    truth, lines = read_csv_table(path, ("time_s", "v_forward_m_s"))
     counts = nan_counts(truth)
     for k, v in truth.items():
         try:
@@ -404,7 +543,8 @@ def read_truth_csv(path: Path, keep_nan: bool = False) -> tuple[dict[str, np.nda
     if keep_nan:
         keep = np.isfinite(truth["time_s"])
         truth = {k: v[keep] for k, v in truth.items()}
-    check_times(path, truth["time_s"])
+        lines = lines[keep]
+    check_times(path, truth["time_s"], lines=lines)
     return truth, counts
 
 

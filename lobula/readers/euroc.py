@@ -37,7 +37,7 @@ import numpy as np
 
 from lobula.camera import PinholeCamera
 
-from .core import IMU, Footage, FootageError, check_times, read_frame
+from .core import IMU, Footage, FootageError, check_row_lengths, check_times, read_frame, row_of
 
 EUROC_KIND = "euroc"
 IMU_MARGIN_S = 1.0   # IMU kept this far before the first and after the last frame
@@ -78,34 +78,38 @@ def _t_bs(d: dict, path: Path) -> np.ndarray:
     return m
 
 
-def _ns_csv(path: Path, min_cols: int, what: str) -> tuple[np.ndarray, list[list[str]]]:
-    """(timestamps ns int64, remaining columns as strings) of an ASL CSV ('#' header line)."""
+def _ns_csv(path: Path, min_cols: int, what: str) -> tuple[np.ndarray, list[list[str]], np.ndarray]:
+    """(timestamps ns int64, remaining columns as strings, each row's line number in the file) of an ASL CSV
+    ('#' header line)."""
     try:
-        lines = [ln.strip() for ln in path.read_text().splitlines()]
+        text = path.read_text()
     except FileNotFoundError:
         raise FootageError(f"{path}: not found; the ASL layout needs {what}") from None
     except UnicodeDecodeError:
         raise FootageError(f"{path}: not a text CSV") from None
-    rows = [ln.split(",") for ln in lines if ln and not ln.startswith("#")]
-    if not rows:
+    numbered = [(k, ln.strip()) for k, ln in enumerate(text.splitlines(), 1)]
+    numbered = [(k, ln) for k, ln in numbered if ln and not ln.startswith("#")]
+    if not numbered:
         raise FootageError(f"{path}: no rows")
-    bad = [k for k, r in enumerate(rows) if len(r) < min_cols]
-    if bad:
-        raise FootageError(f"{path}: row {bad[0] + 2} has {len(rows[bad[0]])} columns, {min_cols} needed")
+    lines = np.array([k for k, _ in numbered])
+    rows = [ln.split(",") for _, ln in numbered]
+    check_row_lengths(path, rows, lines, min_cols)
     try:
         ns = np.array([int(r[0]) for r in rows], np.int64)
     except ValueError:
         raise FootageError(f"{path}: the first column must be integer time stamps in ns") from None
-    return ns, [r[1:] for r in rows]
+    return ns, [r[1:] for r in rows], lines
 
 
-def _floats(path: Path, cols: list[list[str]], n: int) -> np.ndarray:
+def _floats(path: Path, cols: list[list[str]], n: int, lines: np.ndarray) -> np.ndarray:
+    """The first ``n`` of each row's ``cols`` as floats (rows, n); a FootageError names the file and the first
+    bad row by its line number (``lines``, each row's)."""
     try:
         v = np.array([[float(x) for x in r[:n]] for r in cols])
     except ValueError:
         raise FootageError(f"{path}: non-numeric values; every column after the time stamp must be a number") from None
     if not np.all(np.isfinite(v)):
-        row = int(np.flatnonzero(~np.isfinite(v).all(1))[0]) + 2
+        row = row_of(lines, int(np.flatnonzero(~np.isfinite(v).all(1))[0]))
         raise FootageError(f"{path}: NaN or infinite values (first at row {row}); repair or remove those rows")
     return v
 
@@ -179,7 +183,7 @@ def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", requir
     fu, fv, cu, cv, w, h, model, coeffs, rate, t_bc = _camera_yaml(cam_dir, intrinsics)
 
     # ---- frames
-    ns, cols = _ns_csv(cam_dir / "data.csv", 2, f"{camera}/data.csv")
+    ns, cols, lines = _ns_csv(cam_dir / "data.csv", 2, f"{camera}/data.csv")
     files = [cam_dir / "data" / c[0].strip() for c in cols]
     missing = [f for f in files if not f.exists()]
     if missing:
@@ -187,7 +191,7 @@ def open_euroc(path: str | Path, camera: str = "cam0", imu: str = "imu0", requir
                            f"data/{missing[0].name}; restore them or drop their rows")
     origin = int(ns[0])
     times = (ns - origin) / 1e9
-    check_times(cam_dir / "data.csv", times, "timestamp")
+    check_times(cam_dir / "data.csv", times, "timestamp", lines)
     if rate <= 0:
         rate = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else 20.0
     notes = [f"EuRoC/ASL: {len(files)} frames from {camera} ({w}x{h}), times from data.csv relative to "
@@ -268,10 +272,10 @@ def _euroc_imu(imu_dir: Path, camera: str, imu: str, require_imu: bool, t_bc: np
     if (imu_dir / "data.csv").exists():
         t_bs = _t_bs(_read_yaml(imu_dir / "sensor.yaml"), imu_dir / "sensor.yaml") \
             if (imu_dir / "sensor.yaml").exists() else np.eye(4)
-        ins, icols = _ns_csv(imu_dir / "data.csv", 7, f"{imu}/data.csv")
-        v = _floats(imu_dir / "data.csv", icols, 6)
+        ins, icols, lines = _ns_csv(imu_dir / "data.csv", 7, f"{imu}/data.csv")
+        v = _floats(imu_dir / "data.csv", icols, 6, lines)
         t_imu = (ins - origin) / 1e9
-        check_times(imu_dir / "data.csv", t_imu, "timestamp")
+        check_times(imu_dir / "data.csv", t_imu, "timestamp", lines)
         # Only the IMU around the frames: a folder cut from a longer sequence (as the shared
         # one is) keeps the whole IMU log, and statistics over it (gyro bias) would mix in
         # motion the frames never saw.
@@ -304,13 +308,13 @@ def _euroc_truth(mav: Path, t_bc: np.ndarray, origin: int, notes: list, streams:
     truth = None
     gt = mav / "state_groundtruth_estimate0" / "data.csv"
     if gt.exists():
-        gns, gcols = _ns_csv(gt, 11, "state_groundtruth_estimate0/data.csv")
-        g = _floats(gt, gcols, 10)
+        gns, gcols, lines = _ns_csv(gt, 11, "state_groundtruth_estimate0/data.csv")
+        g = _floats(gt, gcols, 10, lines)
         r_rs = _quat_wxyz_to_matrix(g[:, 3:7])
         v_body = np.einsum("nji,nj->ni", r_rs, g[:, 7:10])       # R_RSᵀ v_R
         v_cam = v_body @ t_bc[:3, :3]                               # R_BCᵀ v_B, row-wise
         t_gt = (gns - origin) / 1e9
-        check_times(gt, t_gt, "timestamp")
+        check_times(gt, t_gt, "timestamp", lines)
         truth = {"time_s": t_gt, "v_forward_m_s": v_cam[:, 2], "v_cam_x_m_s": v_cam[:, 0],
                  "v_cam_y_m_s": v_cam[:, 1]}
         streams.append(dict(sensor="state_groundtruth_estimate0", type="truth", messages=len(t_gt)))

@@ -17,19 +17,21 @@ from pathlib import Path
 
 import numpy as np
 
-from .core import (Footage, FootageError, check_times as _check_times, imu_to_camera, read_camera_json,
-                   read_csv_columns as _read_csv, read_imu_csv, read_truth_csv, rotation_deg)
+from .core import (Footage, FootageError, check_imu_csv, check_times as _check_times, imu_to_camera,
+                   read_camera_json, read_csv_columns as _read_csv, read_csv_table, read_imu_csv, read_truth_csv,
+                   rotation_deg)
 
 
 def open_folder(path: Path, cam_json: Path | None = None, keep_nan: bool = False) -> Footage:
     """The footage folder at ``path`` (frames.csv, frames/, camera.json or ``cam_json``, imu.csv, truth.csv).
 
-    keep_nan: open IMU and truth logs with NaN or empty values, counting them per column.
+    keep_nan: open what ``lobula info`` reports rather than stops at: IMU and truth logs with NaN or empty
+    values (counted per column), and an IMU that cannot be one (said in the notes).
     """
     cam_json = cam_json or path / "camera.json"
     camera = read_camera_json(cam_json)
-    fr = _read_csv(path / "frames.csv", ("frame", "time_s", "file"))
-    _check_times(path / "frames.csv", fr["time_s"])
+    fr, lines = read_csv_table(path / "frames.csv", ("frame", "time_s", "file"))
+    _check_times(path / "frames.csv", fr["time_s"], lines=lines)
     files = [path / str(f) for f in fr["file"]]
     missing = [f for f in files if not f.exists()]
     if missing:
@@ -41,6 +43,7 @@ def open_folder(path: Path, cam_json: Path | None = None, keep_nan: bool = False
     notes = []
     if imu_path.exists():
         imu = read_imu_csv(imu_path, r, keep_nan=keep_nan)
+        check_imu_csv(imu, fr["time_s"], notes, keep_nan)
         if r is not None:
             notes.append(f"IMU rotated into the camera frame by {cam_json.name}'s imu_to_camera "
                          f"({rotation_deg(r):.2f} deg)")

@@ -19,8 +19,8 @@ from typing import Iterator
 import av
 import numpy as np
 
-from .core import (Footage, FootageError, imu_to_camera, read_camera_json, read_imu_csv, rotation_deg,
-                           to_grey)
+from .core import (Footage, FootageError, check_imu_csv, imu_to_camera, read_camera_json, read_imu_csv,
+                   rotation_deg, to_grey)
 
 
 def _beside(video: Path, name: str) -> Path:
@@ -44,8 +44,9 @@ def _open_container(path: Path):
     try:
         container = av.open(str(path))
     except (av.error.FFmpegError, UnicodeDecodeError) as exc:
-        raise FootageError(f"{path}: FFmpeg cannot open this video ({exc.__class__.__name__}: unknown container "
-                           f"or codec, or a damaged file); re-encode it, e.g. to H.264 mp4 or MJPG avi") from None
+        raise FootageError(f"{path}: FFmpeg cannot open it as a video ({exc.__class__.__name__}: not a video, an "
+                           f"unknown container or codec, or a damaged file); re-encode it, e.g. to H.264 mp4 or MJPG "
+                           f"avi") from None
     if not container.streams.video:
         container.close()
         raise FootageError(f"{path}: the file holds no video stream")
@@ -60,6 +61,36 @@ def _packet_time(packet, path: Path) -> float | None:
     if stamp is None or packet.time_base is None:
         raise FootageError(f"{path}: a packet of the video has no time stamp; remux it (ffmpeg -i IN -c copy OUT.mkv)")
     return float(stamp * packet.time_base)
+
+
+def check_video_file(path: Path) -> None:
+    """A FootageError where the file at ``path`` is empty, holds text, or otherwise cannot be opened by FFmpeg as a
+    video; it reads the container's header only."""
+    if path.stat().st_size == 0:
+        raise FootageError(f"{path}: the file is empty (0 bytes), not a video; copy it again from the camera or "
+                           f"the recorder")
+    try:
+        container, _ = _open_container(path)
+    except FootageError:
+        text = _text_start(path)
+        if text is None:
+            raise
+        raise FootageError(f"{path}: holds text ({text!r}), not a video; give the video file itself") from None
+    container.close()
+
+
+def _text_start(path: Path, n: int = 512) -> str | None:
+    """The first line (up to 40 characters) of the file at ``path`` where its first ``n`` bytes are printable text,
+    else None."""
+    with path.open("rb") as fh:
+        head = fh.read(n)
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    if not all(c.isprintable() or c in "\t\r\n" for c in text):
+        return None
+    return text.strip().splitlines()[0][:40] if text.strip() else ""
 
 
 def container_times(path: Path) -> tuple[np.ndarray, int, int, float, str]:
@@ -173,12 +204,14 @@ def open_video(path: str | Path, require_imu: bool = True, camera_json: str | Pa
 
     path: the video file; require_imu: stop when there is no imu.csv beside it (False: ``imu=None``);
     camera_json: a camera.json to use instead of the one beside the video (``--camera``);
-    keep_nan: count NaN IMU and truth values instead of stopping (``lobula info``)."""
+    keep_nan: open what ``lobula info`` reports rather than stops at: NaN IMU and truth values (counted), and
+    an IMU that cannot be one (said in the notes)."""
     from .core import read_truth_csv
 
     path = Path(path)
     if not path.is_file():
         raise FootageError(f"{path}: video file not found")
+    check_video_file(path)  # before its camera.json: an empty file or a text file is no video, with one or without
     cam_path = Path(camera_json) if camera_json is not None else _beside(path, "camera.json")
     camera = read_camera_json(cam_path)
     times, w, h, fps, codec = container_times(path)
@@ -194,6 +227,7 @@ def open_video(path: str | Path, require_imu: bool = True, camera_json: str | Pa
     imu = None
     if imu_path.exists():
         imu = read_imu_csv(imu_path, r, keep_nan=keep_nan)
+        check_imu_csv(imu, times, notes, keep_nan)
         if r is not None:
             notes.append(f"IMU rotated into the camera frame by imu_to_camera ({rotation_deg(r):.2f} deg)")
     elif require_imu:

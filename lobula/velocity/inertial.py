@@ -151,7 +151,7 @@ def accels_at(footage: Footage, times: np.ndarray, config: VelocityConfig, windo
             raise FootageError(f"{where}: {'missing' if footage.kind == 'folder' else 'no IMU'}; velocity needs "
                                f"forward acceleration. Add the IMU log, or pass --accel-from-truth to use the truth")
         if footage.truth is None:
-            raise FootageError(f"{footage.path}: no IMU and no truth to derive acceleration from")
+            raise FootageError(no_truth_for_acceleration(footage))
         tt, at = acceleration_from_truth(footage.truth)
         a = np.interp(times, tt, at)
         return [a for _ in windows_s], "ground truth (smoothed derivative of velocity; no IMU)"
@@ -170,6 +170,16 @@ def accels_at(footage: Footage, times: np.ndarray, config: VelocityConfig, windo
     at = {w: np.stack([resample_to(times, imu.time_s, a[:, j], w) for j in range(3)], axis=1)
           for w in dict.fromkeys(widths)}   # each distinct span once (a rows' span of None is the frame's)
     return [at[w] for w in widths], "accelerometer (gravity and bias removed)"
+
+
+def no_truth_for_acceleration(footage: Footage) -> str:
+    """The one line for ``accel_from_truth`` (``--accel-from-truth``) on ``footage`` without truth: it names the
+    truth file a footage folder lacks, and the IMU to use instead where the footage has one."""
+    where = f"{footage.path / 'truth.csv'}: missing" if footage.kind == "folder" else f"{footage.path}: no truth"
+    instead = (f", or drop --accel-from-truth to use the IMU ({footage.imu.source})" if footage.imu is not None
+               else "")
+    return (f"{where}; --accel-from-truth derives the forward acceleration from the truth's velocity (time_s, "
+            f"v_forward_m_s) and needs it: add it{instead}")
 
 
 def kappa_accel_at(accel: np.ndarray, rates, time_s: np.ndarray, orientation: np.ndarray | None, causal: bool,
