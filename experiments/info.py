@@ -27,15 +27,20 @@ def open_footage_from_args(args, require_imu: bool = True, keep_nan: bool = Fals
     keep_nan: count NaN IMU and truth values instead of stopping at them (``lobula info``);
     require_camera: False opens a recording without intrinsics (a GoPro MP4) with camera None (``lobula info``)."""
     from lobula.readers import open_footage
+    from lobula.readers.core import FootageError
+    from lobula.velocity.inertial import no_truth_for_acceleration
 
     clock = getattr(args, "clock", None)
-    return open_footage(args.footage, stream=getattr(args, "stream", None),
-                        clock=None if clock == "device" else clock, require_imu=require_imu,
-                        skip_bad_frames=getattr(args, "skip_bad_frames", False),
-                        clock_offset=getattr(args, "clock_offset", None),
-                        undistort=getattr(args, "undistort", "same-k"), camera=getattr(args, "camera", None),
-                        keep_nan=keep_nan, require_camera=require_camera,
-                        rolling_shutter=getattr(args, "rolling_shutter", None))
+    footage = open_footage(args.footage, stream=getattr(args, "stream", None),
+                           clock=None if clock == "device" else clock, require_imu=require_imu,
+                           skip_bad_frames=getattr(args, "skip_bad_frames", False),
+                           clock_offset=getattr(args, "clock_offset", None),
+                           undistort=getattr(args, "undistort", "same-k"), camera=getattr(args, "camera", None),
+                           keep_nan=keep_nan, require_camera=require_camera,
+                           rolling_shutter=getattr(args, "rolling_shutter", None))
+    if getattr(args, "accel_from_truth", False) and footage.truth is None:  # before the run, not in its flow stage
+        raise FootageError(no_truth_for_acceleration(footage))
+    return footage
 
 
 def _rate(t: np.ndarray) -> float | None:

@@ -696,6 +696,10 @@ def test_compare_without_truth_says_why_its_accuracy_is_empty(run2, tmp_path, ca
     code, text, err = cli(capsys, "compare", run, "--front-ends", "dis", "--out", tmp_path / "c.nc", "--quiet")
     assert code == 0, err
     assert f"{run} holds no truth: the accuracy columns are empty" in text
+    # acceleration from a truth it lacks: one line before any front end runs, not one per front end
+    code, _, err = cli(capsys, "compare", run, "--out", tmp_path / "c2.nc", "--accel-from-truth", "--quiet")
+    assert code == 2
+    one_error(err, "compare", f"{run / 'truth.csv'}: missing", "drop --accel-from-truth")
 
 
 def test_a_warning_during_a_command_is_one_line_naming_it(capsys):
