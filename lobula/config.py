@@ -8,7 +8,7 @@ from __future__ import annotations
 import copy
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from dataclasses import asdict, dataclass, field, fields
 
 from .emd_front_end import EMDFrontEndConfig
 from .flow import FlowConfig
@@ -122,6 +122,16 @@ class VelocityConfig:
             self.readout = fe.default_readout()
         if self.epipole == "estimate" and not fe.estimates_epipole:
             self.epipole = fe.epipoles[0]   # what the front end runs with (the EMD: the principal point)
+        self._check()
+
+    def _check(self) -> None:
+        """The checks of every field, which change nothing (:meth:`validate` runs them again)."""
+        get_front_end(self.front_end)
+        for name, kind in (("flow", FlowConfig), ("fields", FieldConfig), ("readout", ReadoutConfig),
+                           ("emd", EMDFrontEndConfig)):
+            if not isinstance(getattr(self, name), kind):
+                raise TypeError(f"VelocityConfig.{name} must be a {kind.__name__}, got "
+                                f"{type(getattr(self, name)).__name__} (VelocityConfig.from_dict reads dicts)")
         if self.epipole not in ("estimate", "principal"):
             raise ValueError(f"epipole must be 'estimate' or 'principal', got {self.epipole!r}")
         if self.timestamps not in ("mid", "start"):
@@ -136,6 +146,17 @@ class VelocityConfig:
             raise ValueError(f"heading_walk must be a finite rate >= 0 (normalised/√s), got {self.heading_walk}")
         if self.saccade_gate_deg_s is not None and not (self.saccade_gate_deg_s > 0 and math.isfinite(self.saccade_gate_deg_s)):
             raise ValueError(f"saccade_gate_deg_s must be a finite rate > 0 (°/s) or None, got {self.saccade_gate_deg_s}")
+
+    def validate(self) -> "VelocityConfig":
+        """Check the configuration as it is now, its parts included (a ValueError or TypeError naming the field);
+        returns it. A field set after construction (``cfg.readout.filter = "causal"``) is checked here, as
+        :func:`lobula.velocity.estimate_velocity` and :class:`lobula.velocity.VelocityEstimator` do before a run."""
+        self._check()
+        for name in ("flow", "fields", "readout", "emd"):
+            part = getattr(self, name)
+            if hasattr(part, "__post_init__"):  # the parts' own checks, which change nothing
+                part.__post_init__()
+        return self
 
     @classmethod
     def paper(cls, front_end: str = "dis", filter: str = "zero-phase") -> "VelocityConfig":

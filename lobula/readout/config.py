@@ -252,6 +252,18 @@ class ReadoutConfig:
             raise ValueError(f"rest_depth_margin must be a finite factor >= 1, got {self.rest_depth_margin}")
         if not 0.0 <= self.accel_scale_error < 1.0:
             raise ValueError(f"accel_scale_error is a fraction in [0, 1), got {self.accel_scale_error}")
+        positive = ("cutoff_hz", "v_prior_m_s", "meas_floor_m_s", "max_std_m_s", "accel_min_m_s2",
+                    "accel_noise", "bias_prior_m_s2", "depth_min_m", "depth_max_m")
+        for name in positive:  # stds, rates and bounds the filter divides by or widens with
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise ValueError(f"ReadoutConfig.{name} must be a finite number > 0, got {value!r}")
+        if not (isinstance(self.max_rel_std, (int, float)) and self.max_rel_std >= 0):  # 0: the absolute bound alone
+            raise ValueError(f"ReadoutConfig.max_rel_std must be a number >= 0, got {self.max_rel_std!r}")
+        for name in ("order", "stagger"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"ReadoutConfig.{name} must be a whole number >= 1, got {value!r}")
 
     @classmethod
     def paper(cls, filter: str = "zero-phase") -> "ReadoutConfig":

@@ -50,7 +50,10 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     xarray.Dataset
         The velocity Dataset (see the module's docstring); ``v_hat`` and ``v_std`` in m/s over ``time`` (n,) s.
     """
-    config = config or VelocityConfig()
+    if not (hasattr(footage, "camera") and hasattr(footage, "times")):  # a Footage, or anything read as one
+        raise TypeError(f"estimate_velocity takes a Footage (lobula.readers.open_footage(path)), got "
+                        f"{type(footage).__name__} {footage!r}"[:300])
+    config = (config or VelocityConfig()).validate()
     front = get_front_end(config.front_end)
     _check_epipole(config, front)
     _note_uncorrected_shutter(footage, config, front)

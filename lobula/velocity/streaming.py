@@ -111,7 +111,7 @@ class VelocityEstimator:
         if config is None:
             config = VelocityConfig()
             config.readout.filter = "causal"
-        config = copy.deepcopy(config)
+        config = copy.deepcopy(config).validate()
         _check_streamable(config)
         if history_s < 8.0:
             raise ValueError(f"history_s must be at least 8 s (the readout reaches that far back), got {history_s}")
