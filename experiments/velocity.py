@@ -310,12 +310,12 @@ def apply_velocity_options(cfg, args):
             raise ValueError("--accel-scale-error widens the kalman readout's posterior std; the paper's "
                              "median readout (--paper) states none: drop one of them")
     e = cfg.emd
+    front = get_front_end(cfg.front_end)
     if opt("dphi") or opt("drho"):
         e.lattice = replace(e.lattice, dphi_deg=opt("dphi") or e.lattice.dphi_deg,
                             drho_deg=opt("drho") or e.lattice.drho_deg)
     if opt("tau"):
         e.emd = replace(e.emd, tau_s=args.tau)
-    front = get_front_end(cfg.front_end)
     if opt("mean_removal"):
         if "emd" not in front.sections:   # the option sets VelocityConfig.emd
             raise ValueError(f"--mean-removal sets the EMD front end's columns, but the front end is {cfg.front_end}; "
@@ -334,6 +334,18 @@ def apply_velocity_options(cfg, args):
 
 def _velocity_config(args):
     cfg = VelocityConfig.paper(args.front_end, args.filter) if args.paper else VelocityConfig(front_end=args.front_end)
+    # One front end runs here (compare runs several, each reading the options that are its own).
+    emd_only = [f"--{k.replace('_', '-')}" for k in ("dphi", "drho", "tau", "emd_calibration")
+                if getattr(args, k, None)]
+    if emd_only and "emd" not in get_front_end(cfg.front_end).sections:   # they set VelocityConfig.emd
+        raise ValueError(f"{', '.join(emd_only)} set{'s' * (len(emd_only) == 1)} the EMD front end, but the front end "
+                         f"is {cfg.front_end}: drop {'it' if len(emd_only) == 1 else 'them'} or use --front-end emd")
+    flo_only = [f"--{k.replace('_', '-')}" for k, default in (("flo_units", "rad/s"), ("flo_gap", 0.2))
+                if getattr(args, k, default) != default] + (["--flo-size"] if getattr(args, "flo_size", [640, 448])
+                                                            != [640, 448] else [])
+    if flo_only and cfg.front_end != "flo":
+        raise ValueError(f"{', '.join(flo_only)} describe{'s' * (len(flo_only) == 1)} the .flo files of --front-end "
+                         f"flo, but the front end is {cfg.front_end}: drop {'it' if len(flo_only) == 1 else 'them'}")
     return apply_velocity_options(cfg, args)
 
 

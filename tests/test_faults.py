@@ -715,3 +715,15 @@ def test_a_warning_during_a_command_is_one_line_naming_it(capsys):
             warnings.warn("acceptance σ is 0.68 px on this camera", UserWarning)
     assert capsys.readouterr().err == "lobula suite: warning: acceptance σ is 0.68 px on this camera\n"
     assert warnings.showwarning is before
+
+
+def test_options_of_another_front_end_are_refused_not_ignored(run2, tmp_path, capsys):
+    """--dphi, --tau, --emd-calibration set the EMD front end and --flo-gap describes .flo files: with DIS they
+    would change nothing the run reads while its stored configuration said they had."""
+    for argv, needles in ((["--dphi", "1"], ("--dphi sets the EMD front end", "use --front-end emd")),
+                          (["--emd-calibration", "g.json", "--tau", "0.02"], ("--tau, --emd-calibration set",)),
+                          (["--flo-gap", "0.1"], ("--flo-gap describes the .flo files of --front-end flo",))):
+        code, _, err = cli(capsys, "velocity", run2, "--out", tmp_path / "v.nc", *argv, "--quiet")
+        assert code == 2
+        one_error(err, "velocity", *needles)
+    assert entries(tmp_path) == set()
