@@ -393,8 +393,9 @@ def plot_suite(ds, path) -> Path:
     return Path(path)
 
 
-def plot_maps(records: list[dict], path, max_range_m: float) -> Path:
-    """One row per family: the frame, its exact depth and TV's depth with v̂ and with the true v."""
+def plot_maps(records: list[dict], path, max_range_m: float) -> Path | None:
+    """One row per family: the frame, its exact depth and TV's depth with v̂ and with the true v; None (no figure,
+    and one left by an earlier run removed) where no scene kept a sample map."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -407,7 +408,8 @@ def plot_maps(records: list[dict], path, max_range_m: float) -> Path:
             seen.add(r["family"])
             rows.append(r)
     if not rows:
-        return Path(path)
+        Path(path).unlink(missing_ok=True)  # not this run's
+        return None
     fig, axes = plt.subplots(len(rows), 4, figsize=(10, 1.95 * len(rows) + 0.6), squeeze=False, layout="constrained")
     cmap = matplotlib.colormaps["viridis_r"].with_extremes(bad="0.6")
     for ax_row, r in zip(axes, rows):
@@ -503,8 +505,9 @@ def run_depth_suite(args) -> int:
     write_text(out / "depth_suite_table.md", text + "\n")
     print(text)
     plot_suite(ds, out / "depth_suite.png")
-    plot_maps(records, out / "depth_suite_maps.png", args.max_range)
-    print(f"wrote {out / 'depth_suite.nc'}, depth_suite_table.csv/.md, depth_suite.png, depth_suite_maps.png")
+    maps = plot_maps(records, out / "depth_suite_maps.png", args.max_range)
+    print(f"wrote {out / 'depth_suite.nc'}, depth_suite_table.csv/.md, depth_suite.png"
+          + (", depth_suite_maps.png" if maps is not None else " (no sample map: no scene kept one)"))
     return 0
 
 

@@ -20,9 +20,9 @@ from lobula.readers.flo import FloUnits
 from lobula.velocity import estimate_velocity
 
 
-def score(ds: xr.Dataset, skip_s: float = 2.0) -> dict:
-    """RMSE and median absolute error of v̂ against truth after ``skip_s``, the observable fraction, and the
-    truth inside v̂ ± 2·v_std.
+def score(ds: xr.Dataset, skip_s: float | None = None) -> dict:
+    """RMSE and median absolute error of v̂ against truth after ``skip_s`` (s; None: the ``scored_after_s`` that
+    `lobula velocity` stored, else 2), the observable fraction, and the truth inside v̂ ± 2·v_std.
 
     Errors are over observable frames; the fraction says how many those are. ``carried_fraction``: the frames
     where v̂ is carried by the accelerometer (finite, not observable); ``coverage_2sigma_all``: the truth inside
@@ -30,6 +30,8 @@ def score(ds: xr.Dataset, skip_s: float = 2.0) -> dict:
     """
     if "v_true" not in ds:
         return {}
+    if skip_s is None:
+        skip_s = float(ds.attrs.get("scored_after_s", SCORE_SKIP_S))
     keep = (ds.time >= ds.time[0] + skip_s).values
     obs = ds.observable.values[keep].astype(bool)
     e_all = (ds.v_hat - ds.v_true).values[keep]
@@ -367,9 +369,11 @@ def run_velocity(args) -> int:
         flo_files = sorted(p.glob("*.flo")) if p.is_dir() else [p]
     units = FloUnits(args.flo_units, args.flo_gap, *args.flo_size)
     ds = estimate_velocity(footage, cfg, progress=not args.quiet, flo_files=flo_files, flo_units=units)
-    write_netcdf(ds, args.out)
-    # Short clips (the 1.2 s D435i sample) are scored after at most a quarter of their length.
+    # Short clips (the 1.2 s D435i sample) are scored after at most a quarter of their length; the file keeps the
+    # skip, so score(ds) reads the numbers printed below from it.
     skip = scoring_skip(ds, args.skip)
+    ds.attrs["scored_after_s"] = skip
+    write_netcdf(ds, args.out)
     sc = score(ds, skip)
     print(f"wrote {args.out}: {ds.sizes['time']} frames x {ds.sizes['field']} fields "
           f"[{ds.attrs['front_end']}, {ds.attrs['readout']} readout, {ds.attrs['filter']}; "

@@ -318,7 +318,7 @@ def make_eye_run(folder, cfg, eye_config: CompoundEyeConfig | None = None, rate_
     """
     from tqdm.auto import tqdm
 
-    from lobula import __version__
+    from lobula.version import provenance_attrs
 
     from .track import build_track
 
@@ -330,7 +330,7 @@ def make_eye_run(folder, cfg, eye_config: CompoundEyeConfig | None = None, rate_
         cfg = replace(cfg, scene=replace(cfg.scene, mipmap=True))
     scene, imu = build_track(cfg)
     times = np.arange(0.0, cfg.duration_s - 1e-9, 1.0 / rate_hz)
-    meta = dict(lobula_version=__version__, config=cfg.to_dict(), eye=eye.config.to_dict(), rate_hz=rate_hz,
+    meta = dict(**provenance_attrs(), config=cfg.to_dict(), eye=eye.config.to_dict(), rate_hz=rate_hz,
                 accel_bias=imu["accel_bias"].tolist(), gyro_bias=imu["gyro_bias"].tolist(),
                 trajectory=scene.trajectory.source, world_camera=scene.camera.to_dict(),
                 note="the world is laid out for the pinhole camera named in world_camera (same seed, same world)",

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lobula import __version__
+from lobula.version import provenance_attrs
 from lobula.camera import PinholeCamera
 
 from .flight import FlightConfig, saccadic_flight
@@ -200,7 +200,7 @@ def make_track_run(folder, cfg: TrackRunConfig, progress: bool = True) -> Path:
     if not cfg.scene.rolling_shutter_s <= 1.0 / rate:
         raise ValueError(f"a rolling shutter of {cfg.scene.rolling_shutter_s:g} s reads out longer than a frame "
                          f"lasts ({1.0 / rate:.4f} s at {rate:g} Hz): give at most that")
-    meta = dict(lobula_version=__version__, config=cfg.to_dict(), epipole=scene.epipole(0.0),
+    meta = dict(**provenance_attrs(), config=cfg.to_dict(), epipole=scene.epipole(0.0),
                 accel_bias=imu["accel_bias"].tolist(), gyro_bias=imu["gyro_bias"].tolist(),
                 trajectory=scene.trajectory.source,
                 surfaces=[dict(axis=s.axis, offset=s.offset, bounds=s.bounds) for s in scene.surfaces])

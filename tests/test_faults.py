@@ -727,3 +727,17 @@ def test_options_of_another_front_end_are_refused_not_ignored(run2, tmp_path, ca
         assert code == 2
         one_error(err, "velocity", *needles)
     assert entries(tmp_path) == set()
+
+
+def test_the_printed_score_is_the_one_the_stored_run_gives(run2, tmp_path, capsys):
+    """A short clip is scored after a quarter of its length; the file keeps that skip, so the score read from the
+    file is the line the console printed."""
+    from experiments.velocity import score, score_line
+
+    out = tmp_path / "v.nc"
+    code, text, err = cli(capsys, "velocity", run2, "--out", out, "--quiet")
+    assert code == 0, err
+    with xr.open_dataset(out) as ds:
+        skip = float(ds.attrs["scored_after_s"])
+        assert 0 < skip < 2.0                        # a 2 s clip: a quarter of it, not the default 2 s
+        assert score_line(score(ds), skip) in text

@@ -344,3 +344,15 @@ def test_the_meadow_leaves_the_other_worlds_and_their_stored_configuration_as_th
     assert meadow["meadow_spacing_m"] == 0.1 and SceneConfig(**meadow) == SceneConfig(world="meadow")
     with np.testing.assert_raises(ValueError):
         SceneConfig(world="meadow", meadow_spacing_m=0.0)
+
+
+def test_a_scene_folder_says_what_made_it(tmp_path):
+    """scene.json carries the version, the commit, the command line and the time that made the footage."""
+    import json
+
+    from stimuli.track import TrackRunConfig, make_track_run
+
+    out = make_track_run(tmp_path / "s", TrackRunConfig(profile=None, duration_s=0.2, scale=0.25), progress=False)
+    meta = json.loads((out / "scene.json").read_text())
+    for key in ("lobula_version", "git_commit", "command_line", "created", "config"):
+        assert meta[key], key
