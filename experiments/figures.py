@@ -295,6 +295,10 @@ def _figures_of_their_own_worlds(which, out: Path, cache: Path, base: dict, seed
         _save_record("rmse_vs_tau_contrast_noise", out, records["rmse_vs_tau_contrast_noise"])
 
 
+#: s: the shortest replay the replay's figures are drawn from (2 s skipped, then enough frames per |a| bin)
+MIN_REPLAY_S = 6.0
+
+
 def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0, duration_s: float = 25.0,
                 seed: int = 0, quick: bool = False, progress: bool = True) -> dict:
     """Make the figures into ``out``; returns {name: record}. ``quick`` uses coarse grids (for tests)."""
@@ -303,6 +307,9 @@ def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0
 
     from lobula.velocity import estimate_velocity
 
+    if set(which) - set(EXTRA_FIGURES) and not duration_s >= MIN_REPLAY_S:
+        raise ValueError(f"--duration {duration_s:g} s: the replay's figures score it after its first 2 s and bin the "
+                         f"rest by |a|; give at least {MIN_REPLAY_S:g} s")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cache = out / ".cache"

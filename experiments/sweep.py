@@ -453,6 +453,11 @@ def _sweep(args) -> int:
         raise SweepError("give at least one --param PATH=V1,V2,... (lobula sweep --list-params lists the paths)")
     if not args.out:
         raise SweepError("--out SWEEP.zarr is required")
+    if Path(args.out).suffix != ".zarr":  # a Zarr store is a folder: a .nc name would hide what it holds
+        raise SweepError(f"--out {args.out}: a sweep is a Zarr store; give a name ending in .zarr")
+    if not run.duration_s > args.skip:
+        raise SweepError(f"runs of {run.duration_s:g} s (--base-duration or --base-run) leave nothing to score after "
+                         f"--skip {args.skip:g} s: make them longer, or the skip shorter")
     spec = SweepSpec.from_strings(args.param, vel, run, skip_s=args.skip, tol_m_s=args.tol, hold_s=args.hold)
     grid = spec.points()
     if args.dry_run:

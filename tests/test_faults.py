@@ -299,10 +299,12 @@ def test_values_a_run_cannot_use_are_refused_before_its_work(run2, tmp_path, cap
     code, _, err = cli(capsys, "depth", run2, "--method", "tv", "--device", "foo", "--out", tmp_path / "d.nc")
     assert code == 2
     one_error(err, "depth", "--device 'foo' is not a torch device")
-    code, _, err = cli(capsys, "sweep", "--param", "readout.cutoff_hz=1,2", "--builtin-profile",
-                       "--out", tmp_path / "s.zarr", "--scheduler", "foo")
-    assert code == 2
-    one_error(err, "sweep", "--scheduler foo", "tcp://HOST:PORT")
+    for argv, needle in ((["--out", tmp_path / "s.zarr", "--scheduler", "foo"], "tcp://HOST:PORT"),
+                         (["--out", tmp_path / "s.nc"], "a sweep is a Zarr store"),
+                         (["--out", tmp_path / "s.zarr", "--base-duration", "1.6"], "leave nothing to score")):
+        code, _, err = cli(capsys, "sweep", "--param", "readout.cutoff_hz=1,2", "--builtin-profile", *argv)
+        assert code == 2
+        one_error(err, "sweep", needle)
     for argv, needle in ((["--duration", "0.01"], "holds 1 frame(s) at 30 Hz"),
                          (["--duration", "0.5", "--rolling-shutter", "0.05"], "reads out longer than a frame lasts")):
         code, _, err = cli(capsys, "scene", tmp_path / "sc", "--scale", "0.25", "--builtin-profile", *argv, "--quiet")

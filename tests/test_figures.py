@@ -94,3 +94,11 @@ def test_eye_rate_vs_spiking_draws_the_observable_seeds_where_one_never_is():
     crosses = [ln for ln in ax.lines if ln.get_marker() == "x"]
     assert len(crosses) == 1 and list(crosses[0].get_xydata()[:, 1]) == [NEVER_OBSERVABLE_Y]
     plt.close(fig)
+
+
+def test_a_replay_too_short_to_score_is_refused_before_it_is_rendered(tmp_path):
+    from experiments.figures import MIN_REPLAY_S, run_figures
+
+    with pytest.raises(ValueError, match=f"give at least {MIN_REPLAY_S:g} s"):
+        run_figures(tmp_path / "f", ("error_vs_acceleration",), duration_s=2.0, quick=True, progress=False)
+    assert not (tmp_path / "f").exists()
