@@ -44,7 +44,8 @@ import numpy as np
 
 from lobula.compound_eye import CompoundEye, CompoundEyeConfig
 from lobula.gaze import GazeConfig, head_angles, head_rotation
-from lobula.readers.core import IMU, FootageError, check_times as _check_times, read_csv_columns as _read_csv
+from lobula.readers.core import (IMU, FootageError, check_imu_csv, check_times as _check_times, read_imu_csv,
+                                 read_csv_columns as _read_csv)
 
 from .footage_writer import atomic_folder
 
@@ -289,11 +290,9 @@ def open_eye_footage(path: str | Path) -> EyeFootage:
         raise FootageError(f"{path / 'luminance.npy'}: shape {shape}, expected ({len(tt)}, {eye.n}) from "
                            f"times.csv and ommatidia.csv; re-render the folder")
     imu = None
-    if (path / "imu.csv").exists():
-        d = _read_csv(path / "imu.csv", ("time_s", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z"))
-        _check_times(path / "imu.csv", d["time_s"])
-        imu = IMU(d["time_s"], np.stack([d["accel_x"], d["accel_y"], d["accel_z"]], -1),
-                  np.stack([d["gyro_x"], d["gyro_y"], d["gyro_z"]], -1), source=str(path / "imu.csv"))
+    if (path / "imu.csv").exists():  # read and checked as a camera footage folder's (the same layout)
+        imu = read_imu_csv(path / "imu.csv")
+        check_imu_csv(imu, tt, [])
     truth = None
     if (path / "truth.csv").exists():
         truth = _read_csv(path / "truth.csv", ("time_s", "v_forward_m_s"))

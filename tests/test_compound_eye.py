@@ -182,7 +182,8 @@ def test_eye_footage_roundtrip(tmp_path):
     world = flying_straight(Corridor())
     eye = CompoundEye(CompoundEyeConfig(dphi_deg=10.0, rings=1))
     times = np.arange(20) / 500.0
-    imu = dict(time_s=np.arange(5) / 250.0, accel=np.zeros((5, 3)), gyro=np.zeros((5, 3)))
+    still = np.tile([0.0, -9.81, 0.0], (5, 1))  # gravity's specific force, camera y down
+    imu = dict(time_s=np.arange(5) / 250.0, accel=still, gyro=np.zeros((5, 3)))
     out = write_eye_footage(tmp_path / "eye", world, eye, imu, times, dict(world="corridor"), range_every=5, chunk=7)
     fo = open_eye_footage(out)
     assert fo.eye.n == eye.n and len(fo) == 20 and abs(fo.rate_hz - 500) < 1e-6
@@ -195,6 +196,12 @@ def test_eye_footage_roundtrip(tmp_path):
     assert np.allclose(fo.truth["v_forward_m_s"], 0.5)
     with pytest.raises(FileExistsError):
         write_eye_footage(out, world, eye, imu, times, {})
+    # its imu.csv is read as a camera footage folder's: an accelerometer without gravity is refused, naming it
+    imu_csv = (out / "imu.csv").read_text()
+    (out / "imu.csv").write_text(imu_csv.replace("-9.81", "0.0"))
+    with pytest.raises(FootageError, match=r"imu.csv: the accelerometer reads no gravity"):
+        open_eye_footage(out)
+    (out / "imu.csv").write_text(imu_csv)
     lum_file = out / "luminance.npy"
     whole = lum_file.read_bytes()
     lum_file.write_bytes(whole[: len(whole) // 2])  # cut short: its header promises more than the file holds
