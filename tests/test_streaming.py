@@ -173,3 +173,24 @@ def test_frame_by_frame_equals_the_whole_record_run_through_saccades(family_foot
     assert np.array_equal(obs, ds.observable.values)
     np.testing.assert_allclose(np.array([s.v for s in states])[obs], ds.v_hat.values[obs], rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.array([s.v_std for s in states]), ds.v_std.values, rtol=0, atol=1e-9)
+
+
+def test_frames_the_estimator_cannot_read_are_refused_naming_them():
+    """A frame of another size or with NaN pixels is refused at its update; a BGR or 16-bit frame is turned grey as
+    the footage readers turn theirs; something other than a camera is refused when the estimator is made."""
+    from lobula.camera import PinholeCamera
+    from lobula.readers.core import to_grey
+    from lobula.velocity import VelocityEstimator
+
+    cam = PinholeCamera(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5, frame_rate_hz=30.0)
+    est = VelocityEstimator(cam)
+    bgr = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    np.testing.assert_array_equal(est._grey(bgr), to_grey(bgr))
+    np.testing.assert_allclose(est._grey(bgr.astype(np.uint16)[..., 0] * 257), bgr[..., 0].astype(np.float32))
+    with pytest.raises(ValueError, match=r"frame 0: shape \(10, 10\), but the camera is 64x48"):
+        est.update(np.zeros((10, 10), np.float32), 0.0)
+    with pytest.raises(ValueError, match="frame 0: NaN or infinite pixels"):
+        est.update(np.full((48, 64), np.nan, np.float32), 0.0)
+    assert est.update(bgr, 0.0) is None                 # one frame: no pair yet
+    with pytest.raises(TypeError, match="takes the camera"):
+        VelocityEstimator(None)

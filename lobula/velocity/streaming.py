@@ -21,6 +21,7 @@ from lobula.config import VelocityConfig
 from lobula.flow import StaggeredFlow
 from lobula.front_ends import get_front_end
 from lobula.imu import HEADING_FIT_BIAS_PRIOR
+from lobula.readers.core import to_grey
 from lobula.readout import MaterialRates, acceleration_heading, gate_by_lock, kalman_inputs, vision_trusted
 from lobula.readout.carry import carried_std, vision_answers
 from lobula.readout.config import std_allowed
@@ -111,6 +112,9 @@ class VelocityEstimator:
         if config is None:
             config = VelocityConfig()
             config.readout.filter = "causal"
+        if not hasattr(camera, "normalised_grid"):
+            raise TypeError(f"VelocityEstimator takes the camera (a lobula.camera.PinholeCamera, footage.camera), "
+                            f"got {type(camera).__name__}")
         config = copy.deepcopy(config).validate()
         _check_streamable(config)
         if history_s < 8.0:
@@ -164,11 +168,26 @@ class VelocityEstimator:
         if frame is not None:
             if t is None or not np.isfinite(t) or t <= self._t_last:
                 raise ValueError(f"frame times must be finite and increase; got {t} after {self._t_last}")
+            frame = self._grey(frame)
             self._t_last = float(t)
             self._frames.append((self._index, float(t), frame))
             self._index += 1
         self._advance(final=False)
         return self._out[-1] if self._out else None
+
+    def _grey(self, frame) -> np.ndarray:
+        """``frame`` as the flow reads it: grey (a colour or 16-bit image turned as the readers turn theirs,
+        :func:`lobula.readers.core.to_grey`), of the camera's size, finite; else ValueError naming the frame."""
+        img = np.asarray(frame)
+        if img.ndim == 3 or img.dtype == np.uint16:
+            img = to_grey(img)
+        size = (self.camera.height, self.camera.width)
+        if img.shape != size:
+            raise ValueError(f"frame {self._index}: shape {img.shape}, but the camera is {size[1]}x{size[0]} (H, W "
+                             f"{size}); give grey or BGR images of the camera's size")
+        if img.dtype.kind == "f" and not np.isfinite(img).all():
+            raise ValueError(f"frame {self._index}: NaN or infinite pixels")
+        return img
 
     def finish(self) -> list[VelocityState]:
         """Process the frames the IMU has not reached (as the whole-record run does at the record's end);
