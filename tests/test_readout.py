@@ -1289,3 +1289,21 @@ def test_a_stop_tells_the_offset_a_constant_braking_cannot(filt, offset):
         assert rmse <= 0.15 and cover >= 0.8 and obs >= 0.3, (seed, rmse, cover, obs)
         without = _score(res[False], v_t, t)
         assert without[2] < 0.5 * obs or without[0] >= 2 * rmse, (seed, without)
+
+
+def test_arrays_the_readout_cannot_read_are_refused_naming_them():
+    t = np.arange(10) / 30.0
+    r = np.full((10, 4), 0.1)
+    a = np.zeros(10)
+    bad_t = t.copy()
+    bad_t[3] = np.nan
+    for args, kw, match in (((bad_t, r, r, a), {}, "t must be finite and increasing"),
+                            ((t[::-1], r, r, a), {}, "t must be finite and increasing"),
+                            ((t, r[:, 0], r[:, 0], a), {}, r"r must be \(n, F\)"),
+                            ((t, r, r[:, :3], a), {}, "r2 must be shaped like r"),
+                            ((t, r, r, a[:5]), {}, "a must be shaped like t"),
+                            ((t, r, r, a), dict(turn_rate=np.zeros(4)), "turn_rate must be shaped like t")):
+        with pytest.raises(ValueError, match=match):
+            readout(*args, **kw)
+    with pytest.raises(TypeError, match="config must be a ReadoutConfig, got dict"):
+        readout(t, r, r, a, {"filter": "causal"})

@@ -133,11 +133,24 @@ def readout(t, r, r2, a, config: ReadoutConfig | None = None,
         (:func:`paper_readout`).
     """
     cfg = config or ReadoutConfig()
+    if not isinstance(cfg, ReadoutConfig):
+        raise TypeError(f"config must be a ReadoutConfig, got {type(cfg).__name__}")
     t, r, r2, a = (np.asarray(x, dtype=float) for x in (t, r, r2, a))
-    if len(t) < 3:
-        raise ValueError(f"need at least 3 flow frames for a readout, got {len(t)}")
+    if t.ndim != 1 or len(t) < 3:
+        raise ValueError(f"t must be (n,) with at least 3 flow frames, got shape {t.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
+        raise ValueError("t must be finite and increasing (s)")
+    for name, x in (("r", r), ("r2", r2)):
+        if x.ndim != 2 or x.shape[0] != len(t):
+            raise ValueError(f"{name} must be (n, F) with n = len(t) = {len(t)}, got shape {x.shape}")
+    if r2.shape != r.shape:
+        raise ValueError(f"r2 must be shaped like r {r.shape}, got {r2.shape}")
+    if a.shape != t.shape:
+        raise ValueError(f"a must be shaped like t {t.shape}, got {a.shape}")
     if not np.all(np.isfinite(a)):
         raise ValueError("acceleration has NaN or inf at flow times")
+    if turn_rate is not None and np.shape(turn_rate) != t.shape:
+        raise ValueError(f"turn_rate must be shaped like t {t.shape}, got {np.shape(turn_rate)}")
     if offset_walk is not None:
         offset_walk = np.asarray(offset_walk, dtype=float)
         if offset_walk.shape != t.shape or not np.all(np.isfinite(offset_walk) & (offset_walk >= 0)):
