@@ -460,8 +460,10 @@ def run_depth_suite(args) -> int:
     bad = [f for f in families if f not in FAMILIES]
     if bad:
         raise ValueError(f"unknown families {', '.join(bad)}; choose from {', '.join(FAMILIES)} or 'all'")
-    if args.every < 1 or not args.duration > args.skip + 1.0 or not args.scale > 0:
-        raise ValueError("--every must be ≥ 1, --duration > --skip + 1 s, --scale > 0")
+    if args.every < 1:
+        raise ValueError(f"--every must be ≥ 1, got {args.every}")
+    if not args.duration > args.skip + 1.0:
+        raise ValueError(f"--duration {args.duration:g} s must exceed --skip {args.skip:g} s by more than 1 s")
     if args.device != "cpu":  # before the renders, not after them
         from lobula._optional import torch_device
 

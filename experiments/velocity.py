@@ -283,6 +283,9 @@ def apply_velocity_options(cfg, args):
     if opt("heading_motion"):
         cfg.heading_motion = True
     if opt("lag") is not None:
+        if args.lag > 0 and (cfg.readout.filter != "causal" or cfg.readout.method != "kalman"):
+            raise ValueError(f"--lag {args.lag:g} is a fixed-lag smoother of the online filter: give --filter causal "
+                             f"(the zero-phase filter already sees the whole record; --paper has none)")
         cfg.readout = replace(cfg.readout, lag_s=args.lag)  # validated there (causal kalman readout only)
     if opt("speed_prior") is not None:
         if cfg.readout.method != "kalman":

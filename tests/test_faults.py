@@ -743,3 +743,9 @@ def test_the_printed_score_is_the_one_the_stored_run_gives(run2, tmp_path, capsy
         skip = float(ds.attrs["scored_after_s"])
         assert 0 < skip < 2.0                        # a 2 s clip: a quarter of it, not the default 2 s
         assert score_line(score(ds), skip) in text
+
+
+def test_a_fixed_lag_without_the_online_filter_says_which_option_to_give(run2, tmp_path, capsys):
+    code, _, err = cli(capsys, "velocity", run2, "--out", tmp_path / "v.nc", "--lag", "1", "--quiet")
+    assert code == 2
+    one_error(err, "velocity", "--lag 1 is a fixed-lag smoother of the online filter", "give --filter causal")
