@@ -56,7 +56,8 @@ def test_gaze_stabilised_footage_sees_a_turn_cancelled_by_the_head(tmp_path):
     eye = CompoundEye(CompoundEyeConfig(dphi_deg=10.0, rings=1))
     times = np.arange(40) / 500.0
     imu_t = np.arange(0.0, 0.1, 0.001)
-    imu = dict(time_s=imu_t, accel=np.zeros((len(imu_t), 3)), gyro=np.tile(omega, (len(imu_t), 1)))
+    still = np.tile([0.0, -9.81, 0.0], (len(imu_t), 1))   # gravity's specific force, camera y down
+    imu = dict(time_s=imu_t, accel=still, gyro=np.tile(omega, (len(imu_t), 1)))
     # Unit gain and a neck that never returns: the head holds its orientation in the world.
     gaze = GazeConfig(gain=1.0, tau_return_s=1e6, limit_deg=90.0)
     fo = open_eye_footage(write_eye_footage(tmp_path / "gaze", world, eye, imu, times, {}, range_every=10,
