@@ -47,7 +47,7 @@ def test_the_paper_readout_on_the_same_rates_is_worse(replay_rates):
     assert r_ours < r_paper
 
 
-@pytest.mark.slow  # make test runs the moving and fast families, which start in motion
+@pytest.mark.slow  # make test streams the moving and fast families, which start in motion (tests/test_streaming.py)
 def test_replay_starting_in_motion(make_replay, replay_rates):
     """The window from 40 s starts at about 0.27 m/s: no rest to lock on from."""
     fo = open_footage(make_replay(40.0, 15.0))

@@ -218,6 +218,7 @@ def test_suite_runs_the_emd_front_end_with_its_own_defaults():
     assert velocity_config("lobula causal").front_end == "dis"
 
 
+@pytest.mark.slow  # renders the scene again onto the eye at 500 Hz; the eye's readout runs in make test elsewhere
 def test_suite_runs_the_fly_eye_on_the_same_world_and_keeps_it_out_of_all(tmp_path):
     # The eye is named, never part of "all" (each scene is rendered again onto the eye).
     assert not set(suite.EYE_CONFIGURATIONS) & set(suite.CONFIGURATIONS)
