@@ -160,10 +160,15 @@ HALTERE_GAIN_HELP = ("with --rotation haltere or both: the prior of the gain eac
                      "0.48 at Δφ = Δρ = 5° with the surround), or a number in (0, 1.5], e.g. 1 for the unit gain")
 
 
+#: the .flo files' options and their defaults (argparse dests)
+FLO_OPTION_DEFAULTS = {"flo_units": "rad/s", "flo_gap": 0.2, "flo_size": [640, 448]}
+
+
 def _flo_options(p, what: str = "front end flo") -> None:
-    p.add_argument("--flo-units", default="rad/s", choices=["rad/s", "px"], help="units of the .flo values")
-    p.add_argument("--flo-gap", type=POSITIVE, default=0.2, help="time between the .flo frame pair (s)")
-    p.add_argument("--flo-size", type=PIXELS, nargs=2, default=[640, 448], metavar=("W", "H"),
+    d = FLO_OPTION_DEFAULTS
+    p.add_argument("--flo-units", default=d["flo_units"], choices=["rad/s", "px"], help="units of the .flo values")
+    p.add_argument("--flo-gap", type=POSITIVE, default=d["flo_gap"], help="time between the .flo frame pair (s)")
+    p.add_argument("--flo-size", type=PIXELS, nargs=2, default=d["flo_size"], metavar=("W", "H"),
                    help=f"image size (pixels) the .flo refers to ({what})")
 
 

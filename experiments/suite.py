@@ -164,18 +164,19 @@ def plot_series(out: Path, families, seeds, configurations) -> Path | None:
         with xr.open_dataset(path) as ds:
             t = ds.time.values
             ax.plot(t, ds.v_true.values, "k--", lw=1.0, label="truth")
+            given = False
             for c in names:
                 key = series_key(c)
                 if f"v_hat__{key}" not in ds:
                     continue
                 answered, every = ds[f"v_hat__{key}"].values, ds[f"v_hat_all__{key}"].values
                 sd = ds[f"v_std__{key}"].values if f"v_std__{key}" in ds else np.full_like(t, np.nan)
+                given |= bool(np.isfinite(every).any())
                 ax.fill_between(t, every - 2 * sd, every + 2 * sd, color=colours[c], alpha=0.15, lw=0)
                 ax.plot(t, every, ":", color=colours[c], lw=1.0)
                 ax.plot(t, answered, "-", color=colours[c], lw=1.4, label=f"{c} (dotted: carried)")
             top = np.nanmax(np.abs(ds.v_true.values))
-            if not any(np.isfinite(ds[f"v_hat_all__{series_key(c)}"]).any() for c in names
-                       if f"v_hat_all__{series_key(c)}" in ds):
+            if not given:
                 ax.text(0.5, 0.12, "no v̂: vision never answered", ha="center", transform=ax.transAxes, fontsize=8,
                         color="0.4")
         ax.set_ylim(-0.3 * top - 0.05, 1.6 * top + 0.05)  # a carried σ can grow without bound

@@ -338,6 +338,8 @@ def apply_velocity_options(cfg, args):
 
 
 def _velocity_config(args):
+    from .parsers import FLO_OPTION_DEFAULTS  # the .flo files' options, which only --front-end flo reads
+
     cfg = VelocityConfig.paper(args.front_end, args.filter) if args.paper else VelocityConfig(front_end=args.front_end)
     # One front end runs here (compare runs several, each reading the options that are its own).
     emd_only = [f"--{k.replace('_', '-')}" for k in ("dphi", "drho", "tau", "emd_calibration")
@@ -345,9 +347,8 @@ def _velocity_config(args):
     if emd_only and "emd" not in get_front_end(cfg.front_end).sections:   # they set VelocityConfig.emd
         raise ValueError(f"{', '.join(emd_only)} set{'s' * (len(emd_only) == 1)} the EMD front end, but the front end "
                          f"is {cfg.front_end}: drop {'it' if len(emd_only) == 1 else 'them'} or use --front-end emd")
-    flo_only = [f"--{k.replace('_', '-')}" for k, default in (("flo_units", "rad/s"), ("flo_gap", 0.2))
-                if getattr(args, k, default) != default] + (["--flo-size"] if getattr(args, "flo_size", [640, 448])
-                                                            != [640, 448] else [])
+    flo_only = [f"--{k.replace('_', '-')}" for k, default in FLO_OPTION_DEFAULTS.items()
+                if getattr(args, k, default) != default]
     if flo_only and cfg.front_end != "flo":
         raise ValueError(f"{', '.join(flo_only)} describe{'s' * (len(flo_only) == 1)} the .flo files of --front-end "
                          f"flo, but the front end is {cfg.front_end}: drop {'it' if len(flo_only) == 1 else 'them'}")
