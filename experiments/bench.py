@@ -355,6 +355,12 @@ def _run(args) -> int:
         check_device(args.device)
         run_device_bench(args.device)
         return 0
+    from lobula.flow import FlowConfig
+
+    need = FlowConfig().gap + 1
+    if args.frames < need:
+        raise ValueError(f"--frames {args.frames}: the flow pairs frames {FlowConfig().gap} apart, so a run needs "
+                         f"at least {need} frames (figures mean little under 30)")
     run_bench(frames=args.frames, scales=args.scales, presets=args.presets, skip=args.skip)
     return 0
 

@@ -10,6 +10,7 @@ import numpy as np
 def run_calibrate_camera(args) -> int:
     """Check the IMU's axes, measure the focal length, write the camera.json (atomically) and print what was found."""
     from lobula.readers import OWN_EXTRINSICS
+    from lobula.readers.core import FootageError
     from lobula.readers.focal_length import estimate_focal_length
     from lobula.readers.self_calibration import check_imu_axes
 
@@ -17,7 +18,10 @@ def run_calibrate_camera(args) -> int:
     from .store import write_text
     from lobula.version import provenance_attrs
 
-    footage = open_footage_from_args(args)
+    footage = open_footage_from_args(args, require_imu=False)
+    if footage.imu is None or footage.imu.gyro is None:
+        raise FootageError(f"{footage.path}: calibrate-camera measures the focal length against the gyro, and this "
+                           f"footage has no IMU; record one with the gyro, or give a calibration file with --camera")
     dist = footage.distortion if (footage.distortion or {}).get("removed") and "raw_camera" in footage.distortion \
         else None
     # opened without a calibration, the footage was self-calibrated already (its IMU turned where needed); a

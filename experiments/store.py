@@ -141,9 +141,12 @@ def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
 
     Temporaries of ``path`` that a killed run left (their process gone, older than this one)
     are removed first. An OSError saying the output cannot be written (no space, read-only,
-    no permission) is raised as :class:`OutputError` naming ``path``.
+    no permission) is raised as :class:`OutputError` naming ``path``. A symbolic link is written
+    through: its target gets the output and the link stays.
     """
     path = Path(path)
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         remove_stale(path.parent, f".{path.name}.{TEMP_TAG}-")

@@ -99,7 +99,9 @@ def run_suite(families, seeds, duration_s, scale, out, configurations=None, work
         if not res.get("resumed"):  # kept when the suite is stopped: the same command resumes from it
             from .store import WRITTEN
 
-            WRITTEN.append(out / "results" / f"{scene_name(res['family'], res['seed'])}.json")
+            kept = out / "results" / f"{scene_name(res['family'], res['seed'])}.json"
+            if kept not in WRITTEN:  # a scene run in this process counted it when writing it
+                WRITTEN.append(kept)
         how = "resumed" if res.get("resumed") else f"scene ready in {res['render_s']:.0f} s"
         lz = res["metrics"].get("lobula zero-phase", {}).get("after_skip", {}).get("rmse_m_s")
         progress(f"[{len(results)}/{len(jobs)}] {res['family']} seed {res['seed']}: {how}"

@@ -252,7 +252,7 @@ def run_scene_job(job: SceneJob) -> dict:
     from lobula.readers import open_footage
     from stimuli.track import make_track_run
 
-    from .store import write_netcdf
+    from .store import write_netcdf, write_text
 
     out = Path(job.out)
     res_path = out / "results" / f"{job.name}.json"
@@ -289,10 +289,7 @@ def run_scene_job(job: SceneJob) -> dict:
                errors=errors, render_s=render_s, eye_render_s=eye_render_s, estimator_s=wall,
                scene_config=cfg.to_dict(),
                peak_speed_m_s=float(np.abs(vt).max()))
-    res_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = res_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(res, default=str))
-    os.replace(tmp, res_path)
+    write_text(res_path, json.dumps(res, default=str))
     return res
 
 
@@ -391,8 +388,12 @@ def ensure_rendered(folder: Path, settings: dict, render) -> Path:
         shutil.rmtree(folder, ignore_errors=True)
         render(folder)
         tmp = marker.with_name(f".{marker.name}.tmp")
-        tmp.write_text(json.dumps(settings))
-        os.replace(tmp, marker)
+        try:
+            tmp.write_text(json.dumps(settings))
+            os.replace(tmp, marker)
+        except BaseException:  # a full disk or a signal: no partial marker
+            tmp.unlink(missing_ok=True)
+            raise
     return folder
 
 

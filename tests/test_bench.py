@@ -19,3 +19,15 @@ def test_an_unknown_stage_is_refused(capsys):
 
     assert main(["bench", "--skip", "flow"]) == 2
     assert "invalid choice: 'flow'" in capsys.readouterr().err
+
+
+def test_too_few_frames_for_a_flow_pair_name_the_option(monkeypatch, capsys):
+    from experiments.cli import main
+
+    def must_not_run(*a, **k):
+        raise AssertionError("the benchmark ran")
+
+    monkeypatch.setattr(bench, "run_bench", must_not_run)
+    assert main(["bench", "--frames", "6"]) != 0
+    err = capsys.readouterr().err
+    assert "--frames 6" in err and "at least 7 frames" in err and len(err.strip().splitlines()) == 1

@@ -549,6 +549,17 @@ def test_the_haltere_gain_starts_from_its_prior():
     assert EyeCircuitConfig.from_dict({}).rotation_gain_prior == 1.0   # a stored configuration without it: unit gain
 
 
+def test_camera_commands_given_eye_footage_say_which_commands_read_it(eye_footage, tmp_path, capsys):
+    from experiments.cli import main
+
+    for argv in (["depth", str(eye_footage), "--out", str(tmp_path / "d.nc")],
+                 ["calibrate-camera", str(eye_footage), "--out", str(tmp_path / "c.json")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert "compound-eye footage (eye.json)" in err and "lobula eye-velocity" in err and len(err.splitlines()) == 1
+    assert not list(tmp_path.iterdir())
+
+
 def test_lobula_velocity_dispatches_eye_footage_to_the_eye_circuit(eye_footage, tmp_path, capsys):
     import xarray as xr
 

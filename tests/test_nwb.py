@@ -131,6 +131,20 @@ def test_atomic_outputs_get_an_ordinary_files_mode(tmp_path):
     assert out.stat().st_mode & 0o777 == 0o644
 
 
+def test_an_output_named_by_a_symbolic_link_is_written_through_it(tmp_path):
+    """A link the user keeps pointing at their results stays a link; its target gets the new output."""
+    from experiments.store import write_text
+
+    (tmp_path / "results").mkdir()
+    target = tmp_path / "results" / "note.txt"
+    target.write_text("old\n")
+    link = tmp_path / "latest.txt"
+    link.symlink_to(target)
+    write_text(link, "new\n")
+    assert link.is_symlink() and target.read_text() == "new\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest.txt", "results"]
+
+
 def test_nwb_describes_subject_device_and_stimulus(recording, tmp_path):
     from pynwb import NWBHDF5IO
 

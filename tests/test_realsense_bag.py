@@ -524,3 +524,14 @@ def test_open_footage_and_the_cli_take_a_bag(tmp_path, capsys):
     assert fo.kind == "realsense-bag" and len(fo) == 30
     assert main(["velocity", str(tmp_path / "missing.bag"), "--out", str(tmp_path / "o.nc"), "--quiet"]) == 2
     assert "missing.bag" in capsys.readouterr().err
+
+
+def test_calibrate_camera_on_a_bag_without_imu_names_the_gyro(tmp_path, capsys):
+    from experiments.cli import main
+
+    bag = tmp_path / "no_imu.bag"
+    write_bag(bag, with_accel=False, with_gyro=False)
+    assert main(["calibrate-camera", str(bag), "--out", str(tmp_path / "camera.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no_imu.bag: calibrate-camera measures the focal length against the gyro" in err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "camera.json").exists()

@@ -194,3 +194,28 @@ def test_frames_the_estimator_cannot_read_are_refused_naming_them():
     assert est.update(bgr, 0.0) is None                 # one frame: no pair yet
     with pytest.raises(TypeError, match="takes the camera"):
         VelocityEstimator(None)
+
+
+def test_frames_without_the_imu_are_refused_saying_what_is_missing():
+    """Without IMU samples no estimate can come: the estimator says so once its frames span ``history_s``
+    (rather than hold them all) and at ``finish``; an IMU that stops is named by its last sample's time."""
+    from lobula.camera import PinholeCamera
+    from lobula.velocity import VelocityEstimator
+
+    cam = PinholeCamera(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5, frame_rate_hz=10.0)
+    frame = np.zeros((48, 64), np.uint8)
+    est = VelocityEstimator(cam, history_s=8.0)
+    for k in range(81):  # 8 s of frames: still within the history
+        assert est.update(frame, k / 10.0) is None
+    with pytest.raises(ValueError, match="no IMU samples .* with 82 frames over 8 s"):
+        est.update(frame, 8.1)
+    short = VelocityEstimator(cam)
+    short.update(frame, 0.0)
+    with pytest.raises(ValueError, match="1 frames but no IMU"):
+        short.finish()
+    stopped = VelocityEstimator(cam, history_s=8.0)
+    t = np.arange(40) / 200.0
+    stopped.update(imu=(t, np.zeros((40, 3)), np.tile([0.0, -9.81, 0.0], (40, 1))))
+    with pytest.raises(ValueError, match="IMU's last sample is at 0.195 s"):
+        for k in range(200):
+            stopped.update(frame, 0.1 + k / 10.0)

@@ -193,3 +193,56 @@ def test_the_summary_names_the_lowest_mean_not_the_luckiest_point():
     assert "over 7 of 9 points" in lines[0]
     assert rmse_summary(ds.assign(rmse_m_s=ds.rmse_m_s * np.nan), ["fields.size_deg", "seed"]) == [
         "RMSE: no point was scored (every point's RMSE is NaN)"]
+
+
+def test_a_sweep_whose_every_point_fails_writes_no_store(tmp_path, monkeypatch):
+    """A store of NaN alone would read as a result: when no point succeeds (here a full disk under the
+    renders) the sweep says the first failure and leaves no store."""
+    import errno
+
+    from experiments import sweep
+
+    def full_disk(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(sweep, "ensure_render", lambda *a, **k: "render")
+    monkeypatch.setattr(sweep, "compute_point", full_disk)
+    spec = SweepSpec.from_strings(["readout.cutoff_hz=1,2"], run=TrackRunConfig(**TINY), skip_s=0.5)
+    out = tmp_path / "full.zarr"
+    with pytest.raises(SweepError, match=r"every point failed, so no store is written .*No space left"):
+        run_sweep(spec, out, scheduler="synchronous", progress=False)
+    assert not out.exists()
+
+
+def _sigint_disposition(q):
+    import signal
+
+    q.put(signal.getsignal(signal.SIGINT) == signal.SIG_IGN)
+
+
+def test_worker_processes_leave_ctrl_c_to_the_sweep():
+    """A Ctrl-C reaches the terminal's whole process group: the cluster's workers, started inside
+    _workers_ignore_sigint, ignore it (no traceback of theirs), and the sweep's own handler is back after."""
+    import multiprocessing
+    import signal
+
+    from experiments.sweep import _workers_ignore_sigint
+
+    ctx = multiprocessing.get_context("spawn")  # as dask's nanny starts its workers
+    q = ctx.Queue()
+
+    def ignored_in_child() -> bool:
+        child = ctx.Process(target=_sigint_disposition, args=(q,))
+        child.start()
+        got = q.get(timeout=60)
+        child.join(timeout=60)
+        return got
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as at a terminal, whatever runs the tests
+    try:
+        assert ignored_in_child() is False
+        with _workers_ignore_sigint():
+            assert ignored_in_child() is True
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)

@@ -198,6 +198,9 @@ def _reader_for(path: Path) -> Reader:
     for reader in READERS:
         if reader.recognise(path):
             return reader
+    if path.is_dir() and (path / "eye.json").is_file():  # a compound eye's samples (stimuli.eye): no camera images
+        raise FootageError(f"{path}: compound-eye footage (eye.json), which has no camera images for this command; "
+                           f"read it with `lobula velocity --front-end emd`, `lobula eye-velocity` or `lobula info`")
     raise FootageError(f"{path}: no reader recognises it; the layouts known: {known_layouts()}")
 
 

@@ -173,7 +173,22 @@ class VelocityEstimator:
             self._frames.append((self._index, float(t), frame))
             self._index += 1
         self._advance(final=False)
+        self._check_imu_keeps_up()
         return self._out[-1] if self._out else None
+
+    def _check_imu_keeps_up(self) -> None:
+        """ValueError once the frames waiting for the IMU span more than ``history_s``: without its samples
+        no estimate can be made, and the frames would pile up in memory."""
+        if not self._frames or self._frames[-1][1] - self._frames[0][1] <= self.history_s:
+            return
+        if self.imu.rate_hz is None:
+            raise ValueError(f"no IMU samples (fewer than the 18 its rate is read from) have come with "
+                             f"{len(self._frames)} frames over {self.history_s:g} s: give update() "
+                             f"the samples since the last frame, imu=(time_s, gyro, accel); the estimator needs "
+                             f"the accelerometer and the gyro")
+        raise ValueError(f"the IMU's last sample is at {self.imu.last_time:.3f} s, {len(self._frames)} frames "
+                         f"(up to {self._frames[-1][1]:.3f} s) wait for it: give update() the samples since the "
+                         f"last frame, imu=(time_s, gyro, accel), on the frames' clock")
 
     def _grey(self, frame) -> np.ndarray:
         """``frame`` as the flow reads it: grey (a colour or 16-bit image turned as the readers turn theirs,
@@ -192,6 +207,10 @@ class VelocityEstimator:
     def finish(self) -> list[VelocityState]:
         """Process the frames the IMU has not reached (as the whole-record run does at the record's end);
         returns the estimates not yet drained."""
+        if self._frames and self.imu.rate_hz is None:
+            raise ValueError(f"{len(self._frames)} frames but no IMU to estimate from: give update() the samples "
+                             f"since the last frame, imu=(time_s, gyro, accel); the estimator needs the "
+                             f"accelerometer and the gyro")
         self._advance(final=True)
         if self._todo:  # no frame's fields ever responded: the start's prior stays the resting one
             self.gravity_error = start_accel_prior(np.full((1, 1), np.nan))
