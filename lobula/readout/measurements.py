@@ -155,6 +155,32 @@ def field_velocity(r, r2, r_dot, a):
         return r * depth, depth
 
 
+def nanmedian_rows(x: np.ndarray) -> np.ndarray:
+    """The median of each row, NaN left out: ``np.nanmedian(x, axis=1)`` to the bit, without its warnings.
+
+    numpy computes a small array's row medians through masked arrays, 6x slower than sorting the rows
+    once (NaN sorts last) and averaging the two middle values of the finite ones, as it does.
+
+    Parameters
+    ----------
+    x : ndarray, (n, F)
+        Any units U.
+
+    Returns
+    -------
+    ndarray, (n,)
+        U, NaN where a row has no value that is not NaN.
+    """
+    x = np.asarray(x, float)
+    if x.shape[1] == 0:
+        return np.full(len(x), np.nan)
+    s = np.sort(x, axis=1)
+    n = np.count_nonzero(~np.isnan(x), axis=1)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[:, None], 1)[:, 0]
+    hi = np.take_along_axis(s, np.maximum(n // 2, 0)[:, None], 1)[:, 0]
+    return np.where(n > 0, (lo + hi) / 2, np.nan)
+
+
 def median_and_error(values: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Median over fields, NaN left out, and its standard error 1.253·1.4826·MAD/√n.
 
@@ -174,10 +200,8 @@ def median_and_error(values: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.
     se : ndarray, (n_frames,)
         U.
     """
-    with warnings.catch_warnings():  # all-NaN frames are expected
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(values, axis=1)
-        mad = np.nanmedian(np.abs(values - med[:, None]), axis=1)
+    med = nanmedian_rows(values)
+    mad = nanmedian_rows(np.abs(values - med[:, None]))
     return med, 1.253 * 1.4826 * mad / np.sqrt(np.maximum(n, 1))
 
 
@@ -248,7 +272,7 @@ def ratio_measurement(r, r2, r_dot, cfg: ReadoutConfig, keep=None, fields: bool 
     with warnings.catch_warnings(), np.errstate(divide="ignore", invalid="ignore"):
         warnings.simplefilter("ignore", RuntimeWarning)
         ra = np.abs(r)
-        ok = np.isfinite(r) & np.isfinite(r2) & np.isfinite(r_dot) & (ra >= 0.2 * np.nanmedian(ra, axis=1)[:, None])
+        ok = np.isfinite(r) & np.isfinite(r2) & np.isfinite(r_dot) & (ra >= 0.2 * nanmedian_rows(ra)[:, None])
         if keep is not None:
             ok &= keep
         k = np.where(ok, (r_dot - r2) / r, np.nan)
@@ -386,12 +410,10 @@ def scene_depth(r, v_f, informative, coupled, dt: float, window_s: float, causal
     use = np.asarray(informative, bool) & np.asarray(coupled, bool) & (np.isfinite(r).sum(1) >= 3)
     per_frame = np.full(n, np.nan)
     if use.any():
-        per_frame[use] = np.nanmedian(d[use], axis=1)
+        per_frame[use] = nanmedian_rows(d[use])
     w = max(1, int(round(window_s / dt)))
     padded = np.concatenate([np.full(w - 1, np.nan), per_frame])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # windows without a frame that measured
-        windowed = np.nanmedian(np.lib.stride_tricks.sliding_window_view(padded, w), axis=1)
+    windowed = nanmedian_rows(np.lib.stride_tricks.sliding_window_view(padded, w))
     if causal:
         return np.fmax.accumulate(np.concatenate([[seen], windowed]))[1:]
     return np.full(n, np.fmax(np.nanmax(windowed) if np.any(~np.isnan(windowed)) else np.nan, seen))

@@ -1,13 +1,11 @@
 """The FLIVVER paper's readout, as its text states it (``ReadoutConfig.method`` "median")."""
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 from .config import ReadoutConfig, ReadoutResult
 from .filters import butterworth, staggered_difference
-from .measurements import field_velocity
+from .measurements import field_velocity, nanmedian_rows
 
 
 def paper_readout(t, r, r2, a, cfg: ReadoutConfig) -> ReadoutResult:
@@ -39,9 +37,7 @@ def paper_readout(t, r, r2, a, cfg: ReadoutConfig) -> ReadoutResult:
     r_dot = staggered_difference(rf, cfg.stagger, dt, centred=False)
     v_f, _ = field_velocity(r, r2, r_dot, a)
     v_f = np.where(np.isfinite(v_f), v_f, np.nan)
-    with warnings.catch_warnings():  # all-NaN frames are expected: no field has a finite v_f
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(v_f, axis=1)
+    med = nanmedian_rows(v_f)
     v = butterworth(med, cfg.paper_wn, cfg.paper_order, zp) if np.isfinite(med).any() else med
     # The paper has no notion of observability; we add only the honest minimum:
     # without acceleration the ratio carries no speed information.
