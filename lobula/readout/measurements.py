@@ -178,7 +178,8 @@ def nanmedian_rows(x: np.ndarray) -> np.ndarray:
     n = np.count_nonzero(~np.isnan(x), axis=1)
     lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[:, None], 1)[:, 0]
     hi = np.take_along_axis(s, np.maximum(n // 2, 0)[:, None], 1)[:, 0]
-    return np.where(n > 0, (lo + hi) / 2, np.nan)
+    with np.errstate(invalid="ignore"):  # −inf and +inf in the middle: NaN, as numpy's
+        return np.where(n > 0, (lo + hi) / 2, np.nan)
 
 
 def median_and_error(values: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -201,7 +202,8 @@ def median_and_error(values: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.
         U.
     """
     med = nanmedian_rows(values)
-    mad = nanmedian_rows(np.abs(values - med[:, None]))
+    with np.errstate(invalid="ignore"):  # an infinite value less an infinite median
+        mad = nanmedian_rows(np.abs(values - med[:, None]))
     return med, 1.253 * 1.4826 * mad / np.sqrt(np.maximum(n, 1))
 
 
