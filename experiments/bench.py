@@ -357,10 +357,10 @@ def _run(args) -> int:
         return 0
     from lobula.flow import FlowConfig
 
-    need = FlowConfig().gap + 1
-    if args.frames < need:
-        raise ValueError(f"--frames {args.frames}: the flow pairs frames {FlowConfig().gap} apart, so a run needs "
-                         f"at least {need} frames (figures mean little under 30)")
+    gap = FlowConfig().gap
+    if args.frames <= gap:
+        raise ValueError(f"--frames {args.frames}: the flow pairs frames {gap} apart, so a run needs at least "
+                         f"{gap + 1} frames (figures mean little under 30)")
     run_bench(frames=args.frames, scales=args.scales, presets=args.presets, skip=args.skip)
     return 0
 

@@ -58,8 +58,8 @@ from .updates import OUTLIER_GATE, _gated_update, _sign_update, _update, ratio_u
 from .measurements import (ACCEL_HEADING_FLOOR_M_S2, NO_EXPANSION_SE, REVERSAL_MAX_GAP_S, SIGN_PERSIST_S,
                            MaterialRates, acceleration_heading, accelerometer_level, accelerometer_steady,
                            clear_expansion, expansion_sign, field_axes, field_velocity, median_and_error,
-                           nanmedian_rows, physical_kappa, ratio_measurement, readout_lag, readout_terms, rest_measurement,
-                           reversal_measurement, scene_depth, signed_expansion, stop_measurement,
+                           nanmedian_rows, physical_kappa, ratio_measurement, readout_lag, readout_terms,
+                           rest_measurement, reversal_measurement, scene_depth, signed_expansion, stop_measurement,
                            vision_measurement)
 from .paper import paper_readout
 from .smoothers import fixed_lag_smooth, rts_smooth
