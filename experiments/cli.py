@@ -249,23 +249,35 @@ def _not_kept(command: str, group: list) -> str:
     return f" ({names} not kept: lobula {command} writes its outputs together or not at all)"
 
 
-#: the figure formats --plot writes
+#: the figure formats --plot writes (ephys writes a PNG and a PDF beside it, named by either)
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+PLOT_SUFFIXES_OF = {"ephys": (".png", ".pdf")}
+#: the one format a command's --out file is written in, where its name must say so
+OUT_SUFFIXES_OF = {"velocity": (".nc", "NetCDF"), "eye-velocity": (".nc", "NetCDF"), "compare": (".nc", "NetCDF"),
+                   "calibrate-camera": (".json", "a camera.json"), "calibrate-emd": (".json", "JSON")}
 
 
-def _output_clash(outputs: list[tuple[str, str]]) -> str | None:
+def _either(suffixes) -> str:
+    return f"{', '.join(suffixes[:-1])} or {suffixes[-1]}" if len(suffixes) > 1 else suffixes[0]
+
+
+def _output_clash(outputs: list[tuple[str, str]], command: str | None = None) -> str | None:
     """Why the outputs a command line names cannot all be written (two options naming one file, a figure
-    in a format not drawn), or None."""
+    in a format not drawn, an ``--out`` whose name says another format than it gets), or None."""
     from pathlib import Path
 
     seen: dict[Path, str] = {}
+    plots = PLOT_SUFFIXES_OF.get(command, PLOT_SUFFIXES)
     for option, path in outputs:
         key = Path(os.path.abspath(path))
         if key in seen:
             return f"{seen[key]} and {option} both name {path}: give each its own file"
         seen[key] = option
-        if option == "--plot" and Path(path).suffix.lower() not in PLOT_SUFFIXES:
-            return f"--plot {path}: use a {', '.join(PLOT_SUFFIXES[:-1])} or {PLOT_SUFFIXES[-1]} file"
+        if option == "--plot" and Path(path).suffix.lower() not in plots:
+            return f"--plot {path}: use a {_either(plots)} file"
+        suffix, what = OUT_SUFFIXES_OF.get(command, (None, None))
+        if option == "--out" and suffix and Path(path).suffix.lower() != suffix:
+            return f"--out {path}: lobula {command} writes {what}; give a name ending in {suffix}"
     return None
 
 
@@ -304,7 +316,7 @@ def _main(argv: list[str]) -> int:
     from . import store
 
     outputs = _outputs(args)
-    clash = _output_clash(outputs)
+    clash = _output_clash(outputs, args.command)
     if clash is not None:
         print(f"lobula {args.command}: error: {clash}", file=sys.stderr)
         return 2

@@ -367,7 +367,15 @@ def add_parser(subparsers):
 
 
 def main(args) -> int:
-    recs = run_figures(args.out, tuple(args.only or FIGURES), args.start, args.duration, args.seed, args.quick,
+    which = tuple(args.only or FIGURES)
+    if set(which) <= set(EXTRA_FIGURES):  # these render their own worlds at their own sizes and grids
+        given = [o for o, on in (("--start", args.start != 5.0), ("--duration", args.duration != 25.0),
+                                 ("--quick", args.quick)) if on]
+        if given:
+            raise ValueError(f"{', '.join(given)} set{'s' if len(given) == 1 else ''} the replay's figures; "
+                             f"{', '.join(which)} {'renders its' if len(which) == 1 else 'render their'} own worlds: drop "
+                             f"{'it' if len(given) == 1 else 'them'}")
+    recs = run_figures(args.out, which, args.start, args.duration, args.seed, args.quick,
                        progress=not args.quiet)
     for name in recs:
         print(f"wrote {Path(args.out) / name}.png and .json")

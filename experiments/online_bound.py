@@ -60,6 +60,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -348,6 +349,8 @@ def suite_ratios(path, families, seeds, skip_s: float, duration_s: float) -> dic
         for key, want in (("skip_s", skip_s), ("duration_s", duration_s)):
             if key in settings and abs(float(settings[key]) - want) > 1e-9:
                 raise ValueError(f"{path}: the suite ran with {key} {settings[key]}, the bound with {want}")
+        if not {"family", "seed", "configuration", "value"} <= set(ds.variables):
+            raise ValueError(f"{path}: not a `lobula suite` suite.nc (no family, seed, configuration and value)")
         have = {"family": set(map(str, ds.family.values)), "seed": set(int(x) for x in ds.seed.values),
                 "configuration": set(map(str, ds.configuration.values))}
         for dim, want in (("family", set(families)), ("seed", set(seeds)),
@@ -400,11 +403,49 @@ def _summary(rows, key: str, digits: int = 2) -> str:
     return f"{np.median(r):.{digits}f} ({r.min():.{digits}f}–{r.max():.{digits}f})"
 
 
+PROG = "python -m experiments.online_bound"
+
+
 def main(argv=None) -> int:
+    """Run the command line; a refusal, an unwritable output or an interrupt is one line, as `lobula`'s."""
+    from lobula.readers.core import FootageError
+
+    from .store import OutputError
+
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; nothing written", file=sys.stderr)
+        return 130
+    except (FootageError, OutputError, ValueError, OSError) as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _check_options(p, args, families: list[str]) -> None:
+    """Refuse, before any work, what the bound cannot run or write (one line via ``p.error``)."""
+    from .cli import PLOT_SUFFIXES
+    from .store import writable_problem
+    from .suite import ALL_FAMILIES
+
+    unknown = [f for f in families if f not in ALL_FAMILIES]
+    if unknown:
+        p.error(f"--families: unknown {', '.join(unknown)}; choose from {', '.join(ALL_FAMILIES)}")
+    if not (np.isfinite(args.duration) and np.isfinite(args.skip) and 0 <= args.skip < args.duration):
+        p.error(f"--duration {args.duration:g} and --skip {args.skip:g}: the skip must lie in [0, duration) s")
+    if args.plot and Path(args.plot).suffix.lower() not in PLOT_SUFFIXES:
+        p.error(f"--plot {args.plot}: use a {', '.join(PLOT_SUFFIXES[:-1])} or {PLOT_SUFFIXES[-1]} file")
+    for option in ("out", "plot"):
+        problem = getattr(args, option) and writable_problem(getattr(args, option))
+        if problem:
+            p.error(f"--{option}: {problem}")
+
+
+def _main(argv=None) -> int:
+    from .cli import _Parser
     from .suite import FAMILIES, parse_seeds
 
-    p = argparse.ArgumentParser(prog="python -m experiments.online_bound", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = _Parser(prog=PROG, description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--families", default="all", help="comma-separated suite families, or all")
     p.add_argument("--seeds", default="3",
                    help="a count (seeds 0…N−1), or a comma-separated list (100,101; one seed: 7,)")
@@ -452,6 +493,7 @@ def main(argv=None) -> int:
         _write(args, rows, {})
         return 0
     families = list(FAMILIES) if args.families == "all" else [f.strip() for f in args.families.split(",") if f.strip()]
+    _check_options(p, args, families)
     seeds = parse_seeds(args.seeds)
     seeds = list(range(seeds)) if isinstance(seeds, int) else seeds
     names = [m.strip() for m in args.models.split(",") if m.strip()]
@@ -503,8 +545,6 @@ def footage_rows(paths, front_end: str = "dis", skip_s: float = 2.0, priors: str
     """One row per footage: κ's error against the truth (:func:`kappa_noise` at 30 frames/s), and the optimal
     online and offline RMSE at that noise on the footage's own trajectory (:func:`online_offline`, vision as
     late as that front end's causal readout; ``priors`` as :func:`_with_priors` takes it)."""
-    from pathlib import Path
-
     rows = []
     for path in paths:
         k = footage_kappa(path, front_end)

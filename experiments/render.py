@@ -49,6 +49,12 @@ def run_scene(args) -> int:
         if cfg.scene.rolling_shutter_s:
             raise ValueError("--rolling-shutter is a camera sensor's row readout; the compound eye (--eye fly) "
                              "sees every ommatidium at once: drop it")
+        camera_only = [o for o, on in (("--lens", cfg.lens is not None), ("--exposure", args.exposure != 0.0),
+                                       ("--noise", args.noise != 1.0)) if on]
+        if camera_only:  # the eye samples the world through its own optics, photoreceptors and noise
+            raise ValueError(f"{', '.join(camera_only)} {'shapes' if len(camera_only) == 1 else 'shape'} the "
+                             f"camera's frames; the compound eye (--eye fly) has its own optics and photoreceptor "
+                             f"noise: drop {'it' if len(camera_only) == 1 else 'them'}")
         return run_eye_scene(args, cfg)
     refuse_eye_options_for_pinhole(args)
     out = make_track_run(args.out, cfg, progress=not args.quiet)

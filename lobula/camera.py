@@ -51,15 +51,18 @@ class PinholeCamera:
 
     @classmethod
     def from_json(cls, path: str | Path) -> "PinholeCamera":
-        """Read the ``camera.json`` at ``path`` ({"width","height","fx","fy","cx","cy" in px, "frame_rate_hz"})."""
+        """Read the ``camera.json`` at ``path`` ({"width","height","fx","fy","cx","cy" in px, "frame_rate_hz"}),
+        or in the folder ``path`` (a footage folder's)."""
         path = Path(path)
+        if path.is_dir():
+            path = path / "camera.json"
         try:
             d = json.loads(path.read_text())
             return cls(**{k: d[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "frame_rate_hz")},
                        rolling_shutter_s=float(d.get("rolling_shutter_s", 0.0)))
         except FileNotFoundError:
             raise FileNotFoundError(f"{path}: no camera.json; write one with width, height, fx, fy, cx, cy, frame_rate_hz") from None
-        except (KeyError, TypeError, json.JSONDecodeError) as exc:
+        except (KeyError, TypeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise ValueError(f"{path}: not a valid camera.json ({exc}); it needs width, height, fx, fy, cx, cy, frame_rate_hz") from None
 
     def to_dict(self) -> dict:

@@ -282,13 +282,17 @@ def open_eye_footage(path: str | Path) -> EyeFootage:
     tt = _read_csv(path / "times.csv", ("sample", "time_s"))["time_s"]
     _check_times(path / "times.csv", tt)
     try:
-        shape = np.load(path / "luminance.npy", mmap_mode="r").shape
+        lum = np.load(path / "luminance.npy", mmap_mode="r")
     except (OSError, ValueError) as exc:  # cut short (its header promises more than the file holds), or no .npy
         raise FootageError(f"{path / 'luminance.npy'}: not a readable array ({exc}); render the eye footage "
                            f"again (lobula scene OUT --eye fly)") from None
-    if shape != (len(tt), eye.n):
-        raise FootageError(f"{path / 'luminance.npy'}: shape {shape}, expected ({len(tt)}, {eye.n}) from "
+    if lum.shape != (len(tt), eye.n):
+        raise FootageError(f"{path / 'luminance.npy'}: shape {lum.shape}, expected ({len(tt)}, {eye.n}) from "
                            f"times.csv and ommatidia.csv; re-render the folder")
+    bad = sum(int(np.count_nonzero(~np.isfinite(lum[k:k + 4096]))) for k in range(0, len(lum), 4096))
+    if bad:  # a photoreceptor fed NaN turns every field and the readout NaN
+        raise FootageError(f"{path / 'luminance.npy'}: {bad} NaN or infinite samples; render the eye footage "
+                           f"again (lobula scene OUT --eye fly)")
     imu = None
     if (path / "imu.csv").exists():  # read and checked as a camera footage folder's (the same layout)
         imu = read_imu_csv(path / "imu.csv")

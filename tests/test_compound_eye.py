@@ -208,6 +208,12 @@ def test_eye_footage_roundtrip(tmp_path):
     with pytest.raises(FootageError, match="luminance.npy: not a readable array"):
         open_eye_footage(out)
     lum_file.write_bytes(whole)
+    lum = np.load(lum_file)
+    lum[3, :10] = np.nan  # a photoreceptor fed NaN would turn every field and the readout NaN
+    np.save(lum_file, lum)
+    with pytest.raises(FootageError, match="luminance.npy: 10 NaN or infinite samples"):
+        open_eye_footage(out)
+    lum_file.write_bytes(whole)
     (out / "times.csv").write_text("sample,time_s\n0,0.0\n")
     with pytest.raises(FootageError, match="luminance.npy"):
         open_eye_footage(out)

@@ -255,13 +255,17 @@ def test_outputs_that_cannot_all_be_written_are_refused_before_the_run(run2, tmp
     for argv, needles in (
             (["--out", out / "o.nc", "--tum", out / "o.nc"], ("--out and --tum both name", "give each its own file")),
             (["--out", out / "o.nc", "--plot", out / "o.nc"], ("--out and --plot both name",)),
-            (["--out", out / "o.nc", "--plot", out / "o.xyz"], ("--plot", "use a .png, .pdf or .svg file"))):
+            (["--out", out / "o.nc", "--plot", out / "o.xyz"], ("--plot", "use a .png, .pdf or .svg file")),
+            (["--out", out / "o.txt"], ("--out", "lobula velocity writes NetCDF; give a name ending in .nc"))):
         code, printed, err = cli(capsys, "velocity", run2, *argv, "--quiet")
         assert code == 2 and printed == ""
         one_error(err, "velocity", *needles)
     code, _, err = cli(capsys, "compare", run2, "--out", out / "c.nc", "--csv", out / "c.nc", "--quiet")
     assert code == 2
     one_error(err, "compare", "--out and --csv both name")
+    code, _, err = cli(capsys, "ephys", "looming", "--out", out / "l.nc", "--plot", out / "l.svg")
+    assert code == 2  # ephys draws a PNG and a PDF beside it
+    one_error(err, "ephys", "--plot", "use a .png or .pdf file")
     fifo = out / "pipe.nc"
     os.mkfifo(fifo)
     code, _, err = cli(capsys, "velocity", run2, "--out", fifo, "--quiet")

@@ -102,3 +102,12 @@ def test_a_replay_too_short_to_score_is_refused_before_it_is_rendered(tmp_path):
     with pytest.raises(ValueError, match=f"give at least {MIN_REPLAY_S:g} s"):
         run_figures(tmp_path / "f", ("error_vs_acceleration",), duration_s=2.0, quick=True, progress=False)
     assert not (tmp_path / "f").exists()
+
+
+def test_replay_options_for_figures_that_render_their_own_worlds_are_refused(tmp_path, capsys):
+    from experiments.cli import main
+
+    assert main(["figures", "--only", "eye_rmse", "--quick", "--start", "1e9", "--out", str(tmp_path / "f")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--start, --quick set the replay's figures; eye_rmse renders its own worlds" in err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "f").exists()

@@ -196,6 +196,14 @@ def test_command_line_writes_experimenter_and_institution(tmp_path):
     with NWBHDF5IO(str(out), "r") as io:
         f = io.read()
         assert list(f.experimenter) == ["Borst, Alexander"] and f.institution == "MPI BI"
+    # without an NWB file they would be dropped; an empty name would be written as one
+    for extra, outs, words in ((["--institution", "MPI BI"], ["x.nc"], "--institution is written into the NWB file"),
+                               (["--experimenter", " "], ["x.nwb"], "--experimenter: give a name")):
+        args = parse_command(["ephys", "looming", "--duration", "0.2", *extra,
+                              "--out", *(str(tmp_path / o) for o in outs)])
+        with pytest.raises(ValueError, match=words):
+            args.func(args)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loom.nwb"]
 
 
 def test_lobula_plate_nwb_passes_the_inspector_and_holds_the_numbers(tmp_path):

@@ -70,6 +70,29 @@ def test_bad_input_is_refused():
         filter_and_smoother(T, np.full_like(T, np.nan), T, InformationModel())
 
 
+@pytest.mark.parametrize("argv, words", [
+    (["--families", "bogus"], "--families: unknown bogus"),
+    (["--duration", "nan"], "the skip must lie in [0, duration)"),
+    (["--skip", "5", "--duration", "3"], "the skip must lie in [0, duration)"),
+    (["--plot", "ratios.txt"], "--plot ratios.txt: use a .png, .pdf or .svg file"),
+    (["--out", "{file}/bound.json"], "is a file, not a folder"),
+    (["--seeds", "0"], "--seeds must be a positive count"),
+    (["--families", "rest", "--seeds", "7,", "--duration", "4", "--suite", "{file}"], "not a `lobula suite` suite.nc"),
+])
+def test_the_command_line_refuses_in_one_line_before_any_work(tmp_path, capsys, argv, words):
+    import xarray as xr
+
+    not_a_suite = tmp_path / "run.nc"
+    xr.Dataset({"v_hat": ("time", np.zeros(3))}).to_netcdf(not_a_suite)
+    argv = [a.replace("{file}", str(not_a_suite)) for a in argv]
+    try:
+        rc = main(argv)
+    except SystemExit as exc:  # argparse's refusal
+        rc = exc.code
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and words in err and len(err.splitlines()) == 1, err
+
+
 def test_family_trajectory_is_the_rendered_truth(tmp_path):
     from experiments.suite import family_config
     from lobula.readers import open_footage

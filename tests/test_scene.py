@@ -4,6 +4,7 @@ import json
 
 import cv2
 import numpy as np
+import pytest
 
 from lobula.camera import PinholeCamera
 from lobula.flow import FlowConfig, make_flow_fn, pixel_to_angular
@@ -258,8 +259,6 @@ def test_rolling_shutter_is_recorded_in_camera_json_and_set_from_the_command_lin
     cfg = scene_config_from_args(parser.parse_args(["scene", "out", "--builtin-profile", "--rolling-shutter", "0.02"]))
     assert cfg.scene.rolling_shutter_s == 0.02
     assert scene_config_from_args(parser.parse_args(["scene", "out", "--builtin-profile"])).scene.rolling_shutter_s == 0
-    import pytest
-
     from experiments.render import run_scene
 
     with pytest.raises(ValueError, match="--rolling-shutter .* compound eye"):  # it has no rows to read out
@@ -361,3 +360,26 @@ def test_a_scene_folder_says_what_made_it(tmp_path):
     meta = json.loads((out / "scene.json").read_text())
     for key in ("lobula_version", "git_commit", "command_line", "created", "config"):
         assert meta[key], key
+
+
+@pytest.mark.parametrize("option, words", [(["--lens", "kannala-brandt:0.1,0,0,0"], "--lens shapes"),
+                                           (["--exposure", "0.01", "--noise", "0.05"], "--exposure, --noise shape")])
+def test_camera_options_the_compound_eye_cannot_use_are_refused(tmp_path, option, words):
+    from experiments.cli import build_parser
+    from experiments.render import run_scene
+
+    args = build_parser(["scene"]).parse_args(["scene", str(tmp_path / "eye"), "--eye", "fly", *option])
+    with pytest.raises(ValueError, match=f"{words} the camera's frames; the compound eye"):
+        run_scene(args)
+    assert not (tmp_path / "eye").exists()
+
+
+def test_a_camera_file_is_read_from_its_folder_too(tmp_path):
+    from lobula.camera import PinholeCamera
+
+    cam = PinholeCamera(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5, frame_rate_hz=30.0)
+    (tmp_path / "camera.json").write_text(json.dumps(cam.to_dict()))
+    assert PinholeCamera.from_json(tmp_path) == cam
+    (tmp_path / "camera.json").write_bytes(b"\x89PNG\x00\xff")
+    with pytest.raises(ValueError, match="camera.json: not a valid camera.json"):
+        PinholeCamera.from_json(tmp_path)

@@ -534,8 +534,14 @@ def main(args) -> int:
     plot = getattr(args, "plot", None)
     if plot and Path(plot).suffix.lower() not in (".png", ".pdf"):
         raise ValueError(f"--plot {plot}: use a .png or .pdf file name (both are written)")
-    ds = run_protocol(args.protocol, opts, progress=not args.quiet)
     meta = {k: getattr(args, k) for k in ("experimenter", "institution") if hasattr(args, k)}
+    if meta and not any(o.suffix.lower() == ".nwb" for o in outs):
+        raise ValueError(f"{', '.join('--' + k for k in meta)} {'is' if len(meta) == 1 else 'are'} written into the "
+                         f"NWB file only: add a .nwb to --out, or drop {'it' if len(meta) == 1 else 'them'}")
+    blank = [k for k, v in meta.items() if not all(str(x).strip() for x in (v if isinstance(v, list) else [v]))]
+    if blank:
+        raise ValueError(f"--{blank[0]}: give a name, not an empty one")
+    ds = run_protocol(args.protocol, opts, progress=not args.quiet)
     for path in write_outputs(ds, outs, **meta):
         print(f"wrote {path} ({args.protocol})")
     for line in summary(ds):
