@@ -328,7 +328,8 @@ def add_eye_velocity_parser(subparsers) -> argparse.ArgumentParser:
                         "inhibition, x − the six neighbours' mean (EyeCircuitConfig.surround 1, no temporal "
                         "high-pass); time = an LMC-like 0.25 s temporal high-pass, no surround (its memory "
                         "drifts the fields' gains after each change of speed)")
-    v.add_argument("--field-size", type=POSITIVE, default=30.0, help="LC field FWHM (deg)")
+    v.add_argument("--field-size", type=Number(2.0, 120.0, note="EyeCircuitConfig.fields.size_deg"), default=30.0,
+                   help="LC field FWHM (deg), 2 to 120")
     v.add_argument("--tau", type=POSITIVE, default=0.035, help="EMD delay time constant (s)")
     v.add_argument("--filter", default="causal", choices=["causal", "zero-phase"], help="readout filter kind")
     v.add_argument("--accel-from-truth", action="store_true",

@@ -210,7 +210,7 @@ _REFUSED = [
     (["velocity", "F", "--out", "o.nc", "--membrane-noise", "-1"], "--membrane-noise", "a number ≥ 0"),
     (["velocity", "F", "--out", "o.nc", "--haltere-gain", "2"], "--haltere-gain", "(0, 1.5]"),
     (["eye-velocity", "F", "--out", "o.nc", "--tau", "-0.01"], "--tau", "a number > 0"),
-    (["eye-velocity", "F", "--out", "o.nc", "--field-size", "0"], "--field-size", "a number > 0"),
+    (["eye-velocity", "F", "--out", "o.nc", "--field-size", "1e9"], "--field-size", "a number in [2, 120]"),
     (["eye-velocity", "F", "--out", "o.nc", "--haltere-gain", "strong"], "--haltere-gain", "'natural' or a number"),
     (["compare", "F", "--out", "o.nc", "--tol", "0"], "--tol", "a number > 0"),
     (["compare", "F", "--out", "o.nc", "--hold", "-1"], "--hold", "a number ≥ 0"),
