@@ -25,6 +25,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import warnings
 from contextlib import contextmanager, nullcontext
 
@@ -327,10 +328,16 @@ def _main(argv: list[str]) -> int:
             print(f"lobula {args.command}: error: {_fix_for(problem, outputs)}", file=sys.stderr)
             return 2
     written, group = len(store.WRITTEN), []
+    # the output folders, and whether this run makes them: what a failed or stopped run made there and left
+    # empty is removed (a figure's cache, a suite's scenes/)
+    roots = {path: not os.path.exists(path) for option, path in outputs if folders and option in ("--out", "OUT")}
+    started, finished = time.time() - 0.02, False  # the kernel stamps files from a clock a jiffy coarse
     try:
         with _one_line_warnings(args.command), \
                 store.all_or_nothing() if args.command in ALL_OR_NOTHING else nullcontext([]) as group:
-            return args.func(args)
+            rc = args.func(args)
+        finished = True
+        return rc
     except (FootageError, FileExistsError, FileNotFoundError, ValueError, MissingExtraError) as exc:
         print(f"lobula {args.command}: error: {exc}{_not_kept(args.command, group)}", file=sys.stderr)
         return 2
@@ -354,6 +361,9 @@ def _main(argv: list[str]) -> int:
         what = "nothing written" if kept <= 0 else f"{kept} finished output(s) kept, nothing half-written"
         print(f"lobula {args.command}: interrupted; {what}", file=sys.stderr)
         return 128 + signum
+    finally:
+        if not finished:
+            store.remove_empty_folders(roots, started)
 
 
 if __name__ == "__main__":

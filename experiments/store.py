@@ -133,6 +133,28 @@ def writable_problem(path: str | Path, folder: bool = False) -> OutputError | No
     return None
 
 
+def remove_empty_folders(roots: dict, since: float) -> list[Path]:
+    """After a run that failed or was stopped: remove the empty folders it made under each output folder.
+
+    roots: {output folder: whether the run made it}; a folder is the run's when its entries changed at or
+    after ``since`` (s, the epoch; its status change time); a root the run made goes too once empty.
+    Folders holding anything are kept. Returns the folders removed, deepest first."""
+    removed = []
+    for root, made in roots.items():
+        root = Path(root)
+        if not root.is_dir() or root.is_symlink():
+            continue
+        for d, subdirs, files in os.walk(root, topdown=False):
+            d = Path(d)
+            if d == root and not made:
+                continue
+            with suppress(OSError):
+                if not any(d.iterdir()) and (d == root or d.stat().st_ctime >= since):
+                    d.rmdir()
+                    removed.append(d)
+    return removed
+
+
 @contextmanager
 def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
     """A temporary name beside ``path`` to write to: renamed onto ``path`` when the block ends

@@ -753,3 +753,27 @@ def test_a_fixed_lag_without_the_online_filter_says_which_option_to_give(run2, t
     code, _, err = cli(capsys, "velocity", run2, "--out", tmp_path / "v.nc", "--lag", "1", "--quiet")
     assert code == 2
     one_error(err, "velocity", "--lag 1 is a fixed-lag smoother of the online filter", "give --filter causal")
+
+
+def test_a_stopped_or_failed_run_leaves_no_empty_folders_it_made(tmp_path, capsys, monkeypatch):
+    """What a folder command made and left empty when stopped (a figure's cache, a suite's scenes/) goes;
+    folders that hold something, and those that were there before, stay."""
+    import experiments.figures as figures
+
+    def make_cache_then(exc):
+        def run(out, *a, **k):
+            (Path(out) / ".cache" / "eye_runs").mkdir(parents=True)
+            raise exc
+        return run
+
+    monkeypatch.setattr(figures, "run_figures", make_cache_then(KeyboardInterrupt()))
+    code, _, err = cli(capsys, "figures", "--only", "eye_rmse", "--out", tmp_path / "f")
+    assert code == 130 and "interrupted; nothing written" in err
+    assert not (tmp_path / "f").exists()
+    kept = tmp_path / "kept"
+    (kept / "old-empty").mkdir(parents=True)
+    time.sleep(0.1)  # made before the run
+    monkeypatch.setattr(figures, "run_figures", make_cache_then(ValueError("no such world")))
+    code, _, err = cli(capsys, "figures", "--only", "eye_rmse", "--out", kept)
+    assert code == 2 and "no such world" in err
+    assert entries(kept) == {"old-empty"}
