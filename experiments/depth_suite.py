@@ -57,7 +57,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import time as _time
 from dataclasses import replace
 from pathlib import Path
@@ -96,15 +95,11 @@ def _scene(out: Path, family: str, seed: int, duration_s: float, scale: float, e
     from stimuli.track import make_track_run
 
     from .suite import family_config
+    from .suite_scene import ensure_rendered
 
     cfg = replace(family_config(family, seed, duration_s, scale, imu, imu_mount), depth_every=every)
-    folder = out / "scenes" / f"{family}-s{seed}"
-    marker = out / "scenes" / f"{family}-s{seed}.json"
-    settings = json.loads(json.dumps(cfg.to_dict(), default=str))
-    if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == settings):
-        shutil.rmtree(folder, ignore_errors=True)
-        make_track_run(folder, cfg, progress=False)
-        marker.write_text(json.dumps(settings))
+    folder = ensure_rendered(out / "scenes" / f"{family}-s{seed}", cfg.to_dict(),
+                             lambda f: make_track_run(f, cfg, progress=False))
     return folder, cfg
 
 

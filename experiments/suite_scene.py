@@ -376,20 +376,39 @@ def remove_partial_scenes(out: Path) -> list[Path]:
     return [p for prefix in sorted(prefixes) for p in remove_stale(scenes, prefix)]
 
 
+def folder_fingerprint(folder: Path) -> dict:
+    """The sizes of what ``folder`` holds: {file: bytes} for its files, {sub/: [files, bytes]} for each
+    subfolder's files; what a rendered scene is checked against before it is reused."""
+    out = {}
+    for e in sorted(os.scandir(folder), key=lambda e: e.name):
+        if e.is_file():
+            out[e.name] = e.stat().st_size
+        elif e.is_dir():
+            sizes = [f.stat().st_size for f in os.scandir(e.path) if f.is_file()]
+            out[e.name + "/"] = [len(sizes), sum(sizes)]
+    return out
+
+
 def ensure_rendered(folder: Path, settings: dict, render) -> Path:
-    """``folder``, rendered by ``render(folder)`` unless it is already there with these ``settings``
-    (kept beside it in ``<folder>.json``, written atomically after the render: a cut-off run never
-    leaves a marker that reads as a scene to reuse)."""
+    """``folder``, rendered by ``render(folder)`` unless it is already there with these ``settings`` and its
+    files as the render left them (both kept beside it in ``<folder>.json``, written atomically after the
+    render: a cut-off run never leaves a marker that reads as a scene to reuse, and a file since cut short
+    or removed has the scene rendered again)."""
     import shutil
 
     marker = folder.with_name(f"{folder.name}.json")
     settings = json.loads(json.dumps(settings, default=str))  # as the marker stores it (tuples -> lists)
-    if not (folder.exists() and marker.exists() and json.loads(marker.read_text()) == settings):
+    try:
+        kept = json.loads(marker.read_text()) if folder.is_dir() else None
+        reuse = kept == dict(settings=settings, files=folder_fingerprint(folder))
+    except (OSError, ValueError):
+        reuse = False
+    if not reuse:
         shutil.rmtree(folder, ignore_errors=True)
         render(folder)
         tmp = marker.with_name(f".{marker.name}.tmp")
         try:
-            tmp.write_text(json.dumps(settings))
+            tmp.write_text(json.dumps(dict(settings=settings, files=folder_fingerprint(folder))))
             os.replace(tmp, marker)
         except BaseException:  # a full disk or a signal: no partial marker
             tmp.unlink(missing_ok=True)

@@ -273,3 +273,30 @@ def test_worlds_figure_shows_each_world_a_family_flew(tmp_path):
                                      "saccadic, seed 2 (meadow)", "rest, seed 0 (panels)"]
     assert all(p.name == "000001.png" for _, p in found)
     assert plot_worlds(tmp_path, ["saccadic", "rest"], [0, 1, 2, 3, 4]).stat().st_size > 5_000
+
+
+def test_a_kept_scene_is_reused_only_as_rendered(tmp_path):
+    """A scene is rendered again when its settings differ, or when a file of it was cut short or removed since;
+    otherwise reused as it is."""
+    from experiments.suite_scene import ensure_rendered
+
+    renders = []
+
+    def render(folder):
+        renders.append(folder)
+        (folder / "frames").mkdir(parents=True)
+        (folder / "frames" / "000000.png").write_bytes(b"x" * 100)
+        (folder / "truth.csv").write_text("time_s,v_forward_m_s\n0,0\n0.1,0.1\n")
+
+    scene = tmp_path / "scenes" / "rest-s0"
+    for settings in ({"seed": 0}, {"seed": 0}, {"seed": 1}):
+        ensure_rendered(scene, settings, render)
+    assert len(renders) == 2  # reused once, then new settings
+    (scene / "truth.csv").write_text("time_s,v_forward_m_s\n0,0\n")  # cut short
+    ensure_rendered(scene, {"seed": 1}, render)
+    (scene / "frames" / "000000.png").unlink()
+    ensure_rendered(scene, {"seed": 1}, render)
+    assert len(renders) == 4 and ensure_rendered(scene, {"seed": 1}, render) == scene and len(renders) == 4
+    scene.with_name("rest-s0.json").write_text("{not json")
+    ensure_rendered(scene, {"seed": 1}, render)
+    assert len(renders) == 5
