@@ -269,6 +269,7 @@ def _output_clash(outputs: list[tuple[str, str]], command: str | None = None) ->
 
     seen: dict[Path, str] = {}
     plots = PLOT_SUFFIXES_OF.get(command, PLOT_SUFFIXES)
+    suffix, what = OUT_SUFFIXES_OF.get(command, (None, None))
     for option, path in outputs:
         key = Path(os.path.abspath(path))
         if key in seen:
@@ -276,7 +277,6 @@ def _output_clash(outputs: list[tuple[str, str]], command: str | None = None) ->
         seen[key] = option
         if option == "--plot" and Path(path).suffix.lower() not in plots:
             return f"--plot {path}: use a {_either(plots)} file"
-        suffix, what = OUT_SUFFIXES_OF.get(command, (None, None))
         if option == "--out" and suffix and Path(path).suffix.lower() != suffix:
             return f"--out {path}: lobula {command} writes {what}; give a name ending in {suffix}"
     return None

@@ -299,8 +299,12 @@ def _figures_of_their_own_worlds(which, out: Path, cache: Path, base: dict, seed
 MIN_REPLAY_S = 6.0
 
 
-def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = 5.0, duration_s: float = 25.0,
-                seed: int = 0, quick: bool = False, progress: bool = True) -> dict:
+#: s: the replay's window in the recorded trajectory by default (`lobula figures --start/--duration`)
+REPLAY_START_S, REPLAY_DURATION_S = 5.0, 25.0
+
+
+def run_figures(out: str | Path = "figures", which=FIGURES, start_s: float = REPLAY_START_S,
+                duration_s: float = REPLAY_DURATION_S, seed: int = 0, quick: bool = False, progress: bool = True) -> dict:
     """Make the figures into ``out``; returns {name: record}. ``quick`` uses coarse grids (for tests)."""
     import matplotlib
     matplotlib.use("Agg")
@@ -369,8 +373,8 @@ def add_parser(subparsers):
 def main(args) -> int:
     which = tuple(args.only or FIGURES)
     if set(which) <= set(EXTRA_FIGURES):  # these render their own worlds at their own sizes and grids
-        given = [o for o, on in (("--start", args.start != 5.0), ("--duration", args.duration != 25.0),
-                                 ("--quick", args.quick)) if on]
+        given = [o for o, on in (("--start", args.start != REPLAY_START_S),
+                                 ("--duration", args.duration != REPLAY_DURATION_S), ("--quick", args.quick)) if on]
         if given:
             raise ValueError(f"{', '.join(given)} set{'s' if len(given) == 1 else ''} the replay's figures; "
                              f"{', '.join(which)} {'renders its' if len(which) == 1 else 'render their'} own worlds: drop "

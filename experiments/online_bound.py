@@ -424,7 +424,7 @@ def main(argv=None) -> int:
 
 def _check_options(p, args, families: list[str]) -> None:
     """Refuse, before any work, what the bound cannot run or write (one line via ``p.error``)."""
-    from .cli import PLOT_SUFFIXES
+    from .cli import _output_clash
     from .store import writable_problem
     from .suite import ALL_FAMILIES
 
@@ -433,8 +433,9 @@ def _check_options(p, args, families: list[str]) -> None:
         p.error(f"--families: unknown {', '.join(unknown)}; choose from {', '.join(ALL_FAMILIES)}")
     if not (np.isfinite(args.duration) and np.isfinite(args.skip) and 0 <= args.skip < args.duration):
         p.error(f"--duration {args.duration:g} and --skip {args.skip:g}: the skip must lie in [0, duration) s")
-    if args.plot and Path(args.plot).suffix.lower() not in PLOT_SUFFIXES:
-        p.error(f"--plot {args.plot}: use a {', '.join(PLOT_SUFFIXES[:-1])} or {PLOT_SUFFIXES[-1]} file")
+    clash = _output_clash([(f"--{o}", getattr(args, o)) for o in ("out", "plot") if getattr(args, o)])
+    if clash:
+        p.error(clash)
     for option in ("out", "plot"):
         problem = getattr(args, option) and writable_problem(getattr(args, option))
         if problem:

@@ -81,6 +81,11 @@ class VelocityState:
     reason: str = ""
 
 
+#: what a caller missing IMU samples is told to give
+GIVE_IMU = ("give update() the IMU samples since the last frame, imu=(time_s, gyro, accel): the estimator needs "
+            "the accelerometer and the gyro")
+
+
 class VelocityEstimator:
     """Forward velocity from a camera and its IMU, one frame at a time (causal).
 
@@ -183,12 +188,9 @@ class VelocityEstimator:
             return
         if self.imu.rate_hz is None:
             raise ValueError(f"no IMU samples (fewer than the 18 its rate is read from) have come with "
-                             f"{len(self._frames)} frames over {self.history_s:g} s: give update() "
-                             f"the samples since the last frame, imu=(time_s, gyro, accel); the estimator needs "
-                             f"the accelerometer and the gyro")
+                             f"{len(self._frames)} frames over {self.history_s:g} s: {GIVE_IMU}")
         raise ValueError(f"the IMU's last sample is at {self.imu.last_time:.3f} s, {len(self._frames)} frames "
-                         f"(up to {self._frames[-1][1]:.3f} s) wait for it: give update() the samples since the "
-                         f"last frame, imu=(time_s, gyro, accel), on the frames' clock")
+                         f"(up to {self._frames[-1][1]:.3f} s) wait for it: {GIVE_IMU}, on the frames' clock")
 
     def _grey(self, frame) -> np.ndarray:
         """``frame`` as the flow reads it: grey (a colour or 16-bit image turned as the readers turn theirs,
@@ -208,9 +210,7 @@ class VelocityEstimator:
         """Process the frames the IMU has not reached (as the whole-record run does at the record's end);
         returns the estimates not yet drained."""
         if self._frames and self.imu.rate_hz is None:
-            raise ValueError(f"{len(self._frames)} frames but no IMU to estimate from: give update() the samples "
-                             f"since the last frame, imu=(time_s, gyro, accel); the estimator needs the "
-                             f"accelerometer and the gyro")
+            raise ValueError(f"{len(self._frames)} frames but no IMU to estimate from: {GIVE_IMU}")
         self._advance(final=True)
         if self._todo:  # no frame's fields ever responded: the start's prior stays the resting one
             self.gravity_error = start_accel_prior(np.full((1, 1), np.nan))
