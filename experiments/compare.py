@@ -503,7 +503,7 @@ def plot_comparison(ds: xr.Dataset, path: str | Path, title: str | None = None) 
     import matplotlib.pyplot as plt
 
     fig = comparison_figure(ds, title)
-    save_figure(fig, path, dpi=120)
+    save_figure(fig, path, provenance=ds.attrs, dpi=120)
     plt.close(fig)
     return Path(path)
 

@@ -26,8 +26,9 @@ __all__ = ["plot_depth", "plot_flo_pair", "depth_panel"]
 
 
 def depth_panel(frame: np.ndarray, true: np.ndarray | None, results: dict, camera: PinholeCamera, epipole,
-                path, title: str, max_range_m: float = float("inf")) -> Path:
-    """PNG: the frame, the exact depth (when given) and each result's depth map (dict name -> DepthResult).
+                path, title: str, max_range_m: float = float("inf"), provenance: dict | None = None) -> Path:
+    """PNG: the frame, the exact depth (when given) and each result's depth map (dict name -> DepthResult);
+    ``provenance``, the run's attributes, goes into its metadata.
 
     Titles: coverage of the scored pixels (exact depth ≤ ``max_range_m``) and AbsRel
     (mean; median in brackets), with the innermost ring's AbsRel."""
@@ -87,7 +88,7 @@ def depth_panel(frame: np.ndarray, true: np.ndarray | None, results: dict, camer
         cb.set_ticks(np.unique(np.round(np.geomspace(vmin, vmax, 5), 2)))
         cb.ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
     fig.suptitle(title, fontsize=10)
-    save_figure(fig, path, dpi=150, bbox_inches="tight")
+    save_figure(fig, path, provenance=provenance, dpi=150, bbox_inches="tight")
     plt.close(fig)
     return Path(path)
 
@@ -138,7 +139,7 @@ def plot_depth(ds: xr.Dataset, footage: Footage, path, time: float | None = None
     e = next(iter(results.values())).epipole or e
     title = (f"{footage.path.name}: frame {i0} (t = {t0:.2f} s), pair gap {t1 - t0:.3f} s, "
              f"v = {v:+.3f} m/s ({ds.attrs.get('velocity_source', '').split(':')[0]}); scored ≤ {run.max_range_m:g} m")
-    return depth_panel(a, true, results, cam, e, path, title, max_range_m=run.max_range_m)
+    return depth_panel(a, true, results, cam, e, path, title, max_range_m=run.max_range_m, provenance=ds.attrs)
 
 
 def plot_flo_pair(ds: xr.Dataset, footage: Footage, path) -> Path:
@@ -156,6 +157,7 @@ def plot_flo_pair(ds: xr.Dataset, footage: Footage, path) -> Path:
     e = (float(ds.attrs["epipole_x"]), float(ds.attrs["epipole_y"]))
     meds = ", ".join(f"{m} {float(ds.median_depth_m.sel(estimator=m)):.2f} m" for m in ds.estimator.values)
     return depth_panel(frame, None, results, cam, e, path,
-                  f"{flo.name}: v = {float(ds.attrs['v_m_s']):+.3f} m/s (truth); medians {meds}")
+                  f"{flo.name}: v = {float(ds.attrs['v_m_s']):+.3f} m/s (truth); medians {meds}",
+                       provenance=ds.attrs)
 
 

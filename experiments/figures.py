@@ -65,7 +65,7 @@ def _rmse(ds, skip_s=2.0):
 def _save(fig, name, out: Path, record: dict):
     from experiments.store import save_figure
     import matplotlib.pyplot as plt
-    save_figure(fig, out / f"{name}.png", dpi=150)
+    save_figure(fig, out / f"{name}.png", provenance={k: v for k, v in record.items() if k != "results"}, dpi=150)
     plt.close(fig)
     _save_record(name, out, record)
 

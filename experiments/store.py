@@ -420,8 +420,35 @@ def seed_summary(values, name: str) -> dict:
             f"{name}_n": int(x.size)}
 
 
-def save_figure(fig, path: str | Path, **kwargs) -> Path:
-    """Save a matplotlib figure atomically (format from the suffix)."""
+def figure_metadata(suffix: str, attrs: dict | None = None) -> dict | None:
+    """What a figure file of this format (``suffix``: ".png", ".pdf", ".svg") carries of where it came from: the
+    version, commit, command line and creation time (:func:`lobula.version.provenance_attrs`) and whatever
+    ``attrs`` adds (an output's own attributes, e.g. its ``config``). PNG keeps each as a text chunk under its
+    attribute's name; PDF and SVG, whose metadata keys are fixed, keep them as one JSON in ``Keywords`` /
+    ``Description``. None for a format that carries none."""
+    from lobula.version import provenance_attrs
+
+    # The figure's own version, commit and command line win over those of the data it draws.
+    prov = {**{k: v if isinstance(v, str) else json.dumps(v, default=str) for k, v in (attrs or {}).items()},
+            **provenance_attrs()}
+    creator = f"lobula {prov['lobula_version']} ({prov['git_commit']})"
+    suffix = suffix.lower()
+    if suffix == ".png":
+        return {"Software": creator, **prov}
+    if suffix == ".pdf":
+        return {"Creator": creator, "Subject": prov["command_line"], "Keywords": json.dumps(prov)}
+    if suffix == ".svg":
+        return {"Creator": creator, "Description": json.dumps(prov)}
+    return None
+
+
+def save_figure(fig, path: str | Path, provenance: dict | None = None, **kwargs) -> Path:
+    """Save a matplotlib figure atomically (format from the suffix), carrying the version, commit, command
+    line and creation time in its metadata, with ``provenance`` (an output's attributes, e.g. its ``config``)
+    beside them (:func:`figure_metadata`)."""
+    metadata = figure_metadata(Path(path).suffix, provenance)
+    if metadata is not None:
+        kwargs.setdefault("metadata", metadata)
     with atomic_path(path, suffix=Path(path).suffix) as tmp:
         fig.savefig(tmp, **kwargs)
     return Path(path)

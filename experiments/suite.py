@@ -423,7 +423,7 @@ def plot_suite(ds, path):
                  f"({settings.get('duration_s', '?')} s, scale {settings.get('scale', '?')}, "
                  f"IMU {settings.get('imu', '?')}); bars: mean ± sd over seeds", y=0.995, fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
-    save_figure(fig, path, dpi=150)
+    save_figure(fig, path, provenance=ds.attrs, dpi=150)
     plt.close(fig)
     return path
 

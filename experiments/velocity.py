@@ -249,7 +249,7 @@ def plot_velocity(ds: xr.Dataset, path, title: str | None = None, skip_s: float 
     from .store import save_figure
 
     fig = velocity_figure(ds, skip_s, title)
-    save_figure(fig, path, dpi=120)
+    save_figure(fig, path, provenance=ds.attrs, dpi=120)
     plt.close(fig)
     return path
 

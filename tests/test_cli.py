@@ -417,6 +417,10 @@ def test_velocity_command_prints_the_numbers_its_figure_titles(tmp_path, monkeyp
     assert printed[0] in titles[0] and "nan" not in printed[0]
     with xr.open_dataset(out) as ds:                           # the stored run gives the same line
         assert score_line(score(ds, scoring_skip(ds)), scoring_skip(ds)) == printed[0]
+        config = ds.attrs["config"]
+    from PIL import Image
+    with Image.open(png) as im:                                # the figure carries the run's configuration
+        assert im.info["config"] == config and im.info["command_line"].startswith("lobula velocity ")
 
 
 def test_saccade_gate_and_heading_reset_reach_the_configuration():

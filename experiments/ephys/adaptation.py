@@ -233,4 +233,4 @@ def plot_adaptation(ds: xr.Dataset, path) -> list:
     ax[1].set_title(f"Recovery from motion adaptation (configured τa = {ds.attrs['adapt_tau_s']:g} s)", fontsize=9)
     ax[1].legend(fontsize=7, frameon=False)
     fig.suptitle("Motion adaptation of the HS cells; " + _suptitle(ds), fontsize=10)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)

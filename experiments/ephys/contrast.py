@@ -279,5 +279,5 @@ def plot_contrast(ds: xr.Dataset, path) -> list:
               "HS cells: the shunting membrane saturates on top of the lamina")
     fig.suptitle(f"Contrast response: grating front-to-back at {ds.attrs['temporal_frequency_hz']:.3g} Hz; "
                  + _suptitle(ds), fontsize=10)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)
 

@@ -358,4 +358,4 @@ def plot_edges(ds: xr.Dataset, path) -> list:
     fig.suptitle(f"Moving {ds.attrs.get('stimulus', 'edges')}: {json_param(ds, 'speed_deg_s'):g} degree/s, "
                  f"contrast {json_param(ds, 'contrast'):g} (Δφ = "
                  f"{json.loads(ds.attrs['config'])['ephys']['lattice']['dphi_deg']:g}°)", fontsize=10)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)

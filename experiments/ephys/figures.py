@@ -25,8 +25,9 @@ def _plt():
     return plt
 
 
-def save_png_and_pdf(fig, path) -> list[Path]:
-    """Save ``fig`` at ``path`` (.png or .pdf) and the other format beside it, atomically; close it.
+def save_png_and_pdf(fig, path, provenance: dict | None = None) -> list[Path]:
+    """Save ``fig`` at ``path`` (.png or .pdf) and the other format beside it, atomically; close it. Both carry
+    ``provenance`` (the recording's attributes: its configuration) in their metadata.
 
     Cropped to what is drawn (``bbox_inches="tight"``): no blank band where a figure's width
     outgrows its panels (one field's map, one tuning panel)."""
@@ -36,7 +37,7 @@ def save_png_and_pdf(fig, path) -> list[Path]:
     if path.suffix.lower() not in (".png", ".pdf"):
         raise ValueError(f"figure path {path} must end in .png or .pdf (both are written)")
     other = path.with_suffix(".pdf" if path.suffix.lower() == ".png" else ".png")
-    out = [save_figure(fig, p, dpi=DPI, bbox_inches="tight", pad_inches=0.08) for p in (path, other)]
+    out = [save_figure(fig, p, provenance=provenance, dpi=DPI, bbox_inches="tight", pad_inches=0.08) for p in (path, other)]
     _plt().close(fig)
     return out
 
@@ -234,7 +235,7 @@ def plot_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
         what = "raster" if kind == "raster" else "inter-spike intervals after onset"
         ax["raster"].set_title(f"unit {n} (expansion), {tf[k]:.2f} Hz, contrast {c0:g}: {what}", fontsize=10)
         ax["psth"].set_title("PSTH ± SEM across trials (grey: baseline)", fontsize=10)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)
 
 
 # =========================================================================== rf-map
@@ -298,7 +299,7 @@ def plot_rf_map(ds: xr.Dataset, path) -> list[Path]:
                       label="local preferred direction (length: sensitivity)")]
     fig.legend(handles=handles, loc="outside lower center", ncol=3 if len(probed) > 1 else 1, fontsize=8,
                frameon=False)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)
 
 
 # =========================================================================== looming
@@ -443,7 +444,7 @@ def plot_looming(ds: xr.Dataset, path) -> list[Path]:
     handles = [Line2D([], [], color=c, lw=2, label=f"l/|v| = {lv * 1e3:g} ms") for lv, c in zip(lvs, cols)]
     handles += [Line2D([], [], color="k", ls="-", label="approach"), Line2D([], [], color="k", ls="--", label="recede")]
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8, frameon=False)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)
 
 
 def plot_eye_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
@@ -475,7 +476,7 @@ def plot_eye_tf_tuning(ds: xr.Dataset, path) -> list[Path]:
         a.legend(fontsize=7, frameon=False)
     fig.suptitle(f"Compound eye (Δφ = {ds.attrs.get('dphi_deg', '?')}°): expanding rings, the velocity circuit's "
                  f"own units", fontsize=10)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)
 
 
 def plot_eye_looming(ds: xr.Dataset, path) -> list[Path]:
@@ -520,7 +521,7 @@ def plot_eye_looming(ds: xr.Dataset, path) -> list[Path]:
         a_peak.legend(fontsize=7, frameon=False, loc="lower left")
     fig.suptitle(f"Compound eye (Δφ = {ds.attrs.get('dphi_deg', '?')}°): a dark disc approaching or receding "
                  "straight ahead, recorded on the velocity circuit's own LC fields", fontsize=10)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)
 
 
 def plot_recording(ds: xr.Dataset, path) -> list[Path]:

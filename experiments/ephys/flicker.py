@@ -227,5 +227,5 @@ def plot_flicker(ds: xr.Dataset, path) -> list:
               "HS: flicker (dashed) against front-to-back motion (solid)")
     fig.suptitle(f"Flicker vs motion, contrast {json.loads(ds.attrs['parameters'])['contrast']:g}; "
                  + _suptitle(ds), fontsize=10)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)
 

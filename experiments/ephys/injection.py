@@ -420,4 +420,4 @@ def plot_current_injection(ds: xr.Dataset, path) -> list:
     cfg = json.loads(ds.attrs["config"])
     fig.suptitle(f"Current injection into LC units ({ds.attrs.get('neuron_model')}; {ds.sizes['trial']} trial(s) × "
                  f"{ds.sizes['neuron']} unit(s)), the eye at rest; seed {cfg['ephys']['seed']}", fontsize=10)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)

@@ -151,4 +151,4 @@ def plot_velocity_replay(rec: xr.Dataset, path) -> list[Path]:
     ax_h = fig.add_subplot(gs[2, :])
     _replay_lc_panel(fig, ax_h, rec, t, eye)
     ax_h.set_xlabel("time (s)")
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=rec.attrs)

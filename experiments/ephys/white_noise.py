@@ -437,4 +437,4 @@ def plot_white_noise(ds: xr.Dataset, path) -> list:
     fig.suptitle(f"White-noise reverse correlation: {p['noise']} noise, contrast {p['contrast']:g}, "
                  f"{ds.sizes['trial']} × {p['duration_s']:g} s (Δφ = {ds.attrs.get('dphi_deg', 0):g}°); "
                  "mean over the recorded columns", fontsize=10)
-    return save_png_and_pdf(fig, path)
+    return save_png_and_pdf(fig, path, provenance=ds.attrs)

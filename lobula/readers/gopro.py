@@ -49,6 +49,7 @@ import json
 import math
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -58,6 +59,9 @@ from .gopro_telemetry import (DEFAULT_ORIN, GOPRO_TO_CAMERA, GOPRO_XYZ_TO_CAMERA
 from .gpmf import DATA_KEYS, GPMF_INSTALL_HINT, STICKY_KEYS, decode_gpmf, decode_settings
 from .mp4_index import GPMF_SAMPLE_TYPE, Mp4Index, has_gpmf_track, read_mp4_index
 from .video import VideoFootage, camera_file, container_times
+
+if TYPE_CHECKING:
+    from ..camera import PinholeCamera
 
 #: The lowest GPS fix (GPSF, GPS9's fix field: 0 no lock, 2 2D, 3 3D) whose samples count as truth.
 GPS_FIX_2D = 2
