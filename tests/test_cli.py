@@ -224,7 +224,7 @@ _REFUSED = [
     (["depth", "F", "--out", "o.nc", "--gamma", "-1"], "--gamma", "a number ≥ 0"),
     (["depth-suite", "--out", "D", "--seeds", "1,x"], "--seeds", "a comma-separated list of seeds"),
     (["depth-suite", "--out", "D", "--scale", "0"], "--scale", "a number in (0, 4]"),
-    (["ephys", "looming", "--out", "x.nc", "--trials", "0"], "--trials", "a whole number ≥ 1"),
+    (["ephys", "looming", "--out", "x.nc", "--trials", "0"], "--trials", "a whole number in [1, 10000]"),
     (["ephys", "tf-tuning", "--out", "x.nc", "--contrast", "0.5", "1.5"], "--contrast", "a number in (0, 1]"),
     (["ephys", "tf-tuning", "--out", "x.nc", "--tf", "0"], "--tf", "a number in (0, 500)"),
     (["ephys", "rf-map", "--out", "x.nc", "--directions", "2"], "--directions", "a whole number ≥ 3"),

@@ -57,11 +57,14 @@ for _opt, _which in (("record", PLATE), ("trials", PLATE), ("seed", PLATE), ("ta
     APPLIES[_opt] = APPLIES[_opt] + _which
 
 S = argparse.SUPPRESS
+#: the most --trials a command line may ask for: far beyond any recording's repeats, and a mistyped
+#: count (an extra zero or three) is refused at parse time instead of running for days
+MAX_TRIALS = 10_000
 
 
 def _add_rig_options(e) -> None:
     """The recording and rig options of ``lobula ephys`` (every protocol unless marked)."""
-    from ..parsers import COUNT, INDEX, LATTICE_ANGLE, POSITIVE, Number
+    from ..parsers import INDEX, LATTICE_ANGLE, POSITIVE, Number
 
     g = e.add_argument_group("recording and rig (every protocol unless marked)")
     g.add_argument("--record", nargs="+", metavar="POP.VAR", default=S,
@@ -72,9 +75,9 @@ def _add_rig_options(e) -> None:
                         "looming: the neuron model's variables (rate: lc.rate; poisson: lc.rate lc.spikes; "
                         "lif: lc.v lc.spikes); velocity-replay: all readout variables; edges: T4 and T5 of the "
                         "central column and its neighbours, hs.v, vs.v)")
-    g.add_argument("--trials", type=COUNT, default=S,
+    g.add_argument("--trials", type=Number(1, MAX_TRIALS, integer=True), default=S,
                    help="[tf-tuning, looming, velocity-replay, edges, current-injection, white-noise] repeats per "
-                        "condition; white-noise: noise segments, each its own noise (default: 4 for "
+                        f"condition, 1 to {MAX_TRIALS}; white-noise: noise segments, each its own noise (default: 4 for "
                         "spiking models and white-noise; 1 for the deterministic rate model, which refuses more: its "
                         "trials would be identical)")
     g.add_argument("--seed", type=INDEX, default=S,
