@@ -317,6 +317,11 @@ def run_protocol(protocol: str, opts: dict, progress: bool = False):
     if protocol == "velocity-replay":
         from experiments.replay_protocol import velocity_replay
 
+        footage = Path(opts["footage"]) if "footage" in opts else None
+        if footage is not None and footage.is_dir() and (footage / "eye.json").is_file():
+            raise ValueError(f"--footage {footage}: compound-eye footage (eye.json, from `lobula scene OUT --eye fly`), "
+                             f"which the camera's EMD front end cannot read; add --eye fly to replay it through the "
+                             f"compound eye's circuit")
         eye_only = [f"--{k.replace('_', '-')}" for k in ("rotation", "haltere_gain") if k in opts]
         if eye_only:
             raise ValueError(f"{', '.join(eye_only)} set(s) the compound eye's circuit; the camera's EMD front end "
