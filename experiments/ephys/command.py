@@ -64,7 +64,7 @@ MAX_TRIALS = 10_000
 
 def _add_rig_options(e) -> None:
     """The recording and rig options of ``lobula ephys`` (every protocol unless marked)."""
-    from ..parsers import INDEX, LATTICE_ANGLE, POSITIVE, Number
+    from ..parsers import EMD_TAU, EMD_TAU_RANGE, INDEX, LATTICE_ANGLE, POSITIVE, Number
 
     g = e.add_argument_group("recording and rig (every protocol unless marked)")
     g.add_argument("--record", nargs="+", metavar="POP.VAR", default=S,
@@ -88,8 +88,9 @@ def _add_rig_options(e) -> None:
                         "(Naka-Rushton), poisson "
                         "(spikes from rates), lif (integrate-and-fire) (default: rate; velocity-replay's readout "
                         "neuron: poisson, or rate; with --eye fly its output neurons: lif, or poisson, or rate)")
-    g.add_argument("--tau", type=POSITIVE, default=S,
-                   help="[all but current-injection] EMD delay τ (s); edges, white-noise: also T4's and T5's "
+    g.add_argument("--tau", type=EMD_TAU, default=S,
+                   help=f"[all but current-injection] EMD delay τ (s), {EMD_TAU_RANGE}; edges, white-noise: also T4's "
+                        "and T5's "
                         "(default: 0.035; velocity-replay's EMD front "
                         "end: 0.01; --eye fly: 0.035 everywhere)")
     g.add_argument("--dphi", type=LATTICE_ANGLE, default=S,
