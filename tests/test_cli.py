@@ -260,7 +260,8 @@ def test_values_at_the_edge_of_their_range_parse():
     args = build_parser(["velocity"]).parse_args(["velocity", "F", "--out", "o.nc", "--haltere-gain", "1.5"])
     assert args.haltere_gain == "1.5"
     for tau in ("0.001", "1"):  # an EMD delay's range, both ends allowed
-        assert build_parser(["eye-velocity"]).parse_args(["eye-velocity", "F", "--out", "o.nc", "--tau", tau]).tau == float(tau)
+        args = build_parser(["eye-velocity"]).parse_args(["eye-velocity", "F", "--out", "o.nc", "--tau", tau])
+        assert args.tau == float(tau)
 
 
 def test_scene_refuses_eye_options_without_the_fly_eye(tmp_path, capsys):

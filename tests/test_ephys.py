@@ -272,7 +272,8 @@ def test_an_empty_slice_is_refused_naming_the_valid_range(tmp_path, capsys):
     rig = Rig(EphysConfig())
     n = rig.population.n_units
     for sub in ("5:2", "99999:100000"):
-        with pytest.raises(ValueError, match=rf"the slice \[{sub}\] selects nothing; give \[i:j\] with 0 ≤ i < j ≤ {n}"):
+        with pytest.raises(ValueError, match=rf"the slice \[{sub}\] selects nothing; give \[i:j\] with 0 ≤ i < j ≤ "
+                                             rf"{n}"):
             parse_monitor(f"lc.rate[{sub}]", rig)
     from experiments.cli import main
     assert main(["ephys", "looming", "--l-over-v", "0.04", "--duration", "0.3", "--dphi", "4", "--field-size", "20",

@@ -77,9 +77,9 @@ def _add_rig_options(e) -> None:
                         "central column and its neighbours, hs.v, vs.v)")
     g.add_argument("--trials", type=Number(1, MAX_TRIALS, integer=True), default=S,
                    help="[tf-tuning, looming, velocity-replay, edges, current-injection, white-noise] repeats per "
-                        f"condition, 1 to {MAX_TRIALS}; white-noise: noise segments, each its own noise (default: 4 for "
-                        "spiking models and white-noise; 1 for the deterministic rate model, which refuses more: its "
-                        "trials would be identical)")
+                        f"condition, 1 to {MAX_TRIALS}; white-noise: noise segments, each its own noise (default: 4 "
+                        "for spiking models and white-noise; 1 for the deterministic rate model, which refuses more: "
+                        "its trials would be identical)")
     g.add_argument("--seed", type=INDEX, default=S,
                    help="[tf-tuning, looming, velocity-replay, edges, current-injection, white-noise] seed of the "
                         "neurons' noise, of the built-in replay scene and of white-noise's stimulus (default: 0)")
@@ -89,10 +89,9 @@ def _add_rig_options(e) -> None:
                         "(spikes from rates), lif (integrate-and-fire) (default: rate; velocity-replay's readout "
                         "neuron: poisson, or rate; with --eye fly its output neurons: lif, or poisson, or rate)")
     g.add_argument("--tau", type=EMD_TAU, default=S,
-                   help=f"[all but current-injection] EMD delay τ (s), {EMD_TAU_RANGE}; edges, white-noise: also T4's "
-                        "and T5's "
-                        "(default: 0.035; velocity-replay's EMD front "
-                        "end: 0.01; --eye fly: 0.035 everywhere)")
+                   help=f"[all but current-injection] EMD delay τ (s), {EMD_TAU_RANGE}; edges, white-noise: also "
+                        "T4's and T5's (default: 0.035; velocity-replay's EMD front end: 0.01; --eye fly: 0.035 "
+                        "everywhere)")
     g.add_argument("--dphi", type=LATTICE_ANGLE, default=S,
                    help="[all but current-injection] interommatidial angle Δφ (degree) (default: 2; "
                         "velocity-replay's front end: 0.75; "
@@ -320,9 +319,9 @@ def run_protocol(protocol: str, opts: dict, progress: bool = False):
 
         footage = Path(opts["footage"]) if "footage" in opts else None
         if footage is not None and footage.is_dir() and (footage / "eye.json").is_file():
-            raise ValueError(f"--footage {footage}: compound-eye footage (eye.json, from `lobula scene OUT --eye fly`), "
-                             f"which the camera's EMD front end cannot read; add --eye fly to replay it through the "
-                             f"compound eye's circuit")
+            raise ValueError(f"--footage {footage}: compound-eye footage (eye.json, from `lobula scene OUT --eye "
+                             f"fly`), which the camera's EMD front end cannot read; add --eye fly to replay it through "
+                             f"the compound eye's circuit")
         eye_only = [f"--{k.replace('_', '-')}" for k in ("rotation", "haltere_gain") if k in opts]
         if eye_only:
             raise ValueError(f"{', '.join(eye_only)} set(s) the compound eye's circuit; the camera's EMD front end "
