@@ -29,6 +29,7 @@ and :func:`read_nwb_series` read the numbers back on the recording's grid (the r
 """
 from __future__ import annotations
 
+import gc
 import json
 import uuid
 from datetime import datetime, timezone
@@ -37,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from .store import atomic_path
+from .store import atomic_path, signals_deferred
 
 __all__ = ["write_nwb", "read_nwb_spike_counts", "read_nwb_series", "epoch_layout", "GAP_S"]
 
@@ -395,16 +396,25 @@ def write_nwb(ds: xr.Dataset, path: str | Path, *, experimenter: list[str] | str
     from pynwb import NWBHDF5IO
 
     path = Path(path)
-    lay = epoch_layout(ds)
-    nwb, probe = _nwb_file(ds, lay, experimenter, institution, lab)
-    _stimulus_templates(nwb, ds, lay)
-    _add_trials(nwb, ds, lay)
-    spike_vars = _add_units(nwb, ds, lay, probe)
-    _add_time_series(nwb, ds, lay, spike_vars)
-    _add_channel_tables(nwb, ds, lay)
-    _add_analysis(nwb, ds)
-    with atomic_path(path, suffix=".tmp.nwb") as tmp, NWBHDF5IO(str(tmp), "w") as io:
-        io.write(nwb)
+    nwb = probe = io = None
+    try:
+        lay = epoch_layout(ds)
+        nwb, probe = _nwb_file(ds, lay, experimenter, institution, lab)
+        _stimulus_templates(nwb, ds, lay)
+        _add_trials(nwb, ds, lay)
+        spike_vars = _add_units(nwb, ds, lay, probe)
+        _add_time_series(nwb, ds, lay, spike_vars)
+        _add_channel_tables(nwb, ds, lay)
+        _add_analysis(nwb, ds)
+        with atomic_path(path, suffix=".tmp.nwb") as tmp, NWBHDF5IO(str(tmp), "w") as io:
+            io.write(nwb)
+    finally:
+        # The file is closed; the NWB objects refer to one another (parents, children), so left to the garbage
+        # collector their finalisers would run at some later moment of the run, and an interrupt that arrived
+        # while one ran would be ignored. They go here, the interrupt held until they have gone.
+        with signals_deferred():
+            nwb = probe = io = None
+            gc.collect()
     return path
 
 

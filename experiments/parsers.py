@@ -93,6 +93,11 @@ FRACTION = Number(0, 1)
 LATTICE_ANGLE = Number(0, 60, above=True, below=True)
 #: an image size in pixels
 PIXELS = Number(1, integer=True)
+#: an EMD's delay time constant (s): flies' are 10 to 100 ms (lobula.emd.EMDConfig.tau_s); 1 ms to 1 s leaves room
+#: either side, and a longer delay puts the correlator's optimum below 0.16 Hz and its settling beyond most runs
+EMD_TAU = Number(0.001, 1.0, note="s, lobula.emd.EMDConfig.tau_s; flies': 0.01 to 0.1")
+#: --tau's help after what the delay is
+EMD_TAU_RANGE = "0.001 to 1 (flies': 0.01 to 0.1)"
 
 
 def haltere_gain(text: str) -> str:
@@ -290,8 +295,8 @@ def add_velocity_parser(subparsers) -> argparse.ArgumentParser:
     _flo_options(v)
     v.add_argument("--dphi", type=LATTICE_ANGLE, help="EMD front end: interommatidial angle Δφ (deg) (default: 0.75)")
     v.add_argument("--drho", type=LATTICE_ANGLE, help="EMD front end: acceptance angle Δρ (deg) (default: Δφ)")
-    v.add_argument("--tau", type=POSITIVE, help="EMD front end: delay time constant (s) (default: 0.010 on camera "
-                                                "footage, 0.035 on compound-eye footage)")
+    v.add_argument("--tau", type=EMD_TAU, help=f"EMD front end: delay time constant (s), {EMD_TAU_RANGE} "
+                                               "(default: 0.010 on camera footage, 0.035 on compound-eye footage)")
     v.add_argument("--mean-removal", choices=MEAN_REMOVAL,
                    help="EMD front end: how the columns remove the mean luminance before the EMDs — space: the "
                         "LMCs' lateral inhibition (x − the lattice neighbours' mean), no temporal high-pass; time: "
@@ -330,7 +335,7 @@ def add_eye_velocity_parser(subparsers) -> argparse.ArgumentParser:
                         "drifts the fields' gains after each change of speed)")
     v.add_argument("--field-size", type=Number(2.0, 120.0, note="EyeCircuitConfig.fields.size_deg"), default=30.0,
                    help="LC field FWHM (deg), 2 to 120")
-    v.add_argument("--tau", type=POSITIVE, default=0.035, help="EMD delay time constant (s)")
+    v.add_argument("--tau", type=EMD_TAU, default=0.035, help=f"EMD delay time constant (s), {EMD_TAU_RANGE}")
     v.add_argument("--filter", default="causal", choices=["causal", "zero-phase"], help="readout filter kind")
     v.add_argument("--accel-from-truth", action="store_true",
                    help="forward acceleration from truth.csv instead of the accelerometer")
@@ -385,7 +390,8 @@ def add_compare_parser(subparsers) -> argparse.ArgumentParser:
     c.add_argument("--dphi", type=LATTICE_ANGLE,
                    help=f"EMD: interommatidial angle Δφ (deg) (default: {shared}, 0.75)")
     c.add_argument("--drho", type=LATTICE_ANGLE, help=f"EMD: acceptance angle Δρ (deg) (default: {shared}, Δφ)")
-    c.add_argument("--tau", type=POSITIVE, help=f"EMD: delay time constant (s) (default: {shared}, 0.010)")
+    c.add_argument("--tau", type=EMD_TAU,
+                   help=f"EMD: delay time constant (s), {EMD_TAU_RANGE} (default: {shared}, 0.010)")
     c.add_argument("--emd-calibration", help="EMD: gains JSON from `lobula calibrate-emd` on another scene "
                                              "(default: none, unit gains)")
     c.add_argument("--emd-gaze", choices=["fixate", "none"],

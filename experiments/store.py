@@ -20,7 +20,9 @@ import json
 import os
 import re
 import shutil
+import signal
 import tempfile
+import threading
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
@@ -202,6 +204,32 @@ def _remove(p: Path) -> None:
         shutil.rmtree(p, ignore_errors=True)
     else:
         p.unlink(missing_ok=True)
+
+
+@contextmanager
+def signals_deferred() -> Iterator[None]:
+    """SIGINT and SIGTERM held while the block runs, and handed to their handlers when it ends.
+
+    For a block that runs other code's finalisers (``__del__``, run when the last reference goes or by
+    ``gc.collect``): Python ignores an exception raised inside a finaliser ("Exception ignored in …"), so an
+    interrupt whose handler ran there would be lost and the run would go on. Only signals with a Python
+    handler are held (the default SIGTERM ends the process anyway); in a thread other than the main one,
+    where handlers cannot be changed, the block runs as it is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = {s: h for s in (signal.SIGINT, signal.SIGTERM) if callable(h := signal.getsignal(s))}
+    caught: list[int] = []
+    for s in held:
+        signal.signal(s, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        for s, h in held.items():
+            signal.signal(s, h)
+        if caught:
+            held[caught[0]](caught[0], None)
 
 
 @contextmanager

@@ -286,6 +286,12 @@ def open_eye_footage(path: str | Path) -> EyeFootage:
     except (OSError, ValueError) as exc:  # cut short (its header promises more than the file holds), or no .npy
         raise FootageError(f"{path / 'luminance.npy'}: not a readable array ({exc}); render the eye footage "
                            f"again (lobula scene OUT --eye fly)") from None
+    if lum.ndim == 2 and lum.shape[1] == eye.n and lum.shape[0] != len(tt):  # one of the two cut short
+        short = "times.csv" if len(tt) < lum.shape[0] else "luminance.npy"
+        rows = f"{len(tt)} row{'s' * (len(tt) != 1)}"
+        raise FootageError(f"{path / short}: times.csv has {rows} and luminance.npy {lum.shape[0]} frames, one per "
+                           f"sample each, so {short} is cut short; render the eye footage again "
+                           f"(lobula scene OUT --eye fly)")
     if lum.shape != (len(tt), eye.n):
         raise FootageError(f"{path / 'luminance.npy'}: shape {lum.shape}, expected ({len(tt)}, {eye.n}) from "
                            f"times.csv and ommatidia.csv; re-render the folder")

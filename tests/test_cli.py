@@ -201,7 +201,7 @@ _REFUSED = [
     (["velocity", "F", "--out", "o.nc", "--accel-scale-error", "1"], "--accel-scale-error", "a number in [0, 1)"),
     (["velocity", "F", "--out", "o.nc", "--dis-grid-px", "-1"], "--dis-grid-px", "a whole number ≥ 0"),
     (["velocity", "F", "--out", "o.nc", "--dphi", "60"], "--dphi", "a number in (0, 60)"),
-    (["velocity", "F", "--out", "o.nc", "--tau", "0"], "--tau", "a number > 0"),
+    (["velocity", "F", "--out", "o.nc", "--tau", "0"], "--tau", "a number in [0.001, 1]"),
     (["velocity", "F", "--out", "o.nc", "--flo-gap", "0"], "--flo-gap", "a number > 0"),
     (["velocity", "F", "--out", "o.nc", "--flo-size", "640", "0"], "--flo-size", "a whole number ≥ 1"),
     (["velocity", "F", "--out", "o.nc", "--skip", "-2"], "--skip", "a number ≥ 0"),
@@ -209,10 +209,12 @@ _REFUSED = [
     (["velocity", "F", "--out", "o.nc", "--heading-reset", "off"], "--heading-reset", "a number > 0 or none"),
     (["velocity", "F", "--out", "o.nc", "--membrane-noise", "-1"], "--membrane-noise", "a number ≥ 0"),
     (["velocity", "F", "--out", "o.nc", "--haltere-gain", "2"], "--haltere-gain", "(0, 1.5]"),
-    (["eye-velocity", "F", "--out", "o.nc", "--tau", "-0.01"], "--tau", "a number > 0"),
+    (["eye-velocity", "F", "--out", "o.nc", "--tau", "-0.01"], "--tau", "a number in [0.001, 1]"),
+    (["eye-velocity", "F", "--out", "o.nc", "--tau", "1e9"], "--tau", "a number in [0.001, 1] (s, lobula.emd"),
     (["eye-velocity", "F", "--out", "o.nc", "--field-size", "1e9"], "--field-size", "a number in [2, 120]"),
     (["eye-velocity", "F", "--out", "o.nc", "--haltere-gain", "strong"], "--haltere-gain", "'natural' or a number"),
     (["compare", "F", "--out", "o.nc", "--tol", "0"], "--tol", "a number > 0"),
+    (["compare", "F", "--out", "o.nc", "--tau", "1e9"], "--tau", "a number in [0.001, 1]"),
     (["compare", "F", "--out", "o.nc", "--hold", "-1"], "--hold", "a number ≥ 0"),
     (["compare", "F", "--out", "o.nc", "--gap", "0"], "--gap", "a whole number ≥ 1"),
     (["sweep", "--base-duration", "0"], "--base-duration", "a number > 0"),
@@ -224,7 +226,8 @@ _REFUSED = [
     (["depth", "F", "--out", "o.nc", "--gamma", "-1"], "--gamma", "a number ≥ 0"),
     (["depth-suite", "--out", "D", "--seeds", "1,x"], "--seeds", "a comma-separated list of seeds"),
     (["depth-suite", "--out", "D", "--scale", "0"], "--scale", "a number in (0, 4]"),
-    (["ephys", "looming", "--out", "x.nc", "--trials", "0"], "--trials", "a whole number ≥ 1"),
+    (["ephys", "looming", "--out", "x.nc", "--trials", "0"], "--trials", "a whole number in [1, 10000]"),
+    (["ephys", "looming", "--out", "x.nc", "--tau", "2"], "--tau", "a number in [0.001, 1]"),
     (["ephys", "tf-tuning", "--out", "x.nc", "--contrast", "0.5", "1.5"], "--contrast", "a number in (0, 1]"),
     (["ephys", "tf-tuning", "--out", "x.nc", "--tf", "0"], "--tf", "a number in (0, 500)"),
     (["ephys", "rf-map", "--out", "x.nc", "--directions", "2"], "--directions", "a whole number ≥ 3"),
@@ -256,6 +259,9 @@ def test_values_at_the_edge_of_their_range_parse():
     assert args.max_scale_rel_std == float("inf")
     args = build_parser(["velocity"]).parse_args(["velocity", "F", "--out", "o.nc", "--haltere-gain", "1.5"])
     assert args.haltere_gain == "1.5"
+    for tau in ("0.001", "1"):  # an EMD delay's range, both ends allowed
+        args = build_parser(["eye-velocity"]).parse_args(["eye-velocity", "F", "--out", "o.nc", "--tau", tau])
+        assert args.tau == float(tau)
 
 
 def test_scene_refuses_eye_options_without_the_fly_eye(tmp_path, capsys):

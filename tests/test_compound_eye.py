@@ -214,8 +214,16 @@ def test_eye_footage_roundtrip(tmp_path):
     with pytest.raises(FootageError, match="luminance.npy: 10 NaN or infinite samples"):
         open_eye_footage(out)
     lum_file.write_bytes(whole)
-    (out / "times.csv").write_text("sample,time_s\n0,0.0\n")
-    with pytest.raises(FootageError, match="luminance.npy"):
+    # times.csv and luminance.npy disagree on the samples: the one cut short is named, with both counts
+    times_csv = (out / "times.csv").read_text()
+    (out / "times.csv").write_text("".join(times_csv.splitlines(keepends=True)[:13]))  # header + 12 rows
+    with pytest.raises(FootageError, match=r"times.csv: times.csv has 12 rows and luminance.npy 20 frames, one per "
+                                           r"sample each, so times.csv is cut short"):
+        open_eye_footage(out)
+    (out / "times.csv").write_text(times_csv)
+    np.save(lum_file, np.load(lum_file)[:12])
+    with pytest.raises(FootageError, match=r"luminance.npy: times.csv has 20 rows and luminance.npy 12 frames, .* so "
+                                           r"luminance.npy is cut short"):
         open_eye_footage(out)
 
 

@@ -266,3 +266,18 @@ def test_looming_records_monitors_of_different_subsets(tmp_path, model, record):
     written = write_outputs(ds, [tmp_path / "loom.nc", tmp_path / "loom.nwb"])
     assert all(p.exists() for p in written)
     assert plot_looming(ds, tmp_path / "loom.png")[0].exists()
+
+
+def test_an_empty_slice_is_refused_naming_the_valid_range(tmp_path, capsys):
+    rig = Rig(EphysConfig())
+    n = rig.population.n_units
+    for sub in ("5:2", "99999:100000"):
+        with pytest.raises(ValueError, match=rf"the slice \[{sub}\] selects nothing; give \[i:j\] with 0 ≤ i < j ≤ "
+                                             rf"{n}"):
+            parse_monitor(f"lc.rate[{sub}]", rig)
+    from experiments.cli import main
+    assert main(["ephys", "looming", "--l-over-v", "0.04", "--duration", "0.3", "--dphi", "4", "--field-size", "20",
+                 "--record", "lc.rate[5:2]", "--out", str(tmp_path / "never.nc")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "selects nothing" in err and "e.g. lc.rate[0:" in err
+    assert not list(tmp_path.iterdir())

@@ -238,3 +238,16 @@ def test_lif_summary_gives_the_spike_rate_peak_not_the_membrane_potential():
     assert "lc_v_peak_temporal_frequency_hz" in ds              # stored, but no tuning peak to report
     assert not any(line.startswith("lc_v:") for line in lines), lines
     assert any(line.startswith("lc_spikes: peak temporal frequency") for line in lines), lines
+
+
+def test_trials_beyond_the_bound_are_refused_at_parse_time(capsys):
+    from experiments.ephys.command import MAX_TRIALS
+
+    assert cli_main(["ephys", "looming", "--trials", "1000000000", "--out", "x.nc"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert f"--trials: must be a whole number in [1, {MAX_TRIALS}], got '1000000000'" in err
+    assert parse_command(["ephys", "looming", "--trials", str(MAX_TRIALS), "--out", "x.nc"]).trials == MAX_TRIALS
+    with pytest.raises(SystemExit):
+        parse_command(["ephys", "--help"])
+    assert f"1 to {MAX_TRIALS}" in " ".join(capsys.readouterr().out.split())

@@ -90,3 +90,10 @@ def test_looming_expands_on_approach_contracts_on_recession_and_peaks_earlier_fo
     slope, icpt = np.polyfit(lv, tp, 1)
     assert slope < -0.5 and np.corrcoef(lv, tp)[0, 1] < -0.95
     assert all(p.stat().st_size > 10_000 for p in plot_recording(ds, tmp_path / "loom.png"))
+
+
+def test_an_empty_slice_is_refused_naming_the_valid_range():
+    rig = EyeRig()
+    n = rig.size("lc.r")
+    with pytest.raises(ValueError, match=rf"'lc.r\[5:2\]': the slice \[5:2\] selects nothing; .* lc\.r\[0:{n}\]"):
+        rig.monitors(["lc.r[5:2]"], [])

@@ -437,6 +437,31 @@ def test_sigterm_and_sigint_remove_temporaries_and_say_so(run2, tmp_path, sig):
     assert entries(out.parent) == set()
 
 
+#: runs `lobula ARGV[1:]` with a Ctrl-C that lands while the NWB file object is finalised (its ``__del__``),
+#: where Python would ignore the KeyboardInterrupt ("Exception ignored in …") and the run would go on
+INTERRUPTED_IN_NWB_FINALISER = """
+import os, signal, sys
+import pynwb
+def landing(self):
+    os.kill(os.getpid(), signal.SIGINT)
+pynwb.NWBFile.__del__ = landing
+from experiments.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_an_interrupt_while_the_nwb_objects_are_finalised_ends_the_run(tmp_path):
+    out = tmp_path / "o" / "rec.nwb"
+    p = subprocess.run([sys.executable, "-c", INTERRUPTED_IN_NWB_FINALISER, "ephys", "looming", "--l-over-v", "0.04",
+                        "--duration", "0.3", "--dphi", "4", "--field-size", "20", "--out", str(out),
+                        str(out.with_suffix(".nc")), "--quiet"], cwd=REPO, capture_output=True, text=True,
+                       timeout=300, preexec_fn=_interruptible)
+    assert p.returncode == 128 + signal.SIGINT, (p.returncode, p.stderr)
+    assert "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr
+    assert p.stderr.strip().splitlines() == ["lobula ephys: interrupted; nothing written"]
+    assert not out.parent.exists() or entries(out.parent) == set()
+
+
 def test_the_next_run_removes_what_sigkill_left(run2, tmp_path):
     p, out = _start_held(run2, tmp_path)
     p.kill()

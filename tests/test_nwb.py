@@ -116,6 +116,30 @@ def test_nwb_write_is_atomic(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["ok.nwb"]
 
 
+def test_nwb_write_closes_its_file_and_leaves_no_nwb_object_to_the_garbage_collector(tmp_path):
+    """Left to the collector, the NWB objects' finalisers would run at some later moment of the run, where an
+    interrupt is ignored; the file is closed when write_nwb returns."""
+    import gc
+
+    import h5py
+    from hdmf.backends.io import HDMFIO
+    from hdmf.container import AbstractContainer
+
+    ds = run_protocol("looming", dict(TINY, l_over_v=[0.04], duration=0.2))
+    gc.collect()
+    enabled = gc.isenabled()
+    gc.disable()  # what is left is counted, not collected by the way
+    try:
+        out = write_nwb(ds, tmp_path / "rec.nwb")
+        left = [type(o).__name__ for o in gc.get_objects() if isinstance(o, (AbstractContainer, HDMFIO))]
+    finally:
+        if enabled:
+            gc.enable()
+    assert left == []
+    with h5py.File(out, "r+") as f:  # closed and whole: it opens for writing
+        assert "acquisition" in f
+
+
 def test_atomic_outputs_get_an_ordinary_files_mode(tmp_path):
     """The temporary name is private while written (mkstemp: 0600), the finished output is not: it
     gets the mode an ordinary open() would give it under the process's umask."""

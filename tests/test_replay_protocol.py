@@ -169,3 +169,17 @@ def test_output_neurons_trial_k_is_the_same_whatever_the_number_of_trials(model)
     np.testing.assert_array_equal(one["spikes_units"][0], three["spikes_units"][0])
     assert not np.array_equal(three["spikes_units"][0], three["spikes_units"][1])
     assert three["spikes_units"].sum() > 0
+
+
+def test_eye_footage_without_eye_fly_is_refused_naming_the_fix(tmp_path, capsys):
+    from stimuli.eye import make_eye_run
+
+    eye = make_eye_run(tmp_path / "eye", TrackRunConfig(profile=None, duration_s=0.2, scale=0.25,
+                                                        scene=SceneConfig(seed=4)), progress=False, cast_every=5)
+    out = tmp_path / "rec.nc"
+    assert main(["ephys", "velocity-replay", "--footage", str(eye), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert f"--footage {eye}: compound-eye footage" in err and err.endswith("add --eye fly to replay it through the "
+                                                                            "compound eye's circuit")
+    assert not out.exists()

@@ -57,11 +57,14 @@ for _opt, _which in (("record", PLATE), ("trials", PLATE), ("seed", PLATE), ("ta
     APPLIES[_opt] = APPLIES[_opt] + _which
 
 S = argparse.SUPPRESS
+#: the most --trials a command line may ask for: far beyond any recording's repeats, and a mistyped
+#: count (an extra zero or three) is refused at parse time instead of running for days
+MAX_TRIALS = 10_000
 
 
 def _add_rig_options(e) -> None:
     """The recording and rig options of ``lobula ephys`` (every protocol unless marked)."""
-    from ..parsers import COUNT, INDEX, LATTICE_ANGLE, POSITIVE, Number
+    from ..parsers import EMD_TAU, EMD_TAU_RANGE, INDEX, LATTICE_ANGLE, POSITIVE, Number
 
     g = e.add_argument_group("recording and rig (every protocol unless marked)")
     g.add_argument("--record", nargs="+", metavar="POP.VAR", default=S,
@@ -72,11 +75,11 @@ def _add_rig_options(e) -> None:
                         "looming: the neuron model's variables (rate: lc.rate; poisson: lc.rate lc.spikes; "
                         "lif: lc.v lc.spikes); velocity-replay: all readout variables; edges: T4 and T5 of the "
                         "central column and its neighbours, hs.v, vs.v)")
-    g.add_argument("--trials", type=COUNT, default=S,
+    g.add_argument("--trials", type=Number(1, MAX_TRIALS, integer=True), default=S,
                    help="[tf-tuning, looming, velocity-replay, edges, current-injection, white-noise] repeats per "
-                        "condition; white-noise: noise segments, each its own noise (default: 4 for "
-                        "spiking models and white-noise; 1 for the deterministic rate model, which refuses more: its "
-                        "trials would be identical)")
+                        f"condition, 1 to {MAX_TRIALS}; white-noise: noise segments, each its own noise (default: 4 "
+                        "for spiking models and white-noise; 1 for the deterministic rate model, which refuses more: "
+                        "its trials would be identical)")
     g.add_argument("--seed", type=INDEX, default=S,
                    help="[tf-tuning, looming, velocity-replay, edges, current-injection, white-noise] seed of the "
                         "neurons' noise, of the built-in replay scene and of white-noise's stimulus (default: 0)")
@@ -85,10 +88,10 @@ def _add_rig_options(e) -> None:
                         "(Naka-Rushton), poisson "
                         "(spikes from rates), lif (integrate-and-fire) (default: rate; velocity-replay's readout "
                         "neuron: poisson, or rate; with --eye fly its output neurons: lif, or poisson, or rate)")
-    g.add_argument("--tau", type=POSITIVE, default=S,
-                   help="[all but current-injection] EMD delay τ (s); edges, white-noise: also T4's and T5's "
-                        "(default: 0.035; velocity-replay's EMD front "
-                        "end: 0.01; --eye fly: 0.035 everywhere)")
+    g.add_argument("--tau", type=EMD_TAU, default=S,
+                   help=f"[all but current-injection] EMD delay τ (s), {EMD_TAU_RANGE}; edges, white-noise: also "
+                        "T4's and T5's (default: 0.035; velocity-replay's EMD front end: 0.01; --eye fly: 0.035 "
+                        "everywhere)")
     g.add_argument("--dphi", type=LATTICE_ANGLE, default=S,
                    help="[all but current-injection] interommatidial angle Δφ (degree) (default: 2; "
                         "velocity-replay's front end: 0.75; "
@@ -314,6 +317,11 @@ def run_protocol(protocol: str, opts: dict, progress: bool = False):
     if protocol == "velocity-replay":
         from experiments.replay_protocol import velocity_replay
 
+        footage = Path(opts["footage"]) if "footage" in opts else None
+        if footage is not None and footage.is_dir() and (footage / "eye.json").is_file():
+            raise ValueError(f"--footage {footage}: compound-eye footage (eye.json, from `lobula scene OUT --eye "
+                             f"fly`), which the camera's EMD front end cannot read; add --eye fly to replay it through "
+                             f"the compound eye's circuit")
         eye_only = [f"--{k.replace('_', '-')}" for k in ("rotation", "haltere_gain") if k in opts]
         if eye_only:
             raise ValueError(f"{', '.join(eye_only)} set(s) the compound eye's circuit; the camera's EMD front end "

@@ -48,7 +48,7 @@ from lobula.emd import emd_sine_response_discrete
 from lobula.eye_circuit import EyeCircuit, EyeCircuitConfig
 from lobula.photoreceptor import photoreceptor_frequency_response
 
-from .rig import cf_describe, protocol, recording_attrs
+from .rig import cf_describe, empty_slice, protocol, recording_attrs
 
 __all__ = ["EyeEphysConfig", "EyeRig", "EYE_RECORDS", "eye_tf_tuning", "eye_rf_map", "eye_looming"]
 
@@ -166,6 +166,8 @@ class EyeRig:
                        if ":" in sub else [int(p) for p in sub.split(",")])
             except (ValueError, TypeError):
                 raise ValueError(f"{spec!r}: the subset must be i:j or i,j,k") from None
+            if not idx and ":" in sub:
+                raise ValueError(empty_slice(spec, var, sub, n))
             if not idx or min(idx) < -n or max(idx) >= n:
                 raise ValueError(f"{spec!r}: indices must lie in [0, {n}) for {var}")
             want[var] = np.array([i % n for i in idx])

@@ -293,6 +293,12 @@ def _valid(rig: Rig) -> str:
             f"T4/T5 preferred directions [{', '.join(d.replace('_', '-') for d in DIRECTIONS)}]")
 
 
+def empty_slice(spec: str, var: str, sub: str, size: int) -> str:
+    """The error of a subset ``[i:j]`` that selects none of ``var``'s ``size`` indices (j ≤ i, or past the end)."""
+    return (f"{spec!r}: the slice [{sub}] selects nothing; give [i:j] with 0 ≤ i < j ≤ {size} ({var} has {size} "
+            f"indices, 0 to {size - 1}: e.g. {var}[0:{size}])")
+
+
 def direction_layer(name: str) -> int | None:
     """The T4/T5 layer of a direction name (front-to-back or front_to_back, …), or None if it is none."""
     key = name.strip().replace("-", "_")
@@ -348,6 +354,8 @@ def parse_monitor(spec: str | Monitor, rig: Rig) -> Monitor:
     except (ValueError, TypeError):
         raise ValueError(f"{spec!r}: the subset must be i:j, i,j,k, a unit type {list(pop.types)} or, for T4/T5, "
                          f"directions {[d.replace('_', '-') for d in DIRECTIONS]}") from None
+    if not idx and ":" in sub:
+        raise ValueError(empty_slice(spec, var, sub, size))
     if not idx or min(idx) < -size or max(idx) >= size:
         raise ValueError(f"{spec!r}: indices must lie in [0, {size}) for {var}")
     return Monitor(var, tuple(i % size for i in idx))
