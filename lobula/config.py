@@ -10,6 +10,7 @@ import json
 import math
 from dataclasses import asdict, dataclass, field, fields
 
+from ._fields import check_field_types
 from .emd_front_end import EMDFrontEndConfig
 from .flow import FlowConfig
 from .front_ends import FRONT_ENDS, get_front_end
@@ -126,6 +127,7 @@ class VelocityConfig:
 
     def _check(self) -> None:
         """The checks of every field, which change nothing (:meth:`validate` runs them again)."""
+        check_field_types(self)
         get_front_end(self.front_end)
         for name, kind in (("flow", FlowConfig), ("fields", FieldConfig), ("readout", ReadoutConfig),
                            ("emd", EMDFrontEndConfig)):

@@ -16,6 +16,7 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
+from ._fields import check_field_types
 from .camera import PinholeCamera
 
 DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -73,6 +74,7 @@ class FlowConfig:
     chain_check: int = 30
 
     def __post_init__(self):
+        check_field_types(self)
         if not (self.chain_fraction >= 0 and self.chain_check >= 1):
             raise ValueError(f"chain_fraction must be >= 0 (0: off) and chain_check >= 1 pair, got "
                              f"{self.chain_fraction}, {self.chain_check}")

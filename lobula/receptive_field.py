@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from scipy import sparse
 
+from ._fields import check_field_types
 from .camera import PinholeCamera, normalised_to_angles
 from .epipole import derotate, derotate_finite, turn
 
@@ -44,6 +45,7 @@ class FieldConfig:
     material: bool = True
 
     def __post_init__(self):
+        check_field_types(self)
         for name, value, low in (("size_deg", self.size_deg, 0.0), ("spacing_deg", self.spacing_deg, 0.0)):
             if value is not None and not (math.isfinite(value) and value > low):
                 raise ValueError(f"FieldConfig.{name} must be a finite number of degrees > 0, got {value}")

@@ -47,3 +47,33 @@ def test_readout_values_the_filter_cannot_use_are_refused(name, value):
 def test_field_values_that_tile_nothing_are_refused(kw, match):
     with pytest.raises(ValueError, match=f"FieldConfig.{match}"):
         FieldConfig(**kw)
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: VelocityConfig(gyro_bias_prior_deg_s="1.0"), "VelocityConfig.gyro_bias_prior_deg_s must be a number, got str"),
+    (lambda: VelocityConfig(derotate="no"), "VelocityConfig.derotate must be True or False, got str"),
+    (lambda: ReadoutConfig(coupling_window_s="4"), "ReadoutConfig.coupling_window_s must be a number, got str"),
+    (lambda: ReadoutConfig(stagger=4.0), "ReadoutConfig.stagger must be a whole number, got float"),
+    (lambda: ReadoutConfig(reversal="False"), "ReadoutConfig.reversal must be True or False"),
+    (lambda: ReadoutConfig(accel_turn_rate_max="1"), "ReadoutConfig.accel_turn_rate_max must be a number or None"),
+    (lambda: FieldConfig(size_deg="5"), "FieldConfig.size_deg must be a number, got str"),
+])
+def test_values_of_the_wrong_type_are_refused_naming_the_field(make, match):
+    """A string for a number or a flag is refused by the configuration itself (a string "no" is not read as True)."""
+    with pytest.raises(TypeError, match=match):
+        make()
+
+
+def test_nan_in_any_number_and_a_dict_for_the_configuration_are_refused():
+    with pytest.raises(ValueError, match="ReadoutConfig.coupling_z must be a number, got NaN"):
+        ReadoutConfig(coupling_z=float("nan"))
+    cfg = VelocityConfig()
+    cfg.readout.kappa_rel_error = float("nan")
+    with pytest.raises(ValueError, match="ReadoutConfig.kappa_rel_error must be a number, got NaN"):
+        cfg.validate()
+    from lobula.readers.core import Footage
+    from lobula.velocity import estimate_velocity
+
+    footage = Footage(camera=None, times=[], imu=None, truth=None, path=".", kind="folder", files=[])
+    with pytest.raises(TypeError, match="config must be a VelocityConfig .*got dict"):
+        estimate_velocity(footage, {"front_end": "dis"}, progress=False)

@@ -9,6 +9,16 @@ from lobula.velocity import VelocityEstimator, estimate_velocity
 DURATION_S, SCALE = 4.0, 0.25
 
 
+def GRAVITY(m: int) -> np.ndarray:
+    """m accelerometer samples of a camera at rest, looking forward (m, 3) m/s²."""
+    return np.tile([0.0, -9.81, 0.0], (m, 1))
+
+
+def TEXTURE(h: int, w: int) -> np.ndarray:
+    """A random grey uint8 image (h, w)."""
+    return np.random.default_rng(0).integers(0, 256, (h, w), dtype=np.uint8)
+
+
 def causal_config(**kw) -> VelocityConfig:
     cfg = VelocityConfig(**kw)
     cfg.readout.filter = "causal"
@@ -148,13 +158,13 @@ def test_bad_samples_and_frames_are_refused():
     est = VelocityEstimator(PinholeCamera(160, 120, 140.0, 140.0, 79.5, 59.5, 30.0))
     t = np.arange(20) / 200.0
     with pytest.raises(ValueError, match="NaN"):
-        est.update(imu=(t, np.full((20, 3), np.nan), np.zeros((20, 3))))
-    est.update(imu=(t, np.zeros((20, 3)), np.zeros((20, 3))))
+        est.update(imu=(t, np.full((20, 3), np.nan), GRAVITY(20)))
+    est.update(imu=(t, np.zeros((20, 3)), GRAVITY(20)))
     with pytest.raises(ValueError, match="increase"):
-        est.update(imu=(t, np.zeros((20, 3)), np.zeros((20, 3))))
-    est.update(np.zeros((120, 160), np.uint8), 0.01)
+        est.update(imu=(t, np.zeros((20, 3)), GRAVITY(20)))
+    est.update(TEXTURE(120, 160), 0.01)
     with pytest.raises(ValueError, match="frame times"):
-        est.update(np.zeros((120, 160), np.uint8), 0.01)
+        est.update(TEXTURE(120, 160), 0.01)
 
 
 def test_frame_by_frame_equals_the_whole_record_run_through_saccades(family_footage):
@@ -203,7 +213,7 @@ def test_frames_without_the_imu_are_refused_saying_what_is_missing():
     from lobula.velocity import VelocityEstimator
 
     cam = PinholeCamera(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5, frame_rate_hz=10.0)
-    frame = np.zeros((48, 64), np.uint8)
+    frame = TEXTURE(48, 64)
     est = VelocityEstimator(cam, history_s=8.0)
     for k in range(81):  # 8 s of frames: still within the history
         assert est.update(frame, k / 10.0) is None
@@ -219,3 +229,75 @@ def test_frames_without_the_imu_are_refused_saying_what_is_missing():
     with pytest.raises(ValueError, match="IMU's last sample is at 0.195 s"):
         for k in range(200):
             stopped.update(frame, 0.1 + k / 10.0)
+
+
+def test_frames_times_and_arguments_of_the_wrong_kind_are_refused_saying_what_to_give():
+    """Frames that are not grey levels 0..255 of the camera's size (channels first, two channels, bool pixels, an
+    image scaled to 0..1 or to 16 bits as floats, a blank one), a time that is not one number, intervals that are
+    not seconds and a configuration that is a dict are each refused naming the fault; an update after finish too."""
+    from lobula.camera import PinholeCamera
+
+    cam = PinholeCamera(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5, frame_rate_hz=30.0)
+    est = VelocityEstimator(cam)
+    img = TEXTURE(48, 64)
+    for frame, err, words in [
+            (np.stack([img] * 3), ValueError, r"shape \(3, 48, 64\).* channels last"),
+            (np.stack([img] * 2, -1), ValueError, r"shape \(48, 64, 2\)"),
+            (img > 128, TypeError, "pixels of type bool"),
+            (img / 255.0, ValueError, "scaled to 0..1.* multiply it by 255"),
+            (img * 257.0, ValueError, "outside the grey levels 0..255"),
+            (np.full((48, 64), 7, np.uint8), ValueError, "every pixel is 7, a blank image")]:
+        with pytest.raises(err, match=words):
+            est.update(frame, 0.0)
+    for t, err in [(None, ValueError), ("0.1", TypeError), (np.array([0.1, 0.2]), TypeError)]:
+        with pytest.raises(err, match="one number of seconds"):
+            est.update(img, t)
+    assert est.update(img.astype(np.float64), 0.0) is None and est.update(np.uint16(img) * 257, 0.1) is None
+    for kw, err, words in [(dict(history_s="10"), TypeError, "history_s must be a number"),
+                           (dict(frame_interval_s=0.0), ValueError, "frame_interval_s must be a finite number"),
+                           (dict(imu_interval_s=4.0), ValueError, "rate of 0.25 Hz.*seconds"),
+                           (dict(imu_interval_s=0.05), ValueError, "no faster than the camera's 30 frames/s"),
+                           (dict(config={"filter": "causal"}), TypeError, "must be a VelocityConfig")]:
+        with pytest.raises(err, match=words):
+            VelocityEstimator(cam, **kw)
+    done = VelocityEstimator(cam)
+    assert done.finish() == [] and done.finish() == []
+    with pytest.raises(ValueError, match=r"update\(\) after finish\(\)"):
+        done.update(img, 0.0)
+
+
+@pytest.mark.parametrize("change, err, words", [
+    (lambda t, g, a: (t, g), TypeError, r"imu must be a tuple \(time_s, gyro, accel\)"),
+    (lambda t, g, a: (t, g[:, 0], a), ValueError, r"gyro has shape \(40,\), for 40 times.* shape \(40, 3\)"),
+    (lambda t, g, a: (t, g.T, a), ValueError, r"gyro has shape \(3, 40\)"),
+    (lambda t, g, a: (t, g, a[:-1]), ValueError, r"accel has shape \(39, 3\), for 40 times"),
+    (lambda t, g, a: (t * 1e3, g, a), ValueError, "time_s looks like milliseconds"),
+    (lambda t, g, a: (t * 1e9, g, a), ValueError, "time_s looks like nanoseconds"),
+    (lambda t, g, a: (t * 20, g, a), ValueError, "no faster than the camera's 30 frames/s"),
+    (lambda t, g, a: (t, g, a / 9.81), ValueError, r"reads no gravity.*readings in g\?"),
+    (lambda t, g, a: (t, g, 0 * a), ValueError, "reads no gravity: |a| 0.000 m/s² throughout"),
+])
+def test_imu_samples_of_the_wrong_shape_or_units_are_refused_naming_them(change, err, words):
+    """IMU chunks that are not (time_s (m,) s, gyro (m, 3) rad/s, accel (m, 3) m/s² with gravity) are refused before
+    any is used: a gyro of one axis or transposed, rows that do not match, times in ms or ns (a rate no IMU has) or
+    slower than the frames, an accelerometer in g or all zeros."""
+    from lobula.camera import PinholeCamera
+
+    est = VelocityEstimator(PinholeCamera(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5,
+                                          frame_rate_hz=30.0))
+    t = np.arange(40) / 200.0
+    with pytest.raises(err, match=words):
+        est.update(imu=change(t, np.zeros((40, 3)), GRAVITY(40)))
+
+
+def test_frames_long_before_the_imu_are_refused_saying_so(family_footage_small):
+    """Frames half a second before the IMU's first sample have no gyro to derotate them: refused, naming both."""
+    fo = family_footage_small("moving")
+    imu = fo.imu
+    est = VelocityEstimator(fo.camera, causal_config())
+    j = int(np.searchsorted(imu.time_s, 0.5))
+    with pytest.raises(ValueError, match=r"before the IMU's first sample"):
+        for _, t, image in fo.frames(0, 30):
+            k = max(j, int(np.searchsorted(imu.time_s, t, side="right")))
+            est.update(image, t, (imu.time_s[j:k], imu.gyro[j:k], imu.accel[j:k]))
+            j = k

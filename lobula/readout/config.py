@@ -5,6 +5,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from lobula._fields import check_field_types
+
 
 @dataclass
 class ReadoutConfig:
@@ -225,6 +227,7 @@ class ReadoutConfig:
         return max(2, self.stagger + self.stagger % 2)
 
     def __post_init__(self):
+        check_field_types(self)
         if self.accel_turn_rate_max is not None and not (np.isfinite(self.accel_turn_rate_max)
                                                          and self.accel_turn_rate_max > 0):
             raise ValueError(f"accel_turn_rate_max must be a finite rate > 0 (rad/s) or None, got {self.accel_turn_rate_max}")

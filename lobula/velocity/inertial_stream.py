@@ -213,8 +213,10 @@ class InertialStream:
     def add_estimate(self, t_est: float, bias: np.ndarray, std: np.ndarray) -> None:
         """The heading fit's gyro bias (3,) rad/s and std (3,) rad/s, known from t_est s on."""
         if self._done and self.cols.at("t", self._done - 1) >= t_est:
-            raise RuntimeError("the IMU's samples are further apart than the frames; the fitted gyro bias cannot "
-                               "be applied sample by sample")
+            raise ValueError(f"the frames at {t_est:.3f} s have no IMU samples about them (the IMU's first sample is "
+                             f"at {self.t0:.3f} s, and those up to {self.cols.at('t', self._done - 1):.3f} s are "
+                             f"used): frames before the IMU's first sample, or a gap in the IMU longer than a frame "
+                             f"pair; give the frames from the IMU's first sample on, and its samples without gaps")
         self.estimates.append((float(t_est), np.asarray(bias, float).copy(),
                                np.asarray(std, float).copy() * HEADING_BIAS_STD_SCALE))
 

@@ -53,6 +53,9 @@ def estimate_velocity(footage: Footage, config: VelocityConfig | None = None, pr
     if not (hasattr(footage, "camera") and hasattr(footage, "times")):  # a Footage, or anything read as one
         raise TypeError(f"estimate_velocity takes a Footage (lobula.readers.open_footage(path)), got "
                         f"{type(footage).__name__} {footage!r}"[:300])
+    if config is not None and not isinstance(config, VelocityConfig):
+        raise TypeError(f"estimate_velocity's config must be a VelocityConfig (VelocityConfig.from_dict reads a "
+                        f"dict), got {type(config).__name__}")
     config = (config or VelocityConfig()).validate()
     front = get_front_end(config.front_end)
     _check_epipole(config, front)

@@ -21,7 +21,7 @@ from lobula.config import VelocityConfig
 from lobula.flow import StaggeredFlow
 from lobula.front_ends import get_front_end
 from lobula.imu import HEADING_FIT_BIAS_PRIOR
-from lobula.readers.core import to_grey
+from lobula.readers.core import IMU, IMU_RATE_RANGE_HZ, gravity_problem, rate_problem, to_grey
 from lobula.readout import MaterialRates, acceleration_heading, gate_by_lock, kalman_inputs, vision_trusted
 from lobula.readout.carry import carried_std, vision_answers
 from lobula.readout.config import std_allowed
@@ -81,6 +81,12 @@ class VelocityState:
     reason: str = ""
 
 
+#: IMU samples the estimator checks the units of (time_s in s, the accelerometer in m/s² with gravity) before it
+#: uses any: the ones InertialStream reads the rate from
+IMU_HEAD = 18
+#: where a message says the IMU samples came from
+IMU_SOURCE = "update()'s imu"
+
 #: what a caller missing IMU samples is told to give
 GIVE_IMU = ("give update() the IMU samples since the last frame, imu=(time_s, gyro, accel): the estimator needs "
             "the accelerometer and the gyro")
@@ -120,10 +126,18 @@ class VelocityEstimator:
         if not hasattr(camera, "normalised_grid"):
             raise TypeError(f"VelocityEstimator takes the camera (a lobula.camera.PinholeCamera, footage.camera), "
                             f"got {type(camera).__name__}")
+        if not isinstance(config, VelocityConfig):
+            raise TypeError(f"VelocityEstimator's config must be a VelocityConfig (VelocityConfig.from_dict reads a "
+                            f"dict), got {type(config).__name__}")
         config = copy.deepcopy(config).validate()
         _check_streamable(config)
+        history_s = _seconds("history_s", history_s)
         if history_s < 8.0:
             raise ValueError(f"history_s must be at least 8 s (the readout reaches that far back), got {history_s}")
+        frame_interval_s = _seconds("frame_interval_s", frame_interval_s)
+        imu_interval_s = _seconds("imu_interval_s", imu_interval_s)
+        if imu_interval_s is not None:
+            _check_imu_rate(camera, imu_interval_s, f"imu_interval_s {imu_interval_s:g} s")
         self.camera, self.config, self.history_s = camera, config, float(history_s)
         config.flow.method = config.front_end
         self.fields = tile_fields(camera, config.fields)
@@ -148,6 +162,8 @@ class VelocityEstimator:
         self._rest_depth = np.nan  # m: the scene depth learned so far (lobula.readout.scene_depth)
         self._t_answered = -np.inf  # s: the last frame vision fixed the speed at (lobula.readout.carry)
         self._out: list[VelocityState] = []
+        self._head: list | None = []  # the first IMU chunks, until IMU_HEAD samples are checked
+        self._finished = False
 
     # ---------------------------------------------------------------- input
     def update(self, frame=None, t: float | None = None, imu=None) -> VelocityState | None:
@@ -166,12 +182,26 @@ class VelocityEstimator:
         -------
         VelocityState or None
             The estimate of the newest pair the IMU has reached; all of them: :meth:`drain`.
+
+        Raises
+        ------
+        ValueError, TypeError
+            Input the estimator cannot read, naming what is wrong: a frame of another size, with NaN pixels, not
+            in grey levels 0..255 or blank; a time that is not a number or does not increase; IMU samples not
+            (m,) s, (m, 3) rad/s, (m, 3) m/s² or not after the last; first samples whose rate or gravity says
+            they are not in s and m/s²; any update after :meth:`finish`.
         """
+        if self._finished:
+            raise ValueError("update() after finish(): the stream has ended; make a new VelocityEstimator for "
+                             "another stream")
         if imu is not None:
-            self.imu.extend(*imu)
-            self._gyro(np.asarray(imu[0], float).reshape(-1), np.asarray(imu[1], float).reshape(-1, 3))
+            t_imu, gyro, accel = self._imu_chunk(imu)
+            self.imu.extend(t_imu, gyro, accel)
+            self._check_head(t_imu, gyro, accel)
+            self._gyro(t_imu, gyro)
         if frame is not None:
-            if t is None or not np.isfinite(t) or t <= self._t_last:
+            t = _frame_time(t)
+            if t <= self._t_last:
                 raise ValueError(f"frame times must be finite and increase; got {t} after {self._t_last}")
             frame = self._grey(frame)
             self._t_last = float(t)
@@ -180,6 +210,44 @@ class VelocityEstimator:
         self._advance(final=False)
         self._check_imu_keeps_up()
         return self._out[-1] if self._out else None
+
+    def _imu_chunk(self, imu) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``imu`` as (time_s (m,), gyro (m, 3), accel (m, 3)) float arrays; TypeError or ValueError saying what
+        differs (InertialStream.extend checks their values and order)."""
+        if not (isinstance(imu, (tuple, list)) and len(imu) == 3):
+            raise TypeError(f"imu must be a tuple (time_s, gyro, accel) of arrays, got {type(imu).__name__}"
+                            + (f" of {len(imu)}" if isinstance(imu, (tuple, list)) else ""))
+        try:
+            t, g, a = (np.asarray(x, float) for x in imu)
+        except (TypeError, ValueError):
+            raise TypeError(f"imu: time_s, gyro and accel must be numeric arrays, got "
+                            f"{', '.join(type(x).__name__ for x in imu)}") from None
+        t = t.reshape(-1)
+        for name, x, unit in (("gyro", g, "rad/s"), ("accel", a, "m/s²")):
+            if x.shape != (len(t), 3) and not (x.shape == (3,) and len(t) == 1):
+                raise ValueError(f"imu: {name} has shape {x.shape}, for {len(t)} times; give one row of 3 axes "
+                                 f"(x, y, z {unit}) per sample, shape ({len(t)}, 3)")
+        return t, g.reshape(-1, 3), a.reshape(-1, 3)
+
+    def _check_head(self, t, g, a) -> None:
+        """Gather the first :data:`IMU_HEAD` samples (finite, increasing: InertialStream.extend took them), then
+        check their units (:meth:`_check_imu_units`)."""
+        if self._head is None or not len(t):
+            return
+        self._head.append((t, g, a))
+        if sum(len(c[0]) for c in self._head) >= IMU_HEAD:
+            head, self._head = self._head, None
+            self._check_imu_units(*(np.concatenate(c) for c in zip(*head)))
+
+    def _check_imu_units(self, t, g, a) -> None:
+        """ValueError where the first IMU samples cannot be in s and m/s² with gravity: a rate no IMU has or one
+        slower than the frames (time_s in ms or ns), an accelerometer that reads no gravity (readings in g, all
+        zeros, gravity already removed), as :func:`lobula.readers.core.check_imu_csv` refuses an imu.csv."""
+        samples = IMU(t, a, g, source=IMU_SOURCE)
+        problem = gravity_problem(samples) or rate_problem(samples)
+        if problem:
+            raise ValueError(problem.replace("accel_x..z", "accel").replace("write time_s", "give time_s"))
+        _check_imu_rate(self.camera, float(np.median(np.diff(t))), f"{IMU_SOURCE}'s samples")
 
     def _check_imu_keeps_up(self) -> None:
         """ValueError once the frames waiting for the IMU span more than ``history_s``: without its samples
@@ -196,21 +264,40 @@ class VelocityEstimator:
         """``frame`` as the flow reads it: grey (a colour or 16-bit image turned as the readers turn theirs,
         :func:`lobula.readers.core.to_grey`), of the camera's size, finite; else ValueError naming the frame."""
         img = np.asarray(frame)
+        size = (self.camera.height, self.camera.width)
+        if img.dtype.kind not in "uif":
+            raise TypeError(f"frame {self._index}: pixels of type {img.dtype}; give grey levels 0..255 as an "
+                            f"integer or float array (uint8, uint16 or float)")
+        if img.ndim == 3 and img.shape[2] not in (1, 3, 4):
+            raise ValueError(f"frame {self._index}: shape {img.shape}, but the camera is {size[1]}x{size[0]} (H, W "
+                             f"{size}); give grey (H, W), BGR (H, W, 3) or BGRA (H, W, 4) images, channels last")
         if img.ndim == 3 or img.dtype == np.uint16:
             img = to_grey(img)
-        size = (self.camera.height, self.camera.width)
         if img.shape != size:
             raise ValueError(f"frame {self._index}: shape {img.shape}, but the camera is {size[1]}x{size[0]} (H, W "
                              f"{size}); give grey or BGR images of the camera's size")
         if img.dtype.kind == "f" and not np.isfinite(img).all():
             raise ValueError(f"frame {self._index}: NaN or infinite pixels")
+        lo, hi = float(img.min()), float(img.max())
+        if lo < 0 or hi > 255:
+            raise ValueError(f"frame {self._index}: pixels from {lo:g} to {hi:g}, outside the grey levels 0..255 the "
+                             f"flow reads; scale the image to 0..255 (a uint16 array is scaled by 1/257)")
+        if lo == hi:
+            raise ValueError(f"frame {self._index}: every pixel is {lo:g}, a blank image with no motion to read (a "
+                             f"covered lens, a frame that failed to decode); leave it out, as a dropped frame")
+        if img.dtype.kind == "f" and hi <= 1.0 and np.any(img != np.round(img)):
+            raise ValueError(f"frame {self._index}: pixels from {lo:g} to {hi:g}, an image scaled to 0..1; the flow "
+                             f"reads grey levels 0..255: multiply it by 255")
         return img
 
     def finish(self) -> list[VelocityState]:
         """Process the frames the IMU has not reached (as the whole-record run does at the record's end);
         returns the estimates not yet drained."""
+        if self._finished:
+            return self.drain()
         if self._frames and self.imu.rate_hz is None:
             raise ValueError(f"{len(self._frames)} frames but no IMU to estimate from: {GIVE_IMU}")
+        self._finished = True
         self._advance(final=True)
         if self._todo:  # no frame's fields ever responded: the start's prior stays the resting one
             self.gravity_error = start_accel_prior(np.full((1, 1), np.nan))
@@ -339,6 +426,52 @@ class VelocityEstimator:
         return VelocityState(float(t[i]), float(col("known")[i]), v_out, s_out, bool(obs), e.copy(),
                              v_out * np.array([e[0], e[1], 1.0]), float(a[i]),
                              col("bias")[i].copy(), col("attitude")[i].copy(), reason)
+
+
+def _seconds(name: str, value) -> float | None:
+    """``value`` (s, or None) as a float; TypeError unless a number, ValueError unless finite and > 0."""
+    if value is None:
+        return None
+    if isinstance(value, (bool, str, bytes)) or np.ndim(value) != 0:
+        raise TypeError(f"{name} must be a number of seconds, got {type(value).__name__} {value!r}"[:200])
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a number of seconds, got {type(value).__name__}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a finite number of seconds > 0, got {value}")
+    return value
+
+
+def _frame_time(t) -> float:
+    """A frame's time ``t`` as a float (s); TypeError unless one number, ValueError unless finite."""
+    if t is None or isinstance(t, (bool, str, bytes)) or np.ndim(t) != 0:
+        raise (ValueError if t is None else TypeError)(
+            f"each frame needs its time t, one number of seconds on the IMU's clock; got {type(t).__name__} "
+            f"{t!r}"[:200])
+    try:
+        t = float(t)
+    except (TypeError, ValueError):
+        raise TypeError(f"a frame's time t must be a number of seconds on the IMU's clock, got "
+                        f"{type(t).__name__}") from None
+    if not np.isfinite(t):
+        raise ValueError(f"frame times must be finite and increase; got {t}")
+    return t
+
+
+def _check_imu_rate(camera, interval_s: float, what: str) -> None:
+    """ValueError unless an IMU sample interval of ``interval_s`` s is an IMU's (a rate in IMU_RATE_RANGE_HZ) and
+    shorter than the camera's frame interval: the gyro derotates each frame pair from the samples between."""
+    low, high = IMU_RATE_RANGE_HZ
+    rate = 1.0 / interval_s
+    if not low <= rate <= high:
+        raise ValueError(f"{what}: a sample interval of {interval_s:.6g} s is a rate of {rate:.3g} Hz, where an IMU "
+                         f"samples at {low:g} Hz to {high / 1e3:g} kHz; give time_s in seconds")
+    frame_s = 1.0 / camera.frame_rate_hz
+    if interval_s >= frame_s:
+        raise ValueError(f"{what}: the IMU samples every {interval_s:.4g} s ({rate:.3g} Hz), no faster than the "
+                         f"camera's {camera.frame_rate_hz:g} frames/s; the gyro must sample between the frames (time_s "
+                         f"in seconds, and camera.frame_rate_hz the camera's)")
 
 
 def _check_streamable(config: VelocityConfig) -> None:
