@@ -5,7 +5,8 @@ footage folder, read back through the same reader users use.
 
 `make test` runs the suite on pytest-xdist workers (``-n auto --dist loadgroup``): each test
 file is one group, so its module fixtures are built once, and every test that uses the 30 s
-replay joins one group, so it is rendered once (see :func:`pytest_collection_modifyitems`).
+replay joins one group, as does every test that uses the fisheye footage, so each is rendered once
+(see :func:`pytest_collection_modifyitems`).
 The groups that take longest are handed out first (``LONGEST_GROUPS``), so that the workers
 finish together.
 """
@@ -31,6 +32,8 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flivv
 # recorded profile asks for it (the real_profile fixture) and skips where it is absent.
 os.environ["LOBULA_PROFILE"] = "builtin"
 REPLAY_FIXTURES = {"make_replay", "replay_rates", "emd_replay"}
+#: session fixtures that several test files share, each file's tests joining one group so it is built once
+SHARED_GROUPS = {"fisheye_run": "fisheye"}
 
 
 def pytest_configure(config):
@@ -57,15 +60,18 @@ def pytest_configure(config):
 # families take about an eighth of the suite's time, the others here 25-80 s each, the real GoPro clips a few
 # seconds without ../shared). Under --dist loadgroup they are handed out before the rest, so that a short
 # group, not a long one, is the last to finish; a group missing here only starts later (it changes no result).
-LONGEST_GROUPS = ("test_families.py", "replay", "test_gopro.py", "test_streaming.py", "test_tutorials.py",
+LONGEST_GROUPS = ("test_families.py", "replay", "test_gopro.py", "test_streaming.py", "test_tutorials.py", "fisheye",
                   "test_depth_cli.py", "test_compound_eye.py", "test_nwb.py", "test_faults.py")
 
 
 def _xdist_group(item) -> str:
     """The test's ``--dist loadgroup`` group: "replay" for the tests that use the test session's 30 s
-    replay (rendered once), otherwise its file (module fixtures built once)."""
-    uses_replay = REPLAY_FIXTURES & set(getattr(item, "fixturenames", ()))
-    return "replay" if uses_replay else item.path.name
+    replay (rendered once), "fisheye" for those that use the fisheye footage (test_lens.py's and
+    test_focal_length.py's, rendered once), otherwise its file (module fixtures built once)."""
+    names = set(getattr(item, "fixturenames", ()))
+    if REPLAY_FIXTURES & names:
+        return "replay"
+    return next((group for fixture, group in SHARED_GROUPS.items() if fixture in names), item.path.name)
 
 
 @pytest.hookimpl(wrapper=True)

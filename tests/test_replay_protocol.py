@@ -1,5 +1,6 @@
 """The velocity-replay ephys protocol: labelled recording of the velocity circuit, seeded."""
 import numpy as np
+import pytest
 import xarray as xr
 
 from experiments.cli import main
@@ -8,9 +9,15 @@ from stimuli.scene import SceneConfig
 from stimuli.track import TrackRunConfig, make_track_run
 
 
-def test_velocity_replay_records_the_circuit(tmp_path, capsys):
-    run = make_track_run(tmp_path / "run", TrackRunConfig(profile=None, start_s=5.0, duration_s=4.0, scale=0.25,
-                                                          scene=SceneConfig(seed=4)), progress=False)
+@pytest.fixture(scope="module")
+def footage(tmp_path_factory):
+    return make_track_run(tmp_path_factory.mktemp("replay") / "run",
+                          TrackRunConfig(profile=None, start_s=5.0, duration_s=4.0, scale=0.25,
+                                         scene=SceneConfig(seed=4)), progress=False)
+
+
+def test_velocity_replay_records_the_circuit(footage, tmp_path, capsys):
+    run = footage
     out = tmp_path / "rec.nc"
     assert main(["ephys", "velocity-replay", "--footage", str(run), "--trials", "3", "--seed", "7",
                  "--out", str(out), "--plot", str(tmp_path / "rec.png")]) == 0
@@ -34,16 +41,7 @@ def test_velocity_replay_records_the_circuit(tmp_path, capsys):
 
 import json  # noqa: E402
 
-import pytest  # noqa: E402
-
 from experiments.ephys.command import APPLIES, run_protocol  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def footage(tmp_path_factory):
-    return make_track_run(tmp_path_factory.mktemp("replay") / "run",
-                          TrackRunConfig(profile=None, start_s=5.0, duration_s=4.0, scale=0.25,
-                                         scene=SceneConfig(seed=4)), progress=False)
 
 
 def _cfg(ds):
