@@ -234,7 +234,7 @@ def test_looming_figure_averages_only_the_expansion_units(tmp_path, monkeypatch)
     cfg = _with_neurons(EphysConfig(trials=2, seed=2), model="poisson")
     ds = looming(cfg, l_over_v_s=(0.02,), duration_s=0.4, record=["lc.spikes"])
     drawn = []
-    monkeypatch.setattr(figures, "save_png_and_pdf", lambda fig, path: drawn.append(fig) or [])
+    monkeypatch.setattr(figures, "save_png_and_pdf", lambda fig, path, **kw: drawn.append(fig) or [])
     figures.plot_looming(ds, tmp_path / "loom.png")
     ax = drawn[0].axes[0]
     # The expansion units' PSTH (20 ms bins, Hz), computed here from the stored counts.
