@@ -12,6 +12,7 @@ back to, and the IMU's running quantities are carried sample by sample
 from __future__ import annotations
 
 import copy
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -149,6 +150,7 @@ class VelocityEstimator:
         self._gyro_seen: list = []  # gyro samples before the heading fit's attitude is made
         self._frames: list = []
         self._index = 0
+        self._blank = 0  # blank frames left out (_leave_out_blank)
         self._t_last = -np.inf
         F = self.fields.n_fields
         self.rows = Columns(t=(), known=(), r=(F,), r2=(F,), m_r=(F,), m_r2=(F,), m_rdot=(F,), m_moment=(F, 2), a=(),
@@ -187,7 +189,7 @@ class VelocityEstimator:
         ------
         ValueError, TypeError
             Input the estimator cannot read, naming what is wrong: a frame of another size, with NaN pixels, not
-            in grey levels 0..255 or blank; a time that is not a number or does not increase; IMU samples not
+            in grey levels 0..255; a time that is not a number or does not increase; IMU samples not
             (m,) s, (m, 3) rad/s, (m, 3) m/s² or not after the last; first samples whose rate or gravity says
             they are not in s and m/s²; any update after :meth:`finish`.
         """
@@ -204,9 +206,12 @@ class VelocityEstimator:
             if t <= self._t_last:
                 raise ValueError(f"frame times must be finite and increase; got {t} after {self._t_last}")
             frame = self._grey(frame)
-            self._t_last = float(t)
-            self._frames.append((self._index, float(t), frame))
-            self._index += 1
+            if frame.min() == frame.max():
+                self._leave_out_blank(frame, t)
+            else:
+                self._t_last = float(t)
+                self._frames.append((self._index, float(t), frame))
+                self._index += 1
         self._advance(final=False)
         self._check_imu_keeps_up()
         return self._out[-1] if self._out else None
@@ -282,13 +287,19 @@ class VelocityEstimator:
         if lo < 0 or hi > 255:
             raise ValueError(f"frame {self._index}: pixels from {lo:g} to {hi:g}, outside the grey levels 0..255 the "
                              f"flow reads; scale the image to 0..255 (a uint16 array is scaled by 1/257)")
-        if lo == hi:
-            raise ValueError(f"frame {self._index}: every pixel is {lo:g}, a blank image with no motion to read (a "
-                             f"covered lens, a frame that failed to decode); leave it out, as a dropped frame")
         if img.dtype.kind == "f" and hi <= 1.0 and np.any(img != np.round(img)):
             raise ValueError(f"frame {self._index}: pixels from {lo:g} to {hi:g}, an image scaled to 0..1; the flow "
                              f"reads grey levels 0..255: multiply it by 255")
         return img
+
+    def _leave_out_blank(self, frame: np.ndarray, t: float) -> None:
+        """A blank frame (every pixel alike: a covered lens, a camera's first dark frames, one that failed to
+        decode) has no motion to read, and read as a frame it would say the camera stopped: it is left out as a
+        dropped frame, which the stream bridges; the first one is warned of."""
+        self._blank += 1
+        if self._blank == 1:
+            warnings.warn(f"frame at t = {t:g} s: every pixel is {float(frame.flat[0]):g}, a blank image; it and any "
+                          f"further blank frames are left out as dropped frames", RuntimeWarning, stacklevel=3)
 
     def finish(self) -> list[VelocityState]:
         """Process the frames the IMU has not reached (as the whole-record run does at the record's end);
