@@ -75,6 +75,11 @@ class FlowConfig:
 
     def __post_init__(self):
         check_field_types(self)
+        if self.dis_preset not in DIS_PRESETS:
+            raise ValueError(f"FlowConfig.dis_preset must be one of {sorted(DIS_PRESETS)}, got {self.dis_preset!r}")
+        for name, low in (("gap", 1), ("threads", 0), ("dis_grid_px", 0)):
+            if getattr(self, name) < low:
+                raise ValueError(f"FlowConfig.{name} must be a whole number >= {low}, got {getattr(self, name)!r}")
         if not (self.chain_fraction >= 0 and self.chain_check >= 1):
             raise ValueError(f"chain_fraction must be >= 0 (0: off) and chain_check >= 1 pair, got "
                              f"{self.chain_fraction}, {self.chain_check}")

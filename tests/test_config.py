@@ -35,10 +35,28 @@ def test_parts_of_the_wrong_kind_and_a_path_for_footage_are_refused_naming_them(
 
 
 @pytest.mark.parametrize("name, value", [("v_prior_m_s", 0.0), ("max_std_m_s", -1.0), ("cutoff_hz", float("nan")),
-                                         ("accel_noise", -0.01), ("order", 0), ("stagger", 0)])
+                                         ("accel_noise", -0.01), ("order", 0), ("stagger", 0), ("paper_order", 0),
+                                         ("coupling_window_s", 0.0), ("shared_error_s", -3.0), ("bias_walk", -0.002),
+                                         ("kappa_rel_error", -0.25), ("coupling_z", -1.0), ("adapt_s", -1.0),
+                                         ("min_valid_fraction", 0.0), ("shared_error_frac", 1.5),
+                                         ("paper_wn", 1.0), ("depth_min_m", 3000.0)])
 def test_readout_values_the_filter_cannot_use_are_refused(name, value):
     with pytest.raises(ValueError, match=f"ReadoutConfig.{name} must be"):
         dataclasses.replace(ReadoutConfig(), **{name: value})
+
+
+def test_zero_turns_a_readout_term_off_and_is_accepted():
+    dataclasses.replace(ReadoutConfig(), coupling_z=0.0, bias_walk=0.0, kappa_rel_error=0.0, shared_error_frac=0.0,
+                        adapt_s=0.0)
+
+
+@pytest.mark.parametrize("kw, match", [(dict(gap=0), "gap"), (dict(threads=-1), "threads"),
+                                       (dict(dis_grid_px=-160), "dis_grid_px"), (dict(dis_preset="slow"), "dis_preset")])
+def test_flow_values_that_pair_nothing_are_refused(kw, match):
+    from lobula.flow import FlowConfig
+
+    with pytest.raises(ValueError, match=f"FlowConfig.{match} must be"):
+        FlowConfig(**kw)
 
 
 @pytest.mark.parametrize("kw, match", [(dict(size_deg=-3.0), "size_deg"), (dict(spacing_deg=0.0), "spacing_deg"),

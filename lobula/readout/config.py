@@ -256,14 +256,32 @@ class ReadoutConfig:
         if not 0.0 <= self.accel_scale_error < 1.0:
             raise ValueError(f"accel_scale_error is a fraction in [0, 1), got {self.accel_scale_error}")
         positive = ("cutoff_hz", "v_prior_m_s", "meas_floor_m_s", "max_std_m_s", "accel_min_m_s2",
-                    "accel_noise", "bias_prior_m_s2", "depth_min_m", "depth_max_m")
-        for name in positive:  # stds, rates and bounds the filter divides by or widens with
+                    "accel_noise", "bias_prior_m_s2", "depth_min_m", "depth_max_m", "coupling_window_s",
+                    "shared_error_s")
+        for name in positive:  # stds, rates, bounds and windows the filter divides by or widens with
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"ReadoutConfig.{name} must be a finite number > 0, got {value!r}")
+        # stds, walks, thresholds and windows where 0 turns the term off and a negative one means nothing
+        for name in ("accel_turn_noise", "bias_walk", "kappa_rel_error", "adapt_s", "coupling_z",
+                     "coupling_power_m_s2", "rest_accel_change_m_s2"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"ReadoutConfig.{name} must be a finite number >= 0, got {value!r}")
+        for name, low_open in (("min_valid_fraction", True), ("shared_error_frac", False)):
+            value = getattr(self, name)
+            if not (0 < value <= 1 if low_open else 0 <= value <= 1):
+                raise ValueError(f"ReadoutConfig.{name} must be a fraction in {'(0' if low_open else '[0'}, 1], "
+                                 f"got {value!r}")
+        if not self.depth_min_m < self.depth_max_m:
+            raise ValueError(f"ReadoutConfig.depth_min_m must be below depth_max_m ({self.depth_max_m} m), got "
+                             f"{self.depth_min_m}")
+        if not 0 < self.paper_wn < 1:
+            raise ValueError(f"ReadoutConfig.paper_wn must be a normalised frequency in (0, 1) (1: Nyquist), got "
+                             f"{self.paper_wn!r}")
         if not (isinstance(self.max_rel_std, (int, float)) and self.max_rel_std >= 0):  # 0: the absolute bound alone
             raise ValueError(f"ReadoutConfig.max_rel_std must be a number >= 0, got {self.max_rel_std!r}")
-        for name in ("order", "stagger"):
+        for name in ("order", "stagger", "paper_order"):
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"ReadoutConfig.{name} must be a whole number >= 1, got {value!r}")
