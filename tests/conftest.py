@@ -32,7 +32,7 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flivv
 # recorded profile asks for it (the real_profile fixture) and skips where it is absent.
 os.environ["LOBULA_PROFILE"] = "builtin"
 REPLAY_FIXTURES = {"make_replay", "replay_rates", "emd_replay"}
-#: session fixtures that several test files share, each file's tests joining one group so it is built once
+#: fixtures built once per test run that several test files share: their tests join one xdist group, so it is built once
 SHARED_GROUPS = {"fisheye_run": "fisheye"}
 
 

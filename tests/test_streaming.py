@@ -219,8 +219,8 @@ def test_frames_the_estimator_cannot_read_are_refused_naming_them():
     cam = PinholeCamera(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5, frame_rate_hz=30.0)
     est = VelocityEstimator(cam)
     bgr = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
-    np.testing.assert_array_equal(est._grey(bgr), to_grey(bgr))
-    np.testing.assert_allclose(est._grey(bgr.astype(np.uint16)[..., 0] * 257), bgr[..., 0].astype(np.float32))
+    np.testing.assert_array_equal(est._grey(bgr)[0], to_grey(bgr))
+    np.testing.assert_allclose(est._grey(bgr.astype(np.uint16)[..., 0] * 257)[0], bgr[..., 0].astype(np.float32))
     with pytest.raises(ValueError, match=r"frame 0: shape \(10, 10\), but the camera is 64x48"):
         est.update(np.zeros((10, 10), np.float32), 0.0)
     with pytest.raises(ValueError, match="frame 0: NaN or infinite pixels"):

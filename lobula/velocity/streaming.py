@@ -205,8 +205,8 @@ class VelocityEstimator:
             t = _frame_time(t)
             if t <= self._t_last:
                 raise ValueError(f"frame times must be finite and increase; got {t} after {self._t_last}")
-            frame = self._grey(frame)
-            if frame.min() == frame.max():
+            frame, blank = self._grey(frame)
+            if blank:
                 self._leave_out_blank(frame, t)
             else:
                 self._t_last = float(t)
@@ -265,9 +265,10 @@ class VelocityEstimator:
         raise ValueError(f"the IMU's last sample is at {self.imu.last_time:.3f} s, {len(self._frames)} frames "
                          f"(up to {self._frames[-1][1]:.3f} s) wait for it: {GIVE_IMU}, on the frames' clock")
 
-    def _grey(self, frame) -> np.ndarray:
+    def _grey(self, frame) -> tuple[np.ndarray, bool]:
         """``frame`` as the flow reads it: grey (a colour or 16-bit image turned as the readers turn theirs,
-        :func:`lobula.readers.core.to_grey`), of the camera's size, finite; else ValueError naming the frame."""
+        :func:`lobula.readers.core.to_grey`), of the camera's size, finite, in grey levels 0..255; else ValueError
+        naming the frame. With it, whether it is blank (every pixel alike)."""
         img = np.asarray(frame)
         size = (self.camera.height, self.camera.width)
         if img.dtype.kind not in "uif":
@@ -290,7 +291,7 @@ class VelocityEstimator:
         if img.dtype.kind == "f" and hi <= 1.0 and np.any(img != np.round(img)):
             raise ValueError(f"frame {self._index}: pixels from {lo:g} to {hi:g}, an image scaled to 0..1; the flow "
                              f"reads grey levels 0..255: multiply it by 255")
-        return img
+        return img, lo == hi
 
     def _leave_out_blank(self, frame: np.ndarray, t: float) -> None:
         """A blank frame (every pixel alike: a covered lens, a camera's first dark frames, one that failed to
@@ -439,16 +440,21 @@ class VelocityEstimator:
                              col("bias")[i].copy(), col("attitude")[i].copy(), reason)
 
 
+def _number(value, what: str) -> float:
+    """``value`` as a float; TypeError starting with ``what`` unless it is one real number."""
+    if isinstance(value, (bool, str, bytes)) or np.ndim(value) != 0:
+        raise TypeError(f"{what}; got {type(value).__name__} {value!r}"[:200])
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{what}; got {type(value).__name__}") from None
+
+
 def _seconds(name: str, value) -> float | None:
     """``value`` (s, or None) as a float; TypeError unless a number, ValueError unless finite and > 0."""
     if value is None:
         return None
-    if isinstance(value, (bool, str, bytes)) or np.ndim(value) != 0:
-        raise TypeError(f"{name} must be a number of seconds, got {type(value).__name__} {value!r}"[:200])
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a number of seconds, got {type(value).__name__}") from None
+    value = _number(value, f"{name} must be a number of seconds")
     if not (np.isfinite(value) and value > 0):
         raise ValueError(f"{name} must be a finite number of seconds > 0, got {value}")
     return value
@@ -456,15 +462,10 @@ def _seconds(name: str, value) -> float | None:
 
 def _frame_time(t) -> float:
     """A frame's time ``t`` as a float (s); TypeError unless one number, ValueError unless finite."""
-    if t is None or isinstance(t, (bool, str, bytes)) or np.ndim(t) != 0:
-        raise (ValueError if t is None else TypeError)(
-            f"each frame needs its time t, one number of seconds on the IMU's clock; got {type(t).__name__} "
-            f"{t!r}"[:200])
-    try:
-        t = float(t)
-    except (TypeError, ValueError):
-        raise TypeError(f"a frame's time t must be a number of seconds on the IMU's clock, got "
-                        f"{type(t).__name__}") from None
+    what = "each frame needs its time t, one number of seconds on the IMU's clock"
+    if t is None:
+        raise ValueError(f"{what}; got None")
+    t = _number(t, what)
     if not np.isfinite(t):
         raise ValueError(f"frame times must be finite and increase; got {t}")
     return t
